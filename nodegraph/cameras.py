@@ -1,0 +1,168 @@
+"""Camera model shared by every stage.
+
+One camera = (K, Rt, dist, width, height):
+    x_cam = Rt @ [X, 1]                      (3x4, world -> camera)
+    x_n   = x_cam[:2] / x_cam[2]             (normalised image plane)
+    x_d   = distort(x_n, dist)               (OpenCV k1 k2 p1 p2 k3)
+    u     = K @ [x_d, 1]                     (pixels, origin at the centre of the top-left pixel)
+
+A camera known only by a bare 3x4 projection matrix P (non-metric datasets such as the Oxford dino,
+where decomposing P gives nonsense) is stored as K = I, Rt = P, dist = 0: the same formula then gives
+u = dehomog(P X) exactly, and nothing is decomposed. ``metric`` says which of the two it is.
+The OpenCL kernels use the very same packing (see ``pack``), so NumPy and OpenCL agree.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import DataError
+
+PACK_FLOATS = 32  # floats per camera in the packed array the kernels read
+
+
+@dataclass
+class Camera:
+    name: str
+    width: int
+    height: int
+    K: np.ndarray                     # 3x3 intrinsics (identity for a bare-P camera)
+    Rt: np.ndarray                    # 3x4 world -> camera (P itself for a bare-P camera)
+    dist: np.ndarray = field(default_factory=lambda: np.zeros(5))  # k1 k2 p1 p2 k3
+    metric: bool = True               # False: K/Rt come from a bare P and must not be decomposed
+
+    def __post_init__(self):
+        self.K = np.asarray(self.K, dtype=np.float64).reshape(3, 3)
+        self.Rt = np.asarray(self.Rt, dtype=np.float64).reshape(3, 4)
+        d = np.zeros(5)
+        src = np.asarray(self.dist, dtype=np.float64).ravel()
+        d[: min(5, src.size)] = src[:5]
+        self.dist = d
+        self.width, self.height = int(self.width), int(self.height)
+        for label, arr in (("K", self.K), ("R|t", self.Rt), ("distortion", self.dist)):
+            if not np.all(np.isfinite(arr)):
+                raise DataError(f"camera '{self.name}': {label} contains NaN or infinity")
+        if self.width <= 0 or self.height <= 0:
+            raise DataError(f"camera '{self.name}': image size {self.width}x{self.height} is not positive")
+
+    @classmethod
+    def from_P(cls, name: str, P, width: int, height: int) -> "Camera":
+        """A camera known only by its 3x4 projection matrix (kept as is, never decomposed)."""
+        return cls(name, width, height, np.eye(3), np.asarray(P, dtype=np.float64), np.zeros(5), metric=False)
+
+    @property
+    def P(self) -> np.ndarray:
+        """3x4 projection of the undistorted pinhole part: K @ Rt."""
+        return self.K @ self.Rt
+
+    @property
+    def center(self) -> np.ndarray:
+        """Optical centre in world coordinates (null space of P)."""
+        _, _, vt = np.linalg.svd(self.P)
+        c = vt[-1]
+        return c[:3] / c[3]
+
+    @property
+    def has_distortion(self) -> bool:
+        return bool(np.any(self.dist != 0))
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "width": self.width, "height": self.height, "K": self.K.tolist(),
+                "Rt": self.Rt.tolist(), "dist": self.dist.tolist(), "metric": self.metric}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Camera":
+        return cls(d["name"], d["width"], d["height"], d["K"], d["Rt"], d.get("dist", [0] * 5), d.get("metric", True))
+
+
+def distort(xn: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """OpenCV radial-tangential distortion of normalised points (..., 2)."""
+    k1, k2, p1, p2, k3 = dist
+    x, y = xn[..., 0], xn[..., 1]
+    r2 = x * x + y * y
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    return np.stack([xd, yd], axis=-1)
+
+
+class Cameras:
+    """An ordered set of cameras (one per view). Indexable and iterable."""
+
+    def __init__(self, cameras: list[Camera]):
+        if not cameras:
+            raise DataError("a camera set needs at least one camera")
+        self.cameras = list(cameras)
+
+    def __len__(self):
+        return len(self.cameras)
+
+    def __getitem__(self, i) -> Camera:
+        return self.cameras[i]
+
+    def __iter__(self):
+        return iter(self.cameras)
+
+    @property
+    def names(self) -> list[str]:
+        return [c.name for c in self.cameras]
+
+    @property
+    def centers(self) -> np.ndarray:
+        return np.array([c.center for c in self.cameras])
+
+    def project(self, points: np.ndarray, view: int) -> tuple[np.ndarray, np.ndarray]:
+        """Project world points (N,3) into view ``view``.
+
+        Returns (uv (N,2) pixels, depth (N,) = camera z, positive in front of the camera).
+        """
+        cam = self.cameras[view]
+        X = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        xc = X @ cam.Rt[:, :3].T + cam.Rt[:, 3]
+        z = xc[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xn = xc[:, :2] / z[:, None]
+        if cam.has_distortion:
+            xn = distort(xn, cam.dist)
+        uv = xn @ cam.K[:2, :2].T + cam.K[:2, 2]
+        if not cam.metric:
+            # bare P: the sign of the third row is arbitrary; 'in front' means the same side as the scene
+            z = z * np.sign(np.linalg.det(cam.Rt[:, :3]) or 1.0)
+        return uv, z
+
+    def pack(self) -> np.ndarray:
+        """(N, 32) float32 array read by the OpenCL kernels: Rt (12), K (fx, skew, cx, fy, cy), dist (5),
+        width, height, z sign (1 or -1 for bare-P cameras whose third row points backwards), padding."""
+        out = np.zeros((len(self), PACK_FLOATS), dtype=np.float32)
+        for i, c in enumerate(self.cameras):
+            out[i, 0:12] = c.Rt.ravel()
+            out[i, 12:17] = [c.K[0, 0], c.K[0, 1], c.K[0, 2], c.K[1, 1], c.K[1, 2]]
+            out[i, 17:22] = c.dist
+            out[i, 22:24] = [c.width, c.height]
+            out[i, 24] = 1.0 if c.metric else float(np.sign(np.linalg.det(c.Rt[:, :3])) or 1.0)
+        return out
+
+    def to_json(self) -> str:
+        return json.dumps({"cameras": [c.to_dict() for c in self.cameras]}, indent=1)
+
+    @classmethod
+    def from_json(cls, text: str) -> "Cameras":
+        return cls([Camera.from_dict(d) for d in json.loads(text)["cameras"]])
+
+
+def look_at(eye, target, up, fov_deg: float, width: int, height: int, name: str = "cam") -> Camera:
+    """A metric pinhole camera at ``eye`` looking at ``target`` (OpenCV axes: x right, y down, z forward)."""
+    eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
+    z = target - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(z, up)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])
+    t = -R @ eye
+    f = 0.5 * width / math.tan(math.radians(fov_deg) / 2)
+    K = np.array([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1]])
+    return Camera(name, width, height, K, np.hstack([R, t[:, None]]))

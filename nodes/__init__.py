@@ -1,0 +1,1 @@
+"""Pipeline stages. Every module here is imported by the registry; each defines Node subclasses."""
