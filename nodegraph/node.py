@@ -133,6 +133,7 @@ class Input:
 class Output:
     type: type[DataType]
     doc: str = ""
+    optional: bool = False  # the node may return None (e.g. a dataset without masks)
 
 
 _REGISTRY: dict[str, type["Node"]] = {}

@@ -349,6 +349,27 @@ class Table(DataType):
         return json.loads((folder / "table.json").read_text())
 
 
+class Bounds(DataType):
+    """An axis-aligned box: float64 array [[xmin, ymin, zmin], [xmax, ymax, zmax]], stored as JSON."""
+
+    name = "Bounds"
+
+    @classmethod
+    def check(cls, v):
+        if not (isinstance(v, np.ndarray) and v.shape == (2, 3) and np.all(np.isfinite(v)) and np.all(v[1] > v[0])):
+            return "expected a (2, 3) array [min, max] with max > min"
+        return None
+
+    @classmethod
+    def save(cls, v, folder: Path):
+        (folder / "bounds.json").write_text(json.dumps({"min": v[0].tolist(), "max": v[1].tolist()}))
+
+    @classmethod
+    def load(cls, folder: Path):
+        d = json.loads((folder / "bounds.json").read_text())
+        return np.array([d["min"], d["max"]], dtype=np.float64)
+
+
 class Array(DataType):
     """A plain NumPy array (.npy)."""
 
@@ -397,7 +418,7 @@ class Files(DataType):
 
 
 ALL_TYPES: dict[str, type[DataType]] = {
-    t.name: t for t in (Images, Masks, CameraSet, Volume, Mesh, TexturedMesh, Skeleton, MeshSequence, Table, Array, Files)
+    t.name: t for t in (Images, Masks, CameraSet, Volume, Mesh, TexturedMesh, Skeleton, MeshSequence, Table, Bounds, Array, Files)
 }
 
 
