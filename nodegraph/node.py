@@ -56,8 +56,7 @@ class InPath(str):
 
 
 class OutPath(str):
-    """Param type for an output file pattern (relative to the run's output folder). Not part of the cache
-    key: changing it only re-publishes."""
+    """Param type for an output file pattern (relative to the run's output folder)."""
 
 
 @dataclass

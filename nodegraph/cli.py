@@ -1,0 +1,193 @@
+"""Headless command line: run, validate, explain, nodes, describe, dot, cache, devices."""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+from .errors import GraphError, VolcapError
+
+
+def _cache_dir(args) -> Path:
+    return Path(args.cache or os.environ.get("VOLCAP_CACHE") or ".volcap-cache")
+
+
+def _load(args):
+    from .graphfile import load_graph
+
+    return load_graph(args.graph, getattr(args, "set", None) or [], getattr(args, "frames", None))
+
+
+def cmd_run(args) -> int:
+    from .cache import Cache
+    from .executors import make_executor
+    from .run import run_graph
+
+    if args.device:
+        os.environ["VOLCAP_CL_DEVICE"] = args.device  # inherited by worker processes
+    graph = _load(args)
+    out = Path(args.out or Path("out") / Path(args.graph).stem)
+    opts = {"scheduler": args.scheduler} if args.executor == "dask" else {}
+    executor = make_executor(args.executor, args.jobs, **opts)
+    result = run_graph(graph, Cache(_cache_dir(args)), out, executor, progress=not args.quiet)
+    counts = result.counts()
+    print(f"{graph.path.name}: {len(result.records)} items in {result.seconds:.2f} s — "
+          + ", ".join(f"{v} {k}" for k, v in sorted(counts.items())) + f"; run record: {result.out_dir / 'run.json'}")
+    for f in result.failures:
+        frame = "" if f["frame"] is None else f" frame {f['frame']}"
+        print(f"FAILED node '{f['node']}' ({f['type']}){frame}: {f['error']}\n  log: {f['log']}", file=sys.stderr)
+    if args.report:
+        from .report import write_report
+
+        print(f"report: {write_report(result.out_dir)}")
+    return 1 if result.failures else 0
+
+
+def cmd_validate(args) -> int:
+    g = _load(args)
+    print(f"{g.path}: OK — {len(g.nodes)} nodes, frames {g.frames[0]}..{g.frames[-1]} ({len(g.frames)})")
+    return 0
+
+
+def cmd_explain(args) -> int:
+    from .cache import Cache
+    from .run import explain
+
+    rows = explain(_load(args), Cache(_cache_dir(args)))
+    for r in rows:
+        frame = "all" if r["frame"] is None else r["frame"]
+        state = "cached" if r["cached"] else "run   "
+        why = "" if r["cached"] else "  changed: " + ", ".join(r["changed"])
+        print(f"{state} {r['node']}@{frame}  {r['key'][:12]}{why}")
+    n = sum(not r["cached"] for r in rows)
+    print(f"{n} of {len(rows)} work items to run")
+    return 0
+
+
+def cmd_nodes(args) -> int:
+    from .node import discovery_problems, registry
+
+    for name, cls in sorted(registry().items()):
+        first = (cls.doc().splitlines() or [""])[0]
+        print(f"{name:22s} {first}")
+    for p in discovery_problems():
+        print(f"warning: {p}", file=sys.stderr)
+    return 0
+
+
+def cmd_describe(args) -> int:
+    from .graphfile import suggest
+    from .node import registry
+
+    reg = registry()
+    if args.node not in reg:
+        raise VolcapError(f"unknown node type '{args.node}'{suggest(args.node, reg)}; see `nodes`")
+    print(reg[args.node].describe())
+    return 0
+
+
+def cmd_dot(args) -> int:
+    g = _load(args)
+    lines = [f'digraph "{g.path.stem}" {{', "  rankdir=LR;", '  node [shape=box, style=rounded, fontname="Helvetica"];']
+    for name, spec in g.nodes.items():
+        lines.append(f'  {name} [label="{name}\\n({spec.type_name})"];')
+    for name, spec in g.nodes.items():
+        for port, (src, sport) in spec.inputs.items():
+            lines.append(f'  {src} -> {name} [label="{sport}→{port}", fontsize=10];')
+    lines.append("}")
+    print("\n".join(lines))
+    return 0
+
+
+def cmd_cache(args) -> int:
+    from .cache import Cache
+
+    cache = Cache(_cache_dir(args))
+    if args.action == "ls":
+        total = 0
+        for key, meta, size in cache.entries():
+            total += size
+            frame = "all" if meta.get("frame") is None else meta.get("frame")
+            print(f"{key[:16]}  {meta.get('type', '?'):18s} {meta.get('node', '?')}@{frame}  {size / 1e6:8.2f} MB  {meta.get('seconds', 0):.3f} s")
+        print(f"total {total / 1e6:.1f} MB in {cache.root}")
+    elif args.action == "gc":
+        n, freed = cache.gc(args.max_age)
+        print(f"removed {n} entries, {freed / 1e6:.1f} MB")
+    elif args.action == "clear":
+        cache.clear()
+        print(f"cleared {cache.root}")
+    return 0
+
+
+def cmd_devices(args) -> int:
+    from .clrt import devices_table
+
+    for row in devices_table():
+        print(row)
+    return 0
+
+
+def cmd_report(args) -> int:
+    from .report import write_report
+
+    print(write_report(Path(args.out_dir)))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="volcap", description="Volumetric capture node graphs, run headless.")
+    p.add_argument("--cache", help="cache folder (default $VOLCAP_CACHE or ./.volcap-cache)")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    def graph_cmd(name, help_text, fn):
+        sp = sub.add_parser(name, help=help_text)
+        sp.add_argument("graph", help="graph file (YAML)")
+        sp.add_argument("--set", action="append", metavar="NODE.PARAM=VALUE", help="override a parameter (repeatable)")
+        sp.add_argument("--frames", metavar="A:B", help="override the frame range (half-open)")
+        sp.add_argument("--cache", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
+        sp.set_defaults(fn=fn)
+        return sp
+
+    r = graph_cmd("run", "run a graph", cmd_run)
+    r.add_argument("--out", help="output folder (default out/GRAPHNAME)")
+    r.add_argument("--jobs", "-j", type=int, help="parallel work items (default: CPU count; 1 = in this process)")
+    r.add_argument("--executor", choices=["local", "dask"], default="local")
+    r.add_argument("--scheduler", help="dask: address of an existing scheduler (tcp://HOST:PORT)")
+    r.add_argument("--device", help="OpenCL device: cpu, gpu or PLATFORM:DEVICE (see `devices`)")
+    r.add_argument("--report", action="store_true", help="write report.html into the output folder")
+    r.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
+    graph_cmd("validate", "check a graph file without running it", cmd_validate)
+    graph_cmd("explain", "dry run: which work items are cached, which run and why", cmd_explain)
+    graph_cmd("dot", "print the graph as Graphviz text", cmd_dot)
+    sub.add_parser("nodes", help="list node types").set_defaults(fn=cmd_nodes)
+    d = sub.add_parser("describe", help="ports, parameters and docs of a node type")
+    d.add_argument("node")
+    d.set_defaults(fn=cmd_describe)
+    c = sub.add_parser("cache", help="inspect or clean the cache")
+    c.add_argument("action", choices=["ls", "gc", "clear"])
+    c.add_argument("--max-age", type=float, metavar="DAYS", help="gc: also remove entries unused for DAYS")
+    c.add_argument("--cache", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
+    c.set_defaults(fn=cmd_cache)
+    sub.add_parser("devices", help="list OpenCL devices").set_defaults(fn=cmd_devices)
+    rp = sub.add_parser("report", help="write report.html for an existing output folder")
+    rp.add_argument("out_dir")
+    rp.set_defaults(fn=cmd_report)
+    return p
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.fn(args)
+    except GraphError as exc:
+        for line in exc.problems:
+            print(f"error: {line}", file=sys.stderr)
+        return 2
+    except VolcapError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted: finished work items are cached; rerun to continue", file=sys.stderr)
+        return 130

@@ -1,0 +1,122 @@
+"""Executors run the work items that are not cached. Interface:
+
+    executor.run(items, specs, cache_root, on_result)
+
+``items`` are in dependency order, ``specs`` maps key -> plain-data spec (what ``worker.execute`` takes),
+``on_result(key, result)`` is called in the calling thread once per item, with result["status"] one of
+done / failed / skipped. An item whose input failed is skipped, never run; independent items go on.
+"""
+from __future__ import annotations
+
+import multiprocessing
+import os
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
+
+from .worker import execute
+
+
+class _DependencyTracker:
+    """The ready set of a dependency graph, with failure propagation to descendants."""
+
+    def __init__(self, items):
+        self.items = {it.key: it for it in items}
+        self.waiting = {it.key: {d for d in it.deps if d in self.items} for it in items}
+        self.children: dict[str, list[str]] = {k: [] for k in self.items}
+        for k, deps in self.waiting.items():
+            for d in deps:
+                self.children[d].append(k)
+        self.ready = [it.key for it in items if not self.waiting[it.key]]
+
+    def finished(self, key: str, ok: bool) -> list[str]:
+        """Record an outcome; return the keys that can no longer run (descendants of a failure)."""
+        if ok:
+            for c in self.children[key]:
+                if c not in self.waiting:  # already given up (another input failed)
+                    continue
+                self.waiting[c].discard(key)
+                if not self.waiting[c]:
+                    self.ready.append(c)
+            return []
+        doomed, stack = [], list(self.children[key])
+        while stack:
+            c = stack.pop()
+            if c in self.waiting and c not in doomed:
+                doomed.append(c)
+                del self.waiting[c]
+                stack.extend(self.children[c])
+        return doomed
+
+
+def _skip(tracker, key, on_result, reason_node):
+    for d in tracker.finished(key, ok=False):
+        on_result(d, {"status": "skipped", "error": f"upstream '{reason_node}' failed", "seconds": 0.0})
+
+
+class LocalExecutor:
+    """Runs items in a local process pool (spawn: OpenCL must never be forked), or in this process when
+    jobs == 1."""
+
+    name = "local"
+
+    def __init__(self, jobs: int | None = None):
+        self.jobs = max(1, jobs or os.cpu_count() or 1)
+
+    def run(self, items, specs, cache_root, on_result):
+        tracker = _DependencyTracker(items)
+        if self.jobs == 1 or len(items) == 1:
+            while tracker.ready:
+                key = tracker.ready.pop(0)
+                res = execute(specs[key], cache_root)
+                on_result(key, res)
+                if res["status"] == "done":
+                    tracker.finished(key, ok=True)
+                else:
+                    _skip(tracker, key, on_result, tracker.items[key].node)
+            return
+        ctx = multiprocessing.get_context("spawn")
+        pool = ProcessPoolExecutor(max_workers=min(self.jobs, len(items)), mp_context=ctx)
+        running = {}
+        try:
+            while tracker.ready or running:
+                while tracker.ready and len(running) < self.jobs:
+                    key = tracker.ready.pop(0)
+                    running[pool.submit(execute, specs[key], cache_root)] = key
+                done, _ = wait(running, return_when=FIRST_COMPLETED)
+                broken = False
+                for fut in done:
+                    key = running.pop(fut)
+                    try:
+                        res = fut.result()
+                    except BrokenProcessPool:
+                        broken = True
+                        res = {"status": "failed", "seconds": 0.0,
+                               "error": "the worker process died (killed, or out of memory); rerun to retry"}
+                    except Exception as exc:  # pickling problems and the like
+                        res = {"status": "failed", "seconds": 0.0, "error": f"{type(exc).__name__}: {exc}"}
+                    on_result(key, res)
+                    if res["status"] == "done":
+                        tracker.finished(key, ok=True)
+                    else:
+                        _skip(tracker, key, on_result, tracker.items[key].node)
+                if broken:  # the pool is unusable: fail what was in flight, start a new pool
+                    for fut, key in list(running.items()):
+                        on_result(key, {"status": "failed", "seconds": 0.0, "error": "worker pool broke; rerun to retry"})
+                        _skip(tracker, key, on_result, tracker.items[key].node)
+                    running.clear()
+                    pool.shutdown(wait=False, cancel_futures=True)
+                    pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=ctx)
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
+
+
+def make_executor(name: str, jobs: int | None = None, **options):
+    if name == "local":
+        return LocalExecutor(jobs)
+    if name == "dask":
+        from .dask_executor import DaskExecutor
+
+        return DaskExecutor(workers=jobs, **options)
+    from .errors import VolcapError
+
+    raise VolcapError(f"unknown executor '{name}' (local or dask)")

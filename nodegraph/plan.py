@@ -1,0 +1,95 @@
+"""Planning: a validated Graph -> work items with cache keys.
+
+The contract (what the scheduler, the cache and `explain` rely on):
+- A work item is one node run: (node, frame) for per-frame nodes, (node, all frames) for sequence nodes.
+- Its spec is small, plain data (node type and module, params, input artifact references, key): it can be
+  pickled to a process pool or a Dask cluster, never a live object.
+- Its key is the SHA-256 of: the key schema version, node type, node version, the implementation
+  fingerprint (the node's Python module, ``uses`` modules and OpenCL sources), the canonical params (input
+  paths replaced by their content hash), the keys of its input artifacts, and the
+  frame number if the node ``uses_frame``. Same key = same result, so an item whose key is in the cache is
+  never rerun, and two items with the same key (a per-frame node fed only frame-independent data) run once.
+- An item runs when it is not cached and all its inputs exist; when an input failed, it is skipped.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from .graphfile import Graph
+from .hashing import KEY_SCHEMA, FileHasher, digest, implementation_fingerprint
+from .node import InPath
+
+
+@dataclass
+class WorkItem:
+    node: str
+    type_name: str
+    module: str
+    frame: int | None               # None for sequence items
+    frames: list[int]
+    params: dict                    # what run() receives
+    inputs: dict                    # port -> ref | [refs] | None; ref = {"key", "port", "type"}
+    key: str
+    components: dict                # the parts of the key, for `explain`
+    deps: list[str] = field(default_factory=list)  # keys of the items producing the inputs
+
+    @property
+    def label(self) -> str:
+        return f"{self.node}@{'all' if self.frame is None else self.frame}"
+
+    def spec(self, log_path: str | None = None) -> dict:
+        return {"node": self.node, "type": self.type_name, "module": self.module, "frame": self.frame,
+                "frames": self.frames, "params": self.params, "inputs": self.inputs, "key": self.key,
+                "components": self.components, "log": log_path}
+
+
+def _type_ref(t) -> str:
+    return f"{t.__module__}:{t.__qualname__}"
+
+
+def make_plan(graph: Graph, hasher: FileHasher) -> tuple[list[WorkItem], dict[tuple[str, int | None], str]]:
+    """Work items in dependency order (deduplicated by key) and the (node, frame) -> key map.
+    Sequence items are stored under frame None."""
+    items: dict[str, WorkItem] = {}
+    slot: dict[tuple[str, int | None], str] = {}
+
+    def key_of(node: str, frame: int) -> str:
+        return slot[(node, frame)] if (node, frame) in slot else slot[(node, None)]
+
+    for name in graph.order():
+        spec = graph.nodes[name]
+        cls = spec.cls
+        impl = implementation_fingerprint(cls)
+        hashed_params = {}
+        for p, v in spec.params.items():
+            decl = cls.params[p]
+            hashed_params[p] = {"content": hasher.path(v)} if (decl.type is InPath and v is not None) else v
+        frame_sets = [[f] for f in graph.frames] if cls.per == "frame" else [list(graph.frames)]
+        for frames in frame_sets:
+            frame = frames[0] if cls.per == "frame" else None
+            inputs, in_keys, deps = {}, {}, []
+            for port in cls.inputs:
+                if port not in spec.inputs:
+                    inputs[port] = None
+                    in_keys[port] = None
+                    continue
+                src, sport = spec.inputs[port]
+                stype = _type_ref(graph.nodes[src].cls.outputs[sport].type)
+                keys = [key_of(src, f) for f in frames]
+                refs = [{"key": k, "port": sport, "type": stype} for k in keys]
+                src_is_seq = graph.nodes[src].cls.per == "sequence"
+                if cls.per == "frame" or src_is_seq:
+                    inputs[port], in_keys[port] = refs[0], f"{keys[0]}/{sport}"
+                else:
+                    inputs[port], in_keys[port] = refs, [f"{k}/{sport}" for k in keys]
+                deps.extend(keys)
+            components = {"schema": KEY_SCHEMA, "node": spec.type_name, "version": cls.version,
+                          "implementation": impl, "params": hashed_params, "inputs": in_keys,
+                          "frame": frame if cls.uses_frame else None}
+            key = digest(components)[:32]
+            slot[(name, frame)] = key
+            if key not in items:
+                items[key] = WorkItem(name, spec.type_name, cls.__module__, frame, frames, dict(spec.params),
+                                      inputs, key, components, sorted(set(deps)))
+    hasher.save()
+    return list(items.values()), slot

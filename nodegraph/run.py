@@ -1,0 +1,152 @@
+"""Running a graph: plan -> skip what is cached -> execute the rest -> publish exports -> run.json.
+
+run.json (in the output folder) records, per node and frame: status (done / cached / failed / skipped),
+cache_hit, wall seconds, key, the cache folder of its outputs, the files it published, its log.
+"""
+from __future__ import annotations
+
+import json
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from .cache import Cache, atomic_write_bytes, atomic_write_text
+from .graphfile import Graph
+from .hashing import FileHasher, digest
+from .plan import WorkItem, make_plan
+
+
+@dataclass
+class RunResult:
+    records: list[dict]
+    out_dir: Path
+    seconds: float
+    failures: list[dict] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return not self.failures
+
+    def counts(self) -> dict:
+        c: dict[str, int] = {}
+        for r in self.records:
+            c[r["status"]] = c.get(r["status"], 0) + 1
+        return c
+
+
+def plan_graph(graph: Graph, cache: Cache):
+    return make_plan(graph, FileHasher(cache.root / "filehash.json"))
+
+
+def _index_path(cache: Cache, graph: Graph, node: str, frame) -> Path:
+    return cache.root / "index" / digest(str(graph.path))[:16] / f"{node}@{'all' if frame is None else frame}.json"
+
+
+def explain(graph: Graph, cache: Cache) -> list[dict]:
+    """Per work item: cached or to run, and which parts of its key differ from the last run of the same
+    node and frame of this graph file."""
+    items, slot = plan_graph(graph, cache)
+    by_key = {it.key: it for it in items}
+    rows = []
+    for (node, frame), key in slot.items():
+        it = by_key[key]
+        row = {"node": node, "frame": frame, "key": key, "cached": cache.has(key), "changed": []}
+        idx = _index_path(cache, graph, node, frame)
+        if not row["cached"]:
+            if idx.is_file():
+                old = json.loads(idx.read_text())["components"]
+                row["changed"] = _diff(old, it.components)
+            else:
+                row["changed"] = ["(no earlier run)"]
+        rows.append(row)
+    return rows
+
+
+def _diff(old, new, prefix="") -> list[str]:
+    if isinstance(old, dict) and isinstance(new, dict):
+        out = []
+        for k in sorted(set(old) | set(new)):
+            out += _diff(old.get(k), new.get(k), f"{prefix}.{k}" if prefix else k)
+        return out
+    return [] if old == new else [prefix]
+
+
+def run_graph(graph: Graph, cache: Cache, out_dir: Path, executor, progress: bool = True) -> RunResult:
+    t0 = time.perf_counter()
+    out_dir = Path(out_dir).resolve()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    items, slot = plan_graph(graph, cache)
+    by_key = {it.key: it for it in items}
+    results: dict[str, dict] = {}
+    to_run: list[WorkItem] = []
+    for it in items:
+        if cache.has(it.key):
+            results[it.key] = {"status": "cached", "seconds": 0.0}
+            cache.touch(it.key)
+        else:
+            to_run.append(it)
+    log_dir = out_dir / "logs"
+    specs = {it.key: it.spec(str(log_dir / it.node / f"{'all' if it.frame is None else it.frame}.log")) for it in to_run}
+
+    bar = None
+    if progress and to_run:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(to_run), unit="item", file=sys.stderr, dynamic_ncols=True, disable=None,
+                   desc=f"{graph.path.name}")
+
+    def on_result(key, res):
+        results[key] = res
+        if bar is not None:
+            it = by_key[key]
+            bar.set_postfix_str(f"{it.label} {res['status']}", refresh=False)
+            bar.update(1)
+
+    if to_run:
+        executor.run(to_run, specs, str(cache.root), on_result)
+    if bar is not None:
+        bar.close()
+
+    records, failures = [], []
+    for (node, frame), key in slot.items():
+        it = by_key[key]
+        res = results.get(key, {"status": "skipped", "error": "not run", "seconds": 0.0})
+        rec = {"node": node, "type": it.type_name, "frame": frame, "status": res["status"],
+               "cache_hit": res["status"] == "cached", "seconds": round(res.get("seconds", 0.0), 4), "key": key,
+               "cache_dir": str(cache.object_dir(key)) if cache.has(key) else None,
+               "log": specs[key]["log"] if key in specs else None, "published": []}
+        if res.get("error"):
+            rec["error"] = res["error"]
+        if res["status"] in ("done", "cached"):
+            rec["published"] = _publish(graph, cache, it, out_dir)
+            idx = _index_path(cache, graph, node, frame)
+            atomic_write_text(idx, json.dumps({"key": key, "components": it.components}))
+        if res["status"] == "failed":
+            failures.append(rec)
+        records.append(rec)
+    result = RunResult(records, out_dir, time.perf_counter() - t0, failures)
+    doc = {"graph": str(graph.path), "frames": graph.frames, "cache": str(cache.root), "seconds": round(result.seconds, 3),
+           "counts": result.counts(), "items": records}
+    atomic_write_text(out_dir / "run.json", json.dumps(doc, indent=1))
+    return result
+
+
+def _publish(graph: Graph, cache: Cache, it: WorkItem, out_dir: Path) -> list[str]:
+    """Copy the Files outputs of a publishing node into the output folder (atomically per file)."""
+    cls = graph.nodes[it.node].cls
+    if not cls.publishes:
+        return []
+    from .types import Files
+
+    written = []
+    for port, decl in cls.outputs.items():
+        if not issubclass(decl.type, Files):
+            continue
+        files = cache.load(it.key, port, Files) or {}
+        for rel, data in files.items():
+            target = out_dir / rel
+            if not (target.is_file() and target.stat().st_size == len(data) and target.read_bytes() == data):
+                atomic_write_bytes(target, data)
+            written.append(str(target))
+    return written

@@ -1,0 +1,125 @@
+"""Tiny nodes for engine tests (imported by tests; spawned workers import this module by name)."""
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from nodegraph import Array, Files, InPath, Node, NodeError, OutPath, Param
+from nodegraph.types import DataType
+
+
+class Source(Node):
+    """A per-frame array: value + frame."""
+
+    type_name = "t.source"
+    uses_frame = True
+    outputs = {"out": Array}
+    params = {"value": Param(float, 0.0, doc="base value"), "size": Param(int, 4, range=(1, 1000))}
+
+    def run(self, *, value, size, frame):
+        return {"out": np.full(size, value + frame)}
+
+
+class Scale(Node):
+    """Multiply by a factor."""
+
+    type_name = "t.scale"
+    inputs = {"x": Array}
+    outputs = {"out": Array}
+    params = {"factor": Param(float, 2.0, range=(-100, 100)), "mode": Param(str, "mul", choices=("mul", "add"))}
+
+    def run(self, x, *, factor, mode):
+        return {"out": x * factor if mode == "mul" else x + factor}
+
+
+class Add(Node):
+    """Add one."""
+
+    type_name = "t.add"
+    inputs = {"a": Array}
+    outputs = {"out": Array}
+
+    def run(self, a):
+        return {"out": a + 1}
+
+
+class Total(Node):
+    """Sequence node: one array of per-frame sums."""
+
+    type_name = "t.total"
+    per = "sequence"
+    inputs = {"x": Array}
+    outputs = {"out": Array}
+
+    def run(self, x):
+        assert isinstance(x, list) and len(x) == len(self.frames)
+        return {"out": np.array([float(a.sum()) for a in x])}
+
+
+class Fail(Node):
+    """Fails on chosen frames."""
+
+    type_name = "t.fail"
+    inputs = {"x": Array}
+    outputs = {"out": Array}
+    params = {"frames": Param(list, [], item=int)}
+
+    def run(self, x, *, frames):
+        if self.frame in frames:
+            raise NodeError(f"frame {self.frame} is broken on purpose")
+        return {"out": x}
+
+
+class ReadFile(Node):
+    """Bytes of an input file as an array (hashed by content, not path)."""
+
+    type_name = "t.readfile"
+    outputs = {"out": Array}
+    params = {"path": Param(InPath, doc="a file")}
+
+    def run(self, *, path):
+        return {"out": np.frombuffer(Path(path).read_bytes(), dtype=np.uint8)}
+
+
+class WriteText(Node):
+    """Publishes a text file with the array's sum."""
+
+    type_name = "t.write"
+    uses_frame = True
+    publishes = True
+    inputs = {"x": Array}
+    outputs = {"files": Files}
+    params = {"path": Param(OutPath, "sum_{frame:03d}.txt")}
+
+    def run(self, x, *, path, frame):
+        return {"files": {path.format(frame=frame): f"{float(x.sum())}\n".encode()}}
+
+
+class SlowType(DataType):
+    """A type whose save() announces itself and then stalls, so a test can kill the writer mid-write."""
+
+    name = "Slow"
+
+    @classmethod
+    def save(cls, value, folder):
+        (folder / "part1.bin").write_bytes(b"x" * 1000)
+        Path(os.environ["VOLCAP_TEST_SIGNAL"]).write_text("writing")
+        time.sleep(60)
+        (folder / "part2.bin").write_bytes(b"y")
+
+    @classmethod
+    def load(cls, folder):
+        return (folder / "part1.bin").read_bytes()
+
+
+class SlowWriter(Node):
+    """Produces a SlowType output (see SlowType)."""
+
+    type_name = "t.slowwrite"
+    outputs = {"out": SlowType}
+
+    def run(self):
+        return {"out": b"data"}

@@ -1,0 +1,332 @@
+"""Engine tests: validation messages, cache keys, partial recompute, atomic writes, failure isolation."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import enginenodes  # noqa: F401  (registers the t.* nodes)
+from nodegraph import GraphError, hashing
+from nodegraph.cache import Cache
+from nodegraph.cli import main as cli
+from nodegraph.executors import LocalExecutor
+from nodegraph.graphfile import load_graph
+from nodegraph.run import explain, plan_graph, run_graph
+
+CHAIN = """\
+frames: 0:3
+nodes:
+  src:   {type: t.source, params: {value: 1.0}}
+  scale: {type: t.scale, in: {x: src.out}, params: {factor: 3}}
+  plus:  {type: t.add, in: {a: scale.out}}
+  total: {type: t.total, in: {x: plus.out}}
+  write: {type: t.write, in: {x: plus.out}}
+"""
+
+
+def write(tmp_path, text, name="g.yaml") -> Path:
+    p = tmp_path / name
+    p.write_text(textwrap.dedent(text))
+    return p
+
+
+def problems(tmp_path, text, **kw) -> list[str]:
+    p = write(tmp_path, text)
+    with pytest.raises(GraphError) as exc:
+        load_graph(p, **kw)
+    return exc.value.problems
+
+
+def run(tmp_path, graph_path, jobs=1, **kw):
+    g = load_graph(graph_path, **kw)
+    return run_graph(g, Cache(tmp_path / "cache"), tmp_path / "out", LocalExecutor(jobs), progress=False)
+
+
+# ---------------------------------------------------------------- validation: every error names file:line
+@pytest.mark.parametrize("text, line, needle", [
+    ("nodes:\n  a: {type: t.source\n", 3, "YAML syntax error"),
+    ("nodes:\n  a: {type: t.sourc}\n", 2, "unknown node type 't.sourc' (did you mean 't.source'?)"),
+    ("nodes:\n  a: {type: t.source, params: {valeu: 1}}\n", 2, "unknown parameter 'valeu' for type 't.source' (did you mean 'value'?)"),
+    ("nodes:\n  a: {type: t.source}\n  b:\n    type: t.scale\n    in: {y: a.out}\n", 5, "type 't.scale' has no input 'y'"),
+    ("nodes:\n  a: {type: t.source}\n  b:\n    type: t.scale\n    in: {x: aout}\n", 5, "must be NODE.PORT"),
+    ("nodes:\n  a: {type: t.source}\n  b:\n    type: t.scale\n    in: {x: c.out}\n", 5, "unknown node 'c'"),
+    ("nodes:\n  a: {type: t.source}\n  b:\n    type: t.scale\n    in: {x: a.output}\n", 5, "has no output 'output' (did you mean 'out'?)"),
+    ("nodes:\n  a: {type: t.source}\n  w: {type: t.write, in: {x: a.out}}\n  b: {type: t.scale, in: {x: w.files}}\n", 4,
+     "input 'x' expects Array but 'w.files' is Files"),
+    ("nodes:\n  b: {type: t.scale}\n", 2, "required input 'x' (Array) is not connected"),
+    ("nodes:\n  a:\n    type: t.source\n    params: {size: 0}\n", 4, "parameter 'size' must be in [1, 1000]; got 0"),
+    ("nodes:\n  a:\n    type: t.source\n    params: {size: many}\n", 4, "parameter 'size' expects an integer"),
+    ("nodes:\n  a: {type: t.source}\n  b:\n    type: t.scale\n    in: {x: a.out}\n    params: {mode: div}\n", 6, "must be one of mul, add"),
+    ("nodes:\n  a: {type: t.scale, in: {x: b.out}}\n  b: {type: t.scale, in: {x: a.out}}\n", 2, "cycle in the graph"),
+    ("frame: 0:3\nnodes:\n  a: {type: t.source}\n", 1, "unknown top-level key 'frame' (did you mean 'frames'?)"),
+    ("nodes:\n  a: {type: t.source}\n  a: {type: t.source}\n", 3, "duplicate key 'a'"),
+    ("frames: 5:2\nnodes:\n  a: {type: t.source}\n", 1, "frame range '5:2' is empty"),
+    ("nodes:\n  r:\n    type: t.readfile\n    params: {path: no/such/file.bin}\n", 4, "path not found"),
+    ("defaults: {t.source: {sise: 3}}\nnodes:\n  a: {type: t.source}\n", 1, "has no parameter 'sise' (did you mean 'size'?)"),
+    ("nodes:\n  a: {type: t.source, colour: red}\n", 2, "unknown key 'colour'"),
+    ("nodes:\n  r: {type: t.readfile}\n", 2, "parameter 'path' is required"),
+])
+def test_validation_error_names_file_and_line(tmp_path, text, line, needle):
+    found = problems(tmp_path, text)
+    assert any(p.startswith(f"{tmp_path / 'g.yaml'}:{line}") and needle in p for p in found), found
+
+
+def test_validation_reports_all_problems_at_once(tmp_path):
+    found = problems(tmp_path, "nodes:\n  a: {type: t.sourc}\n  b: {type: t.scale, params: {factr: 2}}\n")
+    assert len(found) == 3, found  # unknown type, unknown param, unconnected input
+
+
+def test_set_overrides_and_their_errors(tmp_path):
+    p = write(tmp_path, CHAIN)
+    g = load_graph(p, overrides=["scale.factor=5", "src.size=2"])
+    assert g.nodes["scale"].params["factor"] == 5.0 and g.nodes["src"].params["size"] == 2
+    with pytest.raises(GraphError) as exc:
+        load_graph(p, overrides=["scale.factr=5", "nope.x=1", "scale.factor=big", "bad"])
+    text = "\n".join(exc.value.problems)
+    assert "--set scale.factr=5: node 'scale': unknown parameter 'factr' (did you mean 'factor'?)" in text
+    assert "--set nope.x=1: no node named 'nope'" in text
+    assert "--set scale.factor=big: node 'scale': parameter 'factor' expects a number" in text
+    assert "--set bad: expected NODE.PARAM=VALUE" in text
+
+
+def test_frames_ranges_are_not_sexagesimal(tmp_path):
+    g = load_graph(write(tmp_path, "frames: 1:20\nnodes:\n  a: {type: t.source}\n"))
+    assert g.frames == list(range(1, 20))
+    assert load_graph(write(tmp_path, CHAIN), frames="4:6").frames == [4, 5]
+
+
+def test_cli_validation_error_is_one_clear_message(tmp_path, capsys):
+    p = write(tmp_path, "nodes:\n  a: {type: t.source}\n  b: {type: t.scale, in: {x: a.oops}}\n")
+    assert cli(["validate", str(p)]) == 2
+    err = capsys.readouterr().err
+    assert f"error: {p}:3: node 'b': input 'x': node 'a' (t.source) has no output 'oops'" in err
+    assert "Traceback" not in err
+    assert cli(["validate", str(tmp_path / "missing.yaml")]) == 2
+    assert "graph file not found" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------- cache keys (Gaffer-style hash test)
+def keys(tmp_path, text, **kw) -> dict:
+    g = load_graph(write(tmp_path, text), **kw)
+    _, slot = plan_graph(g, Cache(tmp_path / "cache"))
+    return slot
+
+
+def test_every_key_component_moves_the_key(tmp_path, monkeypatch):
+    base = keys(tmp_path, CHAIN)
+    assert keys(tmp_path, CHAIN) == base, "same graph must give the same keys"
+    # a parameter: that node and its downstream change, upstream does not
+    k = keys(tmp_path, CHAIN, overrides=["scale.factor=4"])
+    assert k[("src", 0)] == base[("src", 0)]
+    assert k[("scale", 0)] != base[("scale", 0)] and k[("plus", 0)] != base[("plus", 0)]
+    assert k[("total", None)] != base[("total", None)]
+    # an input artifact: upstream change moves downstream keys
+    k = keys(tmp_path, CHAIN, overrides=["src.value=2"])
+    assert all(k[s] != base[s] for s in base)
+    # the frame, for nodes that use it
+    assert base[("src", 0)] != base[("src", 1)]
+    # the node version
+    monkeypatch.setattr(enginenodes.Scale, "version", 2)
+    k = keys(tmp_path, CHAIN)
+    assert k[("scale", 0)] != base[("scale", 0)] and k[("src", 0)] == base[("src", 0)]
+    monkeypatch.setattr(enginenodes.Scale, "version", 1)
+    assert keys(tmp_path, CHAIN) == base
+    # the implementation (Python source and OpenCL kernels)
+    from nodegraph import clrt, node as nodemod
+
+    kdir = tmp_path / "kernels"
+    kdir.mkdir()
+    (kdir / "t.cl").write_text("__kernel void f() {}\n")
+    monkeypatch.setattr(clrt, "KERNEL_DIR", kdir)
+    monkeypatch.setattr(enginenodes.Scale, "kernels", ["t.cl"])
+    hashing.implementation_fingerprint.cache_clear()
+    k1 = keys(tmp_path, CHAIN)
+    (kdir / "t.cl").write_text("__kernel void f() { /* changed */ }\n")
+    hashing.implementation_fingerprint.cache_clear()
+    k2 = keys(tmp_path, CHAIN)
+    assert k1[("scale", 0)] != k2[("scale", 0)] and k1[("src", 0)] == k2[("src", 0)]
+    real = nodemod.implementation_sources
+    monkeypatch.setattr(nodemod, "implementation_sources", lambda cls: {**real(cls), "py:edit": "x"} if cls is enginenodes.Scale else real(cls))
+    hashing.implementation_fingerprint.cache_clear()
+    k3 = keys(tmp_path, CHAIN)
+    assert k3[("scale", 0)] != k2[("scale", 0)] and k3[("src", 0)] == k2[("src", 0)]
+    hashing.implementation_fingerprint.cache_clear()
+
+
+def test_input_files_hash_by_content_not_path(tmp_path):
+    a, b = tmp_path / "a", tmp_path / "b"
+    a.mkdir(), b.mkdir()
+    (a / "f.bin").write_bytes(b"hello")
+    (b / "f.bin").write_bytes(b"hello")
+    text = "nodes:\n  r: {{type: t.readfile, params: {{path: {}/f.bin}}}}\n"
+    ka = keys(tmp_path, text.format(a))
+    assert keys(tmp_path, text.format(b)) == ka, "moving an input file must keep the key"
+    time.sleep(0.01)
+    (b / "f.bin").write_bytes(b"hellO")
+    assert keys(tmp_path, text.format(b)) != ka, "changing its content must change the key"
+
+
+def test_output_path_moves_only_the_export_key(tmp_path):
+    base = keys(tmp_path, CHAIN)
+    k = keys(tmp_path, CHAIN, overrides=["write.path=other_{frame}.txt"])
+    assert {s for s in base if base[s] != k[s]} == {("write", f) for f in range(3)}
+
+
+# ---------------------------------------------------------------- running
+def test_run_outputs_publish_and_run_record(tmp_path):
+    p = write(tmp_path, CHAIN)
+    res = run(tmp_path, p)
+    assert res.ok and res.counts() == {"done": 13}
+    # (1 + f) * 3 + 1 per element, 4 elements
+    for f in range(3):
+        assert (tmp_path / "out" / f"sum_{f:03d}.txt").read_text() == f"{((1 + f) * 3 + 1) * 4.0}\n"
+    doc = json.loads((tmp_path / "out" / "run.json").read_text())
+    rec = {(r["node"], r["frame"]): r for r in doc["items"]}
+    assert rec[("total", None)]["status"] == "done" and not rec[("total", None)]["cache_hit"]
+    total = Cache(tmp_path / "cache").load(rec[("total", None)]["key"], "out", enginenodes.Array)
+    np.testing.assert_array_equal(total, [16.0, 28.0, 40.0])
+    assert rec[("write", 2)]["published"] == [str(tmp_path / "out" / "sum_002.txt")]
+    assert Path(rec[("scale", 1)]["log"]).is_file()
+
+
+def test_twenty_frame_rerun_is_all_cache_hits(tmp_path):
+    p = write(tmp_path, CHAIN.replace("frames: 0:3", "frames: 0:20"))
+    first = run(tmp_path, p)
+    assert first.counts() == {"done": 81}
+    again = run(tmp_path, p)
+    assert again.counts() == {"cached": 81}
+    assert all(r["cache_hit"] for r in again.records)
+
+
+def test_changing_one_param_reruns_that_node_and_downstream_only(tmp_path):
+    p = write(tmp_path, CHAIN)
+    run(tmp_path, p)
+    res = run(tmp_path, p, overrides=["write.path=s_{frame}.txt"])
+    assert res.counts() == {"cached": 10, "done": 3}, "an output path change reruns the export only"
+    assert (tmp_path / "out" / "s_0.txt").read_text() == "16.0\n"
+    res = run(tmp_path, p, overrides=["scale.factor=5"])
+    status = {(r["node"], r["frame"]): r["status"] for r in res.records}
+    assert all(status[("src", f)] == "cached" for f in range(3))
+    assert all(status[(n, f)] == "done" for n in ("scale", "plus", "write") for f in range(3))
+    assert status[("total", None)] == "done"
+
+
+def test_explain_says_what_changed(tmp_path, capsys):
+    p = write(tmp_path, CHAIN)
+    cache = ["--cache", str(tmp_path / "cache")]
+    assert cli([*cache, "run", str(p), "--out", str(tmp_path / "out"), "-j", "1", "-q"]) == 0
+    capsys.readouterr()
+    assert cli([*cache, "explain", str(p), "--set", "scale.factor=7"]) == 0
+    out = capsys.readouterr().out
+    assert "cached src@0" in out
+    assert "run    scale@1" in out and "changed: params.factor" in out
+    assert "run    plus@1" in out and "changed: inputs.a" in out
+    assert "10 of 13 work items to run" in out
+
+
+def test_failure_isolation_and_retry(tmp_path, capsys):
+    text = CHAIN.replace("  plus:  {type: t.add, in: {a: scale.out}}",
+                         "  bad:   {type: t.fail, in: {x: scale.out}, params: {frames: [1]}}\n"
+                         "  plus:  {type: t.add, in: {a: bad.out}}")
+    p = write(tmp_path, text)
+    cache = ["--cache", str(tmp_path / "cache")]
+    assert cli([*cache, "run", str(p), "--out", str(tmp_path / "out"), "-j", "1", "-q"]) == 1
+    err = capsys.readouterr().err
+    assert "FAILED node 'bad' (t.fail) frame 1: frame 1 is broken on purpose" in err
+    doc = json.loads((tmp_path / "out" / "run.json").read_text())
+    st = {(r["node"], r["frame"]): r["status"] for r in doc["items"]}
+    assert st[("bad", 1)] == "failed" and st[("plus", 1)] == "skipped" and st[("write", 1)] == "skipped"
+    assert st[("total", None)] == "skipped"
+    assert st[("plus", 0)] == st[("plus", 2)] == st[("write", 2)] == "done", "independent frames must finish"
+    # fixed: the rerun computes only what failed or was skipped
+    res = run(tmp_path, p, overrides=["bad.frames=[]"])
+    st = {(r["node"], r["frame"]): r["status"] for r in res.records}
+    assert st[("src", 1)] == "cached" and st[("scale", 1)] == "cached"
+    assert st[("bad", 1)] == "done" and st[("plus", 1)] == "done" and st[("total", None)] == "done"
+
+
+def test_process_pool_matches_in_process(tmp_path):
+    p = write(tmp_path, CHAIN)
+    (tmp_path / "a").mkdir()
+    serial = run(tmp_path / "a", p, jobs=1)
+    (tmp_path / "b").mkdir()
+    pooled = run(tmp_path / "b", p, jobs=2)
+    assert pooled.ok and serial.ok
+    assert {(r["node"], r["frame"]): r["key"] for r in serial.records} == {(r["node"], r["frame"]): r["key"] for r in pooled.records}
+    for f in range(3):
+        assert (tmp_path / "a/out" / f"sum_{f:03d}.txt").read_bytes() == (tmp_path / "b/out" / f"sum_{f:03d}.txt").read_bytes()
+
+
+def test_identical_work_runs_once(tmp_path):
+    # scale depends only on a sequence output: the same key for every frame, so it runs once
+    p = write(tmp_path, "frames: 0:5\nnodes:\n  s: {type: t.source}\n  t: {type: t.total, in: {x: s.out}}\n"
+                        "  k: {type: t.scale, in: {x: t.out}}\n")
+    res = run(tmp_path, p)
+    ks = {r["key"] for r in res.records if r["node"] == "k"}
+    assert len(ks) == 1 and len({r["key"] for r in res.records}) == 7 and res.ok
+
+
+def test_killed_writer_leaves_no_artifact(tmp_path):
+    p = write(tmp_path, "nodes:\n  s: {type: t.slowwrite}\n")
+    signal_file = tmp_path / "signal"
+    env = dict(os.environ, VOLCAP_TEST_SIGNAL=str(signal_file), PYTHONPATH=os.pathsep.join(sys.path))
+    code = ("import sys, enginenodes; from nodegraph.cli import main; "
+            f"sys.exit(main(['--cache', r'{tmp_path / 'cache'}', 'run', r'{p}', '--out', r'{tmp_path / 'out'}', '-j', '1', '-q']))")
+    proc = subprocess.Popen([sys.executable, "-c", code], env=env, cwd=Path(__file__).parent)
+    try:
+        for _ in range(600):
+            if signal_file.exists():
+                break
+            time.sleep(0.05)
+        assert signal_file.exists(), "the writer never started"
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=10)
+    finally:
+        proc.kill()
+    cache = Cache(tmp_path / "cache")
+    g = load_graph(p)
+    [(slot, key)] = plan_graph(g, cache)[1].items()
+    assert not cache.has(key) and not cache.object_dir(key).exists(), "a half-written artifact is visible"
+    assert any(cache.staging.iterdir()), "the partial write should be confined to staging/"
+    removed, _ = cache.gc()
+    assert removed == 1 and not any(cache.staging.iterdir())
+    assert not explain(g, cache)[0]["cached"]
+
+
+def test_cache_commands(tmp_path, capsys):
+    p = write(tmp_path, CHAIN)
+    cache = ["--cache", str(tmp_path / "cache")]
+    assert cli([*cache, "run", str(p), "--out", str(tmp_path / "out"), "-q", "-j", "1"]) == 0
+    capsys.readouterr()
+    assert cli([*cache, "cache", "ls"]) == 0
+    out = capsys.readouterr().out
+    assert out.count("t.source") == 3 and "total" in out
+    assert cli([*cache, "cache", "gc", "--max-age", "0"]) == 0
+    assert "removed 13 entries" in capsys.readouterr().out
+    assert cli([*cache, "run", str(p), "--out", str(tmp_path / "out"), "-q", "-j", "1"]) == 0
+    assert cli([*cache, "cache", "clear"]) == 0
+    assert not (tmp_path / "cache" / "objects").exists()
+
+
+def test_describe_nodes_and_dot(capsys):
+    assert cli(["describe", "t.scale"]) == 0
+    out = capsys.readouterr().out
+    assert "factor: float = 2.0 (range [-100, 100])" in out and "x: Array" in out
+    assert cli(["describe", "t.scal"]) == 2
+    assert "did you mean 't.scale'" in capsys.readouterr().err
+    assert cli(["nodes"]) == 0
+    assert "export.mesh" in capsys.readouterr().out
+
+
+def test_dot(tmp_path, capsys):
+    assert cli(["dot", str(write(tmp_path, CHAIN))]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith('digraph "g"') and 'scale -> plus [label="out→a"' in out
