@@ -29,8 +29,10 @@ def cmd_run(args) -> int:
         os.environ["VOLCAP_CL_DEVICE"] = args.device  # inherited by worker processes
     graph = _load(args)
     out = Path(args.out or Path("out") / Path(args.graph).stem)
-    opts = {"scheduler": args.scheduler} if args.executor == "dask" else {}
-    executor = make_executor(args.executor, args.jobs, **opts)
+    if args.executor == "dask":
+        executor = make_executor("dask", args.workers or args.jobs, scheduler=args.scheduler)
+    else:
+        executor = make_executor("local", args.jobs)
     result = run_graph(graph, Cache(_cache_dir(args)), out, executor, progress=not args.quiet)
     counts = result.counts()
     print(f"{graph.path.name}: {len(result.records)} items in {result.seconds:.2f} s — "
@@ -154,6 +156,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", help="output folder (default out/GRAPHNAME)")
     r.add_argument("--jobs", "-j", type=int, help="parallel work items (default: CPU count; 1 = in this process)")
     r.add_argument("--executor", choices=["local", "dask"], default="local")
+    r.add_argument("--workers", type=int, help="dask: worker processes of the LocalCluster (default 2)")
     r.add_argument("--scheduler", help="dask: address of an existing scheduler (tcp://HOST:PORT)")
     r.add_argument("--device", help="OpenCL device: cpu, gpu or PLATFORM:DEVICE (see `devices`)")
     r.add_argument("--report", action="store_true", help="write report.html into the output folder")

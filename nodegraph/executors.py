@@ -116,7 +116,7 @@ def make_executor(name: str, jobs: int | None = None, **options):
     if name == "dask":
         from .dask_executor import DaskExecutor
 
-        return DaskExecutor(workers=jobs, **options)
+        return DaskExecutor(workers=jobs, scheduler=options.get("scheduler"))
     from .errors import VolcapError
 
     raise VolcapError(f"unknown executor '{name}' (local or dask)")

@@ -123,3 +123,20 @@ class SlowWriter(Node):
 
     def run(self):
         return {"out": b"data"}
+
+
+class Crash(Node):
+    """Fault injection: kills its own process the first time it runs on frame ``on_frame`` (a marker file
+    remembers that it happened), like a worker lost to the OOM killer."""
+
+    type_name = "t.crash"
+    inputs = {"x": Array}
+    outputs = {"out": Array}
+    params = {"on_frame": Param(int, 1), "marker": Param(str, "")}
+
+    def run(self, x, *, on_frame, marker):
+        if self.frame == on_frame and not Path(marker).exists():
+            Path(marker).write_text("crashed once")
+            os.kill(os.getpid(), 9)
+        time.sleep(0.2)
+        return {"out": x * 10}

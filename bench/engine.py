@@ -1,0 +1,77 @@
+"""Engine overhead: a 100-frame, 6-node graph of trivial nodes.
+
+Prints: first run (every item computed) in-process and with a 2-process pool, per-item scheduling
+overhead, and the fully cached re-run (goal <= 2 s), both through the API and as a CLI process.
+Usage: python bench/engine.py [--frames 100]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
+
+import trivial_nodes  # noqa: E402,F401
+
+from nodegraph.cache import Cache  # noqa: E402
+from nodegraph.executors import LocalExecutor  # noqa: E402
+from nodegraph.graphfile import load_graph  # noqa: E402
+from nodegraph.run import run_graph  # noqa: E402
+
+GRAPH = """\
+frames: 0:{frames}
+nodes:
+  a: {{type: bench.make}}
+  b: {{type: bench.step, in: {{x: a.out}}}}
+  c: {{type: bench.step, in: {{x: b.out}}}}
+  d: {{type: bench.step, in: {{x: c.out}}}}
+  e: {{type: bench.step, in: {{x: d.out}}}}
+  f: {{type: bench.step, in: {{x: e.out}}}}
+"""
+
+
+def timed(fn):
+    t = time.perf_counter()
+    out = fn()
+    return time.perf_counter() - t, out
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--frames", type=int, default=100)
+    args = ap.parse_args()
+    rows = []
+    with tempfile.TemporaryDirectory() as d:
+        d = Path(d)
+        g = d / "g.yaml"
+        g.write_text(GRAPH.format(frames=args.frames))
+        graph = load_graph(g)
+        n = len(graph.nodes) * args.frames
+        for jobs in (1, 2):
+            cache = Cache(d / f"cache{jobs}")
+            t, res = timed(lambda: run_graph(graph, cache, d / "out", LocalExecutor(jobs), progress=False))
+            assert res.ok and res.counts() == {"done": n}
+            rows.append((f"first run, {n} items, jobs={jobs}", t, t / n * 1000))
+        t, res = timed(lambda: run_graph(load_graph(g), Cache(d / "cache1"), d / "out", LocalExecutor(1), progress=False))
+        assert res.counts() == {"cached": n}
+        rows.append((f"cached re-run (API, incl. load+plan)", t, t / n * 1000))
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), str(ROOT / "bench")]))
+        code = ("import sys, trivial_nodes; from nodegraph.cli import main; sys.exit(main(sys.argv[1:]))")
+        cmd = [sys.executable, "-c", code, "--cache", str(d / "cache1"), "run", str(g), "--out", str(d / "out"), "-q"]
+        t, proc = timed(lambda: subprocess.run(cmd, env=env, capture_output=True, text=True))
+        assert proc.returncode == 0, proc.stderr
+        rows.append(("cached re-run (CLI process, incl. start-up)", t, t / n * 1000))
+    print(f"{'engine: ' + str(args.frames) + ' frames x 6 nodes':52s} {'wall s':>8s} {'ms/item':>8s}")
+    for name, t, per in rows:
+        print(f"{name:52s} {t:8.3f} {per:8.3f}")
+    print("goal: cached re-run <= 2 s")
+
+
+if __name__ == "__main__":
+    main()
