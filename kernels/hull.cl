@@ -1,0 +1,277 @@
+// Visual hull: dense centre test and sparse coarse-to-fine classification (Loop, Zhang & Zhang, HPG 2013).
+//
+// Masks arrive as uint8 (pixel inside when value > 127, i.e. its top bit) and are prepared once per frame:
+//   pack_mask   one bit per pixel (rows of ceil(W/8) bytes), built with a multiply trick on 8 bytes at once;
+//   block_sat   summed-area table of 8x8 pixel blocks (a block = one packed byte column x 8 rows).
+// The centre test reads the bits; the coarse test reads the block table over the blocks covering a cell's
+// projected footprint, which is conservative: a cell is only called inside/outside when that is certain.
+// Camera layout: nodegraph.cameras.Cameras.pack() (32 floats per camera).
+// Arithmetic order here is mirrored by nodes/hull.py:hull_reference so both give identical voxels.
+#pragma OPENCL FP_CONTRACT OFF
+
+#define CAM_FLOATS 32
+#define IN 1
+#define NOTIN 2
+#define OUT 4
+#define OFF 8
+
+// ------------------------------------------------------------------ mask preparation
+__kernel void pack_mask(__global const uchar* mask, int W, int H, __global uchar* bits, int off)
+{
+    int bx = get_global_id(0), y = get_global_id(1);
+    int Wb = (W + 7) >> 3;
+    if (bx >= Wb || y >= H) return;
+    int x0 = bx << 3;
+    __global const uchar* row = mask + (size_t)y * W;
+    uchar b = 0;
+    if (x0 + 8 <= W) {
+        ulong v = as_ulong(vload8(0, row + x0));
+        b = (uchar)((((v >> 7) & 0x0101010101010101UL) * 0x0102040810204080UL) >> 56);
+    } else {
+        for (int i = 0; x0 + i < W; i++) b |= (uchar)((row[x0 + i] >> 7) << i);
+    }
+    bits[off + (size_t)y * Wb + bx] = b;
+}
+
+// One work-item per (block row, view): block counts and their prefix along the row. Table rows have Wb+1
+// entries with a zero first column; the table has Hb+1 rows with a zero first row.
+__kernel void block_rows(__global const uchar* bits, __global const int* bit_off, __global int* sat,
+                         __global const int* sat_off, __global const float* cams)
+{
+    int by = get_global_id(0), v = get_global_id(1);
+    int W = (int)cams[v * CAM_FLOATS + 22], H = (int)cams[v * CAM_FLOATS + 23];
+    int Wb = (W + 7) >> 3, Hb = (H + 7) >> 3;
+    if (by > Hb) return;
+    __global int* row = sat + sat_off[v] + by * (Wb + 1);
+    row[0] = 0;
+    if (by == 0) {
+        for (int bx = 0; bx < Wb; bx++) row[bx + 1] = 0;
+        return;
+    }
+    __global const uchar* b = bits + bit_off[v];
+    int y0 = (by - 1) << 3, y1 = min(y0 + 8, H);
+    int acc = 0;
+    for (int bx = 0; bx < Wb; bx++) {
+        int c = 0;
+        for (int y = y0; y < y1; y++) c += popcount(b[(size_t)y * Wb + bx]);
+        acc += c;
+        row[bx + 1] = acc;
+    }
+}
+
+// One work-item per (block column, view): prefix down the columns.
+__kernel void block_cols(__global int* sat, __global const int* sat_off, __global const float* cams)
+{
+    int bx = get_global_id(0), v = get_global_id(1);
+    int W = (int)cams[v * CAM_FLOATS + 22], H = (int)cams[v * CAM_FLOATS + 23];
+    int Wb = (W + 7) >> 3, Hb = (H + 7) >> 3;
+    if (bx > Wb) return;
+    __global int* t = sat + sat_off[v];
+    int acc = 0;
+    for (int by = 1; by <= Hb; by++) {
+        acc += t[by * (Wb + 1) + bx];
+        t[by * (Wb + 1) + bx] = acc;
+    }
+}
+
+// ------------------------------------------------------------------ projection
+inline float3 voxel_centre(float3 bmin, float3 vs, int i, int j, int k)
+{
+    return (float3)(bmin.x + ((float)i + 0.5f) * vs.x, bmin.y + ((float)j + 0.5f) * vs.y, bmin.z + ((float)k + 0.5f) * vs.z);
+}
+
+inline float3 to_camera(__global const float* c, float3 X)
+{
+    return (float3)(((c[0] * X.x + c[1] * X.y) + c[2] * X.z) + c[3],
+                    ((c[4] * X.x + c[5] * X.y) + c[6] * X.z) + c[7],
+                    ((c[8] * X.x + c[9] * X.y) + c[10] * X.z) + c[11]);
+}
+
+// Centre test of one point in one view: IN, OUT (inside the image, background) or OFF (behind or outside).
+inline int centre_state(__global const float* c, __global const uchar* bits, float3 X)
+{
+    float3 xc = to_camera(c, X);
+    if (!(xc.z * c[24] > 0.0f)) return OFF;
+    float x = xc.x / xc.z, y = xc.y / xc.z;
+    if (c[17] != 0.0f || c[18] != 0.0f || c[19] != 0.0f || c[20] != 0.0f || c[21] != 0.0f) {
+        float k1 = c[17], k2 = c[18], p1 = c[19], p2 = c[20], k3 = c[21];
+        float r2 = x * x + y * y;
+        float radial = 1.0f + r2 * (k1 + r2 * (k2 + r2 * k3));
+        float xd = (x * radial + ((2.0f * p1) * x) * y) + p2 * (r2 + (2.0f * x) * x);
+        float yd = (y * radial + p1 * (r2 + (2.0f * y) * y)) + ((2.0f * p2) * x) * y;
+        x = xd;
+        y = yd;
+    }
+    float fu = ((c[12] * x + c[13] * y) + c[14]) + 0.5f;
+    float fv = (c[15] * y + c[16]) + 0.5f;
+    float W = c[22], H = c[23];
+    if (!(fu >= 0.0f && fu < W && fv >= 0.0f && fv < H)) return OFF;
+    int px = (int)fu, py = (int)fv, Wb = ((int)W + 7) >> 3;
+    return ((bits[py * Wb + (px >> 3)] >> (px & 7)) & 1) ? IN : OUT;
+}
+
+// Vote rule shared by every test: min_views > 0: inside when at least min_views views say IN; otherwise
+// "carve" (policy 0): every view says IN; "ignore" (policy 1): no view says OUT and at least one says IN.
+inline int voxel_inside(int n_in, int n_out, int nviews, int min_views, int policy)
+{
+    if (min_views > 0) return n_in >= min_views;
+    if (policy == 0) return n_in == nviews;
+    return n_out == 0 && n_in > 0;
+}
+
+inline int voxel_test(__global const float* cams, __global const uchar* bits, __global const int* bit_off,
+                      int nviews, int min_views, int policy, float3 X)
+{
+    int n_in = 0, n_out = 0;
+    for (int v = 0; v < nviews; v++) {
+        int s = centre_state(cams + v * CAM_FLOATS, bits + bit_off[v], X);
+        n_in += (s == IN);
+        n_out += (s == OUT);
+        // early exit once the answer cannot change
+        if (min_views > 0 ? (n_in >= min_views || n_in + (nviews - v - 1) < min_views)
+                          : (policy == 0 ? s != IN : n_out > 0)) break;
+    }
+    return voxel_inside(n_in, n_out, nviews, min_views, policy);
+}
+
+__kernel void hull_dense(__global const float* cams, int nviews, __global const uchar* bits,
+                         __global const int* bit_off, float4 bmin, float4 vs, int nx, int ny, int nz,
+                         int min_views, int policy, __global uchar* vol)
+{
+    int k = get_global_id(0), j = get_global_id(1), i = get_global_id(2);
+    if (k >= nz || j >= ny || i >= nx) return;
+    float3 X = voxel_centre(bmin.xyz, vs.xyz, i, j, k);
+    vol[((size_t)i * ny + j) * nz + k] = (uchar)voxel_test(cams, bits, bit_off, nviews, min_views, policy, X);
+}
+
+// ------------------------------------------------------------------ conservative footprint test
+inline float2 imul(float2 a, float2 b)
+{
+    float p = a.x * b.x, q = a.x * b.y, r = a.y * b.x, s = a.y * b.y;
+    return (float2)(fmin(fmin(p, q), fmin(r, s)), fmax(fmax(p, q), fmax(r, s)));
+}
+inline float2 iscale(float c, float2 a) { return c >= 0.0f ? (float2)(c * a.x, c * a.y) : (float2)(c * a.y, c * a.x); }
+inline float2 isq(float2 a)
+{
+    float lo = fmin(fabs(a.x), fabs(a.y)), hi = fmax(fabs(a.x), fabs(a.y));
+    if (a.x <= 0.0f && a.y >= 0.0f) lo = 0.0f;
+    return (float2)(lo * lo, hi * hi);
+}
+inline float2 widen(float2 a, float abs_pad, float rel_pad)
+{
+    float m = fmax(fabs(a.x), fabs(a.y));
+    return (float2)(a.x - (abs_pad + rel_pad * m), a.y + (abs_pad + rel_pad * m));
+}
+
+// Flags (IN / NOTIN / OUT / OFF, or 0 when unsure) holding for every voxel centre of the box whose extreme
+// voxel centres are lo and hi, in one view. The centres' projections lie in the convex hull of the 8 corner
+// projections (pinhole part), distortion is bounded by interval arithmetic, and the pixel rectangle is
+// widened a little so float rounding can never make the test claim something false.
+inline int box_state(__global const float* c, __global const int* sat, float3 lo, float3 hi)
+{
+    float2 xr = (float2)(INFINITY, -INFINITY), yr = xr;
+    int front = 0, behind = 0;
+    for (int n = 0; n < 8; n++) {
+        float3 X = (float3)((n & 1) ? hi.x : lo.x, (n & 2) ? hi.y : lo.y, (n & 4) ? hi.z : lo.z);
+        float3 xc = to_camera(c, X);
+        float z = xc.z * c[24];
+        front += z > 0.0f;
+        behind += z < 0.0f;
+        float x = xc.x / xc.z, y = xc.y / xc.z;
+        xr = (float2)(fmin(xr.x, x), fmax(xr.y, x));
+        yr = (float2)(fmin(yr.x, y), fmax(yr.y, y));
+    }
+    if (behind == 8) return NOTIN | OFF;
+    if (front != 8) return 0;
+    xr = widen(xr, 1e-7f, 1e-5f);
+    yr = widen(yr, 1e-7f, 1e-5f);
+    if (c[17] != 0.0f || c[18] != 0.0f || c[19] != 0.0f || c[20] != 0.0f || c[21] != 0.0f) {
+        float k1 = c[17], k2 = c[18], p1 = c[19], p2 = c[20], k3 = c[21];
+        float2 r2 = isq(xr) + isq(yr);
+        float2 poly = iscale(k2, (float2)(1.0f, 1.0f)) + imul(r2, iscale(k3, (float2)(1.0f, 1.0f)));
+        poly = iscale(k1, (float2)(1.0f, 1.0f)) + imul(r2, poly);
+        float2 radial = (float2)(1.0f, 1.0f) + imul(r2, poly);
+        float2 xy = imul(xr, yr);
+        float2 xd = imul(xr, radial) + iscale(2.0f * p1, xy) + iscale(p2, r2 + iscale(2.0f, isq(xr)));
+        float2 yd = imul(yr, radial) + iscale(p1, r2 + iscale(2.0f, isq(yr))) + iscale(2.0f * p2, xy);
+        xr = widen(xd, 1e-7f, 1e-5f);
+        yr = widen(yd, 1e-7f, 1e-5f);
+    }
+    float2 ur = widen(iscale(c[12], xr) + iscale(c[13], yr) + (float2)(c[14], c[14]), 0.01f, 1e-5f) + 0.5f;
+    float2 vr = widen(iscale(c[15], yr) + (float2)(c[16], c[16]), 0.01f, 1e-5f) + 0.5f;
+    float W = c[22], H = c[23];
+    if (!(isfinite(ur.x) && isfinite(ur.y) && isfinite(vr.x) && isfinite(vr.y))) return 0;
+    if (ur.y < 0.0f || ur.x >= W || vr.y < 0.0f || vr.x >= H) return NOTIN | OFF;
+    int inside_image = ur.x >= 0.0f && ur.y < W && vr.x >= 0.0f && vr.y < H;
+    int x0 = (int)fmax(ur.x, 0.0f), x1 = (int)fmin(ur.y, W - 1.0f);
+    int y0 = (int)fmax(vr.x, 0.0f), y1 = (int)fmin(vr.y, H - 1.0f);
+    int Wi = (int)W, Hi = (int)H, Wb = (Wi + 7) >> 3;
+    int bx0 = x0 >> 3, bx1 = x1 >> 3, by0 = y0 >> 3, by1 = y1 >> 3;
+    int sum = sat[(by1 + 1) * (Wb + 1) + bx1 + 1] - sat[by0 * (Wb + 1) + bx1 + 1]
+            - sat[(by1 + 1) * (Wb + 1) + bx0] + sat[by0 * (Wb + 1) + bx0];
+    if (sum == 0) return inside_image ? (NOTIN | OUT) : NOTIN;
+    int area = (min((bx1 + 1) << 3, Wi) - (bx0 << 3)) * (min((by1 + 1) << 3, Hi) - (by0 << 3));
+    return (inside_image && sum == area) ? IN : 0;
+}
+
+// Cells of 2^level voxels, coded i | j << 10 | k << 20. Each cell is inside (filled), outside (left
+// empty) or mixed: mixed cells of level > 1 append their children to `next` (stream compaction through an
+// atomic counter); cells of level 1 decide their 8 voxels with the centre test right here.
+__kernel void hull_cells(__global const float* cams, int nviews, __global const uchar* bits,
+                         __global const int* bit_off, __global const int* sat, __global const int* sat_off,
+                         float4 bmin, float4 vs, int nx, int ny, int nz, int min_views, int policy,
+                         int level, __global const uint* cells, int ncells, __global uint* next,
+                         volatile __global int* counter, __global uchar* vol)
+{
+    int gid = get_global_id(0);
+    if (gid >= ncells) return;
+    uint code = cells[gid];
+    int ci = code & 1023, cj = (code >> 10) & 1023, ck = code >> 20;
+    int size = 1 << level;
+    int i0 = ci << level, j0 = cj << level, k0 = ck << level;
+    int i1 = min(i0 + size, nx) - 1, j1 = min(j0 + size, ny) - 1, k1 = min(k0 + size, nz) - 1;
+    float3 lo = voxel_centre(bmin.xyz, vs.xyz, i0, j0, k0), hi = voxel_centre(bmin.xyz, vs.xyz, i1, j1, k1);
+
+    int n_in = 0, n_notin = 0, n_out = 0, n_off = 0, inside = 0, outside = 0;
+    // at level 1 the box corners are the 8 voxel centres themselves: test those directly
+    for (int v = 0; v < nviews && level > 1; v++) {
+        int s = box_state(cams + v * CAM_FLOATS, sat + sat_off[v], lo, hi);
+        n_in += (s & IN) != 0;
+        n_notin += (s & NOTIN) != 0;
+        n_out += (s & OUT) != 0;
+        n_off += (s & OFF) != 0;
+        int in_max = nviews - n_notin, out_max = nviews - n_in - n_off;
+        if (min_views > 0 || policy == 0) {
+            int need = min_views > 0 ? min_views : nviews;
+            inside = n_in >= need;
+            outside = in_max < need;
+        } else {
+            inside = out_max == 0 && n_in > 0;
+            outside = n_out > 0 || in_max == 0;
+        }
+        if (inside || outside) break;
+    }
+    if (outside) return;
+    if (inside) {
+        for (int i = i0; i <= i1; i++)
+            for (int j = j0; j <= j1; j++)
+                for (int k = k0; k <= k1; k++) vol[((size_t)i * ny + j) * nz + k] = 1;
+        return;
+    }
+    if (level == 1) {
+        for (int i = i0; i <= i1; i++)
+            for (int j = j0; j <= j1; j++)
+                for (int k = k0; k <= k1; k++) {
+                    float3 X = voxel_centre(bmin.xyz, vs.xyz, i, j, k);
+                    vol[((size_t)i * ny + j) * nz + k] = (uchar)voxel_test(cams, bits, bit_off, nviews, min_views, policy, X);
+                }
+        return;
+    }
+    int hs = size >> 1;
+    int ni = 1 + (i0 + hs <= i1), nj = 1 + (j0 + hs <= j1), nk = 1 + (k0 + hs <= k1);
+    int at = atomic_add(counter, ni * nj * nk);
+    for (int a = 0; a < ni; a++)
+        for (int b = 0; b < nj; b++)
+            for (int d = 0; d < nk; d++)
+                next[at++] = (uint)(2 * ci + a) | ((uint)(2 * cj + b) << 10) | ((uint)(2 * ck + d) << 20);
+}

@@ -1,0 +1,262 @@
+"""Volumetric visual hull: voxels whose centre projects inside the silhouettes.
+
+Two OpenCL methods give identical voxels (kernels/hull.cl):
+  dense   every voxel centre is tested against every view;
+  sparse  coarse-to-fine after Loop, Zhang & Zhang (HPG 2013): cells of 2^L voxels are classified from the
+          rectangle bounding their projection, looked up in a summed-area table of the mask (8x8 pixel
+          blocks); only cells that are neither certainly inside nor certainly outside are split, and the
+          last level decides voxel by voxel with the very same centre test as the dense method.
+``hull_reference`` is the NumPy version of the centre test (same float32 arithmetic, same vote rule).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from nodegraph import Bounds, CameraSet, Input, Masks, Node, NodeError, Param, Volume, VoxelGrid
+from nodegraph.cameras import PACK_FLOATS, Cameras
+
+POLICIES = ("carve", "ignore")
+COARSE_CELLS = 16  # the first sparse level has at most this many cells along the longest side
+
+
+# ---------------------------------------------------------------- grid and checks
+def hull_grid(box: np.ndarray, resolution: int) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int]]:
+    """Cubic voxels over ``box`` (2, 3): ``resolution`` along the longest side, the others proportional.
+    The box grows symmetrically to a whole number of voxels. Returns (bbox_min, bbox_max, dims)."""
+    box = np.asarray(box, dtype=np.float64).reshape(2, 3)
+    ext = box[1] - box[0]
+    size = ext.max() / resolution
+    dims = np.maximum(1, np.ceil(ext / size - 1e-6)).astype(int)
+    grow = (dims * size - ext) / 2
+    return box[0] - grow, box[1] + grow, tuple(int(d) for d in dims)
+
+
+def check_views(masks, cameras: Cameras) -> list[np.ndarray]:
+    """The masks as contiguous uint8 (H, W) arrays, one per camera, or a NodeError naming the camera."""
+    if len(masks.masks) != len(cameras):
+        raise NodeError(f"hull: {len(masks.masks)} masks for {len(cameras)} cameras")
+    out = []
+    for m, cam in zip(masks.masks, cameras):
+        m = np.asarray(m)
+        if m.dtype != np.uint8 or m.ndim != 2:
+            raise NodeError(f"hull: mask of camera '{cam.name}' must be an (H, W) uint8 array, got {m.dtype} {m.shape}")
+        if m.shape != (cam.height, cam.width):
+            raise NodeError(f"hull: mask of camera '{cam.name}' is {m.shape[1]}x{m.shape[0]} but the camera is {cam.width}x{cam.height}")
+        out.append(np.ascontiguousarray(m))
+    return out
+
+
+# ---------------------------------------------------------------- NumPy reference
+def centre_states(mask: np.ndarray, cam_row: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """Per point (N, 3 float32): 1 = inside the silhouette, 2 = background, 3 = behind / outside the image.
+    ``cam_row`` is one row of Cameras.pack(); float32 operations in the kernel's order."""
+    c = cam_row.astype(np.float32)
+    f = np.float32
+    x, y, z = X[:, 0], X[:, 1], X[:, 2]
+    xc = ((c[0] * x + c[1] * y) + c[2] * z) + c[3]
+    yc = ((c[4] * x + c[5] * y) + c[6] * z) + c[7]
+    zc = ((c[8] * x + c[9] * y) + c[10] * z) + c[11]
+    front = zc * c[24] > 0
+    with np.errstate(all="ignore"):
+        xn, yn = xc / zc, yc / zc
+        if np.any(c[17:22] != 0):
+            k1, k2, p1, p2, k3 = c[17:22]
+            r2 = xn * xn + yn * yn
+            radial = f(1) + r2 * (k1 + r2 * (k2 + r2 * k3))
+            xd = (xn * radial + ((f(2) * p1) * xn) * yn) + p2 * (r2 + (f(2) * xn) * xn)
+            yd = (yn * radial + p1 * (r2 + (f(2) * yn) * yn)) + ((f(2) * p2) * xn) * yn
+            xn, yn = xd, yd
+        fu = ((c[12] * xn + c[13] * yn) + c[14]) + f(0.5)
+        fv = (c[15] * yn + c[16]) + f(0.5)
+        seen = front & (fu >= 0) & (fu < c[22]) & (fv >= 0) & (fv < c[23])
+    state = np.full(len(X), 3, np.uint8)
+    px, py = fu[seen].astype(np.int64), fv[seen].astype(np.int64)
+    state[seen] = np.where(mask[py, px] > 127, 1, 2)
+    return state
+
+
+def vote(n_in: np.ndarray, n_out: np.ndarray, nviews: int, min_views: int, policy: str) -> np.ndarray:
+    """The hull's vote rule: min_views > 0: at least that many views see the voxel inside; otherwise
+    carve: every view does; ignore: no view sees it on background and at least one inside."""
+    if min_views > 0:
+        return n_in >= min_views
+    if policy == "carve":
+        return n_in == nviews
+    return (n_out == 0) & (n_in > 0)
+
+
+def hull_reference(masks: list[np.ndarray], cameras: Cameras, bbox_min, voxel_size, dims, min_views=0,
+                   policy="carve") -> np.ndarray:
+    """Dense visual hull in NumPy (uint8 0/1, shape dims): the definition the kernels must reproduce."""
+    f = np.float32
+    bmin, vs = np.asarray(bbox_min, f), np.asarray(voxel_size, f)
+    axes = [bmin[a] + (np.arange(n, dtype=f) + f(0.5)) * vs[a] for a, n in enumerate(dims)]
+    X = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    packed = cameras.pack()
+    n_in = np.zeros(len(X), np.int32)
+    n_out = np.zeros(len(X), np.int32)
+    for v, m in enumerate(masks):
+        s = centre_states(m, packed[v], X)
+        n_in += s == 1
+        n_out += s == 2
+    return vote(n_in, n_out, len(masks), min_views, policy).astype(np.uint8).reshape(dims)
+
+
+# ---------------------------------------------------------------- OpenCL
+class HullCL:
+    """Device buffers and kernels of the hull, kept between frames (one per process)."""
+
+    def __init__(self):
+        from nodegraph import clrt
+
+        self.ctx, self.queue = clrt.context()
+        self.k = {name: clrt.kernel("hull.cl", name) for name in
+                  ("pack_mask", "block_rows", "block_cols", "hull_dense", "hull_cells")}
+        self.buffers: dict[str, object] = {}
+        self.coarse: dict[tuple, np.ndarray] = {}
+
+    def buffer(self, name: str, nbytes: int):
+        """A device buffer of at least ``nbytes``, reused between calls."""
+        import pyopencl as cl
+
+        buf = self.buffers.get(name)
+        if buf is None or buf.size < nbytes:
+            buf = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, max(int(nbytes * 1.25), 64))
+            self.buffers[name] = buf
+        return buf
+
+    def upload(self, name: str, arr: np.ndarray):
+        import pyopencl as cl
+
+        buf = self.buffer(name, arr.nbytes)
+        cl.enqueue_copy(self.queue, buf, np.ascontiguousarray(arr), is_blocking=False)
+        return buf
+
+    def prepare(self, masks: list[np.ndarray], packed: np.ndarray):
+        """Upload the masks as bits and build their 8x8-block summed-area tables."""
+        import pyopencl as cl
+
+        sizes = [(m.shape[1], m.shape[0]) for m in masks]
+        wb = [(w + 7) // 8 for w, _ in sizes]
+        hb = [(h + 7) // 8 for _, h in sizes]
+        bit_off = np.concatenate([[0], np.cumsum([b * h for b, (_, h) in zip(wb, sizes)])]).astype(np.int32)
+        sat_off = np.concatenate([[0], np.cumsum([(a + 1) * (b + 1) for a, b in zip(wb, hb)])]).astype(np.int32)
+        cams = self.upload("cams", packed)
+        bits = self.buffer("bits", int(bit_off[-1]))
+        sat = self.buffer("sat", int(sat_off[-1]) * 4)
+        boff = self.upload("bit_off", bit_off[:-1])
+        soff = self.upload("sat_off", sat_off[:-1])
+        mf = cl.mem_flags
+        host = []  # keep the zero-copy host buffers alive until the queue is done
+        for v, m in enumerate(masks):
+            src = cl.Buffer(self.ctx, mf.READ_ONLY | mf.USE_HOST_PTR, hostbuf=m)
+            host.append(src)
+            self.k["pack_mask"](self.queue, (wb[v], m.shape[0]), None, src, np.int32(m.shape[1]), np.int32(m.shape[0]),
+                                bits, np.int32(bit_off[v]))
+        n = len(masks)
+        self.k["block_rows"](self.queue, (max(hb) + 1, n), None, bits, boff, sat, soff, cams)
+        self.k["block_cols"](self.queue, (max(wb) + 1, n), None, sat, soff, cams)
+        self.queue.finish()
+        return cams, bits, boff, sat, soff
+
+    def hull(self, masks, cameras: Cameras, bbox_min, voxel_size, dims, min_views=0, policy="carve",
+             method="sparse") -> np.ndarray:
+        import pyopencl as cl
+
+        packed = cameras.pack()
+        if packed.shape[1] != PACK_FLOATS:
+            raise NodeError("hull: unexpected camera packing")
+        cams, bits, boff, sat, soff = self.prepare(masks, packed)
+        nx, ny, nz = dims
+        f4 = lambda a: np.array([*np.asarray(a, np.float32), 0], np.float32)  # noqa: E731
+        common = (np.int32(nx), np.int32(ny), np.int32(nz), np.int32(min_views), np.int32(POLICIES.index(policy)))
+        geo = (f4(bbox_min), f4(voxel_size))
+        vol = self.buffer("vol", nx * ny * nz)
+        nviews = np.int32(len(masks))
+        if method == "dense":
+            self.k["hull_dense"](self.queue, (nz, ny, nx), None, cams, nviews, bits, boff, *geo, *common, vol)
+        else:
+            cl.enqueue_fill_buffer(self.queue, vol, np.uint8(0), 0, nx * ny * nz)
+            level = max(1, math.ceil(math.log2(max(dims) / COARSE_CELLS))) if max(dims) > 1 else 1
+            cells = self.coarse_cells(dims, level)
+            src = self.upload("cells_a", cells)
+            count = len(cells)
+            counter = np.zeros(1, np.int32)
+            cbuf = self.buffer("counter", 4)
+            names = ("cells_b", "cells_a")
+            while count:
+                dst = self.buffer(names[level % 2], 8 * count * 4)
+                cl.enqueue_copy(self.queue, cbuf, np.zeros(1, np.int32), is_blocking=False)
+                groups = -(-count // 64) * 64  # whole work-groups: PoCL runs odd sizes as tiny groups
+                self.k["hull_cells"](self.queue, (groups,), (64,), cams, nviews, bits, boff, sat, soff, *geo, *common,
+                                     np.int32(level), src, np.int32(count), dst, cbuf, vol)
+                if level == 1:
+                    break
+                cl.enqueue_copy(self.queue, counter, cbuf)
+                count, src, level = int(counter[0]), dst, level - 1
+        out = np.empty(dims, np.uint8)
+        cl.enqueue_copy(self.queue, out, vol, is_blocking=True)
+        return out
+
+    def coarse_cells(self, dims, level) -> np.ndarray:
+        key = (*dims, level)
+        if key not in self.coarse:
+            n = [(d + (1 << level) - 1) >> level for d in dims]
+            i, j, k = np.meshgrid(*[np.arange(a, dtype=np.uint32) for a in n], indexing="ij")
+            self.coarse[key] = (i | (j << 10) | (k << 20)).ravel()
+        return self.coarse[key]
+
+
+_HULL_CL: HullCL | None = None
+
+
+def hull_cl() -> HullCL:
+    global _HULL_CL
+    if _HULL_CL is None:
+        _HULL_CL = HullCL()
+    return _HULL_CL
+
+
+def visual_hull(masks, cameras: Cameras, box, resolution=128, min_views=0, policy="carve", method="sparse") -> VoxelGrid:
+    """Visual hull of ``masks`` (MaskSet) over ``box`` (2, 3) as a VoxelGrid of uint8 0/1."""
+    arrays = check_views(masks, cameras)
+    if min_views > len(cameras):
+        raise NodeError(f"hull: min_views {min_views} is more than the {len(cameras)} cameras")
+    bmin, bmax, dims = hull_grid(box, resolution)
+    vs = (bmax - bmin) / np.array(dims)
+    if method == "numpy":
+        occ = hull_reference(arrays, cameras, bmin, vs, dims, min_views, policy)
+    else:
+        occ = hull_cl().hull(arrays, cameras, bmin, vs, dims, min_views, policy, method)
+    return VoxelGrid(occ, bmin, bmax)
+
+
+class Hull(Node):
+    """Volumetric visual hull: voxels whose centre falls inside the silhouettes (OpenCL, coarse-to-fine)."""
+
+    type_name = "hull"
+    version = 1
+    inputs = {"masks": Masks, "cameras": CameraSet,
+              "bounds": Input(Bounds, optional=True, doc="box to carve when the bbox param is not given")}
+    outputs = {"volume": Volume}
+    params = {
+        "resolution": Param(int, 128, range=(8, 1024), doc="voxels along the longest bbox side; others proportional"),
+        "bbox": Param(list, None, item=float, length=6, doc="xmin ymin zmin xmax ymax zmax; default: the bounds input"),
+        "min_views": Param(int, 0, range=(0, None), doc="0 = all views; k = inside at least k silhouettes"),
+        "outside": Param(str, "carve", choices=POLICIES, doc="voxels projecting outside an image: carve, or ignore that view"),
+        "method": Param(str, "sparse", choices=("sparse", "dense", "numpy"), doc="coarse-to-fine, every voxel, or NumPy"),
+    }
+    kernels = ["hull.cl"]
+
+    def run(self, masks, cameras, bounds=None, *, resolution, bbox, min_views, outside, method):
+        if bbox is not None:
+            box = np.array(bbox, dtype=np.float64).reshape(2, 3)
+            if not np.all(box[1] > box[0]):
+                raise NodeError(f"hull: param 'bbox' {bbox} needs max > min on every axis (xmin ymin zmin xmax ymax zmax)")
+        elif bounds is not None:
+            box = np.asarray(bounds, dtype=np.float64)
+        else:
+            raise NodeError("hull: no box to carve: set param 'bbox' or connect the 'bounds' input")
+        return {"volume": visual_hull(masks, cameras, box, resolution, min_views, outside, method)}

@@ -1,0 +1,140 @@
+"""Visual hull: NumPy reference == dense OpenCL == sparse coarse-to-fine OpenCL, on synthetic rigs."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from nodegraph import NodeError, Volume
+from nodegraph.cameras import Camera, Cameras, look_at
+from nodegraph.testing import run_node
+from nodegraph.types import MaskSet
+from nodes.hull import hull_grid, visual_hull
+
+BOX = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+CENTRE, RADIUS = np.array([0.1, -0.05, 0.0]), 0.6
+
+
+def ring(n=8, w=160, h=120, dist=None) -> Cameras:
+    cams = []
+    for i in range(n):
+        a = 2 * np.pi * i / n
+        c = look_at([3 * np.cos(a), 3 * np.sin(a), 0.8 * np.sin(3 * a)], [0, 0, 0], [0, 0, 1], 50, w, h, f"c{i}")
+        if dist is not None:
+            c = Camera(c.name, w, h, c.K, c.Rt, dist)
+        cams.append(c)
+    return Cameras(cams)
+
+
+def sphere_masks(cams: Cameras, centre=CENTRE, radius=RADIUS) -> MaskSet:
+    """Silhouettes of a ball: filled convex hull of its projected surface samples (lens distortion included)."""
+    u = np.random.default_rng(0).normal(size=(4000, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    masks = []
+    for v, cam in enumerate(cams):
+        uv, _ = cams.project(centre + radius * u, v)
+        m = np.zeros((cam.height, cam.width), np.uint8)
+        cv2.fillPoly(m, [cv2.convexHull(np.round(uv * 16).astype(np.int32))], 255, cv2.LINE_8, shift=4)
+        masks.append(m)
+    return MaskSet(masks)
+
+
+def all_methods(masks, cams, res, **kw) -> np.ndarray:
+    """Run the three methods, assert they agree voxel for voxel, return the occupancy."""
+    ref = visual_hull(masks, cams, BOX, res, method="numpy", **kw).occupancy
+    dense = visual_hull(masks, cams, BOX, res, method="dense", **kw).occupancy
+    sparse = visual_hull(masks, cams, BOX, res, method="sparse", **kw).occupancy
+    assert np.array_equal(ref, dense), f"dense differs from NumPy in {int((ref != dense).sum())} voxels"
+    assert np.array_equal(ref, sparse), f"sparse differs from NumPy in {int((ref != sparse).sum())} voxels"
+    return ref
+
+
+def ball_iou(occ: np.ndarray, res: int) -> float:
+    bmin, bmax, dims = hull_grid(BOX, res)
+    vs = (bmax - bmin) / np.array(dims)
+    axes = [bmin[a] + (np.arange(n) + 0.5) * vs[a] for a, n in enumerate(dims)]
+    X = np.stack(np.meshgrid(*axes, indexing="ij"), -1)
+    ball = np.linalg.norm(X - CENTRE, axis=-1) <= RADIUS
+    return float((ball & (occ > 0)).sum() / (ball | (occ > 0)).sum())
+
+
+@pytest.mark.parametrize("res", [17, 40])
+def test_methods_agree_on_a_ball(res):
+    cams = ring()
+    occ = all_methods(sphere_masks(cams), cams, res)
+    assert occ.shape == hull_grid(BOX, res)[2]
+    assert 0.75 < ball_iou(occ, res) < 1.0  # 8 views: a hull slightly larger than the ball
+
+
+def test_methods_agree_with_lens_distortion():
+    cams = ring(dist=[-0.25, 0.08, 0.002, -0.003, 0.01])
+    masks = sphere_masks(cams)
+    occ = all_methods(masks, cams, 36)
+    assert ball_iou(occ, 36) > 0.75
+    # ignoring the distortion gives a different hull: the distortion is really used
+    plain = Cameras([Camera(c.name, c.width, c.height, c.K, c.Rt) for c in cams])
+    assert (visual_hull(masks, plain, BOX, 36).occupancy != occ).sum() > 100
+
+
+def test_min_views_survives_one_bad_silhouette():
+    cams = ring()
+    masks = sphere_masks(cams)
+    clean = all_methods(masks, cams, 32)
+    bad = MaskSet([m.copy() for m in masks.masks])
+    bad.masks[3][:, 70:90] = 0  # a stripe missing in one view
+    holed = all_methods(bad, cams, 32)
+    assert clean.sum() - holed.sum() > 200
+    tolerant = all_methods(bad, cams, 32, min_views=7)
+    assert np.all(tolerant >= clean) and tolerant.sum() > clean.sum()
+    assert all_methods(bad, cams, 32, min_views=8).sum() == holed.sum()
+
+
+def test_outside_policy():
+    cams = ring(6)
+    zoom = cams[0]  # a narrow camera that sees only the middle of the box
+    K = zoom.K.copy()
+    K[0, 0] *= 3
+    K[1, 1] *= 3
+    cams = Cameras([Camera(zoom.name, zoom.width, zoom.height, K, zoom.Rt), *cams.cameras[1:]])
+    masks = sphere_masks(cams)
+    carve = all_methods(masks, cams, 30, policy="carve")
+    ignore = all_methods(masks, cams, 30, policy="ignore")
+    assert np.all(ignore >= carve) and ignore.sum() - carve.sum() > 500
+
+
+def test_bare_projection_matrices():
+    metric = ring(6)
+    masks = sphere_masks(metric)
+    # -P projects the same points; its third row points backwards, which pack()[24] records
+    bare = Cameras([Camera.from_P(c.name, -c.P, c.width, c.height) for c in metric])
+    assert np.all(bare.pack()[:, 24] == -1)
+    a = all_methods(masks, bare, 30)
+    b = visual_hull(masks, metric, BOX, 30).occupancy
+    assert a.sum() > 1000 and (a != b).sum() <= 0.01 * b.sum()
+
+
+def test_node_golden(golden):
+    cams = ring(6, 64, 48)
+    out = run_node("hull", {"masks": sphere_masks(cams), "cameras": cams}, {"resolution": 16, "bbox": BOX.ravel().tolist()},
+                   roundtrip=True)
+    vol = out["volume"]
+    assert vol.occupancy.dtype == np.uint8 and vol.occupancy.shape == (16, 16, 16)
+    assert 200 < vol.occupancy.sum() < 16**3 / 2
+    golden.check("hull_sphere", vol, Volume)
+
+
+def test_node_reads_bounds_input_and_reports_bad_input():
+    cams = ring(4, 64, 48)
+    masks = sphere_masks(cams)
+    a = run_node("hull", {"masks": masks, "cameras": cams, "bounds": BOX}, {"resolution": 12})["volume"]
+    b = run_node("hull", {"masks": masks, "cameras": cams}, {"resolution": 12, "bbox": BOX.ravel().tolist()})["volume"]
+    assert np.array_equal(a.occupancy, b.occupancy) and a.occupancy.sum() > 0
+    with pytest.raises(NodeError, match="bbox"):
+        run_node("hull", {"masks": masks, "cameras": cams}, {"resolution": 12})
+    with pytest.raises(NodeError, match="camera 'c2'"):
+        small = MaskSet([m if i != 2 else m[:-1] for i, m in enumerate(masks.masks)])
+        run_node("hull", {"masks": small, "cameras": cams, "bounds": BOX}, {"resolution": 12})
+    with pytest.raises(NodeError, match="min_views 5"):
+        run_node("hull", {"masks": masks, "cameras": cams, "bounds": BOX}, {"min_views": 5})
+    with pytest.raises(NodeError, match="max > min"):
+        run_node("hull", {"masks": masks, "cameras": cams}, {"bbox": [0, 0, 0, 1, -1, 1]})
