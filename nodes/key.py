@@ -1,0 +1,484 @@
+"""Silhouette extraction ("keying"): chroma key, difference key, grey threshold, clean-up, multi-view consensus.
+
+Per-pixel work runs in OpenCL (kernels/key.cl); each kernel has a NumPy reference here (``*_reference``)
+computing the same thing, which the tests compare against the kernel on small images. The CPU parts that a
+library does well (morphology, connected components, hole filling) use OpenCV.
+
+References: Horprasert, Harwood & Davis 1999 (brightness/chromaticity distortion); Prati et al. 2003
+(shadows keep the background's chromaticity); Zivkovic 2004 MOG2 is the baseline in bench/key.py.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from nodegraph import clrt
+from nodegraph.cameras import Cameras
+from nodegraph.errors import NodeError
+from nodegraph.node import Input, Node, Param
+from nodegraph.types import Bounds, CameraSet, Images, Masks, MaskSet, Volume
+
+KERNELS = "key.cl"
+
+
+# ---------------------------------------------------------------- colour helpers
+def rgb_to_ycc(rgb: np.ndarray) -> np.ndarray:
+    """BT.601 full-range YCbCr with chroma centred on 0, float32 (..., 3)."""
+    c = rgb.astype(np.float32)
+    y = np.float32(0.299) * c[..., 0] + np.float32(0.587) * c[..., 1] + np.float32(0.114) * c[..., 2]
+    return np.stack([y, np.float32(0.564) * (c[..., 2] - y), np.float32(0.713) * (c[..., 0] - y)], axis=-1)
+
+
+def ycc_to_rgb(ycc: np.ndarray) -> np.ndarray:
+    y, cb, cr = ycc[..., 0], ycc[..., 1], ycc[..., 2]
+    r = y + cr / np.float32(0.713)
+    b = y + cb / np.float32(0.564)
+    g = (y - np.float32(0.299) * r - np.float32(0.114) * b) / np.float32(0.587)
+    return np.stack([r, g, b], axis=-1)
+
+
+def estimate_key_direction(rgb: np.ndarray, border: int = 16) -> np.ndarray:
+    """Unit CbCr direction of the screen colour: median chroma of the most saturated quarter of the pixels
+    in a strip around the image, ``border`` pixels wide (at most a tenth of the short side), so dark or
+    neutral border pixels are ignored."""
+    border = max(1, min(border, min(rgb.shape[:2]) // 10))
+    strip = np.concatenate([rgb[:border].reshape(-1, 3), rgb[-border:].reshape(-1, 3),
+                            rgb[:, :border].reshape(-1, 3), rgb[:, -border:].reshape(-1, 3)])
+    ycc = rgb_to_ycc(strip)
+    chroma = np.hypot(ycc[:, 1], ycc[:, 2])
+    sel = chroma >= np.percentile(chroma, 75)
+    return key_direction_from_ycc(np.median(ycc[sel, 1]), np.median(ycc[sel, 2]))
+
+
+def key_direction_from_ycc(cb: float, cr: float) -> np.ndarray:
+    n = float(np.hypot(cb, cr))
+    if n < 1e-3:
+        raise NodeError("key.chroma: the key colour has no chroma (grey or black); give key_color explicitly")
+    return np.array([cb / n, cr / n], dtype=np.float32)
+
+
+def key_direction_from_rgb(rgb) -> np.ndarray:
+    ycc = rgb_to_ycc(np.asarray(rgb, dtype=np.float32).reshape(1, 3))[0]
+    return key_direction_from_ycc(ycc[1], ycc[2])
+
+
+# ---------------------------------------------------------------- garbage matte
+def matte_edges(cameras: Cameras, view: int, bounds: np.ndarray, margin: float = 8.0) -> np.ndarray:
+    """Edges of the convex hull of the capture box's projection into ``view``, as (E, 4) float32 rows
+    (a, b, c, 0): a pixel (x, y) is inside when a*x + b*y + c >= 0 for all rows. ``margin`` pixels of slack.
+    The box's 12 edges are sampled (not just its corners), so lens distortion bending them is followed.
+    Returns an empty array (no matte) when part of the box lies behind the camera."""
+    import cv2
+
+    lo, hi = bounds
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    pairs = [(i, j) for i in range(8) for j in range(i + 1, 8) if bin(i ^ j).count("1") == 1]
+    t = np.linspace(0, 1, 9)[:, None]
+    pts = np.concatenate([corners[i] + t * (corners[j] - corners[i]) for i, j in pairs])
+    uv, depth = cameras.project(pts, view)
+    if np.any(depth <= 0) or not np.all(np.isfinite(uv)):
+        return np.zeros((0, 4), np.float32)
+    hull = cv2.convexHull(uv.astype(np.float32), clockwise=False)[:, 0, :].astype(np.float64)
+    if len(hull) < 3:
+        return np.zeros((0, 4), np.float32)
+    area2 = np.sum(hull[:, 0] * np.roll(hull[:, 1], -1) - np.roll(hull[:, 0], -1) * hull[:, 1])
+    edges = []
+    for p, q in zip(hull, np.roll(hull, -1, axis=0)):
+        d = q - p
+        n = np.array([-d[1], d[0]]) * np.sign(area2)  # inward normal
+        n /= np.linalg.norm(n) + 1e-12
+        edges.append([n[0], n[1], -n @ p + margin, 0.0])
+    return np.asarray(edges, np.float32)
+
+
+def matte_reference(edges: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Boolean (H, W): inside all matte edges (all True when there are none)."""
+    ys, xs = np.mgrid[: shape[0], : shape[1]].astype(np.float32)
+    inside = np.ones(shape, bool)
+    for a, b, c, _ in edges:
+        inside &= a * xs + b * ys + c >= 0
+    return inside
+
+
+# ---------------------------------------------------------------- NumPy references of the kernels
+def chroma_key_reference(rgb, key, *, side=1.0, luma_floor=16.0, inner=0.05, outer=0.2, black=0.0, spill=1.0,
+                         edges=None):
+    """Foreground alpha (uint8 0..255) and despilled RGB of one image; see ``chroma_key`` in kernels/key.cl."""
+    f = np.float32
+    ycc = rgb_to_ycc(rgb)
+    y, cb, cr = ycc[..., 0], ycc[..., 1], ycc[..., 2]
+    along = cb * f(key[0]) + cr * f(key[1])
+    across = np.abs(cb * f(key[1]) - cr * f(key[0]))
+    s = (along - f(side) * across) / np.maximum(y, f(luma_floor))
+    a = f(1) - np.clip((s - f(inner)) / (f(outer) - f(inner)), 0, 1)
+    a = a * np.clip((y - f(black)) * f(0.25), 0, 1)
+    if edges is not None and len(edges):
+        a = np.where(matte_reference(edges, rgb.shape[:2]), a, f(0))
+    alpha = np.rint(a * f(255)).astype(np.uint8)
+    remove = f(spill) * np.maximum(along, 0)
+    ycc = np.stack([y, cb - remove * f(key[0]), cr - remove * f(key[1])], axis=-1)
+    despilled = np.clip(np.rint(ycc_to_rgb(ycc)), 0, 255).astype(np.uint8)
+    return alpha, despilled
+
+
+def difference_key_reference(rgb, mean, inv_var, *, cd_inner=4.0, cd_outer=8.0, shadow=0.5, highlight=1.2,
+                             still=3.0):
+    """Foreground alpha (uint8) and class (0 background, 1 shadow, 2 foreground) against a Gaussian plate
+    model (mean, 1/sigma^2 per channel); see ``difference_key`` in kernels/key.cl."""
+    I = rgb.astype(np.float32)
+    E, w = mean.astype(np.float32), inv_var.astype(np.float32)
+    b = np.sum(I * E * w, -1) / np.maximum(np.sum(E * E * w, -1), np.float32(1e-6))
+    cd = np.sqrt(np.sum((I - b[..., None] * E) ** 2 * w, -1))
+    dist = np.sqrt(np.sum((I - E) ** 2 * w, -1))
+    a = np.clip((cd - np.float32(cd_inner)) / np.float32(cd_outer - cd_inner), 0, 1)
+    a = np.where(((b < shadow) | (b > highlight)) & (dist > still), np.float32(1), a)
+    a = np.where(dist <= still, np.float32(0), a)
+    label = np.where(a >= 0.5, 2, np.where((b < 1) & (dist > still), 1, 0)).astype(np.uint8)
+    return np.rint(a * np.float32(255)).astype(np.uint8), label
+
+
+def grey_threshold_reference(rgb, t, use_max=False):
+    c = rgb.astype(np.float32)
+    g = c.max(-1) if use_max else (c[..., 0] + c[..., 1] + c[..., 2]) * np.float32(1 / 3)
+    return np.where(g > np.float32(t), 255, 0).astype(np.uint8)
+
+
+# ---------------------------------------------------------------- OpenCL runners
+class _Buffers:
+    """Device buffers kept between calls (by role and size), so a sequence of same-size frames allocates once."""
+
+    def __init__(self):
+        self._bufs = {}  # role -> (nbytes, buffer): one buffer per role, replaced when the size changes
+
+    def get(self, role: str, nbytes: int, flags):
+        import pyopencl as cl
+
+        have = self._bufs.get(role)
+        if have is None or have[0] != nbytes:
+            have = (nbytes, cl.Buffer(clrt.context()[0], flags, max(nbytes, 4)))
+            self._bufs[role] = have
+        return have[1]
+
+
+_buffers = _Buffers()
+
+
+def _upload(role: str, arr: np.ndarray):
+    import pyopencl as cl
+
+    arr = np.ascontiguousarray(arr)
+    buf = _buffers.get(role, arr.nbytes, cl.mem_flags.READ_ONLY)
+    cl.enqueue_copy(clrt.queue(), buf, arr, is_blocking=False)
+    return buf
+
+
+def _output(role: str, nbytes: int):
+    import pyopencl as cl
+
+    return _buffers.get(role, nbytes, cl.mem_flags.WRITE_ONLY)
+
+
+def _read(buf, shape, dtype=np.uint8) -> np.ndarray:
+    import pyopencl as cl
+
+    out = np.empty(shape, dtype)
+    cl.enqueue_copy(clrt.queue(), out, buf)
+    return out
+
+
+def _launch(name: str, npix: int, *args):
+    import pyopencl as cl
+
+    k = clrt.kernel(KERNELS, name)
+    k.set_args(*args)
+    cl.enqueue_nd_range_kernel(clrt.queue(), k, (npix,), None)
+
+
+def chroma_key_cl(rgb, key, *, side=1.0, luma_floor=16.0, inner=0.05, outer=0.2, black=0.0, spill=1.0, edges=None):
+    """OpenCL ``chroma_key`` on one (H, W, 3) uint8 image: (alpha uint8 (H, W), despilled (H, W, 3))."""
+    from pyopencl import cltypes
+
+    h, w = rgb.shape[:2]
+    npix = h * w
+    edges = np.zeros((0, 4), np.float32) if edges is None else np.asarray(edges, np.float32)
+    src = _upload("rgb", rgb)
+    ebuf = _upload("edges", edges if len(edges) else np.zeros((1, 4), np.float32))
+    alpha, desp = _output("alpha", npix), _output("rgb_out", npix * 3)
+    f = np.float32
+    _launch("chroma_key", npix, src, np.int32(npix), cltypes.make_float2(*map(float, key)), f(side), f(luma_floor),
+            f(inner), f(outer), f(black), f(spill), np.int32(w), ebuf, np.int32(len(edges)), alpha, desp)
+    return _read(alpha, (h, w)), _read(desp, (h, w, 3))
+
+
+def difference_key_cl(rgb, mean, inv_var, *, cd_inner=4.0, cd_outer=8.0, shadow=0.5, highlight=1.2, still=3.0):
+    h, w = rgb.shape[:2]
+    npix = h * w
+    f = np.float32
+    src = _upload("rgb", rgb)
+    mbuf, vbuf = _upload("plate_mean", mean.astype(f)), _upload("plate_inv_var", inv_var.astype(f))
+    alpha, label = _output("alpha", npix), _output("label", npix)
+    _launch("difference_key", npix, src, mbuf, vbuf, np.int32(npix), f(cd_inner), f(cd_outer), f(shadow),
+            f(highlight), f(still), alpha, label)
+    return _read(alpha, (h, w)), _read(label, (h, w))
+
+
+def grey_threshold_cl(rgb, t, use_max=False):
+    h, w = rgb.shape[:2]
+    npix = h * w
+    src = _upload("rgb", rgb)
+    out = _output("alpha", npix)
+    _launch("grey_threshold", npix, src, np.int32(npix), np.float32(t), np.int32(bool(use_max)), out)
+    return _read(out, (h, w))
+
+
+# ---------------------------------------------------------------- mask clean-up and consensus (CPU, OpenCV)
+def _disc(radius: int) -> np.ndarray:
+    import cv2
+
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+
+
+def clean_mask(mask: np.ndarray, *, open_px=1, close_px=2, keep=1, fill_holes=True) -> np.ndarray:
+    """Binary (0/255) mask after opening, closing, keeping the ``keep`` largest 8-connected components
+    (0 = all) and filling holes (background regions not connected to the image border)."""
+    import cv2
+
+    m = (mask > 127).astype(np.uint8)
+    if open_px > 0:
+        m = cv2.morphologyEx(m, cv2.MORPH_OPEN, _disc(open_px))
+    if close_px > 0:
+        m = cv2.morphologyEx(m, cv2.MORPH_CLOSE, _disc(close_px))
+    if keep > 0:
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
+        if n > 1:
+            order = 1 + np.argsort(-stats[1:, cv2.CC_STAT_AREA], kind="stable")[:keep]
+            m = np.isin(labels, order).astype(np.uint8)
+    if fill_holes:
+        # background reachable from the border, via a 1-pixel frame so every border pixel is a seed
+        framed = np.pad(m, 1)
+        cv2.floodFill(framed, None, (0, 0), 2)
+        m = (framed[1:-1, 1:-1] != 2).astype(np.uint8)
+    return m * 255
+
+
+def hull_footprint(volume, cameras: Cameras, view: int, dilate_px: int = 1) -> np.ndarray:
+    """uint8 (H, W) 0/255: the projection of the occupied voxels of ``volume`` into ``view``. Surface voxel
+    centres are splatted, then dilated by the largest projected voxel radius (half the voxel diagonal) plus
+    ``dilate_px``."""
+    import cv2
+    from scipy import ndimage
+
+    cam = cameras[view]
+    occ = volume.occupancy > (0.5 if volume.occupancy.dtype.kind == "f" else 0)
+    out = np.zeros((cam.height, cam.width), np.uint8)
+    if not occ.any():
+        return out
+    surface = occ & ~ndimage.binary_erosion(occ, border_value=0)
+    idx = np.argwhere(surface)
+    vs = volume.voxel_size
+    centres = volume.bbox_min + (idx + 0.5) * vs
+    uv, depth = cameras.project(centres, view)
+    front = (depth > 0) & np.all(np.isfinite(uv), axis=1)
+    uv, centres = uv[front], centres[front]
+    if len(uv) == 0:
+        return out
+    half = 0.5 * float(np.linalg.norm(vs))
+    radius = 0.0
+    for axis in range(3):  # projected length of a half-diagonal step along each axis, worst case
+        off = np.zeros(3)
+        off[axis] = half
+        uv2, _ = cameras.project(centres + off, view)
+        radius = max(radius, float(np.nanmax(np.linalg.norm(uv2 - uv, axis=1))))
+    px = np.rint(uv).astype(np.int64)
+    ok = (px[:, 0] >= 0) & (px[:, 0] < cam.width) & (px[:, 1] >= 0) & (px[:, 1] < cam.height)
+    out[px[ok, 1], px[ok, 0]] = 255
+    r = int(np.ceil(radius)) + dilate_px
+    out = cv2.dilate(out, _disc(r))
+    # the splat of surface centres is hollow where the surface is far from the centre line: fill it
+    return clean_mask(out, open_px=0, close_px=0, keep=0, fill_holes=True)
+
+
+def _check_views(what: str, images, cameras: Cameras | None):
+    if cameras is None:
+        return
+    if len(cameras) != len(images):
+        raise NodeError(f"{what}: {len(images)} images but {len(cameras)} cameras")
+    for i, (cam, im) in enumerate(zip(cameras, images)):
+        if (cam.height, cam.width) != im.shape[:2]:
+            raise NodeError(f"{what}: camera '{cam.name}' is {cam.width}x{cam.height} but image {i} is "
+                            f"{im.shape[1]}x{im.shape[0]}")
+
+
+def _maskset(alphas: list[np.ndarray], names: list[str]) -> MaskSet:
+    masks = [np.where(a >= 128, 255, 0).astype(np.uint8) for a in alphas]
+    return MaskSet(masks, [a.astype(np.float32) / 255 for a in alphas], list(names))
+
+
+# ---------------------------------------------------------------- nodes
+class ChromaKey(Node):
+    """Chroma key (green/blue screen): foreground alpha from how strongly each pixel's chroma points at the
+    screen hue relative to its brightness, with an optional garbage matte (pixels outside the projection of
+    the capture box are background) and spill suppression of the screen colour in the kept pixels."""
+
+    type_name = "key.chroma"
+    version = 1
+    inputs = {
+        "images": Images,
+        "cameras": Input(CameraSet, optional=True, doc="with bounds: garbage matte"),
+        "bounds": Input(Bounds, optional=True, doc="capture volume; pixels outside its projection are background"),
+    }
+    outputs = {"masks": Masks, "images": Images}
+    params = {
+        "key_color": Param(list, None, item=int, length=3, doc="screen RGB; default: estimated from the image border"),
+        "inner": Param(float, 0.05, doc="key strength below which a pixel is fully foreground"),
+        "outer": Param(float, 0.2, doc="key strength above which a pixel is fully background"),
+        "side": Param(float, 1.0, range=(0, None), doc="weight of chroma off the key hue (larger = narrower hue band)"),
+        "luma_floor": Param(float, 16.0, range=(1, 255), doc="luma below which chroma is not normalised further"),
+        "black": Param(float, 0.0, range=(0, 255), doc="pixels darker than this luma are background (dark studio walls)"),
+        "spill": Param(float, 1.0, range=(0, 1), doc="fraction of the key-coloured chroma removed from kept pixels"),
+        "matte_margin": Param(float, 8.0, range=(0, None), doc="garbage matte slack, pixels"),
+    }
+    kernels = [KERNELS]
+
+    def run(self, images, cameras=None, bounds=None, *, key_color, inner, outer, side, luma_floor, black, spill,
+            matte_margin):
+        if outer <= inner:
+            raise NodeError(f"key.chroma: param 'outer' ({outer}) must be larger than 'inner' ({inner})")
+        if (cameras is None) != (bounds is None):
+            raise NodeError("key.chroma: the garbage matte needs both inputs 'cameras' and 'bounds'")
+        _check_views("key.chroma", images.images, cameras)
+        alphas, despilled = [], []
+        for v, im in enumerate(images.images):
+            key = key_direction_from_rgb(key_color) if key_color else estimate_key_direction(im)
+            edges = matte_edges(cameras, v, bounds, matte_margin) if cameras is not None else None
+            a, d = chroma_key_cl(im, key, side=side, luma_floor=luma_floor, inner=inner, outer=outer, black=black,
+                                 spill=spill, edges=edges)
+            alphas.append(a)
+            despilled.append(d)
+        from nodegraph.types import ImageSet
+
+        return {"masks": _maskset(alphas, images.names), "images": ImageSet(despilled, list(images.names))}
+
+
+def plate_model(plate: np.ndarray, noise_floor: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel Gaussian of a single clean plate: mean = the plate; sigma per channel = the plate's sensor
+    noise (1.4826 x MAD of plate minus its 3x3 median), at least ``noise_floor`` grey levels."""
+    import cv2
+
+    resid = plate.astype(np.float32) - cv2.medianBlur(plate, 3).astype(np.float32)
+    mad = np.median(np.abs(resid.reshape(-1, 3)), axis=0) * 1.4826
+    sigma = np.maximum(mad, noise_floor).astype(np.float32)
+    inv_var = np.broadcast_to(1.0 / sigma**2, plate.shape).astype(np.float32)
+    return plate.astype(np.float32), inv_var
+
+
+class DifferenceKey(Node):
+    """Difference key against clean plates (one per camera): a per-pixel Gaussian colour model of the plate;
+    pixels whose colour departs from it in chromaticity, or in brightness beyond the shadow/highlight range,
+    are foreground. Shadows (darker, same chromaticity as the plate) are background (Horprasert 1999)."""
+
+    type_name = "key.difference"
+    version = 1
+    inputs = {"images": Images, "background": Input(Images, doc="clean plate per camera, same order")}
+    outputs = {"masks": Masks}
+    params = {
+        "noise": Param(float, 4.0, range=(0.5, None), doc="lowest plate noise sigma, grey levels"),
+        "cd_inner": Param(float, 4.0, range=(0, None), doc="chromaticity distortion (sigmas) below which it is background"),
+        "cd_outer": Param(float, 8.0, range=(0, None), doc="chromaticity distortion (sigmas) above which it is foreground"),
+        "shadow": Param(float, 0.5, range=(0, 1), doc="lowest brightness ratio still taken as a shadow"),
+        "highlight": Param(float, 1.2, range=(1, None), doc="highest brightness ratio still taken as background"),
+        "still": Param(float, 3.0, range=(0, None), doc="colour distance (sigmas) within which a pixel is background"),
+    }
+    kernels = [KERNELS]
+
+    def run(self, images, background, *, noise, cd_inner, cd_outer, shadow, highlight, still):
+        if cd_outer <= cd_inner:
+            raise NodeError(f"key.difference: param 'cd_outer' ({cd_outer}) must be larger than 'cd_inner' ({cd_inner})")
+        if len(background) != len(images):
+            raise NodeError(f"key.difference: {len(images)} images but {len(background)} background plates")
+        alphas = []
+        for name, im, plate in zip(images.names, images.images, background.images):
+            if plate.shape != im.shape:
+                raise NodeError(f"key.difference: camera '{name}': plate {plate.shape[1]}x{plate.shape[0]} does not "
+                                f"match image {im.shape[1]}x{im.shape[0]}")
+            mean, inv_var = plate_model(plate, noise)
+            a, _ = difference_key_cl(im, mean, inv_var, cd_inner=cd_inner, cd_outer=cd_outer, shadow=shadow,
+                                     highlight=highlight, still=still)
+            alphas.append(a)
+        return {"masks": _maskset(alphas, images.names)}
+
+
+class Threshold(Node):
+    """Grey threshold: foreground where the grey level exceeds ``threshold`` (masks shipped as images, or
+    objects on a black background such as Middlebury's: threshold 0.19, dilate 10, erode 7)."""
+
+    type_name = "key.threshold"
+    version = 1
+    inputs = {"images": Images}
+    outputs = {"masks": Masks}
+    params = {
+        "threshold": Param(float, 0.5, range=(0, 1), doc="fraction of 255"),
+        "channel": Param(str, "mean", choices=("mean", "max"), doc="grey = mean of R, G, B or their max"),
+        "dilate": Param(int, 0, range=(0, 100), doc="then dilate by this radius, pixels"),
+        "erode": Param(int, 0, range=(0, 100), doc="then erode by this radius, pixels"),
+    }
+    kernels = [KERNELS]
+
+    def run(self, images, *, threshold, channel, dilate, erode):
+        import cv2
+
+        masks = []
+        for im in images.images:
+            m = grey_threshold_cl(im, threshold * 255, channel == "max")
+            if dilate:
+                m = cv2.dilate(m, _disc(dilate))
+            if erode:
+                m = cv2.erode(m, _disc(erode))
+            masks.append(m)
+        return {"masks": MaskSet(masks, None, list(images.names))}
+
+
+class Cleanup(Node):
+    """Mask clean-up: morphological opening and closing, keep the largest components, fill holes."""
+
+    type_name = "key.cleanup"
+    version = 1
+    inputs = {"masks": Masks}
+    outputs = {"masks": Masks}
+    params = {
+        "open": Param(int, 1, range=(0, 50), doc="opening radius, pixels (removes specks)"),
+        "close": Param(int, 2, range=(0, 50), doc="closing radius, pixels (bridges cracks)"),
+        "keep": Param(int, 1, range=(0, None), doc="keep the k largest components (0 = all)"),
+        "fill_holes": Param(bool, True, doc="fill background regions not connected to the border"),
+    }
+
+    def run(self, masks, *, open, close, keep, fill_holes):
+        out, alphas = [], []
+        for i, m in enumerate(masks.masks):
+            c = clean_mask(m, open_px=open, close_px=close, keep=keep, fill_holes=fill_holes)
+            out.append(c)
+            if masks.alpha is not None:
+                a = masks.alpha[i]
+                alphas.append(np.where(c > 0, np.where(m > 127, a, 1.0), 0.0).astype(np.float32))
+        return {"masks": MaskSet(out, alphas if masks.alpha is not None else None, list(masks.names))}
+
+
+class Consensus(Node):
+    """Multi-view consistency: each view's mask intersected with the projection of a visual hull computed from
+    all views' masks (with a min_views tolerance), so what only one or two cameras believe is foreground is
+    rejected."""
+
+    type_name = "key.consensus"
+    version = 1
+    inputs = {"masks": Masks, "cameras": CameraSet, "volume": Input(Volume, doc="hull of all views' masks")}
+    outputs = {"masks": Masks}
+    params = {"dilate": Param(int, 2, range=(0, 100), doc="extra margin around the hull's projection, pixels")}
+
+    def run(self, masks, cameras, volume, *, dilate):
+        _check_views("key.consensus", masks.masks, cameras)
+        out, alphas = [], []
+        for v, m in enumerate(masks.masks):
+            keep = hull_footprint(volume, cameras, v, dilate) > 0
+            out.append(np.where(keep, m, 0).astype(np.uint8))
+            if masks.alpha is not None:
+                alphas.append(np.where(keep, masks.alpha[v], 0).astype(np.float32))
+        return {"masks": MaskSet(out, alphas if masks.alpha is not None else None, list(masks.names))}
