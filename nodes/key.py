@@ -193,8 +193,10 @@ def _launch(name: str, npix: int, *args):
     cl.enqueue_nd_range_kernel(clrt.queue(), k, (npix,), None)
 
 
-def chroma_key_cl(rgb, key, *, side=1.0, luma_floor=16.0, inner=0.05, outer=0.2, black=0.0, spill=1.0, edges=None):
-    """OpenCL ``chroma_key`` on one (H, W, 3) uint8 image: (alpha uint8 (H, W), despilled (H, W, 3))."""
+def chroma_key_cl(rgb, key, *, side=1.0, luma_floor=16.0, inner=0.05, outer=0.2, black=0.0, spill=1.0, edges=None,
+                  read_images=True):
+    """OpenCL ``chroma_key`` on one (H, W, 3) uint8 image: (alpha uint8 (H, W), despilled (H, W, 3) or None
+    when ``read_images`` is false)."""
     from pyopencl import cltypes
 
     h, w = rgb.shape[:2]
@@ -206,7 +208,7 @@ def chroma_key_cl(rgb, key, *, side=1.0, luma_floor=16.0, inner=0.05, outer=0.2,
     f = np.float32
     _launch("chroma_key", npix, src, np.int32(npix), cltypes.make_float2(*map(float, key)), f(side), f(luma_floor),
             f(inner), f(outer), f(black), f(spill), np.int32(w), ebuf, np.int32(len(edges)), alpha, desp)
-    return _read(alpha, (h, w)), _read(desp, (h, w, 3))
+    return _read(alpha, (h, w)), (_read(desp, (h, w, 3)) if read_images else None)
 
 
 def difference_key_cl(rgb, mean, inv_var, *, cd_inner=4.0, cd_outer=8.0, shadow=0.5, highlight=1.2, still=3.0):

@@ -1,0 +1,98 @@
+"""Keying speed: 24 x 1920x1080 frames, our OpenCL keys vs the baselines of REFERENCES.md (cv2.inRange,
+MOG2 with shadow detection), in the same run. Prints a table of the minimum over repeats (shared machine).
+
+    python bench/key.py [--frames 24] [--repeats 5]
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from nodes import key as K  # noqa: E402
+
+
+def frames(n: int, h=1080, w=1920) -> tuple[list[np.ndarray], np.ndarray]:
+    """n green-screen frames with a moving red ball, and a textured clean plate."""
+    rng = np.random.default_rng(0)
+    ys, xs = np.mgrid[:h, :w]
+    plate = np.stack([40 + 10 * np.sin(xs / 50), 160 + 20 * np.cos(ys / 40), 60 + 0 * xs], -1)
+    out = []
+    for i in range(n):
+        ball = (ys - h / 2) ** 2 + (xs - 300 - 50 * i) ** 2 < 200**2
+        img = np.where(ball[..., None], np.array([200.0, 60, 50]), plate)
+        out.append(np.clip(img + rng.normal(0, 2, (1, w, 3)), 0, 255).astype(np.uint8))
+    return out, np.clip(plate, 0, 255).astype(np.uint8)
+
+
+def best(fn, repeats: int) -> float:
+    fn()  # warm-up (kernel build, buffer allocation)
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return min(times)
+
+
+def main():
+    import cv2
+
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--frames", type=int, default=24)
+    ap.add_argument("--repeats", type=int, default=5)
+    args = ap.parse_args()
+    imgs, plate = frames(args.frames)
+    key = K.estimate_key_direction(imgs[0])
+    mean, inv_var = K.plate_model(plate, 4.0)
+    bgr = [im[:, :, ::-1].copy() for im in imgs]
+
+    def inrange():
+        for im in bgr:
+            hsv = cv2.cvtColor(im, cv2.COLOR_BGR2HSV)
+            cv2.inRange(hsv, (40, 80, 40), (85, 255, 255))
+
+    def inrange_only():
+        for im in bgr:
+            cv2.inRange(im, (0, 100, 0), (120, 255, 120))
+
+    def mog2():
+        mog = cv2.createBackgroundSubtractorMOG2(detectShadows=True)
+        for im in bgr:
+            mog.apply(im)
+
+    def chroma_alpha():  # what a graph needs: alpha back on the host, despilled image left on the device
+        for im in imgs:
+            K.chroma_key_cl(im, key, read_images=False)
+
+    def chroma_full():
+        for im in imgs:
+            K.chroma_key_cl(im, key)
+
+    def difference():
+        for im in imgs:
+            K.difference_key_cl(im, mean, inv_var)
+
+    rows = [
+        ("cv2.cvtColor HSV + inRange", inrange),
+        ("cv2.inRange (RGB box only)", inrange_only),
+        ("cv2 MOG2 detectShadows", mog2),
+        ("key.chroma OpenCL (alpha)", chroma_alpha),
+        ("key.chroma OpenCL (alpha+despill)", chroma_full),
+        ("key.difference OpenCL", difference),
+    ]
+    n = args.frames
+    print(f"{n} frames of 1920x1080, min of {args.repeats} repeats")
+    print(f"{'method':36s} {'total ms':>9s} {'ms/frame':>9s}")
+    for name, fn in rows:
+        t = best(fn, args.repeats)
+        print(f"{name:36s} {1000 * t:9.1f} {1000 * t / n:9.2f}")
+
+
+if __name__ == "__main__":
+    main()
