@@ -1,0 +1,160 @@
+// Z-buffer triangle rasterizer (NumPy reference: nodes/raster.py).
+//
+// Pipeline for one view:  project_vertices -> raster_triangles -> resolve | coverage | shade
+// Conventions: pixel (u, v) has its centre at integer coordinates (as Cameras.project); a pixel is covered
+// when its centre lies inside or on the edge of the projected triangle. Lens distortion is applied per
+// vertex, so triangle edges stay straight in the distorted image (fine for small triangles).
+// Depth is camera z, interpolated perspective-correctly (1/z is linear in screen space). The z-buffer holds
+// 64-bit keys (float bits of depth << 32 | face id), so atom_min keeps the nearest face and breaks exact depth
+// ties by the lower face id: the result does not depend on execution order.
+#pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable
+#pragma OPENCL EXTENSION cl_khr_int64_extended_atomics : enable
+
+#define EMPTY 0xFFFFFFFFFFFFFFFFUL
+
+// Camera layout (Cameras.pack): Rt[12] fx skew cx fy cy k1 k2 p1 p2 k3 width height zsign pad...
+__kernel void project_vertices(__global const float *verts, __global const float *cams, int view, int nverts,
+                               float near, __global float4 *out)
+{
+    int i = get_global_id(0);
+    if (i >= nverts) return;
+    __global const float *cam = cams + 32 * view;
+    float X = verts[3 * i], Y = verts[3 * i + 1], Z = verts[3 * i + 2];
+    float xc = cam[0] * X + cam[1] * Y + cam[2] * Z + cam[3];
+    float yc = cam[4] * X + cam[5] * Y + cam[6] * Z + cam[7];
+    float zc = cam[8] * X + cam[9] * Y + cam[10] * Z + cam[11];
+    float x = xc / zc, y = yc / zc;
+    float k1 = cam[17], k2 = cam[18], p1 = cam[19], p2 = cam[20], k3 = cam[21];
+    float r2 = x * x + y * y;
+    float radial = 1.0f + r2 * (k1 + r2 * (k2 + r2 * k3));
+    float xd = x * radial + 2.0f * p1 * x * y + p2 * (r2 + 2.0f * x * x);
+    float yd = y * radial + p1 * (r2 + 2.0f * y * y) + 2.0f * p2 * x * y;
+    float u = cam[12] * xd + cam[13] * yd + cam[14];
+    float v = cam[15] * yd + cam[16];
+    float depth = zc * cam[24];
+    // radial distortion folds back beyond the radius where d(r_d)/dr = 0: such points are not imaged
+    float slope = 1.0f + r2 * (3.0f * k1 + r2 * (5.0f * k2 + r2 * 7.0f * k3));
+    out[i] = (float4)(u, v, depth, (depth > near && slope > 0.0f) ? 1.0f : 0.0f);
+}
+
+inline float edge(float2 a, float2 b, float2 p)
+{
+    return (b.x - a.x) * (p.y - a.y) - (b.y - a.y) * (p.x - a.x);
+}
+
+// One work item per face: walk the pixel centres of its clipped bounding box.
+__kernel void raster_triangles(__global const int *faces, __global const float4 *proj, int nfaces,
+                               int width, int height, __global ulong *zbuf)
+{
+    int f = get_global_id(0);
+    if (f >= nfaces) return;
+    float4 a = proj[faces[3 * f]], b = proj[faces[3 * f + 1]], c = proj[faces[3 * f + 2]];
+    if (a.w == 0.0f || b.w == 0.0f || c.w == 0.0f) return;        // behind the near plane: dropped
+    float2 p0 = a.xy, p1 = b.xy, p2 = c.xy;
+    float area = edge(p0, p1, p2);
+    if (area == 0.0f || !isfinite(area)) return;
+    float inv_area = 1.0f / area;
+    // clamp in float first: vertices close to the camera plane project very far away
+    int x0 = (int)ceil(clamp(fmin(p0.x, fmin(p1.x, p2.x)), 0.0f, (float)width));
+    int x1 = (int)floor(clamp(fmax(p0.x, fmax(p1.x, p2.x)), -1.0f, (float)(width - 1)));
+    int y0 = (int)ceil(clamp(fmin(p0.y, fmin(p1.y, p2.y)), 0.0f, (float)height));
+    int y1 = (int)floor(clamp(fmax(p0.y, fmax(p1.y, p2.y)), -1.0f, (float)(height - 1)));
+    float iz0 = 1.0f / a.z, iz1 = 1.0f / b.z, iz2 = 1.0f / c.z;
+    for (int y = y0; y <= y1; y++) {
+        for (int x = x0; x <= x1; x++) {
+            float2 p = (float2)((float)x, (float)y);
+            float w0 = edge(p1, p2, p) * inv_area;
+            float w1 = edge(p2, p0, p) * inv_area;
+            float w2 = edge(p0, p1, p) * inv_area;
+            if (w0 < 0.0f || w1 < 0.0f || w2 < 0.0f) continue;
+            float z = 1.0f / (w0 * iz0 + w1 * iz1 + w2 * iz2);
+            ulong key = ((ulong)as_uint(z) << 32) | (ulong)(uint)f;
+            atom_min(&zbuf[y * width + x], key);
+        }
+    }
+}
+
+// Per pixel: face id (-1 = empty), depth (INFINITY = empty), perspective-correct barycentrics.
+__kernel void resolve(__global const ulong *zbuf, __global const int *faces, __global const float4 *proj,
+                      int width, int height, __global int *tri_id, __global float *depth, __global float *bary)
+{
+    int x = get_global_id(0), y = get_global_id(1);
+    if (x >= width || y >= height) return;
+    int i = y * width + x;
+    ulong key = zbuf[i];
+    if (key == EMPTY) {
+        tri_id[i] = -1;
+        depth[i] = INFINITY;
+        bary[3 * i] = bary[3 * i + 1] = bary[3 * i + 2] = 0.0f;
+        return;
+    }
+    int f = (int)(uint)(key & 0xFFFFFFFFUL);
+    float4 a = proj[faces[3 * f]], b = proj[faces[3 * f + 1]], c = proj[faces[3 * f + 2]];
+    float2 p = (float2)((float)x, (float)y);
+    float inv_area = 1.0f / edge(a.xy, b.xy, c.xy);
+    float w0 = edge(b.xy, c.xy, p) * inv_area / a.z;
+    float w1 = edge(c.xy, a.xy, p) * inv_area / b.z;
+    float w2 = edge(a.xy, b.xy, p) * inv_area / c.z;
+    float s = 1.0f / (w0 + w1 + w2);
+    tri_id[i] = f;
+    depth[i] = as_float((uint)(key >> 32));
+    bary[3 * i] = w0 * s;
+    bary[3 * i + 1] = w1 * s;
+    bary[3 * i + 2] = w2 * s;
+}
+
+// Per pixel: 255 where any face was drawn.
+__kernel void coverage(__global const ulong *zbuf, int npixels, __global uchar *mask)
+{
+    int i = get_global_id(0);
+    if (i >= npixels) return;
+    mask[i] = zbuf[i] == EMPTY ? 0 : 255;
+}
+
+// Material layout (12 floats): colour A rgb, colour B rgb, pattern (0 plain, 1 checker, 2 stripes), period,
+// lit (1 Lambert, 0 unlit), receives shadow (0/1), pad, pad.
+// shadow = (centre x, centre y, sigma, strength) on the z = 0 floor, read from the texture coordinate.
+__kernel void shade(__global const int *tri_id, __global const float *bary, __global const int *faces,
+                    __global const float *normals, __global const float *texcoords,
+                    __global const int *face_material, __global const float *materials,
+                    float4 light, float ambient, float4 shadow, float4 empty_rgb, int n_object,
+                    int npixels, __global uchar *rgb, __global uchar *mask)
+{
+    int i = get_global_id(0);
+    if (i >= npixels) return;
+    int f = tri_id[i];
+    mask[i] = (f >= 0 && f < n_object) ? 255 : 0;
+    float3 col;
+    if (f < 0) {
+        col = empty_rgb.xyz;
+    } else {
+        float b0 = bary[3 * i], b1 = bary[3 * i + 1], b2 = bary[3 * i + 2];
+        int ia = faces[3 * f], ib = faces[3 * f + 1], ic = faces[3 * f + 2];
+        float3 t = b0 * vload3(ia, texcoords) + b1 * vload3(ib, texcoords) + b2 * vload3(ic, texcoords);
+        __global const float *m = materials + 12 * face_material[f];
+        float period = m[7];
+        float sel = 0.0f;
+        if (m[6] == 1.0f) {
+            float k = floor(t.x / period) + floor(t.y / period) + floor(t.z / period);
+            sel = k - 2.0f * floor(k * 0.5f);
+        } else if (m[6] == 2.0f) {
+            float k = floor(t.z / period);
+            sel = k - 2.0f * floor(k * 0.5f);
+        }
+        col = (1.0f - sel) * vload3(0, m) + sel * vload3(1, m);
+        if (m[8] != 0.0f) {
+            float3 n = b0 * vload3(ia, normals) + b1 * vload3(ib, normals) + b2 * vload3(ic, normals);
+            float len = length(n);
+            float lambert = len > 0.0f ? fmax(0.0f, dot(n / len, light.xyz)) : 0.0f;
+            col *= ambient + (1.0f - ambient) * lambert;
+        }
+        if (m[9] != 0.0f) {
+            float dx = t.x - shadow.x, dy = t.y - shadow.y;
+            col *= 1.0f - shadow.w * exp(-(dx * dx + dy * dy) / (2.0f * shadow.z * shadow.z));
+        }
+    }
+    col = clamp(col * 255.0f + 0.5f, 0.0f, 255.0f);
+    rgb[3 * i] = (uchar)col.x;
+    rgb[3 * i + 1] = (uchar)col.y;
+    rgb[3 * i + 2] = (uchar)col.z;
+}

@@ -1,0 +1,294 @@
+"""Z-buffer triangle rasterization of meshes into calibrated views (kernels/raster.cl), with NumPy references.
+
+Conventions (kernel and references alike): pixel (u, v) has its centre at integer coordinates, as
+``Cameras.project``; a pixel is covered when its centre is inside or on an edge of the projected triangle;
+lens distortion is applied per vertex (edges stay straight: fine for small triangles); faces with a vertex
+behind the near plane, or beyond the radius where radial distortion folds back, are dropped; depth is
+camera z, interpolated perspective-correctly; the nearest face wins and exact depth ties go to the lower
+face id.
+
+    tri_id, depth, bary = rasterize(vertices, faces, cameras, view)    # one view, arrays (H, W), (H, W, 3)
+    masks = silhouette(vertices, faces, cameras)                        # uint8 0/255 per view
+"""
+from __future__ import annotations
+
+import logging
+from functools import lru_cache
+
+import numpy as np
+
+from nodegraph import clrt
+from nodegraph.cameras import Cameras
+from nodegraph.errors import NodeError, VolcapError
+
+log = logging.getLogger("volcap.raster")
+
+KERNELS = "raster.cl"
+NEAR = 1e-6          # camera z below which a vertex counts as behind the camera
+MATERIAL_FLOATS = 12  # colour A (3), colour B (3), pattern, period, lit, receives shadow, pad, pad
+PLAIN, CHECKER, STRIPES = 0.0, 1.0, 2.0
+
+
+def _mesh_arrays(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
+    v = np.ascontiguousarray(np.asarray(vertices, dtype=np.float32).reshape(-1, 3))
+    f = np.ascontiguousarray(np.asarray(faces, dtype=np.int32).reshape(-1, 3))
+    if f.size and (f.min() < 0 or f.max() >= len(v)):
+        raise NodeError(f"mesh faces index vertices outside 0..{len(v) - 1}")
+    if not np.all(np.isfinite(v)):
+        raise NodeError("mesh vertices contain NaN or infinity")
+    return v, f
+
+
+# ---------------------------------------------------------------- NumPy references
+def project_vertices_reference(vertices, cameras: Cameras, view: int) -> np.ndarray:
+    """(N, 4): u, v, depth, valid — what kernel ``project_vertices`` computes. A vertex is valid when it is
+    in front of the near plane and inside the radius where radial distortion still grows (beyond it the
+    model folds far-away points back into the image)."""
+    uv, z = cameras.project(vertices, view)
+    cam = cameras[view]
+    X = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    xc = X @ cam.Rt[:, :3].T + cam.Rt[:, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r2 = (xc[:, 0] ** 2 + xc[:, 1] ** 2) / xc[:, 2] ** 2
+    k1, k2, _, _, k3 = cam.dist
+    slope = 1 + r2 * (3 * k1 + r2 * (5 * k2 + r2 * 7 * k3))
+    return np.column_stack([uv, z, ((z > NEAR) & (slope > 0)).astype(np.float64)])
+
+
+def _edge(a, b, px, py):
+    return (b[..., 0] - a[..., 0]) * (py - a[..., 1]) - (b[..., 1] - a[..., 1]) * (px - a[..., 0])
+
+
+def rasterize_reference(vertices, faces, cameras: Cameras, view: int, batch: int = 1 << 22):
+    """NumPy z-buffer with the kernel's rules (vectorised over the pixel centres of all faces' bounding
+    boxes, ``batch`` candidates at a time). Same outputs as ``rasterize``."""
+    v, f = _mesh_arrays(vertices, faces)
+    cam = cameras[view]
+    w, h = cam.width, cam.height
+    proj = project_vertices_reference(v.astype(np.float64), cameras, view)
+    best_z = np.full(h * w, np.inf)
+    best_f = np.full(h * w, -1, np.int64)
+    a, b, c = proj[f[:, 0]], proj[f[:, 1]], proj[f[:, 2]]
+    with np.errstate(invalid="ignore", over="ignore"):
+        area = _edge(a, b, c[:, 0], c[:, 1])
+        xs, ys = np.stack([a[:, 0], b[:, 0], c[:, 0]]), np.stack([a[:, 1], b[:, 1], c[:, 1]])
+        x0 = np.ceil(np.clip(xs.min(0), 0, w)).astype(np.int64)
+        x1 = np.floor(np.clip(xs.max(0), -1, w - 1)).astype(np.int64)
+        y0 = np.ceil(np.clip(ys.min(0), 0, h)).astype(np.int64)
+        y1 = np.floor(np.clip(ys.max(0), -1, h - 1)).astype(np.int64)
+    ok = (a[:, 3] > 0) & (b[:, 3] > 0) & (c[:, 3] > 0) & (area != 0) & np.isfinite(area) & (x1 >= x0) & (y1 >= y0)
+    fids = np.nonzero(ok)[0]
+    nx = (x1 - x0 + 1)[fids]
+    count = nx * (y1 - y0 + 1)[fids]
+    ends = np.cumsum(count)
+    lo = 0
+    while lo < len(fids):
+        hi = max(lo + 1, int(np.searchsorted(ends, (ends[lo - 1] if lo else 0) + batch, side="right")))
+        sel = fids[lo:hi]
+        cnt = count[lo:hi]
+        rep = np.repeat(np.arange(len(sel)), cnt)
+        local = np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+        fr = sel[rep]
+        px = (x0[fr] + local % nx[lo:hi][rep]).astype(np.float64)
+        py = (y0[fr] + local // nx[lo:hi][rep]).astype(np.float64)
+        fa, fb, fc = a[fr], b[fr], c[fr]
+        w0 = _edge(fb, fc, px, py) / area[fr]
+        w1 = _edge(fc, fa, px, py) / area[fr]
+        w2 = _edge(fa, fb, px, py) / area[fr]
+        inside = (w0 >= 0) & (w1 >= 0) & (w2 >= 0)
+        z = 1.0 / (w0[inside] / fa[inside, 2] + w1[inside] / fb[inside, 2] + w2[inside] / fc[inside, 2])
+        pix = (py[inside] * w + px[inside]).astype(np.int64)
+        fid = fr[inside]
+        order = np.lexsort((fid, z, pix))                     # per pixel: nearest, then lowest face id
+        pix, z, fid = pix[order], z[order], fid[order]
+        first = np.ones(len(pix), bool)
+        first[1:] = pix[1:] != pix[:-1]
+        pix, z, fid = pix[first], z[first], fid[first]
+        win = (z < best_z[pix]) | ((z == best_z[pix]) & (fid < best_f[pix]))
+        best_z[pix[win]], best_f[pix[win]] = z[win], fid[win]
+        lo = hi
+    tri_id = best_f.reshape(h, w).astype(np.int32)
+    bary = np.zeros((h * w, 3))
+    hit = np.nonzero(best_f >= 0)[0]
+    fh = best_f[hit]
+    px, py = (hit % w).astype(np.float64), (hit // w).astype(np.float64)
+    fa, fb, fc = a[fh], b[fh], c[fh]
+    persp = np.stack([_edge(fb, fc, px, py) / fa[:, 2], _edge(fc, fa, px, py) / fb[:, 2],
+                      _edge(fa, fb, px, py) / fc[:, 2]], axis=-1)
+    bary[hit] = persp / persp.sum(axis=1, keepdims=True)
+    return tri_id, best_z.reshape(h, w).astype(np.float32), bary.reshape(h, w, 3).astype(np.float32)
+
+
+def shade_reference(tri_id, bary, faces, normals, texcoords, face_material, materials, light, ambient,
+                    shadow, empty_rgb, n_object):
+    """NumPy version of kernel ``shade``: (rgb (H, W, 3) uint8, mask (H, W) uint8)."""
+    tri_id = np.asarray(tri_id)
+    hit = tri_id >= 0
+    col = np.empty(tri_id.shape + (3,), np.float64)
+    col[:] = np.asarray(empty_rgb, np.float64)[:3]
+    f = tri_id[hit]
+    b = np.asarray(bary, np.float64)[hit]
+    corners = np.asarray(faces)[f]                                              # (P, 3)
+    t = np.einsum("pk,pkc->pc", b, np.asarray(texcoords, np.float64)[corners])
+    m = np.asarray(materials, np.float64).reshape(-1, MATERIAL_FLOATS)[np.asarray(face_material)[f]]
+    period = m[:, 7:8]
+    k = np.where(m[:, 6] == CHECKER, np.floor(t / period).sum(axis=1), np.floor(t[:, 2] / period[:, 0]))
+    sel = np.where(m[:, 6] == PLAIN, 0.0, k - 2 * np.floor(k / 2))[:, None]
+    c = (1 - sel) * m[:, 0:3] + sel * m[:, 3:6]
+    n = np.einsum("pk,pkc->pc", b, np.asarray(normals, np.float64)[corners])
+    ln = np.linalg.norm(n, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        lam = np.where(ln > 0, np.maximum(0, (n @ np.asarray(light, np.float64)[:3]) / ln), 0.0)
+    c = np.where(m[:, 8:9] != 0, c * (ambient + (1 - ambient) * lam)[:, None], c)
+    d2 = (t[:, 0] - shadow[0]) ** 2 + (t[:, 1] - shadow[1]) ** 2
+    dark = 1 - shadow[3] * np.exp(-d2 / (2 * shadow[2] ** 2))
+    c = np.where(m[:, 9:10] != 0, c * dark[:, None], c)
+    col[hit] = c
+    rgb = np.clip(col * 255 + 0.5, 0, 255).astype(np.uint8)
+    mask = np.where(hit & (tri_id < n_object), 255, 0).astype(np.uint8)
+    return rgb, mask
+
+
+# ---------------------------------------------------------------- OpenCL
+@lru_cache(maxsize=None)
+def opencl_ready() -> bool:
+    """True when kernels/raster.cl builds here; otherwise the NumPy references stand in (logged once)."""
+    try:
+        clrt.kernel(KERNELS, "shade")
+        return True
+    except VolcapError as exc:
+        log.warning("OpenCL rasterizer unavailable, using the (slower) NumPy reference: %s", str(exc).splitlines()[0])
+        return False
+
+
+def _global(n: int, group: int = 64) -> tuple[int]:
+    return (max(group, (n + group - 1) // group * group),)
+
+
+class MeshRaster:
+    """One mesh uploaded once, rasterized into any view of ``cameras``. Device buffers are kept."""
+
+    def __init__(self, vertices, faces, cameras: Cameras):
+        import pyopencl as cl
+
+        self.v, self.f = _mesh_arrays(vertices, faces)
+        self.cameras = cameras
+        self.ctx, self.queue = clrt.context()
+        self._cl = cl
+        self.d_verts = clrt.to_device(self.v if len(self.v) else np.zeros((1, 3), np.float32))
+        self.d_faces = clrt.to_device(self.f if len(self.f) else np.zeros((1, 3), np.int32))
+        self.d_cams = clrt.to_device(cameras.pack())
+        self.d_proj = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, 16 * max(1, len(self.v)))
+        self._zbuf = {}
+
+    def zbuffer(self, view: int):
+        """Rasterize all faces into ``view``; returns the device z-buffer (uint64 keys per pixel)."""
+        cl = self._cl
+        cam = self.cameras[view]
+        n = cam.width * cam.height
+        zbuf = self._zbuf.get(n)
+        if zbuf is None:
+            zbuf = self._zbuf[n] = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, 8 * n)
+        cl.enqueue_fill_buffer(self.queue, zbuf, np.uint64(0xFFFFFFFFFFFFFFFF), 0, 8 * n)
+        if len(self.f) == 0:
+            return zbuf
+        k = clrt.kernel(KERNELS, "project_vertices")
+        k.set_args(self.d_verts, self.d_cams, np.int32(view), np.int32(len(self.v)), np.float32(NEAR), self.d_proj)
+        cl.enqueue_nd_range_kernel(self.queue, k, _global(len(self.v)), None)
+        k = clrt.kernel(KERNELS, "raster_triangles")
+        k.set_args(self.d_faces, self.d_proj, np.int32(len(self.f)), np.int32(cam.width), np.int32(cam.height), zbuf)
+        cl.enqueue_nd_range_kernel(self.queue, k, _global(len(self.f)), None)
+        return zbuf
+
+    def resolve(self, view: int, zbuf):
+        """Device buffers (tri_id int32, depth float32, bary float32 x3) for the z-buffer of ``view``."""
+        cl = self._cl
+        cam = self.cameras[view]
+        n = cam.width * cam.height
+        rw = cl.mem_flags.READ_WRITE
+        tri = cl.Buffer(self.ctx, rw, 4 * n)
+        depth = cl.Buffer(self.ctx, rw, 4 * n)
+        bary = cl.Buffer(self.ctx, rw, 12 * n)
+        k = clrt.kernel(KERNELS, "resolve")
+        k.set_args(zbuf, self.d_faces, self.d_proj, np.int32(cam.width), np.int32(cam.height), tri, depth, bary)
+        cl.enqueue_nd_range_kernel(self.queue, k, (cam.width, cam.height), None)
+        return tri, depth, bary
+
+    def rasterize(self, view: int):
+        cam = self.cameras[view]
+        tri, depth, bary = self.resolve(view, self.zbuffer(view))
+        out = (np.empty((cam.height, cam.width), np.int32), np.empty((cam.height, cam.width), np.float32),
+               np.empty((cam.height, cam.width, 3), np.float32))
+        for host, dev in zip(out, (tri, depth, bary)):
+            self._cl.enqueue_copy(self.queue, host, dev)
+        return out
+
+    def coverage(self, view: int) -> np.ndarray:
+        cl = self._cl
+        cam = self.cameras[view]
+        n = cam.width * cam.height
+        zbuf = self.zbuffer(view)
+        d_mask = cl.Buffer(self.ctx, cl.mem_flags.WRITE_ONLY, n)
+        k = clrt.kernel(KERNELS, "coverage")
+        k.set_args(zbuf, np.int32(n), d_mask)
+        cl.enqueue_nd_range_kernel(self.queue, k, _global(n), None)
+        mask = np.empty((cam.height, cam.width), np.uint8)
+        cl.enqueue_copy(self.queue, mask, d_mask)
+        return mask
+
+
+def rasterize(mesh_vertices, faces, cameras: Cameras, view: int):
+    """Rasterize a mesh into one view. Returns (tri_id (H, W) int32, -1 = empty; depth (H, W) float32
+    camera z, inf = empty; bary (H, W, 3) float32 perspective-correct barycentrics of the face's corners)."""
+    if not opencl_ready():
+        return rasterize_reference(mesh_vertices, faces, cameras, view)
+    return MeshRaster(mesh_vertices, faces, cameras).rasterize(view)
+
+
+def silhouette(vertices, faces, cameras: Cameras) -> list[np.ndarray]:
+    """Binary silhouette (uint8 0/255) of a mesh in every view."""
+    if not opencl_ready():
+        return [np.where(rasterize_reference(vertices, faces, cameras, i)[0] >= 0, 255, 0).astype(np.uint8)
+                for i in range(len(cameras))]
+    r = MeshRaster(vertices, faces, cameras)
+    return [r.coverage(i) for i in range(len(cameras))]
+
+
+def render(vertices, faces, normals, texcoords, face_material, materials, cameras: Cameras, *, n_object: int,
+           light=(0.0, 0.0, 1.0), ambient: float = 0.3, shadow=(0.0, 0.0, 1.0, 0.0), empty_rgb=(0.0, 0.0, 0.0)):
+    """Shade a mesh in every view (Lambert + procedural pattern, see kernel ``shade``).
+
+    Returns (images: list of (H, W, 3) uint8, masks: list of uint8 0/255 where faces < n_object are seen).
+    """
+    light = np.asarray(light, np.float64)
+    light = light / np.linalg.norm(light)
+    if not opencl_ready():
+        out = [shade_reference(*rasterize_reference(vertices, faces, cameras, i)[::2], faces, normals, texcoords,
+                               face_material, materials, light, ambient, shadow, empty_rgb, n_object)
+               for i in range(len(cameras))]
+        return [o[0] for o in out], [o[1] for o in out]
+    import pyopencl as cl
+
+    r = MeshRaster(vertices, faces, cameras)
+    d_norm = clrt.to_device(np.asarray(normals, np.float32).reshape(-1, 3))
+    d_tex = clrt.to_device(np.asarray(texcoords, np.float32).reshape(-1, 3))
+    d_fmat = clrt.to_device(np.asarray(face_material, np.int32).reshape(-1))
+    d_mat = clrt.to_device(np.asarray(materials, np.float32).reshape(-1, MATERIAL_FLOATS))
+    f4 = cl.cltypes.make_float4
+    images, masks = [], []
+    for view, cam in enumerate(cameras):
+        n = cam.width * cam.height
+        tri, _, bary = r.resolve(view, r.zbuffer(view))
+        d_rgb = cl.Buffer(r.ctx, cl.mem_flags.WRITE_ONLY, 3 * n)
+        d_mask = cl.Buffer(r.ctx, cl.mem_flags.WRITE_ONLY, n)
+        k = clrt.kernel(KERNELS, "shade")
+        k.set_args(tri, bary, r.d_faces, d_norm, d_tex, d_fmat, d_mat, f4(*light, 0), np.float32(ambient),
+                   f4(*shadow), f4(*empty_rgb, 0), np.int32(n_object), np.int32(n), d_rgb, d_mask)
+        cl.enqueue_nd_range_kernel(r.queue, k, _global(n), None)
+        rgb = np.empty((cam.height, cam.width, 3), np.uint8)
+        mask = np.empty((cam.height, cam.width), np.uint8)
+        cl.enqueue_copy(r.queue, rgb, d_rgb)
+        cl.enqueue_copy(r.queue, mask, d_mask)
+        images.append(rgb)
+        masks.append(mask)
+    return images, masks
