@@ -133,17 +133,54 @@ class Cameras:
             z = z * np.sign(np.linalg.det(cam.Rt[:, :3]) or 1.0)
         return uv, z
 
-    def pack(self) -> np.ndarray:
+    def pack(self, origin=None) -> np.ndarray:
         """(N, 32) float32 array read by the OpenCL kernels: Rt (12), K (fx, skew, cx, fy, cy), dist (5),
-        width, height, z sign (1 or -1 for bare-P cameras whose third row points backwards), padding."""
+        width, height, z sign (1 or -1 for bare-P cameras whose third row points backwards), padding.
+
+        ``origin`` (3,): pack for points given relative to ``origin`` (t becomes t + R @ origin, computed in
+        float64), so float32 kernels keep their precision far from the world origin. A bare-P camera is
+        then packed as K = [[1, 0, u0], [0, 1, v0]] (u0, v0: the origin's pixel) and Rt = K^-1 P, which
+        projects identically but keeps the float32 sums small."""
         out = np.zeros((len(self), PACK_FLOATS), dtype=np.float32)
+        o = None if origin is None else np.asarray(origin, dtype=np.float64).reshape(3)
         for i, c in enumerate(self.cameras):
-            out[i, 0:12] = c.Rt.ravel()
-            out[i, 12:17] = [c.K[0, 0], c.K[0, 1], c.K[0, 2], c.K[1, 1], c.K[1, 2]]
+            Rt, K = c.Rt.copy(), c.K.copy()
+            if o is not None:
+                Rt[:, 3] += Rt[:, :3] @ o
+                if not c.metric and Rt[2, 3] != 0:
+                    K = np.array([[1.0, 0, Rt[0, 3] / Rt[2, 3]], [0, 1.0, Rt[1, 3] / Rt[2, 3]], [0, 0, 1.0]])
+                    Rt = np.linalg.solve(K, Rt)
+            out[i, 0:12] = Rt.ravel()
+            out[i, 12:17] = [K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]]
             out[i, 17:22] = c.dist
             out[i, 22:24] = [c.width, c.height]
             out[i, 24] = 1.0 if c.metric else float(np.sign(np.linalg.det(c.Rt[:, :3])) or 1.0)
         return out
+
+    def rays(self, view: int, uv) -> tuple[np.ndarray, np.ndarray]:
+        """Viewing rays through pixels ``uv`` (N,2) of view ``view``: (origins (N,3), unit directions (N,3)).
+
+        Distortion is removed with cv2.undistortPointsIter (metric cameras); a point at depth d along the
+        ray (d = camera z for metric cameras) projects back onto ``uv``."""
+        cam = self.cameras[view]
+        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+        if cam.metric:
+            if cam.has_distortion:
+                import cv2
+
+                crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-14)
+                xn = cv2.undistortPointsIter(uv[:, None, :], cam.K, cam.dist, None, None, crit)[:, 0, :]
+            else:
+                Kinv = np.linalg.inv(cam.K)
+                xn = uv @ Kinv[:2, :2].T + Kinv[:2, 2]
+            d_cam = np.hstack([xn, np.ones((len(uv), 1))])
+            dirs = d_cam @ cam.Rt[:, :3]          # R^T d for every row
+        else:
+            M = cam.Rt[:, :3]
+            sign = float(np.sign(np.linalg.det(M)) or 1.0)
+            dirs = np.linalg.solve(M, np.hstack([uv, np.ones((len(uv), 1))]).T).T * sign
+        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+        return np.repeat(cam.center[None, :], len(uv), axis=0), dirs
 
     def to_json(self) -> str:
         return json.dumps({"cameras": [c.to_dict() for c in self.cameras]}, indent=1)
@@ -166,3 +203,33 @@ def look_at(eye, target, up, fov_deg: float, width: int, height: int, name: str 
     f = 0.5 * width / math.tan(math.radians(fov_deg) / 2)
     K = np.array([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1]])
     return Camera(name, width, height, K, np.hstack([R, t[:, None]]))
+
+
+def project_points_cl(cameras: Cameras, points, origin=None) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCL twin of ``Cameras.project`` for all views at once (kernels/project.cl).
+
+    Points are shifted to ``origin`` (default: their mean) in float64 before the float32 kernel runs.
+    Returns (uv (V, N, 2) float64, depth (V, N) float64)."""
+    import pyopencl as cl
+
+    from . import clrt
+
+    X = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    n, v = len(X), len(cameras)
+    if n == 0:
+        return np.zeros((v, 0, 2)), np.zeros((v, 0))
+    o = X.mean(axis=0) if origin is None else np.asarray(origin, dtype=np.float64)
+    ctx, queue = clrt.context()
+    cams_buf = clrt.to_device(cameras.pack(origin=o))
+    pts_buf = clrt.to_device((X - o).astype(np.float32))
+    uv = np.empty((v, n, 2), dtype=np.float32)
+    depth = np.empty((v, n), dtype=np.float32)
+    uv_buf = cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, uv.nbytes)
+    depth_buf = cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, depth.nbytes)
+    knl = clrt.kernel("project.cl", "project_points")
+    knl.set_args(cams_buf, pts_buf, np.int32(n), uv_buf, depth_buf)
+    cl.enqueue_nd_range_kernel(queue, knl, (n, v), None)
+    cl.enqueue_copy(queue, uv, uv_buf)
+    cl.enqueue_copy(queue, depth, depth_buf)
+    queue.finish()
+    return uv.astype(np.float64), depth.astype(np.float64)
