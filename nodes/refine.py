@@ -1,0 +1,308 @@
+"""Exact visual-hull vertices: move each marching-cubes vertex to where its grid edge leaves the hull.
+
+Liang & Wong, "Exact visual hull from marching cubes" (VISAPP 2008). Marching cubes on an occupancy grid
+puts every vertex on an edge between two neighbouring voxel centres, one inside and one outside; the true
+hull surface crosses that edge somewhere between them. Bisection along the edge, testing each point against
+every silhouette, finds the crossing (kernels/refine.cl). The same point test clamps vertices in ``relax``.
+
+    views = Silhouettes.from_inputs(masks, cameras, min_views=0, outside="carve")
+    a, b, ok = lattice_edges(mesh.vertices, volume)          # inside end, outside end per vertex
+    points = hull_exit(a, b, views, steps=16)                # OpenCL; exit_reference is the NumPy version
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+
+from nodegraph import CameraSet, Masks, Mesh, Node, NodeError, Param, Volume
+from nodegraph.cameras import Cameras
+
+POLICIES = ("carve", "ignore")   # views a point projects outside of: not inside, or no vote (as the hull node)
+IN, BACKGROUND, UNSEEN = 1, 2, 3
+
+
+# ---------------------------------------------------------------- silhouettes
+@dataclass
+class Silhouettes:
+    """Everything the point test reads: packed cameras, binary masks, optional soft alpha, the vote rule."""
+
+    cams: np.ndarray                  # (N, 32) float32, Cameras.pack()
+    masks: list[np.ndarray]           # uint8 (H, W), inside when > 127
+    alpha: list[np.ndarray] | None    # float32 (H, W), inside when bilinear alpha >= 0.5; used when given
+    min_views: int = 0
+    policy: str = "carve"
+
+    @classmethod
+    def from_inputs(cls, masks, cameras: Cameras, min_views: int = 0, outside: str = "carve", use_alpha: bool = True,
+                    node: str = "refine") -> "Silhouettes":
+        """Check a MaskSet against the cameras (NodeError naming the camera) and pack both."""
+        if masks is None or cameras is None:
+            raise NodeError(f"{node}: needs both 'masks' and 'cameras' inputs")
+        if len(masks.masks) != len(cameras):
+            raise NodeError(f"{node}: {len(masks.masks)} masks for {len(cameras)} cameras")
+        if min_views > len(cameras):
+            raise NodeError(f"{node}: min_views {min_views} is more than the {len(cameras)} cameras")
+        if outside not in POLICIES:
+            raise NodeError(f"{node}: outside must be one of {', '.join(POLICIES)}, got {outside!r}")
+        binary, soft = [], []
+        use_alpha = use_alpha and masks.alpha is not None
+        for i, cam in enumerate(cameras):
+            m = np.asarray(masks.masks[i])
+            if m.dtype != np.uint8 or m.ndim != 2:
+                raise NodeError(f"{node}: mask of camera '{cam.name}' must be an (H, W) uint8 array, got {m.dtype} {m.shape}")
+            if m.shape != (cam.height, cam.width):
+                raise NodeError(f"{node}: mask of camera '{cam.name}' is {m.shape[1]}x{m.shape[0]} but the camera is "
+                                f"{cam.width}x{cam.height}")
+            binary.append(np.ascontiguousarray(m))
+            if use_alpha:
+                a = np.asarray(masks.alpha[i], dtype=np.float32)
+                if a.shape != m.shape:
+                    raise NodeError(f"{node}: alpha of camera '{cam.name}' is {a.shape[1]}x{a.shape[0]}, its mask {m.shape[1]}x{m.shape[0]}")
+                if not np.all(np.isfinite(a)):
+                    raise NodeError(f"{node}: alpha of camera '{cam.name}' contains NaN or infinity")
+                soft.append(np.ascontiguousarray(a))
+        return cls(cameras.pack(), binary, soft if use_alpha else None, min_views, outside)
+
+
+# ---------------------------------------------------------------- NumPy reference
+def view_states(points: np.ndarray, views: Silhouettes, v: int) -> np.ndarray:
+    """Per point (N, 3 float32) in view ``v``: 1 inside the silhouette, 2 background, 3 unseen (behind the
+    camera or outside the image). Float32 in the kernel's order."""
+    c = views.cams[v]
+    f = np.float32
+    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+    xc = ((c[0] * x + c[1] * y) + c[2] * z) + c[3]
+    yc = ((c[4] * x + c[5] * y) + c[6] * z) + c[7]
+    zc = ((c[8] * x + c[9] * y) + c[10] * z) + c[11]
+    front = zc * c[24] > 0
+    with np.errstate(all="ignore"):
+        xn, yn = xc / zc, yc / zc
+        if np.any(c[17:22] != 0):
+            k1, k2, p1, p2, k3 = c[17:22]
+            r2 = xn * xn + yn * yn
+            radial = f(1) + r2 * (k1 + r2 * (k2 + r2 * k3))
+            xd = (xn * radial + ((f(2) * p1) * xn) * yn) + p2 * (r2 + (f(2) * xn) * xn)
+            yd = (yn * radial + p1 * (r2 + (f(2) * yn) * yn)) + ((f(2) * p2) * xn) * yn
+            xn, yn = xd, yd
+        u = (c[12] * xn + c[13] * yn) + c[14]
+        w = c[15] * yn + c[16]
+        W, H = int(c[22]), int(c[23])
+        seen = front & (u >= f(-0.5)) & (u < f(W) - f(0.5)) & (w >= f(-0.5)) & (w < f(H) - f(0.5))
+    state = np.full(len(points), UNSEEN, np.uint8)
+    u, w = u[seen], w[seen]
+    if views.alpha is not None:
+        a = views.alpha[v]
+        fx0, fy0 = np.floor(u), np.floor(w)
+        fx, fy = u - fx0, w - fy0
+        x0, x1 = np.clip(fx0.astype(np.int64), 0, W - 1), np.clip(fx0.astype(np.int64) + 1, 0, W - 1)
+        y0, y1 = np.clip(fy0.astype(np.int64), 0, H - 1), np.clip(fy0.astype(np.int64) + 1, 0, H - 1)
+        top = (f(1) - fx) * a[y0, x0] + fx * a[y0, x1]
+        bottom = (f(1) - fx) * a[y1, x0] + fx * a[y1, x1]
+        inside = (f(1) - fy) * top + fy * bottom >= f(0.5)
+    else:
+        inside = views.masks[v][(w + f(0.5)).astype(np.int64), (u + f(0.5)).astype(np.int64)] > 127
+    state[seen] = np.where(inside, IN, BACKGROUND)
+    return state
+
+
+def inside_hull(points: np.ndarray, views: Silhouettes) -> np.ndarray:
+    """Boolean per point: inside the visual hull under the vote rule (see kernels/refine.cl)."""
+    points = np.asarray(points, np.float32).reshape(-1, 3)
+    n_in = np.zeros(len(points), np.int32)
+    n_bg = np.zeros(len(points), np.int32)
+    for v in range(len(views.cams)):
+        s = view_states(points, views, v)
+        n_in += s == IN
+        n_bg += s == BACKGROUND
+    if views.min_views > 0:
+        return n_in >= views.min_views
+    if views.policy == "carve":
+        return n_in == len(views.cams)
+    return (n_bg == 0) & (n_in > 0)
+
+
+def _bisect(a: np.ndarray, b: np.ndarray, views: Silhouettes, steps: int) -> tuple[np.ndarray, np.ndarray]:
+    f = np.float32
+    lo = np.zeros(len(a), f)
+    hi = np.ones(len(a), f)
+    d = b - a
+    for _ in range(steps):
+        t = f(0.5) * (lo + hi)
+        ins = inside_hull(a + t[:, None] * d, views)
+        lo = np.where(ins, t, lo)
+        hi = np.where(ins, hi, t)
+    return lo, hi
+
+
+def exit_reference(a, b, views: Silhouettes, steps: int) -> np.ndarray:
+    """Where each segment a[i] (inside) -> b[i] (outside) leaves the hull: middle of the last bisection interval."""
+    a, b = np.asarray(a, np.float32), np.asarray(b, np.float32)
+    lo, hi = _bisect(a, b, views, steps)
+    t = np.float32(0.5) * (lo + hi)
+    return a + t[:, None] * (b - a)
+
+
+def clamp_reference(a, b, views: Silhouettes, steps: int) -> np.ndarray:
+    """Move from a[i] towards b[i], stopping at the last point found inside the hull when b[i] is outside."""
+    a, b = np.asarray(a, np.float32), np.asarray(b, np.float32)
+    out = b.copy()
+    bad = ~inside_hull(b, views)
+    if bad.any():
+        lo, _ = _bisect(a[bad], b[bad], views, steps)
+        out[bad] = a[bad] + lo[:, None] * (b[bad] - a[bad])
+    return out
+
+
+# ---------------------------------------------------------------- OpenCL
+class HullTestCL:
+    """The silhouettes on the device and the two segment kernels of kernels/refine.cl."""
+
+    def __init__(self, views: Silhouettes):
+        from nodegraph import clrt
+
+        self.ctx, self.queue = clrt.context()
+        self.views = views
+        sizes = [m.size for m in views.masks]
+        mask_off = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int32)
+        self.d_cams = clrt.to_device(views.cams)
+        self.d_masks = clrt.to_device(np.concatenate([m.ravel() for m in views.masks]))
+        self.d_mask_off = clrt.to_device(mask_off)
+        if views.alpha is not None:
+            self.d_alpha = clrt.to_device(np.concatenate([a.ravel() for a in views.alpha]).astype(np.float32))
+            self.d_alpha_off = self.d_mask_off
+        else:
+            self.d_alpha = clrt.to_device(np.zeros(1, np.float32))
+            self.d_alpha_off = clrt.to_device(np.zeros(len(sizes), np.int32))
+        self.kernels = {k: clrt.kernel("refine.cl", k) for k in ("hull_exit", "hull_clamp", "hull_inside")}
+
+    def hull_args(self) -> tuple:
+        v = self.views
+        return (self.d_cams, np.int32(len(v.cams)), self.d_masks, self.d_mask_off, self.d_alpha, self.d_alpha_off,
+                np.int32(v.alpha is not None), np.int32(v.min_views), np.int32(POLICIES.index(v.policy)))
+
+    def enqueue(self, name: str, d_a, d_b, n: int, steps: int, d_out):
+        """Enqueue ``hull_exit`` or ``hull_clamp`` on device buffers of n float3 points (no copies)."""
+        import pyopencl as cl
+
+        k = self.kernels[name]
+        k.set_args(d_a, d_b, np.int32(n), np.int32(steps), *self.hull_args(), d_out)
+        cl.enqueue_nd_range_kernel(self.queue, k, (-(-n // 64) * 64,), None)
+
+    def run(self, name: str, a, b, steps: int) -> np.ndarray:
+        import pyopencl as cl
+
+        from nodegraph import clrt
+
+        a = np.ascontiguousarray(a, np.float32).reshape(-1, 3)
+        b = np.ascontiguousarray(b, np.float32).reshape(-1, 3)
+        out = np.empty_like(a)
+        if len(a) == 0:
+            return out
+        d_out = cl.Buffer(self.ctx, cl.mem_flags.WRITE_ONLY, out.nbytes)
+        d_a, d_b = clrt.to_device(a), clrt.to_device(b)  # kept alive until the copy below has finished
+        self.enqueue(name, d_a, d_b, len(a), steps, d_out)
+        cl.enqueue_copy(self.queue, out, d_out, is_blocking=True)
+        return out
+
+    def inside(self, points) -> np.ndarray:
+        """Boolean per point, as ``inside_hull``."""
+        import pyopencl as cl
+
+        from nodegraph import clrt
+
+        p = np.ascontiguousarray(points, np.float32).reshape(-1, 3)
+        out = np.zeros(len(p), np.uint8)
+        if len(p) == 0:
+            return out.astype(bool)
+        d_out = cl.Buffer(self.ctx, cl.mem_flags.WRITE_ONLY, out.nbytes)
+        k = self.kernels["hull_inside"]
+        d_p = clrt.to_device(p)  # kept alive until the copy below has finished
+        k.set_args(d_p, np.int32(len(p)), *self.hull_args(), d_out)
+        cl.enqueue_nd_range_kernel(self.queue, k, (-(-len(p) // 64) * 64,), None)
+        cl.enqueue_copy(self.queue, out, d_out, is_blocking=True)
+        return out.astype(bool)
+
+    def exit(self, a, b, steps: int) -> np.ndarray:
+        return self.run("hull_exit", a, b, steps)
+
+    def clamp(self, a, b, steps: int) -> np.ndarray:
+        return self.run("hull_clamp", a, b, steps)
+
+
+# ---------------------------------------------------------------- lattice edges
+def lattice_edges(vertices: np.ndarray, volume) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The voxel-centre edge each vertex lies on: (inside end (V, 3), outside end (V, 3), ok (V,) bool).
+
+    In voxel-centre lattice units g = (x - bbox_min) / voxel_size - 0.5 a marching-cubes vertex has two
+    integer coordinates; the third (the one farthest from an integer) names the edge. ``ok`` is False where
+    the vertex is not on an edge of this grid or both ends have the same occupancy (the vertex is kept)."""
+    occ = np.asarray(volume.occupancy)
+    occ = occ > 0.5 if occ.dtype.kind == "f" else occ > 0
+    dims = np.array(occ.shape)
+    g = (np.asarray(vertices, np.float64) - volume.bbox_min) / volume.voxel_size - 0.5
+    frac = np.abs(g - np.round(g))
+    axis = np.argmax(frac, axis=1)
+    rows = np.arange(len(g))
+    lo = np.round(g).astype(np.int64)
+    lo[rows, axis] = np.floor(g[rows, axis]).astype(np.int64)
+    hi = lo.copy()
+    hi[rows, axis] += 1
+    others = frac.copy()
+    others[rows, axis] = 0
+    ok = (others.max(axis=1, initial=0) < 1e-3) & np.all(lo >= 0, axis=1) & np.all(hi < dims, axis=1)
+    lo_c, hi_c = np.clip(lo, 0, dims - 1), np.clip(hi, 0, dims - 1)
+    occ_lo = occ[lo_c[:, 0], lo_c[:, 1], lo_c[:, 2]]
+    occ_hi = occ[hi_c[:, 0], hi_c[:, 1], hi_c[:, 2]]
+    ok &= occ_lo != occ_hi
+    centre = lambda idx: volume.bbox_min + (idx + 0.5) * volume.voxel_size  # noqa: E731
+    inside = np.where(occ_lo[:, None], centre(lo), centre(hi))
+    outside = np.where(occ_lo[:, None], centre(hi), centre(lo))
+    return inside, outside, ok
+
+
+def refine_vertices(vertices, volume, views: Silhouettes, steps: int = 16, method: str = "opencl") -> tuple[np.ndarray, int]:
+    """Vertices moved onto the exact hull boundary along their grid edges. Returns (vertices, number moved).
+    Edges whose inside end fails the point test or whose outside end passes it (a grid built from other
+    silhouettes or another vote rule) keep their vertex."""
+    vertices = np.asarray(vertices, np.float64)
+    a, b, ok = lattice_edges(vertices, volume)
+    a, b = a[ok], b[ok]
+    if method == "numpy":
+        consistent = inside_hull(a, views) & ~inside_hull(b, views)
+        points = exit_reference(a[consistent], b[consistent], views, steps)
+    else:
+        cl = HullTestCL(views)
+        ends = cl.inside(np.vstack([a, b]))
+        consistent = ends[: len(a)] & ~ends[len(a):]
+        points = cl.exit(a[consistent], b[consistent], steps)
+    out = vertices.copy()
+    idx = np.flatnonzero(ok)[consistent]
+    out[idx] = points
+    return out, len(idx)
+
+
+class Refine(Node):
+    """Exact visual-hull surface (Liang & Wong 2008): every marching-cubes vertex moves along its grid edge to
+    the point where the edge leaves the hull, found by bisection against every silhouette (sub-pixel with
+    soft alpha). Same topology out as in."""
+
+    type_name = "refine"
+    version = 1
+    inputs = {"mesh": Mesh, "volume": Volume, "masks": Masks, "cameras": CameraSet}
+    outputs = {"mesh": Mesh}
+    params = {
+        "steps": Param(int, 16, range=(1, 30), doc="bisection steps per edge (error: voxel / 2^steps)"),
+        "min_views": Param(int, 0, range=(0, None), doc="0 = all views; k = inside at least k silhouettes (as the hull)"),
+        "outside": Param(str, "carve", choices=POLICIES, doc="points projecting outside an image: carve, or ignore that view"),
+        "use_alpha": Param(bool, True, doc="test against soft alpha (bilinear, >= 0.5) when the masks carry it"),
+        "method": Param(str, "opencl", choices=("opencl", "numpy"), doc="OpenCL kernel or the NumPy reference"),
+    }
+    kernels = ["refine.cl"]
+
+    def run(self, mesh, volume, masks, cameras, *, steps, min_views, outside, use_alpha, method):
+        views = Silhouettes.from_inputs(masks, cameras, min_views, outside, use_alpha, node="refine")
+        vertices, moved = refine_vertices(mesh.vertices, volume, views, steps, method)
+        self.log.info("refine: %d of %d vertices moved onto the hull boundary", moved, len(vertices))
+        return {"mesh": trimesh.Trimesh(vertices, np.asarray(mesh.faces), process=False)}

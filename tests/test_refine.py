@@ -1,0 +1,205 @@
+"""refine: vertices onto the exact visual-hull boundary (kernel vs NumPy, synthetic IoU, real data).
+
+Synthetic scenes are unions of balls seen by look_at cameras; their masks are exact (a pixel is inside when
+its centre's ray meets a ball) and their soft alpha is a 4-pixel linear ramp across the true outline.
+The helpers here are shared with test_relax.py.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import trimesh
+from skimage.measure import marching_cubes
+
+from nodegraph import MaskSet, Mesh, NodeError, VoxelGrid
+from nodegraph.cameras import Cameras, look_at
+from nodegraph.testing import run_node
+from nodes.refine import HullTestCL, Silhouettes, clamp_reference, exit_reference, inside_hull, lattice_edges
+
+# ---------------------------------------------------------------- synthetic scene helpers
+FIGURE = [((0.0, 0.0, 0.0), 0.55), ((0.0, 0.0, 0.62), 0.32), ((0.45, 0.1, -0.35), 0.3), ((-0.4, -0.2, -0.4), 0.28)]
+
+
+def rig(count: int, size: int, center=(0, 0, 0), distance: float = 4.0, fov: float = 40.0) -> Cameras:
+    """``count`` cameras spread evenly over a sphere (Fibonacci), all looking at ``center``."""
+    cams = []
+    for i in range(count):
+        z = 1 - 2 * (i + 0.5) / count
+        phi = i * math.pi * (3 - math.sqrt(5))
+        d = np.array([math.sqrt(1 - z * z) * math.cos(phi), math.sqrt(1 - z * z) * math.sin(phi), z])
+        up = (0, 0, 1) if abs(d[2]) < 0.95 else (0, 1, 0)
+        cams.append(look_at(np.asarray(center) + distance * d, center, up, fov, size, size, name=f"cam{i:03d}"))
+    return Cameras(cams)
+
+
+def ball_masks(balls, cameras: Cameras, ramp: float = 4.0) -> MaskSet:
+    """Exact binary silhouettes of a union of balls, and soft alpha falling linearly over ``ramp`` pixels."""
+    masks, alphas = [], []
+    for cam in cameras:
+        v, u = np.mgrid[0 : cam.height, 0 : cam.width].astype(np.float64)
+        rays = np.stack([(u - cam.K[0, 2]) / cam.K[0, 0], (v - cam.K[1, 2]) / cam.K[1, 1], np.ones_like(u)], -1)
+        rays = rays @ cam.Rt[:, :3]  # camera -> world directions (R^T d)
+        rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+        signed = np.full(u.shape, np.inf)
+        for c, r in balls:
+            to_c = np.asarray(c, float) - cam.center
+            dist = np.linalg.norm(to_c)
+            cos = rays @ (to_c / dist)
+            angle = np.arccos(np.clip(cos, -1, 1))
+            signed = np.minimum(signed, (angle - math.asin(r / dist)) * cam.K[0, 0])  # pixels outside the outline
+        masks.append(np.where(signed <= 0, 255, 0).astype(np.uint8))
+        alphas.append(np.clip(0.5 - signed / ramp, 0, 1).astype(np.float32))
+    return MaskSet(masks, alphas, cameras.names)
+
+
+def hull_volume(views: Silhouettes, box, resolution: int) -> VoxelGrid:
+    """Occupancy of the voxel centres under the refine point test (OpenCL; checked against NumPy below)."""
+    box = np.asarray(box, float)
+    vs = (box[1] - box[0]) / resolution
+    axes = [box[0, a] + (np.arange(resolution) + 0.5) * vs[a] for a in range(3)]
+    centres = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    occ = HullTestCL(views).inside(centres).reshape((resolution,) * 3).astype(np.uint8)
+    return VoxelGrid(occ, box[0], box[1])
+
+
+def plain_mc(volume: VoxelGrid) -> trimesh.Trimesh:
+    """Marching cubes on the voxel-centre lattice (what the mc node does)."""
+    vs = volume.voxel_size
+    verts, faces, _, _ = marching_cubes(volume.occupancy.astype(np.float32), 0.5, spacing=tuple(vs),
+                                        gradient_direction="ascent")
+    return trimesh.Trimesh(verts + volume.bbox_min + 0.5 * vs, faces, process=False)
+
+
+def mesh_silhouette(vertices, faces, cameras: Cameras, view: int) -> np.ndarray:
+    """Pixels whose centre lies inside (or on an edge of) some projected triangle: bool (H, W)."""
+    cam = cameras[view]
+    uv, _ = cameras.project(vertices, view)
+    tri = uv[np.asarray(faces)]
+    out = np.zeros((cam.height, cam.width), bool)
+    lo = np.floor(tri.min(axis=1)).astype(int)
+    hi = np.ceil(tri.max(axis=1)).astype(int)
+    span = (hi - lo).max(axis=1) + 1
+    for size in np.unique(span):
+        sel = np.flatnonzero(span == size)
+        t = tri[sel]
+        dx, dy = np.meshgrid(np.arange(size), np.arange(size))
+        px = lo[sel, 0, None] + dx.ravel()  # (n, size^2) candidate pixel centres
+        py = lo[sel, 1, None] + dy.ravel()
+
+        def edge(a, b):
+            return (b[:, 0, None] - a[:, 0, None]) * (py - a[:, 1, None]) - (b[:, 1, None] - a[:, 1, None]) * (px - a[:, 0, None])
+
+        e0, e1, e2 = edge(t[:, 0], t[:, 1]), edge(t[:, 1], t[:, 2]), edge(t[:, 2], t[:, 0])
+        hit = ((e0 >= 0) & (e1 >= 0) & (e2 >= 0)) | ((e0 <= 0) & (e1 <= 0) & (e2 <= 0))
+        hit &= (px >= 0) & (px < cam.width) & (py >= 0) & (py < cam.height)
+        out[py[hit], px[hit]] = True
+    return out
+
+
+def silhouette_errors(mesh, masks: MaskSet, cameras: Cameras) -> tuple[np.ndarray, int, int]:
+    """(IoU per view, mesh pixels outside the masks, mask pixels not covered) summed over views."""
+    ious, outside, missed = [], 0, 0
+    for v in range(len(cameras)):
+        s = mesh_silhouette(mesh.vertices, mesh.faces, cameras, v)
+        m = masks.masks[v] > 127
+        ious.append((s & m).sum() / max(1, (s | m).sum()))
+        outside += int((s & ~m).sum())
+        missed += int((m & ~s).sum())
+    return np.array(ious), outside, missed
+
+
+def figure_case(resolution: int, count: int = 6, size: int = 160, soft: bool = False):
+    cams = rig(count, size)
+    masks = ball_masks(FIGURE, cams)
+    if not soft:
+        masks = MaskSet(masks.masks, None, masks.names)
+    views = Silhouettes.from_inputs(masks, cams)
+    vol = hull_volume(views, [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.1]], resolution)
+    return cams, masks, views, vol, plain_mc(vol)
+
+
+# ---------------------------------------------------------------- kernel vs reference
+@pytest.mark.parametrize("soft", [False, True])
+def test_kernel_matches_reference(soft):
+    cams, masks, views, vol, mesh = figure_case(24, count=5, size=64, soft=soft)
+    rng = np.random.default_rng(1)
+    pts = rng.uniform(-0.8, 0.9, (3000, 3)).astype(np.float32)
+    cl = HullTestCL(views)
+    inside_ref = inside_hull(pts, views)
+    assert 300 < inside_ref.sum() < 2700  # both kinds of point present
+    np.testing.assert_array_equal(cl.inside(pts), inside_ref)
+
+    a, b, ok = lattice_edges(mesh.vertices, vol)
+    a, b = a[ok].astype(np.float32), b[ok].astype(np.float32)
+    assert ok.mean() > 0.99
+    edge = float(vol.voxel_size[0])
+    got, want = cl.exit(a, b, 12), exit_reference(a, b, views, 12)
+    assert np.abs(got - want).max() <= 2 * edge / 2**12
+    assert (np.linalg.norm(got - want, axis=1) < 1e-6).mean() >= 0.99  # same float32 arithmetic: nearly all exact
+
+    # clamp: a move from inside towards an outside point stops inside the hull
+    target = a + 3 * (b - a)
+    got, want = cl.clamp(a, target, 10), clamp_reference(a, target, views, 10)
+    assert np.abs(got - want).max() <= 2 * 3 * edge / 2**10
+    assert inside_hull(want, views).mean() > 0.999
+
+
+def test_lattice_edges_find_the_edge():
+    occ = np.zeros((4, 4, 4), np.uint8)
+    occ[1:3, 1:3, 1:3] = 1
+    vol = VoxelGrid(occ, [0, 0, 0], [4, 4, 4])  # voxel centres at 0.5, 1.5, ...
+    verts = np.array([[2.0, 1.5, 1.5],   # x edge between (1,1,1) inside and (2,1,1)... both inside: kept
+                      [3.0, 1.5, 2.5],   # x edge (2,1,2) inside -> (3,1,2) outside
+                      [1.5, 0.9, 1.5],   # y edge (1,0,1) outside -> (1,1,1) inside, off the midpoint
+                      [1.3, 1.2, 1.5]])  # not on a lattice edge
+    inside, outside, ok = lattice_edges(verts, vol)
+    assert ok.tolist() == [False, True, True, False]
+    np.testing.assert_allclose(inside[1:3], [[2.5, 1.5, 2.5], [1.5, 1.5, 1.5]])
+    np.testing.assert_allclose(outside[1:3], [[3.5, 1.5, 2.5], [1.5, 0.5, 1.5]])
+
+
+# ---------------------------------------------------------------- node behaviour
+def test_refine_reaches_silhouettes_at_128():
+    cams, masks, views, vol, mesh = figure_case(128)
+    out = run_node("refine", {"mesh": mesh, "volume": vol, "masks": masks, "cameras": cams}, roundtrip=True)["mesh"]
+    np.testing.assert_array_equal(out.faces, mesh.faces)
+    iou_mc, out_mc, miss_mc = silhouette_errors(mesh, masks, cams)
+    iou, outside, missed = silhouette_errors(out, masks, cams)
+    print(f"IoU plain MC {iou_mc.round(4)} -> refined {iou.round(4)}; outside {out_mc} -> {outside}, missed {miss_mc} -> {missed}")
+    assert iou.min() >= 0.995
+    assert outside <= 0.1 * out_mc
+    # every moved vertex stays on its edge
+    a, b, ok = lattice_edges(mesh.vertices, vol)
+    d = out.vertices[ok] - a[ok]
+    along = np.einsum("ij,ij->i", d, b[ok] - a[ok]) / np.einsum("ij,ij->i", b[ok] - a[ok], b[ok] - a[ok])
+    assert np.all((along >= 0) & (along <= 1))
+    assert np.abs(d - along[:, None] * (b[ok] - a[ok])).max() < 1e-5
+
+
+def test_refine_numpy_method_matches_opencl():
+    cams, masks, views, vol, mesh = figure_case(20, count=4, size=64, soft=True)
+    args = {"mesh": mesh, "volume": vol, "masks": masks, "cameras": cams}
+    a = run_node("refine", args, {"steps": 10})["mesh"]
+    b = run_node("refine", args, {"steps": 10, "method": "numpy"})["mesh"]
+    assert np.abs(a.vertices - b.vertices).max() <= 2 * vol.voxel_size[0] / 2**10
+    moved = np.linalg.norm(a.vertices - mesh.vertices, axis=1) > 1e-6
+    assert moved.mean() > 0.9
+
+
+def test_refine_golden(golden):
+    cams, masks, views, vol, mesh = figure_case(12, count=4, size=48)
+    out = run_node("refine", {"mesh": mesh, "volume": vol, "masks": masks, "cameras": cams}, {"steps": 12})["mesh"]
+    golden.check("refine_figure_12", out, Mesh, hausdorff=2 * vol.voxel_size[0] / 2**12)
+
+
+def test_refine_bad_inputs_name_the_camera():
+    cams, masks, views, vol, mesh = figure_case(12, count=3, size=48)
+    small = MaskSet([masks.masks[0], masks.masks[1][:40], masks.masks[2]], None, masks.names)
+    with pytest.raises(NodeError, match="cam001.*48x48"):
+        run_node("refine", {"mesh": mesh, "volume": vol, "masks": small, "cameras": cams})
+    with pytest.raises(NodeError, match="2 masks for 3 cameras"):
+        run_node("refine", {"mesh": mesh, "volume": vol, "masks": MaskSet(masks.masks[:2]), "cameras": cams})
+    with pytest.raises(NodeError, match="min_views 5"):
+        run_node("refine", {"mesh": mesh, "volume": vol, "masks": masks, "cameras": cams}, {"min_views": 5})
