@@ -28,32 +28,53 @@ def kernel_path(name: str) -> Path:
     return p
 
 
+def _builds(dev) -> bool:
+    """Whether a device can compile a kernel (the pip PoCL's LLVM 14 cannot on CPUs newer than it knows,
+    failing with "unknown target CPU 'generic'")."""
+    import pyopencl as cl
+
+    try:
+        cl.Program(cl.Context([dev]), "__kernel void probe(__global int *a) { a[0] = 1; }").build()
+        return True
+    except Exception:
+        return False
+
+
+NO_DEVICE_HELP = ("install a working OpenCL CPU device: `pip install pocl-binary-distribution`, or, when its LLVM "
+                  "does not know this CPU, the distribution's PoCL (`apt-get install pocl-opencl-icd`); ./setup.sh does this")
+
+
 def _choose_device():
     try:
         import pyopencl as cl
         platforms = cl.get_platforms()
     except Exception as exc:
-        raise OpenCLUnavailable(
-            "no OpenCL platform found. Install one: `pip install pocl-binary-distribution` gives a CPU device "
-            f"(details: {exc})") from None
+        raise OpenCLUnavailable(f"no OpenCL platform found ({exc}); {NO_DEVICE_HELP}") from None
     devices = [(pi, di, d) for pi, p in enumerate(platforms) for di, d in enumerate(p.get_devices())]
     if not devices:
-        raise OpenCLUnavailable("OpenCL platforms exist but expose no device")
+        raise OpenCLUnavailable(f"OpenCL platforms exist but expose no device; {NO_DEVICE_HELP}")
     want = os.environ.get("VOLCAP_CL_DEVICE", "").strip().lower()
     if want in ("cpu", "gpu"):
         kind = cl.device_type.CPU if want == "cpu" else cl.device_type.GPU
         match = [d for _, _, d in devices if d.type & kind]
         if not match:
             raise OpenCLUnavailable(f"VOLCAP_CL_DEVICE={want}: no such OpenCL device; have: " + ", ".join(d.name for *_, d in devices))
-        return match[0]
+        working = [d for d in match if _builds(d)]
+        if not working:
+            raise OpenCLUnavailable(f"VOLCAP_CL_DEVICE={want}: no {want} device can build kernels; {NO_DEVICE_HELP}")
+        return working[0]
     if want:
         try:
             pi, di = (int(x) for x in want.split(":"))
             return platforms[pi].get_devices()[di]
         except (ValueError, IndexError):
             raise OpenCLUnavailable(f"VOLCAP_CL_DEVICE={want!r}: expected cpu, gpu or PLATFORM:DEVICE (see `app.py devices`)") from None
-    gpus = [d for _, _, d in devices if d.type & cl.device_type.GPU]
-    return gpus[0] if gpus else devices[0][2]
+    # default: the first GPU, else the first CPU device, that can actually build a kernel
+    ordered = sorted(devices, key=lambda e: 0 if e[2].type & cl.device_type.GPU else 1)
+    for *_, d in ordered:
+        if _builds(d):
+            return d
+    raise OpenCLUnavailable("no OpenCL device can build kernels (" + ", ".join(d.name for *_, d in devices) + f"); {NO_DEVICE_HELP}")
 
 
 @lru_cache(maxsize=None)
@@ -107,3 +128,19 @@ def to_device(arr: np.ndarray, flags=None):
     ctx, _ = context()
     mf = cl.mem_flags
     return cl.Buffer(ctx, (flags or mf.READ_ONLY) | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(arr))
+
+
+def device_name() -> str:
+    ctx, _ = context()
+    d = ctx.devices[0]
+    return f"{d.name} ({d.platform.name} {d.platform.version.split()[2] if len(d.platform.version.split()) > 2 else ''})".strip()
+
+
+if __name__ == "__main__":  # python -m nodegraph.clrt: is there a device that builds kernels?
+    import sys
+
+    try:
+        print("OpenCL device:", device_name())
+    except OpenCLUnavailable as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(1)
