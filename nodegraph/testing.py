@@ -34,6 +34,10 @@ def run_node(type_name: str, inputs: dict | None = None, params: dict | None = N
     for name, o in cls.outputs.items():
         if name not in out:
             raise NodeError(f"{type_name}: run() did not return output '{name}'")
+        if out[name] is None:
+            if not o.optional:
+                raise NodeError(f"{type_name}: output '{name}' is None but not declared optional")
+            continue
         problem = o.type.check(out[name])
         if problem:
             raise NodeError(f"{type_name}: output '{name}': {problem}")
