@@ -185,9 +185,10 @@ class HullCL:
             count = len(cells)
             counter = np.zeros(1, np.int32)
             cbuf = self.buffer("counter", 4)
-            names = ("cells_b", "cells_a")
+            names = ["cells_a", "cells_b"]  # ping-pong: read the one, append children to the other
             while count:
-                dst = self.buffer(names[level % 2], 8 * count * 4)
+                names.reverse()
+                dst = self.buffer(names[0], 8 * count * 4)
                 cl.enqueue_copy(self.queue, cbuf, np.zeros(1, np.int32), is_blocking=False)
                 groups = -(-count // 64) * 64  # whole work-groups: PoCL runs odd sizes as tiny groups
                 self.k["hull_cells"](self.queue, (groups,), (64,), cams, nviews, bits, boff, sat, soff, *geo, *common,

@@ -138,3 +138,35 @@ def test_node_reads_bounds_input_and_reports_bad_input():
         run_node("hull", {"masks": masks, "cameras": cams, "bounds": BOX}, {"min_views": 5})
     with pytest.raises(NodeError, match="max > min"):
         run_node("hull", {"masks": masks, "cameras": cams}, {"bbox": [0, 0, 0, 1, -1, 1]})
+
+
+@pytest.mark.parametrize("res", [72, 150])
+def test_sparse_equals_dense_over_three_or_more_levels(res):
+    cams = ring()
+    masks = sphere_masks(cams)
+    dense = visual_hull(masks, cams, BOX, res, method="dense").occupancy
+    for _ in range(2):  # the level buffers are reused between calls
+        assert np.array_equal(visual_hull(masks, cams, BOX, res, method="sparse").occupancy, dense)
+
+
+@pytest.mark.realdata
+@pytest.mark.parametrize("name, min_iou", [("thu_wd_human", 0.954), ("inria_dancer", 0.912)])
+def test_real_human_hull_mesh(data_dir, name, min_iou):
+    import trimesh
+
+    from nodes.bounds import auto_bounds
+    from nodes.capture import load_capture
+    from nodes.eval import silhouette_report
+    from nodes.mc import largest_component, marching_cubes
+
+    cap = load_capture(data_dir / name)
+    masks, cams = cap["masks"], cap["cameras"]
+    box = auto_bounds(masks.masks, cams)
+    vol = visual_hull(masks, cams, box, 128)
+    assert max(vol.occupancy.shape) == 128
+    assert np.array_equal(vol.occupancy, visual_hull(masks, cams, box, 128, method="dense").occupancy)
+    mesh = trimesh.Trimesh(*largest_component(*marching_cubes(vol)), process=False)
+    assert mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0
+    assert len(mesh.split(only_watertight=False)) == 1
+    report = silhouette_report(mesh.vertices, mesh.faces, cams, masks)
+    assert report["mean_iou"] >= min_iou, report["mean_iou"]
