@@ -72,7 +72,7 @@ def graph_of(run: dict, by_node: dict) -> nx.DiGraph:
         from .graphfile import load_graph
 
         g = load_graph(run["graph"])
-        edges = [(src, name, f"{sport}→{port}") for name, spec in g.nodes.items() for port, (src, sport) in spec.inputs.items()]
+        edges = [(src, name, _port_label(sport, port)) for name, spec in g.nodes.items() for port, (src, sport) in spec.inputs.items()]
     except (VolcapError, OSError, KeyError):
         edges = _raw_edges(run.get("graph"))
     for src, dst, label in edges:
@@ -92,9 +92,13 @@ def _raw_edges(path) -> list[tuple[str, str, str]]:
             for port, ref in ((entry or {}).get("in") or {}).items():
                 src, _, sport = str(ref).partition(".")
                 edges.append((name, port, src, sport))
-        return [(src, name, f"{sport}→{port}") for name, port, src, sport in edges]
+        return [(src, name, _port_label(sport, port)) for name, port, src, sport in edges]
     except (OSError, TypeError, AttributeError, yaml.YAMLError):
         return []
+
+
+def _port_label(out_port: str, in_port: str) -> str:
+    return out_port if out_port == in_port else f"{out_port}→{in_port}"
 
 
 def node_status(recs: list[dict]) -> str:
@@ -117,25 +121,34 @@ def draw_graph(dag: nx.DiGraph, status: dict, out_png: Path) -> Path:
             dag.nodes[n]["layer"] = layer
     pos = nx.multipartite_layout(dag, subset_key="layer") if len(dag) > 1 else {n: np.zeros(2) for n in dag}
     tallest = max((len(g) for g in gens), default=1)
-    width = min(900, 150 + 150 * len(gens))
-    height = min(700, 90 + 70 * tallest)
+    width = min(1200, 120 + 170 * len(gens))
+    height = min(800, 100 + 75 * tallest)
     fig = Figure(figsize=(width / 100, height / 100), dpi=100)
     canvas = FigureCanvasAgg(fig)
     ax = fig.add_axes((0, 0, 1, 1))
     ax.axis("off")
-    nx.draw_networkx_edges(dag, pos, ax=ax, arrows=True, arrowstyle="-|>", arrowsize=10, edge_color="#777777",
-                           node_size=2600, node_shape="s")
-    labels = nx.get_edge_attributes(dag, "label")
-    if labels:
-        nx.draw_networkx_edge_labels(dag, pos, edge_labels=labels, ax=ax, font_size=6, rotate=False)
-    for n, (x, y) in pos.items():
-        ax.text(x, y, f"{n}\n({dag.nodes[n].get('type', '?')})", ha="center", va="center", fontsize=7,
-                bbox={"boxstyle": "round,pad=0.4", "fc": STATUS_COLOURS.get(status.get(n), "#eeeeee"), "ec": "#444444"})
     xs = np.array([p[0] for p in pos.values()]) if pos else np.zeros(1)
     ys = np.array([p[1] for p in pos.values()]) if pos else np.zeros(1)
-    pad_x, pad_y = 0.25 * (np.ptp(xs) or 1) + 0.15, 0.2 * (np.ptp(ys) or 1) + 0.12
+    pad_x, pad_y = 0.12 * (np.ptp(xs) or 1) + 0.15, 0.2 * (np.ptp(ys) or 1) + 0.12
     ax.set_xlim(xs.min() - pad_x, xs.max() + pad_x)
     ax.set_ylim(ys.min() - pad_y, ys.max() + pad_y)
+    boxes = {n: ax.text(x, y, f"{n}\n({dag.nodes[n].get('type', '?')})", ha="center", va="center", fontsize=7, zorder=3,
+                        bbox={"boxstyle": "round,pad=0.4", "fc": STATUS_COLOURS.get(status.get(n), "#eeeeee"), "ec": "#444444"})
+             for n, (x, y) in pos.items()}
+    canvas.draw()  # box extents are known after a draw
+    to_px, to_data = ax.transData, ax.transData.inverted()
+    for u, v, data in dag.edges(data=True):
+        span = dag.nodes[v]["layer"] - dag.nodes[u]["layer"]
+        rad = 0.0 if span <= 1 else min(0.12 * span, 0.35)  # long edges bend around the columns between
+        ax.annotate("", xy=pos[v], xytext=pos[u], zorder=2,
+                    arrowprops={"arrowstyle": "-|>", "color": "#777777", "lw": 0.9, "shrinkA": 2, "shrinkB": 2,
+                                "patchA": boxes[u].get_bbox_patch(), "patchB": boxes[v].get_bbox_patch(),
+                                "connectionstyle": f"arc3,rad={rad}"})
+        a, b = to_px.transform(pos[u]), to_px.transform(pos[v])
+        d = b - a
+        mid = (a + b) / 2 + 0.5 * rad * np.array([d[1], -d[0]])  # the arc's midpoint (matplotlib arc3 control point / 2)
+        ax.text(*to_data.transform(mid), data.get("label", ""), fontsize=6, ha="center", va="center", zorder=4,
+                bbox={"fc": "white", "ec": "none", "alpha": 0.85, "pad": 0.5})
     canvas.print_png(str(out_png))
     return out_png
 
@@ -337,7 +350,7 @@ def _page(run, out_dir, order, status, by_node, sections) -> str:
 <p>graph <code>{_e(run.get("graph", "?"))}</code> · frames {_e(frame_text)} · {run.get("seconds", 0):.2f} s · {_e(counts)}<br>
 output <code>{_e(out_dir)}</code> · cache <code>{_e(run.get("cache", "?"))}</code></p>
 <nav>{nav}</nav>
-<figure id="graph"><img src="report/graph.png" alt="graph" style="max-width:900px"></figure>
+<figure id="graph"><img src="report/graph.png" alt="graph" style="max-width:100%"></figure>
 {fail_html}
 {"".join(sections)}
 </body></html>
