@@ -33,6 +33,8 @@ class Camera:
     Rt: np.ndarray                    # 3x4 world -> camera (P itself for a bare-P camera)
     dist: np.ndarray = field(default_factory=lambda: np.zeros(5))  # k1 k2 p1 p2 k3
     metric: bool = True               # False: K/Rt come from a bare P and must not be decomposed
+    zsign: float = 0.0                # bare P: which sign of w is in front (+1/-1); 0 = sign(det M), right
+                                      # for Euclidean frames but not for mirrored ones (Oxford dino)
 
     def __post_init__(self):
         self.K = np.asarray(self.K, dtype=np.float64).reshape(3, 3)
@@ -49,9 +51,16 @@ class Camera:
             raise DataError(f"camera '{self.name}': image size {self.width}x{self.height} is not positive")
 
     @classmethod
-    def from_P(cls, name: str, P, width: int, height: int) -> "Camera":
+    def from_P(cls, name: str, P, width: int, height: int, zsign: float = 0.0) -> "Camera":
         """A camera known only by its 3x4 projection matrix (kept as is, never decomposed)."""
-        return cls(name, width, height, np.eye(3), np.asarray(P, dtype=np.float64), np.zeros(5), metric=False)
+        return cls(name, width, height, np.eye(3), np.asarray(P, dtype=np.float64), np.zeros(5), metric=False, zsign=zsign)
+
+    @property
+    def depth_sign(self) -> float:
+        """Factor turning the third coordinate of Rt X into a depth that is positive in front."""
+        if self.metric:
+            return 1.0
+        return float(np.sign(self.zsign) or np.sign(np.linalg.det(self.Rt[:, :3])) or 1.0)
 
     @property
     def P(self) -> np.ndarray:
@@ -71,11 +80,12 @@ class Camera:
 
     def to_dict(self) -> dict:
         return {"name": self.name, "width": self.width, "height": self.height, "K": self.K.tolist(),
-                "Rt": self.Rt.tolist(), "dist": self.dist.tolist(), "metric": self.metric}
+                "Rt": self.Rt.tolist(), "dist": self.dist.tolist(), "metric": self.metric, "zsign": self.zsign}
 
     @classmethod
     def from_dict(cls, d: dict) -> "Camera":
-        return cls(d["name"], d["width"], d["height"], d["K"], d["Rt"], d.get("dist", [0] * 5), d.get("metric", True))
+        return cls(d["name"], d["width"], d["height"], d["K"], d["Rt"], d.get("dist", [0] * 5), d.get("metric", True),
+                   d.get("zsign", 0.0))
 
 
 def distort(xn: np.ndarray, dist: np.ndarray) -> np.ndarray:
@@ -130,7 +140,7 @@ class Cameras:
         uv = xn @ cam.K[:2, :2].T + cam.K[:2, 2]
         if not cam.metric:
             # bare P: the sign of the third row is arbitrary; 'in front' means the same side as the scene
-            z = z * np.sign(np.linalg.det(cam.Rt[:, :3]) or 1.0)
+            z = z * cam.depth_sign
         return uv, z
 
     def pack(self, origin=None) -> np.ndarray:
@@ -154,7 +164,7 @@ class Cameras:
             out[i, 12:17] = [K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]]
             out[i, 17:22] = c.dist
             out[i, 22:24] = [c.width, c.height]
-            out[i, 24] = 1.0 if c.metric else float(np.sign(np.linalg.det(c.Rt[:, :3])) or 1.0)
+            out[i, 24] = c.depth_sign
         return out
 
     def rays(self, view: int, uv) -> tuple[np.ndarray, np.ndarray]:
@@ -177,8 +187,7 @@ class Cameras:
             dirs = d_cam @ cam.Rt[:, :3]          # R^T d for every row
         else:
             M = cam.Rt[:, :3]
-            sign = float(np.sign(np.linalg.det(M)) or 1.0)
-            dirs = np.linalg.solve(M, np.hstack([uv, np.ones((len(uv), 1))]).T).T * sign
+            dirs = np.linalg.solve(M, np.hstack([uv, np.ones((len(uv), 1))]).T).T * cam.depth_sign
         dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
         return np.repeat(cam.center[None, :], len(uv), axis=0), dirs
 

@@ -123,8 +123,11 @@ def read_colmap(folder: Path, image_sizes=None) -> Cameras:
         if not line.strip() or line.startswith("#"):
             continue
         f = line.split()
-        cid, model, w, h = f[0], f[1], int(f[2]), int(f[3])
-        p = _finite([float(x) for x in f[4:]], f"camera {cid} parameters", f"{cams_txt}:{ln}")
+        try:
+            cid, model, w, h = f[0], f[1], int(f[2]), int(f[3])
+            p = _finite([float(x) for x in f[4:]], f"camera {cid} parameters", f"{cams_txt}:{ln}")
+        except (ValueError, IndexError):
+            raise DataError(f"{cams_txt}:{ln}: expected 'ID MODEL WIDTH HEIGHT PARAMS...'") from None
         need = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RADIAL": 5, "OPENCV": 8, "FULL_OPENCV": 12}
         if model not in need:
             raise DataError(f"{cams_txt}:{ln}: camera model {model} is not supported (have: {', '.join(need)})")
@@ -155,8 +158,11 @@ def read_colmap(folder: Path, image_sizes=None) -> Cameras:
         f = lines[k].split()
         if len(f) < 10:
             raise DataError(f"{imgs_txt}: image line '{lines[k][:60]}' needs 10 fields")
-        q = _finite([float(x) for x in f[1:5]], "quaternion", imgs_txt)
-        t = _finite([float(x) for x in f[5:8]], "translation", imgs_txt)
+        try:
+            q = _finite([float(x) for x in f[1:5]], "quaternion", imgs_txt)
+            t = _finite([float(x) for x in f[5:8]], "translation", imgs_txt)
+        except ValueError:
+            raise DataError(f"{imgs_txt}: not a number in image line '{lines[k][:60]}'") from None
         cid, name = f[8], " ".join(f[9:])
         if cid not in intr:
             raise DataError(f"{imgs_txt}: image '{name}' uses camera {cid}, which cameras.txt does not define")
@@ -218,7 +224,10 @@ def read_middlebury(path: Path, image_sizes=None) -> Cameras:
     for i, f in enumerate(body):
         if len(f) != 22:
             raise DataError(f"{path}:{i + 2}: expected name + 21 numbers, got {len(f)} fields")
-        v = _finite([float(x) for x in f[1:]], f"camera '{f[0]}'", path)
+        try:
+            v = _finite([float(x) for x in f[1:]], f"camera '{f[0]}'", path)
+        except ValueError:
+            raise DataError(f"{path}:{i + 2}: not a number in the line of '{f[0]}'") from None
         w, h = _size_for(i, f[0], image_sizes, path, path.parent)
         Rt = np.hstack([v[9:18].reshape(3, 3), v[18:21, None]])
         cams.append(Camera(Path(f[0]).stem, w, h, v[:9].reshape(3, 3), Rt))
@@ -403,10 +412,32 @@ def read_opencv(path: Path, image_sizes=None, name: str | None = None) -> Camera
 
 def _checked(cams: list[Camera], path) -> Cameras:
     """A camera set may not mix metric and bare-P cameras: if some P matrices decompose and others do not,
-    keep them all as bare P."""
+    keep them all as bare P. Bare-P cameras get their front side from the scene (orient_bare_P)."""
     if len({c.metric for c in cams}) > 1:
         cams = [c if not c.metric else Camera.from_P(c.name, c.P, c.width, c.height) for c in cams]
+    if not cams[0].metric:
+        cams = orient_bare_P(cams)
     return Cameras(cams)
+
+
+def orient_bare_P(cams: list[Camera]) -> list[Camera]:
+    """Set each bare-P camera's zsign so that the point nearest to all viewing rays through the image
+    centres lies in front of every camera (needed in mirrored frames, where sign(det M) is wrong)."""
+    if len(cams) < 2:
+        return cams
+    A, b = np.zeros((3, 3)), np.zeros(3)
+    for c in cams:
+        d = np.linalg.solve(c.Rt[:, :3], [(c.width - 1) / 2, (c.height - 1) / 2, 1.0])
+        d /= np.linalg.norm(d)
+        Pm = np.eye(3) - np.outer(d, d)
+        A += Pm
+        b += Pm @ c.center
+    p = np.linalg.lstsq(A, b, rcond=None)[0]
+    out = []
+    for c in cams:
+        w = c.Rt[2, :3] @ p + c.Rt[2, 3]
+        out.append(Camera.from_P(c.name, c.Rt, c.width, c.height, zsign=float(np.sign(w) or 1.0)))
+    return out
 
 
 # ------------------------------------------------------------------ detection
@@ -563,7 +594,7 @@ def save_colmap(cams: Cameras, folder) -> None:
         cl.append(f"{i} {model} {c.width} {c.height} " + " ".join(repr(float(p)) for p in params))
         qx, qy, qz, qw = Rotation.from_matrix(c.Rt[:, :3]).as_quat()
         name = c.name if Path(c.name).suffix else c.name + ".png"
-        il.append(f"{i} {qw!r} {qx!r} {qy!r} {qz!r} " + " ".join(repr(float(v)) for v in c.Rt[:, 3]) + f" {i} {name}")
+        il.append(f"{i} " + " ".join(repr(float(v)) for v in (qw, qx, qy, qz, *c.Rt[:, 3])) + f" {i} {name}")
         il.append("")
     (folder / "cameras.txt").write_text("\n".join(cl) + "\n")
     (folder / "images.txt").write_text("\n".join(il) + "\n")

@@ -1,0 +1,128 @@
+"""The `bounds` node: an axis-aligned box around the captured object.
+
+Automatic: the point nearest to the viewing rays through the silhouettes' centroids, a box sized from the
+silhouettes' extents, then a coarse NumPy visual hull in that box, grown while the hull touches a side and
+tightened to the occupied voxels (+ one voxel + a margin). Or an explicit ``bbox`` param.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from nodegraph.cameras import Cameras
+from nodegraph.errors import NodeError
+from nodegraph.node import Input, Node, Output, Param
+from nodegraph.types import Bounds as BoundsType, CameraSet, Masks
+
+
+def coarse_hull(masks: list[np.ndarray], cameras: Cameras, box: np.ndarray, resolution: int,
+                min_seen: int | None = None) -> np.ndarray:
+    """Boolean occupancy (nx, ny, nz) of voxel centres that fall inside the mask (> 0) of every view that
+    sees them (nearest pixel; pixel centres at integers) and are seen by at least ``min_seen`` views
+    (default: half the views, at least 2). ``resolution`` voxels along the longest side of ``box``."""
+    box = np.asarray(box, dtype=np.float64)
+    size = box[1] - box[0]
+    shape = np.maximum(1, np.round(size / size.max() * resolution)).astype(int)
+    axes = [box[0, a] + (np.arange(n) + 0.5) * size[a] / n for a, n in enumerate(shape)]
+    X = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    seen = np.zeros(len(X), dtype=np.int32)
+    inside = np.zeros(len(X), dtype=np.int32)
+    for v, m in enumerate(masks):
+        uv, z = cameras.project(X, v)
+        px = np.rint(np.clip(np.nan_to_num(uv, nan=-1.0), -1, 1e9)).astype(np.int64)
+        h, w = m.shape
+        ok = (z > 0) & (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+        seen += ok
+        inside[ok] += m[px[ok, 1], px[ok, 0]] > 0
+    need = max(2, (len(masks) + 1) // 2) if min_seen is None else min_seen
+    return ((inside == seen) & (seen >= need)).reshape(tuple(shape))
+
+
+def _occupied_box(occ: np.ndarray, box: np.ndarray):
+    """(lo, hi) world box of the occupied voxels (whole voxels), and which sides of ``box`` they touch."""
+    idx = np.argwhere(occ)
+    vs = (box[1] - box[0]) / np.array(occ.shape)
+    lo_i, hi_i = idx.min(0), idx.max(0) + 1
+    touch_lo, touch_hi = lo_i == 0, hi_i == np.array(occ.shape)
+    return np.array([box[0] + lo_i * vs, box[0] + hi_i * vs]), touch_lo, touch_hi
+
+
+def initial_box(masks: list[np.ndarray], cameras: Cameras) -> np.ndarray:
+    """A box around the point nearest to all rays through the silhouette centroids, sized by the
+    silhouettes' extents at that distance."""
+    origins, dirs, extents = [], [], []
+    for v, m in enumerate(masks):
+        ys, xs = np.nonzero(m)
+        if len(xs) == 0:
+            continue
+        o, d = cameras.rays(v, [[xs.mean(), ys.mean()]])
+        origins.append(o[0])
+        dirs.append(d[0])
+        extents.append(np.hypot(xs.max() - xs.min(), ys.max() - ys.min()) / 2)
+    if len(origins) < 2:
+        raise NodeError("bounds: fewer than two views have a non-empty silhouette; give the bbox param")
+    # least squares: sum over rays of |(I - d d^T)(p - o)|^2
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for o, d in zip(origins, dirs):
+        Pm = np.eye(3) - np.outer(d, d)
+        A += Pm
+        b += Pm @ o
+    p0 = np.linalg.lstsq(A, b, rcond=None)[0]
+    radius = 0.0
+    for v, (o, ext) in enumerate(zip(origins, extents)):
+        # pixels per world unit at p0: singular values of the projection's Jacobian
+        eps = 1e-4 * np.linalg.norm(p0 - o)
+        J = np.stack([(cameras.project(p0 + eps * e, v)[0] - cameras.project(p0 - eps * e, v)[0])[0] / (2 * eps) for e in np.eye(3)], axis=1)
+        s = np.linalg.svd(J, compute_uv=False)[1]
+        radius = max(radius, ext / s)
+    return np.array([p0 - 1.5 * radius, p0 + 1.5 * radius])
+
+
+def auto_bounds(masks: list[np.ndarray], cameras: Cameras, resolution: int = 64, margin: float = 0.05) -> np.ndarray:
+    """Box [[xmin ymin zmin], [xmax ymax zmax]] around the object seen in ``masks`` (see module docstring)."""
+    if len(masks) != len(cameras):
+        raise NodeError(f"bounds: {len(masks)} masks for {len(cameras)} cameras")
+    box = initial_box(masks, cameras)
+    for _ in range(6):
+        occ = coarse_hull(masks, cameras, box, resolution)
+        if not occ.any():
+            raise NodeError("bounds: the silhouettes do not intersect in space (wrong cameras or masks?)")
+        occ_box, tlo, thi = _occupied_box(occ, box)
+        if not (tlo.any() or thi.any()):
+            break
+        size = box[1] - box[0]
+        box = box + np.array([-tlo * size * 0.5, thi * size * 0.5])
+    # tighten: a second pass in the occupied box (+ one coarse voxel) at the same resolution
+    vs = (box[1] - box[0]) / np.array(occ.shape)
+    box = occ_box + np.array([-vs, vs])
+    occ = coarse_hull(masks, cameras, box, resolution)
+    if occ.any():
+        occ_box, _, _ = _occupied_box(occ, box)
+    vs = (box[1] - box[0]) / np.array(occ.shape)
+    extent = (occ_box[1] - occ_box[0]).max()
+    return occ_box + np.array([-1, 1])[:, None] * (vs + margin * extent)
+
+
+class Bounds(Node):
+    """Axis-aligned box around the captured object: automatic from silhouettes and cameras (coarse hull),
+    or the explicit bbox param."""
+
+    type_name = "bounds"
+    version = 1
+    inputs = {"masks": Input(Masks, optional=True), "cameras": Input(CameraSet, optional=True)}
+    outputs = {"bounds": Output(BoundsType, "box [[xmin ymin zmin], [xmax ymax zmax]]")}
+    params = {
+        "bbox": Param(list, None, item=float, length=6, doc="explicit box [xmin ymin zmin xmax ymax zmax]"),
+        "margin": Param(float, 0.05, range=(0.0, 1.0), doc="added on each side, as a fraction of the largest extent"),
+        "resolution": Param(int, 64, range=(16, 256), doc="coarse hull voxels along the longest side"),
+    }
+
+    def run(self, masks, cameras, *, bbox, margin, resolution):
+        if bbox is not None:
+            box = np.array(bbox, dtype=np.float64).reshape(2, 3)
+            if not np.all(box[1] > box[0]):
+                raise NodeError(f"bounds: bbox {bbox} needs xmax > xmin, ymax > ymin, zmax > zmin")
+            return {"bounds": box}
+        if masks is None or cameras is None:
+            raise NodeError("bounds: connect masks and cameras, or give the bbox param")
+        return {"bounds": auto_bounds(masks.masks, cameras, resolution, margin)}
