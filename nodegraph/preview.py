@@ -365,7 +365,22 @@ def numeric_series(table: dict, prefix: str = "") -> tuple[dict, dict]:
             lists.update(l)
         elif isinstance(v, list) and v and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v):
             lists[key] = [float(x) for x in v]
+        elif isinstance(v, list) and v and all(isinstance(x, dict) for x in v):  # records, e.g. one per view
+            for field_name in v[0]:
+                column = [x.get(field_name) for x in v]
+                if all(isinstance(c, (int, float)) and not isinstance(c, bool) for c in column):
+                    lists[f"{key}.{field_name}"] = [float(c) for c in column]
     return scalars, lists
+
+
+def record_labels(table: dict, key: str) -> list[str] | None:
+    """The 'name' of each record behind a ``numeric_series`` list key like 'views.iou', if they have one."""
+    node = table
+    for part in key.split(".")[:-1]:
+        node = node.get(part) if isinstance(node, dict) else None
+    if isinstance(node, list) and all(isinstance(x, dict) and "name" in x for x in node):
+        return [str(x["name"]) for x in node]
+    return None
 
 
 def draw_table(value, size, companions):
@@ -374,12 +389,15 @@ def draw_table(value, size, companions):
     panels = list(lists.items())[:3] or ([("values", list(scalars.values()))] if scalars else [])
     if not panels:
         return None
-    fig, canvas = _figure(size, 150 * len(panels) + 30)
+    fig, canvas = _figure(size, 160 * len(panels) + 30)
     for k, (name, vals) in enumerate(panels):
         ax = fig.add_subplot(len(panels), 1, k + 1)
         ax.bar(range(len(vals)), vals, color="#4a7fc0")
         ax.set_title(name, fontsize=8)
         ax.tick_params(labelsize=6)
+        labels = record_labels(value, name) if name != "values" else None
+        if labels and len(labels) <= 40:
+            ax.set_xticks(range(len(vals)), labels, rotation=90, fontsize=5)
         if name == "values":
             ax.set_xticks(range(len(vals)), list(scalars), rotation=30, ha="right", fontsize=6)
     fig.tight_layout()

@@ -362,6 +362,9 @@ def _flatten(table: dict, prefix: str = "") -> dict:
     for k, v in table.items():
         if isinstance(v, dict):
             out.update(_flatten(v, f"{prefix}{k}."))
+        elif isinstance(v, list) and v and all(isinstance(x, dict) for x in v):  # records: one row per field
+            for field_name in v[0]:
+                out[f"{prefix}{k}.{field_name}"] = [x.get(field_name) for x in v]
         else:
             out[f"{prefix}{k}"] = v
     return out

@@ -367,3 +367,12 @@ def test_preview_bad_input_names_the_folder(tmp_path):
         preview("Volume", folder, tmp_path / "x.png")
     with pytest.raises(DataError, match="no preview for data type 'Nope'"):
         preview("Nope", folder, tmp_path / "x.png")
+
+
+def test_table_records_become_per_view_series():
+    from nodegraph.preview import numeric_series, record_labels
+
+    table = {"mean_iou": 0.6, "views": [{"name": "cam0", "iou": 0.5, "ok": True}, {"name": "cam1", "iou": 0.7, "ok": False}]}
+    scalars, lists = numeric_series(table)
+    assert scalars == {"mean_iou": 0.6} and lists == {"views.iou": [0.5, 0.7]}
+    assert record_labels(table, "views.iou") == ["cam0", "cam1"]
