@@ -217,15 +217,15 @@ def load_capture(path, frame: int = 0, images: str = "", masks: str = "", backgr
 
 
 def _check_camera_count(root: Path, pattern: str, cams: Cameras):
-    """When images live in one folder or file per camera ({cam}/{cam1}/{name} in a folder part), the number
-    of such folders must match the number of cameras."""
+    """When images live in one folder per camera ({cam}/{cam1}/{name} in the first folder), the number of
+    folders holding such files must match the number of cameras."""
     parts = Path(pattern).parts
     if len(parts) < 2 or not re.search(r"\{(cam|cam1|name)[:}]", parts[0]):
         return
-    stem = re.sub(r"\{[^}]*\}", "*", parts[0])
-    found = [p for p in glob.glob(str(root / stem)) if Path(p).is_dir()]
+    anywhere = re.sub(r"\{[^}]*\}", "*", pattern)
+    found = {Path(p).relative_to(root).parts[0] for p in glob.glob(str(root / anywhere))}
     if len(found) != len(cams):
-        raise DataError(f"{root}: {len(found)} camera folders match '{parts[0]}' but the calibration has {len(cams)} cameras")
+        raise DataError(f"{root}: {len(found)} camera folders hold '{anywhere}' but the calibration has {len(cams)} cameras")
 
 
 def _assemble(cams: Cameras, raw: list, files: list, mask_imgs, bg, threshold: int, mask_mode: str) -> dict:
