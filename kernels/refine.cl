@@ -103,17 +103,23 @@ __kernel void hull_exit(__global const float* a, __global const float* b, int n,
     vstore3(A + t * (B - A), i, out);
 }
 
-// Clamp: a vertex moves from a[i] (kept as inside) to b[i]; when b[i] is outside the hull it stops at the
-// last point found inside instead.
-__kernel void hull_clamp(__global const float* a, __global const float* b, int n, int steps, HULL_ARGS,
-                         __global float* out)
+// Clamp: a vertex moves from a[i] (kept as inside) to b[i]. When b[i] is outside the hull it goes back to the
+// boundary: along -dirs[i] (from c = b[i] - reach * dirs[i], when c is inside and reach > 0), otherwise along
+// its move; the result is the last point found inside.
+__kernel void hull_clamp(__global const float* a, __global const float* b, __global const float* dirs, float reach,
+                         int n, int steps, HULL_ARGS, __global float* out)
 {
     int i = get_global_id(0);
     if (i >= n) return;
-    float3 A = vload3(i, a), B = vload3(i, b);
+    float3 B = vload3(i, b);
     if (inside_hull(B, HULL_PASS)) {
         vstore3(B, i, out);
         return;
+    }
+    float3 A = vload3(i, a);
+    if (reach > 0.0f) {
+        float3 C = B - reach * vload3(i, dirs);
+        if (inside_hull(C, HULL_PASS)) A = C;
     }
     float2 r = bisect(A, B, steps, HULL_PASS);
     vstore3(A + r.x * (B - A), i, out);

@@ -66,6 +66,17 @@ class Silhouettes:
         return cls(cameras.pack(), binary, soft if use_alpha else None, min_views, outside)
 
 
+    def softened(self, sigma: float) -> "Silhouettes":
+        """Binary masks without alpha get alpha = the mask blurred by a Gaussian of ``sigma`` pixels: the
+        pixel staircase becomes a smooth outline through it (bilinear, 0.5). Soft alpha is kept as is."""
+        if self.alpha is not None or sigma <= 0:
+            return self
+        import cv2
+
+        alpha = [cv2.GaussianBlur(m.astype(np.float32) / np.float32(255), (0, 0), sigma) for m in self.masks]
+        return Silhouettes(self.cams, self.masks, alpha, self.min_views, self.policy)
+
+
 # ---------------------------------------------------------------- NumPy reference
 def view_states(points: np.ndarray, views: Silhouettes, v: int) -> np.ndarray:
     """Per point (N, 3 float32) in view ``v``: 1 inside the silhouette, 2 background, 3 unseen (behind the
@@ -144,20 +155,25 @@ def exit_reference(a, b, views: Silhouettes, steps: int) -> np.ndarray:
     return a + t[:, None] * (b - a)
 
 
-def clamp_reference(a, b, views: Silhouettes, steps: int) -> np.ndarray:
-    """Move from a[i] towards b[i], stopping at the last point found inside the hull when b[i] is outside."""
+def clamp_reference(a, b, views: Silhouettes, steps: int, dirs=None, reach: float = 0.0) -> np.ndarray:
+    """Move from a[i] towards b[i]; where b[i] is outside the hull, go back to the last point found inside:
+    along -dirs[i] from c = b[i] - reach * dirs[i] when reach > 0 and c is inside, else along the move."""
     a, b = np.asarray(a, np.float32), np.asarray(b, np.float32)
     out = b.copy()
-    bad = ~inside_hull(b, views)
-    if bad.any():
-        lo, _ = _bisect(a[bad], b[bad], views, steps)
-        out[bad] = a[bad] + lo[:, None] * (b[bad] - a[bad])
+    bad = np.flatnonzero(~inside_hull(b, views))
+    if len(bad):
+        start = a[bad]
+        if reach > 0:
+            c = b[bad] - np.float32(reach) * np.asarray(dirs, np.float32)[bad]
+            start = np.where(inside_hull(c, views)[:, None], c, start)
+        lo, _ = _bisect(start, b[bad], views, steps)
+        out[bad] = start + lo[:, None] * (b[bad] - start)
     return out
 
 
 # ---------------------------------------------------------------- OpenCL
 class HullTestCL:
-    """The silhouettes on the device and the two segment kernels of kernels/refine.cl."""
+    """The silhouettes on the device and the kernels of kernels/refine.cl (point test, exit, clamp)."""
 
     def __init__(self, views: Silhouettes):
         from nodegraph import clrt
@@ -182,29 +198,47 @@ class HullTestCL:
         return (self.d_cams, np.int32(len(v.cams)), self.d_masks, self.d_mask_off, self.d_alpha, self.d_alpha_off,
                 np.int32(v.alpha is not None), np.int32(v.min_views), np.int32(POLICIES.index(v.policy)))
 
-    def enqueue(self, name: str, d_a, d_b, n: int, steps: int, d_out):
-        """Enqueue ``hull_exit`` or ``hull_clamp`` on device buffers of n float3 points (no copies)."""
+    def enqueue_exit(self, d_a, d_b, n: int, steps: int, d_out):
+        """Enqueue ``hull_exit`` on device buffers of n float3 points (no copies)."""
         import pyopencl as cl
 
-        k = self.kernels[name]
+        k = self.kernels["hull_exit"]
         k.set_args(d_a, d_b, np.int32(n), np.int32(steps), *self.hull_args(), d_out)
         cl.enqueue_nd_range_kernel(self.queue, k, (-(-n // 64) * 64,), None)
 
-    def run(self, name: str, a, b, steps: int) -> np.ndarray:
+    def enqueue_clamp(self, d_a, d_b, d_dirs, reach: float, n: int, steps: int, d_out):
+        """Enqueue ``hull_clamp`` on device buffers of n float3 points (no copies)."""
+        import pyopencl as cl
+
+        k = self.kernels["hull_clamp"]
+        k.set_args(d_a, d_b, d_dirs, np.float32(reach), np.int32(n), np.int32(steps), *self.hull_args(), d_out)
+        cl.enqueue_nd_range_kernel(self.queue, k, (-(-n // 64) * 64,), None)
+
+    def _run(self, arrays: list, enqueue) -> np.ndarray:
         import pyopencl as cl
 
         from nodegraph import clrt
 
-        a = np.ascontiguousarray(a, np.float32).reshape(-1, 3)
-        b = np.ascontiguousarray(b, np.float32).reshape(-1, 3)
-        out = np.empty_like(a)
-        if len(a) == 0:
+        arrays = [np.ascontiguousarray(x, np.float32).reshape(-1, 3) for x in arrays]
+        out = np.empty_like(arrays[0])
+        if len(out) == 0:
             return out
         d_out = cl.Buffer(self.ctx, cl.mem_flags.WRITE_ONLY, out.nbytes)
-        d_a, d_b = clrt.to_device(a), clrt.to_device(b)  # kept alive until the copy below has finished
-        self.enqueue(name, d_a, d_b, len(a), steps, d_out)
+        bufs = [clrt.to_device(x) for x in arrays]  # kept alive until the copy below has finished
+        enqueue(*bufs, d_out)
         cl.enqueue_copy(self.queue, out, d_out, is_blocking=True)
         return out
+
+    def exit(self, a, b, steps: int) -> np.ndarray:
+        """As ``exit_reference``."""
+        n = len(np.asarray(a).reshape(-1, 3))
+        return self._run([a, b], lambda da, db, do: self.enqueue_exit(da, db, n, steps, do))
+
+    def clamp(self, a, b, steps: int, dirs=None, reach: float = 0.0) -> np.ndarray:
+        """As ``clamp_reference``."""
+        n = len(np.asarray(a).reshape(-1, 3))
+        dirs = np.zeros((n, 3), np.float32) if dirs is None else dirs
+        return self._run([a, b, dirs], lambda da, db, dd, do: self.enqueue_clamp(da, db, dd, reach, n, steps, do))
 
     def inside(self, points) -> np.ndarray:
         """Boolean per point, as ``inside_hull``."""
@@ -223,12 +257,6 @@ class HullTestCL:
         cl.enqueue_nd_range_kernel(self.queue, k, (-(-len(p) // 64) * 64,), None)
         cl.enqueue_copy(self.queue, out, d_out, is_blocking=True)
         return out.astype(bool)
-
-    def exit(self, a, b, steps: int) -> np.ndarray:
-        return self.run("hull_exit", a, b, steps)
-
-    def clamp(self, a, b, steps: int) -> np.ndarray:
-        return self.run("hull_clamp", a, b, steps)
 
 
 # ---------------------------------------------------------------- lattice edges

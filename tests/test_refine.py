@@ -11,11 +11,12 @@ import math
 import numpy as np
 import pytest
 import trimesh
-from skimage.measure import marching_cubes
 
 from nodegraph import MaskSet, Mesh, NodeError, VoxelGrid
 from nodegraph.cameras import Cameras, look_at
 from nodegraph.testing import run_node
+from nodes.eval import silhouette_report
+from nodes.mc import marching_cubes
 from nodes.refine import HullTestCL, Silhouettes, clamp_reference, exit_reference, inside_hull, lattice_edges
 
 # ---------------------------------------------------------------- synthetic scene helpers
@@ -65,49 +66,14 @@ def hull_volume(views: Silhouettes, box, resolution: int) -> VoxelGrid:
 
 
 def plain_mc(volume: VoxelGrid) -> trimesh.Trimesh:
-    """Marching cubes on the voxel-centre lattice (what the mc node does)."""
-    vs = volume.voxel_size
-    verts, faces, _, _ = marching_cubes(volume.occupancy.astype(np.float32), 0.5, spacing=tuple(vs),
-                                        gradient_direction="ascent")
-    return trimesh.Trimesh(verts + volume.bbox_min + 0.5 * vs, faces, process=False)
-
-
-def mesh_silhouette(vertices, faces, cameras: Cameras, view: int) -> np.ndarray:
-    """Pixels whose centre lies inside (or on an edge of) some projected triangle: bool (H, W)."""
-    cam = cameras[view]
-    uv, _ = cameras.project(vertices, view)
-    tri = uv[np.asarray(faces)]
-    out = np.zeros((cam.height, cam.width), bool)
-    lo = np.floor(tri.min(axis=1)).astype(int)
-    hi = np.ceil(tri.max(axis=1)).astype(int)
-    span = (hi - lo).max(axis=1) + 1
-    for size in np.unique(span):
-        sel = np.flatnonzero(span == size)
-        t = tri[sel]
-        dx, dy = np.meshgrid(np.arange(size), np.arange(size))
-        px = lo[sel, 0, None] + dx.ravel()  # (n, size^2) candidate pixel centres
-        py = lo[sel, 1, None] + dy.ravel()
-
-        def edge(a, b):
-            return (b[:, 0, None] - a[:, 0, None]) * (py - a[:, 1, None]) - (b[:, 1, None] - a[:, 1, None]) * (px - a[:, 0, None])
-
-        e0, e1, e2 = edge(t[:, 0], t[:, 1]), edge(t[:, 1], t[:, 2]), edge(t[:, 2], t[:, 0])
-        hit = ((e0 >= 0) & (e1 >= 0) & (e2 >= 0)) | ((e0 <= 0) & (e1 <= 0) & (e2 <= 0))
-        hit &= (px >= 0) & (px < cam.width) & (py >= 0) & (py < cam.height)
-        out[py[hit], px[hit]] = True
-    return out
+    """The mc node's surface: vertices on edges between voxel centres."""
+    return trimesh.Trimesh(*marching_cubes(volume), process=False)
 
 
 def silhouette_errors(mesh, masks: MaskSet, cameras: Cameras) -> tuple[np.ndarray, int, int]:
-    """(IoU per view, mesh pixels outside the masks, mask pixels not covered) summed over views."""
-    ious, outside, missed = [], 0, 0
-    for v in range(len(cameras)):
-        s = mesh_silhouette(mesh.vertices, mesh.faces, cameras, v)
-        m = masks.masks[v] > 127
-        ious.append((s & m).sum() / max(1, (s | m).sum()))
-        outside += int((s & ~m).sum())
-        missed += int((m & ~s).sum())
-    return np.array(ious), outside, missed
+    """(IoU per view, mesh pixels outside the masks, mask pixels not covered), from eval.silhouette."""
+    r = silhouette_report(mesh.vertices, mesh.faces, cameras, masks)
+    return np.array([v["iou"] for v in r["views"]]), r["mesh_outside_mask"], r["mask_not_covered"]
 
 
 def figure_case(resolution: int, count: int = 6, size: int = 160, soft: bool = False):

@@ -1,0 +1,142 @@
+"""Taubin lambda|mu smoothing that keeps the silhouettes (kernels/relax.cl, kernels/refine.cl).
+
+Taubin, "A signal processing approach to fair surface design" (SIGGRAPH 95): alternate a shrinking step
+(lambda > 0) and an inflating step (mu < -lambda) of the umbrella Laplacian, which removes the marching-cubes
+staircase without the shrinkage of plain Laplacian smoothing. With ``keep_silhouettes`` every half-step is
+followed by a clamp: a vertex whose new position leaves the visual hull stops where its move crosses the
+hull boundary, so the mesh never grows past any silhouette. The way back is along the vertex normal (the
+refine point test, bisected from one mean edge length inside), else along the move; binary masks are
+softened first (``edge_sigma``) so the clamp follows a smooth outline rather than the pixel staircase.
+
+    offsets, neighbours = vertex_neighbours(faces)
+    v = taubin_reference(vertices, offsets, neighbours, iterations=10, views=views)   # NumPy
+    v = taubin_cl(vertices, offsets, neighbours, iterations=10, views=views)          # OpenCL
+"""
+from __future__ import annotations
+
+import numpy as np
+import trimesh
+
+from nodegraph import CameraSet, Input, Masks, Mesh, Node, NodeError, Param
+
+from .refine import POLICIES, HullTestCL, Silhouettes, clamp_reference
+
+LAMBDA, MU = 0.6307, -0.6732
+
+
+def vertex_neighbours(faces: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """Umbrella neighbourhoods in CSR form: (offsets (count + 1,) int32, neighbours int32), each edge once
+    per direction, neighbours of a vertex in increasing order."""
+    faces = np.asarray(faces, np.int64).reshape(-1, 3)
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    e = np.unique(np.sort(e, axis=1), axis=0)
+    both = np.concatenate([e, e[:, ::-1]])
+    both = both[np.lexsort((both[:, 1], both[:, 0]))]
+    offsets = np.zeros(count + 1, np.int64)
+    np.add.at(offsets, both[:, 0] + 1, 1)
+    return np.cumsum(offsets).astype(np.int32), both[:, 1].astype(np.int32)
+
+
+def taubin_step_reference(v: np.ndarray, offsets: np.ndarray, neighbours: np.ndarray, factor: float) -> np.ndarray:
+    """One half-step: v + factor * (mean of neighbours - v), float32 in the kernel's order."""
+    v = np.asarray(v, np.float32)
+    counts = np.diff(offsets)
+    has = counts > 0
+    sums = np.zeros_like(v)
+    gathered = v[neighbours]
+    for j in range(int(counts.max(initial=0))):  # neighbour by neighbour, like the kernel's loop
+        rows = np.flatnonzero(counts > j)
+        sums[rows] += gathered[offsets[rows] + j]
+    out = v.copy()
+    mean = sums[has] / counts[has, None].astype(np.float32)
+    out[has] = v[has] + np.float32(factor) * (mean - v[has])
+    return out
+
+
+def taubin_reference(vertices, offsets, neighbours, iterations: int, lam: float = LAMBDA, mu: float = MU,
+                     views: Silhouettes | None = None, steps: int = 10, normals=None, reach: float = 0.0) -> np.ndarray:
+    """``iterations`` lambda|mu pairs. With ``views`` each half-step is clamped to the visual hull: a vertex
+    that leaves it goes back to the boundary along -normals[i] (searched from ``reach`` inside), else along
+    its move (``clamp_reference``)."""
+    v = np.asarray(vertices, np.float32)
+    for _ in range(iterations):
+        for factor in (lam, mu):
+            p = taubin_step_reference(v, offsets, neighbours, factor)
+            v = clamp_reference(v, p, views, steps, normals, reach) if views is not None else p
+    return v
+
+
+def taubin_cl(vertices, offsets, neighbours, iterations: int, lam: float = LAMBDA, mu: float = MU,
+              views: Silhouettes | None = None, steps: int = 10, normals=None, reach: float = 0.0) -> np.ndarray:
+    """OpenCL version of ``taubin_reference`` (vertices stay on the device between half-steps)."""
+    import pyopencl as cl
+
+    from nodegraph import clrt
+
+    v = np.ascontiguousarray(vertices, np.float32).reshape(-1, 3)
+    n = len(v)
+    if n == 0 or iterations == 0:
+        return v.copy()
+    ctx, queue = clrt.context()
+    rw = cl.mem_flags.READ_WRITE
+    d_v = clrt.to_device(v, rw)
+    d_p, d_c = cl.Buffer(ctx, rw, v.nbytes), cl.Buffer(ctx, rw, v.nbytes)
+    d_off, d_nb = clrt.to_device(np.asarray(offsets, np.int32)), clrt.to_device(np.asarray(neighbours, np.int32))
+    hull = HullTestCL(views) if views is not None else None
+    d_dirs = clrt.to_device(np.zeros_like(v) if normals is None else np.asarray(normals, np.float32).reshape(-1, 3))
+    k = clrt.kernel("relax.cl", "taubin_step")
+    size = (-(-n // 64) * 64,)
+    for _ in range(iterations):
+        for factor in (lam, mu):
+            k.set_args(d_v, d_off, d_nb, np.int32(n), np.float32(factor), d_p)
+            cl.enqueue_nd_range_kernel(queue, k, size, None)
+            if hull is not None:
+                hull.enqueue_clamp(d_v, d_p, d_dirs, reach, n, steps, d_c)
+                d_v, d_c = d_c, d_v
+            else:
+                d_v, d_p = d_p, d_v
+    out = np.empty_like(v)
+    cl.enqueue_copy(queue, out, d_v, is_blocking=True)
+    return out
+
+
+class Relax(Node):
+    """Taubin lambda|mu smoothing of a mesh (OpenCL). With keep_silhouettes (default) no vertex may leave the
+    visual hull of the masks, so silhouettes hold while the marching-cubes staircase goes. Same topology."""
+
+    type_name = "relax"
+    version = 1
+    inputs = {"mesh": Mesh,
+              "masks": Input(Masks, optional=True, doc="silhouettes to stay inside (keep_silhouettes)"),
+              "cameras": Input(CameraSet, optional=True, doc="cameras of the masks (keep_silhouettes)")}
+    outputs = {"mesh": Mesh}
+    params = {
+        "iterations": Param(int, 10, range=(0, 1000), doc="lambda|mu pairs"),
+        "lam": Param(float, LAMBDA, range=(0.0, 1.0), doc="shrinking factor lambda"),
+        "mu": Param(float, MU, range=(-1.0, 0.0), doc="inflating factor mu (|mu| > lambda)"),
+        "keep_silhouettes": Param(bool, True, doc="clamp every move to the visual hull of masks + cameras"),
+        "steps": Param(int, 10, range=(1, 30), doc="bisection steps of the clamp"),
+        "edge_sigma": Param(float, 0.7, range=(0.0, 5.0), doc="binary masks: Gaussian blur (pixels) giving the clamp a "
+                            "smooth outline instead of the pixel staircase; 0 = exact pixels"),
+        "min_views": Param(int, 0, range=(0, None), doc="hull vote: 0 = all views; k = at least k silhouettes"),
+        "outside": Param(str, "carve", choices=POLICIES, doc="points projecting outside an image: carve, or ignore that view"),
+        "use_alpha": Param(bool, True, doc="test against soft alpha when the masks carry it"),
+        "method": Param(str, "opencl", choices=("opencl", "numpy"), doc="OpenCL kernels or the NumPy reference"),
+    }
+    kernels = ["relax.cl", "refine.cl"]
+    uses = ["nodes.refine"]
+
+    def run(self, mesh, masks=None, cameras=None, *, iterations, lam, mu, keep_silhouettes, steps, edge_sigma, min_views,
+            outside, use_alpha, method):
+        views = None
+        if keep_silhouettes:
+            if masks is None or cameras is None:
+                raise NodeError("relax: keep_silhouettes needs the 'masks' and 'cameras' inputs connected "
+                                "(or set keep_silhouettes: false)")
+            views = Silhouettes.from_inputs(masks, cameras, min_views, outside, use_alpha, node="relax").softened(edge_sigma)
+        vertices = np.asarray(mesh.vertices)
+        offsets, neighbours = vertex_neighbours(mesh.faces, len(vertices))
+        smooth = taubin_cl if method == "opencl" else taubin_reference
+        reach = float(mesh.edges_unique_length.mean()) if len(mesh.faces) else 0.0
+        out = smooth(vertices, offsets, neighbours, iterations, lam, mu, views, steps, mesh.vertex_normals, reach)
+        return {"mesh": trimesh.Trimesh(out.astype(np.float64), np.asarray(mesh.faces), process=False)}
