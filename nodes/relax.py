@@ -2,15 +2,16 @@
 
 Taubin, "A signal processing approach to fair surface design" (SIGGRAPH 95): alternate a shrinking step
 (lambda > 0) and an inflating step (mu < -lambda) of the umbrella Laplacian, which removes the marching-cubes
-staircase without the shrinkage of plain Laplacian smoothing. With ``keep_silhouettes`` every half-step is
-followed by a clamp: a vertex whose new position leaves the visual hull stops where its move crosses the
-hull boundary, so the mesh never grows past any silhouette. The way back is along the vertex normal (the
-refine point test, bisected from one mean edge length inside), else along the move; binary masks are
-softened first (``edge_sigma``) so the clamp follows a smooth outline rather than the pixel staircase.
+staircase without the shrinkage of plain Laplacian smoothing. With ``keep_silhouettes`` the smoothed mesh
+is then clamped to the visual hull: a vertex that ends outside goes back to the hull boundary along its
+normal (refine's point test, bisected from one mean edge length inside), or else along its move, so the
+mesh never grows past any silhouette. Binary masks are softened first (``edge_sigma``) so the clamp
+follows a smooth outline rather than the pixel staircase. (Clamping after every half-step instead was
+tried: it ratchets thin parts inwards, since inward lambda moves pass and outward mu moves are cut.)
 
-    offsets, neighbours = vertex_neighbours(faces)
-    v = taubin_reference(vertices, offsets, neighbours, iterations=10, views=views)   # NumPy
-    v = taubin_cl(vertices, offsets, neighbours, iterations=10, views=views)          # OpenCL
+    offsets, neighbours = vertex_neighbours(faces, len(vertices))
+    v = taubin_cl(vertices, offsets, neighbours, iterations=10)      # taubin_reference: the NumPy version
+    v = relax_vertices(mesh, 10, views=views)                         # smoothing, then the hull clamp
 """
 from __future__ import annotations
 
@@ -53,21 +54,16 @@ def taubin_step_reference(v: np.ndarray, offsets: np.ndarray, neighbours: np.nda
     return out
 
 
-def taubin_reference(vertices, offsets, neighbours, iterations: int, lam: float = LAMBDA, mu: float = MU,
-                     views: Silhouettes | None = None, steps: int = 10, normals=None, reach: float = 0.0) -> np.ndarray:
-    """``iterations`` lambda|mu pairs. With ``views`` each half-step is clamped to the visual hull: a vertex
-    that leaves it goes back to the boundary along -normals[i] (searched from ``reach`` inside), else along
-    its move (``clamp_reference``)."""
+def taubin_reference(vertices, offsets, neighbours, iterations: int, lam: float = LAMBDA, mu: float = MU) -> np.ndarray:
+    """``iterations`` lambda|mu pairs of umbrella smoothing (NumPy, float32)."""
     v = np.asarray(vertices, np.float32)
     for _ in range(iterations):
         for factor in (lam, mu):
-            p = taubin_step_reference(v, offsets, neighbours, factor)
-            v = clamp_reference(v, p, views, steps, normals, reach) if views is not None else p
+            v = taubin_step_reference(v, offsets, neighbours, factor)
     return v
 
 
-def taubin_cl(vertices, offsets, neighbours, iterations: int, lam: float = LAMBDA, mu: float = MU,
-              views: Silhouettes | None = None, steps: int = 10, normals=None, reach: float = 0.0) -> np.ndarray:
+def taubin_cl(vertices, offsets, neighbours, iterations: int, lam: float = LAMBDA, mu: float = MU) -> np.ndarray:
     """OpenCL version of ``taubin_reference`` (vertices stay on the device between half-steps)."""
     import pyopencl as cl
 
@@ -79,29 +75,38 @@ def taubin_cl(vertices, offsets, neighbours, iterations: int, lam: float = LAMBD
         return v.copy()
     ctx, queue = clrt.context()
     rw = cl.mem_flags.READ_WRITE
-    d_v = clrt.to_device(v, rw)
-    d_p, d_c = cl.Buffer(ctx, rw, v.nbytes), cl.Buffer(ctx, rw, v.nbytes)
+    d_v, d_p = clrt.to_device(v, rw), cl.Buffer(ctx, rw, v.nbytes)
     d_off, d_nb = clrt.to_device(np.asarray(offsets, np.int32)), clrt.to_device(np.asarray(neighbours, np.int32))
-    hull = HullTestCL(views) if views is not None else None
-    d_dirs = clrt.to_device(np.zeros_like(v) if normals is None else np.asarray(normals, np.float32).reshape(-1, 3))
     k = clrt.kernel("relax.cl", "taubin_step")
     size = (-(-n // 64) * 64,)
     for _ in range(iterations):
         for factor in (lam, mu):
             k.set_args(d_v, d_off, d_nb, np.int32(n), np.float32(factor), d_p)
             cl.enqueue_nd_range_kernel(queue, k, size, None)
-            if hull is not None:
-                hull.enqueue_clamp(d_v, d_p, d_dirs, reach, n, steps, d_c)
-                d_v, d_c = d_c, d_v
-            else:
-                d_v, d_p = d_p, d_v
+            d_v, d_p = d_p, d_v
     out = np.empty_like(v)
     cl.enqueue_copy(queue, out, d_v, is_blocking=True)
     return out
 
 
+def relax_vertices(mesh, iterations: int, lam: float = LAMBDA, mu: float = MU, views: Silhouettes | None = None,
+                   steps: int = 10, method: str = "opencl") -> np.ndarray:
+    """Taubin-smoothed vertices of ``mesh``; with ``views`` every vertex that ends outside the visual hull goes
+    back to its boundary along its normal (searched from one mean edge length inside), else along its move."""
+    vertices = np.asarray(mesh.vertices)
+    offsets, neighbours = vertex_neighbours(mesh.faces, len(vertices))
+    smooth = taubin_cl if method == "opencl" else taubin_reference
+    out = smooth(vertices, offsets, neighbours, iterations, lam, mu)
+    if views is None or len(vertices) == 0:
+        return out
+    reach = float(mesh.edges_unique_length.mean()) if len(mesh.faces) else 0.0
+    if method == "opencl":
+        return HullTestCL(views).clamp(vertices, out, steps, mesh.vertex_normals, reach)
+    return clamp_reference(vertices, out, steps=steps, views=views, dirs=mesh.vertex_normals, reach=reach)
+
+
 class Relax(Node):
-    """Taubin lambda|mu smoothing of a mesh (OpenCL). With keep_silhouettes (default) no vertex may leave the
+    """Taubin lambda|mu smoothing of a mesh (OpenCL). With keep_silhouettes (default) no vertex ends outside the
     visual hull of the masks, so silhouettes hold while the marching-cubes staircase goes. Same topology."""
 
     type_name = "relax"
@@ -114,7 +119,7 @@ class Relax(Node):
         "iterations": Param(int, 10, range=(0, 1000), doc="lambda|mu pairs"),
         "lam": Param(float, LAMBDA, range=(0.0, 1.0), doc="shrinking factor lambda"),
         "mu": Param(float, MU, range=(-1.0, 0.0), doc="inflating factor mu (|mu| > lambda)"),
-        "keep_silhouettes": Param(bool, True, doc="clamp every move to the visual hull of masks + cameras"),
+        "keep_silhouettes": Param(bool, True, doc="clamp the result to the visual hull of masks + cameras"),
         "steps": Param(int, 10, range=(1, 30), doc="bisection steps of the clamp"),
         "edge_sigma": Param(float, 0.7, range=(0.0, 5.0), doc="binary masks: Gaussian blur (pixels) giving the clamp a "
                             "smooth outline instead of the pixel staircase; 0 = exact pixels"),
@@ -134,9 +139,5 @@ class Relax(Node):
                 raise NodeError("relax: keep_silhouettes needs the 'masks' and 'cameras' inputs connected "
                                 "(or set keep_silhouettes: false)")
             views = Silhouettes.from_inputs(masks, cameras, min_views, outside, use_alpha, node="relax").softened(edge_sigma)
-        vertices = np.asarray(mesh.vertices)
-        offsets, neighbours = vertex_neighbours(mesh.faces, len(vertices))
-        smooth = taubin_cl if method == "opencl" else taubin_reference
-        reach = float(mesh.edges_unique_length.mean()) if len(mesh.faces) else 0.0
-        out = smooth(vertices, offsets, neighbours, iterations, lam, mu, views, steps, mesh.vertex_normals, reach)
+        out = relax_vertices(mesh, iterations, lam, mu, views, steps, method)
         return {"mesh": trimesh.Trimesh(out.astype(np.float64), np.asarray(mesh.faces), process=False)}

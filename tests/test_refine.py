@@ -110,6 +110,12 @@ def test_kernel_matches_reference(soft):
     got, want = cl.clamp(a, target, 10), clamp_reference(a, target, views, 10)
     assert np.abs(got - want).max() <= 2 * 3 * edge / 2**10
     assert inside_hull(want, views).mean() > 0.999
+    # clamp along directions: back from c = target - reach * dir when c is inside
+    dirs = (b - a) / np.linalg.norm(b - a, axis=1, keepdims=True)
+    got = cl.clamp(a, target, 10, dirs, 2.5 * edge)
+    want = clamp_reference(a, target, views, 10, dirs, 2.5 * edge)
+    assert np.abs(got - want).max() <= 2 * 2.5 * edge / 2**10
+    assert np.abs(want - target).max() > edge  # moved back
 
 
 def test_lattice_edges_find_the_edge():
