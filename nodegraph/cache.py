@@ -83,8 +83,9 @@ class Cache:
         stage = self.staging / f"{key}.{os.getpid()}.{uuid.uuid4().hex[:8]}"
         stage.mkdir()
         try:
-            files = {}
+            files, types = {}, {}
             for port, (dtype, value) in outputs.items():
+                types[port] = dtype.name
                 if value is None:
                     files[port] = None
                     continue
@@ -92,7 +93,7 @@ class Cache:
                 d.mkdir()
                 dtype.save(value, d)
                 files[port] = [p.relative_to(stage).as_posix() for p in dtype.files(d)]
-            meta = dict(meta, key=key, files=files, created=time.time())
+            meta = dict(meta, key=key, files=files, types=types, created=time.time())
             (stage / "meta.json").write_text(json.dumps(meta, indent=1, sort_keys=True))
             final = self.object_dir(key)
             final.parent.mkdir(parents=True, exist_ok=True)

@@ -125,6 +125,7 @@ class Graph:
     nodes: dict[str, NodeSpec]
     dag: nx.DiGraph
     description: str = ""
+    overrides: list = field(default_factory=list)   # the --set arguments it was loaded with
 
     def order(self) -> list[str]:
         """Node names in dependency order (stable: file order among independent nodes)."""
@@ -329,4 +330,4 @@ def _validate(path: Path, where: str, data: _Map, problems: list[str], overrides
         pass
     if problems:
         raise GraphError(problems)
-    return Graph(path, frames, nodes, dag, str(data.get("description", "")))
+    return Graph(path, frames, nodes, dag, str(data.get("description", "")), list(overrides))

@@ -71,7 +71,7 @@ def graph_of(run: dict, by_node: dict) -> nx.DiGraph:
     try:
         from .graphfile import load_graph
 
-        g = load_graph(run["graph"])
+        g = load_graph(run["graph"], run.get("overrides") or [])
         edges = [(src, name, _port_label(sport, port)) for name, spec in g.nodes.items() for port, (src, sport) in spec.inputs.items()]
     except (VolcapError, OSError, KeyError):
         edges = _raw_edges(run.get("graph"))

@@ -126,7 +126,7 @@ def run_graph(graph: Graph, cache: Cache, out_dir: Path, executor, progress: boo
             failures.append(rec)
         records.append(rec)
     result = RunResult(records, out_dir, time.perf_counter() - t0, failures)
-    doc = {"graph": str(graph.path), "frames": graph.frames, "cache": str(cache.root), "seconds": round(result.seconds, 3),
+    doc = {"graph": str(graph.path), "overrides": graph.overrides, "frames": graph.frames, "cache": str(cache.root), "seconds": round(result.seconds, 3),
            "counts": result.counts(), "items": records}
     atomic_write_text(out_dir / "run.json", json.dumps(doc, indent=1))
     return result
