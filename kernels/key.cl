@@ -1,64 +1,125 @@
-// Silhouette keys, one work item per pixel. NumPy references: nodes/key.py (*_reference functions).
+// Silhouette keys (chroma: 16 pixels per work item; the others one pixel). NumPy references: nodes/key.py (*_reference functions).
 // Images are packed uint8 RGB, row-major; alpha outputs are uint8 0..255 (foreground = 255).
 
-// BT.601 full-range YCbCr, chroma centred on 0.
-inline float3 rgb_to_ycc(float3 c)
+// ---- chroma key: 16 pixels per work item, as float16 vectors (PoCL vectorises these; per-pixel uchar3
+// loads and rint() calls were what made the first version slow).
+#define PIX 16
+
+// Round half to even (as NumPy's rint) and saturate to 0..255; the 1.5 * 2^23 trick is exact in float32
+// and needs no rounding-mode call. (Do not build this file with -cl-fast-relaxed-math: it would fold it.)
+inline uchar16 to_u8x16(float16 v)
 {
-    float y = 0.299f * c.x + 0.587f * c.y + 0.114f * c.z;
-    return (float3)(y, 0.564f * (c.z - y), 0.713f * (c.x - y));
+    return convert_uchar16(convert_int16((clamp(v, 0.0f, 255.0f) + 12582912.0f) - 12582912.0f));
 }
 
-inline float3 ycc_to_rgb(float3 v)
+// n (<= 48) bytes from src into three uchar16; the missing tail is zero.
+inline void load_bytes48(__global const uchar *src, int n, uchar16 *a0, uchar16 *a1, uchar16 *a2)
 {
-    float r = v.x + v.z / 0.713f;
-    float b = v.x + v.y / 0.564f;
-    float g = (v.x - 0.299f * r - 0.114f * b) / 0.587f;
-    return (float3)(r, g, b);
-}
-
-inline uchar3 to_u8(float3 c)
-{
-    return convert_uchar3_sat_rte(c);
-}
-
-// Garbage matte: inside when a*x + b*y + c >= 0 for every edge (a, b) unit normal, pixels from the edge.
-inline int inside_matte(__global const float4 *edges, int nedges, float x, float y)
-{
-    for (int e = 0; e < nedges; ++e) {
-        float4 p = edges[e];
-        if (p.x * x + p.y * y + p.z < 0.0f)
-            return 0;
+    if (n == 3 * PIX) {
+        *a0 = vload16(0, src);
+        *a1 = vload16(1, src);
+        *a2 = vload16(2, src);
+        return;
     }
-    return 1;
+    uchar t[3 * PIX];
+    for (int k = 0; k < 3 * PIX; ++k)
+        t[k] = k < n ? src[k] : 0;
+    *a0 = vload16(0, t);
+    *a1 = vload16(1, t);
+    *a2 = vload16(2, t);
+}
+
+// The first n (<= 48) of the 48 bytes a0 a1 a2 to dst.
+inline void store_bytes48(__global uchar *dst, int n, uchar16 a0, uchar16 a1, uchar16 a2)
+{
+    if (n == 3 * PIX) {
+        vstore16(a0, 0, dst);
+        vstore16(a1, 1, dst);
+        vstore16(a2, 2, dst);
+        return;
+    }
+    uchar t[3 * PIX];
+    vstore16(a0, 0, t);
+    vstore16(a1, 1, t);
+    vstore16(a2, 2, t);
+    for (int k = 0; k < n; ++k)
+        dst[k] = t[k];
 }
 
 // Chroma key. key = (u_cb, u_cr) unit direction of the key colour in the CbCr plane.
 // strength s = (c.u - side * |c x u|) / max(Y, luma_floor): how strongly the pixel's chroma points at the
-// key hue, relative to its brightness. Foreground alpha = 1 - smoothstep-free ramp of s over [inner, outer],
-// times a ramp of luma over [black, black + 4] (pixels darker than the screen's black level are background).
-// Spill: the chroma component along the key direction is removed (times spill) and RGB rebuilt at equal luma.
+// key hue, relative to its brightness. Foreground alpha = 1 - ramp of s over [inner, outer] (inv_ramp =
+// 1 / (outer - inner)), times a ramp of luma over [black, black + 4] (darker than the screen's black level =
+// background), and 0 outside the garbage matte (a*x + b*y + c < 0 for an edge (a, b, c)).
+// Spill (when despill is set): the chroma component along the key direction is removed (times spill) and RGB
+// rebuilt at equal luma. One work item = pixels 16 i .. 16 i + 15 (fewer in the last one).
 __kernel void chroma_key(__global const uchar *rgb, int npix, float2 key, float side, float luma_floor,
-                         float inner, float outer, float black, float spill, int width,
+                         float inner, float inv_ramp, float black, float spill, int width,
                          __global const float4 *edges, int nedges,
-                         __global uchar *alpha_out, __global uchar *despilled)
+                         __global uchar *alpha_out, int despill, __global uchar *despilled)
 {
-    int i = get_global_id(0);
-    if (i >= npix)
+    int i0 = get_global_id(0) * PIX;
+    if (i0 >= npix)
         return;
-    float3 c = convert_float3(vload3(i, rgb));
-    float3 v = rgb_to_ycc(c);
-    float along = v.y * key.x + v.z * key.y;
-    float across = fabs(v.y * key.y - v.z * key.x);
-    float s = (along - side * across) / fmax(v.x, luma_floor);
-    float a = 1.0f - clamp((s - inner) / (outer - inner), 0.0f, 1.0f);
-    a *= clamp((v.x - black) * 0.25f, 0.0f, 1.0f);
-    if (nedges > 0 && !inside_matte(edges, nedges, (float)(i % width), (float)(i / width)))
-        a = 0.0f;
-    alpha_out[i] = convert_uchar_sat_rte(a * 255.0f);
-    float remove = spill * fmax(along, 0.0f);
-    v.y -= remove * key.x;
-    v.z -= remove * key.y;
-    vstore3(to_u8(ycc_to_rgb(v)), i, despilled);
+    int n = min(PIX, npix - i0);
+    uchar16 a0, a1, a2;
+    load_bytes48(rgb + 3 * i0, 3 * n, &a0, &a1, &a2);
+    // de-interleave packed RGB
+    float16 r = convert_float16((uchar16)(a0.s0, a0.s3, a0.s6, a0.s9, a0.sc, a0.sf, a1.s2, a1.s5,
+                                          a1.s8, a1.sb, a1.se, a2.s1, a2.s4, a2.s7, a2.sa, a2.sd));
+    float16 g = convert_float16((uchar16)(a0.s1, a0.s4, a0.s7, a0.sa, a0.sd, a1.s0, a1.s3, a1.s6,
+                                          a1.s9, a1.sc, a1.sf, a2.s2, a2.s5, a2.s8, a2.sb, a2.se));
+    float16 b = convert_float16((uchar16)(a0.s2, a0.s5, a0.s8, a0.sb, a0.se, a1.s1, a1.s4, a1.s7,
+                                          a1.sa, a1.sd, a2.s0, a2.s3, a2.s6, a2.s9, a2.sc, a2.sf));
+    float16 y = 0.299f * r + 0.587f * g + 0.114f * b;  // BT.601 full-range YCbCr, chroma centred on 0
+    float16 cb = 0.564f * (b - y), cr = 0.713f * (r - y);
+    float16 along = cb * key.x + cr * key.y;
+    float16 across = fabs(cb * key.y - cr * key.x);
+    float16 s = (along - side * across) / fmax(y, luma_floor);
+    float16 a = 1.0f - clamp((s - inner) * inv_ramp, 0.0f, 1.0f);
+    a *= clamp((y - black) * 0.25f, 0.0f, 1.0f);
+    if (nedges > 0) {  // pixel coordinates of the 16 lanes; they wrap onto the next row at most once
+        int row = i0 / width;
+        float16 x = (float16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15) + (float)(i0 - row * width);
+        int16 wrap = x >= (float)width;
+        x = select(x, x - (float)width, wrap);
+        float16 yy = select((float16)(float)row, (float16)(float)(row + 1), wrap);
+        for (int e = 0; e < nedges; ++e) {
+            float4 p = edges[e];
+            a = select(a, (float16)0.0f, p.x * x + p.y * yy + p.z < 0.0f);
+        }
+    }
+    uchar16 au = to_u8x16(a * 255.0f);
+    if (n == PIX) {
+        vstore16(au, 0, alpha_out + i0);
+    } else {
+        uchar t[PIX];
+        vstore16(au, 0, t);
+        for (int k = 0; k < n; ++k)
+            alpha_out[i0 + k] = t[k];
+    }
+    if (!despill)
+        return;
+    float16 remove = spill * fmax(along, 0.0f);
+    cb -= remove * key.x;
+    cr -= remove * key.y;
+    // back to interleaved RGB as three 16-byte chunks: byte q of chunk j is pixel (16 j + q) / 3, channel
+    // (16 j + q) % 3; R = Y + Cr / 0.713, B = Y + Cb / 0.564, G = (Y - 0.299 R - 0.114 B) / 0.587.
+    const float kr_g = -0.299f / (0.587f * 0.713f), kb_g = -0.114f / (0.587f * 0.564f);
+    const float kr_r = 1.0f / 0.713f, kb_b = 1.0f / 0.564f;
+    uint16 p0 = (uint16)(0, 0, 0, 1, 1, 1, 2, 2, 2, 3, 3, 3, 4, 4, 4, 5);
+    uint16 p1 = (uint16)(5, 5, 6, 6, 6, 7, 7, 7, 8, 8, 8, 9, 9, 9, 10, 10);
+    uint16 p2 = (uint16)(10, 11, 11, 11, 12, 12, 12, 13, 13, 13, 14, 14, 14, 15, 15, 15);
+    float16 kr0 = (float16)(kr_r, kr_g, 0, kr_r, kr_g, 0, kr_r, kr_g, 0, kr_r, kr_g, 0, kr_r, kr_g, 0, kr_r);
+    float16 kb0 = (float16)(0, kb_g, kb_b, 0, kb_g, kb_b, 0, kb_g, kb_b, 0, kb_g, kb_b, 0, kb_g, kb_b, 0);
+    float16 kr1 = (float16)(kr_g, 0, kr_r, kr_g, 0, kr_r, kr_g, 0, kr_r, kr_g, 0, kr_r, kr_g, 0, kr_r, kr_g);
+    float16 kb1 = (float16)(kb_g, kb_b, 0, kb_g, kb_b, 0, kb_g, kb_b, 0, kb_g, kb_b, 0, kb_g, kb_b, 0, kb_g);
+    float16 kr2 = (float16)(0, kr_r, kr_g, 0, kr_r, kr_g, 0, kr_r, kr_g, 0, kr_r, kr_g, 0, kr_r, kr_g, 0);
+    float16 kb2 = (float16)(kb_b, 0, kb_g, kb_b, 0, kb_g, kb_b, 0, kb_g, kb_b, 0, kb_g, kb_b, 0, kb_g, kb_b);
+    float16 o0 = shuffle(y, p0) + shuffle(cr, p0) * kr0 + shuffle(cb, p0) * kb0;
+    float16 o1 = shuffle(y, p1) + shuffle(cr, p1) * kr1 + shuffle(cb, p1) * kb1;
+    float16 o2 = shuffle(y, p2) + shuffle(cr, p2) * kr2 + shuffle(cb, p2) * kb2;
+    store_bytes48(despilled + 3 * i0, 3 * n, to_u8x16(o0), to_u8x16(o1), to_u8x16(o2));
 }
 
 // Difference key against a clean plate (Horprasert et al. 1999 brightness/chromaticity distortion).

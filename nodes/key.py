@@ -171,6 +171,15 @@ def _upload(role: str, arr: np.ndarray):
     return buf
 
 
+def _host_buffer(arr: np.ndarray):
+    """A read-only device buffer over the array's own memory (no copy on a CPU device); keep ``arr`` alive
+    until the queue has finished with it (the blocking reads below do)."""
+    import pyopencl as cl
+
+    flags = cl.mem_flags.READ_ONLY | cl.mem_flags.USE_HOST_PTR
+    return cl.Buffer(clrt.context()[0], flags, hostbuf=np.ascontiguousarray(arr))
+
+
 def _output(role: str, nbytes: int):
     import pyopencl as cl
 
@@ -193,22 +202,55 @@ def _launch(name: str, npix: int, *args):
     cl.enqueue_nd_range_kernel(clrt.queue(), k, (npix,), None)
 
 
+CHROMA_PIX = 16  # pixels per work item of the chroma_key kernel
+CHROMA_GROUP = 64  # work-group size (PoCL's own choice was slower)
+
+
 def chroma_key_cl(rgb, key, *, side=1.0, luma_floor=16.0, inner=0.05, outer=0.2, black=0.0, spill=1.0, edges=None,
-                  read_images=True):
+                  despill=True, timings=None):
     """OpenCL ``chroma_key`` on one (H, W, 3) uint8 image: (alpha uint8 (H, W), despilled (H, W, 3) or None
-    when ``read_images`` is false)."""
+    when ``despill`` is false). ``timings``, a dict, receives the seconds of upload / kernel / download
+    (this waits for each step, so leave it None outside benchmarks)."""
+    import pyopencl as cl
     from pyopencl import cltypes
 
     h, w = rgb.shape[:2]
     npix = h * w
     edges = np.zeros((0, 4), np.float32) if edges is None else np.asarray(edges, np.float32)
-    src = _upload("rgb", rgb)
+    clock = _Clock(timings)
+    src = _host_buffer(rgb)
     ebuf = _upload("edges", edges if len(edges) else np.zeros((1, 4), np.float32))
-    alpha, desp = _output("alpha", npix), _output("rgb_out", npix * 3)
+    clock.lap("upload")
+    alpha, desp = _output("alpha", npix), _output("rgb_out", npix * 3 if despill else 1)
     f = np.float32
-    _launch("chroma_key", npix, src, np.int32(npix), cltypes.make_float2(*map(float, key)), f(side), f(luma_floor),
-            f(inner), f(outer), f(black), f(spill), np.int32(w), ebuf, np.int32(len(edges)), alpha, desp)
-    return _read(alpha, (h, w)), (_read(desp, (h, w, 3)) if read_images else None)
+    k = clrt.kernel(KERNELS, "chroma_key")
+    k.set_args(src, np.int32(npix), cltypes.make_float2(*map(float, key)), f(side), f(luma_floor), f(inner),
+               f(1.0 / (outer - inner)), f(black), f(spill), np.int32(w), ebuf, np.int32(len(edges)), alpha,
+               np.int32(bool(despill)), desp)
+    items = -(-npix // CHROMA_PIX)
+    cl.enqueue_nd_range_kernel(clrt.queue(), k, (-(-items // CHROMA_GROUP) * CHROMA_GROUP,), (CHROMA_GROUP,))
+    clock.lap("kernel")
+    out = _read(alpha, (h, w)), (_read(desp, (h, w, 3)) if despill else None)
+    clock.lap("download")
+    return out
+
+
+class _Clock:
+    """Wall time per step of an OpenCL call, when asked for (finishes the queue at each lap)."""
+
+    def __init__(self, timings: dict | None):
+        import time
+
+        self.timings, self.now = timings, time.perf_counter
+        self.t = self.now()
+
+    def lap(self, step: str):
+        if self.timings is None:
+            return
+        clrt.queue().finish()
+        t = self.now()
+        self.timings[step] = self.timings.get(step, 0.0) + t - self.t
+        self.t = t
 
 
 def difference_key_cl(rgb, mean, inv_var, *, cd_inner=4.0, cd_outer=8.0, shadow=0.5, highlight=1.2, still=3.0):
@@ -353,9 +395,9 @@ class ChromaKey(Node):
             key = key_direction_from_rgb(key_color) if key_color else estimate_key_direction(im)
             edges = matte_edges(cameras, v, bounds, matte_margin) if cameras is not None else None
             a, d = chroma_key_cl(im, key, side=side, luma_floor=luma_floor, inner=inner, outer=outer, black=black,
-                                 spill=spill, edges=edges)
+                                 spill=spill, edges=edges, despill=spill > 0)
             alphas.append(a)
-            despilled.append(d)
+            despilled.append(d if spill > 0 else im)
         from nodegraph.types import ImageSet
 
         return {"masks": _maskset(alphas, images.names), "images": ImageSet(despilled, list(images.names))}
