@@ -140,6 +140,8 @@ def parse_frames(value, where: str) -> list[int]:
         return [value]
     if isinstance(value, list) and value and all(isinstance(v, int) and not isinstance(v, bool) for v in value):
         return sorted(set(value))
+    if isinstance(value, str) and re.fullmatch(r"\s*-?\d+\s*", value):
+        return [int(value)]
     if isinstance(value, str):
         m = re.fullmatch(r"\s*(-?\d+)\s*:\s*(-?\d+)\s*", value)
         if m:
