@@ -254,7 +254,10 @@ def node_class(type_name: str, module: str | None = None) -> type[Node]:
 
 
 def implementation_sources(cls: type[Node]) -> dict[str, str]:
-    """Source texts that make up a node's implementation: its module, ``uses`` modules, its kernels."""
+    """Source texts that make up a node's implementation: its module, ``uses`` modules, its kernels and
+    the headers they ``#include "..."`` from kernels/ (recursively)."""
+    import re
+
     from .clrt import kernel_path
 
     out = {}
@@ -263,6 +266,12 @@ def implementation_sources(cls: type[Node]) -> dict[str, str]:
         mod = importlib.import_module(m)
         src = inspect.getsourcefile(mod)
         out[f"py:{m}"] = Path(src).read_text() if src else ""
-    for k in cls.kernels:
-        out[f"cl:{k}"] = kernel_path(k).read_text()
+    todo = list(cls.kernels)
+    while todo:
+        k = todo.pop()
+        if f"cl:{k}" in out:
+            continue
+        text = kernel_path(k).read_text()
+        out[f"cl:{k}"] = text
+        todo += re.findall(r'^\s*#\s*include\s+"([^"]+)"', text, re.M)
     return out

@@ -149,10 +149,16 @@ def test_every_key_component_moves_the_key(tmp_path, monkeypatch):
     monkeypatch.setattr(enginenodes.Scale, "kernels", ["t.cl"])
     hashing.implementation_fingerprint.cache_clear()
     k1 = keys(tmp_path, CHAIN)
-    (kdir / "t.cl").write_text("__kernel void f() { /* changed */ }\n")
+    (kdir / "t.cl").write_text('#include "t.h"\n__kernel void f() { /* changed */ }\n')
+    (kdir / "t.h").write_text("#define T 1\n")
     hashing.implementation_fingerprint.cache_clear()
     k2 = keys(tmp_path, CHAIN)
     assert k1[("scale", 0)] != k2[("scale", 0)] and k1[("src", 0)] == k2[("src", 0)]
+    (kdir / "t.h").write_text("#define T 2\n")  # an included header is part of the implementation too
+    hashing.implementation_fingerprint.cache_clear()
+    k2h = keys(tmp_path, CHAIN)
+    assert k2h[("scale", 0)] != k2[("scale", 0)]
+    (kdir / "t.h").write_text("#define T 1\n")
     real = nodemod.implementation_sources
     monkeypatch.setattr(nodemod, "implementation_sources", lambda cls: {**real(cls), "py:edit": "x"} if cls is enginenodes.Scale else real(cls))
     hashing.implementation_fingerprint.cache_clear()
