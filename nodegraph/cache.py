@@ -140,6 +140,18 @@ class Cache:
         except OSError:
             pass
 
+    def evict(self, key: str):
+        """Remove one entry (e.g. found corrupt): moved aside in one step, then deleted."""
+        d = self.object_dir(key)
+        if d.is_dir():
+            self.staging.mkdir(parents=True, exist_ok=True)
+            trash = self.staging / f"evicted.{key}.{uuid.uuid4().hex[:8]}"
+            try:
+                os.rename(d, trash)
+            except OSError:
+                return
+            shutil.rmtree(trash, ignore_errors=True)
+
     def clear(self):
         for sub in ("objects", "staging", "index"):
             shutil.rmtree(self.root / sub, ignore_errors=True)

@@ -98,6 +98,8 @@ def run_graph(graph: Graph, cache: Cache, out_dir: Path, executor, progress: boo
 
     def on_result(key, res):
         results[key] = res
+        if res.get("corrupt"):  # an unreadable cached input: drop it so the next run recomputes it
+            cache.evict(res["corrupt"])
         if bar is not None:
             it = by_key[key]
             bar.set_postfix_str(f"{it.label} {res['status']}", refresh=False)

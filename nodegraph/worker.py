@@ -13,7 +13,7 @@ import traceback
 from pathlib import Path
 
 from .cache import Cache
-from .errors import NodeError, VolcapError
+from .errors import DataError, NodeError, VolcapError
 from .node import node_class
 
 
@@ -25,9 +25,17 @@ def _resolve_type(ref: str):
     return obj
 
 
+class CorruptInput(VolcapError):
+    def __init__(self, key: str, message: str):
+        self.key = key
+        super().__init__(message)
+
+
 def _load_input(cache: Cache, spec: dict, port: str, ref: dict):
-    value = cache.load(ref["key"], ref["port"], _resolve_type(ref["type"]))
-    return value
+    try:
+        return cache.load(ref["key"], ref["port"], _resolve_type(ref["type"]))
+    except DataError as exc:
+        raise CorruptInput(ref["key"], f"input '{port}': {exc}; the entry was removed, rerun to recompute it") from None
 
 
 def execute(spec: dict, cache_root: str) -> dict:
@@ -84,6 +92,9 @@ def execute(spec: dict, cache_root: str) -> dict:
                                            "components": spec["components"], "seconds": seconds})
         log.info("done in %.3f s", seconds)
         return {"status": "done", "seconds": time.perf_counter() - t0}
+    except CorruptInput as exc:
+        log.error("%s failed: %s", where, exc)
+        return {"status": "failed", "error": str(exc), "corrupt": exc.key, "seconds": time.perf_counter() - t0}
     except VolcapError as exc:
         log.error("%s failed: %s", where, exc)
         return {"status": "failed", "error": str(exc), "seconds": time.perf_counter() - t0}

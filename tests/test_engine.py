@@ -336,3 +336,44 @@ def test_dot(tmp_path, capsys):
     assert cli(["dot", str(write(tmp_path, CHAIN))]) == 0
     out = capsys.readouterr().out
     assert out.startswith('digraph "g"') and 'scale -> plus [label="out→a"' in out
+
+
+def test_corrupt_cached_input_is_reported_and_recomputed(tmp_path):
+    p = write(tmp_path, CHAIN)
+    first = run(tmp_path, p)
+    src0 = next(r for r in first.records if r["node"] == "src" and r["frame"] == 0)
+    (Path(src0["cache_dir"]) / "out" / "array.npy").write_bytes(b"garbage")
+    res = run(tmp_path, p, overrides=["scale.factor=4"])
+    failed = {(r["node"], r["frame"]): r for r in res.failures}
+    assert set(failed) == {("scale", 0)}
+    assert f"input 'x': cache entry {src0['key']}/out (Array) cannot be read" in failed[("scale", 0)]["error"]
+    assert "rerun to recompute it" in failed[("scale", 0)]["error"]
+    again = run(tmp_path, p, overrides=["scale.factor=4"])
+    st = {(r["node"], r["frame"]): r["status"] for r in again.records}
+    assert again.ok and st[("src", 0)] == "done" and st[("src", 1)] == "cached"
+
+
+def test_plugin_nodes_register_through_entry_points(tmp_path, monkeypatch):
+    from importlib import metadata
+
+    from nodegraph import node as nodemod
+
+    (tmp_path / "volcap_plugin_demo.py").write_text(textwrap.dedent('''
+        from nodegraph import Array, Node
+        import numpy as np
+
+        class Seven(Node):
+            """A plugin node."""
+            type_name = "plugin.seven"
+            outputs = {"out": Array}
+
+            def run(self):
+                return {"out": np.array([7])}
+    '''))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    ep = metadata.EntryPoint(name="demo", value="volcap_plugin_demo", group=nodemod.ENTRY_POINT_GROUP)
+    monkeypatch.setattr(nodemod.metadata, "entry_points", lambda group: [ep] if group == nodemod.ENTRY_POINT_GROUP else [])
+    monkeypatch.setattr(nodemod, "_discovered", False)
+    assert "plugin.seven" in nodemod.registry()
+    g = write(tmp_path, "nodes:\n  s: {type: plugin.seven}\n")
+    assert run(tmp_path, g).ok
