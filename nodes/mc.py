@@ -9,9 +9,11 @@ The case table is built here from a face rule instead of being typed in: on each
 points are joined by segments, and where a face is ambiguous (two diagonal corners inside) the inside
 corners are cut off separately. Both cubes sharing a face apply the same rule to the same four samples, so
 their polygons meet edge to edge: the mesh is watertight. Each closed loop of segments is fanned into
-triangles. The OpenCL kernels (kernels/mc.cl) walk the grid row by row in the style of Flying Edges
-(Schroeder et al. 2015): a counting pass gives each row its vertex and triangle counts and the span where
-anything happens, an exclusive prefix sum gives output offsets, and the emitting pass walks only that span.
+triangles. The OpenCL kernels (kernels/mc.cl) walk the grid row by row along its contiguous axis in the
+style of Flying Edges (Schroeder et al. 2015): a first pass finds each row's span of occupied samples, a
+counting pass gives each row of cells its vertex and triangle counts, an exclusive prefix sum gives output
+offsets, and the emitting pass walks only the span. The volume is read in place (the empty border is
+handled in the kernels, not copied) and vertices and triangles come back in one read.
 ``marching_cubes_reference`` is the vectorised NumPy version of the same computation.
 """
 from __future__ import annotations
@@ -164,7 +166,7 @@ def marching_cubes_reference(volume, level: float = 0.5) -> tuple[np.ndarray, np
     ntri, table = case_table()
     active = ntri[case] > 0
     cells, case = cells[active], case[active]
-    edges = table[case].reshape(len(cells), -1)  # (cells, MAX*3)
+    edges = table[case].reshape(len(cells), 3 * table.shape[1])  # (cells, MAX*3)
     cell_idx, slot = np.nonzero(edges >= 0)
     e = edges[cell_idx, slot]
     e_corner = np.array([EDGES[i][0] for i in range(12)])
@@ -177,58 +179,87 @@ def marching_cubes_reference(volume, level: float = 0.5) -> tuple[np.ndarray, np
 
 
 # ---------------------------------------------------------------- OpenCL
+def _rounded(n: int, group: int) -> int:
+    return -(-n // group) * group
+
+
 class MarchingCubesCL:
-    """Kernels and case tables on the device (one per process)."""
+    """Kernels, case tables and work buffers on the device (one per process; buffers grow and are reused)."""
+
+    GROUP = 32  # work-items per group along j: PoCL runs odd global sizes as tiny groups
 
     def __init__(self):
         from nodegraph import clrt
 
         self.ctx, self.queue = clrt.context()
-        self.kernels = {}
         ntri, table = case_table()
         self.ntri = clrt.to_device(ntri)
         self.table = clrt.to_device(table.astype(np.int8).reshape(256, -1))
         self.max_tris = table.shape[1]
+        self.buffers: dict[str, object] = {}
+        self.host: dict[str, np.ndarray] = {}
 
     def kernel(self, name: str, voxel: str):
         from nodegraph import clrt
 
-        return clrt.kernel("mc.cl", name, (f"-DVOXEL={voxel}", f"-DMAX_TRIS={self.max_tris}"))
+        opts = (f"-DVOXEL={voxel}", f"-DMAX_TRIS={self.max_tris}") + (("-DVOXEL_UCHAR",) if voxel == "uchar" else ())
+        return clrt.kernel("mc.cl", name, opts)
+
+    def buffer(self, name: str, nbytes: int):
+        """A device buffer of at least ``nbytes``, kept between calls."""
+        import pyopencl as cl
+
+        buf = self.buffers.get(name)
+        if buf is None or buf.size < nbytes:
+            buf = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, max(int(nbytes * 1.25), 64))
+            self.buffers[name] = buf
+        return buf
+
+    def scratch(self, name: str, shape: tuple, dtype) -> np.ndarray:
+        """A host array of this shape, kept between calls."""
+        arr = self.host.get(name)
+        if arr is None or arr.shape != shape or arr.dtype != dtype:
+            arr = self.host[name] = np.empty(shape, dtype)
+        return arr
 
     def run(self, volume, level: float) -> tuple[np.ndarray, np.ndarray]:
         import pyopencl as cl
 
-        P = padded(volume)
-        voxel = "uchar" if P.dtype == np.uint8 else "float"
-        Nx, Ny, Nz = P.shape
-        mf = cl.mem_flags
-        vol = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=P)
-        rows = (Ny - 1) * (Nz - 1)
-        counts = np.empty((4, rows), np.int32)  # vertices, triangles, first, last position
-        cbuf = cl.Buffer(self.ctx, mf.READ_WRITE, counts.nbytes)
-        dims = (np.int32(Nx), np.int32(Ny), np.int32(Nz))
-        lvl = np.float32(level)
-        occupied = cl.Buffer(self.ctx, mf.READ_WRITE, Ny * Nz)
-        self.kernel("mc_rows", voxel)(self.queue, (Nz, Ny), None, vol, *dims, lvl, occupied)
-        self.kernel("mc_count", voxel)(self.queue, (Nz - 1, Ny - 1), None, vol, *dims, lvl, self.ntri, occupied, cbuf)
+        occ = volume.occupancy
+        if occ.dtype == np.uint8:
+            voxel = "uchar"
+            if not 0 <= level < 255:  # every sample (the border's 0 too) on the same side: no surface
+                return np.empty((0, 3), np.float32), np.empty((0, 3), np.int32)
+        else:
+            voxel, occ = "float", occ.astype(np.float32, copy=False)
+        occ = np.ascontiguousarray(occ)
+        nx, ny, nz = occ.shape
+        rows = (nx + 1) * (ny + 1)  # cell rows of the padded grid
+        dims = (np.int32(nx), np.int32(ny), np.int32(nz), np.float32(level), np.int32(0 > level))
+        vol = cl.Buffer(self.ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.USE_HOST_PTR, hostbuf=occ)  # no copy on CPUs
+        spans = self.buffer("spans", nx * ny * 8)
+        cbuf = self.buffer("counts", 3 * rows * 4)
+        g = self.GROUP
+        self.kernel("mc_spans", voxel)(self.queue, (_rounded(ny, g), nx), (g, 1), vol, *dims, spans)
+        cell_rows = ((_rounded(ny + 1, g), nx + 1), (g, 1))
+        self.kernel("mc_count", voxel)(self.queue, *cell_rows, vol, *dims, spans, self.ntri, cbuf)
+        counts = self.scratch("counts", (3, rows), np.int32)
         cl.enqueue_copy(self.queue, counts, cbuf)
-        vbase = np.concatenate([[0], np.cumsum(counts[0])]).astype(np.int32)
-        tbase = np.concatenate([[0], np.cumsum(counts[1])]).astype(np.int32)
-        nv, nt = int(vbase[-1]), int(tbase[-1])
-        verts = np.empty((nv, 3), np.float32)
-        faces = np.empty((nt, 3), np.int32)
-        if nt == 0:
-            return verts, faces
-        offsets = np.stack([vbase[:-1], tbase[:-1], counts[2], counts[3]])
-        obuf = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=offsets)
-        vbuf = cl.Buffer(self.ctx, mf.WRITE_ONLY, verts.nbytes)
-        fbuf = cl.Buffer(self.ctx, mf.WRITE_ONLY, faces.nbytes)
-        f4 = lambda a: np.array([*np.asarray(a, np.float32), 0], np.float32)  # noqa: E731
-        self.kernel("mc_emit", voxel)(self.queue, (Nz - 1, Ny - 1), None, vol, *dims, lvl, self.ntri, self.table,
-                                      obuf, np.int32(rows), f4(volume.bbox_min), f4(volume.voxel_size), vbuf, fbuf)
-        cl.enqueue_copy(self.queue, verts, vbuf)
-        cl.enqueue_copy(self.queue, faces, fbuf, is_blocking=True)
-        return verts, faces
+        offsets = self.scratch("offsets", (3, rows + 1), np.int32)  # exclusive prefix sums, totals last
+        offsets[:2, 0] = 0
+        np.cumsum(counts[:2], axis=1, out=offsets[:2, 1:])
+        offsets[2, :rows] = counts[2]
+        nv, nt = int(offsets[0, rows]), int(offsets[1, rows])
+        out = np.empty(3 * (nv + nt), np.float32)
+        if nt:
+            obuf = self.buffer("offsets", offsets.nbytes)
+            cl.enqueue_copy(self.queue, obuf, offsets, is_blocking=False)
+            outbuf = self.buffer("out", out.nbytes)
+            f4 = lambda a: np.array([*np.asarray(a, np.float32), 0], np.float32)  # noqa: E731
+            self.kernel("mc_emit", voxel)(self.queue, *cell_rows, vol, *dims, spans, self.ntri, self.table, obuf,
+                                          f4(volume.bbox_min), f4(volume.voxel_size), outbuf)
+            cl.enqueue_copy(self.queue, out, outbuf, is_blocking=True)
+        return out[: 3 * nv].reshape(nv, 3), out[3 * nv:].view(np.int32).reshape(nt, 3)
 
 
 _MC_CL: MarchingCubesCL | None = None

@@ -42,22 +42,39 @@ def test_case_table_is_complementary_in_count():
         assert ntri[case] == 1 and ntri[255 - case] == 1
 
 
-@pytest.mark.parametrize("kind", ["ball", "noise", "soft"])
+@pytest.mark.parametrize("kind", ["ball", "noise", "soft", "long_rows", "soft_below_zero"])
 def test_kernel_equals_reference(kind):
     rng = np.random.default_rng(3)
+    level = 0.5
     if kind == "ball":
         vol = ball()
     elif kind == "noise":
         vol = VoxelGrid((rng.random((12, 13, 11)) < 0.4).astype(np.uint8), [0, 0, 0], [1.2, 1.3, 1.1])
-    else:
+    elif kind == "soft":
         vol = VoxelGrid(rng.random((10, 11, 12)).astype(np.float32), [0, 0, 0], [1.0, 1.1, 1.2])
-    v1, f1 = marching_cubes(vol)
-    v2, f2 = marching_cubes_reference(vol)
+    elif kind == "long_rows":  # rows of 16-sample chunks and a tail, values 0..3 against level 2
+        occ = (rng.random((9, 8, 45)) < 0.3).astype(np.uint8) * 3
+        occ[:, :, :20] = 0  # empty leading chunk
+        vol, level = VoxelGrid(occ, [0, 0, 0], [0.9, 0.8, 4.5]), 2.0
+    else:  # negative level: the zero border counts as inside
+        vol, level = VoxelGrid(rng.random((7, 9, 35)).astype(np.float32) - 0.5, [0, 0, 0], [0.7, 0.9, 3.5]), -0.2
+    v1, f1 = marching_cubes(vol, level)
+    v2, f2 = marching_cubes_reference(vol, level)
     assert len(v1) == len(v2) and len(f1) == len(f2) and len(f1) > 500
+    assert np.array_equal(v1, v2) and np.array_equal(f1, f2)  # same vertices and triangles, same order
     assert len(np.unique(v1, axis=0)) == len(v1)  # one vertex per crossing edge, shared
-    assert triangles(v1, f1) == triangles(v2, f2)
     m = mesh(v1, f1)
-    assert m.is_watertight and m.is_winding_consistent and m.volume > 0
+    assert m.is_watertight and m.is_winding_consistent
+    assert (m.volume > 0) == (level > 0)  # below zero the solid is the outside (with the border): inward normals
+
+
+@pytest.mark.parametrize("level", [-0.5, 1.0, 255.0])
+def test_uniform_side_gives_an_empty_mesh(level):
+    """uint8 volumes with every sample (the zero border too) on one side of the level have no surface."""
+    vol = ball()
+    v, f = marching_cubes(vol, level)
+    v2, f2 = marching_cubes_reference(vol, level)
+    assert v.shape == v2.shape == (0, 3) and f.shape == f2.shape == (0, 3)
 
 
 def test_ball_is_closed_outward_and_one_piece():
