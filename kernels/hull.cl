@@ -5,9 +5,10 @@
 //   block_sat   summed-area table of 8x8 pixel blocks (a block = one packed byte column x 8 rows).
 // The centre test reads the bits; the coarse test reads the block table over the blocks covering a cell's
 // projected footprint, which is conservative: a cell is only called inside/outside when that is certain.
-// Camera layout: nodegraph.cameras.Cameras.pack() (32 floats per camera).
+// Camera layout and projection: kernels/camera.h (Cameras.pack(), 32 floats per camera).
 // Arithmetic order here is mirrored by nodes/hull.py:hull_reference so both give identical voxels.
 #pragma OPENCL FP_CONTRACT OFF
+#include "camera.h"
 
 #define CAM_FLOATS 32
 #define IN 1
@@ -80,30 +81,13 @@ inline float3 voxel_centre(float3 bmin, float3 vs, int i, int j, int k)
     return (float3)(bmin.x + ((float)i + 0.5f) * vs.x, bmin.y + ((float)j + 0.5f) * vs.y, bmin.z + ((float)k + 0.5f) * vs.z);
 }
 
-inline float3 to_camera(__global const float* c, float3 X)
-{
-    return (float3)(((c[0] * X.x + c[1] * X.y) + c[2] * X.z) + c[3],
-                    ((c[4] * X.x + c[5] * X.y) + c[6] * X.z) + c[7],
-                    ((c[8] * X.x + c[9] * X.y) + c[10] * X.z) + c[11]);
-}
-
 // Centre test of one point in one view: IN, OUT (inside the image, background) or OFF (behind or outside).
 inline int centre_state(__global const float* c, __global const uchar* bits, float3 X)
 {
-    float3 xc = to_camera(c, X);
+    float3 xc = camera_point(c, X);
     if (!(xc.z * c[24] > 0.0f)) return OFF;
-    float x = xc.x / xc.z, y = xc.y / xc.z;
-    if (c[17] != 0.0f || c[18] != 0.0f || c[19] != 0.0f || c[20] != 0.0f || c[21] != 0.0f) {
-        float k1 = c[17], k2 = c[18], p1 = c[19], p2 = c[20], k3 = c[21];
-        float r2 = x * x + y * y;
-        float radial = 1.0f + r2 * (k1 + r2 * (k2 + r2 * k3));
-        float xd = (x * radial + ((2.0f * p1) * x) * y) + p2 * (r2 + (2.0f * x) * x);
-        float yd = (y * radial + p1 * (r2 + (2.0f * y) * y)) + ((2.0f * p2) * x) * y;
-        x = xd;
-        y = yd;
-    }
-    float fu = ((c[12] * x + c[13] * y) + c[14]) + 0.5f;
-    float fv = (c[15] * y + c[16]) + 0.5f;
+    float2 uv = pixel_point(c, distort_point(c, xc.xy / xc.z));
+    float fu = uv.x + 0.5f, fv = uv.y + 0.5f;
     float W = c[22], H = c[23];
     if (!(fu >= 0.0f && fu < W && fv >= 0.0f && fv < H)) return OFF;
     int px = (int)fu, py = (int)fv, Wb = ((int)W + 7) >> 3;
@@ -173,7 +157,7 @@ inline int box_state(__global const float* c, __global const int* sat, float3 lo
     int front = 0, behind = 0;
     for (int n = 0; n < 8; n++) {
         float3 X = (float3)((n & 1) ? hi.x : lo.x, (n & 2) ? hi.y : lo.y, (n & 4) ? hi.z : lo.z);
-        float3 xc = to_camera(c, X);
+        float3 xc = camera_point(c, X);
         float z = xc.z * c[24];
         front += z > 0.0f;
         behind += z < 0.0f;
@@ -185,7 +169,7 @@ inline int box_state(__global const float* c, __global const int* sat, float3 lo
     if (front != 8) return 0;
     xr = widen(xr, 1e-7f, 1e-5f);
     yr = widen(yr, 1e-7f, 1e-5f);
-    if (c[17] != 0.0f || c[18] != 0.0f || c[19] != 0.0f || c[20] != 0.0f || c[21] != 0.0f) {
+    if (has_distortion(c)) {
         float k1 = c[17], k2 = c[18], p1 = c[19], p2 = c[20], k3 = c[21];
         float2 r2 = isq(xr) + isq(yr);
         float2 poly = iscale(k2, (float2)(1.0f, 1.0f)) + imul(r2, iscale(k3, (float2)(1.0f, 1.0f)));

@@ -51,7 +51,7 @@ def check_views(masks, cameras: Cameras) -> list[np.ndarray]:
 # ---------------------------------------------------------------- NumPy reference
 def centre_states(mask: np.ndarray, cam_row: np.ndarray, X: np.ndarray) -> np.ndarray:
     """Per point (N, 3 float32): 1 = inside the silhouette, 2 = background, 3 = behind / outside the image.
-    ``cam_row`` is one row of Cameras.pack(); float32 operations in the kernel's order."""
+    ``cam_row`` is one row of Cameras.pack(); float32 operations in the order of kernels/camera.h."""
     c = cam_row.astype(np.float32)
     f = np.float32
     x, y, z = X[:, 0], X[:, 1], X[:, 2]
