@@ -216,6 +216,46 @@ def test_cleanup_keeps_largest_fills_holes_drops_specks():
     assert two[30, 65] == 255 and two[30, 25] == 0
 
 
+# ---------------------------------------------------------------- GrabCut at the boundary
+def dark_cap_scene():
+    """A red body with a dark cap (hair) on a dark greenish wall; a rough mask with a halo and a bite."""
+    import cv2
+
+    h, w = 96, 96
+    body = disc(h, w, 58, 48, 26)
+    cap = disc(h, w, 34, 48, 18) & ~body
+    truth = np.maximum(body, cap)
+    img = np.empty((h, w, 3))
+    img[:] = (12, 16, 11)
+    img[body > 0] = (190, 40, 40)
+    img[cap > 0] = (30, 20, 16)
+    img = np.clip(img + np.random.default_rng(9).normal(0, 2.5, img.shape), 0, 255).astype(np.uint8)
+    rough = cv2.dilate(truth, np.ones((7, 7), np.uint8))
+    rough[10:24, 40:60] = 0
+    return img, rough, truth
+
+
+def test_grabcut_removes_halo_and_restores_dark_cap():
+    img, rough, truth = dark_cap_scene()
+    assert iou(rough, truth) < 0.8
+    out = run_node("key.grabcut", {"images": ImageSet([img]), "masks": MaskSet([rough])}, roundtrip=True)
+    m = out["masks"].masks[0]
+    assert iou(m, truth) > 0.97
+    assert m[10:24, 40:60][truth[10:24, 40:60] > 0].min() == 255  # the bite is back
+    again = run_node("key.grabcut", {"images": ImageSet([img]), "masks": MaskSet([rough])})["masks"].masks[0]
+    assert np.array_equal(again, m)  # seeded: repeatable
+    empty = run_node("key.grabcut", {"images": ImageSet([img]), "masks": MaskSet([np.zeros_like(rough)])})
+    assert empty["masks"].masks[0].max() == 0
+
+
+def test_grabcut_checks_sizes():
+    img, rough, _ = dark_cap_scene()
+    with pytest.raises(NodeError, match="camera 'cam000': mask 95x96"):
+        run_node("key.grabcut", {"images": ImageSet([img]), "masks": MaskSet([rough[:, :-1]])})
+    with pytest.raises(NodeError, match="1 images but 2 masks"):
+        run_node("key.grabcut", {"images": ImageSet([img]), "masks": MaskSet([rough, rough])})
+
+
 # ---------------------------------------------------------------- consensus
 def numpy_hull(masks, cameras, bounds, res, max_miss) -> VoxelGrid:
     """Voxels whose centre falls inside all but ``max_miss`` silhouettes (test reference, not the hull node)."""
