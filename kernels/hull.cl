@@ -1,8 +1,9 @@
 // Visual hull: dense centre test and sparse coarse-to-fine classification (Loop, Zhang & Zhang, HPG 2013).
 //
 // Masks arrive as uint8 (pixel inside when value > 127, i.e. its top bit) and are prepared once per frame:
-//   pack_mask   one bit per pixel (rows of ceil(W/8) bytes), built with a multiply trick on 8 bytes at once;
-//   block_sat   summed-area table of 8x8 pixel blocks (a block = one packed byte column x 8 rows).
+//   pack_block_rows  one bit per pixel (rows of ceil(W/8) bytes, a multiply trick on 8 bytes at once) and
+//                    the 8x8 pixel block counts prefixed along each block row, in one read of the mask;
+//   block_cols       the prefix down the columns: a summed-area table of 8x8 pixel blocks.
 // The centre test reads the bits; the coarse test reads the block table over the blocks covering a cell's
 // projected footprint, which is conservative: a cell is only called inside/outside when that is certain.
 // Camera layout and projection: kernels/camera.h (Cameras.pack(), 32 floats per camera).
@@ -17,46 +18,48 @@
 #define OFF 8
 
 // ------------------------------------------------------------------ mask preparation
-__kernel void pack_mask(__global const uchar* mask, int W, int H, __global uchar* bits, int off)
+// 8 mask pixels (bytes) to one byte of bits, pixel x0 + i in bit i
+inline uchar pack8(__global const uchar* p, int n)
 {
-    int bx = get_global_id(0), y = get_global_id(1);
-    int Wb = (W + 7) >> 3;
-    if (bx >= Wb || y >= H) return;
-    int x0 = bx << 3;
-    __global const uchar* row = mask + (size_t)y * W;
-    uchar b = 0;
-    if (x0 + 8 <= W) {
-        ulong v = as_ulong(vload8(0, row + x0));
-        b = (uchar)((((v >> 7) & 0x0101010101010101UL) * 0x0102040810204080UL) >> 56);
-    } else {
-        for (int i = 0; x0 + i < W; i++) b |= (uchar)((row[x0 + i] >> 7) << i);
+    if (n >= 8) {
+        ulong v = as_ulong(vload8(0, p));
+        return (uchar)((((v >> 7) & 0x0101010101010101UL) * 0x0102040810204080UL) >> 56);
     }
-    bits[off + (size_t)y * Wb + bx] = b;
+    uchar b = 0;
+    for (int i = 0; i < n; i++) b |= (uchar)((p[i] >> 7) << i);
+    return b;
 }
 
-// One work-item per (block row, view): block counts and their prefix along the row. Table rows have Wb+1
-// entries with a zero first column; the table has Hb+1 rows with a zero first row.
-__kernel void block_rows(__global const uchar* bits, __global const int* bit_off, __global int* sat,
-                         __global const int* sat_off, __global const float* cams)
+// One work-item per table row `by` of one view: packs the 8 mask rows of block row by - 1 into bits (rows of
+// Wb bytes) and writes their block counts prefixed along the row. Table rows have Wb+1 entries with a zero
+// first column; the table has Hb+1 rows with a zero first row. Reads the mask once, row by row.
+__kernel void pack_block_rows(__global const uchar* mask, int W, int H, __global uchar* bits, int bit_off,
+                              __global int* sat, int sat_off)
 {
-    int by = get_global_id(0), v = get_global_id(1);
-    int W = (int)cams[v * CAM_FLOATS + 22], H = (int)cams[v * CAM_FLOATS + 23];
+    int by = get_global_id(0);
     int Wb = (W + 7) >> 3, Hb = (H + 7) >> 3;
     if (by > Hb) return;
-    __global int* row = sat + sat_off[v] + by * (Wb + 1);
+    __global int* row = sat + sat_off + by * (Wb + 1);
     row[0] = 0;
     if (by == 0) {
         for (int bx = 0; bx < Wb; bx++) row[bx + 1] = 0;
         return;
     }
-    __global const uchar* b = bits + bit_off[v];
     int y0 = (by - 1) << 3, y1 = min(y0 + 8, H);
+    for (int bx = 0; bx < Wb; bx++) row[bx + 1] = 0;
+    for (int y = y0; y < y1; y++) {
+        __global const uchar* m = mask + (size_t)y * W;
+        __global uchar* b = bits + bit_off + (size_t)y * Wb;
+        for (int bx = 0; bx < Wb; bx++) {
+            uchar v = pack8(m + (bx << 3), W - (bx << 3));
+            b[bx] = v;
+            row[bx + 1] += popcount(v);
+        }
+    }
     int acc = 0;
-    for (int bx = 0; bx < Wb; bx++) {
-        int c = 0;
-        for (int y = y0; y < y1; y++) c += popcount(b[(size_t)y * Wb + bx]);
-        acc += c;
-        row[bx + 1] = acc;
+    for (int bx = 1; bx <= Wb; bx++) {
+        acc += row[bx];
+        row[bx] = acc;
     }
 }
 

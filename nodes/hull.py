@@ -113,7 +113,7 @@ class HullCL:
 
         self.ctx, self.queue = clrt.context()
         self.k = {name: clrt.kernel("hull.cl", name) for name in
-                  ("pack_mask", "block_rows", "block_cols", "hull_dense", "hull_cells")}
+                  ("pack_block_rows", "block_cols", "hull_dense", "hull_cells")}
         self.buffers: dict[str, object] = {}
         self.coarse: dict[tuple, np.ndarray] = {}
 
@@ -153,10 +153,9 @@ class HullCL:
         for v, m in enumerate(masks):
             src = cl.Buffer(self.ctx, mf.READ_ONLY | mf.USE_HOST_PTR, hostbuf=m)
             host.append(src)
-            self.k["pack_mask"](self.queue, (wb[v], m.shape[0]), None, src, np.int32(m.shape[1]), np.int32(m.shape[0]),
-                                bits, np.int32(bit_off[v]))
+            self.k["pack_block_rows"](self.queue, (hb[v] + 1,), None, src, np.int32(m.shape[1]), np.int32(m.shape[0]),
+                                      bits, np.int32(bit_off[v]), sat, np.int32(sat_off[v]))
         n = len(masks)
-        self.k["block_rows"](self.queue, (max(hb) + 1, n), None, bits, boff, sat, soff, cams)
         self.k["block_cols"](self.queue, (max(wb) + 1, n), None, sat, soff, cams)
         self.queue.finish()
         return cams, bits, boff, sat, soff
