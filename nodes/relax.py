@@ -3,15 +3,16 @@
 Taubin, "A signal processing approach to fair surface design" (SIGGRAPH 95): alternate a shrinking step
 (lambda > 0) and an inflating step (mu < -lambda) of the umbrella Laplacian, which removes the marching-cubes
 staircase without the shrinkage of plain Laplacian smoothing. With ``keep_silhouettes`` the smoothed mesh
-is then clamped to the visual hull: a vertex that ends outside goes back to the hull boundary along its
-normal (refine's point test, bisected from one mean edge length inside), or else along its move, so the
-mesh never grows past any silhouette. Binary masks are softened first (``edge_sigma``) so the clamp
-follows a smooth outline rather than the pixel staircase. (Clamping after every half-step instead was
-tried: it ratchets thin parts inwards, since inward lambda moves pass and outward mu moves are cut.)
+is then fitted to the visual hull in two moves along the smoothed normals, so silhouettes neither grow nor
+shrink: a vertex that ends outside goes back to the hull boundary (refine's point test, bisected from one
+mean edge length inside, else along its move); a vertex that smoothing moved inwards (thin limbs, convex
+rims) goes back out by as much, stopping at the boundary. Binary masks are read through their signed
+distance outline blurred by ``outline_sigma`` pixels, so the fit follows a smooth curve through the pixel
+staircase. (Clamping after every half-step instead was tried: it ratchets thin parts inwards.)
 
     offsets, neighbours = vertex_neighbours(faces, len(vertices))
     v = taubin_cl(vertices, offsets, neighbours, iterations=10)      # taubin_reference: the NumPy version
-    v = relax_vertices(mesh, 10, views=views)                         # smoothing, then the hull clamp
+    v = relax_vertices(mesh, 10, views=views)                         # smoothing, then the fit to the hull
 """
 from __future__ import annotations
 
@@ -20,7 +21,7 @@ import trimesh
 
 from nodegraph import CameraSet, Input, Masks, Mesh, Node, NodeError, Param
 
-from .refine import POLICIES, HullTestCL, Silhouettes, clamp_reference
+from .refine import POLICIES, Silhouettes, hull_test, push_out
 
 LAMBDA, MU = 0.6307, -0.6732
 
@@ -91,26 +92,31 @@ def taubin_cl(vertices, offsets, neighbours, iterations: int, lam: float = LAMBD
 
 def relax_vertices(mesh, iterations: int, lam: float = LAMBDA, mu: float = MU, views: Silhouettes | None = None,
                    steps: int = 10, method: str = "opencl") -> np.ndarray:
-    """Taubin-smoothed vertices of ``mesh``; with ``views`` every vertex that ends outside the visual hull goes
-    back to its boundary along its normal (searched from one mean edge length inside), else along its move."""
+    """Taubin-smoothed vertices of ``mesh``; with ``views`` fitted to the visual hull along the smoothed
+    normals: outside vertices back to the boundary (searched from one mean edge length inside, else along
+    their move), vertices that moved inwards back out by their inward move, at most to the boundary."""
     vertices = np.asarray(mesh.vertices)
-    offsets, neighbours = vertex_neighbours(mesh.faces, len(vertices))
+    faces = np.asarray(mesh.faces)
+    offsets, neighbours = vertex_neighbours(faces, len(vertices))
     smooth = taubin_cl if method == "opencl" else taubin_reference
     out = smooth(vertices, offsets, neighbours, iterations, lam, mu)
     if views is None or len(vertices) == 0:
         return out
-    reach = float(mesh.edges_unique_length.mean()) if len(mesh.faces) else 0.0
-    if method == "opencl":
-        return HullTestCL(views).clamp(vertices, out, steps, mesh.vertex_normals, reach)
-    return clamp_reference(vertices, out, steps=steps, views=views, dirs=mesh.vertex_normals, reach=reach)
+    reach = float(mesh.edges_unique_length.mean()) if len(faces) else 0.0
+    test = hull_test(views, method)
+    normals = trimesh.Trimesh(out, faces, process=False).vertex_normals
+    out = test.clamp(vertices, out, steps, normals, reach)
+    inwards = np.einsum("ij,ij->i", vertices - out, normals)
+    return push_out(out, normals, np.maximum(inwards, 0), test, steps)
 
 
 class Relax(Node):
-    """Taubin lambda|mu smoothing of a mesh (OpenCL). With keep_silhouettes (default) no vertex ends outside the
-    visual hull of the masks, so silhouettes hold while the marching-cubes staircase goes. Same topology."""
+    """Taubin lambda|mu smoothing of a mesh (OpenCL). With keep_silhouettes (default) the result is fitted to the
+    visual hull of the masks (no vertex outside; inward moves undone up to the boundary), so silhouettes hold
+    while the staircase goes. Same topology."""
 
     type_name = "relax"
-    version = 1
+    version = 2
     inputs = {"mesh": Mesh,
               "masks": Input(Masks, optional=True, doc="silhouettes to stay inside (keep_silhouettes)"),
               "cameras": Input(CameraSet, optional=True, doc="cameras of the masks (keep_silhouettes)")}
@@ -119,10 +125,10 @@ class Relax(Node):
         "iterations": Param(int, 10, range=(0, 1000), doc="lambda|mu pairs"),
         "lam": Param(float, LAMBDA, range=(0.0, 1.0), doc="shrinking factor lambda"),
         "mu": Param(float, MU, range=(-1.0, 0.0), doc="inflating factor mu (|mu| > lambda)"),
-        "keep_silhouettes": Param(bool, True, doc="clamp the result to the visual hull of masks + cameras"),
+        "keep_silhouettes": Param(bool, True, doc="fit the result to the visual hull of masks + cameras"),
         "steps": Param(int, 10, range=(1, 30), doc="bisection steps of the clamp"),
-        "edge_sigma": Param(float, 0.7, range=(0.0, 5.0), doc="binary masks: Gaussian blur (pixels) giving the clamp a "
-                            "smooth outline instead of the pixel staircase; 0 = exact pixels"),
+        "outline_sigma": Param(float, 0.7, range=(0.0, 5.0), doc="binary masks: Gaussian blur (pixels) of the signed "
+                               "distance outline, a smooth curve through the pixel staircase"),
         "min_views": Param(int, 0, range=(0, None), doc="hull vote: 0 = all views; k = at least k silhouettes"),
         "outside": Param(str, "carve", choices=POLICIES, doc="points projecting outside an image: carve, or ignore that view"),
         "use_alpha": Param(bool, True, doc="test against soft alpha when the masks carry it"),
@@ -131,13 +137,14 @@ class Relax(Node):
     kernels = ["relax.cl", "refine.cl"]
     uses = ["nodes.refine"]
 
-    def run(self, mesh, masks=None, cameras=None, *, iterations, lam, mu, keep_silhouettes, steps, edge_sigma, min_views,
+    def run(self, mesh, masks=None, cameras=None, *, iterations, lam, mu, keep_silhouettes, steps, outline_sigma, min_views,
             outside, use_alpha, method):
         views = None
         if keep_silhouettes:
             if masks is None or cameras is None:
                 raise NodeError("relax: keep_silhouettes needs the 'masks' and 'cameras' inputs connected "
                                 "(or set keep_silhouettes: false)")
-            views = Silhouettes.from_inputs(masks, cameras, min_views, outside, use_alpha, node="relax").softened(edge_sigma)
+            views = Silhouettes.from_inputs(masks, cameras, min_views, outside, use_alpha, node="relax")
+            views = views.distance_outline(outline_sigma)
         out = relax_vertices(mesh, iterations, lam, mu, views, steps, method)
         return {"mesh": trimesh.Trimesh(out.astype(np.float64), np.asarray(mesh.faces), process=False)}

@@ -1,4 +1,5 @@
-"""refine: vertices onto the exact visual-hull boundary (kernel vs NumPy, synthetic IoU, real data).
+"""refine: vertices onto the exact visual-hull boundary, then edge splits onto it (kernel vs NumPy,
+conforming splits, signed distance outline, synthetic IoU, real-data targets of issue 5).
 
 Synthetic scenes are unions of balls seen by look_at cameras; their masks are exact (a pixel is inside when
 its centre's ray meets a ball) and their soft alpha is a 4-pixel linear ramp across the true outline.
@@ -17,7 +18,9 @@ from nodegraph.cameras import Cameras, look_at
 from nodegraph.testing import run_node
 from nodes.eval import silhouette_report
 from nodes.mc import marching_cubes
-from nodes.refine import HullTestCL, Silhouettes, clamp_reference, exit_reference, inside_hull, lattice_edges
+from nodes.refine import (HullTestCL, HullTestNumPy, Silhouettes, clamp_reference, exit_reference, inside_hull,
+                          lattice_edges, onto_hull)
+from nodes.subdivide import split_edges, unique_edges
 
 # ---------------------------------------------------------------- synthetic scene helpers
 FIGURE = [((0.0, 0.0, 0.0), 0.55), ((0.0, 0.0, 0.62), 0.32), ((0.45, 0.1, -0.35), 0.3), ((-0.4, -0.2, -0.4), 0.28)]
@@ -132,29 +135,104 @@ def test_lattice_edges_find_the_edge():
     np.testing.assert_allclose(outside[1:3], [[3.5, 1.5, 2.5], [1.5, 0.5, 1.5]])
 
 
+def test_split_edges_is_conforming():
+    """Any choice of split edges keeps a closed, consistently wound surface; midpoints keep the area."""
+    m = trimesh.creation.icosphere(1)
+    edges, face_edges = unique_edges(m.faces)
+    assert len(edges) == len(m.edges_unique)
+    np.testing.assert_array_equal(edges[face_edges[:, 0]], np.sort(m.faces[:, :2], axis=1))
+    mids = m.vertices[edges].mean(axis=1)
+    rng = np.random.default_rng(0)
+    for split in (rng.random(len(edges)) < 0.3, np.ones(len(edges), bool), np.zeros(len(edges), bool)):
+        v, f = split_edges(m.vertices, m.faces, edges, face_edges, split, mids)
+        out = trimesh.Trimesh(v, f, process=False)
+        assert len(v) == len(m.vertices) + split.sum()
+        assert len(f) == len(m.faces) + split[face_edges].sum()  # a face with k split sides becomes k + 1
+        assert out.is_watertight and out.is_winding_consistent
+        assert out.area == pytest.approx(m.area, rel=1e-12)
+        assert out.volume == pytest.approx(m.volume, rel=1e-12)
+
+
+def test_distance_outline_follows_pixel_edges_and_rounds_steps():
+    """0.5 + signed distance between pixel centres: 0.5 on pixel edges along straight runs, a rounded corner
+    at a step (the pixel corner itself inside, the background centre outside)."""
+    m = np.zeros((9, 9), np.uint8)
+    m[:, :4] = 255
+    m[5:, :] = 255  # background is the top-right block; pixel (row 4, col 4) its inner corner
+    cams = Cameras([look_at((0, 0, 5), (0, 0, 0), (0, 1, 0), 40, 9, 9)])
+    field = Silhouettes.from_inputs(MaskSet([m]), cams).distance_outline().alpha[0]
+    assert field[2, 3] == pytest.approx(1.0) and field[2, 4] == pytest.approx(0.0)  # 0.5 at the edge x = 3.5
+    assert field[5, 6] == pytest.approx(1.0) and field[4, 6] == pytest.approx(0.0)  # 0.5 at the edge y = 4.5
+    assert field[2, 2] == pytest.approx(2.0) and field[2, 6] == pytest.approx(-2.0)  # 1 + 1, 0.5 - 3 + 0.5
+    assert field[5, 3] == pytest.approx(np.sqrt(2))  # nearest background centre diagonally
+    assert field[4, 4] == pytest.approx(0.0)
+    corner = (field[4, 4] + field[4, 3] + field[5, 4] + field[5, 3]) / 4  # bilinear at the pixel corner (3.5, 4.5)
+    assert 0.5 < corner < 1.0
+    soft = Silhouettes.from_inputs(MaskSet([m], [m / np.float32(255)]), cams)
+    assert soft.distance_outline() is soft  # soft alpha is used as given
+
+
 # ---------------------------------------------------------------- node behaviour
 def test_refine_reaches_silhouettes_at_128():
+    """Liang & Wong alone (no splits, nearest-pixel outline as the grid's own test): same faces, every vertex
+    on its grid edge, silhouettes nearly exact at 128^3."""
     cams, masks, views, vol, mesh = figure_case(128)
-    out = run_node("refine", {"mesh": mesh, "volume": vol, "masks": masks, "cameras": cams}, roundtrip=True)["mesh"]
+    out = run_node("refine", {"mesh": mesh, "volume": vol, "masks": masks, "cameras": cams},
+                   {"split_rounds": 0, "outline": "pixels"}, roundtrip=True)["mesh"]
     np.testing.assert_array_equal(out.faces, mesh.faces)
     iou_mc, out_mc, miss_mc = silhouette_errors(mesh, masks, cams)
     iou, outside, missed = silhouette_errors(out, masks, cams)
     print(f"IoU plain MC {iou_mc.round(4)} -> refined {iou.round(4)}; outside {out_mc} -> {outside}, missed {miss_mc} -> {missed}")
     assert iou.min() >= 0.995
     assert outside <= 0.1 * out_mc
-    # every moved vertex stays on its edge
     a, b, ok = lattice_edges(mesh.vertices, vol)
     d = out.vertices[ok] - a[ok]
     along = np.einsum("ij,ij->i", d, b[ok] - a[ok]) / np.einsum("ij,ij->i", b[ok] - a[ok], b[ok] - a[ok])
-    assert np.all((along >= 0) & (along <= 1))
+    assert ok.mean() > 0.99 and np.all((along >= 0) & (along <= 1))
     assert np.abs(d - along[:, None] * (b[ok] - a[ok])).max() < 1e-5
+
+
+def test_refine_splits_chords_onto_the_hull():
+    """32^3 seen at 5 pixels per voxel (as thu_wd_human at 128^3): splits remove most chord errors, and the
+    distance outline beats nearest-pixel lookup with fewer vertices (measured: outside 1071 plain, 136 on
+    edges, 78 split; pixels 181; missed 63, 28, 7)."""
+    cams, masks, views, vol, mesh = figure_case(32)
+    args = {"mesh": mesh, "volume": vol, "masks": masks, "cameras": cams}
+    on_edges = run_node("refine", args, {"split_rounds": 0})["mesh"]
+    out = run_node("refine", args, roundtrip=True)["mesh"]
+    pixels = run_node("refine", args, {"outline": "pixels"})["mesh"]
+    (iou_mc, out_mc, miss_mc), (iou_e, out_e, miss_e), (iou, outside, missed), (iou_p, out_p, miss_p) = (
+        silhouette_errors(m, masks, cams) for m in (mesh, on_edges, out, pixels))
+    print(f"mean IoU plain {iou_mc.mean():.4f}, on edges {iou_e.mean():.4f}, split {iou.mean():.4f}, split with pixel "
+          f"outline {iou_p.mean():.4f}; outside {out_mc}, {out_e}, {outside}, {out_p}; missed {miss_mc}, {miss_e}, "
+          f"{missed}, {miss_p}; vertices {len(mesh.vertices)}, {len(out.vertices)}, {len(pixels.vertices)}")
+    assert iou.min() >= 0.995 and iou.mean() > iou_e.mean() + 0.002
+    assert outside <= 0.1 * out_mc and outside < 0.7 * out_e
+    assert missed <= 0.25 * miss_e
+    assert out_p > 1.5 * outside and len(pixels.vertices) > len(out.vertices)
+    assert out.is_watertight and out.is_winding_consistent and out.volume > 0
+    # the new vertices lie on the hull boundary: just inside along the normal is in, just outside is out
+    test, n = HullTestCL(views.distance_outline()), out.vertex_normals[len(mesh.vertices):]
+    p, eps = out.vertices[len(mesh.vertices):], 1e-3 * vol.voxel_size[0]
+    assert test.inside(p - eps * n).mean() > 0.98 and (~test.inside(p + eps * n)).mean() > 0.98
+
+
+def test_onto_hull_numpy_matches_opencl():
+    cams, masks, views, vol, mesh = figure_case(16, count=4, size=64)
+    views = views.distance_outline()
+    p = mesh.vertices + 0.3 * vol.voxel_size[0] * np.random.default_rng(2).standard_normal(mesh.vertices.shape)
+    got, found = onto_hull(p, mesh.vertex_normals, vol.voxel_size[0], HullTestCL(views), 12)
+    want, found_np = onto_hull(p, mesh.vertex_normals, vol.voxel_size[0], HullTestNumPy(views), 12)
+    assert found.mean() > 0.95 and (found == found_np).mean() > 0.99
+    both = found & found_np
+    assert np.abs(got[both] - want[both]).max() <= 2 * vol.voxel_size[0] / 2**12
 
 
 def test_refine_numpy_method_matches_opencl():
     cams, masks, views, vol, mesh = figure_case(20, count=4, size=64, soft=True)
     args = {"mesh": mesh, "volume": vol, "masks": masks, "cameras": cams}
-    a = run_node("refine", args, {"steps": 10})["mesh"]
-    b = run_node("refine", args, {"steps": 10, "method": "numpy"})["mesh"]
+    a = run_node("refine", args, {"steps": 10, "split_rounds": 0})["mesh"]
+    b = run_node("refine", args, {"steps": 10, "split_rounds": 0, "method": "numpy"})["mesh"]
     assert np.abs(a.vertices - b.vertices).max() <= 2 * vol.voxel_size[0] / 2**10
     moved = np.linalg.norm(a.vertices - mesh.vertices, axis=1) > 1e-6
     assert moved.mean() > 0.9
@@ -191,11 +269,12 @@ def real_meshes(data_dir, name, resolution):
 
 
 @pytest.mark.realdata
-@pytest.mark.parametrize("name, drop, growth", [("thu_wd_human", 0.83, 0.32), ("inria_dancer", 0.75, 0.06)])
-def test_real_refine_128(data_dir, name, drop, growth):
-    """Refined 128^3 vs plain 128^3 and plain 256^3 marching cubes (measured: thu_wd_human outside -85 %,
-    not covered +29 %, mean IoU 0.9584 -> 0.9652 vs 0.9670 plain 256^3; inria_dancer -77 %, +4 %,
-    0.9295 -> 0.9494 vs 0.9435)."""
+@pytest.mark.parametrize("name", ["thu_wd_human", "inria_dancer"])
+def test_real_refine_128(data_dir, name):
+    """Issue 5 targets, shipped masks and calibration: refined 128^3 vs plain 128^3 marching cubes leaves >= 90 %
+    fewer mesh pixels outside the masks, <= 10 % more mask pixels uncovered, and a higher mean IoU than plain
+    256^3 (measured: thu_wd_human outside 22427 -> 1766, not covered 33148 -> 33911, IoU 0.9584 -> 0.9730 vs
+    0.9670; inria_dancer 3323 -> 134, 4246 -> 3967, 0.9295 -> 0.9588 vs 0.9435)."""
     masks, cams, vol, mesh = real_meshes(data_dir, name, 128)
     out = run_node("refine", {"mesh": mesh, "volume": vol, "masks": masks, "cameras": cams})["mesh"]
     mc = silhouette_report(mesh.vertices, mesh.faces, cams, masks)
@@ -203,12 +282,9 @@ def test_real_refine_128(data_dir, name, drop, growth):
     fine = real_meshes(data_dir, name, 256)[3]
     fine = silhouette_report(fine.vertices, fine.faces, cams, masks)
     print(f"{name}: mean IoU plain {mc['mean_iou']:.4f} -> refined {ref['mean_iou']:.4f} (plain 256: {fine['mean_iou']:.4f}); "
-          f"outside {mc['mesh_outside_mask']} -> {ref['mesh_outside_mask']}, not covered {mc['mask_not_covered']} -> {ref['mask_not_covered']}")
-    assert ref["mesh_outside_mask"] <= (1 - drop) * mc["mesh_outside_mask"]
-    assert ref["mask_not_covered"] <= (1 + growth) * mc["mask_not_covered"]
-    assert ref["mean_iou"] >= mc["mean_iou"] + 0.006
-    if name == "inria_dancer":
-        assert ref["mean_iou"] > fine["mean_iou"]
-    else:  # thu_wd_human: 5.5 pixels per voxel; chords of the 128^3 mesh miss convex outline slivers
-        assert ref["mean_iou"] > fine["mean_iou"] - 0.003
-
+          f"outside {mc['mesh_outside_mask']} -> {ref['mesh_outside_mask']}, not covered {mc['mask_not_covered']} -> "
+          f"{ref['mask_not_covered']}; {len(mesh.vertices)} -> {len(out.vertices)} vertices")
+    assert ref["mesh_outside_mask"] <= 0.1 * mc["mesh_outside_mask"]
+    assert ref["mask_not_covered"] <= 1.1 * mc["mask_not_covered"]
+    assert ref["mean_iou"] > fine["mean_iou"]
+    assert out.is_watertight and out.body_count == 1

@@ -114,16 +114,21 @@ def test_relax_needs_masks_to_keep_silhouettes():
 
 
 @pytest.mark.realdata
-def test_real_relax_after_refine(data_dir):
-    """thu_wd_human 128^3: roughness halves; silhouettes stay inside (measured IoU 0.9652 -> 0.9600: thin limbs)."""
-    masks, cams, vol, mesh = real_meshes(data_dir, "thu_wd_human", 128)
+@pytest.mark.parametrize("name", ["thu_wd_human", "inria_dancer"])
+def test_real_relax_after_refine(data_dir, name):
+    """Issue 5 target at 128^3: relax after refine drops the mean IoU by <= 0.002 while roughness drops clearly
+    (measured: thu_wd_human IoU 0.9730 -> 0.9721, roughness 20.0 -> 10.9 deg; inria_dancer 0.9588 -> 0.9574,
+    19.7 -> 10.7 deg); no more mesh pixels outside the masks."""
+    masks, cams, vol, mesh = real_meshes(data_dir, name, 128)
     ref = run_node("refine", {"mesh": mesh, "volume": vol, "masks": masks, "cameras": cams})["mesh"]
     out = run_node("relax", {"mesh": ref, "masks": masks, "cameras": cams})["mesh"]
     a = silhouette_report(ref.vertices, ref.faces, cams, masks)
     b = silhouette_report(out.vertices, out.faces, cams, masks)
-    ra, rb = (np.degrees(m.face_adjacency_angles.mean()) for m in (ref, out))
-    print(f"relax: IoU {a['mean_iou']:.4f} -> {b['mean_iou']:.4f}, outside {a['mesh_outside_mask']} -> "
-          f"{b['mesh_outside_mask']}, roughness {ra:.2f} -> {rb:.2f} deg")
+    ra, rb = roughness(ref), roughness(out)
+    print(f"{name} relax: IoU {a['mean_iou']:.4f} -> {b['mean_iou']:.4f}, outside {a['mesh_outside_mask']} -> "
+          f"{b['mesh_outside_mask']}, not covered {a['mask_not_covered']} -> {b['mask_not_covered']}, "
+          f"roughness {ra:.2f} -> {rb:.2f} deg")
+    assert a["mean_iou"] - b["mean_iou"] <= 0.002
     assert rb <= 0.7 * ra
     assert b["mesh_outside_mask"] <= a["mesh_outside_mask"]
-    assert b["mean_iou"] >= a["mean_iou"] - 0.008
+    assert out.is_watertight

@@ -1,0 +1,57 @@
+"""Conforming edge splits of a triangle mesh: chosen edges get a new vertex, and every face adapts so the
+mesh stays crack-free (no T-junctions) and keeps its orientation ("red-green" refinement).
+
+A face with one split edge becomes two triangles, with two split edges three, with all three the four of a
+1-to-4 split. Used by ``refine`` to add vertices where flat triangles stray from the visual hull.
+
+    edges, face_edges = unique_edges(faces)                    # (E, 2) vertex pairs, (F, 3) edge per face side
+    v2, f2 = split_edges(vertices, faces, edges, face_edges, split, points)
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+def unique_edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(edges (E, 2) sorted vertex pairs, face_edges (F, 3)): side k of face i runs from faces[i, k] to
+    faces[i, (k + 1) % 3] and is edge face_edges[i, k]."""
+    faces = np.asarray(faces, np.int64).reshape(-1, 3)
+    sides = np.stack([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]], axis=1).reshape(-1, 2)
+    edges, inverse = np.unique(np.sort(sides, axis=1), axis=0, return_inverse=True)
+    return edges, inverse.reshape(-1, 3)
+
+
+def split_edges(vertices, faces, edges, face_edges, split, points) -> tuple[np.ndarray, np.ndarray]:
+    """Split the edges where ``split`` (E,) is True, placing each new vertex at ``points`` (E, 3) of its edge.
+
+    Returns (vertices (V + S, 3), faces): old vertices first, then one vertex per split edge in edge order.
+    Each new triangle keeps its parent's winding."""
+    vertices = np.asarray(vertices, np.float64)
+    faces = np.asarray(faces, np.int64).reshape(-1, 3)
+    split = np.asarray(split, bool)
+    new_index = np.full(len(edges), -1, np.int64)
+    new_index[split] = len(vertices) + np.arange(int(split.sum()))
+    out_vertices = np.vstack([vertices, np.asarray(points, np.float64)[split]])
+
+    s = split[face_edges]
+    count = s.sum(axis=1)
+    out = [faces[count == 0]]
+    for c in (1, 2):
+        sel = np.flatnonzero(count == c)
+        # rotate each face so that side 0 is the split side (one split) or the unsplit side (two splits)
+        first = np.argmax(s[sel], axis=1) if c == 1 else np.argmin(s[sel], axis=1)
+        order = (first[:, None] + np.arange(3)) % 3
+        rows = np.arange(len(sel))[:, None]
+        a, b, d = faces[sel][rows, order].T
+        mid = new_index[face_edges[sel][rows, order]]
+        if c == 1:
+            m = mid[:, 0]
+            out += [np.stack([a, m, d], 1), np.stack([m, b, d], 1)]
+        else:  # sides 1 (b-d, midpoint m1) and 2 (d-a, midpoint m2) are split
+            m1, m2 = mid[:, 1], mid[:, 2]
+            out += [np.stack([d, m2, m1], 1), np.stack([a, b, m1], 1), np.stack([a, m1, m2], 1)]
+    sel = np.flatnonzero(count == 3)
+    a, b, d = faces[sel].T
+    m0, m1, m2 = new_index[face_edges[sel]].T
+    out += [np.stack([a, m0, m2], 1), np.stack([m0, b, m1], 1), np.stack([m2, m1, d], 1), np.stack([m0, m1, m2], 1)]
+    return out_vertices, np.vstack(out)
