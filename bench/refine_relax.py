@@ -1,6 +1,7 @@
 """Speed and effect of refine and relax, against the baselines (REFERENCES.md): relax vs
 trimesh.smoothing.filter_taubin on the same mesh (time, volume change, roughness), refine time vs a plain
-finer grid. Prints a table.
+finer grid (refine = vertices onto the hull + 2 rounds of edge splits; "no splits" = Liang & Wong alone).
+Prints a table.
 
     python bench/refine_relax.py [thu_wd_human]      # a real dataset under $VOLCAP_DATA, default thu_wd_human
 """
@@ -60,10 +61,12 @@ def main(name="thu_wd_human"):
     vol, mesh = meshes[128]
     args = {"mesh": mesh, "volume": vol, "masks": masks, "cameras": cams}
     run_node("refine", args)  # build kernels once
-    t, ref = best_of(lambda: run_node("refine", args)["mesh"])
-    row("refine 128^3 (16 steps)", t, ref, mesh)
-    t, _ = best_of(lambda: run_node("refine", args, {"method": "numpy"})["mesh"], 1)
-    rows.append(("refine 128^3, NumPy reference", t * 1000, len(mesh.vertices), *[float("nan")] * 5))
+    t, on_edges = best_of(lambda: run_node("refine", args, {"split_rounds": 0})["mesh"], 3)
+    row("refine 128^3, no splits", t, on_edges, mesh)
+    t, ref = best_of(lambda: run_node("refine", args)["mesh"], 3)
+    row("refine 128^3 (2 split rounds)", t, ref, mesh)
+    t, _ = best_of(lambda: run_node("refine", args, {"split_rounds": 0, "method": "numpy"})["mesh"], 1)
+    rows.append(("refine 128^3 no splits, NumPy ref.", t * 1000, len(mesh.vertices), *[float("nan")] * 5))
     for it in (5, 10):
         free = {"mesh": ref}
         t, m = best_of(lambda: run_node("relax", free, {"iterations": it, "keep_silhouettes": False})["mesh"])
