@@ -31,9 +31,10 @@ def vertex_neighbours(faces: np.ndarray, count: int) -> tuple[np.ndarray, np.nda
     per direction, neighbours of a vertex in increasing order."""
     faces = np.asarray(faces, np.int64).reshape(-1, 3)
     e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    e = np.unique(np.sort(e, axis=1), axis=0)
-    both = np.concatenate([e, e[:, ::-1]])
-    both = both[np.lexsort((both[:, 1], both[:, 0]))]
+    e = np.sort(e, axis=1)
+    keys = np.sort(np.concatenate([e[:, 0] * count + e[:, 1], e[:, 1] * count + e[:, 0]]))  # (from, to) in order
+    keys = keys[np.r_[True, keys[1:] != keys[:-1]]]
+    both = np.stack([keys // count, keys % count], axis=1)
     offsets = np.zeros(count + 1, np.int64)
     np.add.at(offsets, both[:, 0] + 1, 1)
     return np.cumsum(offsets).astype(np.int32), both[:, 1].astype(np.int32)

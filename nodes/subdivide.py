@@ -17,8 +17,15 @@ def unique_edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     faces[i, (k + 1) % 3] and is edge face_edges[i, k]."""
     faces = np.asarray(faces, np.int64).reshape(-1, 3)
     sides = np.stack([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]], axis=1).reshape(-1, 2)
-    edges, inverse = np.unique(np.sort(sides, axis=1), axis=0, return_inverse=True)
-    return edges, inverse.reshape(-1, 3)
+    sides = np.sort(sides, axis=1)
+    n = int(faces.max(initial=0)) + 1
+    keys = sides[:, 0] * n + sides[:, 1]
+    order = np.argsort(keys)  # np.unique(keys, return_inverse=True), several times faster here
+    first = np.r_[True, keys[order][1:] != keys[order][:-1]]
+    inverse = np.empty(len(keys), np.int64)
+    inverse[order] = np.cumsum(first) - 1
+    keys = keys[order][first]
+    return np.stack([keys // n, keys % n], axis=1), inverse.reshape(-1, 3)
 
 
 def split_edges(vertices, faces, edges, face_edges, split, points) -> tuple[np.ndarray, np.ndarray]:
