@@ -140,7 +140,7 @@ def draw_graph(dag: nx.DiGraph, status: dict, out_png: Path) -> Path:
     for u, v, data in dag.edges(data=True):
         span = dag.nodes[v]["layer"] - dag.nodes[u]["layer"]
         rad = 0.0 if span <= 1 else min(0.12 * span, 0.35)  # long edges bend around the columns between
-        ax.annotate("", xy=pos[v], xytext=pos[u], zorder=2,
+        ax.annotate("", xy=pos[v], xytext=pos[u], zorder=2, annotation_clip=False,
                     arrowprops={"arrowstyle": "-|>", "color": "#777777", "lw": 0.9, "shrinkA": 2, "shrinkB": 2,
                                 "patchA": boxes[u].get_bbox_patch(), "patchB": boxes[v].get_bbox_patch(),
                                 "connectionstyle": f"arc3,rad={rad}"})
@@ -149,7 +149,9 @@ def draw_graph(dag: nx.DiGraph, status: dict, out_png: Path) -> Path:
         mid = (a + b) / 2 + 0.5 * rad * np.array([d[1], -d[0]])  # the arc's midpoint (matplotlib arc3 control point / 2)
         ax.text(*to_data.transform(mid), data.get("label", ""), fontsize=6, ha="center", va="center", zorder=4,
                 bbox={"fc": "white", "ec": "none", "alpha": 0.85, "pad": 0.5})
-    canvas.print_png(str(out_png))
+    for artist in ax.get_children():  # long arcs may leave the axes: keep them and grow the picture instead
+        artist.set_clip_on(False)
+    fig.savefig(str(out_png), bbox_inches="tight", pad_inches=0.15, facecolor="white")
     return out_png
 
 
@@ -313,7 +315,9 @@ def plot_metrics(over: list[tuple[int, dict]], out_png: Path, max_panels: int = 
         ax.tick_params(labelsize=6)
     fig.tight_layout()
     out_png.parent.mkdir(parents=True, exist_ok=True)
-    canvas.print_png(str(out_png))
+    for artist in ax.get_children():  # long arcs may leave the axes: keep them and grow the picture instead
+        artist.set_clip_on(False)
+    fig.savefig(str(out_png), bbox_inches="tight", pad_inches=0.15, facecolor="white")
     return out_png
 
 
