@@ -79,7 +79,7 @@ def main():
         dense = run("dense")
         t_sparse = best_ms(lambda: run("sparse"), args.repeats)
         t_dense = best_ms(lambda: run("dense"), max(1, args.repeats // 2))
-        t_prep = best_ms(lambda: h.prepare(masks, cams.pack()), args.repeats)
+        t_prep = best_ms(lambda: h.prepare(masks), args.repeats)
         t_np = "-"
         if res <= 128:
             t = time.perf_counter()

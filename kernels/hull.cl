@@ -1,6 +1,7 @@
 // Visual hull: dense centre test and sparse coarse-to-fine classification (Loop, Zhang & Zhang, HPG 2013).
 //
-// Masks arrive as uint8 (pixel inside when value > 127, i.e. its top bit) and are prepared once per frame:
+// Silhouettes (nodes/hull.py:SilhouetteBits) are prepared once per frame, from uint8 masks (pixel inside
+// when value > 127, i.e. its top bit) or straight from the images by a key (key.cl:chroma_key_bits):
 //   pack_block_rows  one bit per pixel (rows of ceil(W/8) bytes, a multiply trick on 8 bytes at once) and
 //                    the 8x8 pixel block counts prefixed along each block row, in one read of the mask;
 //   block_cols       the prefix down the columns: a summed-area table of 8x8 pixel blocks.
@@ -63,12 +64,12 @@ __kernel void pack_block_rows(__global const uchar* mask, int W, int H, __global
     }
 }
 
-// One work-item per (block column, view): prefix down the columns.
-__kernel void block_cols(__global int* sat, __global const int* sat_off, __global const float* cams)
+// One work-item per (block column, view): prefix down the columns. sizes: (W, H) per view.
+__kernel void block_cols(__global int* sat, __global const int* sat_off, __global const int2* sizes)
 {
     int bx = get_global_id(0), v = get_global_id(1);
-    int W = (int)cams[v * CAM_FLOATS + 22], H = (int)cams[v * CAM_FLOATS + 23];
-    int Wb = (W + 7) >> 3, Hb = (H + 7) >> 3;
+    int2 wh = sizes[v];
+    int Wb = (wh.x + 7) >> 3, Hb = (wh.y + 7) >> 3;
     if (bx > Wb) return;
     __global int* t = sat + sat_off[v];
     int acc = 0;

@@ -1,5 +1,9 @@
-// Silhouette keys (chroma: 16 pixels per work item; the others one pixel). NumPy references: nodes/key.py (*_reference functions).
-// Images are packed uint8 RGB, row-major; alpha outputs are uint8 0..255 (foreground = 255).
+// Silhouette keys (chroma and difference: 16 pixels per work item; threshold one pixel). NumPy references:
+// nodes/key.py (*_reference functions). Images are packed uint8 RGB, row-major; alpha outputs are uint8 0..255
+// (foreground = 255). No contraction to fused multiply-adds: every float operation rounds as NumPy's does, so
+// the chroma key and its silhouette-bits variant give the very same alpha, and the garbage matte's row spans
+// (bisection) agree with its per-pixel test.
+#pragma OPENCL FP_CONTRACT OFF
 
 // ---- chroma key: 16 pixels per work item, as float16 vectors (PoCL vectorises these; per-pixel uchar3
 // loads and rint() calls were what made the first version slow).
@@ -46,6 +50,104 @@ inline void store_bytes48(__global uchar *dst, int n, uchar16 a0, uchar16 a1, uc
         dst[k] = t[k];
 }
 
+
+// de-interleave 16 packed RGB pixels (three uchar16) into float16 channels: the bytes are converted as they
+// lie, then gathered with two-source float shuffles (one permute instruction each on AVX-512)
+inline void rgb_planes16(uchar16 a0, uchar16 a1, uchar16 a2, float16 *r, float16 *g, float16 *b)
+{
+    float16 f0 = convert_float16(a0), f1 = convert_float16(a1), f2 = convert_float16(a2);
+    // lanes 0..15 of f0, 16..31 of f1: the pixels' channels found in a0 and a1 (lanes past them are don't-care)
+    float16 r01 = shuffle2(f0, f1, (uint16)(0, 3, 6, 9, 12, 15, 18, 21, 24, 27, 30, 0, 0, 0, 0, 0));
+    float16 g01 = shuffle2(f0, f1, (uint16)(1, 4, 7, 10, 13, 16, 19, 22, 25, 28, 31, 0, 0, 0, 0, 0));
+    float16 b01 = shuffle2(f0, f1, (uint16)(2, 5, 8, 11, 14, 17, 20, 23, 26, 29, 0, 0, 0, 0, 0, 0));
+    // then lanes 16..31 are f2's
+    *r = shuffle2(r01, f2, (uint16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 17, 20, 23, 26, 29));
+    *g = shuffle2(g01, f2, (uint16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 18, 21, 24, 27, 30));
+    *b = shuffle2(b01, f2, (uint16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 16, 19, 22, 25, 28, 31));
+}
+
+// Chroma key alpha (0..1, before the garbage matte) of 16 pixels; writes the luma, chroma and the chroma
+// along the key direction that despill needs. See chroma_key below for the formula.
+inline float16 chroma_alpha16(float16 r, float16 g, float16 b, float2 key, float side, float luma_floor, float inner,
+                              float inv_ramp, float black, float16 *y, float16 *cb, float16 *cr, float16 *along)
+{
+    *y = 0.299f * r + 0.587f * g + 0.114f * b;  // BT.601 full-range YCbCr, chroma centred on 0
+    *cb = 0.564f * (b - *y);
+    *cr = 0.713f * (r - *y);
+    *along = *cb * key.x + *cr * key.y;
+    float16 across = fabs(*cb * key.y - *cr * key.x);
+    float16 s = (*along - side * across) / fmax(*y, luma_floor);
+    float16 a = 1.0f - clamp((s - inner) * inv_ramp, 0.0f, 1.0f);
+    return a * clamp((*y - black) * 0.25f, 0.0f, 1.0f);
+}
+
+// Garbage matte edge p = (a, b, c): pixel (x, y) is on its inside when a x + b y + c >= 0.
+inline int matte_inside(float4 p, float x, float y)
+{
+    return p.x * x + p.y * y + p.z >= 0.0f;
+}
+
+// First x in [0, width] where the edge test reads `want` (width when nowhere), for a test that is monotone in
+// x: false..false true..true read as (test == want). Tried first at the analytic crossing, then bisection.
+inline int matte_flip(float4 p, float y, int width, int want)
+{
+    int lo = 0, hi = width;  // the answer lies in [lo, hi]
+    float xs = floor(-(p.y * y + p.z) / p.x);
+    if (xs < 0.0f && matte_inside(p, 0.0f, y) == want)
+        return 0;
+    if (xs >= (float)width && matte_inside(p, (float)(width - 1), y) != want)
+        return width;
+    if (xs >= 0.0f && xs < (float)width) {
+        int t = (int)xs;
+        if (matte_inside(p, (float)t, y) == want) {
+            if (t == 0 || matte_inside(p, (float)(t - 1), y) != want)
+                return t;
+            hi = t - 1;
+        } else {
+            if (t + 1 == width || matte_inside(p, (float)(t + 1), y) == want)
+                return t + 1;
+            lo = t + 2;
+        }
+    }
+    while (lo < hi) {
+        int mid = (lo + hi) >> 1;
+        if (matte_inside(p, (float)mid, y) == want)
+            hi = mid;
+        else
+            lo = mid + 1;
+    }
+    return lo;
+}
+
+// The pixels [x0, x1) of row y inside every matte edge (x0 >= x1: none). Each edge's test is monotone in x
+// (every rounding step is), so it holds on a prefix or a suffix of the row: where it flips is found with the
+// very same arithmetic as the per-pixel test, so the span and the per-pixel test agree exactly.
+inline int2 matte_span(__global const float4 *edges, int nedges, int width, float y)
+{
+    int x0 = 0, x1 = width;
+    for (int e = 0; e < nedges && x0 < x1; ++e) {
+        float4 p = edges[e];
+        if (p.x == 0.0f) {  // horizontal edge: the whole row or nothing
+            if (!matte_inside(p, 0.0f, y))
+                x1 = 0;
+        } else if (p.x > 0.0f) {  // inside from some x on
+            x0 = max(x0, matte_flip(p, y, width, 1));
+        } else {  // inside up to some x
+            x1 = min(x1, matte_flip(p, y, width, 0));
+        }
+    }
+    return (int2)(x0, x1);
+}
+
+// n zero bytes at p
+inline void zero_bytes(__global uchar *p, int n)
+{
+    for (; n >= 16; n -= 16, p += 16)
+        vstore16((uchar16)0, 0, p);
+    for (; n > 0; --n, ++p)
+        *p = 0;
+}
+
 // Chroma key. key = (u_cb, u_cr) unit direction of the key colour in the CbCr plane.
 // strength s = (c.u - side * |c x u|) / max(Y, luma_floor): how strongly the pixel's chroma points at the
 // key hue, relative to its brightness. Foreground alpha = 1 - ramp of s over [inner, outer] (inv_ramp =
@@ -64,20 +166,9 @@ __kernel void chroma_key(__global const uchar *rgb, int npix, float2 key, float 
     int n = min(PIX, npix - i0);
     uchar16 a0, a1, a2;
     load_bytes48(rgb + 3 * i0, 3 * n, &a0, &a1, &a2);
-    // de-interleave packed RGB
-    float16 r = convert_float16((uchar16)(a0.s0, a0.s3, a0.s6, a0.s9, a0.sc, a0.sf, a1.s2, a1.s5,
-                                          a1.s8, a1.sb, a1.se, a2.s1, a2.s4, a2.s7, a2.sa, a2.sd));
-    float16 g = convert_float16((uchar16)(a0.s1, a0.s4, a0.s7, a0.sa, a0.sd, a1.s0, a1.s3, a1.s6,
-                                          a1.s9, a1.sc, a1.sf, a2.s2, a2.s5, a2.s8, a2.sb, a2.se));
-    float16 b = convert_float16((uchar16)(a0.s2, a0.s5, a0.s8, a0.sb, a0.se, a1.s1, a1.s4, a1.s7,
-                                          a1.sa, a1.sd, a2.s0, a2.s3, a2.s6, a2.s9, a2.sc, a2.sf));
-    float16 y = 0.299f * r + 0.587f * g + 0.114f * b;  // BT.601 full-range YCbCr, chroma centred on 0
-    float16 cb = 0.564f * (b - y), cr = 0.713f * (r - y);
-    float16 along = cb * key.x + cr * key.y;
-    float16 across = fabs(cb * key.y - cr * key.x);
-    float16 s = (along - side * across) / fmax(y, luma_floor);
-    float16 a = 1.0f - clamp((s - inner) * inv_ramp, 0.0f, 1.0f);
-    a *= clamp((y - black) * 0.25f, 0.0f, 1.0f);
+    float16 r, g, b, y, cb, cr, along;
+    rgb_planes16(a0, a1, a2, &r, &g, &b);
+    float16 a = chroma_alpha16(r, g, b, key, side, luma_floor, inner, inv_ramp, black, &y, &cb, &cr, &along);
     if (nedges > 0) {  // pixel coordinates of the 16 lanes; they wrap onto the next row at most once
         int row = i0 / width;
         float16 x = (float16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15) + (float)(i0 - row * width);
@@ -85,8 +176,8 @@ __kernel void chroma_key(__global const uchar *rgb, int npix, float2 key, float 
         x = select(x, x - (float)width, wrap);
         float16 yy = select((float16)(float)row, (float16)(float)(row + 1), wrap);
         for (int e = 0; e < nedges; ++e) {
-            float4 p = edges[e];
-            a = select(a, (float16)0.0f, p.x * x + p.y * yy + p.z < 0.0f);
+            float4 p = edges[e];  // matte_inside, 16 lanes at once
+            a = select((float16)0.0f, a, p.x * x + p.y * yy + p.z >= 0.0f);
         }
     }
     uchar16 au = to_u8x16(a * 255.0f);
@@ -120,6 +211,72 @@ __kernel void chroma_key(__global const uchar *rgb, int npix, float2 key, float 
     float16 o1 = shuffle(y, p1) + shuffle(cr, p1) * kr1 + shuffle(cb, p1) * kb1;
     float16 o2 = shuffle(y, p2) + shuffle(cr, p2) * kr2 + shuffle(cb, p2) * kb2;
     store_bytes48(despilled + 3 * i0, 3 * n, to_u8x16(o0), to_u8x16(o1), to_u8x16(o2));
+}
+
+// 16 lanes of -1 / 0 (a comparison's result) to a 16-bit mask, lane i in bit i
+inline uint lanes_to_bits16(int16 m)
+{
+    uint16 w = as_uint16(m) & (uint16)(1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024, 2048, 4096, 8192, 16384, 32768);
+    uint8 w8 = w.lo | w.hi;
+    uint4 w4 = w8.lo | w8.hi;
+    uint2 w2 = w4.lo | w4.hi;
+    return w2.x | w2.y;
+}
+
+// Chroma key straight into the visual hull's silhouette layout (kernels/hull.cl, nodes/hull.py:SilhouetteBits):
+// bit (alpha >= 128) per pixel, rows of Wb = ceil(W/8) bytes, pixel x in bit x % 8 of byte x / 8, and the
+// 8x8-pixel block counts prefixed along each block row of the (Hb+1) x (Wb+1) table (zero first row and
+// column; the hull's block_cols adds the column prefix). Same alpha as chroma_key (same operations), and
+// alpha >= 128 is exactly a * 255 >= 127.5, as chroma_key rounds half to even.
+// One work item = table row by (block row by - 1: 8 image rows). Pixels outside the garbage matte's row span
+// are not read at all.
+__kernel void chroma_key_bits(__global const uchar *rgb, int width, int height, float2 key, float side,
+                              float luma_floor, float inner, float inv_ramp, float black,
+                              __global const float4 *edges, int edge0, int nedges,
+                              __global uchar *bits, int bit_off, __global int *sat, int sat_off)
+{
+    int by = get_global_id(0);
+    int Wb = (width + 7) >> 3, Hb = (height + 7) >> 3;
+    if (by > Hb)
+        return;
+    __global int *counts = sat + sat_off + by * (Wb + 1);
+    for (int bx = 0; bx <= Wb; ++bx)
+        counts[bx] = 0;
+    if (by == 0)
+        return;
+    int y0 = (by - 1) << 3, y1 = min(y0 + 8, height);
+    for (int y = y0; y < y1; ++y) {
+        __global uchar *row = bits + bit_off + (size_t)y * Wb;
+        int2 span = matte_span(edges + edge0, nedges, width, (float)y);
+        int c0 = 0, c1 = 0;  // chunks of 16 pixels that overlap the span
+        if (span.x < span.y) {
+            c0 = span.x >> 4;
+            c1 = (span.y + 15) >> 4;
+        }
+        zero_bytes(row, min(2 * c0, Wb));
+        zero_bytes(row + min(2 * c1, Wb), Wb - min(2 * c1, Wb));
+        for (int c = c0; c < c1; ++c) {
+            int x = c * PIX, n = min(PIX, width - x);
+            uchar16 a0, a1, a2;
+            load_bytes48(rgb + 3 * ((size_t)y * width + x), 3 * n, &a0, &a1, &a2);
+            float16 r, g, b, yl, cb, cr, along;
+            rgb_planes16(a0, a1, a2, &r, &g, &b);
+            float16 a = chroma_alpha16(r, g, b, key, side, luma_floor, inner, inv_ramp, black, &yl, &cb, &cr, &along);
+            int16 lane = (int16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15) + x;
+            uint m = lanes_to_bits16((a * 255.0f >= 127.5f) & (lane >= span.x) & (lane < span.y));
+            row[2 * c] = (uchar)m;
+            counts[2 * c + 1] += popcount(m & 255u);
+            if (2 * c + 1 < Wb) {
+                row[2 * c + 1] = (uchar)(m >> 8);
+                counts[2 * c + 2] += popcount(m >> 8);
+            }
+        }
+    }
+    int acc = 0;
+    for (int bx = 1; bx <= Wb; ++bx) {
+        acc += counts[bx];
+        counts[bx] = acc;
+    }
 }
 
 // Difference key against a clean plate (Horprasert et al. 1999 brightness/chromaticity distortion).

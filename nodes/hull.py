@@ -7,6 +7,9 @@ Two OpenCL methods give identical voxels (kernels/hull.cl):
           blocks); only cells that are neither certainly inside nor certainly outside are split, and the
           last level decides voxel by voxel with the very same centre test as the dense method.
 ``hull_reference`` is the NumPy version of the centre test (same float32 arithmetic, same vote rule).
+Both methods read the silhouettes as ``SilhouetteBits`` on the device (bits + block tables): packed here
+from host masks, or written straight from the camera images by ``nodes.key.chroma_key_bits`` (the fused,
+device-resident path of bench/e2e.py).
 """
 from __future__ import annotations
 
@@ -105,6 +108,97 @@ def hull_reference(masks: list[np.ndarray], cameras: Cameras, bbox_min, voxel_si
 
 
 # ---------------------------------------------------------------- OpenCL
+class SilhouetteBits:
+    """Silhouettes on the OpenCL device, in the layout the hull kernels read (kernels/hull.cl), one per view:
+    one bit per pixel (rows of Wb = ceil(W/8) bytes, pixel x in bit x % 8 of byte x // 8) and the
+    (Hb+1) x (Wb+1) int32 summed-area table of its 8x8 pixel block counts (zero first row and column).
+
+    Written from host masks (``HullCL.prepare``) or straight from the camera images by a key kernel
+    (``nodes.key.chroma_key_bits``): both write the bits and the block counts prefixed along rows, then
+    ``prefix_columns`` completes the tables. Allocated once per list of image sizes; hand it back as ``out=``
+    to the next frame's producer to reuse its buffers (its contents are then overwritten)."""
+
+    def __init__(self, sizes: list[tuple[int, int]]):
+        import pyopencl as cl
+
+        from nodegraph import clrt
+
+        self.sizes = [(int(w), int(h)) for w, h in sizes]
+        wb = [(w + 7) // 8 for w, _ in self.sizes]
+        hb = [(h + 7) // 8 for _, h in self.sizes]
+        self.bit_off = np.concatenate([[0], np.cumsum([b * h for b, (_, h) in zip(wb, self.sizes)])]).astype(np.int64)
+        self.sat_off = np.concatenate([[0], np.cumsum([(a + 1) * (b + 1) for a, b in zip(wb, hb)])]).astype(np.int64)
+        if self.bit_off[-1] >= 2**31 or self.sat_off[-1] >= 2**31:
+            raise NodeError(f"hull: {len(sizes)} silhouettes are too large for 32-bit offsets")
+        ctx, _ = clrt.context()
+        rw = cl.mem_flags.READ_WRITE
+        self.bits = cl.Buffer(ctx, rw, max(int(self.bit_off[-1]), 4))
+        self.sat = cl.Buffer(ctx, rw, max(int(self.sat_off[-1]) * 4, 4))
+        self.bit_off_buf = clrt.to_device(self.bit_off[:-1].astype(np.int32))
+        self.sat_off_buf = clrt.to_device(self.sat_off[:-1].astype(np.int32))
+        self.sizes_buf = clrt.to_device(np.array(self.sizes, np.int32).reshape(-1, 2))
+
+    def __len__(self) -> int:
+        return len(self.sizes)
+
+    @classmethod
+    def reuse(cls, out: "SilhouetteBits | None", sizes) -> "SilhouetteBits":
+        """``out`` when it was made for these image sizes, else a new one."""
+        sizes = [(int(w), int(h)) for w, h in sizes]
+        return out if out is not None and out.sizes == sizes else cls(sizes)
+
+    def prefix_columns(self):
+        """Enqueue the column prefix that turns the row-prefixed block counts into summed-area tables."""
+        from nodegraph import clrt
+
+        wb = max(w for w, _ in self.sizes) // 8 + 2
+        clrt.kernel("hull.cl", "block_cols")(clrt.queue(), (wb, len(self)), None, self.sat, self.sat_off_buf,
+                                             self.sizes_buf)
+
+    def masks(self) -> list[np.ndarray]:
+        """The silhouettes back on the host as uint8 (H, W) 0/255 masks (for checks; a read-back)."""
+        import pyopencl as cl
+
+        from nodegraph import clrt
+
+        raw = np.empty(int(self.bit_off[-1]), np.uint8)
+        cl.enqueue_copy(clrt.queue(), raw, self.bits)
+        out = []
+        for v, (w, h) in enumerate(self.sizes):
+            rows = raw[self.bit_off[v]:self.bit_off[v + 1]].reshape(h, -1)
+            out.append(np.unpackbits(rows, axis=1, bitorder="little")[:, :w] * np.uint8(255))
+        return out
+
+    def block_tables(self) -> list[np.ndarray]:
+        """The (Hb+1, Wb+1) int32 summed-area tables back on the host (for checks; a read-back)."""
+        import pyopencl as cl
+
+        from nodegraph import clrt
+
+        raw = np.empty(int(self.sat_off[-1]), np.int32)
+        cl.enqueue_copy(clrt.queue(), raw, self.sat)
+        return [raw[self.sat_off[v]:self.sat_off[v + 1]].reshape((h + 7) // 8 + 1, (w + 7) // 8 + 1)
+                for v, (w, h) in enumerate(self.sizes)]
+
+
+def block_table_reference(mask: np.ndarray) -> np.ndarray:
+    """Summed-area table (Hb+1, Wb+1) int32 of the 8x8 pixel block counts of (mask > 127)."""
+    h, w = mask.shape
+    m = np.zeros((-(-h // 8) * 8, -(-w // 8) * 8), np.int32)
+    m[:h, :w] = mask > 127
+    counts = m.reshape(m.shape[0] // 8, 8, m.shape[1] // 8, 8).sum(axis=(1, 3))
+    return np.pad(counts.cumsum(0).cumsum(1), ((1, 0), (1, 0))).astype(np.int32)
+
+
+def check_silhouettes(sil: SilhouetteBits, cameras: Cameras):
+    """A NodeError naming the camera when the device silhouettes do not fit the cameras."""
+    if len(sil) != len(cameras):
+        raise NodeError(f"hull: {len(sil)} silhouettes for {len(cameras)} cameras")
+    for (w, h), cam in zip(sil.sizes, cameras):
+        if (w, h) != (cam.width, cam.height):
+            raise NodeError(f"hull: silhouette of camera '{cam.name}' is {w}x{h} but the camera is {cam.width}x{cam.height}")
+
+
 class HullCL:
     """Device buffers and kernels of the hull, kept between frames (one per process)."""
 
@@ -112,10 +206,10 @@ class HullCL:
         from nodegraph import clrt
 
         self.ctx, self.queue = clrt.context()
-        self.k = {name: clrt.kernel("hull.cl", name) for name in
-                  ("pack_block_rows", "block_cols", "hull_dense", "hull_cells")}
+        self.k = {name: clrt.kernel("hull.cl", name) for name in ("pack_block_rows", "hull_dense", "hull_cells")}
         self.buffers: dict[str, object] = {}
         self.coarse: dict[tuple, np.ndarray] = {}
+        self.silhouettes: SilhouetteBits | None = None  # what prepare() fills, reused between frames
 
     def buffer(self, name: str, nbytes: int):
         """A device buffer of at least ``nbytes``, reused between calls."""
@@ -134,46 +228,50 @@ class HullCL:
         cl.enqueue_copy(self.queue, buf, np.ascontiguousarray(arr), is_blocking=False)
         return buf
 
-    def prepare(self, masks: list[np.ndarray], packed: np.ndarray):
-        """Upload the masks as bits and build their 8x8-block summed-area tables."""
+    def prepare(self, masks: list[np.ndarray], out: SilhouetteBits | None = None) -> SilhouetteBits:
+        """Host uint8 masks to device silhouettes: bits and 8x8-block summed-area tables (into ``out`` when it
+        fits, else into buffers kept here)."""
         import pyopencl as cl
 
         sizes = [(m.shape[1], m.shape[0]) for m in masks]
-        wb = [(w + 7) // 8 for w, _ in sizes]
-        hb = [(h + 7) // 8 for _, h in sizes]
-        bit_off = np.concatenate([[0], np.cumsum([b * h for b, (_, h) in zip(wb, sizes)])]).astype(np.int32)
-        sat_off = np.concatenate([[0], np.cumsum([(a + 1) * (b + 1) for a, b in zip(wb, hb)])]).astype(np.int32)
-        cams = self.upload("cams", packed)
-        bits = self.buffer("bits", int(bit_off[-1]))
-        sat = self.buffer("sat", int(sat_off[-1]) * 4)
-        boff = self.upload("bit_off", bit_off[:-1])
-        soff = self.upload("sat_off", sat_off[:-1])
+        sil = SilhouetteBits.reuse(out if out is not None else self.silhouettes, sizes)
+        if out is None:
+            self.silhouettes = sil
         mf = cl.mem_flags
         host = []  # keep the zero-copy host buffers alive until the queue is done
         for v, m in enumerate(masks):
             src = cl.Buffer(self.ctx, mf.READ_ONLY | mf.USE_HOST_PTR, hostbuf=m)
             host.append(src)
-            self.k["pack_block_rows"](self.queue, (hb[v] + 1,), None, src, np.int32(m.shape[1]), np.int32(m.shape[0]),
-                                      bits, np.int32(bit_off[v]), sat, np.int32(sat_off[v]))
-        n = len(masks)
-        self.k["block_cols"](self.queue, (max(wb) + 1, n), None, sat, soff, cams)
+            rows = (m.shape[0] + 7) // 8 + 1  # work items: rows of the block table, in groups of 8 (PoCL's own
+            # choice ran them on one thread)
+            self.k["pack_block_rows"](self.queue, (-(-rows // 8) * 8,), (8,), src, np.int32(m.shape[1]),
+                                      np.int32(m.shape[0]), sil.bits, np.int32(sil.bit_off[v]), sil.sat,
+                                      np.int32(sil.sat_off[v]))
+        sil.prefix_columns()
         self.queue.finish()
-        return cams, bits, boff, sat, soff
+        return sil
 
     def hull(self, masks, cameras: Cameras, bbox_min, voxel_size, dims, min_views=0, policy="carve",
              method="sparse") -> np.ndarray:
+        """Hull of host masks (list of uint8 (H, W)): ``prepare`` then ``carve``."""
+        return self.carve(self.prepare(masks), cameras, bbox_min, voxel_size, dims, min_views, policy, method)
+
+    def carve(self, sil: SilhouetteBits, cameras: Cameras, bbox_min, voxel_size, dims, min_views=0, policy="carve",
+              method="sparse") -> np.ndarray:
+        """Occupancy (uint8 0/1, shape dims) of the voxel grid from device silhouettes."""
         import pyopencl as cl
 
         packed = cameras.pack()
         if packed.shape[1] != PACK_FLOATS:
             raise NodeError("hull: unexpected camera packing")
-        cams, bits, boff, sat, soff = self.prepare(masks, packed)
+        cams = self.upload("cams", packed)
+        bits, boff, sat, soff = sil.bits, sil.bit_off_buf, sil.sat, sil.sat_off_buf
         nx, ny, nz = dims
         f4 = lambda a: np.array([*np.asarray(a, np.float32), 0], np.float32)  # noqa: E731
         common = (np.int32(nx), np.int32(ny), np.int32(nz), np.int32(min_views), np.int32(POLICIES.index(policy)))
         geo = (f4(bbox_min), f4(voxel_size))
         vol = self.buffer("vol", nx * ny * nz)
-        nviews = np.int32(len(masks))
+        nviews = np.int32(len(sil))
         if method == "dense":
             self.k["hull_dense"](self.queue, (nz, ny, nx), None, cams, nviews, bits, boff, *geo, *common, vol)
         else:
@@ -220,14 +318,21 @@ def hull_cl() -> HullCL:
 
 
 def visual_hull(masks, cameras: Cameras, box, resolution=128, min_views=0, policy="carve", method="sparse") -> VoxelGrid:
-    """Visual hull of ``masks`` (MaskSet) over ``box`` (2, 3) as a VoxelGrid of uint8 0/1."""
-    arrays = check_views(masks, cameras)
+    """Visual hull over ``box`` (2, 3) as a VoxelGrid of uint8 0/1, from ``masks``: a MaskSet, or
+    SilhouetteBits already on the device (e.g. from nodes.key.chroma_key_bits; no host round trip)."""
+    on_device = isinstance(masks, SilhouetteBits)
+    if on_device:
+        check_silhouettes(masks, cameras)
+    else:
+        arrays = check_views(masks, cameras)
     if min_views > len(cameras):
         raise NodeError(f"hull: min_views {min_views} is more than the {len(cameras)} cameras")
     bmin, bmax, dims = hull_grid(box, resolution)
     vs = (bmax - bmin) / np.array(dims)
     if method == "numpy":
-        occ = hull_reference(arrays, cameras, bmin, vs, dims, min_views, policy)
+        occ = hull_reference(masks.masks() if on_device else arrays, cameras, bmin, vs, dims, min_views, policy)
+    elif on_device:
+        occ = hull_cl().carve(masks, cameras, bmin, vs, dims, min_views, policy, method)
     else:
         occ = hull_cl().hull(arrays, cameras, bmin, vs, dims, min_views, policy, method)
     return VoxelGrid(occ, bmin, bmax)

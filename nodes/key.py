@@ -1,7 +1,8 @@
 """Silhouette extraction ("keying"): chroma key, difference key, grey threshold, clean-up, multi-view consensus.
 
 Per-pixel work runs in OpenCL (kernels/key.cl); each kernel has a NumPy reference here (``*_reference``)
-computing the same thing, which the tests compare against the kernel on small images. The CPU parts that a
+computing the same thing, which the tests compare against the kernel on small images. ``chroma_key_bits`` is
+the real-time path: the chroma key written straight into the hull's device silhouettes (nodes.hull.SilhouetteBits). The CPU parts that a
 library does well (morphology, connected components, hole filling) use OpenCV.
 
 References: Horprasert, Harwood & Davis 1999 (brightness/chromaticity distortion); Prati et al. 2003
@@ -151,11 +152,12 @@ class _Buffers:
     def __init__(self):
         self._bufs = {}  # role -> (nbytes, buffer): one buffer per role, replaced when the size changes
 
-    def get(self, role: str, nbytes: int, flags):
+    def get(self, role: str, nbytes: int, flags, grow_only=False):
+        """The buffer of ``role``, reallocated when its size differs (or, with ``grow_only``, is too small)."""
         import pyopencl as cl
 
         have = self._bufs.get(role)
-        if have is None or have[0] != nbytes:
+        if have is None or (have[0] < nbytes if grow_only else have[0] != nbytes):
             have = (nbytes, cl.Buffer(clrt.context()[0], flags, max(nbytes, 4)))
             self._bufs[role] = have
         return have[1]
@@ -164,11 +166,11 @@ class _Buffers:
 _buffers = _Buffers()
 
 
-def _upload(role: str, arr: np.ndarray):
+def _upload(role: str, arr: np.ndarray, grow_only=False):
     import pyopencl as cl
 
     arr = np.ascontiguousarray(arr)
-    buf = _buffers.get(role, arr.nbytes, cl.mem_flags.READ_ONLY)
+    buf = _buffers.get(role, arr.nbytes, cl.mem_flags.READ_ONLY, grow_only)
     cl.enqueue_copy(clrt.queue(), buf, arr, is_blocking=False)
     return buf
 
@@ -206,6 +208,7 @@ def _launch(name: str, npix: int, *args):
 
 CHROMA_PIX = 16  # pixels per work item of the chroma_key kernel
 CHROMA_GROUP = 64  # work-group size (PoCL's own choice was slower)
+BITS_GROUP = 8  # work-group size of chroma_key_bits (PoCL's own choice ran the ~136 rows on one thread)
 
 
 def chroma_key_cl(rgb, key, *, side=1.0, luma_floor=16.0, inner=0.05, outer=0.2, black=0.0, spill=1.0, edges=None,
@@ -235,6 +238,50 @@ def chroma_key_cl(rgb, key, *, side=1.0, luma_floor=16.0, inner=0.05, outer=0.2,
     out = _read(alpha, (h, w)), (_read(desp, (h, w, 3)) if despill else None)
     clock.lap("download")
     return out
+
+
+def chroma_key_bits(images, key, *, side=1.0, luma_floor=16.0, inner=0.05, outer=0.2, black=0.0, edges=None,
+                    out=None):
+    """The chroma key's silhouettes (alpha >= 128, the key.chroma node's masks) of (H, W, 3) uint8 ``images``
+    straight into the visual hull's device layout: ``nodes.hull.SilhouetteBits`` (bits and 8x8 block tables),
+    with no alpha written, read back or re-packed; ``visual_hull`` takes the result as its masks. ``edges``:
+    a garbage matte per view (``matte_edges``) or None; pixels outside the matte are not even read.
+    ``out``: the SilhouetteBits of the previous frame, to reuse (overwritten). Returns when the device is done
+    (the images may then change)."""
+    import pyopencl as cl
+    from pyopencl import cltypes
+
+    from nodes.hull import SilhouetteBits
+
+    for v, im in enumerate(images):
+        if im.dtype != np.uint8 or im.ndim != 3 or im.shape[2] != 3:
+            raise NodeError(f"key.chroma: image {v} must be (H, W, 3) uint8, got {im.dtype} {im.shape}")
+    if outer <= inner:
+        raise NodeError(f"key.chroma: 'outer' ({outer}) must be larger than 'inner' ({inner})")
+    mattes = [np.zeros((0, 4), np.float32) if e is None else np.asarray(e, np.float32).reshape(-1, 4)
+              for e in (edges if edges is not None else [None] * len(images))]
+    if len(mattes) != len(images):
+        raise NodeError(f"key.chroma: {len(images)} images but {len(mattes)} garbage mattes")
+    sizes = [(im.shape[1], im.shape[0]) for im in images]
+    sil = SilhouetteBits.reuse(out, sizes)
+    first = np.concatenate([[0], np.cumsum([len(e) for e in mattes])])
+    ebuf = _upload("edges_all", np.concatenate([*mattes, np.zeros((1, 4), np.float32)]), grow_only=True)
+    k = clrt.kernel(KERNELS, "chroma_key_bits")
+    f = np.float32
+    q = clrt.queue()
+    host = []
+    for v, im in enumerate(images):
+        src = _host_buffer(im)
+        host.append(src)
+        w, h = sizes[v]
+        k.set_args(src, np.int32(w), np.int32(h), cltypes.make_float2(*map(float, key)), f(side), f(luma_floor),
+                   f(inner), f(1.0 / (outer - inner)), f(black), ebuf, np.int32(first[v]), np.int32(len(mattes[v])),
+                   sil.bits, np.int32(sil.bit_off[v]), sil.sat, np.int32(sil.sat_off[v]))
+        rows = (h + 7) // 8 + 1  # work items: rows of the block table
+        cl.enqueue_nd_range_kernel(q, k, (-(-rows // BITS_GROUP) * BITS_GROUP,), (BITS_GROUP,))
+    sil.prefix_columns()
+    q.finish()  # the images' zero-copy buffers must outlive the kernels
+    return sil
 
 
 class _Clock:

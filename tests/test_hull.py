@@ -170,3 +170,18 @@ def test_real_human_hull_mesh(data_dir, name, min_iou):
     assert len(mesh.split(only_watertight=False)) == 1
     report = silhouette_report(mesh.vertices, mesh.faces, cams, masks)
     assert report["mean_iou"] >= min_iou, report["mean_iou"]
+
+
+def test_silhouette_bits_from_masks_hold_the_masks_and_their_block_tables():
+    """HullCL.prepare: device bits unpack to the masks, the tables are the 8x8 block summed-area tables."""
+    from nodes.hull import SilhouetteBits, block_table_reference, hull_cl
+
+    rng = np.random.default_rng(3)
+    masks = [(rng.random((h, w)) < 0.4).astype(np.uint8) * rng.integers(128, 256, (h, w), dtype=np.uint8)
+             for w, h in ((53, 37), (64, 48), (9, 17))]  # odd sizes; values > 127 are inside
+    sil = hull_cl().prepare(masks, out=None)
+    assert isinstance(sil, SilhouetteBits) and sil.sizes == [(53, 37), (64, 48), (9, 17)]
+    for m, bits, table in zip(masks, sil.masks(), sil.block_tables()):
+        assert np.array_equal(bits, np.where(m > 127, 255, 0))
+        assert np.array_equal(table, block_table_reference(m))
+        assert table[-1, -1] == (m > 127).sum() > 0

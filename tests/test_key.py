@@ -151,6 +151,94 @@ def test_matte_edges_contain_projected_box():
     assert 3 <= len(edges) <= 20
 
 
+# ---------------------------------------------------------------- chroma key straight into hull silhouettes
+def test_matte_spans_equal_the_per_pixel_matte():
+    """chroma_key_bits finds each row's matte span by bisection: on an all-foreground image its bits are the
+    matte itself, which must equal matte_reference exactly (steep, shallow, horizontal and vertical edges)."""
+    h, w = 45, 77
+    img = np.zeros((h, w, 3), np.uint8)
+    img[:] = (200, 60, 50)  # foreground everywhere
+    rng = np.random.default_rng(7)
+    mattes = [np.array([[1, 0, -5, 0], [0, 1, -3, 0], [-0.6, -0.8, 40, 0]], np.float32),
+              np.array([[1e-4, -1, 30.3, 0], [0, 1, -0.5, 0], [-1, 0, 70.5, 0], [-2e-5, 1, -1.0, 0]], np.float32),
+              np.array([[0, -1, -1, 0]], np.float32),  # nothing inside
+              tangents_of_disc(rng, (40.0, 20.0), 15.0, 12)]
+    sil = K.chroma_key_bits([img] * len(mattes), K.key_direction_from_rgb(GREEN), edges=mattes)
+    for m, edges in zip(sil.masks(), mattes):
+        assert np.array_equal(m > 0, K.matte_reference(edges, (h, w)))
+    assert sil.masks()[0].any() and not sil.masks()[2].any() and 0.1 < (sil.masks()[3] > 0).mean() < 0.3
+
+
+def tangents_of_disc(rng, centre, r, n) -> np.ndarray:
+    """n matte edges in random directions, each at distance r from centre (a polygon around a disc)."""
+    t = rng.uniform(0, 2 * np.pi, n)
+    a, b = np.cos(t), np.sin(t)
+    return np.stack([a, b, r - a * centre[0] - b * centre[1], 0 * t], -1).astype(np.float32)
+
+
+def test_chroma_key_bits_round_the_tie_like_the_alpha():
+    """alpha exactly 127.5 / 255 rounds to 128 (half to even): foreground in the node's masks and in the bits.
+    Grey pixels with black = luma - 2 give a = 0.5 exactly (luma ramp (Y - black) / 4)."""
+    f = np.float32
+    img = np.full((8, 16, 3), 100, np.uint8)
+    img[:, 8:] = 90  # and some pixels below the tie
+    luma = f(0.299) * f(100) + f(0.587) * f(100) + f(0.114) * f(100)
+    key = K.key_direction_from_rgb(GREEN)
+    alpha, _ = K.chroma_key_cl(img, key, black=float(luma - f(2)), despill=False)
+    assert np.all(alpha[:, :8] == 128) and np.all(alpha[:, 8:] == 0)
+    bits = K.chroma_key_bits([img], key, black=float(luma - f(2))).masks()[0]
+    assert np.array_equal(bits, np.where(alpha >= 128, 255, 0))
+
+
+def test_chroma_key_bits_equal_the_node_masks_and_give_the_same_hull():
+    """Fused path (key -> device bits -> hull) == key.chroma node masks -> hull node, bit for bit."""
+    from nodes.hull import block_table_reference, visual_hull
+
+    cams = ring_rig(5, w=53, h=37)  # width not a multiple of 16, odd number of bit bytes per row
+    bounds = np.array([[-0.7, -0.7, -0.7], [0.7, 0.7, 0.7]])
+    images = []
+    for v in range(len(cams)):
+        img = green_scene(sphere_mask(cams, v), seed=v)
+        img[:5, :7] = (220, 40, 40)  # outside the capture box: the matte removes it
+        images.append(img)
+    node = run_node("key.chroma", {"images": ImageSet(images), "cameras": cams, "bounds": bounds},
+                    {"key_color": list(GREEN), "spill": 0.0, "matte_margin": 1.0})["masks"]
+    key = K.key_direction_from_rgb(GREEN)
+    edges = [K.matte_edges(cams, v, bounds, 1.0) for v in range(len(cams))]
+    sil = K.chroma_key_bits(images, key, edges=edges)
+    for v, (bits, table) in enumerate(zip(sil.masks(), sil.block_tables())):
+        alpha, _ = K.chroma_key_cl(images[v], key, edges=edges[v], despill=False)
+        assert np.array_equal(bits, np.where(alpha >= 128, 255, 0)), f"view {v}"
+        assert np.array_equal(bits, node.masks[v]), f"view {v}"
+        assert np.array_equal(table, block_table_reference(bits))
+        assert 0.05 < (bits > 0).mean() < 0.6 and bits[:5, :7].max() == 0
+    params = {"resolution": 24, "bbox": bounds.ravel().tolist()}
+    want = run_node("hull", {"masks": node, "cameras": cams}, params)["volume"].occupancy
+    got = visual_hull(sil, cams, bounds, 24).occupancy
+    assert want.sum() > 500 and np.array_equal(got, want)
+    assert np.array_equal(visual_hull(sil, cams, bounds, 24, method="numpy").occupancy, want)
+
+
+def test_chroma_key_bits_reuses_its_buffers_and_checks_input():
+    from nodes.hull import visual_hull
+
+    cams = ring_rig(2, w=40, h=24)
+    masks = [sphere_mask(cams, v) for v in range(2)]
+    key = K.key_direction_from_rgb(GREEN)
+    first = K.chroma_key_bits([green_scene(m) for m in masks], key)
+    empty = np.zeros((24, 40), np.uint8)
+    again = K.chroma_key_bits([green_scene(empty)] * 2, key, out=first)
+    assert again is first and not any(m.any() for m in again.masks())  # overwritten, nothing left over
+    other = K.chroma_key_bits([green_scene(np.zeros((20, 40), np.uint8))] * 2, key, out=first)
+    assert other is not first and other.sizes == [(40, 20)] * 2
+    with pytest.raises(NodeError, match="image 1 must be"):
+        K.chroma_key_bits([green_scene(masks[0]), masks[1]], key)
+    with pytest.raises(NodeError, match="2 images but 1 garbage"):
+        K.chroma_key_bits([green_scene(m) for m in masks], key, edges=[None])
+    with pytest.raises(NodeError, match="camera 'cam0' is 40x20"):
+        visual_hull(other, cams, np.array([[-1, -1, -1], [1, 1, 1]]), 8)
+
+
 # ---------------------------------------------------------------- difference key
 def plate_scene(seed=5, h=48, w=64):
     """A textured clean plate; the frame adds a ball and a soft shadow (plate darkened, same chromaticity)."""
