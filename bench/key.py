@@ -1,6 +1,8 @@
 """Keying speed: 24 x 1920x1080 frames, our OpenCL keys vs the baselines of REFERENCES.md (cv2.inRange,
 MOG2 with shadow detection), in the same run. Prints a table of the minimum over repeats (shared machine),
 then key.chroma's upload (a zero-copy buffer over the frame), kernel and download (alpha, despilled RGB).
+"hull bits" is the fused real-time path (chroma_key_bits: silhouettes packed for the hull on the device, no
+download), here without a garbage matte, so every pixel is keyed.
 
     python bench/key.py [--frames 24] [--repeats 5]
 """
@@ -75,6 +77,11 @@ def main():
         for im in imgs:
             K.chroma_key_cl(im, key)
 
+    bits = [None]
+
+    def chroma_bits():  # the fused path: silhouette bits + block tables for the hull, left on the device
+        bits[0] = K.chroma_key_bits(imgs, key, out=bits[0])
+
     def difference():
         for im in imgs:
             K.difference_key_cl(im, mean, inv_var)
@@ -85,6 +92,7 @@ def main():
         ("cv2 MOG2 detectShadows", mog2),
         ("key.chroma OpenCL (alpha only)", chroma_alpha),
         ("key.chroma OpenCL (alpha+despill)", chroma_full),
+        ("key.chroma OpenCL -> hull bits", chroma_bits),
         ("key.difference OpenCL", difference),
     ]
     n = args.frames

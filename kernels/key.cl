@@ -51,12 +51,11 @@ inline void store_bytes48(__global uchar *dst, int n, uchar16 a0, uchar16 a1, uc
 }
 
 
-// de-interleave 16 packed RGB pixels (three uchar16) into float16 channels: the bytes are converted as they
-// lie, then gathered with two-source float shuffles (one permute instruction each on AVX-512)
-inline void rgb_planes16(uchar16 a0, uchar16 a1, uchar16 a2, float16 *r, float16 *g, float16 *b)
+// de-interleave 16 packed RGB pixels given as three float16 (48 values r g b r g b ...) into channels, with
+// two-source float shuffles (one permute instruction each on AVX-512)
+inline void planes16(float16 f0, float16 f1, float16 f2, float16 *r, float16 *g, float16 *b)
 {
-    float16 f0 = convert_float16(a0), f1 = convert_float16(a1), f2 = convert_float16(a2);
-    // lanes 0..15 of f0, 16..31 of f1: the pixels' channels found in a0 and a1 (lanes past them are don't-care)
+    // lanes 0..15 of f0, 16..31 of f1: the pixels' channels found in f0 and f1 (lanes past them are don't-care)
     float16 r01 = shuffle2(f0, f1, (uint16)(0, 3, 6, 9, 12, 15, 18, 21, 24, 27, 30, 0, 0, 0, 0, 0));
     float16 g01 = shuffle2(f0, f1, (uint16)(1, 4, 7, 10, 13, 16, 19, 22, 25, 28, 31, 0, 0, 0, 0, 0));
     float16 b01 = shuffle2(f0, f1, (uint16)(2, 5, 8, 11, 14, 17, 20, 23, 26, 29, 0, 0, 0, 0, 0, 0));
@@ -64,6 +63,42 @@ inline void rgb_planes16(uchar16 a0, uchar16 a1, uchar16 a2, float16 *r, float16
     *r = shuffle2(r01, f2, (uint16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 17, 20, 23, 26, 29));
     *g = shuffle2(g01, f2, (uint16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 18, 21, 24, 27, 30));
     *b = shuffle2(b01, f2, (uint16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 16, 19, 22, 25, 28, 31));
+}
+
+// the same for 16 packed uint8 RGB pixels (three uchar16), converted to float as they lie
+inline void rgb_planes16(uchar16 a0, uchar16 a1, uchar16 a2, float16 *r, float16 *g, float16 *b)
+{
+    planes16(convert_float16(a0), convert_float16(a1), convert_float16(a2), r, g, b);
+}
+
+// n (<= 48) floats from src as three float16; the missing tail is zero.
+inline void load_floats48(__global const float *src, int n, float16 *f0, float16 *f1, float16 *f2)
+{
+    if (n == 3 * PIX) {
+        *f0 = vload16(0, src);
+        *f1 = vload16(1, src);
+        *f2 = vload16(2, src);
+        return;
+    }
+    float t[3 * PIX];
+    for (int k = 0; k < 3 * PIX; ++k)
+        t[k] = k < n ? src[k] : 0.0f;
+    *f0 = vload16(0, t);
+    *f1 = vload16(1, t);
+    *f2 = vload16(2, t);
+}
+
+// the first n (<= 16) of 16 bytes to dst
+inline void store_bytes16(__global uchar *dst, int n, uchar16 v)
+{
+    if (n == PIX) {
+        vstore16(v, 0, dst);
+        return;
+    }
+    uchar t[PIX];
+    vstore16(v, 0, t);
+    for (int k = 0; k < n; ++k)
+        dst[k] = t[k];
 }
 
 // Chroma key alpha (0..1, before the garbage matte) of 16 pixels; writes the luma, chroma and the chroma
@@ -284,29 +319,38 @@ __kernel void chroma_key_bits(__global const uchar *rgb, int width, int height, 
 // sum(E^2 / s^2); chromaticity distortion cd = |(I - b E) / s|. A pixel is background when cd is small and
 // b lies in [shadow, highlight] (a shadow is darker with the plate's chromaticity, Prati et al. 2003), or when
 // it is within `still` sigmas of the plate. Output: alpha 0..255 and a class (0 bg, 1 shadow, 2 fg).
+// One work item = pixels 16 i .. 16 i + 15 (fewer in the last one), as float16 vectors like chroma_key.
 __kernel void difference_key(__global const uchar *rgb, __global const float *mean, __global const float *inv_var,
                              int npix, float cd_inner, float cd_outer, float shadow, float highlight, float still,
                              __global uchar *alpha_out, __global uchar *label)
 {
-    int i = get_global_id(0);
-    if (i >= npix)
+    int i0 = get_global_id(0) * PIX;
+    if (i0 >= npix)
         return;
-    float3 I = convert_float3(vload3(i, rgb));
-    float3 E = vload3(i, mean);
-    float3 w = vload3(i, inv_var);
-    float b = dot(I * E, w) / fmax(dot(E * E, w), 1e-6f);
-    float3 d = I - b * E;
-    float cd = sqrt(dot(d * d, w));
-    float3 diff = I - E;
-    float dist = sqrt(dot(diff * diff, w));
-    float a = clamp((cd - cd_inner) / (cd_outer - cd_inner), 0.0f, 1.0f);
-    int out_of_range = (b < shadow || b > highlight) && dist > still;
-    if (out_of_range)
-        a = 1.0f;
-    if (dist <= still)
-        a = 0.0f;
-    alpha_out[i] = convert_uchar_sat_rte(a * 255.0f);
-    label[i] = a >= 0.5f ? 2 : (b < 1.0f && dist > still ? 1 : 0);
+    int n = min(PIX, npix - i0);
+    uchar16 a0, a1, a2;
+    float16 f0, f1, f2, Ir, Ig, Ib, Er, Eg, Eb, wr, wg, wb;
+    load_bytes48(rgb + 3 * i0, 3 * n, &a0, &a1, &a2);
+    rgb_planes16(a0, a1, a2, &Ir, &Ig, &Ib);
+    load_floats48(mean + 3 * i0, 3 * n, &f0, &f1, &f2);
+    planes16(f0, f1, f2, &Er, &Eg, &Eb);
+    load_floats48(inv_var + 3 * i0, 3 * n, &f0, &f1, &f2);
+    planes16(f0, f1, f2, &wr, &wg, &wb);
+    float16 b = ((Ir * Er) * wr + (Ig * Eg) * wg + (Ib * Eb) * wb)
+              / fmax((Er * Er) * wr + (Eg * Eg) * wg + (Eb * Eb) * wb, 1e-6f);
+    float16 dr = Ir - b * Er, dg = Ig - b * Eg, db = Ib - b * Eb;
+    float16 cd = sqrt((dr * dr) * wr + (dg * dg) * wg + (db * db) * wb);
+    dr = Ir - Er;
+    dg = Ig - Eg;
+    db = Ib - Eb;
+    float16 dist = sqrt((dr * dr) * wr + (dg * dg) * wg + (db * db) * wb);
+    float16 a = clamp((cd - cd_inner) / (cd_outer - cd_inner), 0.0f, 1.0f);
+    int16 moving = dist > still;
+    a = select(a, (float16)1.0f, ((b < shadow) | (b > highlight)) & moving);
+    a = select(a, (float16)0.0f, dist <= still);
+    int16 cls = select(select((int16)0, (int16)1, (b < 1.0f) & moving), (int16)2, a >= 0.5f);
+    store_bytes16(alpha_out + i0, n, to_u8x16(a * 255.0f));
+    store_bytes16(label + i0, n, convert_uchar16(cls));
 }
 
 // Grey threshold: foreground where the mean of R, G, B (or their max) exceeds t (0..255).

@@ -2,8 +2,9 @@
 
 Per-pixel work runs in OpenCL (kernels/key.cl); each kernel has a NumPy reference here (``*_reference``)
 computing the same thing, which the tests compare against the kernel on small images. ``chroma_key_bits`` is
-the real-time path: the chroma key written straight into the hull's device silhouettes (nodes.hull.SilhouetteBits). The CPU parts that a
-library does well (morphology, connected components, hole filling) use OpenCV.
+the real-time path: the chroma key written straight into the hull's device silhouettes
+(nodes.hull.SilhouetteBits). The CPU parts that a library does well (morphology, connected components, hole
+filling) use OpenCV.
 
 References: Horprasert, Harwood & Davis 1999 (brightness/chromaticity distortion); Prati et al. 2003
 (shadows keep the background's chromaticity); Rother, Kolmogorov & Blake 2004 GrabCut (OpenCV) re-decides the
@@ -206,7 +207,7 @@ def _launch(name: str, npix: int, *args):
     cl.enqueue_nd_range_kernel(clrt.queue(), k, (npix,), None)
 
 
-CHROMA_PIX = 16  # pixels per work item of the chroma_key kernel
+CHROMA_PIX = 16  # pixels per work item of the chroma_key and difference_key kernels
 CHROMA_GROUP = 64  # work-group size (PoCL's own choice was slower)
 BITS_GROUP = 8  # work-group size of chroma_key_bits (PoCL's own choice ran the ~136 rows on one thread)
 
@@ -303,14 +304,22 @@ class _Clock:
 
 
 def difference_key_cl(rgb, mean, inv_var, *, cd_inner=4.0, cd_outer=8.0, shadow=0.5, highlight=1.2, still=3.0):
+    """OpenCL ``difference_key`` on one (H, W, 3) uint8 image against a plate model (mean, inv_var: (H, W, 3)
+    float32; read in place, not copied): (alpha uint8 (H, W), class uint8 (H, W))."""
+    import pyopencl as cl
+
     h, w = rgb.shape[:2]
     npix = h * w
     f = np.float32
-    src = _upload("rgb", rgb)
-    mbuf, vbuf = _upload("plate_mean", mean.astype(f)), _upload("plate_inv_var", inv_var.astype(f))
+    src = _host_buffer(rgb)
+    mbuf = _host_buffer(np.asarray(mean, f))
+    vbuf = _host_buffer(np.asarray(inv_var, f))
     alpha, label = _output("alpha", npix), _output("label", npix)
-    _launch("difference_key", npix, src, mbuf, vbuf, np.int32(npix), f(cd_inner), f(cd_outer), f(shadow),
-            f(highlight), f(still), alpha, label)
+    k = clrt.kernel(KERNELS, "difference_key")
+    k.set_args(src, mbuf, vbuf, np.int32(npix), f(cd_inner), f(cd_outer), f(shadow), f(highlight), f(still),
+               alpha, label)
+    items = -(-npix // CHROMA_PIX)
+    cl.enqueue_nd_range_kernel(clrt.queue(), k, (-(-items // CHROMA_GROUP) * CHROMA_GROUP,), (CHROMA_GROUP,))
     return _read(alpha, (h, w)), _read(label, (h, w))
 
 
@@ -491,7 +500,7 @@ def plate_model(plate: np.ndarray, noise_floor: float) -> tuple[np.ndarray, np.n
     resid = plate.astype(np.float32) - cv2.medianBlur(plate, 3).astype(np.float32)
     mad = np.median(np.abs(resid.reshape(-1, 3)), axis=0) * 1.4826
     sigma = np.maximum(mad, noise_floor).astype(np.float32)
-    inv_var = np.broadcast_to(1.0 / sigma**2, plate.shape).astype(np.float32)
+    inv_var = np.broadcast_to(1.0 / sigma**2, plate.shape).astype(np.float32, order="C")  # kernels read it in place
     return plate.astype(np.float32), inv_var
 
 
