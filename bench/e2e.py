@@ -14,8 +14,8 @@ Two paths, each timed per stage:
     hull   nodes.hull.visual_hull on those SilhouetteBits: sparse coarse-to-fine, a cube around the synth
            bounds (RESOLUTION^3), occupancy read back
     mc     nodes.mc.marching_cubes (OpenCL)
-  alpha    (the previous path, for comparison): chroma_key_cl per view -> 8-bit alpha read back -> hull
-           uploads, packs and tables it -> mc
+  alpha    (the path the key.chroma and hull nodes take, for comparison): chroma_key_cl per view -> 8-bit
+           alpha read back -> the hull packs it and builds the tables -> mc
 Checks printed first: the fused silhouettes equal the key.chroma node's masks and give the same hull.
 Prints ms per stage (median and min over the frames) and frames/s, next to the industrial reference of
 25 frames/s (REFERENCES.md: Ladikos et al. 2008 reach 30 frames/s for 16 cameras on a GPU).
@@ -69,7 +69,7 @@ def main():
     def key_stage(edges, out=None):  # fused: device silhouettes
         return K.chroma_key_bits(images, key, edges=edges, out=out)
 
-    def key_alpha_stage(edges):  # previous path: 8-bit alpha on the host
+    def key_alpha_stage(edges):  # the nodes' path: 8-bit alpha on the host
         alphas = [K.chroma_key_cl(im, key, edges=e, despill=False)[0] for im, e in zip(images, edges)]
         return MaskSet(alphas, names=cams.names)
 
@@ -130,7 +130,7 @@ def main():
           f"== hull from the alpha path: {same_alpha_hull}")
     print(f"hull: {'x'.join(map(str, volume.occupancy.shape))} voxels, {int(volume.occupancy.sum())} inside; "
           f"mc: {len(verts)} vertices, {len(faces)} faces")
-    print(f"{'':>8} {'fused (device bits)':>20} {'alpha (previous)':>20}")
+    print(f"{'':>8} {'fused (device bits)':>20} {'alpha (node path)':>20}")
     print(f"{'stage':>8} {'median ms':>10} {'min ms':>9} {'median ms':>10} {'min ms':>9}")
     for name in stages:
         print(f"{name:>8} {np.median(fused[name]):10.1f} {np.min(fused[name]):9.1f} "

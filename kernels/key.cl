@@ -183,16 +183,25 @@ inline void zero_bytes(__global uchar *p, int n)
         *p = 0;
 }
 
+// The garbage matte as one inside span [x0, x1) per image row (one work item per row).
+__kernel void matte_rows(__global const float4 *edges, int nedges, int width, int height, __global int2 *spans)
+{
+    int y = get_global_id(0);
+    if (y < height)
+        spans[y] = matte_span(edges, nedges, width, (float)y);
+}
+
 // Chroma key. key = (u_cb, u_cr) unit direction of the key colour in the CbCr plane.
 // strength s = (c.u - side * |c x u|) / max(Y, luma_floor): how strongly the pixel's chroma points at the
 // key hue, relative to its brightness. Foreground alpha = 1 - ramp of s over [inner, outer] (inv_ramp =
 // 1 / (outer - inner)), times a ramp of luma over [black, black + 4] (darker than the screen's black level =
-// background), and 0 outside the garbage matte (a*x + b*y + c < 0 for an edge (a, b, c)).
+// background), and 0 outside the garbage matte (a*x + b*y + c < 0 for an edge (a, b, c)), given as the
+// inside span of each row (matte_rows) when `matte` is set.
 // Spill (when despill is set): the chroma component along the key direction is removed (times spill) and RGB
 // rebuilt at equal luma. One work item = pixels 16 i .. 16 i + 15 (fewer in the last one).
 __kernel void chroma_key(__global const uchar *rgb, int npix, float2 key, float side, float luma_floor,
                          float inner, float inv_ramp, float black, float spill, int width,
-                         __global const float4 *edges, int nedges,
+                         __global const int2 *spans, int matte,
                          __global uchar *alpha_out, int despill, __global uchar *despilled)
 {
     int i0 = get_global_id(0) * PIX;
@@ -204,16 +213,23 @@ __kernel void chroma_key(__global const uchar *rgb, int npix, float2 key, float 
     float16 r, g, b, y, cb, cr, along;
     rgb_planes16(a0, a1, a2, &r, &g, &b);
     float16 a = chroma_alpha16(r, g, b, key, side, luma_floor, inner, inv_ramp, black, &y, &cb, &cr, &along);
-    if (nedges > 0) {  // pixel coordinates of the 16 lanes; they wrap onto the next row at most once
-        int row = i0 / width;
-        float16 x = (float16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15) + (float)(i0 - row * width);
-        int16 wrap = x >= (float)width;
-        x = select(x, x - (float)width, wrap);
-        float16 yy = select((float16)(float)row, (float16)(float)(row + 1), wrap);
-        for (int e = 0; e < nedges; ++e) {
-            float4 p = edges[e];  // matte_inside, 16 lanes at once
-            a = select((float16)0.0f, a, p.x * x + p.y * yy + p.z >= 0.0f);
+    if (matte && width < PIX) {  // narrow images: lane by lane
+        float t[PIX];
+        vstore16(a, 0, t);
+        for (int k = 0; k < n; ++k) {
+            int row = (i0 + k) / width, x = i0 + k - row * width;
+            if (x < spans[row].x || x >= spans[row].y)
+                t[k] = 0.0f;
         }
+        a = vload16(0, t);
+    } else if (matte) {  // pixel columns of the 16 lanes and their rows' spans; lanes wrap to the next row at most once
+        int row = i0 / width;
+        int16 x = (int16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15) + (i0 - row * width);
+        int16 wrap = x >= width;
+        x = select(x, x - width, wrap);
+        int2 s0 = spans[row], s1 = spans[min(row + 1, npix / width - 1)];
+        int16 lo = select((int16)s0.x, (int16)s1.x, wrap), hi = select((int16)s0.y, (int16)s1.y, wrap);
+        a = select((float16)0.0f, a, (x >= lo) & (x < hi));
     }
     uchar16 au = to_u8x16(a * 255.0f);
     if (n == PIX) {

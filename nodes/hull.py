@@ -196,7 +196,8 @@ def check_silhouettes(sil: SilhouetteBits, cameras: Cameras):
         raise NodeError(f"hull: {len(sil)} silhouettes for {len(cameras)} cameras")
     for (w, h), cam in zip(sil.sizes, cameras):
         if (w, h) != (cam.width, cam.height):
-            raise NodeError(f"hull: silhouette of camera '{cam.name}' is {w}x{h} but the camera is {cam.width}x{cam.height}")
+            raise NodeError(f"hull: silhouette of camera '{cam.name}' is {w}x{h} but the camera is "
+                            f"{cam.width}x{cam.height}")
 
 
 class HullCL:

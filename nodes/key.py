@@ -225,13 +225,16 @@ def chroma_key_cl(rgb, key, *, side=1.0, luma_floor=16.0, inner=0.05, outer=0.2,
     edges = np.zeros((0, 4), np.float32) if edges is None else np.asarray(edges, np.float32)
     clock = _Clock(timings)
     src = _host_buffer(rgb)
-    ebuf = _upload("edges", edges if len(edges) else np.zeros((1, 4), np.float32))
+    spans = _buffers.get("matte_spans", 8 * h, cl.mem_flags.READ_WRITE)  # inside span of each row
+    if len(edges):
+        _launch("matte_rows", h, _upload("edges", edges, grow_only=True), np.int32(len(edges)), np.int32(w),
+                np.int32(h), spans)
     clock.lap("upload")
     alpha, desp = _output("alpha", npix), _output("rgb_out", npix * 3 if despill else 1)
     f = np.float32
     k = clrt.kernel(KERNELS, "chroma_key")
     k.set_args(src, np.int32(npix), cltypes.make_float2(*map(float, key)), f(side), f(luma_floor), f(inner),
-               f(1.0 / (outer - inner)), f(black), f(spill), np.int32(w), ebuf, np.int32(len(edges)), alpha,
+               f(1.0 / (outer - inner)), f(black), f(spill), np.int32(w), spans, np.int32(len(edges) > 0), alpha,
                np.int32(bool(despill)), desp)
     items = -(-npix // CHROMA_PIX)
     cl.enqueue_nd_range_kernel(clrt.queue(), k, (-(-items // CHROMA_GROUP) * CHROMA_GROUP,), (CHROMA_GROUP,))

@@ -167,6 +167,13 @@ def test_matte_spans_equal_the_per_pixel_matte():
     for m, edges in zip(sil.masks(), mattes):
         assert np.array_equal(m > 0, K.matte_reference(edges, (h, w)))
     assert sil.masks()[0].any() and not sil.masks()[2].any() and 0.1 < (sil.masks()[3] > 0).mean() < 0.3
+    for edges in mattes:  # the key.chroma kernel reads the same spans (matte_rows)
+        alpha, _ = K.chroma_key_cl(img, K.key_direction_from_rgb(GREEN), edges=edges, despill=False)
+        assert np.array_equal(alpha > 0, K.matte_reference(edges, (h, w)))
+    narrow = np.ascontiguousarray(img[:9, :5])  # narrower than the kernel's 16 pixels per work item
+    edges = np.array([[1, 0, -1.5, 0], [-0.3, 1, -1, 0], [-1, -0.2, 4, 0]], np.float32)
+    alpha, _ = K.chroma_key_cl(narrow, K.key_direction_from_rgb(GREEN), edges=edges, despill=False)
+    assert np.array_equal(alpha > 0, K.matte_reference(edges, (9, 5))) and 0 < (alpha > 0).mean() < 0.5
 
 
 def tangents_of_disc(rng, centre, r, n) -> np.ndarray:
