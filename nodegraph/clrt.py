@@ -1,5 +1,6 @@
 """OpenCL runtime: one context and queue per process, compiled programs cached, kernels from ``kernels/``.
 
+``VOLCAP_CL_PROFILE=1`` creates the queue with profiling enabled (events then carry kernel times).
 Device choice: ``VOLCAP_CL_DEVICE`` (or ``app.py run --device``) is either ``cpu``, ``gpu``, or
 ``PLATFORM:DEVICE`` indices (as printed by ``app.py devices``). Default: first GPU, else first CPU.
 Never fork after this module has created a context (PoCL hangs); the process pools use spawn.
@@ -84,7 +85,8 @@ def context():
 
     dev = _choose_device()
     ctx = cl.Context([dev])
-    return ctx, cl.CommandQueue(ctx)
+    props = cl.command_queue_properties.PROFILING_ENABLE if os.environ.get("VOLCAP_CL_PROFILE") == "1" else 0
+    return ctx, cl.CommandQueue(ctx, properties=props)
 
 
 def queue():
