@@ -91,7 +91,7 @@ def auto_bounds(masks: list[np.ndarray], cameras: Cameras, resolution: int = 64,
         if not (tlo.any() or thi.any()):
             break
         size = box[1] - box[0]
-        box = box + np.array([-tlo * size * 0.5, thi * size * 0.5])
+        box = box + np.array([-tlo.astype(float) * size * 0.5, thi.astype(float) * size * 0.5])
     # tighten: a second pass in the occupied box (+ one coarse voxel) at the same resolution
     vs = (box[1] - box[0]) / np.array(occ.shape)
     box = occ_box + np.array([-vs, vs])
