@@ -6,9 +6,11 @@
 // The steps are separate functions for kernels that need one of them (the hull tests the depth before
 // dividing, and bounds whole boxes in camera space). Every sum is written left to right, so a kernel
 // compiled with `#pragma OPENCL FP_CONTRACT OFF` before the #include can be mirrored bit for bit in NumPy
-// float32 (nodes/hull.py:centre_states).
+// float32 (nodegraph/cameras.py:project_packed_f32).
 #ifndef VOLCAP_CAMERA_H
 #define VOLCAP_CAMERA_H
+
+#define CAM_FLOATS 32   // floats per camera (nodegraph.cameras.PACK_FLOATS)
 
 // Camera coordinates Rt X; z * cam[24] > 0 in front of the camera.
 inline float3 camera_point(__global const float* cam, float3 X)

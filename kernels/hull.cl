@@ -12,7 +12,6 @@
 #pragma OPENCL FP_CONTRACT OFF
 #include "camera.h"
 
-#define CAM_FLOATS 32
 #define IN 1
 #define NOTIN 2
 #define OUT 4

@@ -9,6 +9,6 @@ __kernel void project_points(__global const float* cams, __global const float* p
     if (i >= n_points) return;
     float3 X = (float3)(points[3 * i], points[3 * i + 1], points[3 * i + 2]);
     float d;
-    uv[view * n_points + i] = project_point(cams + 32 * view, X, &d);
+    uv[view * n_points + i] = project_point(cams + CAM_FLOATS * view, X, &d);
     depth[view * n_points + i] = d;
 }

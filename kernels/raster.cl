@@ -9,32 +9,26 @@
 // ties by the lower face id: the result does not depend on execution order.
 #pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable
 #pragma OPENCL EXTENSION cl_khr_int64_extended_atomics : enable
+#include "camera.h"
 
 #define EMPTY 0xFFFFFFFFFFFFFFFFUL
 
-// Camera layout (Cameras.pack): Rt[12] fx skew cx fy cy k1 k2 p1 p2 k3 width height zsign pad...
+// Camera layout and projection: kernels/camera.h (Cameras.pack()).
 __kernel void project_vertices(__global const float *verts, __global const float *cams, int view, int nverts,
                                float near, __global float4 *out)
 {
     int i = get_global_id(0);
     if (i >= nverts) return;
-    __global const float *cam = cams + 32 * view;
-    float X = verts[3 * i], Y = verts[3 * i + 1], Z = verts[3 * i + 2];
-    float xc = cam[0] * X + cam[1] * Y + cam[2] * Z + cam[3];
-    float yc = cam[4] * X + cam[5] * Y + cam[6] * Z + cam[7];
-    float zc = cam[8] * X + cam[9] * Y + cam[10] * Z + cam[11];
-    float x = xc / zc, y = yc / zc;
-    float k1 = cam[17], k2 = cam[18], p1 = cam[19], p2 = cam[20], k3 = cam[21];
-    float r2 = x * x + y * y;
-    float radial = 1.0f + r2 * (k1 + r2 * (k2 + r2 * k3));
-    float xd = x * radial + 2.0f * p1 * x * y + p2 * (r2 + 2.0f * x * x);
-    float yd = y * radial + p1 * (r2 + 2.0f * y * y) + 2.0f * p2 * x * y;
-    float u = cam[12] * xd + cam[13] * yd + cam[14];
-    float v = cam[15] * yd + cam[16];
-    float depth = zc * cam[24];
+    __global const float *cam = cams + CAM_FLOATS * view;
+    float3 xc = camera_point(cam, (float3)(verts[3 * i], verts[3 * i + 1], verts[3 * i + 2]));
+    float2 n = xc.xy / xc.z;
+    float2 uv = pixel_point(cam, distort_point(cam, n));
+    float depth = xc.z * cam[24];
     // radial distortion folds back beyond the radius where d(r_d)/dr = 0: such points are not imaged
+    float k1 = cam[17], k2 = cam[18], k3 = cam[21];
+    float r2 = n.x * n.x + n.y * n.y;
     float slope = 1.0f + r2 * (3.0f * k1 + r2 * (5.0f * k2 + r2 * 7.0f * k3));
-    out[i] = (float4)(u, v, depth, (depth > near && slope > 0.0f) ? 1.0f : 0.0f);
+    out[i] = (float4)(uv.x, uv.y, depth, (depth > near && slope > 0.0f) ? 1.0f : 0.0f);
 }
 
 inline float edge(float2 a, float2 b, float2 p)

@@ -4,13 +4,14 @@
 //
 // Silhouettes: binary masks (inside when value > 127 at the nearest pixel) or, when soft != 0, soft alpha
 // sampled bilinearly (inside when alpha >= 0.5), which puts the boundary between pixels.
-// Camera layout: nodegraph.cameras.Cameras.pack() (32 floats per camera). Pixel centres are integers.
+// Camera layout and projection: kernels/camera.h (Cameras.pack(), 32 floats per camera). Pixel centres are
+// integers.
 // Vote (as the hull node): min_views > 0: at least min_views views inside; else policy 0 (carve): every
 // view inside; policy 1 (ignore): no view on background and at least one inside.
 // Arithmetic order here is mirrored by nodes/refine.py (view_states, exit_reference, clamp_reference).
 #pragma OPENCL FP_CONTRACT OFF
+#include "camera.h"
 
-#define CAM_FLOATS 32
 #define IN 1
 #define BACKGROUND 2
 #define UNSEEN 3
@@ -19,22 +20,10 @@
 inline int view_state(__global const float* c, float3 X, __global const uchar* mask,
                       __global const float* alpha, int soft)
 {
-    float xc = ((c[0] * X.x + c[1] * X.y) + c[2] * X.z) + c[3];
-    float yc = ((c[4] * X.x + c[5] * X.y) + c[6] * X.z) + c[7];
-    float zc = ((c[8] * X.x + c[9] * X.y) + c[10] * X.z) + c[11];
-    if (!(zc * c[24] > 0.0f)) return UNSEEN;
-    float xn = xc / zc, yn = yc / zc;
-    if (c[17] != 0.0f || c[18] != 0.0f || c[19] != 0.0f || c[20] != 0.0f || c[21] != 0.0f) {
-        float k1 = c[17], k2 = c[18], p1 = c[19], p2 = c[20], k3 = c[21];
-        float r2 = xn * xn + yn * yn;
-        float radial = 1.0f + r2 * (k1 + r2 * (k2 + r2 * k3));
-        float xd = (xn * radial + ((2.0f * p1) * xn) * yn) + p2 * (r2 + (2.0f * xn) * xn);
-        float yd = (yn * radial + p1 * (r2 + (2.0f * yn) * yn)) + ((2.0f * p2) * xn) * yn;
-        xn = xd;
-        yn = yd;
-    }
-    float u = (c[12] * xn + c[13] * yn) + c[14];
-    float v = c[15] * yn + c[16];
+    float3 xc = camera_point(c, X);
+    if (!(xc.z * c[24] > 0.0f)) return UNSEEN;
+    float2 uv = pixel_point(c, distort_point(c, xc.xy / xc.z));
+    float u = uv.x, v = uv.y;
     int W = (int)c[22], H = (int)c[23];
     if (!(u >= -0.5f && u < (float)W - 0.5f && v >= -0.5f && v < (float)H - 0.5f)) return UNSEEN;
     if (soft) {

@@ -99,6 +99,32 @@ def distort(xn: np.ndarray, dist: np.ndarray) -> np.ndarray:
     return np.stack([xd, yd], axis=-1)
 
 
+def project_packed_f32(cam_row: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """NumPy mirror of kernels/camera.h, bit for bit: points ``X`` (N, 3 float32) into the camera ``cam_row``
+    (one row of ``Cameras.pack()``), float32 operations in camera.h's order (kernels compiled without FP
+    contraction). Returns (u, v, front): pixel coordinates (non-finite behind the camera plane) and the
+    in-front test z * cam[24] > 0."""
+    c = np.asarray(cam_row).astype(np.float32)
+    f = np.float32
+    x, y, z = X[:, 0], X[:, 1], X[:, 2]
+    xc = ((c[0] * x + c[1] * y) + c[2] * z) + c[3]
+    yc = ((c[4] * x + c[5] * y) + c[6] * z) + c[7]
+    zc = ((c[8] * x + c[9] * y) + c[10] * z) + c[11]
+    front = zc * c[24] > 0
+    with np.errstate(all="ignore"):
+        xn, yn = xc / zc, yc / zc
+        if np.any(c[17:22] != 0):
+            k1, k2, p1, p2, k3 = c[17:22]
+            r2 = xn * xn + yn * yn
+            radial = f(1) + r2 * (k1 + r2 * (k2 + r2 * k3))
+            xd = (xn * radial + ((f(2) * p1) * xn) * yn) + p2 * (r2 + (f(2) * xn) * xn)
+            yd = (yn * radial + p1 * (r2 + (f(2) * yn) * yn)) + ((f(2) * p2) * xn) * yn
+            xn, yn = xd, yd
+        u = (c[12] * xn + c[13] * yn) + c[14]
+        v = c[15] * yn + c[16]
+    return u, v, front
+
+
 class Cameras:
     """An ordered set of cameras (one per view). Indexable and iterable."""
 

@@ -18,7 +18,7 @@ import math
 import numpy as np
 
 from nodegraph import Bounds, CameraSet, Input, Masks, Node, NodeError, Param, Volume, VoxelGrid
-from nodegraph.cameras import PACK_FLOATS, Cameras
+from nodegraph.cameras import PACK_FLOATS, Cameras, project_packed_f32
 
 POLICIES = ("carve", "ignore")
 COARSE_CELLS = 16  # the first sparse level has at most this many cells along the longest side
@@ -56,23 +56,9 @@ def centre_states(mask: np.ndarray, cam_row: np.ndarray, X: np.ndarray) -> np.nd
     """Per point (N, 3 float32): 1 = inside the silhouette, 2 = background, 3 = behind / outside the image.
     ``cam_row`` is one row of Cameras.pack(); float32 operations in the order of kernels/camera.h."""
     c = cam_row.astype(np.float32)
-    f = np.float32
-    x, y, z = X[:, 0], X[:, 1], X[:, 2]
-    xc = ((c[0] * x + c[1] * y) + c[2] * z) + c[3]
-    yc = ((c[4] * x + c[5] * y) + c[6] * z) + c[7]
-    zc = ((c[8] * x + c[9] * y) + c[10] * z) + c[11]
-    front = zc * c[24] > 0
-    with np.errstate(all="ignore"):
-        xn, yn = xc / zc, yc / zc
-        if np.any(c[17:22] != 0):
-            k1, k2, p1, p2, k3 = c[17:22]
-            r2 = xn * xn + yn * yn
-            radial = f(1) + r2 * (k1 + r2 * (k2 + r2 * k3))
-            xd = (xn * radial + ((f(2) * p1) * xn) * yn) + p2 * (r2 + (f(2) * xn) * xn)
-            yd = (yn * radial + p1 * (r2 + (f(2) * yn) * yn)) + ((f(2) * p2) * xn) * yn
-            xn, yn = xd, yd
-        fu = ((c[12] * xn + c[13] * yn) + c[14]) + f(0.5)
-        fv = (c[15] * yn + c[16]) + f(0.5)
+    u, v, front = project_packed_f32(c, X)
+    with np.errstate(invalid="ignore"):
+        fu, fv = u + np.float32(0.5), v + np.float32(0.5)
         seen = front & (fu >= 0) & (fu < c[22]) & (fv >= 0) & (fv < c[23])
     state = np.full(len(X), 3, np.uint8)
     px, py = fu[seen].astype(np.int64), fv[seen].astype(np.int64)

@@ -30,7 +30,7 @@ import numpy as np
 import trimesh
 
 from nodegraph import CameraSet, Masks, Mesh, Node, NodeError, Param, Volume
-from nodegraph.cameras import Cameras
+from nodegraph.cameras import Cameras, project_packed_f32
 
 POLICIES = ("carve", "ignore")   # views a point projects outside of: not inside, or no vote (as the hull node)
 OUTLINES = ("distance", "pixels")  # how binary masks are read: signed distance outline or nearest pixel
@@ -107,23 +107,9 @@ def view_states(points: np.ndarray, views: Silhouettes, v: int) -> np.ndarray:
     camera or outside the image). Float32 in the kernel's order."""
     c = views.cams[v]
     f = np.float32
-    x, y, z = points[:, 0], points[:, 1], points[:, 2]
-    xc = ((c[0] * x + c[1] * y) + c[2] * z) + c[3]
-    yc = ((c[4] * x + c[5] * y) + c[6] * z) + c[7]
-    zc = ((c[8] * x + c[9] * y) + c[10] * z) + c[11]
-    front = zc * c[24] > 0
-    with np.errstate(all="ignore"):
-        xn, yn = xc / zc, yc / zc
-        if np.any(c[17:22] != 0):
-            k1, k2, p1, p2, k3 = c[17:22]
-            r2 = xn * xn + yn * yn
-            radial = f(1) + r2 * (k1 + r2 * (k2 + r2 * k3))
-            xd = (xn * radial + ((f(2) * p1) * xn) * yn) + p2 * (r2 + (f(2) * xn) * xn)
-            yd = (yn * radial + p1 * (r2 + (f(2) * yn) * yn)) + ((f(2) * p2) * xn) * yn
-            xn, yn = xd, yd
-        u = (c[12] * xn + c[13] * yn) + c[14]
-        w = c[15] * yn + c[16]
-        W, H = int(c[22]), int(c[23])
+    u, w, front = project_packed_f32(c, points)
+    W, H = int(c[22]), int(c[23])
+    with np.errstate(invalid="ignore"):
         seen = front & (u >= f(-0.5)) & (u < f(W) - f(0.5)) & (w >= f(-0.5)) & (w < f(H) - f(0.5))
     state = np.full(len(points), UNSEEN, np.uint8)
     u, w = u[seen], w[seen]
