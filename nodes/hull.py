@@ -19,6 +19,7 @@ import numpy as np
 
 from nodegraph import Bounds, CameraSet, Input, Masks, Node, NodeError, Param, Volume, VoxelGrid
 from nodegraph.cameras import PACK_FLOATS, Cameras, project_packed_f32
+from nodegraph.devbuffers import DeviceBuffers
 
 POLICIES = ("carve", "ignore")
 COARSE_CELLS = 16  # the first sparse level has at most this many cells along the longest side
@@ -194,24 +195,14 @@ class HullCL:
 
         self.ctx, self.queue = clrt.context()
         self.k = {name: clrt.kernel("hull.cl", name) for name in ("pack_block_rows", "hull_dense", "hull_cells")}
-        self.buffers: dict[str, object] = {}
+        self.buffers = DeviceBuffers(self.ctx)
         self.coarse: dict[tuple, np.ndarray] = {}
         self.silhouettes: SilhouetteBits | None = None  # what prepare() fills, reused between frames
-
-    def buffer(self, name: str, nbytes: int):
-        """A device buffer of at least ``nbytes``, reused between calls."""
-        import pyopencl as cl
-
-        buf = self.buffers.get(name)
-        if buf is None or buf.size < nbytes:
-            buf = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, max(int(nbytes * 1.25), 64))
-            self.buffers[name] = buf
-        return buf
 
     def upload(self, name: str, arr: np.ndarray):
         import pyopencl as cl
 
-        buf = self.buffer(name, arr.nbytes)
+        buf = self.buffers.get(name, arr.nbytes)
         cl.enqueue_copy(self.queue, buf, np.ascontiguousarray(arr), is_blocking=False)
         return buf
 
@@ -257,7 +248,7 @@ class HullCL:
         f4 = lambda a: np.array([*np.asarray(a, np.float32), 0], np.float32)  # noqa: E731
         common = (np.int32(nx), np.int32(ny), np.int32(nz), np.int32(min_views), np.int32(POLICIES.index(policy)))
         geo = (f4(bbox_min), f4(voxel_size))
-        vol = self.buffer("vol", nx * ny * nz)
+        vol = self.buffers.get("vol", nx * ny * nz)
         nviews = np.int32(len(sil))
         if method == "dense":
             self.k["hull_dense"](self.queue, (nz, ny, nx), None, cams, nviews, bits, boff, *geo, *common, vol)
@@ -268,11 +259,11 @@ class HullCL:
             src = self.upload("cells_a", cells)
             count = len(cells)
             counter = np.zeros(1, np.int32)
-            cbuf = self.buffer("counter", 4)
+            cbuf = self.buffers.get("counter", 4)
             names = ["cells_a", "cells_b"]  # ping-pong: read the one, append children to the other
             while count:
                 names.reverse()
-                dst = self.buffer(names[0], 8 * count * 4)
+                dst = self.buffers.get(names[0], 8 * count * 4)
                 cl.enqueue_copy(self.queue, cbuf, np.zeros(1, np.int32), is_blocking=False)
                 groups = -(-count // 64) * 64  # whole work-groups: PoCL runs odd sizes as tiny groups
                 self.k["hull_cells"](self.queue, (groups,), (64,), cams, nviews, bits, boff, sat, soff, *geo, *common,

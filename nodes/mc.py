@@ -23,6 +23,7 @@ from functools import lru_cache
 import numpy as np
 
 from nodegraph import Mesh, Node, NodeError, Param, Volume
+from nodegraph.devbuffers import DeviceBuffers
 
 # corner c of a cell sits at offset (c & 1, c >> 1 & 1, c >> 2 & 1); edge e runs from EDGES[e][0] along axis
 # EDGES[e][1] (to the corner with that bit set)
@@ -196,7 +197,7 @@ class MarchingCubesCL:
         self.ntri = clrt.to_device(ntri)
         self.table = clrt.to_device(table.astype(np.int8).reshape(256, -1))
         self.max_tris = table.shape[1]
-        self.buffers: dict[str, object] = {}
+        self.buffers = DeviceBuffers(self.ctx)
         self.host: dict[str, np.ndarray] = {}
 
     def kernel(self, name: str, voxel: str):
@@ -204,16 +205,6 @@ class MarchingCubesCL:
 
         opts = (f"-DVOXEL={voxel}", f"-DMAX_TRIS={self.max_tris}") + (("-DVOXEL_UCHAR",) if voxel == "uchar" else ())
         return clrt.kernel("mc.cl", name, opts)
-
-    def buffer(self, name: str, nbytes: int):
-        """A device buffer of at least ``nbytes``, kept between calls."""
-        import pyopencl as cl
-
-        buf = self.buffers.get(name)
-        if buf is None or buf.size < nbytes:
-            buf = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, max(int(nbytes * 1.25), 64))
-            self.buffers[name] = buf
-        return buf
 
     def scratch(self, name: str, shape: tuple, dtype) -> np.ndarray:
         """A host array of this shape, kept between calls."""
@@ -237,8 +228,8 @@ class MarchingCubesCL:
         rows = (nx + 1) * (ny + 1)  # cell rows of the padded grid
         dims = (np.int32(nx), np.int32(ny), np.int32(nz), np.float32(level), np.int32(0 > level))
         vol = cl.Buffer(self.ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.USE_HOST_PTR, hostbuf=occ)  # no copy on CPUs
-        spans = self.buffer("spans", nx * ny * 8)
-        cbuf = self.buffer("counts", 3 * rows * 4)
+        spans = self.buffers.get("spans", nx * ny * 8)
+        cbuf = self.buffers.get("counts", 3 * rows * 4)
         g = self.GROUP
         self.kernel("mc_spans", voxel)(self.queue, (_rounded(ny, g), nx), (g, 1), vol, *dims, spans)
         cell_rows = ((_rounded(ny + 1, g), nx + 1), (g, 1))
@@ -252,9 +243,9 @@ class MarchingCubesCL:
         nv, nt = int(offsets[0, rows]), int(offsets[1, rows])
         out = np.empty(3 * (nv + nt), np.float32)
         if nt:
-            obuf = self.buffer("offsets", offsets.nbytes)
+            obuf = self.buffers.get("offsets", offsets.nbytes)
             cl.enqueue_copy(self.queue, obuf, offsets, is_blocking=False)
-            outbuf = self.buffer("out", out.nbytes)
+            outbuf = self.buffers.get("out", out.nbytes)
             f4 = lambda a: np.array([*np.asarray(a, np.float32), 0], np.float32)  # noqa: E731
             self.kernel("mc_emit", voxel)(self.queue, *cell_rows, vol, *dims, spans, self.ntri, self.table, obuf,
                                           f4(volume.bbox_min), f4(volume.voxel_size), outbuf)
