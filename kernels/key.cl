@@ -16,22 +16,26 @@ inline uchar16 to_u8x16(float16 v)
     return convert_uchar16(convert_int16((clamp(v, 0.0f, 255.0f) + 12582912.0f) - 12582912.0f));
 }
 
-// n (<= 48) bytes from src into three uchar16; the missing tail is zero.
-inline void load_bytes48(__global const uchar *src, int n, uchar16 *a0, uchar16 *a1, uchar16 *a2)
-{
-    if (n == 3 * PIX) {
-        *a0 = vload16(0, src);
-        *a1 = vload16(1, src);
-        *a2 = vload16(2, src);
-        return;
+// LOAD48(name, T): name(src, n, a0, a1, a2) loads n (<= 48) values of type T from src as three T16 vectors;
+// the missing tail is zero.
+#define LOAD48(NAME, T)                                                               \
+    inline void NAME(__global const T *src, int n, T##16 *a0, T##16 *a1, T##16 *a2)  \
+    {                                                                                 \
+        if (n == 3 * PIX) {                                                           \
+            *a0 = vload16(0, src);                                                    \
+            *a1 = vload16(1, src);                                                    \
+            *a2 = vload16(2, src);                                                    \
+            return;                                                                   \
+        }                                                                             \
+        T t[3 * PIX];                                                                 \
+        for (int k = 0; k < 3 * PIX; ++k)                                             \
+            t[k] = k < n ? src[k] : (T)0;                                             \
+        *a0 = vload16(0, t);                                                          \
+        *a1 = vload16(1, t);                                                          \
+        *a2 = vload16(2, t);                                                          \
     }
-    uchar t[3 * PIX];
-    for (int k = 0; k < 3 * PIX; ++k)
-        t[k] = k < n ? src[k] : 0;
-    *a0 = vload16(0, t);
-    *a1 = vload16(1, t);
-    *a2 = vload16(2, t);
-}
+LOAD48(load_bytes48, uchar)
+LOAD48(load_floats48, float)
 
 // The first n (<= 48) of the 48 bytes a0 a1 a2 to dst.
 inline void store_bytes48(__global uchar *dst, int n, uchar16 a0, uchar16 a1, uchar16 a2)
@@ -69,23 +73,6 @@ inline void planes16(float16 f0, float16 f1, float16 f2, float16 *r, float16 *g,
 inline void rgb_planes16(uchar16 a0, uchar16 a1, uchar16 a2, float16 *r, float16 *g, float16 *b)
 {
     planes16(convert_float16(a0), convert_float16(a1), convert_float16(a2), r, g, b);
-}
-
-// n (<= 48) floats from src as three float16; the missing tail is zero.
-inline void load_floats48(__global const float *src, int n, float16 *f0, float16 *f1, float16 *f2)
-{
-    if (n == 3 * PIX) {
-        *f0 = vload16(0, src);
-        *f1 = vload16(1, src);
-        *f2 = vload16(2, src);
-        return;
-    }
-    float t[3 * PIX];
-    for (int k = 0; k < 3 * PIX; ++k)
-        t[k] = k < n ? src[k] : 0.0f;
-    *f0 = vload16(0, t);
-    *f1 = vload16(1, t);
-    *f2 = vload16(2, t);
 }
 
 // the first n (<= 16) of 16 bytes to dst
