@@ -32,6 +32,15 @@ class _OpenCLPlugin:
 
     def setup(self, worker):
         try:
+            import os
+
+            import cv2
+
+            if os.environ.get("VOLCAP_CV_THREADS"):
+                cv2.setNumThreads(int(os.environ["VOLCAP_CV_THREADS"]))
+        except Exception:
+            pass
+        try:
             from . import clrt
 
             clrt.context()
@@ -61,8 +70,10 @@ class DaskExecutor:
         if self.scheduler:
             client = Client(self.scheduler, timeout="20s")
         else:
+            from .executors import worker_threads
+
             cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
-                                   dashboard_address=None, silence_logs=40)
+                                   dashboard_address=None, silence_logs=40, env=worker_threads(self.workers))
             client = Client(cluster)
         try:
             from distributed.diagnostics.plugin import WorkerPlugin

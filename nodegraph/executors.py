@@ -53,6 +53,27 @@ def _skip(tracker, key, on_result, reason_node):
         on_result(d, {"status": "skipped", "error": f"upstream '{reason_node}' failed", "seconds": 0.0})
 
 
+def worker_threads(workers: int) -> dict:
+    """Environment for one of ``workers`` worker processes on this machine: the OpenCL CPU device (PoCL)
+    and OpenCV each use their share of the cores instead of all of them, so processes do not oversubscribe.
+    Values the user has set are kept."""
+    share = str(max(1, (os.cpu_count() or 1) // max(1, workers)))
+    env = {}
+    for var in ("POCL_MAX_PTHREAD_COUNT", "OMP_NUM_THREADS", "VOLCAP_CV_THREADS"):
+        env[var] = os.environ.get(var, share)
+    return env
+
+
+def _init_worker(env: dict):
+    os.environ.update(env)
+    try:
+        import cv2
+
+        cv2.setNumThreads(int(env["VOLCAP_CV_THREADS"]))
+    except Exception:  # OpenCV missing or odd value: leave its default
+        pass
+
+
 class LocalExecutor:
     """Runs items in a local process pool (spawn: OpenCL must never be forked), or in this process when
     jobs == 1."""
@@ -75,7 +96,9 @@ class LocalExecutor:
                     _skip(tracker, key, on_result, tracker.items[key].node)
             return
         ctx = multiprocessing.get_context("spawn")
-        pool = ProcessPoolExecutor(max_workers=min(self.jobs, len(items)), mp_context=ctx)
+        workers = min(self.jobs, len(items))
+        init = {"initializer": _init_worker, "initargs": (worker_threads(workers),)}
+        pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, **init)
         running = {}
         try:
             while tracker.ready or running:
@@ -105,7 +128,7 @@ class LocalExecutor:
                         _skip(tracker, key, on_result, tracker.items[key].node)
                     running.clear()
                     pool.shutdown(wait=False, cancel_futures=True)
-                    pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=ctx)
+                    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, **init)
         finally:
             pool.shutdown(wait=True, cancel_futures=True)
 
