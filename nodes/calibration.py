@@ -461,8 +461,13 @@ def _sniff_file(p: Path) -> str | None:
             return "middlebury"
         if body and all(len(f) in (12, 13) for f in body):
             return "ptext"
-        if lines and len(lines[0]) == 1 and len(_numbers(" ".join(" ".join(f) for f in lines))) % 24 == 0:
-            return "tsinghua"
+        if lines and len(lines[0]) == 1 and lines[0][0].isdigit():
+            try:
+                blocks = len(_numbers(" ".join(" ".join(f) for f in lines))) % 24 == 0
+            except ValueError:
+                blocks = True       # a typo in a number: let the reader name the problem
+            if blocks:
+                return "tsinghua"
     return None
 
 
@@ -507,7 +512,10 @@ def load_cameras(path, fmt: str = "auto", image_sizes=None) -> Cameras:
     if fmt != "auto" and fmt not in FORMATS:
         raise DataError(f"unknown calibration format '{fmt}' (have: auto, {', '.join(FORMATS)})")
     if path.is_file():
-        f = _sniff_file(path) if fmt == "auto" else fmt
+        try:
+            f = _sniff_file(path) if fmt == "auto" else fmt
+        except (OSError, ValueError):
+            f = None
         if f is None:
             raise DataError(f"{path}: unknown calibration format (give fmt=, one of {', '.join(FORMATS)})")
         return _read(f, path.parent if f == "colmap" else path, image_sizes)
@@ -531,7 +539,33 @@ def _short(p) -> str:
 
 
 def _read(fmt: str, p, image_sizes) -> Cameras:
-    fmt = fmt.rstrip("+")
+    """Read one calibration; a file the reader cannot make sense of is a DataError naming it, and the
+    cameras are checked for what the kernels need (see _validated)."""
+    import cv2
+
+    try:
+        cams = _read_unchecked(fmt.rstrip("+"), p, image_sizes)
+    except (ValueError, TypeError, KeyError, IndexError, AttributeError, SystemError, OSError, cv2.error) as exc:
+        where = _short(p) if isinstance(p, list) else p
+        raise DataError(f"{where}: unreadable {fmt.rstrip('+')} calibration ({type(exc).__name__}: {exc})") from None
+    return _validated(cams, p)
+
+
+def _validated(cams: Cameras, p) -> Cameras:
+    """Positive focal lengths (metric cameras) and values that survive the float32 packing of the kernels."""
+    for i, c in enumerate(cams):
+        if c.metric and not (c.K[0, 0] > 0 and c.K[1, 1] > 0):
+            raise DataError(f"{_short(p) if isinstance(p, list) else p}: camera {i} '{c.name}': focal lengths "
+                            f"fx={c.K[0, 0]:.6g}, fy={c.K[1, 1]:.6g} must be positive")
+        with np.errstate(over="ignore"):
+            packed = Cameras([c]).pack()
+        if not np.all(np.isfinite(packed)):
+            raise DataError(f"{_short(p) if isinstance(p, list) else p}: camera {i} '{c.name}': values beyond the float32 range "
+                            "(|x| > 3.4e38) in K, R|t or distortion")
+    return cams
+
+
+def _read_unchecked(fmt: str, p, image_sizes) -> Cameras:
     if isinstance(p, list):
         if fmt == "inria":
             return read_inria(p, image_sizes)

@@ -225,6 +225,41 @@ def test_nan_is_rejected(tmp_path):
         load_cameras(tmp_path / "t.json")
 
 
+@pytest.mark.parametrize("name, text, fmt, match", [
+    ("garbage.xml", "hello, not xml", "auto", "garbage.xml: unreadable opencv calibration"),
+    ("k.yml", "%YAML:1.0\nK: 3\n", "auto", "k.yml: unreadable opencv calibration"),
+    ("e_par.txt", "", "middlebury", "e_par.txt: unreadable middlebury"),
+    ("c_par.txt", "x\n", "middlebury", "c_par.txt: unreadable middlebury"),
+    ("transforms.json", "[1, 2]", "auto", "transforms.json: unreadable nerf"),
+    ("transforms.json", '{"camera_angle_x": "wide", "frames": [{"transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,4],[0,0,0,1]]}]}',
+     "auto", "transforms.json: unreadable nerf"),
+    ("transforms.json", '{"camera_angle_x": 0.7, "w": NaN, "h": 10, "frames": [{"transform_matrix": [[1,0,0,0]]}]}',
+     "auto", "transforms.json: unreadable nerf"),
+    ("cameras_sphere.npz", "not a zip", "auto", "cameras_sphere.npz: unreadable idr"),
+    ("calibParamsI.txt", "0\n900 0 512\n0 abc 384\n0 0 1\n0 0\n1 0 0 0\n0 1 0 0\n0 0 1 0\n", "auto",
+     "calibParamsI.txt: not a whitespace-separated list of numbers"),
+])
+def test_malformed_calibration_is_a_data_error(tmp_path, name, text, fmt, match):
+    """Files a reader cannot parse give a DataError naming the file (no ValueError/SystemError/...)."""
+    (tmp_path / name).write_text(text)
+    with pytest.raises(DataError, match=match):
+        load_cameras(tmp_path / name, fmt=fmt, image_sizes=(W, H))
+
+
+def test_zero_focal_length_and_float32_overflow_are_rejected(tmp_path):
+    """fx = 0 divides by zero in every projection; 1e39 is inf once packed as float32 for the kernels."""
+    cams = rig(dist=False)
+    for bad, match in (("0.0", "camera 1 '1': focal lengths fx=0"), ("1e39", "camera 1 '1': values beyond the float32")):
+        blocks = [f"{i}\n" + "\n".join(nums(r) for r in c.K) + "\n0 0\n" + "\n".join(nums(r) for r in c.Rt) + "\n"
+                  for i, c in enumerate(cams)]
+        blocks[1] = blocks[1].replace(repr(float(cams[1].K[0, 0])), bad, 1)
+        (tmp_path / "calibParamsI.txt").write_text("\n".join(blocks))
+        with pytest.raises(DataError, match=match):
+            load_cameras(tmp_path / "calibParamsI.txt", image_sizes=(W, H))
+    save_nerf(cams, tmp_path / "t.json")                 # the same file without the bad value loads
+    assert_same(cams, load_cameras(tmp_path / "t.json"))
+
+
 def test_ambiguous_folder_and_unknown_files(tmp_path):
     save_colmap(rig(), tmp_path)
     save_nerf(rig(), tmp_path / "transforms.json")
