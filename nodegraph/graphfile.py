@@ -26,6 +26,7 @@ from .node import REQUIRED, InPath, Node, registry
 from .types import compatible, describe_type
 
 REPO = Path(__file__).resolve().parent.parent
+MAX_FRAMES = 1_000_000  # a range beyond this is a typo, not a capture
 TOP_KEYS = ("frames", "defaults", "nodes", "description")
 NODE_KEYS = ("type", "in", "params", "doc")
 NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
@@ -58,6 +59,9 @@ def _construct_mapping(loader: _Loader, node, deep=False):
     m.lines = {}
     for k_node, v_node in node.value:
         k = loader.construct_object(k_node, deep=True)
+        if not isinstance(k, (str, int, float, bool, type(None))):  # lists and mappings cannot be keys
+            raise yaml.constructor.ConstructorError(None, None, f"a key must be a plain value, not {type(k).__name__}",
+                                                    k_node.start_mark)
         if k in m:
             loader.duplicate_keys.append((k_node.start_mark.line + 1, k))
         m[k] = loader.construct_object(v_node, deep=True)
@@ -86,7 +90,7 @@ def parse_yaml(text: str, where: str):
 
 
 def suggest(word: str, options) -> str:
-    close = difflib.get_close_matches(str(word), list(options), n=1, cutoff=0.6)
+    close = difflib.get_close_matches(str(word), [str(o) for o in options], n=1, cutoff=0.6)
     return f" (did you mean '{close[0]}'?)" if close else ""
 
 
@@ -146,6 +150,8 @@ def parse_frames(value, where: str) -> list[int]:
         m = re.fullmatch(r"\s*(-?\d+)\s*:\s*(-?\d+)\s*", value)
         if m:
             a, b = int(m.group(1)), int(m.group(2))
+            if b - a > MAX_FRAMES:
+                raise ValueError(f"{where}: frame range {value!r} has {b - a} frames (at most {MAX_FRAMES})")
             if b > a:
                 return list(range(a, b))
             raise ValueError(f"{where}: frame range {value!r} is empty (A:B is half-open, B must exceed A)")
@@ -192,7 +198,7 @@ def _validate(path: Path, where: str, data: _Map, problems: list[str], overrides
         defaults = {}
     for t, ps in defaults.items():
         line = defaults.lines[t]
-        if t not in reg:
+        if not isinstance(t, str) or t not in reg:
             problems.append(f"{at(line)}: defaults: unknown node type '{t}'{suggest(t, reg)}")
         elif not isinstance(ps, dict):
             problems.append(f"{at(line)}: defaults for '{t}' must be a mapping of parameters")
@@ -224,7 +230,11 @@ def _validate(path: Path, where: str, data: _Map, problems: list[str], overrides
     nodes: dict[str, NodeSpec] = {}
     for name, entry in raw_nodes.items():
         line = raw_nodes.lines[name]
-        if not NAME_RE.match(str(name)):
+        if not isinstance(name, str):  # YAML reads on/off/yes/no/true/null/1 as non-strings
+            problems.append(f"{at(line)}: node name {name!r} is read by YAML as {type(name).__name__}: quote it or "
+                            "use letters, digits and '_'")
+            continue
+        if not NAME_RE.match(name):
             problems.append(f"{at(line)}: node name '{name}' must be letters, digits and '_' (it is used as NAME.port)")
             continue
         if not isinstance(entry, dict):
@@ -237,7 +247,7 @@ def _validate(path: Path, where: str, data: _Map, problems: list[str], overrides
         if t is None:
             problems.append(f"{at(line)}: node '{name}' has no 'type:'")
             continue
-        if t not in reg:
+        if not isinstance(t, str) or t not in reg:
             problems.append(f"{at(entry.lines['type'])}: node '{name}': unknown node type '{t}'{suggest(t, reg)}")
             continue
         cls = reg[t]

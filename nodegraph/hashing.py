@@ -5,9 +5,13 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import time
 from functools import lru_cache
 from pathlib import Path
 
+from .errors import DataError
+
+RACY_NS = 2_000_000_000  # see FileHasher.file
 KEY_SCHEMA = 1  # bump when the key recipe changes; old entries then simply stop matching
 
 
@@ -60,23 +64,37 @@ class FileHasher:
         with open(p, "rb") as f:
             for chunk in iter(lambda: f.read(1 << 20), b""):
                 h.update(chunk)
-        self.db[str(p)] = [sig, h.hexdigest()]
-        self.dirty = True
+        # a file modified within the last seconds may change again without its size or mtime changing
+        # (coarse timestamps): remember its hash only once it has settled
+        if time.time_ns() - st.st_mtime_ns > RACY_NS:
+            self.db[str(p)] = [sig, h.hexdigest()]
+            self.dirty = True
         return h.hexdigest()
 
     def path(self, p: str | Path) -> str:
+        """Content hash of a file, or of a folder's files (names and contents; hidden ones ignored,
+        symlinked files and folders followed)."""
         p = Path(p)
-        if p.is_file():
-            return self.file(p)
-        entries = []
-        for root, dirs, files in os.walk(p):
-            dirs[:] = sorted(d for d in dirs if not d.startswith("."))
-            for name in sorted(files):
-                if name.startswith("."):
+        try:
+            if p.is_file():
+                return self.file(p)
+            entries, seen = [], set()
+            for root, dirs, files in os.walk(p, followlinks=True):
+                real = os.path.realpath(root)
+                if real in seen:  # a link back up the tree
+                    dirs[:] = []
                     continue
-                fp = Path(root) / name
-                entries.append([fp.relative_to(p).as_posix(), self.file(fp)])
-        return digest(entries)
+                seen.add(real)
+                dirs[:] = sorted(d for d in dirs if not d.startswith("."))
+                for name in sorted(files):
+                    if name.startswith("."):
+                        continue
+                    fp = Path(root) / name
+                    rel = fp.relative_to(p).as_posix()
+                    entries.append([rel, self.file(fp) if fp.exists() else "broken link"])
+            return digest(entries)
+        except OSError as exc:
+            raise DataError(f"cannot read input {p} to hash it: {exc}") from None
 
     def save(self):
         if self.dirty and self.db_path:

@@ -111,6 +111,8 @@ def _coerce_scalar(t: type, v: Any) -> Any:
     if t is float:
         if isinstance(v, bool) or not isinstance(v, (int, float)):
             raise ValueError(f"expects a number, got {v!r}")
+        if v != v:  # NaN passes every range check and never equals itself
+            raise ValueError("expects a number, got nan")
         return float(v)
     if t in (str, InPath, OutPath):
         if not isinstance(v, str):

@@ -6,8 +6,8 @@ The contract (what the scheduler, the cache and `explain` rely on):
   pickled to a process pool or a Dask cluster, never a live object.
 - Its key is the SHA-256 of: the key schema version, node type, node version, the implementation
   fingerprint (the node's Python module, ``uses`` modules and OpenCL sources), the canonical params (input
-  paths replaced by their content hash), the keys of its input artifacts, and the
-  frame number if the node ``uses_frame``. Same key = same result, so an item whose key is in the cache is
+  paths replaced by their content hash), the keys of its input artifacts, the
+  frame number if the node ``uses_frame``, and the list of frames for a sequence node. Same key = same result, so an item whose key is in the cache is
   never rerun, and two items with the same key (a per-frame node fed only frame-independent data) run once.
 - An item runs when it is not cached and all its inputs exist; when an input failed, it is skipped.
 """
@@ -86,6 +86,8 @@ def make_plan(graph: Graph, hasher: FileHasher) -> tuple[list[WorkItem], dict[tu
             components = {"schema": KEY_SCHEMA, "node": spec.type_name, "version": cls.version,
                           "implementation": impl, "params": hashed_params, "inputs": in_keys,
                           "frame": frame if cls.uses_frame else None}
+            if cls.per == "sequence":  # run() sees self.frames: which frames it covers is part of the work
+                components["frames"] = frames
             key = digest(components)[:32]
             slot[(name, frame)] = key
             if key not in items:

@@ -73,6 +73,15 @@ def run(tmp_path, graph_path, jobs=1, **kw):
     ("defaults: {t.source: {sise: 3}}\nnodes:\n  a: {type: t.source}\n", 1, "has no parameter 'sise' (did you mean 'size'?)"),
     ("nodes:\n  a: {type: t.source, colour: red}\n", 2, "unknown key 'colour'"),
     ("nodes:\n  r: {type: t.readfile}\n", 2, "parameter 'path' is required"),
+    # YAML edge cases that used to end in a traceback (TypeError, MemoryError) instead of a message
+    ("nodes:\n  on: {type: t.source}\n", 2, "node name True is read by YAML as bool: quote it"),
+    ("nodes:\n  ? [a, b]\n  : {type: t.source}\n", 2, "a key must be a plain value, not list"),
+    ("nodes:\n  a: {type: [t.source]}\n", 2, "unknown node type '['t.source']'"),
+    ("defaults: {[t.source]: {size: 2}}\nnodes:\n  a: {type: t.source}\n", 1, "a key must be a plain value"),
+    ("frames: 0:99999999999\nnodes:\n  a: {type: t.source}\n", 1, "has 99999999999 frames (at most 1000000)"),
+    ("nodes:\n  a:\n    type: t.source\n    params: {value: .nan}\n", 4, "parameter 'value' expects a number, got nan"),
+    ("nodes:\n  a: {type: t.source}\n  b:\n    type: t.scale\n    in: {x: a.out}\n    params: {factor: .nan}\n", 6,
+     "parameter 'factor' expects a number, got nan"),
 ])
 def test_validation_error_names_file_and_line(tmp_path, text, line, needle):
     found = problems(tmp_path, text)
@@ -178,6 +187,46 @@ def test_input_files_hash_by_content_not_path(tmp_path):
     time.sleep(0.01)
     (b / "f.bin").write_bytes(b"hellO")
     assert keys(tmp_path, text.format(b)) != ka, "changing its content must change the key"
+
+
+def test_sequence_key_covers_its_frames(tmp_path):
+    # a sequence node fed frame-independent data sees only self.frames change: its key must change too
+    (tmp_path / "f.bin").write_bytes(b"abc")
+    text = f"nodes:\n  r: {{type: t.readfile, params: {{path: {tmp_path}/f.bin}}}}\n  t: {{type: t.total, in: {{x: r.out}}}}\n"
+    k03, k36 = keys(tmp_path, text, frames="0:3"), keys(tmp_path, text, frames="3:6")
+    assert k03[("r", 0)] == k36[("r", 3)], "the frame-independent source keeps its key"
+    assert k03[("t", None)] != k36[("t", None)]
+    assert keys(tmp_path, text, frames="0:3") == k03
+
+
+def test_folder_hash_follows_symlinks_and_ignores_hidden_files(tmp_path):
+    data, real = tmp_path / "data", tmp_path / "elsewhere"
+    data.mkdir(), real.mkdir()
+    (real / "img.png").write_bytes(b"one")
+    (data / "cams").symlink_to(real, target_is_directory=True)
+    (data / "loop").symlink_to(data, target_is_directory=True)  # must not recurse forever
+    h = hashing.FileHasher(None)
+    before = h.path(data)
+    (data / ".DS_Store").write_bytes(b"junk")
+    assert h.path(data) == before, "hidden files are not part of the content"
+    (real / "img.png").write_bytes(b"two")
+    assert h.path(data) != before, "a file in a symlinked folder changed: the key must change"
+
+
+def test_file_hash_is_not_trusted_while_its_mtime_is_fresh(tmp_path):
+    # coarse timestamps: a file rewritten in the same tick with the same size keeps size and mtime
+    f = tmp_path / "f.bin"
+    f.write_bytes(b"aaaa")
+    st = f.stat()
+    h = hashing.FileHasher(tmp_path / "db.json")
+    first = h.path(f)
+    f.write_bytes(b"bbbb")
+    os.utime(f, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert h.path(f) != first
+    old = time.time_ns() - 10 * 10**9  # settled files are remembered by (size, mtime)
+    os.utime(f, ns=(old, old))
+    h.path(f)
+    assert h.db[str(f)][0] == [4, old]
 
 
 def test_output_path_moves_only_the_export_key(tmp_path):
