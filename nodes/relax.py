@@ -33,7 +33,7 @@ def vertex_neighbours(faces: np.ndarray, count: int) -> tuple[np.ndarray, np.nda
     e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
     e = np.sort(e, axis=1)
     keys = np.sort(np.concatenate([e[:, 0] * count + e[:, 1], e[:, 1] * count + e[:, 0]]))  # (from, to) in order
-    keys = keys[np.r_[True, keys[1:] != keys[:-1]]]
+    keys = keys[np.r_[True, keys[1:] != keys[:-1]][: len(keys)]]      # (no faces: no keys)
     both = np.stack([keys // count, keys % count], axis=1)
     offsets = np.zeros(count + 1, np.int64)
     np.add.at(offsets, both[:, 0] + 1, 1)

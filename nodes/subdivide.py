@@ -21,7 +21,8 @@ def unique_edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     n = int(faces.max(initial=0)) + 1
     keys = sides[:, 0] * n + sides[:, 1]
     order = np.argsort(keys)  # np.unique(keys, return_inverse=True), several times faster here
-    first = np.r_[True, keys[order][1:] != keys[order][:-1]]
+    first = np.ones(len(keys), bool)       # (no faces: no edges)
+    first[1:] = keys[order][1:] != keys[order][:-1]
     inverse = np.empty(len(keys), np.int64)
     inverse[order] = np.cumsum(first) - 1
     keys = keys[order][first]

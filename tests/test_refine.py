@@ -255,6 +255,26 @@ def test_refine_bad_inputs_name_the_camera():
         run_node("refine", {"mesh": mesh, "volume": vol, "masks": masks, "cameras": cams}, {"min_views": 5})
 
 
+def test_empty_hull_gives_empty_meshes_down_the_chain():
+    """A box that misses the object: hull -> mc -> refine (with splits) -> relax -> eval.silhouette give an
+    empty mesh and IoU 0 per view, no IndexError from the edge tables of a mesh without faces."""
+    cams, masks, views, vol, mesh = figure_case(12, count=3, size=48)
+    far = run_node("hull", {"masks": masks, "cameras": cams}, {"bbox": [5, 5, 5, 6, 6, 6], "resolution": 8})["volume"]
+    assert far.occupancy.sum() == 0
+    empty = run_node("mc", {"volume": far})["mesh"]
+    assert len(empty.faces) == 0
+    edges, face_edges = unique_edges(empty.faces)
+    assert edges.shape == (0, 2) and face_edges.shape == (0, 3)
+    for method in ("opencl", "numpy"):
+        refined = run_node("refine", {"mesh": empty, "volume": far, "masks": masks, "cameras": cams}, {"method": method})["mesh"]
+        assert len(refined.vertices) == 0 and len(refined.faces) == 0
+        relaxed = run_node("relax", {"mesh": refined, "masks": masks, "cameras": cams}, {"method": method})["mesh"]
+        assert len(relaxed.vertices) == 0 and len(relaxed.faces) == 0
+    report = run_node("eval.silhouette", {"mesh": relaxed, "masks": masks, "cameras": cams})["report"]
+    assert [v["iou"] for v in report["views"]] == [0.0, 0.0, 0.0]
+    assert report["mask_not_covered"] == sum(int((m > 127).sum()) for m in masks.masks)
+
+
 # ---------------------------------------------------------------- real data
 def real_meshes(data_dir, name, resolution):
     from nodes.bounds import auto_bounds
