@@ -305,6 +305,11 @@ def visual_hull(masks, cameras: Cameras, box, resolution=128, min_views=0, polic
         arrays = check_views(masks, cameras)
     if min_views > len(cameras):
         raise NodeError(f"hull: min_views {min_views} is more than the {len(cameras)} cameras")
+    box = np.asarray(box, dtype=np.float64).reshape(2, 3)
+    with np.errstate(over="ignore", invalid="ignore"):
+        ext32 = box[1].astype(np.float32) - box[0].astype(np.float32)     # the kernels' arithmetic
+    if not (np.all(np.isfinite(box.astype(np.float32))) and np.all(np.isfinite(ext32)) and np.all(ext32 > 0)):
+        raise NodeError(f"hull: box {box.ravel().tolist()} must be finite (within float32 range) with max > min on every axis")
     bmin, bmax, dims = hull_grid(box, resolution)
     vs = (bmax - bmin) / np.array(dims)
     if method == "numpy":
@@ -342,4 +347,8 @@ class Hull(Node):
             box = np.asarray(bounds, dtype=np.float64)
         else:
             raise NodeError("hull: no box to carve: set param 'bbox' or connect the 'bounds' input")
-        return {"volume": visual_hull(masks, cameras, box, resolution, min_views, outside, method)}
+        volume = visual_hull(masks, cameras, box, resolution, min_views, outside, method)
+        if not volume.occupancy.any():
+            self.log.warning("hull: no voxel is inside the silhouettes: the box %s misses the object, or the masks "
+                             "and cameras disagree (the mesh will be empty)", np.round(box, 6).ravel().tolist())
+        return {"volume": volume}

@@ -1,6 +1,8 @@
 """Visual hull: NumPy reference == dense OpenCL == sparse coarse-to-fine OpenCL, on synthetic rigs."""
 from __future__ import annotations
 
+import logging
+
 import cv2
 import numpy as np
 import pytest
@@ -138,6 +140,28 @@ def test_node_reads_bounds_input_and_reports_bad_input():
         run_node("hull", {"masks": masks, "cameras": cams, "bounds": BOX}, {"min_views": 5})
     with pytest.raises(NodeError, match="max > min"):
         run_node("hull", {"masks": masks, "cameras": cams}, {"bbox": [0, 0, 0, 1, -1, 1]})
+
+
+def test_box_beyond_float32_or_missing_the_object():
+    """The kernels work in float32: a box that overflows it (inf, 3e38 - -3e38) or has no float32 extent is
+    a NodeError; a box that misses the object gives an empty volume and a warning in the node's log."""
+    cams = ring(4, 64, 48)
+    masks = sphere_masks(cams)
+    for box in ([0, 0, 0, float("inf"), 1, 1], [-3e38, 0, 0, 3e38, 1, 1], [1.0, 0, 0, 1.0 + 1e-12, 1, 1]):
+        with pytest.raises(NodeError, match="finite .*float32.* max > min"):
+            run_node("hull", {"masks": masks, "cameras": cams}, {"resolution": 8, "bbox": box})
+    with pytest.raises(NodeError, match="float32"):
+        run_node("hull", {"masks": masks, "cameras": cams, "bounds": np.array([[0, 0, 0], [np.inf, 1, 1]])}, {"resolution": 8})
+    records = []
+    handler = logging.Handler(logging.WARNING)
+    handler.emit = records.append
+    logging.getLogger("volcap").addHandler(handler)
+    try:
+        far = run_node("hull", {"masks": masks, "cameras": cams}, {"resolution": 8, "bbox": [50, 50, 50, 51, 51, 51]})["volume"]
+    finally:
+        logging.getLogger("volcap").removeHandler(handler)
+    assert far.occupancy.shape == (8, 8, 8) and far.occupancy.sum() == 0
+    assert any("no voxel is inside the silhouettes" in r.getMessage() for r in records)
 
 
 @pytest.mark.parametrize("res", [72, 150])
