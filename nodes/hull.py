@@ -52,6 +52,16 @@ def check_views(masks, cameras: Cameras) -> list[np.ndarray]:
     return out
 
 
+def check_in_front(cameras: Cameras, box: np.ndarray):
+    """A NodeError naming each camera that has the whole box behind it (all 8 corners at depth <= 0; depth
+    is linear, so then every voxel is): with outside='carve' it would carve everything."""
+    corners = np.array([[box[i, 0], box[j, 1], box[k, 2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+    behind = [f"{v} '{cam.name}'" for v, cam in enumerate(cameras) if np.all(cameras.project(corners, v)[1] <= 0)]
+    if behind:
+        raise NodeError(f"hull: the box {np.round(box, 6).ravel().tolist()} lies entirely behind camera(s) "
+                        f"{', '.join(behind)}: check their R|t (world -> camera) or the box, or set outside: ignore")
+
+
 # ---------------------------------------------------------------- NumPy reference
 def centre_states(mask: np.ndarray, cam_row: np.ndarray, X: np.ndarray) -> np.ndarray:
     """Per point (N, 3 float32): 1 = inside the silhouette, 2 = background, 3 = behind / outside the image.
@@ -310,6 +320,8 @@ def visual_hull(masks, cameras: Cameras, box, resolution=128, min_views=0, polic
         ext32 = box[1].astype(np.float32) - box[0].astype(np.float32)     # the kernels' arithmetic
     if not (np.all(np.isfinite(box.astype(np.float32))) and np.all(np.isfinite(ext32)) and np.all(ext32 > 0)):
         raise NodeError(f"hull: box {box.ravel().tolist()} must be finite (within float32 range) with max > min on every axis")
+    if policy == "carve":
+        check_in_front(cameras, box)
     bmin, bmax, dims = hull_grid(box, resolution)
     vs = (bmax - bmin) / np.array(dims)
     if method == "numpy":

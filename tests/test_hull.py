@@ -157,11 +157,26 @@ def test_box_beyond_float32_or_missing_the_object():
     handler.emit = records.append
     logging.getLogger("volcap").addHandler(handler)
     try:
-        far = run_node("hull", {"masks": masks, "cameras": cams}, {"resolution": 8, "bbox": [50, 50, 50, 51, 51, 51]})["volume"]
+        far = run_node("hull", {"masks": masks, "cameras": cams}, {"resolution": 8, "bbox": [0.9, 0.9, -0.05, 1.0, 1.0, 0.05]})["volume"]
     finally:
         logging.getLogger("volcap").removeHandler(handler)
     assert far.occupancy.shape == (8, 8, 8) and far.occupancy.sum() == 0
     assert any("no voxel is inside the silhouettes" in r.getMessage() for r in records)
+
+
+def test_camera_facing_away_from_the_box_is_named():
+    """Camera c2 turned 180 degrees about its y axis has the box behind it: with outside='carve' that is a
+    NodeError naming it (it would carve every voxel), with outside='ignore' the other views make the hull."""
+    cams = ring(4, 64, 48)
+    masks = sphere_masks(cams)
+    turned = cams[2].Rt.copy()
+    turned[[0, 2]] *= -1
+    bad = Cameras([c if i != 2 else Camera(c.name, c.width, c.height, c.K, turned) for i, c in enumerate(cams)])
+    with pytest.raises(NodeError, match=r"behind camera\(s\) 2 'c2'"):
+        run_node("hull", {"masks": masks, "cameras": bad}, {"resolution": 12, "bbox": BOX.ravel().tolist()})
+    kept = run_node("hull", {"masks": masks, "cameras": bad}, {"resolution": 12, "bbox": BOX.ravel().tolist(), "outside": "ignore"})
+    assert kept["volume"].occupancy.sum() > 0
+    assert run_node("hull", {"masks": masks, "cameras": cams}, {"resolution": 12, "bbox": BOX.ravel().tolist()})["volume"].occupancy.sum() > 0
 
 
 @pytest.mark.parametrize("res", [72, 150])
