@@ -4,7 +4,8 @@ Layout under the cache root:
     objects/ab/abcdef.../        one work item's outputs, complete iff the folder exists
         meta.json                key components, output types, wall time
         PORT/...                 each output in its type's on-disk form
-    staging/                     folders being written (renamed into objects/ when complete)
+    staging/                     folders being written (renamed into objects/ when complete; `gc` removes
+                                 leftovers older than 6 hours, so it never pulls one from a running write)
     filehash.json                size+mtime -> content hash of external input files
     index/                       last key per graph node and frame (for `explain`)
 
@@ -46,6 +47,17 @@ class Cache:
         self.root = Path(root).resolve()
         self.objects = self.root / "objects"
         self.staging = self.root / "staging"
+
+    def prepare(self):
+        """Create the cache folders, or raise DataError saying why the cache cannot be used."""
+        try:
+            for d in (self.objects, self.staging):
+                d.mkdir(parents=True, exist_ok=True)
+            probe = tempfile.NamedTemporaryFile(dir=self.staging, prefix=".probe.")
+            probe.close()
+        except OSError as exc:
+            raise DataError(f"cache folder {self.root} cannot be used: {exc.strerror or exc} "
+                            "(choose another with --cache or $VOLCAP_CACHE)") from None
 
     def object_dir(self, key: str) -> Path:
         return self.objects / key[:2] / key
@@ -119,6 +131,8 @@ class Cache:
         removed = freed = 0
         now = time.time()
         for d in list(self.staging.glob("*")) if self.staging.is_dir() else []:
+            if now - _newest_mtime(d) < STAGING_GRACE_S:  # another run may be writing it right now
+                continue
             freed += _size(d)
             shutil.rmtree(d, ignore_errors=True)
             removed += 1
@@ -153,9 +167,21 @@ class Cache:
             shutil.rmtree(trash, ignore_errors=True)
 
     def clear(self):
+        if self.root.exists() and not self.root.is_dir():
+            raise DataError(f"cache folder {self.root} is a file, not a cache")
         for sub in ("objects", "staging", "index"):
             shutil.rmtree(self.root / sub, ignore_errors=True)
         (self.root / "filehash.json").unlink(missing_ok=True)
+
+
+STAGING_GRACE_S = 6 * 3600  # gc leaves younger staging folders alone: a running write may own them
+
+
+def _newest_mtime(d: Path) -> float:
+    try:
+        return max([d.stat().st_mtime] + [f.stat().st_mtime for f in d.rglob("*")])
+    except OSError:  # vanished while we looked: its writer finished or removed it
+        return time.time()
 
 
 def _size(d: Path) -> int:

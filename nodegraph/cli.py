@@ -138,6 +138,16 @@ def cmd_report(args) -> int:
     return 0
 
 
+def _positive_int(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"expects a whole number >= 1, got {text!r}")
+    return n
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="volcap", description="Volumetric capture node graphs, run headless.")
     p.add_argument("--cache", help="cache folder (default $VOLCAP_CACHE or ./.volcap-cache)")
@@ -154,9 +164,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     r = graph_cmd("run", "run a graph", cmd_run)
     r.add_argument("--out", help="output folder (default out/GRAPHNAME)")
-    r.add_argument("--jobs", "-j", type=int, help="parallel work items (default: CPU count; 1 = in this process)")
+    r.add_argument("--jobs", "-j", type=_positive_int, help="parallel work items (default: CPU count; 1 = in this process)")
     r.add_argument("--executor", choices=["local", "dask"], default="local")
-    r.add_argument("--workers", type=int, help="dask: worker processes of the LocalCluster (default 2)")
+    r.add_argument("--workers", type=_positive_int, help="dask: worker processes of the LocalCluster (default 2)")
     r.add_argument("--scheduler", help="dask: address of an existing scheduler (tcp://HOST:PORT)")
     r.add_argument("--device", help="OpenCL device: cpu, gpu or PLATFORM:DEVICE (see `devices`)")
     r.add_argument("--report", action="store_true", help="write report.html into the output folder")
@@ -189,6 +199,9 @@ def main(argv=None) -> int:
             print(f"error: {line}", file=sys.stderr)
         return 2
     except VolcapError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # a folder or file the command needs (not a node's own failure: that is a result)
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -68,7 +68,10 @@ class DaskExecutor:
             raise VolcapError("the dask executor needs `pip install \"dask[distributed]\"` (or volcap[dask])") from None
         cluster = None
         if self.scheduler:
-            client = Client(self.scheduler, timeout="20s")
+            try:
+                client = Client(self.scheduler, timeout="20s")
+            except OSError as exc:
+                raise VolcapError(f"cannot reach the Dask scheduler {self.scheduler}: {exc}") from None
         else:
             from .executors import worker_threads
 

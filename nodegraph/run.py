@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from .cache import Cache, atomic_write_bytes, atomic_write_text
+from .errors import DataError
 from .graphfile import Graph
 from .hashing import FileHasher, digest
 from .plan import WorkItem, make_plan
@@ -75,7 +76,13 @@ def _diff(old, new, prefix="") -> list[str]:
 def run_graph(graph: Graph, cache: Cache, out_dir: Path, executor, progress: bool = True) -> RunResult:
     t0 = time.perf_counter()
     out_dir = Path(out_dir).resolve()
-    out_dir.mkdir(parents=True, exist_ok=True)
+    cache.prepare()
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(out_dir / ".volcap-write-test", "")
+        (out_dir / ".volcap-write-test").unlink()
+    except OSError as exc:
+        raise DataError(f"output folder {out_dir} cannot be written: {exc.strerror or exc} (choose another with --out)") from None
     items, slot = plan_graph(graph, cache)
     by_key = {it.key: it for it in items}
     results: dict[str, dict] = {}

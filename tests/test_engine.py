@@ -122,6 +122,31 @@ def test_cli_validation_error_is_one_clear_message(tmp_path, capsys):
     assert "graph file not found" in capsys.readouterr().err
 
 
+def test_cli_unusable_folders_and_bad_numbers_are_one_message(tmp_path, capsys):
+    p = write(tmp_path, CHAIN)
+    a_file = tmp_path / "a_file"
+    a_file.write_text("x")
+    cases = [(["--cache", str(a_file), "run", str(p), "--out", str(tmp_path / "o"), "-q"], f"cache folder {a_file} cannot be used"),
+             (["--cache", str(tmp_path / "c"), "run", str(p), "--out", str(a_file), "-q"], f"output folder {a_file} cannot be written"),
+             (["--cache", str(a_file), "cache", "clear"], f"cache folder {a_file} is a file"),
+             (["run", str(p), "--jobs", "0"], "--jobs/-j: expects a whole number >= 1, got '0'")]
+    for argv, needle in cases:
+        with pytest.raises(SystemExit) if "--jobs" in argv else _nothing() as exc:
+            rc = cli(argv)
+        rc = exc.value.code if "--jobs" in argv else rc
+        err = capsys.readouterr().err
+        assert rc == 2 and needle in err and "Traceback" not in err, (argv, rc, err)
+    assert not (tmp_path / "o").exists() and a_file.read_text() == "x"
+
+
+class _nothing:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
 # ---------------------------------------------------------------- cache keys (Gaffer-style hash test)
 def keys(tmp_path, text, **kw) -> dict:
     g = load_graph(write(tmp_path, text), **kw)
@@ -350,9 +375,13 @@ def test_killed_writer_leaves_no_artifact(tmp_path):
     g = load_graph(p)
     [(slot, key)] = plan_graph(g, cache)[1].items()
     assert not cache.has(key) and not cache.object_dir(key).exists(), "a half-written artifact is visible"
-    assert any(cache.staging.iterdir()), "the partial write should be confined to staging/"
-    removed, _ = cache.gc()
-    assert removed == 1 and not any(cache.staging.iterdir())
+    [stage] = list(cache.staging.iterdir())  # the partial write is confined to staging/
+    assert cache.gc() == (0, 0) and stage.is_dir(), "gc must not pull a fresh staging folder from a running write"
+    old = time.time() - 7 * 3600
+    for f in [stage, *stage.rglob("*")]:
+        os.utime(f, (old, old))
+    removed, freed = cache.gc()
+    assert removed == 1 and freed == 1000 and not any(cache.staging.iterdir())
     assert not explain(g, cache)[0]["cached"]
 
 
