@@ -149,8 +149,12 @@ def _generic(root: Path, frame: int):
     except MissingImageSize:
         cams = load_cameras(root, image_sizes=[_size(f) for f in files])
     by_stem = {f.stem: f for f in files}
-    if all(c.name in by_stem for c in cams):
+    missing = [f"{i} '{c.name}'" for i, c in enumerate(cams) if c.name not in by_stem]
+    if not missing:
         files = [by_stem[c.name] for c in cams]
+    elif len(missing) < len(cams):      # some files are named after cameras: matching by order would mix them up
+        raise DataError(f"{img_dir}: no image named after camera(s) {', '.join(missing)} (the other cameras' images "
+                        "are there by name)")
     elif len(files) != len(cams):
         raise DataError(f"{img_dir}: {len(files)} images but the calibration has {len(cams)} cameras, and their names do not match")
     return cams, files
@@ -209,10 +213,12 @@ def load_capture(path, frame: int = 0, images: str = "", masks: str = "", backgr
     if pat.get("background"):
         bg = ImageSet([_rgb(read_image(*_expand(root, pat["background"], i, c.name, 0, extra))) for i, c in enumerate(cams)],
                       cams.names)
-    mask_imgs = None
+    mask_imgs = mask_files = None
     if pat.get("masks") and pat["masks"] != "alpha":
-        mask_imgs = [read_image(*_expand(root, pat["masks"], i, c.name, frame, extra)) for i, c in enumerate(cams)]
-    out = _assemble(cams, raw, [p for p, _ in img_files], mask_imgs, bg, mask_threshold, pat.get("masks", ""))
+        found = [_expand(root, pat["masks"], i, c.name, frame, extra) for i, c in enumerate(cams)]
+        mask_files = [p for p, _ in found]
+        mask_imgs = [read_image(p, f) for p, f in found]
+    out = _assemble(cams, raw, [p for p, _ in img_files], mask_imgs, bg, mask_threshold, pat.get("masks", ""), mask_files)
     return out
 
 
@@ -228,7 +234,8 @@ def _check_camera_count(root: Path, pattern: str, cams: Cameras):
         raise DataError(f"{root}: {len(found)} camera folders hold '{anywhere}' but the calibration has {len(cams)} cameras")
 
 
-def _assemble(cams: Cameras, raw: list, files: list, mask_imgs, bg, threshold: int, mask_mode: str) -> dict:
+def _assemble(cams: Cameras, raw: list, files: list, mask_imgs, bg, threshold: int, mask_mode: str,
+              mask_files: list | None = None) -> dict:
     for i, (c, img, f) in enumerate(zip(cams, raw, files)):
         h, w = img.shape[:2]
         if (w, h) != (c.width, c.height):
@@ -246,7 +253,9 @@ def _assemble(cams: Cameras, raw: list, files: list, mask_imgs, bg, threshold: i
     elif mask_imgs is not None:
         for i, (m, im) in enumerate(zip(mask_imgs, raw)):
             if m.shape[:2] != im.shape[:2]:
-                raise DataError(f"camera {i} '{cams[i].name}': mask is {m.shape[1]}x{m.shape[0]} but the image is {im.shape[1]}x{im.shape[0]}")
+                mf = f" {mask_files[i]}" if mask_files else ""
+                raise DataError(f"camera {i} '{cams[i].name}': mask{mf} is {m.shape[1]}x{m.shape[0]} but the image "
+                                f"{files[i]} is {im.shape[1]}x{im.shape[0]}")
         masks = MaskSet([_mask(m, threshold) for m in mask_imgs], None, cams.names)
     if bg is not None:
         for i, (b, im) in enumerate(zip(bg.images, raw)):

@@ -90,6 +90,32 @@ def test_capture_errors_name_the_problem(tmp_path):
         load_capture(tmp_path / "nowhere")
 
 
+def test_generic_folder_matches_images_by_camera_name(tmp_path):
+    """An unknown layout: calibration + images/ matched by camera name; when only some images are named
+    after cameras, the missing camera is named (matching the rest by order would swap views silently)."""
+    cams = sphere_rig(3)
+    save_colmap(cams, tmp_path)
+    (tmp_path / "images").mkdir()
+    for v, c in enumerate(cams):
+        cv2.imwrite(str(tmp_path / "images" / f"{c.name}.png"), np.full((H, W, 3), 50 + v, np.uint8))
+    out = load_capture(tmp_path)
+    assert [int(im[0, 0, 0]) for im in out["images"].images] == [50, 51, 52]
+    (tmp_path / "images" / "cam1.png").rename(tmp_path / "images" / "zz_extra.png")
+    with pytest.raises(DataError, match="no image named after camera\\(s\\) 1 'cam1'"):
+        load_capture(tmp_path)
+    for i, f in enumerate(sorted((tmp_path / "images").iterdir())):   # no file named after a camera: by order
+        f.rename(tmp_path / "images" / f"view_{i}.png")
+    assert [int(im[0, 0, 0]) for im in load_capture(tmp_path)["images"].images] == [50, 52, 51]
+
+
+def test_mask_size_error_names_both_files(tmp_path):
+    cams = sphere_rig(3)
+    patterns = write_dataset(tmp_path, cams)
+    cv2.imwrite(str(tmp_path / "cam1" / "mask.png"), np.zeros((H, W - 4), np.uint8))
+    with pytest.raises(DataError, match=r"camera 1 'cam1': mask \S*cam1/mask.png is 60x48 but the image \S*cam1/rgb.png is 64x48"):
+        load_capture(tmp_path, 0, **patterns)
+
+
 def test_video_frames_and_star_patterns(tmp_path):
     """Frame N of a video pattern is the N-th frame; '*' patterns index sorted files."""
     cams = sphere_rig(2)
