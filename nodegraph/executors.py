@@ -8,8 +8,10 @@ done / failed / skipped. An item whose input failed is skipped, never run; indep
 """
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import os
+import signal
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 
@@ -104,7 +106,8 @@ class LocalExecutor:
             while tracker.ready or running:
                 while tracker.ready and len(running) < self.jobs:
                     key = tracker.ready.pop(0)
-                    running[pool.submit(execute, specs[key], cache_root)] = key
+                    with _sigint_ignored():  # workers start ignoring Ctrl-C: this process handles it
+                        running[pool.submit(execute, specs[key], cache_root)] = key
                 done, _ = wait(running, return_when=FIRST_COMPLETED)
                 broken = False
                 for fut in done:
@@ -129,8 +132,27 @@ class LocalExecutor:
                     running.clear()
                     pool.shutdown(wait=False, cancel_futures=True)
                     pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, **init)
+        except KeyboardInterrupt:  # stop the workers now; what they were writing stays in staging/
+            for proc in list((getattr(pool, "_processes", None) or {}).values()):
+                proc.terminate()
+            raise
         finally:
             pool.shutdown(wait=True, cancel_futures=True)
+
+
+@contextlib.contextmanager
+def _sigint_ignored():
+    """Ignore SIGINT while worker processes may be spawned: they inherit 'ignored' (a Python handler is
+    not inherited), so Ctrl-C in a terminal reaches only this process, not every worker with a traceback."""
+    try:
+        old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    except ValueError:  # not the main thread: leave signals alone
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
 
 
 def make_executor(name: str, jobs: int | None = None, **options):

@@ -385,6 +385,30 @@ def test_killed_writer_leaves_no_artifact(tmp_path):
     assert not explain(g, cache)[0]["cached"]
 
 
+def test_ctrl_c_with_a_process_pool_is_one_line_and_stops_the_workers(tmp_path):
+    p = write(tmp_path, "frames: 0:3\nnodes:\n  s: {type: t.slowwrite}\n  src: {type: t.source}\n")
+    signal_file = tmp_path / "signal"
+    env = dict(os.environ, VOLCAP_TEST_SIGNAL=str(signal_file), PYTHONPATH=os.pathsep.join(sys.path))
+    code = ("import sys, enginenodes; from nodegraph.cli import main; "
+            f"sys.exit(main(['--cache', r'{tmp_path / 'cache'}', 'run', r'{p}', '--out', r'{tmp_path / 'out'}', '-j', '2', '-q']))")
+    proc = subprocess.Popen([sys.executable, "-c", code], env=env, cwd=Path(__file__).parent, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True)
+    try:
+        for _ in range(600):
+            if signal_file.exists():
+                break
+            time.sleep(0.05)
+        assert signal_file.exists(), "the slow writer never started"
+        t0 = time.monotonic()
+        os.killpg(proc.pid, signal.SIGINT)  # a terminal's Ctrl-C reaches the whole process group
+        _, err = proc.communicate(timeout=30)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130 and time.monotonic() - t0 < 10, "must not wait for the 60 s write"
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
+    assert err.strip() == "interrupted: finished work items are cached; rerun to continue"
+
+
 def test_cache_commands(tmp_path, capsys):
     p = write(tmp_path, CHAIN)
     cache = ["--cache", str(tmp_path / "cache")]
