@@ -82,6 +82,10 @@ def auto_bounds(masks: list[np.ndarray], cameras: Cameras, resolution: int = 64,
     """Box [[xmin ymin zmin], [xmax ymax zmax]] around the object seen in ``masks`` (see module docstring)."""
     if len(masks) != len(cameras):
         raise NodeError(f"bounds: {len(masks)} masks for {len(cameras)} cameras")
+    for v, (m, cam) in enumerate(zip(masks, cameras)):
+        if np.shape(m)[:2] != (cam.height, cam.width):
+            raise NodeError(f"bounds: mask of camera {v} '{cam.name}' is {np.shape(m)[1]}x{np.shape(m)[0]} but the "
+                            f"camera is {cam.width}x{cam.height}")
     box = initial_box(masks, cameras)
     for _ in range(6):
         occ = coarse_hull(masks, cameras, box, resolution)

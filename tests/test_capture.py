@@ -153,6 +153,9 @@ def test_bounds_node_auto_and_explicit():
         run_node("bounds", params={"bbox": [0, 0, 0, 1, -2, 3]})
     with pytest.raises(NodeError, match="do not intersect|fewer than two"):
         run_node("bounds", {"masks": MaskSet([np.zeros((H, W), np.uint8)] * 6), "cameras": cams})
+    cropped = MaskSet([m if v != 4 else m[:, : W // 2] for v, m in enumerate(masks.masks)])
+    with pytest.raises(NodeError, match="mask of camera 4 'cam4' is 32x48 but the camera is 64x48"):
+        run_node("bounds", {"masks": cropped, "cameras": cams})
 
 
 @pytest.mark.realdata
