@@ -73,8 +73,13 @@ class Cache:
 
     def load(self, key: str, port: str, dtype):
         folder = self.object_dir(key) / port
-        if not folder.is_dir():
+        listed = self.meta(key).get("files", {}).get(port)
+        if listed is None and not folder.is_dir():
             return None  # an optional output that was None
+        missing = [f for f in listed or [] if not (self.object_dir(key) / f).is_file()]
+        if listed is None or missing:
+            raise DataError(f"cache entry {key}/{port} ({dtype.name}) is incomplete: "
+                            f"{missing[0] if missing else port + '/'} is missing")
         try:
             return dtype.load(folder)
         except DataError:

@@ -128,7 +128,14 @@ def run_graph(graph: Graph, cache: Cache, out_dir: Path, executor, progress: boo
         if res.get("error"):
             rec["error"] = res["error"]
         if res["status"] in ("done", "cached"):
-            rec["published"] = _publish(graph, cache, it, out_dir)
+            try:
+                rec["published"] = _publish(graph, cache, it, out_dir)
+            except DataError as exc:  # a damaged cache entry: report it, drop it, the rerun recomputes it
+                cache.evict(key)
+                rec.update(status="failed", cache_dir=None, error=f"{exc}; the entry was removed, rerun to recompute it")
+                failures.append(rec)
+                records.append(rec)
+                continue
             idx = _index_path(cache, graph, node, frame)
             atomic_write_text(idx, json.dumps({"key": key, "components": it.components}))
         if res["status"] == "failed":

@@ -455,6 +455,23 @@ def test_corrupt_cached_input_is_reported_and_recomputed(tmp_path):
     assert again.ok and st[("src", 0)] == "done" and st[("src", 1)] == "cached"
 
 
+def test_damaged_cached_export_is_reported_not_silently_unpublished(tmp_path):
+    p = write(tmp_path, CHAIN)
+    first = run(tmp_path, p)
+    w0 = next(r for r in first.records if r["node"] == "write" and r["frame"] == 0)
+    (Path(w0["cache_dir"]) / "files" / "files" / "sum_000.txt").unlink()
+    (tmp_path / "out" / "sum_000.txt").unlink()
+    res = run(tmp_path, p)
+    assert [(r["node"], r["frame"]) for r in res.failures] == [("write", 0)]
+    assert "sum_000.txt is missing" in res.failures[0]["error"] and "rerun to recompute it" in res.failures[0]["error"]
+    doc = json.loads((tmp_path / "out" / "run.json").read_text())
+    assert doc["counts"] == {"cached": 12, "failed": 1}, "the run record is still written"
+    again = run(tmp_path, p)
+    st = {(r["node"], r["frame"]): r["status"] for r in again.records}
+    assert again.ok and st[("write", 0)] == "done" and st[("write", 1)] == "cached"
+    assert (tmp_path / "out" / "sum_000.txt").read_text() == "16.0\n"
+
+
 def test_plugin_nodes_register_through_entry_points(tmp_path, monkeypatch):
     from importlib import metadata
 
