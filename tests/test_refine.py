@@ -259,7 +259,7 @@ def test_empty_hull_gives_empty_meshes_down_the_chain():
     """A box that misses the object: hull -> mc -> refine (with splits) -> relax -> eval.silhouette give an
     empty mesh and IoU 0 per view, no IndexError from the edge tables of a mesh without faces."""
     cams, masks, views, vol, mesh = figure_case(12, count=3, size=48)
-    far = run_node("hull", {"masks": masks, "cameras": cams}, {"bbox": [5, 5, 5, 6, 6, 6], "resolution": 8})["volume"]
+    far = run_node("hull", {"masks": masks, "cameras": cams}, {"bbox": [1.2, 1.2, 1.2, 1.3, 1.3, 1.3], "resolution": 8})["volume"]
     assert far.occupancy.sum() == 0
     empty = run_node("mc", {"volume": far})["mesh"]
     assert len(empty.faces) == 0
