@@ -89,12 +89,20 @@ class DaskExecutor:
                 futures[it.key] = client.submit(_run_item, specs[it.key], cache_root, *ups,
                                                 key=f"volcap-{it.node}-{it.key}", pure=False, retries=0)
             by_future = {f: k for k, f in futures.items()}
+            deps = {it.key: [d for d in it.deps if d in futures] for it in items}
+            names = {it.key: it.node for it in items}
+            status: dict[str, str] = {}
             for fut in as_completed(list(futures.values())):
                 key = by_future[fut]
                 try:
                     res = fut.result()
                 except Exception as exc:  # KilledWorker after repeated worker deaths, lost scheduler...
-                    res = {"status": "failed", "seconds": 0.0, "error": f"{type(exc).__name__}: {exc}"}
+                    bad = [d for d in deps[key] if status.get(d, "failed") != "done"]
+                    if bad:  # Dask passes an upstream exception on to its dependents: they never ran
+                        res = {"status": "skipped", "seconds": 0.0, "error": f"upstream '{names[bad[0]]}' failed"}
+                    else:
+                        res = {"status": "failed", "seconds": 0.0, "error": f"{type(exc).__name__}: {exc}"}
+                status[key] = res["status"]
                 res.pop("node", None)
                 res.pop("skip_reason", None)
                 on_result(key, res)

@@ -55,11 +55,13 @@ def explain(graph: Graph, cache: Cache) -> list[dict]:
         row = {"node": node, "frame": frame, "key": key, "cached": cache.has(key), "changed": []}
         idx = _index_path(cache, graph, node, frame)
         if not row["cached"]:
-            if idx.is_file():
+            try:
                 old = json.loads(idx.read_text())["components"]
                 row["changed"] = _diff(old, it.components)
-            else:
+            except FileNotFoundError:
                 row["changed"] = ["(no earlier run)"]
+            except (OSError, ValueError, KeyError, TypeError):
+                row["changed"] = ["(earlier run record unreadable)"]
         rows.append(row)
     return rows
 

@@ -127,7 +127,7 @@ class SlowWriter(Node):
 
 class Crash(Node):
     """Fault injection: kills its own process the first time it runs on frame ``on_frame`` (a marker file
-    remembers that it happened), like a worker lost to the OOM killer."""
+    remembers that it happened), like a worker lost to the OOM killer; marker "always" crashes every time."""
 
     type_name = "t.crash"
     inputs = {"x": Array}
@@ -135,6 +135,8 @@ class Crash(Node):
     params = {"on_frame": Param(int, 1), "marker": Param(str, "")}
 
     def run(self, x, *, on_frame, marker):
+        if self.frame == on_frame and marker == "always":
+            os.kill(os.getpid(), 9)
         if self.frame == on_frame and not Path(marker).exists():
             Path(marker).write_text("crashed once")
             os.kill(os.getpid(), 9)

@@ -67,3 +67,25 @@ def test_local_pool_killed_worker_then_rerun_computes_only_missing(tmp_path):
     assert second.ok
     rerun = {k for k, v in st2.items() if v == "done"}
     assert ("crash", 2) in rerun and rerun <= {k for k, v in st.items() if v != "done"}
+
+
+def test_dask_worker_that_keeps_dying_fails_its_item_and_skips_downstream(tmp_path):
+    import dask
+
+    text = GRAPH.replace("  total: {type: t.total, in: {x: scale.out}}\n  write: {type: t.write, in: {x: scale.out}}",
+                         "  crash: {type: t.crash, in: {x: scale.out}, params: {on_frame: 1, marker: always}}\n"
+                         "  write: {type: t.write, in: {x: crash.out}}")
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
+        res = _run(tmp_path, text, DaskExecutor(workers=2))
+    st = {(r["node"], r["frame"]): r for r in res.records}
+    assert st[("crash", 1)]["status"] == "failed" and "KilledWorker" in st[("crash", 1)]["error"]
+    assert st[("write", 1)]["status"] == "skipped" and st[("write", 1)]["error"] == "upstream 'crash' failed"
+    # a dying worker also takes down whatever else it was running (allowed-failures 0): those fail with
+    # KilledWorker too, and everything downstream of a failure is skipped, never run or reported as failed
+    for r in res.records:
+        assert r["status"] in ("done", "failed", "skipped")
+        if r["status"] == "failed":
+            assert "KilledWorker" in r["error"]
+        if r["status"] == "skipped":
+            assert r["error"].startswith("upstream '")
+    assert any(st[("write", f)]["status"] == "done" for f in (0, 2, 3, 4, 5))

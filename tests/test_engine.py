@@ -496,3 +496,15 @@ def test_plugin_nodes_register_through_entry_points(tmp_path, monkeypatch):
     assert "plugin.seven" in nodemod.registry()
     g = write(tmp_path, "nodes:\n  s: {type: plugin.seven}\n")
     assert run(tmp_path, g).ok
+
+
+def test_explain_survives_an_unreadable_earlier_record(tmp_path, capsys):
+    p = write(tmp_path, CHAIN)
+    cache = ["--cache", str(tmp_path / "cache")]
+    assert cli([*cache, "run", str(p), "--out", str(tmp_path / "out"), "-j", "1", "-q"]) == 0
+    for f in (tmp_path / "cache" / "index").rglob("*.json"):
+        f.write_text("{not json")
+    capsys.readouterr()
+    assert cli([*cache, "explain", str(p), "--set", "scale.factor=9"]) == 0
+    out = capsys.readouterr().out
+    assert "changed: (earlier run record unreadable)" in out and "10 of 13 work items to run" in out
