@@ -49,6 +49,11 @@ class Camera:
                 raise DataError(f"camera '{self.name}': {label} contains NaN or infinity")
         if self.width <= 0 or self.height <= 0:
             raise DataError(f"camera '{self.name}': image size {self.width}x{self.height} is not positive")
+        big = max(np.abs(self.K).max(), np.abs(self.Rt).max(), np.abs(self.dist).max())
+        if big > 1e30:  # the kernels read cameras as float32 (max 3.4e38): such values are an error upstream
+            raise DataError(f"camera '{self.name}': calibration value {big:.3g} is out of float32 range")
+        if self.metric and (self.K[0, 0] <= 0 or self.K[1, 1] <= 0):
+            raise DataError(f"camera '{self.name}': focal lengths fx={self.K[0, 0]:g}, fy={self.K[1, 1]:g} must be positive")
 
     @classmethod
     def from_P(cls, name: str, P, width: int, height: int, zsign: float = 0.0) -> "Camera":

@@ -113,6 +113,8 @@ def _coerce_scalar(t: type, v: Any) -> Any:
             raise ValueError(f"expects a number, got {v!r}")
         if v != v:  # NaN passes every range check and never equals itself
             raise ValueError("expects a number, got nan")
+        if abs(v) == float("inf"):
+            raise ValueError(f"expects a finite number, got {v!r}")
         return float(v)
     if t in (str, InPath, OutPath):
         if not isinstance(v, str):

@@ -539,30 +539,19 @@ def _short(p) -> str:
 
 
 def _read(fmt: str, p, image_sizes) -> Cameras:
-    """Read one calibration; a file the reader cannot make sense of is a DataError naming it, and the
-    cameras are checked for what the kernels need (see _validated)."""
+    """Read one calibration; a file the reader cannot make sense of, or cameras the kernels cannot use
+    (Camera checks NaN, float32 range, positive focal lengths), are a DataError naming the file."""
     import cv2
 
+    where = _short(p) if isinstance(p, list) else p
     try:
-        cams = _read_unchecked(fmt.rstrip("+"), p, image_sizes)
+        return _read_unchecked(fmt.rstrip("+"), p, image_sizes)
+    except MissingImageSize:
+        raise
+    except DataError as exc:
+        raise DataError(str(exc) if str(where) in str(exc) else f"{where}: {exc}") from None
     except (ValueError, TypeError, KeyError, IndexError, AttributeError, SystemError, OSError, cv2.error) as exc:
-        where = _short(p) if isinstance(p, list) else p
         raise DataError(f"{where}: unreadable {fmt.rstrip('+')} calibration ({type(exc).__name__}: {exc})") from None
-    return _validated(cams, p)
-
-
-def _validated(cams: Cameras, p) -> Cameras:
-    """Positive focal lengths (metric cameras) and values that survive the float32 packing of the kernels."""
-    for i, c in enumerate(cams):
-        if c.metric and not (c.K[0, 0] > 0 and c.K[1, 1] > 0):
-            raise DataError(f"{_short(p) if isinstance(p, list) else p}: camera {i} '{c.name}': focal lengths "
-                            f"fx={c.K[0, 0]:.6g}, fy={c.K[1, 1]:.6g} must be positive")
-        with np.errstate(over="ignore"):
-            packed = Cameras([c]).pack()
-        if not np.all(np.isfinite(packed)):
-            raise DataError(f"{_short(p) if isinstance(p, list) else p}: camera {i} '{c.name}': values beyond the float32 range "
-                            "(|x| > 3.4e38) in K, R|t or distortion")
-    return cams
 
 
 def _read_unchecked(fmt: str, p, image_sizes) -> Cameras:

@@ -249,7 +249,8 @@ def test_malformed_calibration_is_a_data_error(tmp_path, name, text, fmt, match)
 def test_zero_focal_length_and_float32_overflow_are_rejected(tmp_path):
     """fx = 0 divides by zero in every projection; 1e39 is inf once packed as float32 for the kernels."""
     cams = rig(dist=False)
-    for bad, match in (("0.0", "camera 1 '1': focal lengths fx=0"), ("1e39", "camera 1 '1': values beyond the float32")):
+    for bad, match in (("0.0", "calibParamsI.txt: camera '1': focal lengths fx=0,"),
+                       ("1e39", "calibParamsI.txt: camera '1': calibration value 1e\\+39 is out of float32 range")):
         blocks = [f"{i}\n" + "\n".join(nums(r) for r in c.K) + "\n0 0\n" + "\n".join(nums(r) for r in c.Rt) + "\n"
                   for i, c in enumerate(cams)]
         blocks[1] = blocks[1].replace(repr(float(cams[1].K[0, 0])), bad, 1)

@@ -508,3 +508,21 @@ def test_explain_survives_an_unreadable_earlier_record(tmp_path, capsys):
     assert cli([*cache, "explain", str(p), "--set", "scale.factor=9"]) == 0
     out = capsys.readouterr().out
     assert "changed: (earlier run record unreadable)" in out and "10 of 13 work items to run" in out
+
+
+def test_infinite_numbers_are_refused(tmp_path):
+    found = problems(tmp_path, "nodes:\n  a: {type: t.source, params: {value: .inf}}\n")
+    assert any(":2: node 'a': parameter 'value' expects a finite number" in p for p in found), found
+
+
+def test_camera_rejects_bad_intrinsics():
+    from nodegraph import DataError
+    from nodegraph.cameras import Camera
+
+    Rt = np.hstack([np.eye(3), [[0], [0], [5]]])
+    with pytest.raises(DataError, match="camera 'c0': focal lengths fx=0, fy=500 must be positive"):
+        Camera("c0", 640, 480, [[0, 0, 320], [0, 500, 240], [0, 0, 1]], Rt)
+    with pytest.raises(DataError, match="camera 'c1': calibration value 1e\\+39 is out of float32 range"):
+        Camera("c1", 640, 480, [[500, 0, 320], [0, 500, 240], [0, 0, 1]], Rt * np.array([1, 1, 1, 2e38]))
+    with pytest.raises(DataError, match="camera 'c2': K contains NaN"):
+        Camera("c2", 640, 480, [[np.nan, 0, 320], [0, 500, 240], [0, 0, 1]], Rt)
