@@ -433,14 +433,14 @@ def grabcut_band(rgb: np.ndarray, mask: np.ndarray, inner: int = 4, outer: int =
     return out * 255
 
 
-def _check_views(what: str, images, cameras: Cameras | None):
+def _check_views(what: str, images, cameras: Cameras | None, kind: str = "image"):
     if cameras is None:
         return
     if len(cameras) != len(images):
-        raise NodeError(f"{what}: {len(images)} images but {len(cameras)} cameras")
+        raise NodeError(f"{what}: {len(images)} {kind}s but {len(cameras)} cameras")
     for i, (cam, im) in enumerate(zip(cameras, images)):
         if (cam.height, cam.width) != im.shape[:2]:
-            raise NodeError(f"{what}: camera '{cam.name}' is {cam.width}x{cam.height} but image {i} is "
+            raise NodeError(f"{what}: camera '{cam.name}' is {cam.width}x{cam.height} but {kind} {i} is "
                             f"{im.shape[1]}x{im.shape[0]}")
 
 
@@ -610,7 +610,7 @@ class Consensus(Node):
     params = {"dilate": Param(int, 2, range=(0, 100), doc="extra margin around the hull's projection, pixels")}
 
     def run(self, masks, cameras, volume, *, dilate):
-        _check_views("key.consensus", masks.masks, cameras)
+        _check_views("key.consensus", masks.masks, cameras, kind="mask")
         out, alphas = [], []
         for v, m in enumerate(masks.masks):
             keep = hull_footprint(volume, cameras, v, dilate) > 0

@@ -390,7 +390,7 @@ def test_consensus_rejects_single_view_foreground():
 
 def test_consensus_checks_cameras():
     cams, _, keyed, volume = consensus_scene()
-    with pytest.raises(NodeError, match="6 images but 5 cameras"):
+    with pytest.raises(NodeError, match="6 masks but 5 cameras"):
         run_node("key.consensus", {"masks": MaskSet(keyed), "cameras": Cameras(cams.cameras[:5]), "volume": volume})
 
 
