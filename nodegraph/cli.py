@@ -37,6 +37,10 @@ def cmd_run(args) -> int:
     counts = result.counts()
     print(f"{graph.path.name}: {len(result.records)} items in {result.seconds:.2f} s — "
           + ", ".join(f"{v} {k}" for k, v in sorted(counts.items())) + f"; run record: {result.out_dir / 'run.json'}")
+    for r in result.records:
+        for w in r.get("warnings", []):
+            frame = "" if r["frame"] is None else f" frame {r['frame']}"
+            print(f"warning: node '{r['node']}' ({r['type']}){frame}: {w}", file=sys.stderr)
     for f in result.failures:
         frame = "" if f["frame"] is None else f" frame {f['frame']}"
         print(f"FAILED node '{f['node']}' ({f['type']}){frame}: {f['error']}\n  log: {f['log']}", file=sys.stderr)

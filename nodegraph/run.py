@@ -129,6 +129,8 @@ def run_graph(graph: Graph, cache: Cache, out_dir: Path, executor, progress: boo
                "log": specs[key]["log"] if key in specs else None, "published": []}
         if res.get("error"):
             rec["error"] = res["error"]
+        if res.get("warnings"):
+            rec["warnings"] = res["warnings"]
         if res["status"] in ("done", "cached"):
             try:
                 rec["published"] = _publish(graph, cache, it, out_dir)

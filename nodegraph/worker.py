@@ -17,6 +17,18 @@ from .errors import DataError, NodeError, VolcapError
 from .node import node_class
 
 
+class _Collector(logging.Handler):
+    """Keeps the warnings a node logs, so the run summary and run.json can show them."""
+
+    def __init__(self, out: list):
+        super().__init__(logging.WARNING)
+        self.out = out
+
+    def emit(self, record):
+        if len(self.out) < 20:
+            self.out.append(record.getMessage())
+
+
 def _resolve_type(ref: str):
     module, qual = ref.split(":")
     obj = importlib.import_module(module)
@@ -49,6 +61,10 @@ def execute(spec: dict, cache_root: str) -> dict:
         handler = logging.FileHandler(spec["log"], mode="w")
         handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
         log.addHandler(handler)
+    warnings: list[str] = []
+    collector = _Collector(warnings)
+    log.addHandler(collector)
+    logging.getLogger("volcap").addHandler(collector)  # module loggers (volcap.raster, ...) propagate here
     where = f"node '{spec['node']}' ({spec['type']})" + ("" if spec["frame"] is None else f" frame {spec['frame']}")
     try:
         cache = Cache(cache_root)
@@ -91,7 +107,7 @@ def execute(spec: dict, cache_root: str) -> dict:
         cache.write(spec["key"], outputs, {"node": spec["node"], "type": spec["type"], "frame": spec["frame"],
                                            "components": spec["components"], "seconds": seconds})
         log.info("done in %.3f s", seconds)
-        return {"status": "done", "seconds": time.perf_counter() - t0}
+        return {"status": "done", "seconds": time.perf_counter() - t0, "warnings": warnings}
     except CorruptInput as exc:
         log.error("%s failed: %s", where, exc)
         return {"status": "failed", "error": str(exc), "corrupt": exc.key, "seconds": time.perf_counter() - t0}
@@ -102,6 +118,8 @@ def execute(spec: dict, cache_root: str) -> dict:
         log.error("%s crashed:\n%s", where, traceback.format_exc())
         return {"status": "failed", "error": f"{type(exc).__name__}: {exc}", "seconds": time.perf_counter() - t0}
     finally:
+        log.removeHandler(collector)
+        logging.getLogger("volcap").removeHandler(collector)
         if handler:
             log.removeHandler(handler)
             handler.close()

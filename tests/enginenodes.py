@@ -32,6 +32,8 @@ class Scale(Node):
     params = {"factor": Param(float, 2.0, range=(-100, 100)), "mode": Param(str, "mul", choices=("mul", "add"))}
 
     def run(self, x, *, factor, mode):
+        if factor == 0:
+            self.log.warning("factor 0 gives zeros")
         return {"out": x * factor if mode == "mul" else x + factor}
 
 

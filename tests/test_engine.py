@@ -526,3 +526,12 @@ def test_camera_rejects_bad_intrinsics():
         Camera("c1", 640, 480, [[500, 0, 320], [0, 500, 240], [0, 0, 1]], Rt * np.array([1, 1, 1, 2e38]))
     with pytest.raises(DataError, match="camera 'c2': K contains NaN"):
         Camera("c2", 640, 480, [[np.nan, 0, 320], [0, 500, 240], [0, 0, 1]], Rt)
+
+
+def test_node_warnings_reach_the_summary_and_run_record(tmp_path, capsys):
+    p = write(tmp_path, CHAIN)
+    args = ["--cache", str(tmp_path / "cache"), "run", str(p), "--out", str(tmp_path / "out"), "-j", "1", "-q", "--set", "scale.factor=0"]
+    assert cli(args) == 0
+    assert "warning: node 'scale' (t.scale) frame 2: factor 0 gives zeros" in capsys.readouterr().err
+    doc = json.loads((tmp_path / "out" / "run.json").read_text())
+    assert [r["warnings"] for r in doc["items"] if r["node"] == "scale"] == [["factor 0 gives zeros"]] * 3
