@@ -89,3 +89,18 @@ def test_dask_worker_that_keeps_dying_fails_its_item_and_skips_downstream(tmp_pa
         if r["status"] == "skipped":
             assert r["error"].startswith("upstream '")
     assert any(st[("write", f)]["status"] == "done" for f in (0, 2, 3, 4, 5))
+
+
+def test_dask_joins_an_existing_scheduler(tmp_path, capsys):
+    from distributed import LocalCluster
+
+    from nodegraph.cli import main as cli
+
+    p = tmp_path / "g.yaml"
+    p.write_text(GRAPH)
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        args = ["--cache", str(tmp_path / "cache"), "run", str(p), "--out", str(tmp_path / "out"), "-q",
+                "--executor", "dask", "--scheduler", cluster.scheduler_address]
+        assert cli(args) == 0
+    assert "19 done" in capsys.readouterr().out
+    assert len(_published(tmp_path)) == 6
