@@ -60,7 +60,7 @@ def main():
             rows.append((f"first run, {n} items, jobs={jobs}", t, t / n * 1000))
         t, res = timed(lambda: run_graph(load_graph(g), Cache(d / "cache1"), d / "out", LocalExecutor(1), progress=False))
         assert res.counts() == {"cached": n}
-        rows.append((f"cached re-run (API, incl. load+plan)", t, t / n * 1000))
+        rows.append(("cached re-run (API, incl. load+plan)", t, t / n * 1000))
         env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), str(ROOT / "bench")]))
         code = ("import sys, trivial_nodes; from nodegraph.cli import main; sys.exit(main(sys.argv[1:]))")
         cmd = [sys.executable, "-c", code, "--cache", str(d / "cache1"), "run", str(g), "--out", str(d / "out"), "-q"]

@@ -306,7 +306,7 @@ def plot_metrics(over: list[tuple[int, dict]], out_png: Path, max_panels: int = 
     cols = min(3, max(len(keys), 1))
     rows = max(1, -(-len(keys) // cols))
     fig = Figure(figsize=(MAX_WIDTH / 100, 1.6 * rows + 0.3), dpi=100)
-    canvas = FigureCanvasAgg(fig)
+    FigureCanvasAgg(fig)  # attaches the Agg canvas savefig draws with
     for i, k in enumerate(keys):
         ax = fig.add_subplot(rows, cols, i + 1)
         pts = [(fr, s[k]) for fr, s in over if k in s]

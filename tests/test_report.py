@@ -229,7 +229,7 @@ def test_report_opens_in_chromium_with_every_node_and_image(tmp_path):
     assert "frame 2 is refused on purpose" in page
     rec = {(r["node"], r["frame"]): r for r in json.loads((out / "run.json").read_text())["items"]}
     assert Path(rec[("export", 2)]["log"]).is_file()
-    assert f'href="logs/export/2.log"' in page
+    assert 'href="logs/export/2.log"' in page
     assert 'href="voxels_000.txt"' in page and (out / "voxels_000.txt").read_text().strip().isdigit()
 
     rows, dom = browser_check(report)
