@@ -95,32 +95,25 @@ def main():
            for a, t in zip(sil.masks(), truth)]
 
     stages = ("matte", "key", "hull", "mc", "frame")
-    fused = {name: [] for name in stages}
-    alpha = {name: [] for name in stages}
-    for _ in range(args.frames):
-        t0 = time.perf_counter()
-        edges = matte_stage()
-        t1 = time.perf_counter()
-        sil = key_stage(edges, out=sil)
-        t2 = time.perf_counter()
-        volume = hull_stage(sil)
-        t3 = time.perf_counter()
-        mc_stage(volume)
-        t4 = time.perf_counter()
-        for name, dt in zip(stages, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t4 - t0)):
-            fused[name].append(1e3 * dt)
-    for _ in range(args.frames):
-        t0 = time.perf_counter()
-        edges = matte_stage()
-        t1 = time.perf_counter()
-        masks = key_alpha_stage(edges)
-        t2 = time.perf_counter()
-        volume = hull_stage(masks)
-        t3 = time.perf_counter()
-        mc_stage(volume)
-        t4 = time.perf_counter()
-        for name, dt in zip(stages, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t4 - t0)):
-            alpha[name].append(1e3 * dt)
+    def timed_frames(key) -> dict:
+        """ms per stage over args.frames frames, with ``key(edges)`` producing what the hull consumes."""
+        times = {name: [] for name in stages}
+        for _ in range(args.frames):
+            t0 = time.perf_counter()
+            edges = matte_stage()
+            t1 = time.perf_counter()
+            silhouettes = key(edges)
+            t2 = time.perf_counter()
+            volume = hull_stage(silhouettes)
+            t3 = time.perf_counter()
+            mc_stage(volume)
+            t4 = time.perf_counter()
+            for name, dt in zip(stages, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t4 - t0)):
+                times[name].append(1e3 * dt)
+        return times
+
+    fused = timed_frames(lambda edges: key_stage(edges, out=sil))
+    alpha = timed_frames(key_alpha_stage)
 
     print(f"OpenCL device: {clrt.device_name()}")
     print(f"synth render (once, not timed below): {args.cameras} x 1920x1080 in {render_s:.1f} s")
