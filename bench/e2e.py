@@ -33,11 +33,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from nodegraph import clrt  # noqa: E402
 from nodegraph.testing import run_node  # noqa: E402
-from nodegraph.types import MaskSet  # noqa: E402
-from nodes import key as K  # noqa: E402
-from nodes.hull import visual_hull  # noqa: E402
-from nodes.mc import marching_cubes  # noqa: E402
-from nodes.synth import GREEN  # noqa: E402
+from nodes.common.types import MaskSet  # noqa: E402
+from nodes.key import keying as K  # noqa: E402
+from nodes.hull.hull import visual_hull  # noqa: E402
+from nodes.mesh.mc import marching_cubes  # noqa: E402
+from nodes.synth.render import GREEN  # noqa: E402
 
 REFERENCE_FPS = 25.0
 

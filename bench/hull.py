@@ -18,9 +18,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from nodegraph.cameras import Cameras, look_at  # noqa: E402
-from nodegraph.types import MaskSet  # noqa: E402
-from nodes.hull import hull_cl, hull_grid, hull_reference  # noqa: E402
+from nodes.common.cameras import Cameras, look_at  # noqa: E402
+from nodes.common.types import MaskSet  # noqa: E402
+from nodes.hull.hull import hull_cl, hull_grid, hull_reference  # noqa: E402
 
 # (centre, radii) of the figure's ellipsoids, metres, z up
 FIGURE = [((0, 0, 1.2), (0.18, 0.12, 0.3)), ((0, 0, 1.65), (0.11, 0.11, 0.12)),

@@ -17,7 +17,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from nodes import key as K  # noqa: E402
+from nodes.key import keying as K  # noqa: E402
 
 
 def frames(n: int, h=1080, w=1920) -> tuple[list[np.ndarray], np.ndarray]:

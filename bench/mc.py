@@ -23,8 +23,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from hull import BOX, best_ms, figure_masks, ring_rig  # noqa: E402
 
-from nodes.hull import visual_hull  # noqa: E402
-from nodes.mc import marching_cubes  # noqa: E402
+from nodes.hull.hull import visual_hull  # noqa: E402
+from nodes.mesh.mc import marching_cubes  # noqa: E402
 
 
 def vtk_grid(occ: np.ndarray, spacing, dtype):

@@ -20,7 +20,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from nodegraph.cameras import Camera, Cameras, look_at, project_points_cl  # noqa: E402
+from nodes.common.cameras import Camera, Cameras, look_at, project_points_cl  # noqa: E402
 
 
 def best(fn, repeats=5):
@@ -74,8 +74,8 @@ def main():
 
     data = Path(os.environ.get("VOLCAP_DATA", ROOT.parent / "shared" / "data")) / args.dataset
     if data.is_dir():
-        from nodes.bounds import auto_bounds
-        from nodes.capture import load_capture
+        from nodes.hull.bounds import auto_bounds
+        from nodes.capture.load import load_capture
 
         cap = load_capture(data)
         t_b, box = best(lambda: auto_bounds(cap["masks"].masks, cap["cameras"]), 3)

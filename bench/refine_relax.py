@@ -19,12 +19,14 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from nodegraph.testing import run_node  # noqa: E402
-from nodes.bounds import auto_bounds  # noqa: E402
-from nodes.capture import load_capture  # noqa: E402
-from nodes.eval import silhouette_report  # noqa: E402
-from nodes.hull import visual_hull  # noqa: E402
-from nodes.mc import largest_component, marching_cubes  # noqa: E402
-from nodes.relax import LAMBDA, MU, taubin_cl, vertex_neighbours  # noqa: E402
+from nodes.hull.bounds import auto_bounds  # noqa: E402
+from nodes.capture.load import load_capture  # noqa: E402
+from nodes.eval.metrics import silhouette_report  # noqa: E402
+from nodes.hull.hull import visual_hull  # noqa: E402
+from nodes.common.meshops import largest_component  # noqa: E402
+from nodes.mesh.mc import marching_cubes  # noqa: E402
+from nodes.mesh.relax import LAMBDA, MU, taubin_cl  # noqa: E402
+from nodes.common.meshops import vertex_neighbours  # noqa: E402
 
 
 def best_of(fn, repeat=5):

@@ -14,8 +14,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from nodes import raster, scenes, synth  # noqa: E402
-from nodes.synth import Synth  # noqa: E402
+from nodes.common import raster  # noqa: E402
+from nodes.synth import scenes  # noqa: E402
+from nodes.synth import render as synth  # noqa: E402
+from nodes.synth.nodes import Synth  # noqa: E402
 
 
 def timed(fn, repeat=2):

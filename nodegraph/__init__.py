@@ -1,12 +1,12 @@
-"""volcap node-graph engine: typed nodes, YAML graphs, a cached per-frame scheduler."""
+"""volcap node-graph engine: typed nodes, YAML graphs, a cached per-frame scheduler.
+
+The engine knows no domain: port types, nodes and OpenCL sources come from the packages registered in the
+``volcap.nodes`` entry-point group (the built-in stages are the package ``nodes``)."""
 from .errors import DataError, GraphError, NodeError, VolcapError
 from .node import REQUIRED, InPath, Input, Node, OutPath, Output, Param, node_class, registry
-from .types import (Array, Bounds, CameraSet, DataType, Files, Images, ImageSet, Masks, MaskSet, Mesh, MeshSequence,
-                    Skeleton, SkeletonData, Table, TexturedMesh, Volume, VoxelGrid)
+from .types import Array, DataType, Files, Table
 
 __all__ = [
-    "Array", "Bounds", "CameraSet", "DataError", "DataType", "Files", "GraphError", "Images", "ImageSet", "InPath", "Input",
-    "Masks", "MaskSet", "Mesh", "MeshSequence", "Node", "NodeError", "OutPath", "Output", "Param", "REQUIRED",
-    "Skeleton", "SkeletonData", "Table", "TexturedMesh", "VolcapError", "Volume", "VoxelGrid", "node_class",
-    "registry",
+    "Array", "DataError", "DataType", "Files", "GraphError", "InPath", "Input", "Node", "NodeError", "OutPath",
+    "Output", "Param", "REQUIRED", "Table", "VolcapError", "node_class", "registry",
 ]

@@ -1,4 +1,7 @@
-"""OpenCL runtime: one context and queue per process, compiled programs cached, kernels from ``kernels/``.
+"""OpenCL runtime: one context and queue per process, programs built once per source file and options,
+``cl.Kernel`` objects kept, device buffers kept between calls, and ``Runner``: the one shape of the stages'
+OpenCL code. Sources are given by path (the stage packages know where theirs are); ``#include "NAME"``
+is searched beside the source.
 
 ``VOLCAP_CL_PROFILE=1`` creates the queue with profiling enabled (events then carry kernel times).
 Device choice: ``VOLCAP_CL_DEVICE`` (or ``app.py run --device``) is either ``cpu``, ``gpu``, or
@@ -15,18 +18,9 @@ import numpy as np
 
 from .errors import VolcapError
 
-KERNEL_DIR = Path(__file__).resolve().parent.parent / "kernels"
-
 
 class OpenCLUnavailable(VolcapError):
     pass
-
-
-def kernel_path(name: str) -> Path:
-    p = KERNEL_DIR / name
-    if not p.is_file():
-        raise VolcapError(f"OpenCL source '{name}' not found in {KERNEL_DIR}")
-    return p
 
 
 def _builds(dev) -> bool:
@@ -94,24 +88,133 @@ def queue():
 
 
 @lru_cache(maxsize=None)
-def program(name: str, options: tuple[str, ...] = ()):
-    """Compiled program for ``kernels/NAME`` (built once per process and option set)."""
+def program(source: Path, options: tuple[str, ...] = ()):
+    """Compiled program of the OpenCL file ``source`` (built once per process and option set)."""
     import pyopencl as cl
 
+    source = Path(source)
     ctx, _ = context()
-    src = kernel_path(name).read_text()
     try:
-        return cl.Program(ctx, src).build(options=[*options, f"-I{KERNEL_DIR}"])
+        src = source.read_text()
+    except OSError as exc:
+        raise VolcapError(f"OpenCL source {source} cannot be read: {exc}") from None
+    try:
+        return cl.Program(ctx, src).build(options=[*options, f"-I{source.parent}"])
     except cl.RuntimeError as exc:
-        raise VolcapError(f"OpenCL build of kernels/{name} failed:\n{exc}") from None
+        raise VolcapError(f"OpenCL build of {source.name} failed:\n{exc}") from None
 
 
 @lru_cache(maxsize=None)
-def kernel(file: str, name: str, options: tuple[str, ...] = ()):
+def kernel(source: Path, name: str, options: tuple[str, ...] = ()):
     """A ``cl.Kernel`` object, kept (cheaper than ``prg.name`` look-ups, which build a new one each time)."""
     import pyopencl as cl
 
-    return cl.Kernel(program(file, options), name)
+    return cl.Kernel(program(Path(source), options), name)
+
+
+class DeviceBuffers:
+    """Read-write OpenCL buffers by name, kept between calls and replaced (a quarter larger) when too small."""
+
+    def __init__(self, ctx):
+        self.ctx = ctx
+        self._bufs: dict[str, object] = {}
+
+    def get(self, name: str, nbytes: int):
+        """The buffer called ``name``, at least ``nbytes`` long."""
+        import pyopencl as cl
+
+        buf = self._bufs.get(name)
+        if buf is None or buf.size < nbytes:
+            buf = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, max(int(nbytes * 1.25), 64))
+            self._bufs[name] = buf
+        return buf
+
+
+def round_up(n: int, group: int) -> int:
+    """``n`` rounded up to a whole number of work-groups of ``group`` items (at least one group)."""
+    return max(group, -(-int(n) // group) * group)
+
+
+class Runner:
+    """The one shape of the stages' OpenCL code. A subclass names its OpenCL ``source`` (a path) and its build
+    ``options``; ``Runner.get()`` is the process's instance of it (created on first use, kept, so kernels are
+    built once and buffers are reused from frame to frame):
+
+        class HullCL(Runner):
+            source = kernels.source("hull.cl")
+
+        hull = HullCL.get()
+        cams = hull.upload("cams", packed)                  # named device buffer, grow-only, reused
+        hull.launch("hull_dense", (nz, ny, nx), None, cams, ...)
+        out = hull.read(vol, dims, np.uint8)
+
+    ``launch`` rounds the global size up to whole work-groups (kernels check their bounds) and keeps the
+    ``cl.Kernel`` objects. A kernel that cannot build raises VolcapError naming the source: no silent
+    fallback."""
+
+    source: Path | None = None
+    options: tuple[str, ...] = ()
+    _instances: dict = {}
+
+    def __init__(self):
+        self.ctx, self.queue = context()
+        self.buffers = DeviceBuffers(self.ctx)
+
+    @classmethod
+    def get(cls):
+        inst = Runner._instances.get(cls)
+        if inst is None:
+            inst = Runner._instances[cls] = cls()
+        return inst
+
+    def kernel(self, name: str, options: tuple[str, ...] = ()):
+        return kernel(Path(self.source), name, (*self.options, *options))
+
+    def buffer(self, role: str, nbytes: int):
+        """The read-write device buffer called ``role``, at least ``nbytes`` long (kept between calls)."""
+        return self.buffers.get(role, nbytes)
+
+    def upload(self, role: str, arr: np.ndarray):
+        """``arr`` copied into the buffer called ``role`` (non-blocking; pyopencl keeps ``arr`` alive until the
+        copy is done)."""
+        import pyopencl as cl
+
+        arr = np.ascontiguousarray(arr)
+        buf = self.buffer(role, arr.nbytes)
+        cl.enqueue_copy(self.queue, buf, arr, is_blocking=False)
+        return buf
+
+    def host(self, arr: np.ndarray, writable: bool = False):
+        """A device buffer over ``arr``'s own memory (no copy on a CPU device). Keep ``arr`` alive, and do not
+        change it, until the queue has finished with the buffer."""
+        import pyopencl as cl
+
+        mf = cl.mem_flags
+        return cl.Buffer(self.ctx, (mf.READ_WRITE if writable else mf.READ_ONLY) | mf.USE_HOST_PTR, hostbuf=arr)
+
+    def launch(self, name: str, global_size, local_size, *args, options: tuple[str, ...] = ()):
+        """Enqueue kernel ``name`` over ``global_size`` (rounded up to whole ``local_size`` groups when given)."""
+        import pyopencl as cl
+
+        k = self.kernel(name, options)
+        k.set_args(*args)
+        gs = tuple(int(g) for g in (global_size if isinstance(global_size, (tuple, list)) else (global_size,)))
+        ls = None
+        if local_size is not None:
+            ls = tuple(int(v) for v in (local_size if isinstance(local_size, (tuple, list)) else (local_size,)))
+            gs = tuple(round_up(g, v) for g, v in zip(gs, ls))
+        return cl.enqueue_nd_range_kernel(self.queue, k, gs, ls)
+
+    def read(self, buf, shape, dtype=np.uint8, out: np.ndarray | None = None) -> np.ndarray:
+        """The first prod(shape) items of ``buf`` as a new host array (waits for the copy)."""
+        import pyopencl as cl
+
+        out = np.empty(shape, dtype) if out is None else out
+        cl.enqueue_copy(self.queue, out, buf, is_blocking=True)
+        return out
+
+    def finish(self):
+        self.queue.finish()
 
 
 def devices_table() -> list[str]:

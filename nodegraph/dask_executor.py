@@ -5,14 +5,14 @@
   every worker sees: it is the source of truth, results never travel through Dask.
 - Each work item is one task keyed by its cache key, with its upstream tasks as dependencies; the payload
   is the item's plain spec (params and artifact keys), never a live object.
-- A worker plugin creates the OpenCL context once per worker process.
+- A worker plugin runs the node packages' start-up hooks once per worker process (an OpenCL context...).
 - A killed worker (OOM, node lost) makes Dask reschedule its tasks on another worker (up to the cluster's
   ``allowed-failures``); a node's own error is a result, not an exception, so it is never retried.
 """
 from __future__ import annotations
 
 from .errors import VolcapError
-from .worker import execute
+from .worker import execute, start_worker
 
 
 def _run_item(spec: dict, cache_root: str, *upstream: dict) -> dict:
@@ -25,27 +25,13 @@ def _run_item(spec: dict, cache_root: str, *upstream: dict) -> dict:
     return res
 
 
-class _OpenCLPlugin:
-    """Worker plugin: build the OpenCL context once when a worker starts (if OpenCL is there at all)."""
+class _StartPlugin:
+    """Worker plugin: runs the node packages' start-up hooks once when a worker starts (an OpenCL context...)."""
 
-    name = "volcap-opencl"
+    name = "volcap-start"
 
     def setup(self, worker):
-        try:
-            import os
-
-            import cv2
-
-            if os.environ.get("VOLCAP_CV_THREADS"):
-                cv2.setNumThreads(int(os.environ["VOLCAP_CV_THREADS"]))
-        except Exception:
-            pass
-        try:
-            from . import clrt
-
-            clrt.context()
-        except Exception:  # nodes that need OpenCL report the problem themselves
-            pass
+        start_worker()
 
     def teardown(self, worker):
         pass
@@ -81,8 +67,8 @@ class DaskExecutor:
         try:
             from distributed.diagnostics.plugin import WorkerPlugin
 
-            plugin = type("VolcapOpenCL", (_OpenCLPlugin, WorkerPlugin), {})()
-            client.register_plugin(plugin, name=_OpenCLPlugin.name)
+            plugin = type("VolcapStart", (_StartPlugin, WorkerPlugin), {})()
+            client.register_plugin(plugin, name=_StartPlugin.name)
             futures = {}
             for it in items:  # dependency order: upstream futures exist before their consumers
                 ups = [futures[d] for d in it.deps if d in futures]

@@ -15,7 +15,7 @@ import signal
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 
-from .worker import execute
+from .worker import execute, start_worker
 
 
 class _DependencyTracker:
@@ -56,9 +56,9 @@ def _skip(tracker, key, on_result, reason_node):
 
 
 def worker_threads(workers: int) -> dict:
-    """Environment for one of ``workers`` worker processes on this machine: the OpenCL CPU device (PoCL)
-    and OpenCV each use their share of the cores instead of all of them, so processes do not oversubscribe.
-    Values the user has set are kept."""
+    """Environment for one of ``workers`` worker processes on this machine: thread pools (the OpenCL CPU
+    device, OMP, and libraries reading VOLCAP_CV_THREADS) use their share of the cores instead of all of
+    them, so processes do not oversubscribe. Values the user has set are kept."""
     share = str(max(1, (os.cpu_count() or 1) // max(1, workers)))
     env = {}
     for var in ("POCL_MAX_PTHREAD_COUNT", "OMP_NUM_THREADS", "VOLCAP_CV_THREADS"):
@@ -68,12 +68,7 @@ def worker_threads(workers: int) -> dict:
 
 def _init_worker(env: dict):
     os.environ.update(env)
-    try:
-        import cv2
-
-        cv2.setNumThreads(int(env["VOLCAP_CV_THREADS"]))
-    except Exception:  # OpenCV missing or odd value: leave its default
-        pass
+    start_worker()
 
 
 class LocalExecutor:

@@ -7,8 +7,8 @@
       capture: {type: capture, params: {path: "${VOLCAP_DATA}/thu_wd_human"}}
       hull:    {type: hull, in: {masks: capture.masks, cameras: capture.cameras}}
 
-Path parameters (InPath) expand ${VAR} / ${VAR:-default} and are resolved against the graph file's folder.
-VOLCAP_DATA defaults to ../shared/data beside the repository.
+Path parameters (InPath) expand ${VAR} / ${VAR:-default} and are resolved against the graph file's folder
+(so "${VOLCAP_DATA:-../data}/set" reads $VOLCAP_DATA when it is set, else the folder ../data beside the graph).
 """
 from __future__ import annotations
 
@@ -25,7 +25,6 @@ from .errors import GraphError
 from .node import REQUIRED, InPath, Node, registry
 from .types import compatible, describe_type
 
-REPO = Path(__file__).resolve().parent.parent
 MAX_FRAMES = 1_000_000  # a range beyond this is a typo, not a capture
 TOP_KEYS = ("frames", "defaults", "nodes", "description")
 NODE_KEYS = ("type", "in", "params", "doc")
@@ -94,17 +93,16 @@ def suggest(word: str, options) -> str:
     return f" (did you mean '{close[0]}'?)" if close else ""
 
 
-def data_root() -> str:
-    return os.environ.get("VOLCAP_DATA") or str(REPO.parent / "shared" / "data")
-
-
 def expand_path(value: str, base: Path) -> Path:
-    env = dict(os.environ)
-    env.setdefault("VOLCAP_DATA", data_root())
-
+    """``value`` with ${VAR} / ${VAR:-default} expanded, resolved against ``base``. ValueError names a
+    variable that is used without a default and not set."""
     def sub(m):
         name, default = m.group(1), m.group(3)
-        return env.get(name) or (default if default is not None else m.group(0))
+        if os.environ.get(name):
+            return os.environ[name]
+        if default is None:
+            raise ValueError(f"uses ${{{name}}}, which is not set (set it, or write ${{{name}:-DEFAULT}})")
+        return default
 
     text = re.sub(r"\$\{([A-Za-z_][A-Za-z0-9_]*)(:-([^}]*))?\}", sub, value)
     p = Path(os.path.expanduser(text))

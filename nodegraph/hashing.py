@@ -6,7 +6,6 @@ import hashlib
 import json
 import os
 import time
-from functools import lru_cache
 from pathlib import Path
 
 from .errors import DataError
@@ -31,13 +30,6 @@ def _default(o):
     if isinstance(o, Path):
         return str(o)
     raise TypeError(f"cannot hash {type(o).__name__}")
-
-
-@lru_cache(maxsize=None)
-def implementation_fingerprint(cls) -> str:
-    from .node import implementation_sources
-
-    return digest(implementation_sources(cls))[:16]
 
 
 class FileHasher:

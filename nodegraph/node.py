@@ -22,8 +22,10 @@ A node is a class: its ports, parameters and kernels are declared once, and vali
 passed to ``run`` as ``frame=`` and is part of the cache key.
 ``publishes = True``: the node's ``Files`` outputs are copied into the run's output folder.
 
-Nodes are found by importing every module under the ``nodes`` package, and third-party packages
-register theirs through the ``volcap.nodes`` entry-point group (each entry point names a module).
+Node types are found through the ``volcap.nodes`` entry-point group: each entry point names a module or
+a package, and every module of a package is imported (the built-in stages are one such package, plugins
+register theirs the same way). The implementation fingerprint in the cache key is computed from the node's
+module and what it imports (nodegraph.fingerprint); ``kernels`` lists the OpenCL source files (paths).
 """
 from __future__ import annotations
 
@@ -37,9 +39,10 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 from .errors import VolcapError
+from .fingerprint import ENTRY_POINT_GROUP
 from .types import DataType, describe_type
 
-ENTRY_POINT_GROUP = "volcap.nodes"
+
 
 
 class _Required:
@@ -153,8 +156,7 @@ class Node:
     inputs: ClassVar[dict] = {}
     outputs: ClassVar[dict] = {}
     params: ClassVar[dict] = {}
-    kernels: ClassVar[list] = []
-    uses: ClassVar[list] = []  # extra modules whose source is part of the implementation fingerprint
+    kernels: ClassVar[list] = []   # OpenCL source files (paths); they and their #includes are fingerprinted
 
     # set by the worker before run()
     frame: int | None = None
@@ -202,17 +204,14 @@ class Node:
             default = "required" if p.default is REQUIRED else repr(p.default)
             lines.append(f"  {name}: {p.describe_type()} = {default}" + (f" ({'; '.join(extra)})" if extra else "") + (f"  {p.doc}" if p.doc else ""))
         if cls.kernels:
-            lines.append("kernels: " + ", ".join(cls.kernels))
+            lines.append("kernels: " + ", ".join(Path(k).name for k in cls.kernels))
         return "\n".join(lines)
 
 
-def _import_all(package: str) -> list[str]:
+def _import_all(package) -> list[str]:
+    """Import every module below ``package`` (a module object); one problem string per failure."""
     problems = []
-    try:
-        pkg = importlib.import_module(package)
-    except ImportError as exc:
-        return [f"cannot import package '{package}': {exc}"]
-    for mod in pkgutil.walk_packages(pkg.__path__, prefix=package + "."):
+    for mod in pkgutil.walk_packages(package.__path__, prefix=package.__name__ + "."):
         try:
             importlib.import_module(mod.name)
         except Exception as exc:  # a broken node module must not hide the others
@@ -229,12 +228,18 @@ def registry() -> dict[str, type[Node]]:
     global _discovered
     if not _discovered:
         _discovered = True
-        _discovery_problems.extend(_import_all("nodes"))
-        for ep in metadata.entry_points(group=ENTRY_POINT_GROUP):
+        eps = metadata.entry_points(group=ENTRY_POINT_GROUP)
+        if not eps:
+            _discovery_problems.append(f"no node packages are registered in the '{ENTRY_POINT_GROUP}' entry-point group: "
+                                       "install volcap (pip install -e . in the checkout, or ./setup.sh)")
+        for ep in eps:
             try:
-                ep.load()
+                mod = ep.load()
             except Exception as exc:
-                _discovery_problems.append(f"cannot load node plugin '{ep.name}' ({ep.value}): {exc}")
+                _discovery_problems.append(f"cannot load node package '{ep.name}' ({ep.value}): {type(exc).__name__}: {exc}")
+                continue
+            if hasattr(mod, "__path__"):
+                _discovery_problems.extend(_import_all(mod))
         for p in _discovery_problems:
             logging.getLogger("volcap").warning(p)
     return dict(_REGISTRY)
@@ -255,27 +260,3 @@ def node_class(type_name: str, module: str | None = None) -> type[Node]:
         return _REGISTRY[type_name]
     except KeyError:
         raise VolcapError(f"unknown node type '{type_name}'") from None
-
-
-def implementation_sources(cls: type[Node]) -> dict[str, str]:
-    """Source texts that make up a node's implementation: its module, ``uses`` modules, its kernels and
-    the headers they ``#include "..."`` from kernels/ (recursively)."""
-    import re
-
-    from .clrt import kernel_path
-
-    out = {}
-    mods = [cls.__module__, *cls.uses]
-    for m in mods:
-        mod = importlib.import_module(m)
-        src = inspect.getsourcefile(mod)
-        out[f"py:{m}"] = Path(src).read_text() if src else ""
-    todo = list(cls.kernels)
-    while todo:
-        k = todo.pop()
-        if f"cl:{k}" in out:
-            continue
-        text = kernel_path(k).read_text()
-        out[f"cl:{k}"] = text
-        todo += re.findall(r'^\s*#\s*include\s+"([^"]+)"', text, re.M)
-    return out

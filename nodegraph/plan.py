@@ -5,7 +5,8 @@ The contract (what the scheduler, the cache and `explain` rely on):
 - Its spec is small, plain data (node type and module, params, input artifact references, key): it can be
   pickled to a process pool or a Dask cluster, never a live object.
 - Its key is the SHA-256 of: the key schema version, node type, node version, the implementation
-  fingerprint (the node's Python module, ``uses`` modules and OpenCL sources), the canonical params (input
+  fingerprint (nodegraph.fingerprint: the node's module, what it imports within the project's packages,
+  data files beside them, its OpenCL sources and their headers), the canonical params (input
   paths replaced by their content hash), the keys of its input artifacts, the
   frame number if the node ``uses_frame``, and the list of frames for a sequence node. Same key = same result, so an item whose key is in the cache is
   never rerun, and two items with the same key (a per-frame node fed only frame-independent data) run once.
@@ -16,7 +17,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from .graphfile import Graph
-from .hashing import KEY_SCHEMA, FileHasher, digest, implementation_fingerprint
+from .fingerprint import implementation_fingerprint
+from .hashing import KEY_SCHEMA, FileHasher, digest
 from .node import InPath
 
 

@@ -1,31 +1,25 @@
-"""Small PNG previews of cached node outputs, one drawer per port type (used by the run report).
+"""Small PNG previews of cached node outputs for the run report: the port type draws its value.
 
     preview("Masks", cache_dir / "masks", Path("masks.png"), companions={"Images": cache_dir / "images"})
 
-Each drawer reads the value with the type's own ``load(folder)`` and writes a PNG at most ``size`` pixels
-wide. ``companions`` (type name -> folder of a sibling output) lets a drawer combine values: masks are
-overlaid on the images of the same frame, a skeleton is drawn over its mesh, cameras with their bounds, and
-3-D views are oriented by the cameras (world up = the cameras' mean image-up direction, first view from
-camera 0). 3-D surfaces are rendered with VTK (pyvista, off-screen); when VTK cannot render here, or
-``VOLCAP_PREVIEW_NO_VTK=1``, they fall back to matplotlib orthographic projections so a report still works.
+The type named in the cache entry loads the value with its own ``load(folder)`` and draws it with its
+``preview(value, size, companions)``; the PNG is at most ``size`` pixels wide. ``companions`` (type name ->
+folder of a sibling output) lets a type combine values (masks over the images of the same frame, 3-D views
+oriented by the cameras). This module holds the drawing helpers the engine's own types use (tables, arrays,
+files) and that stage packages may reuse (matplotlib figures, text, PNG writing).
 """
 from __future__ import annotations
 
-import json
-import math
-import os
 from pathlib import Path
 
 import numpy as np
 
 from .errors import DataError
-from .types import ALL_TYPES
+from .types import type_named
 
 MAX_WIDTH = 640
-_vtk_state: dict = {}
 
 
-# ---------------------------------------------------------------- entry points
 def preview(type_name: str, folder: Path, out_png: Path, size: int = 480, companions: dict | None = None) -> Path | None:
     """Draw the value stored in ``folder`` (a cache output port folder of type ``type_name``) to ``out_png``.
 
@@ -34,10 +28,9 @@ def preview(type_name: str, folder: Path, out_png: Path, size: int = 480, compan
     """
     size = int(min(max(size, 64), MAX_WIDTH))
     folder, out_png = Path(folder), Path(out_png)
-    dtype = ALL_TYPES.get(type_name)
-    drawer = _DRAWERS.get(type_name)
-    if dtype is None or drawer is None:
-        raise DataError(f"{folder}: no preview for data type '{type_name}'")
+    dtype = type_named(type_name)
+    if dtype is None:
+        raise DataError(f"{folder}: no preview for data type '{type_name}' (its stage package is not installed here)")
     companions = {k: Path(v) for k, v in (companions or {}).items() if v is not None and Path(v).is_dir()}
     try:
         value = dtype.load(folder)
@@ -46,307 +39,23 @@ def preview(type_name: str, folder: Path, out_png: Path, size: int = 480, compan
     except Exception as exc:
         raise DataError(f"{folder}: cannot read {type_name} for a preview ({type(exc).__name__}: {exc})") from None
     out_png.parent.mkdir(parents=True, exist_ok=True)
-    img = drawer(value, size, companions)
+    img = dtype.preview(value, size, companions)
     if img is None:
         return None
-    _write_png(out_png, img)
+    write_png(out_png, img)
     return out_png
 
 
-def guess_type(folder: Path) -> str | None:
-    """The port type of a cache output folder from its on-disk form (for nodes whose class is not importable)."""
-    folder = Path(folder)
-    names = {p.name for p in folder.iterdir()} if folder.is_dir() else set()
-    for fname, tname in (("volume.npz", "Volume"), ("mesh.glb", "TexturedMesh"), ("mesh.ply", "Mesh"),
-                         ("cameras.json", "Cameras"), ("bounds.json", "Bounds"), ("table.json", "Table"),
-                         ("skeleton.json", "Skeleton"), ("sequence.json", "MeshSequence"), ("array.npy", "Array"),
-                         ("files", "Files")):
-        if fname in names:
-            return tname
-    if "names.json" in names:
-        meta = json.loads((folder / "names.json").read_text())
-        return "Masks" if isinstance(meta, dict) else "Images"
-    return None
-
-
-def vtk_available() -> bool:
-    """Whether VTK can render off-screen here (checked once per process)."""
-    if os.environ.get("VOLCAP_PREVIEW_NO_VTK") == "1":
-        return False
-    if "ok" not in _vtk_state:
-        try:
-            pv = _pyvista()
-            p = pv.Plotter(off_screen=True, window_size=(32, 32))
-            p.add_mesh(pv.Sphere())
-            ok = p.screenshot(return_img=True).shape[:2] == (32, 32)
-            p.close()
-        except Exception:  # no OpenGL/EGL/OSMesa: fall back to matplotlib
-            ok = False
-        _vtk_state["ok"] = ok
-    return _vtk_state["ok"]
-
-
-# ---------------------------------------------------------------- 2-D: images and masks
-def draw_images(value, size, companions):
-    return contact_sheet(value.images, value.names, size)
-
-
-def draw_masks(value, size, companions):
-    images = _load_companion("Images", companions)
-    if images is not None and len(images) == len(value):
-        return contact_sheet([_overlay(im, m) for im, m in zip(images.images, value.masks)], value.names, size)
-    return contact_sheet([np.repeat(m[:, :, None], 3, axis=2) for m in value.masks], value.names, size)
-
-
-def contact_sheet(tiles: list[np.ndarray], names: list[str], width: int) -> np.ndarray:
-    """RGB uint8 tiles on a grid (ceil(sqrt(n)) columns) with their names, ``width`` pixels wide."""
-    import cv2
-
-    n = max(len(tiles), 1)
-    cols = math.ceil(math.sqrt(n))
-    rows = math.ceil(n / cols)
-    tw = max(width // cols, 8)
-    aspect = max((t.shape[0] / t.shape[1] for t in tiles), default=0.75)
-    th = max(int(round(tw * aspect)), 8)
-    sheet = np.full((rows * th, cols * tw, 3), 32, np.uint8)
-    for i, (tile, name) in enumerate(zip(tiles, names)):
-        r, c = divmod(i, cols)
-        scale = min(tw / tile.shape[1], th / tile.shape[0])
-        w, h = max(int(tile.shape[1] * scale), 1), max(int(tile.shape[0] * scale), 1)
-        small = cv2.resize(tile, (w, h), interpolation=cv2.INTER_AREA)
-        sheet[r * th:r * th + h, c * tw:c * tw + w] = small
-        if tw >= 48:
-            cv2.putText(sheet, str(name), (c * tw + 3, r * th + 12), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (255, 255, 0), 1, cv2.LINE_AA)
-    return sheet
-
-
-def _overlay(img: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """The image with its background darkened and the silhouette outline in red."""
-    import cv2
-
-    if mask.shape[:2] != img.shape[:2]:
-        mask = cv2.resize(mask, (img.shape[1], img.shape[0]), interpolation=cv2.INTER_NEAREST)
-    fg = mask > 127
-    out = img.copy()
-    out[~fg] = (out[~fg] * 0.35).astype(np.uint8)
-    contours, _ = cv2.findContours(fg.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
-    cv2.drawContours(out, contours, -1, (255, 40, 40), max(1, img.shape[1] // 200))
-    return out
-
-
-# ---------------------------------------------------------------- 3-D: volumes, meshes, skeletons
-def draw_volume(value, size, companions):
-    occ = np.asarray(value.occupancy, dtype=np.float32)
-    if not np.any(occ > 0.5):
-        return _text_image([f"empty volume {occ.shape}"], size)
-    up, front = _orientation(companions)
-    if vtk_available():
-        pv = _pyvista()
-        grid = pv.ImageData(dimensions=np.array(occ.shape) + 2, spacing=value.voxel_size,
-                            origin=value.bbox_min - 0.5 * value.voxel_size)
-        grid.point_data["occ"] = np.pad(occ, 1).ravel(order="F")
-        surf = grid.contour([0.5], scalars="occ", method="flying_edges")
-        return _render_vtk([(surf, {"color": "#d9b38c"})], size, up, front)
-    return _projections(value.centers()[occ > 0.5], size, up)
-
-
-def draw_mesh(value, size, companions):
-    if len(value.faces) == 0:
+def load_companion(type_name: str, companions: dict):
+    """The value of a companion output of type ``type_name``, or None (absent or unreadable)."""
+    folder = companions.get(type_name)
+    dtype = type_named(type_name)
+    if folder is None or dtype is None:
         return None
-    up, front = _orientation(companions)
-    if vtk_available():
-        return _render_vtk([_vtk_mesh(value)], size, up, front)
-    return _projections(np.asarray(value.vertices), size, up)
-
-
-def draw_mesh_sequence(value, size, companions):
-    if not value:
-        return None
-    picks = sorted(set(np.linspace(0, len(value) - 1, min(4, len(value))).round().astype(int)))
-    up, front = _orientation(companions)
-    if not vtk_available():
-        return _projections(np.concatenate([np.asarray(value[i].vertices) for i in picks]), size, up)
-    pv = _pyvista()
-    p = pv.Plotter(off_screen=True, window_size=(size, max(size // len(picks), 96)), shape=(1, len(picks)), border=False)
-    for col, i in enumerate(picks):
-        p.subplot(0, col)
-        mesh, kw = _vtk_mesh(value[i])
-        p.add_mesh(mesh, **kw)
-        p.add_text(f"#{i}", font_size=8, color="white")
-        _place_camera(p, value[i].bounds, up, front)
-    return _screenshot(p)
-
-
-def draw_skeleton(value, size, companions):
-    joints = np.asarray(value.joints, dtype=np.float64).reshape(-1, 3)
-    bones = [(j, int(pj)) for j, pj in enumerate(value.parents) if pj >= 0]
-    mesh = _load_companion("Mesh", companions) or _load_companion("TexturedMesh", companions)
-    up, front = _orientation(companions)
-    if not vtk_available():
-        return _projections(joints, size, up, segments=bones)
-    pv = _pyvista()
-    extent = np.ptp(np.vstack([joints, mesh.vertices]) if mesh is not None else joints, axis=0).max() or 1.0
-    items = []
-    if mesh is not None:
-        items.append((_vtk_mesh(mesh)[0], {"color": "#aaaaaa", "opacity": 0.12}))
-    items.append((pv.PolyData(joints).glyph(geom=pv.Sphere(radius=0.03 * extent), scale=False, orient=False), {"color": "#e03030"}))
-    if bones:
-        lines = np.hstack([[2, a, b] for a, b in bones])
-        items.append((pv.PolyData(joints, lines=lines).tube(radius=0.01 * extent), {"color": "#3070e0"}))
-    return _render_vtk(items, size, up, front)
-
-
-def _vtk_mesh(mesh):
-    """(pyvista PolyData, add_mesh kwargs): textured when the mesh has UVs and an image, else vertex colours."""
-    pv = _pyvista()
-    faces = np.hstack([np.full((len(mesh.faces), 1), 3), mesh.faces]).astype(np.int64).ravel()
-    poly = pv.PolyData(np.asarray(mesh.vertices, dtype=np.float64), faces)
-    visual = mesh.visual
-    if getattr(visual, "kind", None) == "texture" and visual.uv is not None:
-        mat = visual.material
-        image = getattr(mat, "baseColorTexture", None) or getattr(mat, "image", None)
-        if image is not None:
-            poly.active_texture_coordinates = np.asarray(visual.uv, dtype=np.float32)
-            return poly, {"texture": pv.Texture(np.asarray(image.convert("RGB"))), "smooth_shading": True}
-    if getattr(visual, "kind", None) == "vertex":
-        poly.point_data["rgb"] = np.asarray(visual.vertex_colors)[:, :3]
-        return poly, {"scalars": "rgb", "rgb": True, "smooth_shading": True}
-    return poly, {"color": "#d9b38c", "smooth_shading": True}
-
-
-def _render_vtk(items, size, up, front) -> np.ndarray:
-    """Two views side by side: from ``front`` and rotated 90 degrees about ``up``."""
-    pv = _pyvista()
-    p = pv.Plotter(off_screen=True, window_size=(size, size // 2), shape=(1, 2), border=False)
-    side = np.cross(up, front)
-    bounds = _bounds_of([mesh for mesh, _ in items])
-    for col, direction in enumerate((front, side)):
-        p.subplot(0, col)
-        for mesh, kw in items:
-            p.add_mesh(mesh, **kw)
-        _place_camera(p, bounds, up, direction)
-    return _screenshot(p)
-
-
-def _bounds_of(meshes) -> np.ndarray:
-    """[min, max] of pyvista meshes (VTK bounds are xmin xmax ymin ymax zmin zmax)."""
-    b = np.array([m.bounds for m in meshes if m.n_points], dtype=np.float64).reshape(-1, 6)
-    return np.array([b[:, 0::2].min(axis=0), b[:, 1::2].max(axis=0)])
-
-
-def _place_camera(p, bounds, up, direction):
-    """Look at the box ``bounds`` ((2, 3) [min, max]) from ``direction`` (slightly above), ``up`` vertical."""
-    lo, hi = np.asarray(bounds, dtype=np.float64).reshape(2, 3)
-    centre, radius = (lo + hi) / 2, max(np.linalg.norm(hi - lo) / 2, 1e-9)
-    view = direction / np.linalg.norm(direction) + 0.25 * up
-    view /= np.linalg.norm(view)
-    p.camera_position = [tuple(centre + view * radius * 3.2), tuple(centre), tuple(up)]
-    p.camera.view_angle = 36.0
-    p.set_background("#202020")
-
-
-def _screenshot(p) -> np.ndarray:
     try:
-        return np.asarray(p.screenshot(return_img=True))[:, :, :3].copy()
-    finally:
-        p.close()
-
-
-def _orientation(companions) -> tuple[np.ndarray, np.ndarray]:
-    """(world up, view direction from the object towards the viewer), from companion cameras if any."""
-    cams = _load_companion("Cameras", companions)
-    if cams is None or len(cams) == 0:
-        return np.array([0.0, 0.0, 1.0]), np.array([0.0, -1.0, 0.0])
-    ups = []
-    for cam in cams:
-        m1, m3 = cam.P[1, :3], cam.P[2, :3]
-        image_down = m1 - (m1 @ m3) / (m3 @ m3) * m3  # the image y axis in world terms (works for bare P too)
-        ups.append(-image_down / np.linalg.norm(image_down))
-    up = np.mean(ups, axis=0)
-    up = up / np.linalg.norm(up) if np.linalg.norm(up) > 1e-6 else ups[0]
-    centres = cams.centers
-    front = centres[0] - centres.mean(axis=0) if len(cams) > 1 else centres[0]
-    front = front - (front @ up) * up
-    if np.linalg.norm(front) < 1e-9:
-        front = np.cross(up, [1.0, 0, 0]) if abs(up[0]) < 0.9 else np.cross(up, [0, 1.0, 0])
-    return up, front / np.linalg.norm(front)
-
-
-def _projections(points: np.ndarray, size: int, up: np.ndarray, segments=()) -> np.ndarray:
-    """Fallback without VTK: orthographic point-density projections onto the three axis planes."""
-    fig, canvas = _figure(size, size // 3)
-    names = "xyz"
-    for k, (a, b) in enumerate(((0, 1), (0, 2), (1, 2))):
-        ax = fig.add_subplot(1, 3, k + 1)
-        if len(points):
-            bins = [min(64, len(np.unique(points[:, a]))), min(64, len(np.unique(points[:, b])))]
-            ax.hist2d(points[:, a], points[:, b], bins=bins, cmap="magma", cmin=1)
-            for i, j in segments:
-                ax.plot(points[[i, j], a], points[[i, j], b], color="#3070e0", lw=1)
-        ax.set_aspect("equal", adjustable="datalim")
-        ax.set_xlabel(names[a], fontsize=7)
-        ax.set_ylabel(names[b], fontsize=7)
-        ax.tick_params(labelsize=6)
-        if up[b] < -0.5:  # keep world up pointing up on the page
-            ax.invert_yaxis()
-    fig.tight_layout()
-    return _render_figure(fig, canvas)
-
-
-# ---------------------------------------------------------------- cameras and bounds
-def draw_cameras(value, size, companions):
-    bounds = _load_companion("Bounds", companions)
-    return _cameras_figure(value, bounds, size)
-
-
-def draw_bounds(value, size, companions):
-    return _cameras_figure(_load_companion("Cameras", companions), value, size)
-
-
-def _cameras_figure(cams, bounds, size) -> np.ndarray:
-    """Camera centres, frusta (image corners back-projected) and the box, in a matplotlib 3-D view."""
-    fig, canvas = _figure(size, int(size * 0.75))
-    ax = fig.add_subplot(1, 1, 1, projection="3d")
-    pts = []
-    if bounds is not None:
-        lo, hi = np.asarray(bounds)
-        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-        for i in range(8):
-            for j in range(i + 1, 8):
-                if np.sum(corners[i] != corners[j]) == 1:
-                    ax.plot(*corners[[i, j]].T, color="#2a9d2a", lw=1)
-        pts.append(corners)
-    if cams is not None and len(cams):
-        centres = cams.centers
-        target = (np.asarray(bounds).mean(axis=0) if bounds is not None else centres.mean(axis=0))
-        depth = 0.35 * max(np.median(np.linalg.norm(centres - target, axis=1)), 1e-9)
-        for cam, c in zip(cams, centres):
-            M = cam.P[:, :3]
-            uv = np.array([[0, 0, 1], [cam.width, 0, 1], [cam.width, cam.height, 1], [0, cam.height, 1]], float)
-            rays = np.linalg.solve(M, uv.T).T
-            rays *= depth / np.linalg.norm(rays, axis=1, keepdims=True)
-            if np.dot(rays.mean(axis=0), target - c) < 0:  # sign-ambiguous bare P: point the frustum at the scene
-                rays = -rays
-            far = c + rays
-            for k in range(4):
-                ax.plot(*np.array([c, far[k]]).T, color="#4060c0", lw=0.6)
-                ax.plot(*np.array([far[k], far[(k + 1) % 4]]).T, color="#4060c0", lw=0.6)
-            pts.append(far)
-        ax.scatter(*centres.T, color="#c03030", s=6)
-        for cam, c in zip(cams, centres):
-            ax.text(*c, cam.name, fontsize=5, color="#603030")
-        pts.append(centres)
-    if pts:
-        allp = np.vstack(pts)
-        mid, half = (allp.max(0) + allp.min(0)) / 2, np.ptp(allp, axis=0).max() / 2 or 1.0
-        ax.set_xlim(mid[0] - half, mid[0] + half)
-        ax.set_ylim(mid[1] - half, mid[1] + half)
-        ax.set_zlim(mid[2] - half, mid[2] + half)
-    ax.tick_params(labelsize=5)
-    ax.set_xlabel("x", fontsize=7)
-    ax.set_ylabel("y", fontsize=7)
-    ax.set_zlabel("z", fontsize=7)
-    return _render_figure(fig, canvas)
+        return dtype.load(folder)
+    except Exception:  # a companion only decorates the preview; an unreadable one is left out
+        return None
 
 
 # ---------------------------------------------------------------- tables, arrays, files
@@ -383,13 +92,13 @@ def record_labels(table: dict, key: str) -> list[str] | None:
     return None
 
 
-def draw_table(value, size, companions):
+def draw_table(value, size):
     """Bar charts of the table's numeric lists (e.g. per-view IoU), else of its numeric scalars."""
     scalars, lists = numeric_series(value)
     panels = list(lists.items())[:3] or ([("values", list(scalars.values()))] if scalars else [])
     if not panels:
         return None
-    fig, canvas = _figure(size, 160 * len(panels) + 30)
+    fig, canvas = figure(size, 160 * len(panels) + 30)
     for k, (name, vals) in enumerate(panels):
         ax = fig.add_subplot(len(panels), 1, k + 1)
         ax.bar(range(len(vals)), vals, color="#4a7fc0")
@@ -401,17 +110,17 @@ def draw_table(value, size, companions):
         if name == "values":
             ax.set_xticks(range(len(vals)), list(scalars), rotation=30, ha="right", fontsize=6)
     fig.tight_layout()
-    return _render_figure(fig, canvas)
+    return render_figure(fig, canvas)
 
 
-def draw_array(value, size, companions):
+def draw_array(value, size):
     a = np.asarray(value)
     if a.size == 0:
-        return _text_image([f"empty array {a.shape}"], size)
+        return text_image([f"empty array {a.shape}"], size)
     if not np.issubdtype(a.dtype, np.number) and a.dtype != bool:
-        return _text_image([f"array {a.shape} {a.dtype}"], size)
+        return text_image([f"array {a.shape} {a.dtype}"], size)
     a = a.astype(np.float64)
-    fig, canvas = _figure(size, int(size * 0.5))
+    fig, canvas = figure(size, int(size * 0.5))
     ax = fig.add_subplot(1, 1, 1)
     if a.ndim <= 1:
         ax.plot(a.ravel(), marker="." if a.size <= 64 else None)
@@ -422,35 +131,18 @@ def draw_array(value, size, companions):
     ax.set_title(f"array {np.asarray(value).shape} {np.asarray(value).dtype}", fontsize=8)
     ax.tick_params(labelsize=6)
     fig.tight_layout()
-    return _render_figure(fig, canvas)
+    return render_figure(fig, canvas)
 
 
-def draw_files(value, size, companions):
+def draw_files(value, size):
     lines = [f"{name}  ({len(data):,} bytes)" for name, data in sorted(value.items())] or ["(no files)"]
     if len(lines) > 24:
         lines = lines[:23] + [f"... and {len(lines) - 23} more"]
-    return _text_image(lines, size)
+    return text_image(lines, size)
 
 
-# ---------------------------------------------------------------- helpers
-def _load_companion(type_name: str, companions: dict):
-    folder = companions.get(type_name)
-    if folder is None:
-        return None
-    try:
-        return ALL_TYPES[type_name].load(folder)
-    except Exception:  # a companion only decorates the preview; an unreadable one is left out
-        return None
-
-
-def _pyvista():
-    os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
-    import pyvista
-
-    return pyvista
-
-
-def _figure(width: int, height: int):
+# ---------------------------------------------------------------- drawing helpers
+def figure(width: int, height: int):
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -459,12 +151,12 @@ def _figure(width: int, height: int):
     return fig, FigureCanvasAgg(fig)
 
 
-def _render_figure(fig, canvas) -> np.ndarray:
+def render_figure(fig, canvas) -> np.ndarray:
     canvas.draw()
     return np.asarray(canvas.buffer_rgba())[:, :, :3].copy()
 
 
-def _text_image(lines: list[str], width: int) -> np.ndarray:
+def text_image(lines: list[str], width: int) -> np.ndarray:
     import cv2
 
     img = np.full((16 * len(lines) + 8, width, 3), 250, np.uint8)
@@ -473,7 +165,7 @@ def _text_image(lines: list[str], width: int) -> np.ndarray:
     return img
 
 
-def _write_png(path: Path, rgb: np.ndarray):
+def write_png(path: Path, rgb: np.ndarray):
     import cv2
 
     if rgb.shape[1] > MAX_WIDTH:
@@ -481,10 +173,3 @@ def _write_png(path: Path, rgb: np.ndarray):
         rgb = cv2.resize(rgb, (MAX_WIDTH, max(h, 1)), interpolation=cv2.INTER_AREA)
     if not cv2.imwrite(str(path), np.ascontiguousarray(rgb[:, :, ::-1]), [cv2.IMWRITE_PNG_COMPRESSION, 6]):
         raise DataError(f"{path}: could not write preview PNG")
-
-
-_DRAWERS = {
-    "Images": draw_images, "Masks": draw_masks, "Volume": draw_volume, "Mesh": draw_mesh,
-    "TexturedMesh": draw_mesh, "MeshSequence": draw_mesh_sequence, "Skeleton": draw_skeleton,
-    "Cameras": draw_cameras, "Bounds": draw_bounds, "Table": draw_table, "Array": draw_array, "Files": draw_files,
-}

@@ -19,7 +19,7 @@ import networkx as nx
 import numpy as np
 
 from .errors import DataError, VolcapError
-from .preview import MAX_WIDTH, guess_type, numeric_series, preview
+from .preview import MAX_WIDTH, numeric_series, preview
 
 MAX_PREVIEW_FRAMES = 8
 STATUS_COLOURS = {"done": "#7ac27a", "cached": "#8fb8e0", "failed": "#e07070", "skipped": "#c8c8c8"}
@@ -157,15 +157,18 @@ def draw_graph(dag: nx.DiGraph, status: dict, out_png: Path) -> Path:
 
 # ---------------------------------------------------------------- per node
 def output_types(type_name: str, cache_dir: Path) -> dict[str, str]:
-    """Output port -> type name: from the node's declaration, or from the on-disk form when the node type
-    cannot be imported here (e.g. a plugin that is not installed)."""
+    """Output port -> type name: from the node's declaration, or from the cache entry's record when the node
+    type cannot be imported here (e.g. a plugin that is not installed)."""
     try:
         from .node import node_class
 
         cls = node_class(type_name)
         return {port: out.type.name for port, out in cls.outputs.items()}
     except (VolcapError, ImportError):
-        return {p.name: t for p in sorted(cache_dir.iterdir()) if p.is_dir() and (t := guess_type(p))}
+        try:
+            return dict(json.loads((cache_dir / "meta.json").read_text()).get("types", {}))
+        except (OSError, ValueError, AttributeError):
+            return {}
 
 
 def sample_frames(recs: list[dict], limit: int = MAX_PREVIEW_FRAMES) -> list[dict]:

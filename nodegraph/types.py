@@ -1,66 +1,36 @@
 """Port types: the data that flows along graph edges, and its on-disk form in the cache.
 
-Every type is a class with three class methods:
+Every type is a class with these class methods:
     check(value) -> None | str      what is wrong with a value a node returned (None when fine)
     save(value, folder)             write the value into an empty folder (files other tools read)
     load(folder) -> value           read it back
+    preview(value, size, companions) -> RGB uint8 image or None   a picture for the run report
 Type compatibility along an edge is subclassing: a TexturedMesh output may feed a Mesh input.
 
-On-disk forms: images/masks as PNG (soft alpha as EXR), cameras as JSON, volumes as .npz,
-meshes as PLY, textured meshes as GLB, skeletons as JSON (+ .npy weights), tables as JSON.
+The engine defines the base class and the domain-free types (tables, arrays, files). Stage packages
+define theirs (images, meshes, cameras ... in nodes.common.types); every subclass with a ``name``
+registers itself, so the report finds a type by the name recorded in a cache entry.
 """
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
 
-from .cameras import Cameras
-from .errors import DataError
-
-
-def _imread(path: Path, flags: int):
-    import cv2
-
-    img = cv2.imread(str(path), flags)
-    if img is None:
-        raise DataError(f"{path}: unreadable or corrupt image")
-    return img
-
-
-def _imwrite(path: Path, img: np.ndarray):
-    import cv2
-
-    params = [cv2.IMWRITE_PNG_COMPRESSION, 1] if path.suffix == ".png" else []
-    if not cv2.imwrite(str(path), img, params):
-        raise DataError(f"{path}: could not write image")
-
-
-def write_exr(path: Path, arr: np.ndarray, channel: str = "A"):
-    import OpenEXR
-
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    with OpenEXR.File(header, {channel: np.ascontiguousarray(arr, dtype=np.float32)}) as f:
-        f.write(str(path))
-
-
-def read_exr(path: Path, channel: str = "A") -> np.ndarray:
-    import OpenEXR
-
-    try:
-        with OpenEXR.File(str(path)) as f:
-            return np.array(f.channels()[channel].pixels, dtype=np.float32)
-    except Exception as exc:  # OpenEXR raises plain exceptions for corrupt files
-        raise DataError(f"{path}: unreadable EXR ({exc})") from None
+_TYPES: dict[str, type["DataType"]] = {}
 
 
 class DataType:
     """Base of all port types."""
 
     name: ClassVar[str] = "Data"
+
+    def __init_subclass__(cls, **kw):
+        super().__init_subclass__(**kw)
+        if "name" in cls.__dict__:
+            _TYPES[cls.name] = cls
 
     @classmethod
     def check(cls, value) -> str | None:
@@ -78,253 +48,20 @@ class DataType:
     def files(cls, folder: Path) -> list[Path]:
         return sorted(p for p in folder.rglob("*") if p.is_file())
 
-
-# ---------------------------------------------------------------- values
-@dataclass
-class ImageSet:
-    """One frame of a capture: an RGB uint8 image (H, W, 3) per camera, in camera order."""
-
-    images: list[np.ndarray]
-    names: list[str] = field(default_factory=list)
-
-    def __post_init__(self):
-        if not self.names:
-            self.names = [f"cam{i:03d}" for i in range(len(self.images))]
-
-    def __len__(self):
-        return len(self.images)
-
-
-@dataclass
-class MaskSet:
-    """Silhouettes per camera: binary uint8 masks (0 / 255) and optional soft alpha (float32 0..1)."""
-
-    masks: list[np.ndarray]
-    alpha: list[np.ndarray] | None = None
-    names: list[str] = field(default_factory=list)
-
-    def __post_init__(self):
-        if not self.names:
-            self.names = [f"cam{i:03d}" for i in range(len(self.masks))]
-
-    def __len__(self):
-        return len(self.masks)
-
-
-@dataclass
-class VoxelGrid:
-    """A regular voxel grid over an axis-aligned box. ``occupancy[i, j, k]`` is the voxel whose centre is
-    bbox_min + (i + 0.5, j + 0.5, k + 0.5) * voxel_size. uint8 (0/1) or float32 (soft, 0..1)."""
-
-    occupancy: np.ndarray
-    bbox_min: np.ndarray
-    bbox_max: np.ndarray
-    colors: np.ndarray | None = None  # (nx, ny, nz, 3) uint8, optional
-
-    def __post_init__(self):
-        self.bbox_min = np.asarray(self.bbox_min, dtype=np.float64).reshape(3)
-        self.bbox_max = np.asarray(self.bbox_max, dtype=np.float64).reshape(3)
-
-    @property
-    def voxel_size(self) -> np.ndarray:
-        return (self.bbox_max - self.bbox_min) / np.array(self.occupancy.shape[:3])
-
-    def centers(self) -> np.ndarray:
-        """World coordinates of all voxel centres, (nx, ny, nz, 3)."""
-        axes = [self.bbox_min[a] + (np.arange(n) + 0.5) * self.voxel_size[a] for a, n in enumerate(self.occupancy.shape[:3])]
-        return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
-
-
-@dataclass
-class SkeletonData:
-    """A joint tree: joint positions (J, 3), parent index per joint (-1 for the root), optional LBS
-    weights (V, J) for a mesh's vertices."""
-
-    joints: np.ndarray
-    parents: list[int]
-    names: list[str] = field(default_factory=list)
-    weights: np.ndarray | None = None
-
-
-# ---------------------------------------------------------------- types
-class Images(DataType):
-    name = "Images"
-
     @classmethod
-    def check(cls, v):
-        if not isinstance(v, ImageSet):
-            return f"expected an ImageSet, got {type(v).__name__}"
-        for i, im in enumerate(v.images):
-            if not (isinstance(im, np.ndarray) and im.dtype == np.uint8 and im.ndim == 3 and im.shape[2] == 3):
-                return f"image {i} must be an (H, W, 3) uint8 array"
+    def preview(cls, value, size: int, companions: dict) -> np.ndarray | None:
+        """An RGB uint8 picture of ``value`` at most ``size`` pixels wide, or None (nothing to draw).
+        ``companions``: type name -> folder of a sibling output of the same work item or frame (a drawer
+        may combine values, e.g. masks over their images)."""
         return None
 
-    @classmethod
-    def save(cls, v: ImageSet, folder: Path):
-        for name, im in zip(v.names, v.images):
-            _imwrite(folder / f"{name}.png", im[:, :, ::-1])
-        (folder / "names.json").write_text(json.dumps(v.names))
 
-    @classmethod
-    def load(cls, folder: Path) -> ImageSet:
-        import cv2
-
-        names = json.loads((folder / "names.json").read_text())
-        return ImageSet([np.ascontiguousarray(_imread(folder / f"{n}.png", cv2.IMREAD_COLOR)[:, :, ::-1]) for n in names], names)
+def type_named(name: str) -> type[DataType] | None:
+    """The registered port type called ``name`` (types register when their module is imported)."""
+    return _TYPES.get(name)
 
 
-class Masks(DataType):
-    name = "Masks"
-
-    @classmethod
-    def check(cls, v):
-        if not isinstance(v, MaskSet):
-            return f"expected a MaskSet, got {type(v).__name__}"
-        for i, m in enumerate(v.masks):
-            if not (isinstance(m, np.ndarray) and m.dtype == np.uint8 and m.ndim == 2):
-                return f"mask {i} must be an (H, W) uint8 array"
-        if v.alpha is not None and len(v.alpha) != len(v.masks):
-            return "alpha must have one image per mask"
-        return None
-
-    @classmethod
-    def save(cls, v: MaskSet, folder: Path):
-        for i, (name, m) in enumerate(zip(v.names, v.masks)):
-            _imwrite(folder / f"{name}.png", m)
-            if v.alpha is not None:
-                write_exr(folder / f"{name}.alpha.exr", v.alpha[i])
-        (folder / "names.json").write_text(json.dumps({"names": v.names, "alpha": v.alpha is not None}))
-
-    @classmethod
-    def load(cls, folder: Path) -> MaskSet:
-        import cv2
-
-        meta = json.loads((folder / "names.json").read_text())
-        names = meta["names"]
-        masks = [_imread(folder / f"{n}.png", cv2.IMREAD_GRAYSCALE) for n in names]
-        alpha = [read_exr(folder / f"{n}.alpha.exr") for n in names] if meta["alpha"] else None
-        return MaskSet(masks, alpha, names)
-
-
-class CameraSet(DataType):
-    name = "Cameras"
-
-    @classmethod
-    def check(cls, v):
-        return None if isinstance(v, Cameras) else f"expected Cameras, got {type(v).__name__}"
-
-    @classmethod
-    def save(cls, v: Cameras, folder: Path):
-        (folder / "cameras.json").write_text(v.to_json())
-
-    @classmethod
-    def load(cls, folder: Path) -> Cameras:
-        return Cameras.from_json((folder / "cameras.json").read_text())
-
-
-class Volume(DataType):
-    name = "Volume"
-
-    @classmethod
-    def check(cls, v):
-        if not isinstance(v, VoxelGrid):
-            return f"expected a VoxelGrid, got {type(v).__name__}"
-        if v.occupancy.ndim != 3:
-            return "occupancy must be a 3-D array"
-        return None
-
-    @classmethod
-    def save(cls, v: VoxelGrid, folder: Path):
-        arrays = {"occupancy": v.occupancy, "bbox_min": v.bbox_min, "bbox_max": v.bbox_max}
-        if v.colors is not None:
-            arrays["colors"] = v.colors
-        np.savez(folder / "volume.npz", **arrays)
-
-    @classmethod
-    def load(cls, folder: Path) -> VoxelGrid:
-        with np.load(folder / "volume.npz") as z:
-            return VoxelGrid(z["occupancy"], z["bbox_min"], z["bbox_max"], z["colors"] if "colors" in z else None)
-
-
-class Mesh(DataType):
-    """A triangle mesh (trimesh.Trimesh), stored as binary PLY (vertex order preserved)."""
-
-    name = "Mesh"
-    filename: ClassVar[str] = "mesh.ply"
-
-    @classmethod
-    def check(cls, v):
-        import trimesh
-
-        return None if isinstance(v, trimesh.Trimesh) else f"expected a trimesh.Trimesh, got {type(v).__name__}"
-
-    @classmethod
-    def save(cls, v, folder: Path):
-        v.export(folder / cls.filename)
-
-    @classmethod
-    def load(cls, folder: Path):
-        import trimesh
-
-        return trimesh.load(folder / cls.filename, process=False, force="mesh")
-
-
-class TexturedMesh(Mesh):
-    """A mesh with UVs and a texture image, stored as GLB."""
-
-    name = "TexturedMesh"
-    filename = "mesh.glb"
-
-
-class Skeleton(DataType):
-    name = "Skeleton"
-
-    @classmethod
-    def check(cls, v):
-        return None if isinstance(v, SkeletonData) else f"expected SkeletonData, got {type(v).__name__}"
-
-    @classmethod
-    def save(cls, v: SkeletonData, folder: Path):
-        doc = {"joints": np.asarray(v.joints).tolist(), "parents": list(map(int, v.parents)), "names": v.names}
-        (folder / "skeleton.json").write_text(json.dumps(doc, indent=1))
-        if v.weights is not None:
-            np.save(folder / "weights.npy", v.weights)
-
-    @classmethod
-    def load(cls, folder: Path) -> SkeletonData:
-        doc = json.loads((folder / "skeleton.json").read_text())
-        w = folder / "weights.npy"
-        return SkeletonData(np.array(doc["joints"]), doc["parents"], doc["names"], np.load(w) if w.exists() else None)
-
-
-class MeshSequence(DataType):
-    """Meshes over frames: a list of trimesh.Trimesh. A dynamic mesh (constant connectivity) is a sequence
-    whose meshes all share one face array; it is stored as one PLY per frame plus sequence.json."""
-
-    name = "MeshSequence"
-
-    @classmethod
-    def check(cls, v):
-        import trimesh
-
-        if not (isinstance(v, list) and all(isinstance(m, trimesh.Trimesh) for m in v)):
-            return "expected a list of trimesh.Trimesh"
-        return None
-
-    @classmethod
-    def save(cls, v, folder: Path):
-        for i, m in enumerate(v):
-            m.export(folder / f"frame_{i:05d}.ply")
-        (folder / "sequence.json").write_text(json.dumps({"count": len(v)}))
-
-    @classmethod
-    def load(cls, folder: Path):
-        import trimesh
-
-        n = json.loads((folder / "sequence.json").read_text())["count"]
-        return [trimesh.load(folder / f"frame_{i:05d}.ply", process=False, force="mesh") for i in range(n)]
-
-
+# ---------------------------------------------------------------- domain-free types
 class Table(DataType):
     """Metrics and reports: a JSON-serialisable dict."""
 
@@ -348,26 +85,11 @@ class Table(DataType):
     def load(cls, folder: Path):
         return json.loads((folder / "table.json").read_text())
 
-
-class Bounds(DataType):
-    """An axis-aligned box: float64 array [[xmin, ymin, zmin], [xmax, ymax, zmax]], stored as JSON."""
-
-    name = "Bounds"
-
     @classmethod
-    def check(cls, v):
-        if not (isinstance(v, np.ndarray) and v.shape == (2, 3) and np.all(np.isfinite(v)) and np.all(v[1] > v[0])):
-            return "expected a (2, 3) array [min, max] with max > min"
-        return None
+    def preview(cls, value, size, companions):
+        from .preview import draw_table
 
-    @classmethod
-    def save(cls, v, folder: Path):
-        (folder / "bounds.json").write_text(json.dumps({"min": v[0].tolist(), "max": v[1].tolist()}))
-
-    @classmethod
-    def load(cls, folder: Path):
-        d = json.loads((folder / "bounds.json").read_text())
-        return np.array([d["min"], d["max"]], dtype=np.float64)
+        return draw_table(value, size)
 
 
 class Array(DataType):
@@ -386,6 +108,12 @@ class Array(DataType):
     @classmethod
     def load(cls, folder: Path):
         return np.load(folder / "array.npy")
+
+    @classmethod
+    def preview(cls, value, size, companions):
+        from .preview import draw_array
+
+        return draw_array(value, size)
 
 
 class Files(DataType):
@@ -416,10 +144,11 @@ class Files(DataType):
         root = folder / "files"
         return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
 
+    @classmethod
+    def preview(cls, value, size, companions):
+        from .preview import draw_files
 
-ALL_TYPES: dict[str, type[DataType]] = {
-    t.name: t for t in (Images, Masks, CameraSet, Volume, Mesh, TexturedMesh, Skeleton, MeshSequence, Table, Bounds, Array, Files)
-}
+        return draw_files(value, size)
 
 
 def compatible(src: type[DataType], dst: type[DataType]) -> bool:

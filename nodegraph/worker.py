@@ -17,6 +17,29 @@ from .errors import DataError, NodeError, VolcapError
 from .node import node_class
 
 
+_STARTUP: list = []
+
+
+def on_worker_start(fn):
+    """Register ``fn()`` to run once in each worker process (pool or Dask) before its first item: node packages
+    use it to warm up what every item needs (an OpenCL context, library thread counts). Returns ``fn``."""
+    _STARTUP.append(fn)
+    return fn
+
+
+def start_worker():
+    """Import the node packages (they register their start-up hooks) and run the hooks; a failing hook is
+    left to the nodes that need it to report."""
+    from .node import registry
+
+    registry()
+    for fn in _STARTUP:
+        try:
+            fn()
+        except Exception:
+            pass
+
+
 class _Collector(logging.Handler):
     """Keeps the warnings a node logs, so the run summary and run.json can show them."""
 

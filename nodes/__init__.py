@@ -1,1 +1,3 @@
-"""Pipeline stages. Every module here is imported by the registry; each defines Node subclasses."""
+"""The built-in stages of volcap, one subpackage per stage family (capture, key, hull, mesh, eval, export,
+synth, ...) and ``common`` (domain code they share). Registered in the ``volcap.nodes`` entry-point group:
+the engine imports every module below this package and finds the Node subclasses."""

@@ -22,7 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from nodegraph import types as T
+from nodegraph import types as E
+from nodes.common import types as T
 
 GOLDEN_DIR = Path(__file__).parent / "golden"
 
@@ -32,7 +33,7 @@ class Golden:
         self.update = update
         self.rewritten = rewritten
 
-    def check(self, name: str, value, dtype: type[T.DataType], **tol):
+    def check(self, name: str, value, dtype: type[E.DataType], **tol):
         folder = GOLDEN_DIR / name
         if self.update:
             if folder.exists():
@@ -72,9 +73,9 @@ def compare(actual, expected, dtype, name, **tol):
         h = hausdorff(actual.vertices, expected.vertices)
         limit = tol.get("hausdorff", 1e-6)
         assert h <= limit, f"{name}: Hausdorff distance to golden {h:.3g} > {limit}"
-    elif issubclass(dtype, T.Table):
+    elif issubclass(dtype, E.Table):
         _compare_json(actual, expected, name, tol.get("rtol", 1e-6), tol.get("atol", 1e-9))
-    elif issubclass(dtype, T.Array):
+    elif issubclass(dtype, E.Array):
         np.testing.assert_allclose(actual, expected, rtol=tol.get("rtol", 1e-6), atol=tol.get("atol", 0), err_msg=name)
     elif issubclass(dtype, T.Images):
         for a, e in zip(actual.images, expected.images, strict=True):

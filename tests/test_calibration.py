@@ -6,10 +6,10 @@ import cv2
 import numpy as np
 import pytest
 
-from nodegraph.cameras import Camera, Cameras, look_at
+from nodes.common.cameras import Camera, Cameras, look_at
 from nodegraph.errors import DataError
-from nodes.bounds import auto_bounds, coarse_hull
-from nodes.calibration import camera_from_P, load_cameras, save_colmap, save_nerf
+from nodes.hull.bounds import auto_bounds, coarse_hull
+from nodes.common.calibration import camera_from_P, load_cameras, save_colmap, save_nerf
 
 W, H = 320, 240
 
@@ -357,7 +357,7 @@ DATASETS = {  # name: (silhouettes, max azimuth gap, occupied voxel range at 64^
 @pytest.mark.realdata
 @pytest.mark.parametrize("name", list(DATASETS))
 def test_real_dataset_calibration(name, data_dir):
-    from nodes.capture import load_capture
+    from nodes.capture.load import load_capture
 
     kind, max_gap, count = DATASETS[name]
     cap = load_capture(data_dir / name)

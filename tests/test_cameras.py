@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from nodegraph.cameras import Camera, Cameras, look_at, project_points_cl
+from nodes.common.cameras import Camera, Cameras, look_at, project_points_cl
 
 
 def ring(n, radius, height, target, width, height_px, fov=50.0, dist=None, name="c"):

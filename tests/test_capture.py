@@ -4,12 +4,12 @@ import cv2
 import numpy as np
 import pytest
 
-from nodegraph.cameras import Cameras, look_at
+from nodes.common.cameras import Cameras, look_at
 from nodegraph.errors import DataError, NodeError
 from nodegraph.testing import run_node
 from nodegraph.types import Table
-from nodes.calibration import save_colmap
-from nodes.capture import load_capture
+from nodes.common.calibration import save_colmap
+from nodes.capture.load import load_capture
 
 W, H = 64, 48
 CENTRE, RADIUS = np.array([0.2, -0.1, 0.5]), 0.6
@@ -140,7 +140,7 @@ def test_video_frames_and_star_patterns(tmp_path):
 
 def test_bounds_node_auto_and_explicit():
     cams = sphere_rig(6)
-    from nodegraph.types import MaskSet
+    from nodes.common.types import MaskSet
 
     masks = MaskSet([sphere_mask(cams, v) for v in range(len(cams))])
     b = run_node("bounds", {"masks": masks, "cameras": cams}, {"margin": 0.0}, roundtrip=True)["bounds"]
@@ -154,7 +154,7 @@ def test_bounds_node_auto_and_explicit():
     with pytest.raises(NodeError, match="do not intersect|fewer than two"):
         run_node("bounds", {"masks": MaskSet([np.zeros((H, W), np.uint8)] * 6), "cameras": cams})
     cropped = MaskSet([m if v != 4 else m[:, : W // 2] for v, m in enumerate(masks.masks)])
-    with pytest.raises(NodeError, match="mask of camera 4 'cam4' is 32x48 but the camera is 64x48"):
+    with pytest.raises(NodeError, match="bounds: mask of camera 'cam4' is 32x48 but the camera is 64x48"):
         run_node("bounds", {"masks": cropped, "cameras": cams})
 
 

@@ -174,31 +174,30 @@ def test_every_key_component_moves_the_key(tmp_path, monkeypatch):
     monkeypatch.setattr(enginenodes.Scale, "version", 1)
     assert keys(tmp_path, CHAIN) == base
     # the implementation (Python source and OpenCL kernels)
-    from nodegraph import clrt, node as nodemod
+    from nodegraph import fingerprint as nodemod
 
     kdir = tmp_path / "kernels"
     kdir.mkdir()
     (kdir / "t.cl").write_text("__kernel void f() {}\n")
-    monkeypatch.setattr(clrt, "KERNEL_DIR", kdir)
-    monkeypatch.setattr(enginenodes.Scale, "kernels", ["t.cl"])
-    hashing.implementation_fingerprint.cache_clear()
+    monkeypatch.setattr(enginenodes.Scale, "kernels", [kdir / "t.cl"])
+    nodemod.implementation_fingerprint.cache_clear()
     k1 = keys(tmp_path, CHAIN)
     (kdir / "t.cl").write_text('#include "t.h"\n__kernel void f() { /* changed */ }\n')
     (kdir / "t.h").write_text("#define T 1\n")
-    hashing.implementation_fingerprint.cache_clear()
+    nodemod.implementation_fingerprint.cache_clear()
     k2 = keys(tmp_path, CHAIN)
     assert k1[("scale", 0)] != k2[("scale", 0)] and k1[("src", 0)] == k2[("src", 0)]
     (kdir / "t.h").write_text("#define T 2\n")  # an included header is part of the implementation too
-    hashing.implementation_fingerprint.cache_clear()
+    nodemod.implementation_fingerprint.cache_clear()
     k2h = keys(tmp_path, CHAIN)
     assert k2h[("scale", 0)] != k2[("scale", 0)]
     (kdir / "t.h").write_text("#define T 1\n")
     real = nodemod.implementation_sources
     monkeypatch.setattr(nodemod, "implementation_sources", lambda cls: {**real(cls), "py:edit": "x"} if cls is enginenodes.Scale else real(cls))
-    hashing.implementation_fingerprint.cache_clear()
+    nodemod.implementation_fingerprint.cache_clear()
     k3 = keys(tmp_path, CHAIN)
     assert k3[("scale", 0)] != k2[("scale", 0)] and k3[("src", 0)] == k2[("src", 0)]
-    hashing.implementation_fingerprint.cache_clear()
+    nodemod.implementation_fingerprint.cache_clear()
 
 
 def test_input_files_hash_by_content_not_path(tmp_path):
@@ -517,7 +516,7 @@ def test_infinite_numbers_are_refused(tmp_path):
 
 def test_camera_rejects_bad_intrinsics():
     from nodegraph import DataError
-    from nodegraph.cameras import Camera
+    from nodes.common.cameras import Camera
 
     Rt = np.hstack([np.eye(3), [[0], [0], [5]]])
     with pytest.raises(DataError, match="camera 'c0': focal lengths fx=0, fy=500 must be positive"):

@@ -5,8 +5,10 @@ import trimesh
 
 from nodegraph.errors import NodeError
 from nodegraph.testing import run_node
-from nodegraph.types import MaskSet, Table
-from nodes import raster, synth
+from nodes.common.types import MaskSet
+from nodegraph.types import Table
+from nodes.common import raster
+from nodes.synth import render as synth
 
 
 @pytest.fixture(scope="module")
@@ -43,7 +45,7 @@ def test_silhouette_rejects_mismatched_masks(sphere_views):
     with pytest.raises(NodeError, match="2 masks for 3 cameras"):
         run_node("eval.silhouette", {"mesh": sphere, "cameras": cams, "masks": MaskSet(masks.masks[:2])})
     wrong = MaskSet([m[:-1] for m in masks.masks])
-    with pytest.raises(NodeError, match="camera 'cam000' is 96x72 but its mask is 96x71"):
+    with pytest.raises(NodeError, match="mask of camera 'cam000' is 96x71 but the camera is 96x72"):
         run_node("eval.silhouette", {"mesh": sphere, "cameras": cams, "masks": wrong})
 
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from nodegraph import Masks, MaskSet, Mesh, Volume, VoxelGrid
+from nodes.common.types import Masks, MaskSet, Mesh, Volume, VoxelGrid
 from nodegraph.testing import run_node
 
 

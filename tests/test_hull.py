@@ -7,11 +7,12 @@ import cv2
 import numpy as np
 import pytest
 
-from nodegraph import NodeError, Volume
-from nodegraph.cameras import Camera, Cameras, look_at
+from nodegraph import NodeError
+from nodes.common.types import Volume
+from nodes.common.cameras import Camera, Cameras, look_at
 from nodegraph.testing import run_node
-from nodegraph.types import MaskSet
-from nodes.hull import hull_grid, visual_hull
+from nodes.common.types import MaskSet
+from nodes.hull.hull import hull_grid, visual_hull
 
 BOX = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 CENTRE, RADIUS = np.array([0.1, -0.05, 0.0]), 0.6
@@ -195,10 +196,11 @@ def test_sparse_equals_dense_over_three_or_more_levels(res):
 def test_real_human_hull_mesh(data_dir, name, min_iou):
     import trimesh
 
-    from nodes.bounds import auto_bounds
-    from nodes.capture import load_capture
-    from nodes.eval import silhouette_report
-    from nodes.mc import largest_component, marching_cubes
+    from nodes.hull.bounds import auto_bounds
+    from nodes.capture.load import load_capture
+    from nodes.eval.metrics import silhouette_report
+    from nodes.common.meshops import largest_component
+    from nodes.mesh.mc import marching_cubes
 
     cap = load_capture(data_dir / name)
     masks, cams = cap["masks"], cap["cameras"]
@@ -215,7 +217,8 @@ def test_real_human_hull_mesh(data_dir, name, min_iou):
 
 def test_silhouette_bits_from_masks_hold_the_masks_and_their_block_tables():
     """HullCL.prepare: device bits unpack to the masks, the tables are the 8x8 block summed-area tables."""
-    from nodes.hull import SilhouetteBits, block_table_reference, hull_cl
+    from nodes.common.silhouettes import SilhouetteBits, block_table_reference
+    from nodes.hull.hull import hull_cl
 
     rng = np.random.default_rng(3)
     masks = [(rng.random((h, w)) < 0.4).astype(np.uint8) * rng.integers(128, 256, (h, w), dtype=np.uint8)

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from nodegraph.cameras import Cameras, look_at
+from nodes.common.cameras import Cameras, look_at
 from nodegraph.errors import NodeError
 from nodegraph.testing import run_node
-from nodegraph.types import ImageSet, Masks, MaskSet, VoxelGrid
-from nodes import key as K
+from nodes.common.types import ImageSet, Masks, MaskSet, VoxelGrid
+from nodes.key import keying as K
 
 GREEN = (40, 160, 60)
 
@@ -199,7 +199,8 @@ def test_chroma_key_bits_round_the_tie_like_the_alpha():
 
 def test_chroma_key_bits_equal_the_node_masks_and_give_the_same_hull():
     """Fused path (key -> device bits -> hull) == key.chroma node masks -> hull node, bit for bit."""
-    from nodes.hull import block_table_reference, visual_hull
+    from nodes.common.silhouettes import block_table_reference
+    from nodes.hull.hull import visual_hull
 
     cams = ring_rig(5, w=53, h=37)  # width not a multiple of 16, odd number of bit bytes per row
     bounds = np.array([[-0.7, -0.7, -0.7], [0.7, 0.7, 0.7]])
@@ -227,7 +228,7 @@ def test_chroma_key_bits_equal_the_node_masks_and_give_the_same_hull():
 
 
 def test_chroma_key_bits_reuses_its_buffers_and_checks_input():
-    from nodes.hull import visual_hull
+    from nodes.hull.hull import visual_hull
 
     cams = ring_rig(2, w=40, h=24)
     masks = [sphere_mask(cams, v) for v in range(2)]
@@ -390,7 +391,7 @@ def test_consensus_rejects_single_view_foreground():
 
 def test_consensus_checks_cameras():
     cams, _, keyed, volume = consensus_scene()
-    with pytest.raises(NodeError, match="6 masks but 5 cameras"):
+    with pytest.raises(NodeError, match="6 masks for 5 cameras"):
         run_node("key.consensus", {"masks": MaskSet(keyed), "cameras": Cameras(cams.cameras[:5]), "volume": volume})
 
 
@@ -401,7 +402,7 @@ def test_bad_params_are_named():
         run_node("key.chroma", {"images": ImageSet([img])}, {"inner": 0.3, "outer": 0.2})
     with pytest.raises(NodeError, match="'cameras' and 'bounds'"):
         run_node("key.chroma", {"images": ImageSet([img]), "cameras": ring_rig(1)})
-    with pytest.raises(NodeError, match="camera 'cam0' is 64x48"):
+    with pytest.raises(NodeError, match="image of camera 'cam0' is 8x8 but the camera is 64x48"):
         run_node("key.chroma", {"images": ImageSet([img]), "cameras": ring_rig(1), "bounds": np.array([[0.0, 0, 0], [1, 1, 1]])})
 
 

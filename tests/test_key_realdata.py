@@ -13,7 +13,7 @@ from nodegraph.cache import Cache
 from nodegraph.executors import LocalExecutor
 from nodegraph.graphfile import load_graph
 from nodegraph.run import run_graph
-from nodes.capture import load_capture, read_image
+from nodes.capture.load import load_capture, read_image
 
 ROOT = Path(__file__).resolve().parent.parent
 GRAPHS = ROOT / "graphs" / "datasets"

@@ -5,10 +5,11 @@ import numpy as np
 import pytest
 import trimesh
 
-from nodegraph import Mesh, NodeError
+from nodes.common.types import Mesh
+from nodegraph import NodeError
 from nodegraph.testing import run_node
-from nodegraph.types import VoxelGrid
-from nodes.mc import case_table, marching_cubes, marching_cubes_reference
+from nodes.common.types import VoxelGrid
+from nodes.mesh.mc import case_table, marching_cubes, marching_cubes_reference
 
 VS = 0.1
 

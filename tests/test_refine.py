@@ -13,14 +13,15 @@ import numpy as np
 import pytest
 import trimesh
 
-from nodegraph import MaskSet, Mesh, NodeError, VoxelGrid
-from nodegraph.cameras import Cameras, look_at
+from nodes.common.types import MaskSet, Mesh, VoxelGrid
+from nodegraph import NodeError
+from nodes.common.cameras import Cameras, look_at
 from nodegraph.testing import run_node
-from nodes.eval import silhouette_report
-from nodes.mc import marching_cubes
-from nodes.refine import (HullTestCL, HullTestNumPy, Silhouettes, clamp_reference, exit_reference, inside_hull,
-                          lattice_edges, onto_hull)
-from nodes.subdivide import split_edges, unique_edges
+from nodes.eval.metrics import silhouette_report
+from nodes.mesh.mc import marching_cubes
+from nodes.common.silhouettes import HullTestCL, HullTestNumPy, Silhouettes, clamp_reference, exit_reference, inside_hull
+from nodes.mesh.refine import lattice_edges, onto_hull
+from nodes.common.meshops import split_edges, unique_edges
 
 # ---------------------------------------------------------------- synthetic scene helpers
 FIGURE = [((0.0, 0.0, 0.0), 0.55), ((0.0, 0.0, 0.62), 0.32), ((0.45, 0.1, -0.35), 0.3), ((-0.4, -0.2, -0.4), 0.28)]
@@ -277,10 +278,10 @@ def test_empty_hull_gives_empty_meshes_down_the_chain():
 
 # ---------------------------------------------------------------- real data
 def real_meshes(data_dir, name, resolution):
-    from nodes.bounds import auto_bounds
-    from nodes.capture import load_capture
-    from nodes.hull import visual_hull
-    from nodes.mc import largest_component
+    from nodes.hull.bounds import auto_bounds
+    from nodes.capture.load import load_capture
+    from nodes.hull.hull import visual_hull
+    from nodes.common.meshops import largest_component
 
     cap = load_capture(data_dir / name)
     masks, cams = cap["masks"], cap["cameras"]

@@ -6,11 +6,13 @@ import pytest
 import trimesh
 from test_refine import FIGURE, ball_masks, figure_case, hull_volume, plain_mc, real_meshes, rig, silhouette_errors
 
-from nodegraph import Mesh, NodeError
+from nodes.common.types import Mesh
+from nodegraph import NodeError
 from nodegraph.testing import run_node
-from nodes.eval import silhouette_report
-from nodes.refine import Silhouettes
-from nodes.relax import LAMBDA, MU, taubin_cl, taubin_reference, vertex_neighbours
+from nodes.eval.metrics import silhouette_report
+from nodes.common.silhouettes import Silhouettes
+from nodes.mesh.relax import LAMBDA, MU, taubin_cl, taubin_reference
+from nodes.common.meshops import vertex_neighbours
 
 
 def roughness(mesh) -> float:

@@ -4,11 +4,13 @@ import numpy as np
 import pytest
 import trimesh
 
-from nodegraph.cameras import Cameras, look_at
+from nodes.common.cameras import Cameras, look_at
 from nodegraph.testing import run_node
-from nodegraph.types import Array, Masks
-from nodes import raster, scenes
-from nodes.synth import Synth
+from nodegraph.types import Array
+from nodes.common.types import Masks
+from nodes.common import raster
+from nodes.synth import scenes
+from nodes.synth.nodes import Synth
 
 
 def fillpoly_silhouette(vertices, faces, cameras, view, scale=64):

@@ -17,13 +17,14 @@ from functools import lru_cache
 
 import numpy as np
 
-from nodegraph import clrt
-from nodegraph.cameras import Cameras
-from nodegraph.errors import NodeError, VolcapError
+from kernels import source
+from nodegraph import NodeError, VolcapError, clrt
+
+from .cameras import Cameras
 
 log = logging.getLogger("volcap.raster")
 
-KERNELS = "raster.cl"
+KERNELS = source("raster.cl")
 NEAR = 1e-6          # camera z below which a vertex counts as behind the camera
 MATERIAL_FLOATS = 12  # colour A (3), colour B (3), pattern, period, lit, receives shadow, pad, pad
 PLAIN, CHECKER, STRIPES = 0.0, 1.0, 2.0

@@ -22,8 +22,11 @@ from functools import lru_cache
 
 import numpy as np
 
-from nodegraph import Mesh, Node, NodeError, Param, Volume
-from nodegraph.devbuffers import DeviceBuffers
+from kernels import source
+from nodegraph import Node, NodeError, Param
+from nodegraph.clrt import DeviceBuffers
+from nodes.common.meshops import largest_component
+from nodes.common.types import Mesh, Volume
 
 # corner c of a cell sits at offset (c & 1, c >> 1 & 1, c >> 2 & 1); edge e runs from EDGES[e][0] along axis
 # EDGES[e][1] (to the corner with that bit set)
@@ -204,7 +207,7 @@ class MarchingCubesCL:
         from nodegraph import clrt
 
         opts = (f"-DVOXEL={voxel}", f"-DMAX_TRIS={self.max_tris}") + (("-DVOXEL_UCHAR",) if voxel == "uchar" else ())
-        return clrt.kernel("mc.cl", name, opts)
+        return clrt.kernel(source("mc.cl"), name, opts)
 
     def scratch(self, name: str, shape: tuple, dtype) -> np.ndarray:
         """A host array of this shape, kept between calls."""
@@ -264,25 +267,7 @@ def marching_cubes(volume, level: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
     return _MC_CL.run(volume, level)
 
 
-def largest_component(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Keep the connected component (through shared vertices) with the most faces; drop unused vertices."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    if len(faces) == 0:
-        return vertices, faces
-    n = len(vertices)
-    rows = np.concatenate([faces[:, 0], faces[:, 1]])
-    cols = np.concatenate([faces[:, 1], faces[:, 2]])
-    _, label = connected_components(coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)), directed=False)
-    face_label = label[faces[:, 0]]
-    keep = face_label == np.bincount(face_label).argmax()
-    used = np.zeros(n, bool)
-    used[faces[keep].ravel()] = True
-    remap = np.cumsum(used) - 1
-    return vertices[used], remap[faces[keep]]
-
-
+# ---------------------------------------------------------------- node
 class MarchingCubes(Node):
     """Marching cubes: the volume's iso-surface at `level` as a watertight mesh with outward normals."""
 
@@ -295,16 +280,16 @@ class MarchingCubes(Node):
         "largest": Param(bool, False, doc="keep only the largest connected component"),
         "method": Param(str, "opencl", choices=("opencl", "numpy"), doc="OpenCL kernels or the NumPy reference"),
     }
-    kernels = ["mc.cl"]
+    kernels = [source("mc.cl")]
 
     def run(self, volume, *, level, largest, method):
-        import trimesh
-
         occ = volume.occupancy
         if occ.ndim != 3 or min(occ.shape) < 1:
             raise NodeError(f"mc: volume occupancy must be a non-empty 3-D array, got shape {occ.shape}")
         if max(occ.shape) + 2 > 1 << 15:
             raise NodeError(f"mc: volume {occ.shape} is too large")
+        import trimesh
+
         fn = marching_cubes if method == "opencl" else marching_cubes_reference
         verts, faces = fn(volume, level)
         if largest:

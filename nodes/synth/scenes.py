@@ -7,7 +7,7 @@
              vertex i is the same body point in every frame. Skeleton joints and LBS weights come with it.
 
 Every scene carries its surface pattern: texture coordinates are rest-pose positions (the pattern moves
-with the body), one material per face (layout: nodes.raster.MATERIAL_FLOATS).
+with the body), one material per face (layout: nodes.common.raster.MATERIAL_FLOATS).
 """
 from __future__ import annotations
 
@@ -18,9 +18,8 @@ from functools import lru_cache
 import numpy as np
 import trimesh
 
-from nodegraph.types import SkeletonData
-
-from .raster import CHECKER, PLAIN, STRIPES
+from nodes.common.raster import CHECKER, PLAIN, STRIPES
+from nodes.common.types import SkeletonData
 
 SCENES = ("sphere", "cup", "figure")
 

@@ -1,8 +1,9 @@
-"""Conforming edge splits of a triangle mesh: chosen edges get a new vertex, and every face adapts so the
-mesh stays crack-free (no T-junctions) and keeps its orientation ("red-green" refinement).
+"""Mesh operations shared by stages: unique edges, conforming edge splits, vertex neighbourhoods (CSR),
+connected components.
 
-A face with one split edge becomes two triangles, with two split edges three, with all three the four of a
-1-to-4 split. Used by ``refine`` to add vertices where flat triangles stray from the visual hull.
+Conforming edge splits: chosen edges get a new vertex, and every face adapts so the mesh stays crack-free
+(no T-junctions) and keeps its orientation ("red-green" refinement). A face with one split edge becomes two
+triangles, with two split edges three, with all three the four of a 1-to-4 split.
 
     edges, face_edges = unique_edges(faces)                    # (E, 2) vertex pairs, (F, 3) edge per face side
     v2, f2 = split_edges(vertices, faces, edges, face_edges, split, points)
@@ -63,3 +64,36 @@ def split_edges(vertices, faces, edges, face_edges, split, points) -> tuple[np.n
     m0, m1, m2 = new_index[face_edges[sel]].T
     out += [np.stack([a, m0, m2], 1), np.stack([m0, b, m1], 1), np.stack([m2, m1, d], 1), np.stack([m0, m1, m2], 1)]
     return out_vertices, np.vstack(out)
+
+
+def vertex_neighbours(faces: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """Umbrella neighbourhoods in CSR form: (offsets (count + 1,) int32, neighbours int32), each edge once
+    per direction, neighbours of a vertex in increasing order."""
+    faces = np.asarray(faces, np.int64).reshape(-1, 3)
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    e = np.sort(e, axis=1)
+    keys = np.sort(np.concatenate([e[:, 0] * count + e[:, 1], e[:, 1] * count + e[:, 0]]))  # (from, to) in order
+    keys = keys[np.r_[True, keys[1:] != keys[:-1]][: len(keys)]]      # (no faces: no keys)
+    both = np.stack([keys // count, keys % count], axis=1)
+    offsets = np.zeros(count + 1, np.int64)
+    np.add.at(offsets, both[:, 0] + 1, 1)
+    return np.cumsum(offsets).astype(np.int32), both[:, 1].astype(np.int32)
+
+
+def largest_component(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Keep the connected component (through shared vertices) with the most faces; drop unused vertices."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    if len(faces) == 0:
+        return vertices, faces
+    n = len(vertices)
+    rows = np.concatenate([faces[:, 0], faces[:, 1]])
+    cols = np.concatenate([faces[:, 1], faces[:, 2]])
+    _, label = connected_components(coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)), directed=False)
+    face_label = label[faces[:, 0]]
+    keep = face_label == np.bincount(face_label).argmax()
+    used = np.zeros(n, bool)
+    used[faces[keep].ravel()] = True
+    remap = np.cumsum(used) - 1
+    return vertices[used], remap[faces[keep]]

@@ -19,25 +19,15 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from nodegraph import CameraSet, Input, Masks, Mesh, Node, NodeError, Param
+from kernels import source
+from nodegraph import Input, Node, NodeError, Param
+from nodes.common.meshops import vertex_neighbours
+from nodes.common.silhouettes import POLICIES, Silhouettes, hull_test
+from nodes.common.types import CameraSet, Masks, Mesh
 
-from .refine import POLICIES, Silhouettes, hull_test, push_out
+from .refine import push_out
 
 LAMBDA, MU = 0.6307, -0.6732
-
-
-def vertex_neighbours(faces: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
-    """Umbrella neighbourhoods in CSR form: (offsets (count + 1,) int32, neighbours int32), each edge once
-    per direction, neighbours of a vertex in increasing order."""
-    faces = np.asarray(faces, np.int64).reshape(-1, 3)
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    e = np.sort(e, axis=1)
-    keys = np.sort(np.concatenate([e[:, 0] * count + e[:, 1], e[:, 1] * count + e[:, 0]]))  # (from, to) in order
-    keys = keys[np.r_[True, keys[1:] != keys[:-1]][: len(keys)]]      # (no faces: no keys)
-    both = np.stack([keys // count, keys % count], axis=1)
-    offsets = np.zeros(count + 1, np.int64)
-    np.add.at(offsets, both[:, 0] + 1, 1)
-    return np.cumsum(offsets).astype(np.int32), both[:, 1].astype(np.int32)
 
 
 def taubin_step_reference(v: np.ndarray, offsets: np.ndarray, neighbours: np.ndarray, factor: float) -> np.ndarray:
@@ -79,7 +69,7 @@ def taubin_cl(vertices, offsets, neighbours, iterations: int, lam: float = LAMBD
     rw = cl.mem_flags.READ_WRITE
     d_v, d_p = clrt.to_device(v, rw), cl.Buffer(ctx, rw, v.nbytes)
     d_off, d_nb = clrt.to_device(np.asarray(offsets, np.int32)), clrt.to_device(np.asarray(neighbours, np.int32))
-    k = clrt.kernel("relax.cl", "taubin_step")
+    k = clrt.kernel(source("relax.cl"), "taubin_step")
     size = (-(-n // 64) * 64,)
     for _ in range(iterations):
         for factor in (lam, mu):
@@ -111,6 +101,7 @@ def relax_vertices(mesh, iterations: int, lam: float = LAMBDA, mu: float = MU, v
     return push_out(out, normals, np.maximum(inwards, 0), test, steps)
 
 
+# ---------------------------------------------------------------- node
 class Relax(Node):
     """Taubin lambda|mu smoothing of a mesh (OpenCL). With keep_silhouettes (default) the result is fitted to the
     visual hull of the masks (no vertex outside; inward moves undone up to the boundary), so silhouettes hold
@@ -135,8 +126,7 @@ class Relax(Node):
         "use_alpha": Param(bool, True, doc="test against soft alpha when the masks carry it"),
         "method": Param(str, "opencl", choices=("opencl", "numpy"), doc="OpenCL kernels or the NumPy reference"),
     }
-    kernels = ["relax.cl", "refine.cl"]
-    uses = ["nodes.refine"]
+    kernels = [source("relax.cl"), source("refine.cl")]
 
     def run(self, mesh, masks=None, cameras=None, *, iterations, lam, mu, keep_silhouettes, steps, outline_sigma, min_views,
             outside, use_alpha, method):

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import DataError
+from nodegraph.errors import DataError
 
 PACK_FLOATS = 32  # floats per camera in the packed array the kernels read
 
@@ -252,7 +252,8 @@ def project_points_cl(cameras: Cameras, points, origin=None) -> tuple[np.ndarray
     Returns (uv (V, N, 2) float64, depth (V, N) float64)."""
     import pyopencl as cl
 
-    from . import clrt
+    from kernels import source
+    from nodegraph import clrt
 
     X = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     n, v = len(X), len(cameras)
@@ -266,7 +267,7 @@ def project_points_cl(cameras: Cameras, points, origin=None) -> tuple[np.ndarray
     depth = np.empty((v, n), dtype=np.float32)
     uv_buf = cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, uv.nbytes)
     depth_buf = cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, depth.nbytes)
-    knl = clrt.kernel("project.cl", "project_points")
+    knl = clrt.kernel(source("project.cl"), "project_points")
     knl.set_args(cams_buf, pts_buf, np.int32(n), uv_buf, depth_buf)
     cl.enqueue_nd_range_kernel(queue, knl, (n, v), None)
     cl.enqueue_copy(queue, uv, uv_buf)

@@ -1,4 +1,4 @@
-"""Synthetic capture: procedural scenes (nodes/scenes.py) rendered from a configurable camera rig, with
+"""Synthetic capture: procedural scenes (scenes.py) rendered from a configurable camera rig, with
 the ground truth every stage can be checked against (masks, mesh, skeleton, clean plate, bounds)."""
 from __future__ import annotations
 
@@ -7,12 +7,11 @@ import math
 import numpy as np
 import trimesh
 
-from nodegraph import Node, Output, Param
-from nodegraph.cameras import Cameras, look_at
-from nodegraph.types import Bounds, CameraSet, Images, ImageSet, Masks, MaskSet, Mesh, Skeleton
+from nodes.common import raster
+from nodes.common.cameras import Cameras, look_at
+from nodes.common.raster import CHECKER, STRIPES
 
-from . import raster, scenes
-from .raster import CHECKER, STRIPES
+from . import scenes
 
 LIGHT = (0.35, -0.55, 0.75)   # towards the light (world)
 AMBIENT = 0.35
@@ -99,51 +98,3 @@ def render_scene(scene: scenes.Scene, cameras: Cameras, backdrop: str, shadow: b
     blob = (scene.center[0], scene.center[1], 0.45 * scene.radius, 0.45 if shadow else 0.0)
     return raster.render(verts, faces, normals, texcoords, face_material, materials, cameras, n_object=n_obj,
                          light=LIGHT, ambient=AMBIENT, shadow=blob)
-
-
-class Synth(Node):
-    """Renders a procedural scene with known ground truth from a camera ring or dome: images, exact
-    silhouettes, cameras, the true mesh (and skeleton for the animated figure), a clean plate and a box.
-    Shading is Lambert on procedural checker/stripe patterns; no anti-aliasing."""
-
-    type_name = "synth"
-    version = 1
-    uses_frame = True
-    inputs = {}
-    outputs = {
-        "images": Images, "masks": Masks, "cameras": CameraSet,
-        "mesh": Output(Mesh, "ground-truth surface of this frame"),
-        "skeleton": Output(Skeleton, "joints and LBS weights (figure only)", optional=True),
-        "background": Output(Images, "clean plate (background=plate only)", optional=True),
-        "bounds": Output(Bounds, "a box around the object"),
-    }
-    params = {
-        "scene": Param(str, "figure", choices=scenes.SCENES, doc="what to render"),
-        "rig": Param(str, "ring", choices=("ring", "dome"), doc="camera layout"),
-        "cameras": Param(int, 8, range=(1, 256), doc="number of cameras"),
-        "width": Param(int, 640, range=(8, 8192), doc="image width, pixels"),
-        "height": Param(int, 480, range=(8, 8192), doc="image height, pixels"),
-        "fov": Param(float, 50.0, range=(5.0, 150.0), doc="horizontal field of view, degrees"),
-        "distortion": Param(float, 0.0, range=(-0.5, 0.5), doc="radial k1 of every camera"),
-        "background": Param(str, "green", choices=("green", "plate"), doc="chroma green or a textured room"),
-        "shadow": Param(bool, True, doc="soft darker blob on the floor under the object"),
-        "seed": Param(int, 0, range=(0, None), doc="0: regular rig; otherwise jittered camera placement"),
-    }
-    kernels = [raster.KERNELS]
-    uses = ["nodes.raster", "nodes.scenes"]
-
-    def run(self, *, scene, rig, cameras, width, height, fov, distortion, background, shadow, seed, frame):
-        sc = scenes.build(scene, frame)
-        cams = ring_rig(cameras, sc.center, sc.radius, fov, width, height, distortion, seed, dome=rig == "dome")
-        images, masks = render_scene(sc, cams, background, shadow)
-        plate = None
-        if background == "plate":
-            plate_images, _ = render_scene(sc, cams, background, False, with_object=False)
-            plate = ImageSet(plate_images, cams.names)
-        lo, hi = sc.mesh.bounds
-        pad = 0.05 * np.linalg.norm(hi - lo)
-        return {
-            "images": ImageSet(images, cams.names), "masks": MaskSet(masks, names=cams.names), "cameras": cams,
-            "mesh": sc.mesh, "skeleton": sc.skeleton, "background": plate,
-            "bounds": np.array([lo - pad, hi + pad], dtype=np.float64),
-        }

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nodegraph.cameras import Camera, Cameras
+from .cameras import Camera, Cameras
 from nodegraph.errors import DataError
 
 FORMATS = ("colmap", "nerf", "middlebury", "opencv", "ptext", "inria", "idr", "tsinghua", "matlab")

@@ -1,4 +1,4 @@
-"""The `bounds` node: an axis-aligned box around the captured object.
+"""The automatic capture box: an axis-aligned box around the captured object.
 
 Automatic: the point nearest to the viewing rays through the silhouettes' centroids, a box sized from the
 silhouettes' extents, then a coarse NumPy visual hull in that box, grown while the hull touches a side and
@@ -8,33 +8,30 @@ from __future__ import annotations
 
 import numpy as np
 
-from nodegraph.cameras import Cameras
-from nodegraph.errors import NodeError
-from nodegraph.node import Input, Node, Output, Param
-from nodegraph.types import Bounds as BoundsType, CameraSet, Masks
+from nodegraph import NodeError
+from nodes.common.cameras import Cameras
+from nodes.common.silhouettes import IN, BACKGROUND, centre_states, check_masks, vote
 
 
 def coarse_hull(masks: list[np.ndarray], cameras: Cameras, box: np.ndarray, resolution: int,
                 min_seen: int | None = None) -> np.ndarray:
-    """Boolean occupancy (nx, ny, nz) of voxel centres that fall inside the mask (> 0) of every view that
-    sees them (nearest pixel; pixel centres at integers) and are seen by at least ``min_seen`` views
-    (default: half the views, at least 2). ``resolution`` voxels along the longest side of ``box``."""
+    """Boolean occupancy (nx, ny, nz) of voxel centres that fall inside the mask of every view that sees
+    them and are seen by at least ``min_seen`` views (default: half the views, at least 2): the hull's vote
+    with policy "ignore" (nodes.common.silhouettes). ``resolution`` voxels along the longest side of ``box``."""
     box = np.asarray(box, dtype=np.float64)
     size = box[1] - box[0]
     shape = np.maximum(1, np.round(size / size.max() * resolution)).astype(int)
     axes = [box[0, a] + (np.arange(n) + 0.5) * size[a] / n for a, n in enumerate(shape)]
-    X = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    seen = np.zeros(len(X), dtype=np.int32)
-    inside = np.zeros(len(X), dtype=np.int32)
+    X = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3).astype(np.float32)
+    packed = cameras.pack()
+    n_in = np.zeros(len(X), dtype=np.int32)
+    n_bg = np.zeros(len(X), dtype=np.int32)
     for v, m in enumerate(masks):
-        uv, z = cameras.project(X, v)
-        px = np.rint(np.clip(np.nan_to_num(uv, nan=-1.0), -1, 1e9)).astype(np.int64)
-        h, w = m.shape
-        ok = (z > 0) & (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
-        seen += ok
-        inside[ok] += m[px[ok, 1], px[ok, 0]] > 0
+        s = centre_states(m, packed[v], X)
+        n_in += s == IN
+        n_bg += s == BACKGROUND
     need = max(2, (len(masks) + 1) // 2) if min_seen is None else min_seen
-    return ((inside == seen) & (seen >= need)).reshape(tuple(shape))
+    return vote(n_in, n_bg, len(masks), 0, "ignore", min_seen=need).reshape(tuple(shape))
 
 
 def _occupied_box(occ: np.ndarray, box: np.ndarray):
@@ -80,12 +77,7 @@ def initial_box(masks: list[np.ndarray], cameras: Cameras) -> np.ndarray:
 
 def auto_bounds(masks: list[np.ndarray], cameras: Cameras, resolution: int = 64, margin: float = 0.05) -> np.ndarray:
     """Box [[xmin ymin zmin], [xmax ymax zmax]] around the object seen in ``masks`` (see module docstring)."""
-    if len(masks) != len(cameras):
-        raise NodeError(f"bounds: {len(masks)} masks for {len(cameras)} cameras")
-    for v, (m, cam) in enumerate(zip(masks, cameras)):
-        if np.shape(m)[:2] != (cam.height, cam.width):
-            raise NodeError(f"bounds: mask of camera {v} '{cam.name}' is {np.shape(m)[1]}x{np.shape(m)[0]} but the "
-                            f"camera is {cam.width}x{cam.height}")
+    masks = check_masks(masks, cameras, "bounds")
     box = initial_box(masks, cameras)
     for _ in range(6):
         occ = coarse_hull(masks, cameras, box, resolution)
@@ -105,28 +97,3 @@ def auto_bounds(masks: list[np.ndarray], cameras: Cameras, resolution: int = 64,
     vs = (box[1] - box[0]) / np.array(occ.shape)
     extent = (occ_box[1] - occ_box[0]).max()
     return occ_box + np.array([-1, 1])[:, None] * (vs + margin * extent)
-
-
-class Bounds(Node):
-    """Axis-aligned box around the captured object: automatic from silhouettes and cameras (coarse hull),
-    or the explicit bbox param."""
-
-    type_name = "bounds"
-    version = 1
-    inputs = {"masks": Input(Masks, optional=True), "cameras": Input(CameraSet, optional=True)}
-    outputs = {"bounds": Output(BoundsType, "box [[xmin ymin zmin], [xmax ymax zmax]]")}
-    params = {
-        "bbox": Param(list, None, item=float, length=6, doc="explicit box [xmin ymin zmin xmax ymax zmax]"),
-        "margin": Param(float, 0.05, range=(0.0, 1.0), doc="added on each side, as a fraction of the largest extent"),
-        "resolution": Param(int, 64, range=(16, 256), doc="coarse hull voxels along the longest side"),
-    }
-
-    def run(self, masks, cameras, *, bbox, margin, resolution):
-        if bbox is not None:
-            box = np.array(bbox, dtype=np.float64).reshape(2, 3)
-            if not np.all(box[1] > box[0]):
-                raise NodeError(f"bounds: bbox {bbox} needs xmax > xmin, ymax > ymin, zmax > zmin")
-            return {"bounds": box}
-        if masks is None or cameras is None:
-            raise NodeError("bounds: connect masks and cameras, or give the bbox param")
-        return {"bounds": auto_bounds(masks.masks, cameras, resolution, margin)}

@@ -8,8 +8,8 @@ Two OpenCL methods give identical voxels (kernels/hull.cl):
           last level decides voxel by voxel with the very same centre test as the dense method.
 ``hull_reference`` is the NumPy version of the centre test (same float32 arithmetic, same vote rule).
 Both methods read the silhouettes as ``SilhouetteBits`` on the device (bits + block tables): packed here
-from host masks, or written straight from the camera images by ``nodes.key.chroma_key_bits`` (the fused,
-device-resident path of bench/e2e.py).
+from host masks, or written straight from the camera images by the chroma key (the fused, device-resident
+path of bench/e2e.py); see nodes.common.silhouettes.
 """
 from __future__ import annotations
 
@@ -17,11 +17,13 @@ import math
 
 import numpy as np
 
-from nodegraph import Bounds, CameraSet, Input, Masks, Node, NodeError, Param, Volume, VoxelGrid
-from nodegraph.cameras import PACK_FLOATS, Cameras, project_packed_f32
-from nodegraph.devbuffers import DeviceBuffers
+from kernels import source
+from nodegraph import NodeError
+from nodegraph.clrt import DeviceBuffers
+from nodes.common.cameras import PACK_FLOATS, Cameras
+from nodes.common.silhouettes import POLICIES, SilhouetteBits, centre_states, check_masks, check_silhouettes, vote
+from nodes.common.types import VoxelGrid
 
-POLICIES = ("carve", "ignore")
 COARSE_CELLS = 16  # the first sparse level has at most this many cells along the longest side
 
 
@@ -37,21 +39,6 @@ def hull_grid(box: np.ndarray, resolution: int) -> tuple[np.ndarray, np.ndarray,
     return box[0] - grow, box[1] + grow, tuple(int(d) for d in dims)
 
 
-def check_views(masks, cameras: Cameras) -> list[np.ndarray]:
-    """The masks as contiguous uint8 (H, W) arrays, one per camera, or a NodeError naming the camera."""
-    if len(masks.masks) != len(cameras):
-        raise NodeError(f"hull: {len(masks.masks)} masks for {len(cameras)} cameras")
-    out = []
-    for m, cam in zip(masks.masks, cameras):
-        m = np.asarray(m)
-        if m.dtype != np.uint8 or m.ndim != 2:
-            raise NodeError(f"hull: mask of camera '{cam.name}' must be an (H, W) uint8 array, got {m.dtype} {m.shape}")
-        if m.shape != (cam.height, cam.width):
-            raise NodeError(f"hull: mask of camera '{cam.name}' is {m.shape[1]}x{m.shape[0]} but the camera is {cam.width}x{cam.height}")
-        out.append(np.ascontiguousarray(m))
-    return out
-
-
 def check_in_front(cameras: Cameras, box: np.ndarray):
     """A NodeError naming each camera that has the whole box behind it (all 8 corners at depth <= 0; depth
     is linear, so then every voxel is): with outside='carve' it would carve everything."""
@@ -63,30 +50,6 @@ def check_in_front(cameras: Cameras, box: np.ndarray):
 
 
 # ---------------------------------------------------------------- NumPy reference
-def centre_states(mask: np.ndarray, cam_row: np.ndarray, X: np.ndarray) -> np.ndarray:
-    """Per point (N, 3 float32): 1 = inside the silhouette, 2 = background, 3 = behind / outside the image.
-    ``cam_row`` is one row of Cameras.pack(); float32 operations in the order of kernels/camera.h."""
-    c = cam_row.astype(np.float32)
-    u, v, front = project_packed_f32(c, X)
-    with np.errstate(invalid="ignore"):
-        fu, fv = u + np.float32(0.5), v + np.float32(0.5)
-        seen = front & (fu >= 0) & (fu < c[22]) & (fv >= 0) & (fv < c[23])
-    state = np.full(len(X), 3, np.uint8)
-    px, py = fu[seen].astype(np.int64), fv[seen].astype(np.int64)
-    state[seen] = np.where(mask[py, px] > 127, 1, 2)
-    return state
-
-
-def vote(n_in: np.ndarray, n_out: np.ndarray, nviews: int, min_views: int, policy: str) -> np.ndarray:
-    """The hull's vote rule: min_views > 0: at least that many views see the voxel inside; otherwise
-    carve: every view does; ignore: no view sees it on background and at least one inside."""
-    if min_views > 0:
-        return n_in >= min_views
-    if policy == "carve":
-        return n_in == nviews
-    return (n_out == 0) & (n_in > 0)
-
-
 def hull_reference(masks: list[np.ndarray], cameras: Cameras, bbox_min, voxel_size, dims, min_views=0,
                    policy="carve") -> np.ndarray:
     """Dense visual hull in NumPy (uint8 0/1, shape dims): the definition the kernels must reproduce."""
@@ -104,99 +67,6 @@ def hull_reference(masks: list[np.ndarray], cameras: Cameras, bbox_min, voxel_si
     return vote(n_in, n_out, len(masks), min_views, policy).astype(np.uint8).reshape(dims)
 
 
-# ---------------------------------------------------------------- OpenCL
-class SilhouetteBits:
-    """Silhouettes on the OpenCL device, in the layout the hull kernels read (kernels/hull.cl), one per view:
-    one bit per pixel (rows of Wb = ceil(W/8) bytes, pixel x in bit x % 8 of byte x // 8) and the
-    (Hb+1) x (Wb+1) int32 summed-area table of its 8x8 pixel block counts (zero first row and column).
-
-    Written from host masks (``HullCL.prepare``) or straight from the camera images by a key kernel
-    (``nodes.key.chroma_key_bits``): both write the bits and the block counts prefixed along rows, then
-    ``prefix_columns`` completes the tables. Allocated once per list of image sizes; hand it back as ``out=``
-    to the next frame's producer to reuse its buffers (its contents are then overwritten)."""
-
-    def __init__(self, sizes: list[tuple[int, int]]):
-        import pyopencl as cl
-
-        from nodegraph import clrt
-
-        self.sizes = [(int(w), int(h)) for w, h in sizes]
-        wb = [(w + 7) // 8 for w, _ in self.sizes]
-        hb = [(h + 7) // 8 for _, h in self.sizes]
-        self.bit_off = np.concatenate([[0], np.cumsum([b * h for b, (_, h) in zip(wb, self.sizes)])]).astype(np.int64)
-        self.sat_off = np.concatenate([[0], np.cumsum([(a + 1) * (b + 1) for a, b in zip(wb, hb)])]).astype(np.int64)
-        if self.bit_off[-1] >= 2**31 or self.sat_off[-1] >= 2**31:
-            raise NodeError(f"hull: {len(sizes)} silhouettes are too large for 32-bit offsets")
-        ctx, _ = clrt.context()
-        rw = cl.mem_flags.READ_WRITE
-        self.bits = cl.Buffer(ctx, rw, max(int(self.bit_off[-1]), 4))
-        self.sat = cl.Buffer(ctx, rw, max(int(self.sat_off[-1]) * 4, 4))
-        self.bit_off_buf = clrt.to_device(self.bit_off[:-1].astype(np.int32))
-        self.sat_off_buf = clrt.to_device(self.sat_off[:-1].astype(np.int32))
-        self.sizes_buf = clrt.to_device(np.array(self.sizes, np.int32).reshape(-1, 2))
-
-    def __len__(self) -> int:
-        return len(self.sizes)
-
-    @classmethod
-    def reuse(cls, out: "SilhouetteBits | None", sizes) -> "SilhouetteBits":
-        """``out`` when it was made for these image sizes, else a new one."""
-        sizes = [(int(w), int(h)) for w, h in sizes]
-        return out if out is not None and out.sizes == sizes else cls(sizes)
-
-    def prefix_columns(self):
-        """Enqueue the column prefix that turns the row-prefixed block counts into summed-area tables."""
-        from nodegraph import clrt
-
-        wb = max(w for w, _ in self.sizes) // 8 + 2
-        clrt.kernel("hull.cl", "block_cols")(clrt.queue(), (wb, len(self)), None, self.sat, self.sat_off_buf,
-                                             self.sizes_buf)
-
-    def masks(self) -> list[np.ndarray]:
-        """The silhouettes back on the host as uint8 (H, W) 0/255 masks (for checks; a read-back)."""
-        import pyopencl as cl
-
-        from nodegraph import clrt
-
-        raw = np.empty(int(self.bit_off[-1]), np.uint8)
-        cl.enqueue_copy(clrt.queue(), raw, self.bits)
-        out = []
-        for v, (w, h) in enumerate(self.sizes):
-            rows = raw[self.bit_off[v]:self.bit_off[v + 1]].reshape(h, -1)
-            out.append(np.unpackbits(rows, axis=1, bitorder="little")[:, :w] * np.uint8(255))
-        return out
-
-    def block_tables(self) -> list[np.ndarray]:
-        """The (Hb+1, Wb+1) int32 summed-area tables back on the host (for checks; a read-back)."""
-        import pyopencl as cl
-
-        from nodegraph import clrt
-
-        raw = np.empty(int(self.sat_off[-1]), np.int32)
-        cl.enqueue_copy(clrt.queue(), raw, self.sat)
-        return [raw[self.sat_off[v]:self.sat_off[v + 1]].reshape((h + 7) // 8 + 1, (w + 7) // 8 + 1)
-                for v, (w, h) in enumerate(self.sizes)]
-
-
-def block_table_reference(mask: np.ndarray) -> np.ndarray:
-    """Summed-area table (Hb+1, Wb+1) int32 of the 8x8 pixel block counts of (mask > 127)."""
-    h, w = mask.shape
-    m = np.zeros((-(-h // 8) * 8, -(-w // 8) * 8), np.int32)
-    m[:h, :w] = mask > 127
-    counts = m.reshape(m.shape[0] // 8, 8, m.shape[1] // 8, 8).sum(axis=(1, 3))
-    return np.pad(counts.cumsum(0).cumsum(1), ((1, 0), (1, 0))).astype(np.int32)
-
-
-def check_silhouettes(sil: SilhouetteBits, cameras: Cameras):
-    """A NodeError naming the camera when the device silhouettes do not fit the cameras."""
-    if len(sil) != len(cameras):
-        raise NodeError(f"hull: {len(sil)} silhouettes for {len(cameras)} cameras")
-    for (w, h), cam in zip(sil.sizes, cameras):
-        if (w, h) != (cam.width, cam.height):
-            raise NodeError(f"hull: silhouette of camera '{cam.name}' is {w}x{h} but the camera is "
-                            f"{cam.width}x{cam.height}")
-
-
 class HullCL:
     """Device buffers and kernels of the hull, kept between frames (one per process)."""
 
@@ -204,7 +74,7 @@ class HullCL:
         from nodegraph import clrt
 
         self.ctx, self.queue = clrt.context()
-        self.k = {name: clrt.kernel("hull.cl", name) for name in ("pack_block_rows", "hull_dense", "hull_cells")}
+        self.k = {name: clrt.kernel(source("hull.cl"), name) for name in ("pack_block_rows", "hull_dense", "hull_cells")}
         self.buffers = DeviceBuffers(self.ctx)
         self.coarse: dict[tuple, np.ndarray] = {}
         self.silhouettes: SilhouetteBits | None = None  # what prepare() fills, reused between frames
@@ -312,7 +182,7 @@ def visual_hull(masks, cameras: Cameras, box, resolution=128, min_views=0, polic
     if on_device:
         check_silhouettes(masks, cameras)
     else:
-        arrays = check_views(masks, cameras)
+        arrays = check_masks(masks, cameras, "hull")
     if min_views > len(cameras):
         raise NodeError(f"hull: min_views {min_views} is more than the {len(cameras)} cameras")
     box = np.asarray(box, dtype=np.float64).reshape(2, 3)
@@ -331,36 +201,3 @@ def visual_hull(masks, cameras: Cameras, box, resolution=128, min_views=0, polic
     else:
         occ = hull_cl().hull(arrays, cameras, bmin, vs, dims, min_views, policy, method)
     return VoxelGrid(occ, bmin, bmax)
-
-
-class Hull(Node):
-    """Volumetric visual hull: voxels whose centre falls inside the silhouettes (OpenCL, coarse-to-fine)."""
-
-    type_name = "hull"
-    version = 1
-    inputs = {"masks": Masks, "cameras": CameraSet,
-              "bounds": Input(Bounds, optional=True, doc="box to carve when the bbox param is not given")}
-    outputs = {"volume": Volume}
-    params = {
-        "resolution": Param(int, 128, range=(8, 1024), doc="voxels along the longest bbox side; others proportional"),
-        "bbox": Param(list, None, item=float, length=6, doc="xmin ymin zmin xmax ymax zmax; default: the bounds input"),
-        "min_views": Param(int, 0, range=(0, None), doc="0 = all views; k = inside at least k silhouettes"),
-        "outside": Param(str, "carve", choices=POLICIES, doc="voxels projecting outside an image: carve, or ignore that view"),
-        "method": Param(str, "sparse", choices=("sparse", "dense", "numpy"), doc="coarse-to-fine, every voxel, or NumPy"),
-    }
-    kernels = ["hull.cl"]
-
-    def run(self, masks, cameras, bounds=None, *, resolution, bbox, min_views, outside, method):
-        if bbox is not None:
-            box = np.array(bbox, dtype=np.float64).reshape(2, 3)
-            if not np.all(box[1] > box[0]):
-                raise NodeError(f"hull: param 'bbox' {bbox} needs max > min on every axis (xmin ymin zmin xmax ymax zmax)")
-        elif bounds is not None:
-            box = np.asarray(bounds, dtype=np.float64)
-        else:
-            raise NodeError("hull: no box to carve: set param 'bbox' or connect the 'bounds' input")
-        volume = visual_hull(masks, cameras, box, resolution, min_views, outside, method)
-        if not volume.occupancy.any():
-            self.log.warning("hull: no voxel is inside the silhouettes: the box %s misses the object, or the masks "
-                             "and cameras disagree (the mesh will be empty)", np.round(box, 6).ravel().tolist())
-        return {"volume": volume}

@@ -3,22 +3,17 @@ from __future__ import annotations
 
 import numpy as np
 
-from nodegraph import Node, NodeError, Param
-from nodegraph.cameras import Cameras
-from nodegraph.types import CameraSet, MaskSet, Masks, Mesh, Table
-
-from . import raster
+from nodegraph import NodeError
+from nodes.common import raster
+from nodes.common.cameras import Cameras
+from nodes.common.silhouettes import check_sizes
+from nodes.common.types import MaskSet
 
 
 def silhouette_report(vertices, faces, cameras: Cameras, masks: MaskSet) -> dict:
     """Per view: IoU of the mesh's silhouette with the mask (> 127), mesh pixels outside the mask and mask
     pixels the mesh does not cover; plus mean / min IoU and the error sums over views."""
-    if len(masks) != len(cameras):
-        raise NodeError(f"eval.silhouette: {len(masks)} masks for {len(cameras)} cameras")
-    for cam, m in zip(cameras, masks.masks):
-        if m.shape != (cam.height, cam.width):
-            raise NodeError(f"eval.silhouette: camera '{cam.name}' is {cam.width}x{cam.height} but its mask is "
-                            f"{m.shape[1]}x{m.shape[0]}")
+    check_sizes(masks.masks, cameras, "eval.silhouette")
     views = []
     for cam, sil, m in zip(cameras, raster.silhouette(vertices, faces, cameras), masks.masks):
         a, b = sil > 0, m > 127
@@ -65,35 +60,3 @@ def surface_report(mesh, reference, samples: int = 100_000, seed: int = 0) -> di
     out.update({f"{k}_rel": v / diag for k, v in list(out.items())})
     out.update({"reference_bbox_diagonal": diag, "samples": samples})
     return out
-
-
-class EvalSilhouette(Node):
-    """Silhouette agreement of a mesh with masks, per view: IoU, mesh pixels outside the mask, mask pixels
-    not covered; means and sums over views."""
-
-    type_name = "eval.silhouette"
-    version = 1
-    inputs = {"mesh": Mesh, "cameras": CameraSet, "masks": Masks}
-    outputs = {"report": Table}
-    kernels = [raster.KERNELS]
-    uses = ["nodes.raster"]
-
-    def run(self, mesh, cameras, masks):
-        return {"report": silhouette_report(mesh.vertices, mesh.faces, cameras, masks)}
-
-
-class EvalSurface(Node):
-    """Surface distance of a mesh to a reference mesh: Chamfer and Hausdorff, both directions, absolute
-    and relative to the reference's bounding-box diagonal."""
-
-    type_name = "eval.surface"
-    version = 1
-    inputs = {"mesh": Mesh, "reference": Mesh}
-    outputs = {"report": Table}
-    params = {
-        "samples": Param(int, 100_000, range=(100, 10_000_000), doc="points sampled on each surface"),
-        "seed": Param(int, 0, range=(0, None), doc="sampling seed"),
-    }
-
-    def run(self, mesh, reference, *, samples, seed):
-        return {"report": surface_report(mesh, reference, samples, seed)}

@@ -10,8 +10,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from nodegraph import Files, Masks, Mesh, Node, NodeError, OutPath, Param, Volume
-from nodegraph.types import write_exr
+from nodegraph import Files, Node, NodeError, OutPath, Param
+from nodes.common.types import Masks, Mesh, Volume, write_exr
 
 MESH_FORMATS = ("ply", "obj", "glb", "stl", "off")
 

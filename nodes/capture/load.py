@@ -9,8 +9,9 @@ video, the data is static and only frame 0 exists. The background (clean plate) 
 pattern. Masks: "alpha" takes the images' alpha channel; else grey images thresholded at mask_threshold
 (the maximum over colour channels).
 
-Known layouts of the datasets in ../shared/data are detected automatically (see LAYOUTS); an unknown folder
-is read with ``load_cameras`` and an image folder whose files match the cameras by name or by order.
+Known dataset layouts are detected automatically: layouts.yaml beside this file lists them (a marker file
+pattern that identifies the folder, then the patterns); an unknown folder is read with ``load_cameras`` and
+an image folder whose files match the cameras by name or by order.
 """
 from __future__ import annotations
 
@@ -21,25 +22,28 @@ from pathlib import Path
 
 import numpy as np
 
-from nodegraph.cameras import Cameras
-from nodegraph.errors import DataError, NodeError
-from nodegraph.node import InPath, Node, Output, Param
-from nodegraph.types import CameraSet, Images, ImageSet, Masks, MaskSet
-from nodes.calibration import IMAGE_EXTS, MissingImageSize, load_cameras
+from functools import lru_cache
+
+from nodegraph import DataError, NodeError
+from nodes.common.calibration import IMAGE_EXTS, MissingImageSize, load_cameras
+from nodes.common.cameras import Cameras
+from nodes.common.types import ImageSet, MaskSet
 
 VIDEO_EXTS = (".avi", ".mp4", ".mov", ".mkv")
+PATTERN_KEYS = ("calibration", "images", "masks", "background")
 
-# dataset layouts: a marker (glob) that identifies the folder, then the patterns
-LAYOUTS = [
-    ("calibParamsI.txt", dict(calibration="calibParamsI.txt", images="images/*_{name}_*.png",
-                              masks="masks/*_{name}_*_segmented.png")),                  # Tsinghua dome
-    ("calibration/cam*.xml", dict(calibration="calibration", images="images/{name}_*.png",
-                                  masks="silhouettes/silh_{name}_*.pbm")),              # INRIA dancer
-    ("*/config.xml", dict(calibration=".", images="{name}/video.avi", background="{name}/background.avi")),  # Utrecht
-    ("cameras_P.txt", dict(calibration="cameras_P.txt", images="images/viff.{cam:03d}.png")),   # Oxford dino
-    ("*_par.txt", dict(calibration="*_par.txt", images="{name}.png")),                   # Middlebury
-    ("transforms*.json", dict(calibration="transforms*.json", images="{nerf_path}", masks="alpha")),  # NeRF synthetic
-]
+
+@lru_cache(maxsize=None)
+def layouts() -> list[dict]:
+    """The known dataset layouts (layouts.yaml beside this module), in detection order."""
+    import yaml
+
+    doc = yaml.safe_load((Path(__file__).with_name("layouts.yaml")).read_text())
+    for entry in doc:
+        unknown = set(entry) - {"name", "marker", *PATTERN_KEYS}
+        if unknown or "marker" not in entry:
+            raise DataError(f"layouts.yaml: layout {entry.get('name')!r} has unknown keys {sorted(unknown)} or no marker")
+    return doc
 
 
 # ------------------------------------------------------------------ files
@@ -116,9 +120,9 @@ def _mask(img: np.ndarray, threshold: int) -> np.ndarray:
 # ------------------------------------------------------------------ layout detection
 def detect_layout(root: Path) -> dict:
     """Patterns for a dataset folder: a known layout, or a generic one (calibration + images by name/order)."""
-    for marker, patterns in LAYOUTS:
-        if glob.glob(str(root / marker)):
-            return dict(patterns)
+    for layout in layouts():
+        if glob.glob(str(root / layout["marker"])):
+            return {k: v for k, v in layout.items() if k in PATTERN_KEYS}
     return {}
 
 
@@ -262,29 +266,3 @@ def _assemble(cams: Cameras, raw: list, files: list, mask_imgs, bg, threshold: i
             if b.shape[:2] != im.shape[:2]:
                 raise DataError(f"camera {i} '{cams[i].name}': background is {b.shape[1]}x{b.shape[0]} but the image is {im.shape[1]}x{im.shape[0]}")
     return {"images": images, "masks": masks, "cameras": cams, "background": bg}
-
-
-class Capture(Node):
-    """One frame of a calibrated multi-camera capture (images, optional masks and clean plates, cameras)
-    from a dataset folder; known dataset layouts are detected, patterns override them."""
-
-    type_name = "capture"
-    version = 1
-    uses_frame = True
-    outputs = {
-        "images": Output(Images, "RGB image per camera"),
-        "masks": Output(Masks, "silhouettes shipped with the dataset (None when it has none)", optional=True),
-        "cameras": Output(CameraSet, "calibration"),
-        "background": Output(Images, "clean plates, one per camera (None when the dataset has none)", optional=True),
-    }
-    params = {
-        "path": Param(InPath, doc="dataset folder"),
-        "images": Param(str, "", doc="image pattern ({cam} {cam1} {name} {frame}, '*' = frames, or a video); '' = auto"),
-        "masks": Param(str, "", doc="mask pattern, 'alpha' for the images' alpha channel; '' = auto"),
-        "background": Param(str, "", doc="clean plate pattern (image or video, frame 0); '' = auto"),
-        "calibration": Param(str, "", doc="calibration file or folder (relative to path); '' = auto"),
-        "mask_threshold": Param(int, 127, range=(0, 254), doc="mask pixels above this grey value are foreground"),
-    }
-
-    def run(self, *, path, images, masks, background, calibration, mask_threshold, frame):
-        return load_capture(path, frame, images, masks, background, calibration, mask_threshold)

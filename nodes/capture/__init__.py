@@ -1,0 +1,1 @@
+"""Capture: calibrated multi-camera images (and shipped masks, clean plates) from dataset folders."""

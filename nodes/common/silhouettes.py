@@ -1,0 +1,411 @@
+"""Silhouettes and the visual hull's point test, shared by every stage that asks "is this point inside the
+silhouettes?" (hull, bounds, refine, relax, carve): one vote rule, one host form, one device form.
+
+The vote (``vote``; kernels/silhouette.h ``hull_vote``): a point's projection into each view is inside the
+silhouette, on background, or unseen (behind the camera or outside the image). With min_views > 0 the
+point is inside when at least min_views views see it inside; otherwise policy "carve" needs every view to
+see it inside and policy "ignore" needs no view to see it on background and at least ``min_seen`` (1) to
+see it inside.
+
+Host forms: uint8 masks checked against the cameras (``check_masks``), ``Silhouettes`` (packed cameras,
+binary masks, optional soft alpha or a signed-distance outline: the sub-pixel point test of refine and relax).
+Device forms: ``SilhouetteBits`` (one bit per pixel + 8x8-block summed-area tables, the hull's layout, also
+written straight from the images by key.chroma) and ``HullTestCL`` (the point test, exit and clamp kernels).
+NumPy references: ``centre_states``, ``view_states``, ``inside_hull``, ``exit_reference``, ``clamp_reference``,
+``block_table_reference``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from kernels import source
+from nodegraph import NodeError
+
+from .cameras import Cameras, project_packed_f32
+
+POLICIES = ("carve", "ignore")   # views a point projects outside of: not inside, or no vote
+OUTLINES = ("distance", "pixels")  # how binary masks are read: signed distance outline or nearest pixel
+IN, BACKGROUND, UNSEEN = 1, 2, 3
+
+
+# ---------------------------------------------------------------- checks
+def check_sizes(arrays, cameras: Cameras, node: str, kind: str = "mask"):
+    """A NodeError naming the camera when there is not one array per camera or an array's (H, W) is not its
+    camera's image size."""
+    if len(arrays) != len(cameras):
+        raise NodeError(f"{node}: {len(arrays)} {kind}s for {len(cameras)} cameras")
+    for a, cam in zip(arrays, cameras):
+        h, w = np.shape(a)[:2]
+        if (h, w) != (cam.height, cam.width):
+            raise NodeError(f"{node}: {kind} of camera '{cam.name}' is {w}x{h} but the camera is {cam.width}x{cam.height}")
+
+
+def check_masks(masks, cameras: Cameras, node: str = "hull") -> list[np.ndarray]:
+    """The masks (a MaskSet or a list) as contiguous uint8 (H, W) arrays, one per camera, or a NodeError
+    naming the camera."""
+    arrays = [np.asarray(m) for m in (masks.masks if hasattr(masks, "masks") else masks)]
+    for m, cam in zip(arrays, cameras):
+        if m.dtype != np.uint8 or m.ndim != 2:
+            raise NodeError(f"{node}: mask of camera '{cam.name}' must be an (H, W) uint8 array, got {m.dtype} {m.shape}")
+    check_sizes(arrays, cameras, node)
+    return [np.ascontiguousarray(m) for m in arrays]
+
+
+# ---------------------------------------------------------------- the vote
+def centre_states(mask: np.ndarray, cam_row: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """Per point (N, 3 float32): 1 = inside the silhouette, 2 = background, 3 = behind / outside the image.
+    ``cam_row`` is one row of Cameras.pack(); float32 operations in the order of kernels/camera.h."""
+    c = cam_row.astype(np.float32)
+    u, v, front = project_packed_f32(c, X)
+    with np.errstate(invalid="ignore"):
+        fu, fv = u + np.float32(0.5), v + np.float32(0.5)
+        seen = front & (fu >= 0) & (fu < c[22]) & (fv >= 0) & (fv < c[23])
+    state = np.full(len(X), 3, np.uint8)
+    px, py = fu[seen].astype(np.int64), fv[seen].astype(np.int64)
+    state[seen] = np.where(mask[py, px] > 127, 1, 2)
+    return state
+
+
+def vote(n_in: np.ndarray, n_out: np.ndarray, nviews: int, min_views: int, policy: str, min_seen: int = 1) -> np.ndarray:
+    """The hull's vote rule (see the module docstring): ``n_in`` / ``n_out`` views see the point inside / on
+    background, of ``nviews``."""
+    if min_views > 0:
+        return n_in >= min_views
+    if policy == "carve":
+        return n_in == nviews
+    return (n_out == 0) & (n_in >= max(1, min_seen))
+
+
+# ---------------------------------------------------------------- OpenCL
+class SilhouetteBits:
+    """Silhouettes on the OpenCL device, in the layout the hull kernels read (kernels/hull.cl), one per view:
+    one bit per pixel (rows of Wb = ceil(W/8) bytes, pixel x in bit x % 8 of byte x // 8) and the
+    (Hb+1) x (Wb+1) int32 summed-area table of its 8x8 pixel block counts (zero first row and column).
+
+    Written from host masks (``HullCL.prepare``) or straight from the camera images by a key kernel
+    (``nodes.key.chroma_key_bits``): both write the bits and the block counts prefixed along rows, then
+    ``prefix_columns`` completes the tables. Allocated once per list of image sizes; hand it back as ``out=``
+    to the next frame's producer to reuse its buffers (its contents are then overwritten)."""
+
+    def __init__(self, sizes: list[tuple[int, int]]):
+        import pyopencl as cl
+
+        from nodegraph import clrt
+
+        self.sizes = [(int(w), int(h)) for w, h in sizes]
+        wb = [(w + 7) // 8 for w, _ in self.sizes]
+        hb = [(h + 7) // 8 for _, h in self.sizes]
+        self.bit_off = np.concatenate([[0], np.cumsum([b * h for b, (_, h) in zip(wb, self.sizes)])]).astype(np.int64)
+        self.sat_off = np.concatenate([[0], np.cumsum([(a + 1) * (b + 1) for a, b in zip(wb, hb)])]).astype(np.int64)
+        if self.bit_off[-1] >= 2**31 or self.sat_off[-1] >= 2**31:
+            raise NodeError(f"hull: {len(sizes)} silhouettes are too large for 32-bit offsets")
+        ctx, _ = clrt.context()
+        rw = cl.mem_flags.READ_WRITE
+        self.bits = cl.Buffer(ctx, rw, max(int(self.bit_off[-1]), 4))
+        self.sat = cl.Buffer(ctx, rw, max(int(self.sat_off[-1]) * 4, 4))
+        self.bit_off_buf = clrt.to_device(self.bit_off[:-1].astype(np.int32))
+        self.sat_off_buf = clrt.to_device(self.sat_off[:-1].astype(np.int32))
+        self.sizes_buf = clrt.to_device(np.array(self.sizes, np.int32).reshape(-1, 2))
+
+    def __len__(self) -> int:
+        return len(self.sizes)
+
+    @classmethod
+    def reuse(cls, out: "SilhouetteBits | None", sizes) -> "SilhouetteBits":
+        """``out`` when it was made for these image sizes, else a new one."""
+        sizes = [(int(w), int(h)) for w, h in sizes]
+        return out if out is not None and out.sizes == sizes else cls(sizes)
+
+    def prefix_columns(self):
+        """Enqueue the column prefix that turns the row-prefixed block counts into summed-area tables."""
+        from nodegraph import clrt
+
+        wb = max(w for w, _ in self.sizes) // 8 + 2
+        clrt.kernel(source("hull.cl"), "block_cols")(clrt.queue(), (wb, len(self)), None, self.sat, self.sat_off_buf,
+                                             self.sizes_buf)
+
+    def masks(self) -> list[np.ndarray]:
+        """The silhouettes back on the host as uint8 (H, W) 0/255 masks (for checks; a read-back)."""
+        import pyopencl as cl
+
+        from nodegraph import clrt
+
+        raw = np.empty(int(self.bit_off[-1]), np.uint8)
+        cl.enqueue_copy(clrt.queue(), raw, self.bits)
+        out = []
+        for v, (w, h) in enumerate(self.sizes):
+            rows = raw[self.bit_off[v]:self.bit_off[v + 1]].reshape(h, -1)
+            out.append(np.unpackbits(rows, axis=1, bitorder="little")[:, :w] * np.uint8(255))
+        return out
+
+    def block_tables(self) -> list[np.ndarray]:
+        """The (Hb+1, Wb+1) int32 summed-area tables back on the host (for checks; a read-back)."""
+        import pyopencl as cl
+
+        from nodegraph import clrt
+
+        raw = np.empty(int(self.sat_off[-1]), np.int32)
+        cl.enqueue_copy(clrt.queue(), raw, self.sat)
+        return [raw[self.sat_off[v]:self.sat_off[v + 1]].reshape((h + 7) // 8 + 1, (w + 7) // 8 + 1)
+                for v, (w, h) in enumerate(self.sizes)]
+
+
+def block_table_reference(mask: np.ndarray) -> np.ndarray:
+    """Summed-area table (Hb+1, Wb+1) int32 of the 8x8 pixel block counts of (mask > 127)."""
+    h, w = mask.shape
+    m = np.zeros((-(-h // 8) * 8, -(-w // 8) * 8), np.int32)
+    m[:h, :w] = mask > 127
+    counts = m.reshape(m.shape[0] // 8, 8, m.shape[1] // 8, 8).sum(axis=(1, 3))
+    return np.pad(counts.cumsum(0).cumsum(1), ((1, 0), (1, 0))).astype(np.int32)
+
+
+def check_silhouettes(sil: SilhouetteBits, cameras: Cameras):
+    """A NodeError naming the camera when the device silhouettes do not fit the cameras."""
+    if len(sil) != len(cameras):
+        raise NodeError(f"hull: {len(sil)} silhouettes for {len(cameras)} cameras")
+    for (w, h), cam in zip(sil.sizes, cameras):
+        if (w, h) != (cam.width, cam.height):
+            raise NodeError(f"hull: silhouette of camera '{cam.name}' is {w}x{h} but the camera is "
+                            f"{cam.width}x{cam.height}")
+
+
+# ---------------------------------------------------------------- silhouettes
+@dataclass
+class Silhouettes:
+    """Everything the point test reads: packed cameras, binary masks, optional soft alpha, the vote rule."""
+
+    cams: np.ndarray                  # (N, 32) float32, Cameras.pack()
+    masks: list[np.ndarray]           # uint8 (H, W), inside when > 127
+    alpha: list[np.ndarray] | None    # float32 (H, W), inside when bilinear alpha >= 0.5; used when given
+    min_views: int = 0
+    policy: str = "carve"
+
+    @classmethod
+    def from_inputs(cls, masks, cameras: Cameras, min_views: int = 0, outside: str = "carve", use_alpha: bool = True,
+                    node: str = "refine") -> "Silhouettes":
+        """Check a MaskSet against the cameras (NodeError naming the camera) and pack both."""
+        if masks is None or cameras is None:
+            raise NodeError(f"{node}: needs both 'masks' and 'cameras' inputs")
+        binary = check_masks(masks, cameras, node)
+        if min_views > len(cameras):
+            raise NodeError(f"{node}: min_views {min_views} is more than the {len(cameras)} cameras")
+        if outside not in POLICIES:
+            raise NodeError(f"{node}: outside must be one of {', '.join(POLICIES)}, got {outside!r}")
+        soft = []
+        use_alpha = use_alpha and masks.alpha is not None
+        for i, (cam, m) in enumerate(zip(cameras, binary)):
+            if use_alpha:
+                a = np.asarray(masks.alpha[i], dtype=np.float32)
+                if a.shape != m.shape:
+                    raise NodeError(f"{node}: alpha of camera '{cam.name}' is {a.shape[1]}x{a.shape[0]}, its mask {m.shape[1]}x{m.shape[0]}")
+                if not np.all(np.isfinite(a)):
+                    raise NodeError(f"{node}: alpha of camera '{cam.name}' contains NaN or infinity")
+                soft.append(np.ascontiguousarray(a))
+        return cls(cameras.pack(), binary, soft if use_alpha else None, min_views, outside)
+
+    def distance_outline(self, sigma: float = 0.0) -> "Silhouettes":
+        """Binary masks without alpha get alpha = 0.5 + signed pixel distance to the other class (positive
+        inside; cv2.distanceTransform between pixel centres, minus half a pixel), Gaussian-blurred by
+        ``sigma`` pixels when > 0 (a smoother outline through the staircase). Bilinear >= 0.5 is then the
+        pixel edge along straight runs and a rounded corner at steps. Soft alpha is kept as is."""
+        if self.alpha is not None:
+            return self
+        import cv2
+
+        fields = []
+        for m in self.masks:
+            fg = (m > 127).astype(np.uint8)
+            to_bg = cv2.distanceTransform(fg, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+            to_fg = cv2.distanceTransform(1 - fg, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+            d = np.where(fg > 0, to_bg - 0.5, 0.5 - to_fg).astype(np.float32)
+            if sigma > 0:
+                d = cv2.GaussianBlur(d, (0, 0), sigma)
+            fields.append(d + np.float32(0.5))
+        return Silhouettes(self.cams, self.masks, fields, self.min_views, self.policy)
+
+
+# ---------------------------------------------------------------- NumPy reference
+def view_states(points: np.ndarray, views: Silhouettes, v: int) -> np.ndarray:
+    """Per point (N, 3 float32) in view ``v``: 1 inside the silhouette, 2 background, 3 unseen (behind the
+    camera or outside the image). Float32 in the kernel's order."""
+    c = views.cams[v]
+    f = np.float32
+    u, w, front = project_packed_f32(c, points)
+    W, H = int(c[22]), int(c[23])
+    with np.errstate(invalid="ignore"):
+        seen = front & (u >= f(-0.5)) & (u < f(W) - f(0.5)) & (w >= f(-0.5)) & (w < f(H) - f(0.5))
+    state = np.full(len(points), UNSEEN, np.uint8)
+    u, w = u[seen], w[seen]
+    if views.alpha is not None:
+        a = views.alpha[v]
+        fx0, fy0 = np.floor(u), np.floor(w)
+        fx, fy = u - fx0, w - fy0
+        x0, x1 = np.clip(fx0.astype(np.int64), 0, W - 1), np.clip(fx0.astype(np.int64) + 1, 0, W - 1)
+        y0, y1 = np.clip(fy0.astype(np.int64), 0, H - 1), np.clip(fy0.astype(np.int64) + 1, 0, H - 1)
+        top = (f(1) - fx) * a[y0, x0] + fx * a[y0, x1]
+        bottom = (f(1) - fx) * a[y1, x0] + fx * a[y1, x1]
+        inside = (f(1) - fy) * top + fy * bottom >= f(0.5)
+    else:
+        inside = views.masks[v][(w + f(0.5)).astype(np.int64), (u + f(0.5)).astype(np.int64)] > 127
+    state[seen] = np.where(inside, IN, BACKGROUND)
+    return state
+
+
+def inside_hull(points: np.ndarray, views: Silhouettes) -> np.ndarray:
+    """Boolean per point: inside the visual hull under the vote rule (see kernels/refine.cl)."""
+    points = np.asarray(points, np.float32).reshape(-1, 3)
+    n_in = np.zeros(len(points), np.int32)
+    n_bg = np.zeros(len(points), np.int32)
+    for v in range(len(views.cams)):
+        s = view_states(points, views, v)
+        n_in += s == IN
+        n_bg += s == BACKGROUND
+    return vote(n_in, n_bg, len(views.cams), views.min_views, views.policy)
+
+
+def _bisect(a: np.ndarray, b: np.ndarray, views: Silhouettes, steps: int) -> tuple[np.ndarray, np.ndarray]:
+    f = np.float32
+    lo = np.zeros(len(a), f)
+    hi = np.ones(len(a), f)
+    d = b - a
+    for _ in range(steps):
+        t = f(0.5) * (lo + hi)
+        ins = inside_hull(a + t[:, None] * d, views)
+        lo = np.where(ins, t, lo)
+        hi = np.where(ins, hi, t)
+    return lo, hi
+
+
+def exit_reference(a, b, views: Silhouettes, steps: int) -> np.ndarray:
+    """Where each segment a[i] (inside) -> b[i] (outside) leaves the hull: middle of the last bisection interval."""
+    a, b = np.asarray(a, np.float32), np.asarray(b, np.float32)
+    lo, hi = _bisect(a, b, views, steps)
+    t = np.float32(0.5) * (lo + hi)
+    return a + t[:, None] * (b - a)
+
+
+def clamp_reference(a, b, views: Silhouettes, steps: int, dirs=None, reach: float = 0.0) -> np.ndarray:
+    """Move from a[i] towards b[i]; where b[i] is outside the hull, go back to the last point found inside:
+    along -dirs[i] from c = b[i] - reach * dirs[i] when reach > 0 and c is inside, else along the move."""
+    a, b = np.asarray(a, np.float32), np.asarray(b, np.float32)
+    out = b.copy()
+    bad = np.flatnonzero(~inside_hull(b, views))
+    if len(bad):
+        start = a[bad]
+        if reach > 0:
+            c = b[bad] - np.float32(reach) * np.asarray(dirs, np.float32)[bad]
+            start = np.where(inside_hull(c, views)[:, None], c, start)
+        lo, _ = _bisect(start, b[bad], views, steps)
+        out[bad] = start + lo[:, None] * (b[bad] - start)
+    return out
+
+
+# ---------------------------------------------------------------- OpenCL
+class HullTestCL:
+    """The silhouettes on the device and the kernels of kernels/refine.cl (point test, exit, clamp)."""
+
+    def __init__(self, views: Silhouettes):
+        from nodegraph import clrt
+
+        self.ctx, self.queue = clrt.context()
+        self.views = views
+        sizes = [m.size for m in views.masks]
+        mask_off = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int32)
+        self.d_cams = clrt.to_device(views.cams)
+        self.d_masks = clrt.to_device(np.concatenate([m.ravel() for m in views.masks]))
+        self.d_mask_off = clrt.to_device(mask_off)
+        if views.alpha is not None:
+            self.d_alpha = clrt.to_device(np.concatenate([a.ravel() for a in views.alpha]).astype(np.float32))
+            self.d_alpha_off = self.d_mask_off
+        else:
+            self.d_alpha = clrt.to_device(np.zeros(1, np.float32))
+            self.d_alpha_off = clrt.to_device(np.zeros(len(sizes), np.int32))
+        self.kernels = {k: clrt.kernel(source("refine.cl"), k) for k in ("hull_exit", "hull_clamp", "hull_inside")}
+
+    def hull_args(self) -> tuple:
+        v = self.views
+        return (self.d_cams, np.int32(len(v.cams)), self.d_masks, self.d_mask_off, self.d_alpha, self.d_alpha_off,
+                np.int32(v.alpha is not None), np.int32(v.min_views), np.int32(POLICIES.index(v.policy)))
+
+    def enqueue_exit(self, d_a, d_b, n: int, steps: int, d_out):
+        """Enqueue ``hull_exit`` on device buffers of n float3 points (no copies)."""
+        import pyopencl as cl
+
+        k = self.kernels["hull_exit"]
+        k.set_args(d_a, d_b, np.int32(n), np.int32(steps), *self.hull_args(), d_out)
+        cl.enqueue_nd_range_kernel(self.queue, k, (-(-n // 64) * 64,), None)
+
+    def enqueue_clamp(self, d_a, d_b, d_dirs, reach: float, n: int, steps: int, d_out):
+        """Enqueue ``hull_clamp`` on device buffers of n float3 points (no copies)."""
+        import pyopencl as cl
+
+        k = self.kernels["hull_clamp"]
+        k.set_args(d_a, d_b, d_dirs, np.float32(reach), np.int32(n), np.int32(steps), *self.hull_args(), d_out)
+        cl.enqueue_nd_range_kernel(self.queue, k, (-(-n // 64) * 64,), None)
+
+    def _run(self, arrays: list, enqueue) -> np.ndarray:
+        import pyopencl as cl
+
+        from nodegraph import clrt
+
+        arrays = [np.ascontiguousarray(x, np.float32).reshape(-1, 3) for x in arrays]
+        out = np.empty_like(arrays[0])
+        if len(out) == 0:
+            return out
+        d_out = cl.Buffer(self.ctx, cl.mem_flags.WRITE_ONLY, out.nbytes)
+        bufs = [clrt.to_device(x) for x in arrays]  # kept alive until the copy below has finished
+        enqueue(*bufs, d_out)
+        cl.enqueue_copy(self.queue, out, d_out, is_blocking=True)
+        return out
+
+    def exit(self, a, b, steps: int) -> np.ndarray:
+        """As ``exit_reference``."""
+        n = len(np.asarray(a).reshape(-1, 3))
+        return self._run([a, b], lambda da, db, do: self.enqueue_exit(da, db, n, steps, do))
+
+    def clamp(self, a, b, steps: int, dirs=None, reach: float = 0.0) -> np.ndarray:
+        """As ``clamp_reference``."""
+        n = len(np.asarray(a).reshape(-1, 3))
+        dirs = np.zeros((n, 3), np.float32) if dirs is None else dirs
+        return self._run([a, b, dirs], lambda da, db, dd, do: self.enqueue_clamp(da, db, dd, reach, n, steps, do))
+
+    def inside(self, points) -> np.ndarray:
+        """Boolean per point, as ``inside_hull``."""
+        import pyopencl as cl
+
+        from nodegraph import clrt
+
+        p = np.ascontiguousarray(points, np.float32).reshape(-1, 3)
+        out = np.zeros(len(p), np.uint8)
+        if len(p) == 0:
+            return out.astype(bool)
+        d_out = cl.Buffer(self.ctx, cl.mem_flags.WRITE_ONLY, out.nbytes)
+        k = self.kernels["hull_inside"]
+        d_p = clrt.to_device(p)  # kept alive until the copy below has finished
+        k.set_args(d_p, np.int32(len(p)), *self.hull_args(), d_out)
+        cl.enqueue_nd_range_kernel(self.queue, k, (-(-len(p) // 64) * 64,), None)
+        cl.enqueue_copy(self.queue, out, d_out, is_blocking=True)
+        return out.astype(bool)
+
+
+class HullTestNumPy:
+    """The NumPy reference with HullTestCL's methods (inside, exit, clamp)."""
+
+    def __init__(self, views: Silhouettes):
+        self.views = views
+
+    def inside(self, points) -> np.ndarray:
+        return inside_hull(points, self.views)
+
+    def exit(self, a, b, steps: int) -> np.ndarray:
+        return exit_reference(a, b, self.views, steps)
+
+    def clamp(self, a, b, steps: int, dirs=None, reach: float = 0.0) -> np.ndarray:
+        return clamp_reference(a, b, self.views, steps, dirs, reach)
+
+
+def hull_test(views: Silhouettes, method: str = "opencl"):
+    """HullTestCL (method "opencl") or HullTestNumPy ("numpy") for ``views``."""
+    return HullTestCL(views) if method == "opencl" else HullTestNumPy(views)

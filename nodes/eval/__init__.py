@@ -1,0 +1,1 @@
+"""Eval: quality metrics (silhouette agreement, surface distances)."""

@@ -1,0 +1,1 @@
+"""Export: results written where a production chain picks them up."""

@@ -1,0 +1,1 @@
+"""Hull: the volumetric visual hull and the automatic capture box."""

@@ -1,0 +1,1 @@
+"""Key: silhouettes from camera images (chroma, difference, threshold keys; clean-up; consensus; GrabCut)."""

@@ -1,0 +1,197 @@
+"""Nodes of the key stage: chroma key, difference key, grey threshold, clean-up, multi-view consensus,
+GrabCut at the boundary (the work is in keying.py)."""
+from __future__ import annotations
+
+import numpy as np
+
+from nodegraph import Input, Node, NodeError, Param
+from nodes.common.types import Bounds, CameraSet, Images, ImageSet, Masks, MaskSet, Volume
+
+from .keying import (KERNELS, check_views, chroma_key_cl, clean_mask, difference_key_cl, estimate_key_direction,
+                     grabcut_band, grey_threshold_cl, hull_footprint, key_direction_from_rgb, maskset, matte_edges,
+                     plate_model, disc)
+
+
+class ChromaKey(Node):
+    """Chroma key (green/blue screen): foreground alpha from how strongly each pixel's chroma points at the
+    screen hue relative to its brightness, with an optional garbage matte (pixels outside the projection of
+    the capture box are background) and spill suppression of the screen colour in the kept pixels."""
+
+    type_name = "key.chroma"
+    version = 1
+    inputs = {
+        "images": Images,
+        "cameras": Input(CameraSet, optional=True, doc="with bounds: garbage matte"),
+        "bounds": Input(Bounds, optional=True, doc="capture volume; pixels outside its projection are background"),
+    }
+    outputs = {"masks": Masks, "images": Images}
+    params = {
+        "key_color": Param(list, None, item=int, length=3, doc="screen RGB; default: estimated from the image border"),
+        "inner": Param(float, 0.05, doc="key strength below which a pixel is fully foreground"),
+        "outer": Param(float, 0.2, doc="key strength above which a pixel is fully background"),
+        "side": Param(float, 1.0, range=(0, None), doc="weight of chroma off the key hue (larger = narrower hue band)"),
+        "luma_floor": Param(float, 16.0, range=(1, 255), doc="luma below which chroma is not normalised further"),
+        "black": Param(float, 0.0, range=(0, 255), doc="pixels darker than this luma are background (dark studio walls)"),
+        "spill": Param(float, 1.0, range=(0, 1), doc="fraction of the key-coloured chroma removed from kept pixels"),
+        "matte_margin": Param(float, 8.0, range=(0, None), doc="garbage matte slack, pixels"),
+    }
+    kernels = [KERNELS]
+
+    def run(self, images, cameras=None, bounds=None, *, key_color, inner, outer, side, luma_floor, black, spill,
+            matte_margin):
+        if outer <= inner:
+            raise NodeError(f"key.chroma: param 'outer' ({outer}) must be larger than 'inner' ({inner})")
+        if (cameras is None) != (bounds is None):
+            raise NodeError("key.chroma: the garbage matte needs both inputs 'cameras' and 'bounds'")
+        check_views("key.chroma", images.images, cameras)
+        alphas, despilled = [], []
+        for v, im in enumerate(images.images):
+            key = key_direction_from_rgb(key_color) if key_color else estimate_key_direction(im)
+            edges = matte_edges(cameras, v, bounds, matte_margin) if cameras is not None else None
+            a, d = chroma_key_cl(im, key, side=side, luma_floor=luma_floor, inner=inner, outer=outer, black=black,
+                                 spill=spill, edges=edges, despill=spill > 0)
+            alphas.append(a)
+            despilled.append(d if spill > 0 else im)
+        return {"masks": maskset(alphas, images.names), "images": ImageSet(despilled, list(images.names))}
+
+
+class DifferenceKey(Node):
+    """Difference key against clean plates (one per camera): a per-pixel Gaussian colour model of the plate;
+    pixels whose colour departs from it in chromaticity, or in brightness beyond the shadow/highlight range,
+    are foreground. Shadows (darker, same chromaticity as the plate) are background (Horprasert 1999)."""
+
+    type_name = "key.difference"
+    version = 1
+    inputs = {"images": Images, "background": Input(Images, doc="clean plate per camera, same order")}
+    outputs = {"masks": Masks}
+    params = {
+        "noise": Param(float, 4.0, range=(0.5, None), doc="lowest plate noise sigma, grey levels"),
+        "cd_inner": Param(float, 4.0, range=(0, None), doc="chromaticity distortion (sigmas) below which it is background"),
+        "cd_outer": Param(float, 8.0, range=(0, None), doc="chromaticity distortion (sigmas) above which it is foreground"),
+        "shadow": Param(float, 0.5, range=(0, 1), doc="lowest brightness ratio still taken as a shadow"),
+        "highlight": Param(float, 1.2, range=(1, None), doc="highest brightness ratio still taken as background"),
+        "still": Param(float, 3.0, range=(0, None), doc="colour distance (sigmas) within which a pixel is background"),
+    }
+    kernels = [KERNELS]
+
+    def run(self, images, background, *, noise, cd_inner, cd_outer, shadow, highlight, still):
+        if cd_outer <= cd_inner:
+            raise NodeError(f"key.difference: param 'cd_outer' ({cd_outer}) must be larger than 'cd_inner' ({cd_inner})")
+        if len(background) != len(images):
+            raise NodeError(f"key.difference: {len(images)} images but {len(background)} background plates")
+        alphas = []
+        for name, im, plate in zip(images.names, images.images, background.images):
+            if plate.shape != im.shape:
+                raise NodeError(f"key.difference: camera '{name}': plate {plate.shape[1]}x{plate.shape[0]} does not "
+                                f"match image {im.shape[1]}x{im.shape[0]}")
+            mean, inv_var = plate_model(plate, noise)
+            a, _ = difference_key_cl(im, mean, inv_var, cd_inner=cd_inner, cd_outer=cd_outer, shadow=shadow,
+                                     highlight=highlight, still=still)
+            alphas.append(a)
+        return {"masks": maskset(alphas, images.names)}
+
+
+class Threshold(Node):
+    """Grey threshold: foreground where the grey level exceeds ``threshold`` (masks shipped as images, or
+    objects on a black background such as Middlebury's: threshold 0.19, dilate 10, erode 7)."""
+
+    type_name = "key.threshold"
+    version = 1
+    inputs = {"images": Images}
+    outputs = {"masks": Masks}
+    params = {
+        "threshold": Param(float, 0.5, range=(0, 1), doc="fraction of 255"),
+        "channel": Param(str, "mean", choices=("mean", "max"), doc="grey = mean of R, G, B or their max"),
+        "dilate": Param(int, 0, range=(0, 100), doc="then dilate by this radius, pixels"),
+        "erode": Param(int, 0, range=(0, 100), doc="then erode by this radius, pixels"),
+    }
+    kernels = [KERNELS]
+
+    def run(self, images, *, threshold, channel, dilate, erode):
+        import cv2
+
+        masks = []
+        for im in images.images:
+            m = grey_threshold_cl(im, threshold * 255, channel == "max")
+            if dilate:
+                m = cv2.dilate(m, disc(dilate))
+            if erode:
+                m = cv2.erode(m, disc(erode))
+            masks.append(m)
+        return {"masks": MaskSet(masks, None, list(images.names))}
+
+
+class Cleanup(Node):
+    """Mask clean-up: morphological opening and closing, keep the largest components, fill holes."""
+
+    type_name = "key.cleanup"
+    version = 1
+    inputs = {"masks": Masks}
+    outputs = {"masks": Masks}
+    params = {
+        "open": Param(int, 1, range=(0, 50), doc="opening radius, pixels (removes specks)"),
+        "close": Param(int, 2, range=(0, 50), doc="closing radius, pixels (bridges cracks)"),
+        "keep": Param(int, 1, range=(0, None), doc="keep the k largest components (0 = all)"),
+        "fill_holes": Param(bool, True, doc="fill background regions not connected to the border"),
+    }
+
+    def run(self, masks, *, open, close, keep, fill_holes):
+        out, alphas = [], []
+        for i, m in enumerate(masks.masks):
+            c = clean_mask(m, open_px=open, close_px=close, keep=keep, fill_holes=fill_holes)
+            out.append(c)
+            if masks.alpha is not None:
+                a = masks.alpha[i]
+                alphas.append(np.where(c > 0, np.where(m > 127, a, 1.0), 0.0).astype(np.float32))
+        return {"masks": MaskSet(out, alphas if masks.alpha is not None else None, list(masks.names))}
+
+
+class Consensus(Node):
+    """Multi-view consistency: each view's mask intersected with the projection of a visual hull computed from
+    all views' masks (with a min_views tolerance), so what only one or two cameras believe is foreground is
+    rejected."""
+
+    type_name = "key.consensus"
+    version = 1
+    inputs = {"masks": Masks, "cameras": CameraSet, "volume": Input(Volume, doc="hull of all views' masks")}
+    outputs = {"masks": Masks}
+    params = {"dilate": Param(int, 2, range=(0, 100), doc="extra margin around the hull's projection, pixels")}
+
+    def run(self, masks, cameras, volume, *, dilate):
+        check_views("key.consensus", masks.masks, cameras, kind="mask")
+        out, alphas = [], []
+        for v, m in enumerate(masks.masks):
+            keep = hull_footprint(volume, cameras, v, dilate) > 0
+            out.append(np.where(keep, m, 0).astype(np.uint8))
+            if masks.alpha is not None:
+                alphas.append(np.where(keep, masks.alpha[v], 0).astype(np.float32))
+        return {"masks": MaskSet(out, alphas if masks.alpha is not None else None, list(masks.names))}
+
+
+class GrabCut(Node):
+    """Boundary refinement: each mask re-decided in a band around its edge by GrabCut (colour models of both
+    sides + a graph cut that follows image edges), for what a colour key cannot separate, e.g. dark hair in
+    front of a dark studio wall. Pixels well inside stay foreground, pixels far outside stay background."""
+
+    type_name = "key.grabcut"
+    version = 1
+    inputs = {"images": Images, "masks": Masks}
+    outputs = {"masks": Masks}
+    params = {
+        "inner": Param(int, 4, range=(0, 100), doc="pixels deeper than this inside the mask are certain foreground"),
+        "outer": Param(int, 20, range=(1, 200), doc="pixels farther than this outside the mask are certain background"),
+        "iterations": Param(int, 2, range=(1, 20), doc="GrabCut iterations (colour model re-fit + cut)"),
+    }
+
+    def run(self, images, masks, *, inner, outer, iterations):
+        if len(masks) != len(images):
+            raise NodeError(f"key.grabcut: {len(images)} images but {len(masks)} masks")
+        from concurrent.futures import ThreadPoolExecutor
+
+        for name, im, m in zip(images.names, images.images, masks.masks):
+            if m.shape != im.shape[:2]:
+                raise NodeError(f"key.grabcut: camera '{name}': mask {m.shape[1]}x{m.shape[0]} does not match image "
+                                f"{im.shape[1]}x{im.shape[0]}")
+        with ThreadPoolExecutor() as pool:  # OpenCV releases the GIL; views are independent
+            out = list(pool.map(lambda im, m: grabcut_band(im, m, inner, outer, iterations), images.images, masks.masks))
+        return {"masks": MaskSet(out, None, list(masks.names))}

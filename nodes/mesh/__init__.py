@@ -1,0 +1,1 @@
+"""Mesh: marching cubes, refinement onto the exact visual hull, relaxation that keeps the silhouettes."""

@@ -1,0 +1,1 @@
+"""Synth: synthetic capture stages with ground truth (procedural scenes, camera rigs, rendering)."""
