@@ -190,7 +190,8 @@ class Runner:
         import pyopencl as cl
 
         mf = cl.mem_flags
-        return cl.Buffer(self.ctx, (mf.READ_WRITE if writable else mf.READ_ONLY) | mf.USE_HOST_PTR, hostbuf=arr)
+        flags = (mf.READ_WRITE if writable else mf.READ_ONLY) | mf.USE_HOST_PTR
+        return cl.Buffer(self.ctx, flags, hostbuf=np.ascontiguousarray(arr))
 
     def launch(self, name: str, global_size, local_size, *args, options: tuple[str, ...] = ()):
         """Enqueue kernel ``name`` over ``global_size`` (rounded up to whole ``local_size`` groups when given)."""

@@ -216,14 +216,13 @@ def test_real_human_hull_mesh(data_dir, name, min_iou):
 
 
 def test_silhouette_bits_from_masks_hold_the_masks_and_their_block_tables():
-    """HullCL.prepare: device bits unpack to the masks, the tables are the 8x8 block summed-area tables."""
+    """SilhouetteBits.from_masks: device bits unpack to the masks, the tables are the 8x8 block summed-area tables."""
     from nodes.common.silhouettes import SilhouetteBits, block_table_reference
-    from nodes.hull.hull import hull_cl
 
     rng = np.random.default_rng(3)
     masks = [(rng.random((h, w)) < 0.4).astype(np.uint8) * rng.integers(128, 256, (h, w), dtype=np.uint8)
              for w, h in ((53, 37), (64, 48), (9, 17))]  # odd sizes; values > 127 are inside
-    sil = hull_cl().prepare(masks, out=None)
+    sil = SilhouetteBits.from_masks(masks)
     assert isinstance(sil, SilhouetteBits) and sil.sizes == [(53, 37), (64, 48), (9, 17)]
     for m, bits, table in zip(masks, sil.masks(), sil.block_tables()):
         assert np.array_equal(bits, np.where(m > 127, 255, 0))

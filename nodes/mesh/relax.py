@@ -20,7 +20,7 @@ import numpy as np
 import trimesh
 
 from kernels import source
-from nodegraph import Input, Node, NodeError, Param
+from nodegraph import Input, Node, NodeError, Param, clrt
 from nodes.common.meshops import vertex_neighbours
 from nodes.common.silhouettes import POLICIES, Silhouettes, hull_test
 from nodes.common.types import CameraSet, Masks, Mesh
@@ -55,30 +55,27 @@ def taubin_reference(vertices, offsets, neighbours, iterations: int, lam: float 
     return v
 
 
+class RelaxCL(clrt.Runner):
+    """kernels/relax.cl: Taubin half-steps (vertices stay on the device between them)."""
+
+    source = source("relax.cl")
+    GROUP = 64
+
+
 def taubin_cl(vertices, offsets, neighbours, iterations: int, lam: float = LAMBDA, mu: float = MU) -> np.ndarray:
     """OpenCL version of ``taubin_reference`` (vertices stay on the device between half-steps)."""
-    import pyopencl as cl
-
-    from nodegraph import clrt
-
     v = np.ascontiguousarray(vertices, np.float32).reshape(-1, 3)
     n = len(v)
     if n == 0 or iterations == 0:
         return v.copy()
-    ctx, queue = clrt.context()
-    rw = cl.mem_flags.READ_WRITE
-    d_v, d_p = clrt.to_device(v, rw), cl.Buffer(ctx, rw, v.nbytes)
-    d_off, d_nb = clrt.to_device(np.asarray(offsets, np.int32)), clrt.to_device(np.asarray(neighbours, np.int32))
-    k = clrt.kernel(source("relax.cl"), "taubin_step")
-    size = (-(-n // 64) * 64,)
+    run = RelaxCL.get()
+    d_v, d_p = run.upload("v", v), run.buffer("p", v.nbytes)
+    d_off, d_nb = run.upload("offsets", np.asarray(offsets, np.int32)), run.upload("neighbours", np.asarray(neighbours, np.int32))
     for _ in range(iterations):
         for factor in (lam, mu):
-            k.set_args(d_v, d_off, d_nb, np.int32(n), np.float32(factor), d_p)
-            cl.enqueue_nd_range_kernel(queue, k, size, None)
+            run.launch("taubin_step", n, run.GROUP, d_v, d_off, d_nb, np.int32(n), np.float32(factor), d_p)
             d_v, d_p = d_p, d_v
-    out = np.empty_like(v)
-    cl.enqueue_copy(queue, out, d_v, is_blocking=True)
-    return out
+    return run.read(d_v, v.shape, np.float32)
 
 
 def relax_vertices(mesh, iterations: int, lam: float = LAMBDA, mu: float = MU, views: Silhouettes | None = None,
