@@ -21,7 +21,7 @@ sys.path.insert(0, str(ROOT))
 from nodegraph.testing import run_node  # noqa: E402
 from nodes.hull.bounds import auto_bounds  # noqa: E402
 from nodes.capture.load import load_capture  # noqa: E402
-from nodes.eval.metrics import silhouette_report  # noqa: E402
+from nodes.eval.silhouette import silhouette_report  # noqa: E402
 from nodes.hull.hull import visual_hull  # noqa: E402
 from nodes.common.meshops import largest_component  # noqa: E402
 from nodes.mesh.mc import marching_cubes  # noqa: E402

@@ -16,8 +16,9 @@ import trimesh
 from nodes.common.types import MaskSet, Mesh, VoxelGrid
 from nodegraph import NodeError
 from nodes.common.cameras import Cameras, look_at
+from rig import sphere_rig
 from nodegraph.testing import run_node
-from nodes.eval.metrics import silhouette_report
+from nodes.eval.silhouette import silhouette_report
 from nodes.mesh.mc import marching_cubes
 from nodes.common.silhouettes import HullTestCL, HullTestNumPy, Silhouettes, clamp_reference, exit_reference, inside_hull
 from nodes.mesh.refine import lattice_edges, onto_hull
@@ -29,14 +30,7 @@ FIGURE = [((0.0, 0.0, 0.0), 0.55), ((0.0, 0.0, 0.62), 0.32), ((0.45, 0.1, -0.35)
 
 def rig(count: int, size: int, center=(0, 0, 0), distance: float = 4.0, fov: float = 40.0) -> Cameras:
     """``count`` cameras spread evenly over a sphere (Fibonacci), all looking at ``center``."""
-    cams = []
-    for i in range(count):
-        z = 1 - 2 * (i + 0.5) / count
-        phi = i * math.pi * (3 - math.sqrt(5))
-        d = np.array([math.sqrt(1 - z * z) * math.cos(phi), math.sqrt(1 - z * z) * math.sin(phi), z])
-        up = (0, 0, 1) if abs(d[2]) < 0.95 else (0, 1, 0)
-        cams.append(look_at(np.asarray(center) + distance * d, center, up, fov, size, size, name=f"cam{i:03d}"))
-    return Cameras(cams)
+    return sphere_rig(count, size, center=center, distance=distance, fov=fov)
 
 
 def ball_masks(balls, cameras: Cameras, ramp: float = 4.0) -> MaskSet:
@@ -277,30 +271,39 @@ def test_empty_hull_gives_empty_meshes_down_the_chain():
 
 
 # ---------------------------------------------------------------- real data
-def real_meshes(data_dir, name, resolution):
-    from nodes.hull.bounds import auto_bounds
-    from nodes.capture.load import load_capture
-    from nodes.hull.hull import visual_hull
+def real_meshes(real_capture, name, resolution):
+    """(masks, cameras, hull volume, plain marching-cubes mesh) of a dataset's shipped masks, automatic box."""
     from nodes.common.meshops import largest_component
+    from nodes.hull.bounds import auto_bounds
+    from nodes.hull.hull import visual_hull
 
-    cap = load_capture(data_dir / name)
+    cap = real_capture(name)
     masks, cams = cap["masks"], cap["cameras"]
     vol = visual_hull(masks, cams, auto_bounds(masks.masks, cams), resolution)
     return masks, cams, vol, trimesh.Trimesh(*largest_component(*marching_cubes(vol)), process=False)
 
 
+def real_chain(dataset_run, name):
+    """graphs/datasets/NAME.yaml (capture -> bounds -> hull 128 -> mc -> refine -> relax -> score) run once per
+    session through the engine: (masks, cameras, mc mesh, refined mesh, relaxed mesh)."""
+    res = dataset_run(name)
+    out = dataset_run.output
+    return (out(res, "capture", "masks"), out(res, "capture", "cameras"), out(res, "mesh", "mesh"),
+            out(res, "refine", "mesh"), out(res, "relax", "mesh"))
+
+
 @pytest.mark.realdata
 @pytest.mark.parametrize("name", ["thu_wd_human", "inria_dancer"])
-def test_real_refine_128(data_dir, name):
+def test_real_refine_128(dataset_run, real_capture, name):
     """Issue 5 targets, shipped masks and calibration: refined 128^3 vs plain 128^3 marching cubes leaves >= 90 %
     fewer mesh pixels outside the masks, <= 10 % more mask pixels uncovered, and a higher mean IoU than plain
     256^3 (measured: thu_wd_human outside 22427 -> 1766, not covered 33148 -> 33911, IoU 0.9584 -> 0.9730 vs
-    0.9670; inria_dancer 3323 -> 134, 4246 -> 3967, 0.9295 -> 0.9588 vs 0.9435)."""
-    masks, cams, vol, mesh = real_meshes(data_dir, name, 128)
-    out = run_node("refine", {"mesh": mesh, "volume": vol, "masks": masks, "cameras": cams})["mesh"]
+    0.9670; inria_dancer 3323 -> 134, 4246 -> 3967, 0.9295 -> 0.9588 vs 0.9435). The chain is the dataset
+    graph's, run through the engine."""
+    masks, cams, mesh, out, _ = real_chain(dataset_run, name)
     mc = silhouette_report(mesh.vertices, mesh.faces, cams, masks)
     ref = silhouette_report(out.vertices, out.faces, cams, masks)
-    fine = real_meshes(data_dir, name, 256)[3]
+    fine = real_meshes(real_capture, name, 256)[3]
     fine = silhouette_report(fine.vertices, fine.faces, cams, masks)
     print(f"{name}: mean IoU plain {mc['mean_iou']:.4f} -> refined {ref['mean_iou']:.4f} (plain 256: {fine['mean_iou']:.4f}); "
           f"outside {mc['mesh_outside_mask']} -> {ref['mesh_outside_mask']}, not covered {mc['mask_not_covered']} -> "

@@ -4,12 +4,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
-from test_refine import FIGURE, ball_masks, figure_case, hull_volume, plain_mc, real_meshes, rig, silhouette_errors
+from test_refine import FIGURE, ball_masks, figure_case, hull_volume, plain_mc, real_chain, rig, silhouette_errors
 
 from nodes.common.types import Mesh
 from nodegraph import NodeError
 from nodegraph.testing import run_node
-from nodes.eval.metrics import silhouette_report
+from nodes.eval.silhouette import silhouette_report
 from nodes.common.silhouettes import Silhouettes
 from nodes.mesh.relax import LAMBDA, MU, taubin_cl, taubin_reference
 from nodes.common.meshops import vertex_neighbours
@@ -117,13 +117,11 @@ def test_relax_needs_masks_to_keep_silhouettes():
 
 @pytest.mark.realdata
 @pytest.mark.parametrize("name", ["thu_wd_human", "inria_dancer"])
-def test_real_relax_after_refine(data_dir, name):
+def test_real_relax_after_refine(dataset_run, name):
     """Issue 5 target at 128^3: relax after refine drops the mean IoU by <= 0.002 while roughness drops clearly
     (measured: thu_wd_human IoU 0.9730 -> 0.9721, roughness 20.0 -> 10.9 deg; inria_dancer 0.9588 -> 0.9574,
     19.7 -> 10.7 deg); no more mesh pixels outside the masks."""
-    masks, cams, vol, mesh = real_meshes(data_dir, name, 128)
-    ref = run_node("refine", {"mesh": mesh, "volume": vol, "masks": masks, "cameras": cams})["mesh"]
-    out = run_node("relax", {"mesh": ref, "masks": masks, "cameras": cams})["mesh"]
+    masks, cams, _, ref, out = real_chain(dataset_run, name)
     a = silhouette_report(ref.vertices, ref.faces, cams, masks)
     b = silhouette_report(out.vertices, out.faces, cams, masks)
     ra, rb = roughness(ref), roughness(out)
