@@ -196,14 +196,17 @@ def load_capture(path, frame: int = 0, images: str = "", masks: str = "", backgr
         extra = {Path(f["file_path"]).name: {"nerf_path": f["file_path"].lstrip("./") + ".png"} for f in frames}
     elif "*" in pat["calibration"]:
         hits = sorted(glob.glob(str(calib)))
-        if len(hits) != 1:
+        if not hits or (len(hits) > 1 and len({Path(h).parent for h in hits}) != len(hits)):
             raise DataError(f"{root}: calibration pattern '{pat['calibration']}' matches {len(hits)} files")
-        calib = Path(hits[0])
+        calib = Path(hits[0]) if len(hits) == 1 else [Path(h) for h in hits]
 
     # cameras first (their names expand the patterns); sizes from the images when the calibration has none
     try:
-        cams = load_cameras(calib)
-        raw = None
+        if isinstance(calib, list):
+            cams, raw, img_files = _per_folder_cameras(root, calib, pat["images"], frame, extra)
+        else:
+            cams = load_cameras(calib)
+            raw = None
     except MissingImageSize:
         probe = load_cameras(calib, image_sizes=(1, 1))
         img_files = [_expand(root, pat["images"], i, c.name, frame, extra) for i, c in enumerate(probe)]
@@ -224,6 +227,24 @@ def load_capture(path, frame: int = 0, images: str = "", masks: str = "", backgr
         mask_imgs = [read_image(p, f) for p, f in found]
     out = _assemble(cams, raw, [p for p, _ in img_files], mask_imgs, bg, mask_threshold, pat.get("masks", ""), mask_files)
     return out
+
+
+def _per_folder_cameras(root: Path, files: list[Path], images: str, frame: int, extra: dict):
+    """One calibration file per camera folder (e.g. camCC/cam_par.txt): each holds one camera, named after
+    its folder (the name inside the file may differ: the folder pairs a calibration with its images), its
+    image size read from the camera's image of this frame. Returns (cameras, images, image files)."""
+    from dataclasses import replace
+
+    cams, raw, img_files = [], [], []
+    for i, f in enumerate(files):
+        name = f.parent.name
+        img_files.append(_expand(root, images, i, name, frame, extra))
+        raw.append(read_image(*img_files[-1]))
+        one = load_cameras(f, image_sizes=(raw[-1].shape[1], raw[-1].shape[0]))
+        if len(one) != 1:
+            raise DataError(f"{f}: {len(one)} cameras in a per-camera calibration file (expected one)")
+        cams.append(replace(one[0], name=name))
+    return Cameras(cams), raw, img_files
 
 
 def _check_camera_count(root: Path, pattern: str, cams: Cameras):

@@ -1,0 +1,580 @@
+"""Non-rigid registration of a mesh onto a target surface: an embedded deformation graph (Sumner, Schmid &
+Pauly 2007) regularised as-rigid-as-possible between graph nodes, fitted by non-rigid ICP with point-to-plane
+data terms in both directions (source -> target and target -> source) and an optional silhouette term, then a
+per-vertex normal displacement that brings the surface detail onto the target.
+
+Graph: nodes are surface vertices at least ``spacing`` apart along the mesh (geodesic Poisson-disk sampling),
+each vertex is driven by up to ``k`` nodes of its geodesic neighbourhood (its own Voronoi cell's node and that
+node's neighbours), with Sumner's weights (1 - d / d_max)^2; two nodes are neighbours when their cells share a
+mesh edge, so touching but unconnected limbs never pull on each other. A node j carries a rotation R_j and a
+translation t_j; a vertex moves to
+
+    x_i = sum_j w_ij (R_j (v_i - g_j) + g_j + t_j)
+
+Fit (one ICP iteration): correspondences by nearest neighbours (rejected beyond a distance or when normals
+disagree), then with the rotations fixed every term is linear in the translations t (3N unknowns):
+
+    E(t) = w_data sum_s rho (n_c . (x_s - c_s))^2 + w_point sum_s |x_s - c_s|^2           source -> target
+         + w_data sum_q rho (n_q . (x_i(q) - q))^2                                       target -> source
+         + w_sil  sum_(i, view) (g^ . (x_i - x_i0) - d_i)^2   (vertices outside a silhouette, pushed back in)
+         + w_arap sum_(j, k) |(g_k + t_k) - (g_j + t_j) - R_j (g_k - g_j)|^2
+
+solved with a sparse Cholesky-like factorisation (scipy SuperLU) of the 3N x 3N normal equations; the
+rotations then follow from the ARAP local step (Procrustes per node, batched SVD). Everything is computed in
+voxel units (coordinates divided by ``voxel``), so the weights are dimensionless.
+
+    graph = build_graph(vertices, faces, spacing=4.0 * voxel)
+    reg = Registration(graph, faces, FitParams())
+    state = GraphState.identity(graph)
+    target = Target(t_vertices, t_faces, origin, voxel)
+    state, info = reg.fit(state, target)
+    x = detail(graph.deform(state), faces, target, reg.params)
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+# ---------------------------------------------------------------- geometry helpers
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals (zero for unused vertices)."""
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    n = np.zeros_like(v)
+    for a in range(3):
+        for c in range(3):
+            n[:, a] += np.bincount(f[:, c], fn[:, a], minlength=len(v))
+    norm = np.linalg.norm(n, axis=1, keepdims=True)
+    return np.divide(n, norm, out=np.zeros_like(n), where=norm > 0)
+
+
+def used_vertices(faces: np.ndarray, count: int) -> np.ndarray:
+    """Indices of the vertices some face uses, in increasing order."""
+    return np.flatnonzero(np.bincount(np.asarray(faces, np.int64).ravel(), minlength=count) > 0)
+
+
+def unique_edges(faces: np.ndarray, count: int) -> np.ndarray:
+    """(E, 2) sorted vertex pairs of the mesh edges (integer keys, one sort)."""
+    f = np.asarray(faces, np.int64)
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    keys = np.unique(e[:, 0] * count + e[:, 1])
+    return np.stack([keys // count, keys % count], axis=1)
+
+
+def edge_graph(vertices: np.ndarray, faces: np.ndarray):
+    """Symmetric sparse (V, V) matrix of mesh edge lengths."""
+    from scipy.sparse import coo_matrix
+
+    e = unique_edges(faces, len(vertices))
+    length = np.linalg.norm(vertices[e[:, 0]] - vertices[e[:, 1]], axis=1) + 1e-12
+    n = len(vertices)
+    return coo_matrix((np.r_[length, length], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr()
+
+
+def vertex_faces(faces: np.ndarray, count: int) -> np.ndarray:
+    """(V, M) faces around each vertex, padded with -1 (M = the largest valence)."""
+    f = np.asarray(faces, np.int64).ravel()
+    fid = np.repeat(np.arange(len(faces)), 3)
+    order = np.argsort(f, kind="stable")
+    f, fid = f[order], fid[order]
+    counts = np.bincount(f, minlength=count)
+    width = max(int(counts.max(initial=0)), 1)
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    slot = np.arange(len(f)) - start[f]
+    out = np.full((count, width), -1, np.int64)
+    out[f, slot] = fid
+    return out
+
+
+def closest_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Closest points on triangles (a, b, c) to points p, all (..., 3) (Ericson, Real-Time Collision
+    Detection 5.1.5, vectorised)."""
+    ab, ac, ap = b - a, c - a, p - a
+    d1, d2 = np.einsum("...i,...i", ab, ap), np.einsum("...i,...i", ac, ap)
+    bp = p - b
+    d3, d4 = np.einsum("...i,...i", ab, bp), np.einsum("...i,...i", ac, bp)
+    cp = p - c
+    d5, d6 = np.einsum("...i,...i", ab, cp), np.einsum("...i,...i", ac, cp)
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        denom = va + vb + vc
+        v = np.where(denom != 0, vb / denom, 0.0)
+        w = np.where(denom != 0, vc / denom, 0.0)
+        out = a + v[..., None] * ab + w[..., None] * ac                      # inside the face
+        # edges
+        t_ab = np.clip(np.where(d1 - d3 != 0, d1 / (d1 - d3), 0), 0, 1)
+        t_ac = np.clip(np.where(d2 - d6 != 0, d2 / (d2 - d6), 0), 0, 1)
+        t_bc = np.clip(np.where((d4 - d3) + (d5 - d6) != 0, (d4 - d3) / ((d4 - d3) + (d5 - d6)), 0), 0, 1)
+    on_ab = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
+    on_ac = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
+    on_bc = (va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0)
+    out = np.where(on_bc[..., None], b + t_bc[..., None] * (c - b), out)
+    out = np.where(on_ac[..., None], a + t_ac[..., None] * ac, out)
+    out = np.where(on_ab[..., None], a + t_ab[..., None] * ab, out)
+    at_a = (d1 <= 0) & (d2 <= 0)
+    at_b = (d3 >= 0) & (d4 <= d3)
+    at_c = (d6 >= 0) & (d5 <= d6)
+    out = np.where(at_c[..., None], c, out)
+    out = np.where(at_b[..., None], b, out)
+    out = np.where(at_a[..., None], a, out)
+    return out
+
+
+class SurfaceQuery:
+    """Nearest points on a triangle mesh: the nearest vertex (scipy cKDTree), then the closest point on the
+    faces around it (exact wherever the closest face touches the nearest vertex, as on any mesh whose
+    triangles are not much longer than the distances asked for)."""
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray | None = None,
+                 vf: np.ndarray | None = None, used: np.ndarray | None = None, with_normals: bool = True):
+        from scipy.spatial import cKDTree
+
+        self.vertices = np.asarray(vertices, np.float64)
+        self.faces = np.asarray(faces, np.int64)
+        self.normals = normals if normals is not None or not with_normals else vertex_normals(self.vertices, self.faces)
+        self.used = used_vertices(self.faces, len(self.vertices)) if used is None else used
+        self.tree = cKDTree(self.vertices[self.used])
+        self.vf = vertex_faces(self.faces, len(self.vertices)) if vf is None else vf
+
+    def nearest_vertex(self, points: np.ndarray, upper: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+        """(distance, vertex index) of the nearest used vertex (index -1 beyond ``upper``)."""
+        d, j = self.tree.query(points, distance_upper_bound=upper, workers=1)
+        ok = np.isfinite(d)
+        out = np.full(len(points), -1, np.int64)
+        out[ok] = self.used[j[ok]]
+        return d, out
+
+    def closest(self, points: np.ndarray, with_faces: bool = False):
+        """(closest points (P, 3), distances (P,)) on the surface, and their faces (P,) when ``with_faces``."""
+        points = np.asarray(points, np.float64)
+        _, j = self.nearest_vertex(points)
+        cand = self.vf[j]                                   # (P, M)
+        tri = self.vertices[self.faces[np.maximum(cand, 0)]]  # (P, M, 3, 3)
+        q = closest_on_triangles(points[:, None, :], tri[:, :, 0], tri[:, :, 1], tri[:, :, 2])
+        d = np.linalg.norm(q - points[:, None, :], axis=2)
+        d[cand < 0] = np.inf
+        best = np.argmin(d, axis=1)
+        rows = np.arange(len(points))
+        if with_faces:
+            return q[rows, best], d[rows, best], cand[rows, best]
+        return q[rows, best], d[rows, best]
+
+
+# ---------------------------------------------------------------- deformation graph
+@dataclass
+class DeformationGraph:
+    rest: np.ndarray          # (V, 3) rest vertices (voxel units)
+    nodes: np.ndarray         # (N, 3) node rest positions g_j
+    node_vertex: np.ndarray   # (N,) vertex index of each node
+    edges: np.ndarray         # (E, 2) undirected node pairs j < k
+    vertex_nodes: np.ndarray  # (V, K) node indices
+    vertex_weights: np.ndarray  # (V, K) weights, rows sum to 1 (0 for padding)
+
+    def __post_init__(self):
+        from scipy.sparse import coo_matrix
+
+        v, k = self.vertex_nodes.shape
+        self.offsets = self.rest[:, None, :] - self.nodes[self.vertex_nodes]   # (V, K, 3)
+        self.W = coo_matrix((self.vertex_weights.ravel(), (np.repeat(np.arange(v), k), self.vertex_nodes.ravel())),
+                            shape=(v, len(self.nodes))).tocsr()
+        both = np.r_[self.edges, self.edges[:, ::-1]]
+        self.directed = both                                                    # (2E, 2): (j, k)
+
+    def rotated_part(self, R: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+        """p_i = sum_j w_ij (R_j (v_i - g_j) + g_j): vertex positions without the node translations."""
+        idx = self.vertex_nodes if rows is None else self.vertex_nodes[rows]
+        w = self.vertex_weights if rows is None else self.vertex_weights[rows]
+        off = self.offsets if rows is None else self.offsets[rows]
+        moved = np.einsum("vkab,vkb->vka", R[idx], off) + self.nodes[idx]
+        return np.einsum("vk,vka->va", w, moved)
+
+    def deform(self, state: "GraphState", rows: np.ndarray | None = None) -> np.ndarray:
+        W = self.W if rows is None else self.W[rows]
+        return self.rotated_part(state.R, rows) + W @ state.t
+
+
+@dataclass
+class GraphState:
+    R: np.ndarray   # (N, 3, 3)
+    t: np.ndarray   # (N, 3)
+
+    @classmethod
+    def identity(cls, graph: DeformationGraph) -> "GraphState":
+        n = len(graph.nodes)
+        return cls(np.repeat(np.eye(3)[None], n, axis=0), np.zeros((n, 3)))
+
+    def copy(self) -> "GraphState":
+        return GraphState(self.R.copy(), self.t.copy())
+
+
+def sample_nodes(vertices: np.ndarray, faces: np.ndarray, spacing: float, seed: int = 0) -> np.ndarray:
+    """Vertex indices at least ``spacing`` apart along the mesh edges (geodesic Poisson-disk, greedy in a
+    fixed random order); every used vertex lies within ``spacing`` of one."""
+    from scipy.sparse.csgraph import dijkstra
+
+    graph = edge_graph(vertices, faces)
+    used = np.zeros(len(vertices), bool)
+    used[np.asarray(faces).ravel()] = True
+    covered = ~used
+    order = np.random.default_rng(seed).permutation(len(vertices))
+    picks = []
+    for i in order:
+        if covered[i]:
+            continue
+        picks.append(i)
+        # covered within the spacing: a batch of the next candidates would be faster, but one source at a time
+        # keeps the disk property exact
+        d = dijkstra(graph, directed=False, indices=i, limit=spacing)
+        covered |= np.isfinite(d)
+    return np.array(picks, np.int64)
+
+
+def build_graph(vertices, faces, spacing: float, k: int = 4, seed: int = 0) -> DeformationGraph:
+    """The embedded deformation graph of a mesh (see the module docstring); ``spacing`` in the vertices' units."""
+    from scipy.sparse.csgraph import dijkstra
+
+    vertices = np.asarray(vertices, np.float64)
+    faces = np.asarray(faces, np.int64)
+    nodes = sample_nodes(vertices, faces, spacing, seed)
+    graph = edge_graph(vertices, faces)
+    _, _, source = dijkstra(graph, directed=False, indices=nodes, min_only=True, return_predecessors=True)
+    node_of = np.full(len(nodes) and int(nodes.max()) + 1, -1, np.int64)
+    node_of[nodes] = np.arange(len(nodes))
+    cell = np.where(source >= 0, node_of[np.maximum(source, 0)], -1)           # Voronoi cell per vertex
+    # unused vertices (no faces): the Euclidean nearest node
+    lost = cell < 0
+    if lost.any():
+        from scipy.spatial import cKDTree
+
+        cell[lost] = cKDTree(vertices[nodes]).query(vertices[lost])[1]
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    ce = np.sort(cell[e], axis=1)
+    ce = np.unique(ce[ce[:, 0] != ce[:, 1]], axis=0)
+    n = len(nodes)
+    # candidate nodes per vertex: its cell's node and that node's neighbours
+    nbr = [[j] for j in range(n)]
+    for a, b in ce:
+        nbr[a].append(b)
+        nbr[b].append(a)
+    width = max(len(x) for x in nbr)
+    table = np.full((n, width), -1, np.int64)
+    for j, x in enumerate(nbr):
+        table[j, : len(x)] = x
+    cand = table[cell]                                                          # (V, width)
+    d = np.linalg.norm(vertices[:, None, :] - vertices[nodes][np.maximum(cand, 0)], axis=2)
+    d[cand < 0] = np.inf
+    order = np.argsort(d, axis=1)[:, : k + 1]
+    rows = np.arange(len(vertices))[:, None]
+    dk = d[rows, order]
+    idx = cand[rows, order]
+    kk = min(k, dk.shape[1])
+    dmax = dk[:, kk] if dk.shape[1] > kk else np.full(len(vertices), np.inf)
+    dmax = np.where(np.isfinite(dmax), dmax, dk[:, :kk].max(axis=1, initial=0) * 1.5 + 1e-9)
+    with np.errstate(invalid="ignore"):
+        w = np.clip(1 - dk[:, :kk] / dmax[:, None], 0, None) ** 2
+    w[~np.isfinite(w)] = 0
+    idx = idx[:, :kk]
+    w[:, 0] = np.where(w.sum(axis=1) <= 0, 1.0, w[:, 0])                      # a vertex at its own node only
+    w /= w.sum(axis=1, keepdims=True)
+    idx = np.where(idx < 0, idx[:, :1], idx)
+    return DeformationGraph(vertices, vertices[nodes], nodes, ce, idx, w)
+
+
+# ---------------------------------------------------------------- target and parameters
+class Target:
+    """A frame's reconstruction in voxel units, with its nearest-point query; optional silhouettes for the
+    silhouette term (``views``: nodes.common.silhouettes.Silhouettes with a distance outline)."""
+
+    def __init__(self, vertices, faces, origin: np.ndarray, voxel: float, views=None):
+        self.origin = np.asarray(origin, np.float64)
+        self.voxel = float(voxel)
+        self.vertices = (np.asarray(vertices, np.float64) - self.origin) / self.voxel
+        self.faces = np.asarray(faces, np.int64)
+        self.query = SurfaceQuery(self.vertices, self.faces)
+        self.normals = self.query.normals
+        self.views = views
+
+    def world(self, x: np.ndarray) -> np.ndarray:
+        return x * self.voxel + self.origin
+
+
+@dataclass
+class FitParams:
+    iterations: int = 10          # ICP iterations per frame
+    arap: float = 1.0             # ARAP weight at the last iteration (relative to the data terms)
+    arap_start: float = 8.0       # ... at the first (the stiffness is relaxed geometrically)
+    point: float = 0.1            # point-to-point share of the source -> target term
+    silhouette: float = 1.0       # silhouette term weight (0: off)
+    reject: float = 6.0           # correspondences farther than this (voxels) at the first iteration ...
+    reject_end: float = 2.5       # ... shrinking to this at the last
+    normal_cos: float = 0.3       # correspondences whose normals differ by more (cosine below) are rejected
+    robust: float = 1.5           # Geman-McClure scale (voxels) of the point-to-plane residuals
+    samples: int = 6000           # source vertices and target vertices sampled for the graph fit
+    detail: float = 1.0           # rings of neighbours the normal displacement is smoothed over (0: no detail step)
+    detail_reach: float = 2.0     # largest normal displacement (voxels)
+    seed: int = 0
+
+
+@dataclass
+class FitInfo:
+    iterations: int = 0
+    matched_source: float = 0.0   # share of source samples with a correspondence at the last iteration
+    matched_target: float = 0.0
+    seconds: dict = field(default_factory=dict)
+
+
+# ---------------------------------------------------------------- the fit
+def _sample(n: int, count: int, seed: int) -> np.ndarray:
+    if n <= count:
+        return np.arange(n)
+    return np.sort(np.random.default_rng(seed).choice(n, count, replace=False))
+
+
+def arap_rotations(graph: DeformationGraph, t: np.ndarray) -> np.ndarray:
+    """ARAP local step: per node the rotation best mapping its rest edges g_k - g_j onto the deformed edges
+    (g_k + t_k) - (g_j + t_j) (Procrustes, batched SVD, reflections removed)."""
+    jk = graph.directed
+    rest = graph.nodes[jk[:, 1]] - graph.nodes[jk[:, 0]]
+    moved = rest + t[jk[:, 1]] - t[jk[:, 0]]
+    S = np.zeros((len(graph.nodes), 3, 3))
+    np.add.at(S, jk[:, 0], rest[:, :, None] * moved[:, None, :])
+    S += np.eye(3) * 1e-9
+    U, _, Vt = np.linalg.svd(S)
+    D = np.ones((len(S), 3))
+    D[:, 2] = np.sign(np.linalg.det(np.einsum("nab,nbc->nac", U, Vt)))
+    D[D[:, 2] == 0, 2] = 1
+    return np.einsum("nba,nb,ncb->nac", Vt, D, U)                            # V diag(D) U^T
+
+
+def silhouette_rows(x: np.ndarray, target: Target, step: float = 0.5):
+    """Points (voxel units) outside a silhouette: (point index, unit direction g^ (3,), distance d to move
+    along it, in voxels) per (point, view), from the signed distance outline (alpha = 0.5 + pixels inside)
+    and its gradient through the projection (central differences of ``step`` voxels)."""
+    from nodes.common.cameras import project_packed_f32
+
+    views = target.views
+    out_i, out_g, out_d = [], [], []
+    X = target.world(x)
+    h = step * target.voxel
+    for v in range(len(views.cams)):
+        cam = views.cams[v]
+        field_ = views.alpha[v]
+        H, W_ = field_.shape
+
+        def sample(P):
+            u, w, front = project_packed_f32(cam, P.astype(np.float32))
+            u, w = u.astype(np.float64), w.astype(np.float64)
+            with np.errstate(invalid="ignore"):
+                ok = front & (u >= 0) & (u <= W_ - 1) & (w >= 0) & (w <= H - 1)
+            uc = np.clip(np.nan_to_num(u), 0, W_ - 1.001)
+            wc = np.clip(np.nan_to_num(w), 0, H - 1.001)
+            x0, y0 = uc.astype(np.int64), wc.astype(np.int64)
+            fx, fy = uc - x0, wc - y0
+            val = ((1 - fx) * (1 - fy) * field_[y0, x0] + fx * (1 - fy) * field_[y0, x0 + 1]
+                   + (1 - fx) * fy * field_[y0 + 1, x0] + fx * fy * field_[y0 + 1, x0 + 1])
+            return val, ok
+
+        a0, ok = sample(X)
+        bad = np.flatnonzero(ok & (a0 < 0.5))
+        if len(bad) == 0:
+            continue
+        g = np.zeros((len(bad), 3))
+        for axis in range(3):
+            e = np.zeros(3)
+            e[axis] = h
+            ap, okp = sample(X[bad] + e)
+            am, okm = sample(X[bad] - e)
+            g[:, axis] = np.where(okp & okm, (ap - am) / (2 * step), 0.0)           # per voxel
+        norm = np.linalg.norm(g, axis=1)
+        keep = norm > 1e-6
+        out_i.append(bad[keep])
+        out_g.append(g[keep] / norm[keep, None])
+        out_d.append((0.5 - a0[bad][keep]) / norm[keep])                              # voxels to move in
+    if not out_i:
+        return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0)
+    return np.concatenate(out_i), np.concatenate(out_g), np.concatenate(out_d)
+
+
+class Registration:
+    """Non-rigid ICP of one deformation graph (one keyframe mesh) onto targets (see the module docstring).
+
+    Everything that depends only on the keyframe is prepared once: the sampled source vertices and their
+    nodes and weights, and the sparsity pattern of the 3N x 3N normal equations (node pairs sharing a sample
+    vertex or a graph edge), so each ICP iteration only accumulates values into it (np.bincount) and factorises
+    (scipy SuperLU)."""
+
+    def __init__(self, graph: DeformationGraph, faces: np.ndarray, params: FitParams):
+        from scipy.sparse import coo_matrix
+
+        self.graph, self.faces, self.params = graph, np.asarray(faces, np.int64), params
+        used = used_vertices(self.faces, len(graph.rest))
+        self.src = used[_sample(len(used), params.samples, params.seed)]
+        self.rest_normals = vertex_normals(graph.rest, self.faces)[self.src]
+        self.idx = graph.vertex_nodes[self.src]                       # (S, K)
+        self.w = graph.vertex_weights[self.src]                       # (S, K)
+        self.off = graph.offsets[self.src]                            # (S, K, 3)
+        n, K = len(graph.nodes), self.idx.shape[1]
+        # node-pair pattern: (j, k) for every pair of nodes of a sample vertex and every graph edge
+        pj = np.concatenate([np.repeat(self.idx, K, axis=1).ravel(), graph.directed[:, 0], graph.directed[:, 1],
+                             np.arange(n)])
+        pk = np.concatenate([np.tile(self.idx, (1, K)).ravel(), graph.directed[:, 1], graph.directed[:, 1], np.arange(n)])
+        keys, inverse = np.unique(pj * n + pk, return_inverse=True)
+        self.pair_j, self.pair_k = keys // n, keys % n
+        s_len = self.idx.size * K
+        self.sample_pairs = inverse[:s_len].reshape(len(self.src), K * K)            # (S, K*K)
+        m = len(graph.directed)
+        self.edge_jk = inverse[s_len: s_len + m]                                      # pair (j, k) per directed edge
+        self.edge_kk = inverse[s_len + m: s_len + 2 * m]                              # pair (k, k)
+        self.diag_pair = inverse[s_len + 2 * m:]                                      # (j, j)
+        self.edge_jj = self.diag_pair[graph.directed[:, 0]]
+        half = m // 2                                                                  # directed = [edges; reversed]
+        self.edge_kj = self.edge_jk[(np.arange(m) + half) % max(m, 1)]                 # pair (k, j)
+        P = len(keys)
+        a_b = np.arange(9)
+        rows = self.pair_j[:, None] * 3 + a_b[None, :] // 3          # value (pair, a * 3 + b) sits at (3j + a, 3k + b)
+        cols = self.pair_k[:, None] * 3 + a_b[None, :] % 3
+        # position of every (pair, a, b) value in the CSC data array: build the matrix with values 1..P*9
+        probe = coo_matrix((np.arange(1, P * 9 + 1, dtype=np.float64), (rows.ravel(), cols.ravel())), shape=(3 * n, 3 * n)).tocsc()
+        probe.sort_indices()
+        self.pattern = probe
+        self.acc_index = (np.repeat(self.sample_pairs.ravel(), 9) * 9 + np.tile(np.arange(9), self.sample_pairs.size))
+        self.gather = probe.data.astype(np.int64) - 1                                 # CSC slot -> (pair, a, b)
+        self.n3 = 3 * n
+
+    def _sample_state(self, state: GraphState) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(positions x (S, 3), normals (S, 3), translation-free part p (S, 3)) of the sampled vertices."""
+        R = state.R[self.idx]                                                           # (S, K, 3, 3)
+        p = np.einsum("sk,ska->sa", self.w, np.einsum("skab,skb->ska", R, self.off) + self.graph.nodes[self.idx])
+        x = p + np.einsum("sk,ska->sa", self.w, state.t[self.idx])
+        nr = np.einsum("sk,ska->sa", self.w, np.einsum("skab,sb->ska", R, self.rest_normals))
+        nr /= np.maximum(np.linalg.norm(nr, axis=1, keepdims=True), 1e-12)
+        return x, nr, p
+
+    def _accumulate(self, Q: np.ndarray, q: np.ndarray, A_pairs: np.ndarray, rhs: np.ndarray):
+        """Add sum over samples of (w w^T) (x) Q_s to the pair blocks and (w (x) q_s) to the right-hand side."""
+        ww = self.w[:, :, None] * self.w[:, None, :]                                   # (S, K, K)
+        vals = ww.reshape(len(self.w), -1)[:, :, None] * Q.reshape(len(Q), 1, 9)        # (S, K*K, 9)
+        A_pairs += np.bincount(self.acc_index, vals.ravel(), minlength=A_pairs.size).reshape(A_pairs.shape)
+        r = (self.w[:, :, None] * q[:, None, :])                                        # (S, K, 3)
+        np.add.at(rhs, (self.idx[:, :, None] * 3 + np.arange(3)).ravel(), r.ravel())
+
+    def fit(self, state: GraphState, target: Target) -> tuple[GraphState, FitInfo]:
+        import time
+
+        from scipy.sparse.linalg import splu
+        from scipy.spatial import cKDTree
+
+        prm = self.params
+        graph = self.graph
+        info = FitInfo()
+        clock = {"match": 0.0, "assemble": 0.0, "solve": 0.0}
+        state = state.copy()
+        S = len(self.src)
+        tgt = target.query.used[_sample(len(target.query.used), prm.samples, prm.seed + 1)]
+        q, nq = target.vertices[tgt], target.normals[tgt]
+        jk = graph.directed
+        rest_e = graph.nodes[jk[:, 1]] - graph.nodes[jk[:, 0]]
+        iters = max(1, prm.iterations)
+        eye9 = np.eye(3).ravel()
+        for it in range(iters):
+            s = it / max(1, iters - 1)
+            arap = prm.arap_start * (prm.arap / prm.arap_start) ** s
+            reject = prm.reject + (prm.reject_end - prm.reject) * s
+            t0 = time.perf_counter()
+            xs, ns, ps = self._sample_state(state)
+            _, j = target.query.nearest_vertex(xs, reject)
+            ok = j >= 0
+            jj = np.maximum(j, 0)
+            c, nc = target.vertices[jj], target.normals[jj]
+            ok &= np.einsum("ij,ij->i", ns, nc) > prm.normal_cos
+            dq, i_q = cKDTree(xs).query(q, distance_upper_bound=reject, workers=1)
+            ok_q = np.isfinite(dq)
+            i_q = np.minimum(i_q, S - 1)
+            ok_q &= np.einsum("ij,ij->i", ns[i_q], nq) > prm.normal_cos
+            clock["match"] += time.perf_counter() - t0
+            t0 = time.perf_counter()
+            # per sample: Q_s = sum of w a a^T over its rows, q_s = sum of w a b (rows a . (W_s t) = b)
+            Q = np.zeros((S, 9))
+            qv = np.zeros((S, 3))
+            r = np.einsum("ij,ij->i", nc, xs - c)
+            gm = np.where(ok, 1.0 / (1.0 + (r / prm.robust) ** 2) ** 2, 0.0) / max(1, ok.sum())
+            b = np.einsum("ij,ij->i", nc, c - ps)
+            Q += gm[:, None] * (nc[:, :, None] * nc[:, None, :]).reshape(S, 9)
+            qv += (gm * b)[:, None] * nc
+            if prm.point > 0:                                             # a little point-to-point
+                Q += (prm.point * gm)[:, None] * eye9
+                qv += (prm.point * gm)[:, None] * (c - ps)
+            rq = np.einsum("ij,ij->i", nq, xs[i_q] - q)                   # target -> source
+            gq = np.where(ok_q, 1.0 / (1.0 + (rq / prm.robust) ** 2) ** 2, 0.0) / max(1, ok_q.sum())
+            bq = np.einsum("ij,ij->i", nq, q - ps[i_q])
+            np.add.at(Q, i_q, gq[:, None] * (nq[:, :, None] * nq[:, None, :]).reshape(-1, 9))
+            np.add.at(qv, i_q, (gq * bq)[:, None] * nq)
+            if prm.silhouette > 0 and target.views is not None:
+                vi, g, dist = silhouette_rows(xs, target)
+                if len(vi):
+                    ws = prm.silhouette / S
+                    bs = np.einsum("ij,ij->i", g, xs[vi] - ps[vi]) + dist
+                    np.add.at(Q, vi, ws * (g[:, :, None] * g[:, None, :]).reshape(-1, 9))
+                    np.add.at(qv, vi, (ws * bs)[:, None] * g)
+            A_pairs = np.zeros((len(self.pair_j), 9))
+            rhs = np.zeros(self.n3)
+            self._accumulate(Q, qv, A_pairs, rhs)
+            # ARAP: (t_k - t_j - c_jk)^2 per directed edge, c_jk = R_j (g_k - g_j) - (g_k - g_j)
+            w_a = arap / max(1, len(jk))
+            ce = np.einsum("nab,nb->na", state.R[jk[:, 0]], rest_e) - rest_e
+            for pair, sign in ((self.edge_jj, 1.0), (self.edge_kk, 1.0), (self.edge_jk, -1.0), (self.edge_kj, -1.0)):
+                np.add.at(A_pairs, pair, sign * w_a * eye9)
+            np.add.at(rhs, (jk[:, 1, None] * 3 + np.arange(3)).ravel(), (w_a * ce).ravel())
+            np.add.at(rhs, (jk[:, 0, None] * 3 + np.arange(3)).ravel(), (-w_a * ce).ravel())
+            A_pairs[self.diag_pair] += 1e-8 * eye9
+            A = self.pattern.copy()
+            A.data = A_pairs.ravel()[self.gather]
+            clock["assemble"] += time.perf_counter() - t0
+            t0 = time.perf_counter()
+            state.t = splu(A, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True}).solve(rhs).reshape(-1, 3)
+            state.R = arap_rotations(graph, state.t)
+            clock["solve"] += time.perf_counter() - t0
+            info.matched_source = float(ok.mean()) if S else 0.0
+            info.matched_target = float(ok_q.mean()) if len(ok_q) else 0.0
+        info.iterations = iters
+        info.seconds = clock
+        return state, info
+
+
+def detail(x: np.ndarray, faces: np.ndarray, target: Target, params: FitParams, adjacency=None, passes: int = 2) -> np.ndarray:
+    """Move each vertex along its normal onto the target's tangent plane (nearest target vertex, within
+    ``detail_reach`` voxels, normals within 60 degrees), the displacements smoothed over ``detail`` rings of
+    neighbours by normalised convolution (vertices without a match take their neighbours' displacement)."""
+    if params.detail <= 0 or len(faces) == 0:
+        return x
+    S = ring_operator(faces, len(x)) if adjacency is None else adjacency
+    x = x.copy()
+    for _ in range(passes):
+        n = vertex_normals(x, faces)
+        _, j = target.query.nearest_vertex(x, params.detail_reach + 1.0)
+        ok = j >= 0
+        jj = np.maximum(j, 0)
+        c, nc = target.vertices[jj], target.normals[jj]
+        cos = np.einsum("ij,ij->i", n, nc)
+        ok &= cos > 0.5
+        d = np.where(ok, np.einsum("ij,ij->i", nc, c - x) / np.maximum(cos, 0.5), 0.0)
+        ok &= np.abs(d) <= params.detail_reach
+        w = ok.astype(np.float64)
+        num, den = w * d, w
+        for _ in range(int(round(params.detail))):
+            num, den = S @ num, S @ den
+        h = np.divide(num, den, out=np.zeros_like(num), where=den > 1e-9)
+        x += h[:, None] * n
+    return x
+
+
+def ring_operator(faces: np.ndarray, count: int):
+    """Sparse (V, V) I + A (a vertex and its one-ring), the averaging step of ``detail``."""
+    from scipy.sparse import coo_matrix, identity
+
+    e = unique_edges(faces, count)
+    A = coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(count, count))
+    return (A + identity(count)).tocsr()

@@ -1,0 +1,252 @@
+"""Keyframe tracking of a mesh sequence into a dynamic mesh (after Collet et al. 2015, "High-quality streamable
+free-viewpoint video", section 7: tracked keyframe subsequences).
+
+    1. Keyframe: among the frames not tracked yet, the one whose reconstruction is the easiest to deform onto
+       its neighbours: fewest connected components, then lowest genus (a mesh of lower genus can close a
+       handle by contact, one of higher genus cannot open it), then the largest surface area (limbs apart,
+       the most surface seen).
+    2. Its reconstruction is deformed forwards, frame by frame, onto each following reconstruction (deform.fit:
+       embedded deformation graph + ARAP, point-to-plane both ways, silhouettes), then its surface detail is
+       brought onto that frame (deform.detail); then backwards from the keyframe the same way.
+    3. A frame whose fit fails ends the segment (the topology changed, or the motion was too large): mean
+       surface distance beyond ``fail_mean`` voxels either way, 95th percentile of the reconstruction's distance
+       to the tracked surface beyond ``fail_p95`` voxels (a part the tracked mesh does not reach), or the
+       tracked mesh's silhouette IoU more than ``max_iou_drop`` below the reconstruction's own.
+    4. Repeat from 1 until every frame belongs to a segment. Within a segment every frame has the keyframe's
+       faces: one connectivity, per-vertex trajectories; a texture atlas per segment serves all its frames.
+
+Distances are in voxels (``voxel`` metres; 0 = the median edge length of the first reconstruction).
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import deform
+from .deform import FitParams, SurfaceQuery, Target
+from .topology import mesh_topology
+
+log = logging.getLogger("volcap.track")
+
+
+@dataclass
+class TrackParams:
+    spacing: float = 4.0          # deformation graph node spacing (voxels)
+    voxel: float = 0.0            # metres per voxel; 0 = median edge length of the first reconstruction
+    fail_mean: float = 1.0        # a fit fails beyond this mean surface distance (voxels), either direction
+    fail_p95: float = 3.0         # ... or this 95th percentile of the reconstruction -> tracked distance
+    max_iou_drop: float = 0.01    # ... or a silhouette IoU this far below the reconstruction's (with views)
+    fit: FitParams = field(default_factory=FitParams)
+
+
+@dataclass
+class FrameResult:
+    vertices: np.ndarray          # (V, 3) world
+    segment: int
+    keyframe: int                 # index of the segment's keyframe
+    accuracy_mean: float          # tracked -> reconstruction, voxels
+    accuracy_p95: float
+    completeness_mean: float      # reconstruction -> tracked
+    completeness_p95: float
+    iou: float | None = None      # mean silhouette IoU of the tracked mesh
+    iou_reconstruction: float | None = None
+    seconds: float = 0.0
+
+
+@dataclass
+class Segment:
+    index: int
+    keyframe: int
+    start: int
+    stop: int                     # inclusive
+    faces: np.ndarray
+    nodes: int
+    reason_start: str = ""
+    reason_stop: str = ""
+
+
+def median_edge(vertices, faces) -> float:
+    f = np.asarray(faces, np.int64)
+    if len(f) == 0:
+        return 0.0
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    return float(np.median(np.linalg.norm(vertices[e[:, 0]] - vertices[e[:, 1]], axis=1)))
+
+
+def keyframe_key(stats: dict) -> tuple:
+    """Sort key of a keyframe candidate (smaller is better): components, genus, then larger area."""
+    return (stats["components"], stats["genus"], -stats["area"])
+
+
+def surface_residuals(x: np.ndarray, faces: np.ndarray, target: Target, vf=None, samples: int = 4000, seed: int = 0) -> dict:
+    """Distances (voxels) from tracked vertices to the reconstruction's surface (accuracy) and from the
+    reconstruction's vertices to the tracked surface (completeness): mean and 95th percentile over ``samples``
+    vertices drawn at random each way (0 = all)."""
+    rng = np.random.default_rng(seed)
+    pick = lambda n: np.arange(n) if not samples or n <= samples else rng.choice(n, samples, replace=False)  # noqa: E731
+    _, d_acc = target.query.closest(x[pick(len(x))])
+    tracked = SurfaceQuery(x, faces, vf=vf, with_normals=False)
+    rec = target.vertices[target.query.used]
+    _, d_comp = tracked.closest(rec[pick(len(rec))])
+    return {"accuracy_mean": float(d_acc.mean()), "accuracy_p95": float(np.percentile(d_acc, 95)),
+            "completeness_mean": float(d_comp.mean()), "completeness_p95": float(np.percentile(d_comp, 95))}
+
+
+def silhouette_iou(vertices, faces, cameras, masks) -> float:
+    """Mean over views of the IoU between the mesh's silhouette (OpenCL rasterizer) and the mask (> 127)."""
+    from nodes.common import raster
+
+    ious = []
+    for sil, m in zip(raster.silhouette(np.asarray(vertices, np.float64), np.asarray(faces, np.int64), cameras), masks):
+        a, b = sil > 0, m > 127
+        union = np.logical_or(a, b).sum()
+        ious.append(1.0 if union == 0 else np.logical_and(a, b).sum() / union)
+    return float(np.mean(ious))
+
+
+class Frames:
+    """The input sequence: reconstructions (trimesh) and optional masks + cameras per frame, with the targets
+    and silhouette IoUs computed on demand (a few kept)."""
+
+    def __init__(self, meshes, masks=None, cameras=None, voxel: float = 0.0, min_views: int = 0):
+        self.meshes = meshes
+        self.masks = masks
+        self.cameras = cameras
+        self.min_views = min_views
+        first = next((m for m in meshes if len(m.faces)), None)
+        self.voxel = voxel or (median_edge(np.asarray(first.vertices), first.faces) if first is not None else 1.0)
+        self.origin = np.asarray(first.vertices).min(axis=0) if first is not None else np.zeros(3)
+        self.stats = []
+        for m in meshes:
+            s = mesh_topology(m.vertices, m.faces)
+            s["area"] = float(m.area) if len(m.faces) else 0.0
+            self.stats.append(s)
+        self._targets: dict[int, Target] = {}
+        self._iou: dict[int, float] = {}
+
+    def __len__(self):
+        return len(self.meshes)
+
+    @property
+    def has_views(self) -> bool:
+        return self.masks is not None and self.cameras is not None
+
+    def views(self, i: int):
+        from nodes.common.silhouettes import Silhouettes
+
+        if not self.has_views:
+            return None
+        return Silhouettes.from_inputs(self.masks[i], self.cameras[i], min_views=self.min_views, node="track").distance_outline()
+
+    def target(self, i: int) -> Target:
+        if i not in self._targets:
+            if len(self._targets) > 4:
+                self._targets.pop(next(iter(self._targets)))
+            m = self.meshes[i]
+            self._targets[i] = Target(m.vertices, m.faces, self.origin, self.voxel, self.views(i))
+        return self._targets[i]
+
+    def iou_reconstruction(self, i: int) -> float | None:
+        if not self.has_views:
+            return None
+        if i not in self._iou:
+            m = self.meshes[i]
+            self._iou[i] = silhouette_iou(m.vertices, m.faces, self.cameras[i], self.masks[i].masks)
+        return self._iou[i]
+
+
+def _failure(res: dict, iou: float | None, iou_rec: float | None, p: TrackParams) -> str:
+    if max(res["accuracy_mean"], res["completeness_mean"]) > p.fail_mean:
+        return (f"mean surface distance {max(res['accuracy_mean'], res['completeness_mean']):.2f} voxels "
+                f"> {p.fail_mean}")
+    if res["completeness_p95"] > p.fail_p95:
+        return f"95th percentile reconstruction -> tracked {res['completeness_p95']:.2f} voxels > {p.fail_p95}"
+    if iou is not None and iou_rec is not None and iou_rec - iou > p.max_iou_drop:
+        return f"silhouette IoU {iou:.4f} is {iou_rec - iou:.4f} below the reconstruction's {iou_rec:.4f}"
+    return ""
+
+
+def track_sequence(frames: Frames, params: TrackParams, progress=None) -> tuple[list[FrameResult | None], list[Segment]]:
+    """Segments of tracked meshes covering every frame (see the module docstring)."""
+    n = len(frames)
+    results: list[FrameResult | None] = [None] * n
+    segments: list[Segment] = []
+    done = np.zeros(n, bool)
+    fit_p = params.fit
+    while not done.all():
+        todo = np.flatnonzero(~done)
+        k = int(min(todo, key=lambda i: keyframe_key(frames.stats[i])))
+        seg_index = len(segments)
+        key_mesh = frames.meshes[k]
+        faces = np.asarray(key_mesh.faces, np.int64)
+        if len(faces) == 0:  # nothing reconstructed: a segment of its own, empty
+            results[k] = FrameResult(np.asarray(key_mesh.vertices, np.float64), seg_index, k, 0.0, 0.0, 0.0, 0.0,
+                                     frames.iou_reconstruction(k), frames.iou_reconstruction(k))
+            segments.append(Segment(seg_index, k, k, k, faces, 0, "empty reconstruction", "empty reconstruction"))
+            done[k] = True
+            log.warning("frame %d: empty reconstruction, a segment of its own", k)
+            continue
+        t0 = time.perf_counter()
+        target_k = frames.target(k)
+        graph = deform.build_graph(target_k.vertices, faces, params.spacing, seed=fit_p.seed)
+        reg = deform.Registration(graph, faces, fit_p)
+        rings = deform.ring_operator(faces, len(graph.rest))
+        vf = deform.vertex_faces(faces, len(graph.rest))
+        iou_k = frames.iou_reconstruction(k)
+        results[k] = FrameResult(np.asarray(key_mesh.vertices, np.float64), seg_index, k, 0.0, 0.0, 0.0, 0.0, iou_k,
+                                 iou_k, time.perf_counter() - t0)
+        done[k] = True
+        seg = Segment(seg_index, k, k, k, faces, len(graph.nodes), "keyframe")
+        for direction in (1, -1):
+            state = deform.GraphState.identity(graph)
+            i = k + direction
+            reason = "end of sequence"
+            while 0 <= i < n and not done[i]:
+                t0 = time.perf_counter()
+                if len(frames.meshes[i].faces) == 0:
+                    reason = f"frame {i}: empty reconstruction"
+                    break
+                target = frames.target(i)
+                new_state, info = reg.fit(state, target)
+                x = deform.detail(graph.deform(new_state), faces, target, fit_p, rings)
+                res = surface_residuals(x, faces, target, vf)
+                world = target.world(x)
+                iou = silhouette_iou(world, faces, frames.cameras[i], frames.masks[i].masks) if frames.has_views else None
+                iou_rec = frames.iou_reconstruction(i)
+                why = _failure(res, iou, iou_rec, params)
+                if why:
+                    reason = f"frame {i}: {why}"
+                    break
+                results[i] = FrameResult(world, seg_index, k, **res, iou=iou, iou_reconstruction=iou_rec,
+                                         seconds=time.perf_counter() - t0)
+                done[i] = True
+                state = new_state
+                if direction > 0:
+                    seg.stop = i
+                else:
+                    seg.start = i
+                if progress:
+                    progress(1)
+                i += direction
+            else:
+                if 0 <= i < n:
+                    reason = f"frame {i}: already tracked"
+            if direction > 0:
+                seg.reason_stop = reason
+            else:
+                seg.reason_start = reason
+        log.info("segment %d: keyframe %d, frames %d..%d (%d nodes); before: %s; after: %s", seg_index, k, seg.start,
+                 seg.stop, seg.nodes, seg.reason_start, seg.reason_stop)
+        if progress:
+            progress(1)
+        segments.append(seg)
+    segments.sort(key=lambda s: s.start)
+    renumber = {s.index: i for i, s in enumerate(segments)}
+    for s in segments:
+        s.index = renumber[s.index]
+    for r in results:
+        r.segment = renumber[r.segment]
+    return results, segments
