@@ -85,6 +85,14 @@ class Camera:
     def has_distortion(self) -> bool:
         return bool(np.any(self.dist != 0))
 
+    def cropped(self, x0: int, y0: int, width: int, height: int) -> "Camera":
+        """The same camera seeing only the window (x0, y0, width, height) of its image: pixel (u, v) here is
+        pixel (u + x0, v + y0) of the full image (principal point shifted; for a bare P, P itself)."""
+        shift = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]])
+        if self.metric:
+            return Camera(self.name, width, height, shift @ self.K, self.Rt, self.dist, True, self.zsign)
+        return Camera(self.name, width, height, self.K, shift @ self.Rt, self.dist, False, self.zsign or self.depth_sign)
+
     def to_dict(self) -> dict:
         return {"name": self.name, "width": self.width, "height": self.height, "K": self.K.tolist(),
                 "Rt": self.Rt.tolist(), "dist": self.dist.tolist(), "metric": self.metric, "zsign": self.zsign}

@@ -297,9 +297,31 @@ class Skeleton(DataType):
         return previews.draw_skeleton(value, size, companions)
 
 
+def sequence_segments(meshes) -> list[tuple[int, int]]:
+    """Half-open ranges (start, stop) of consecutive meshes sharing one connectivity: the same
+    ``metadata["segment"]`` where the meshes carry one (a tracked sequence), else the same vertex count and
+    face array. A texture node computes one atlas per range; a dynamic mesh is a single range."""
+    out: list[tuple[int, int]] = []
+    for i, m in enumerate(meshes):
+        if out:
+            prev = meshes[i - 1]
+            a, b = prev.metadata.get("segment"), m.metadata.get("segment")
+            same = (a == b) if (a is not None and b is not None) else (
+                len(prev.vertices) == len(m.vertices) and prev.faces.shape == m.faces.shape
+                and bool(np.array_equal(prev.faces, m.faces)))
+            if same:
+                out[-1] = (out[-1][0], i + 1)
+                continue
+        out.append((i, i + 1))
+    return out
+
+
 class MeshSequence(DataType):
     """Meshes over frames: a list of trimesh.Trimesh. A dynamic mesh (constant connectivity) is a sequence
-    whose meshes all share one face array; it is stored as one PLY per frame plus sequence.json."""
+    whose meshes all share one face array; a tracked sequence is a run of such segments, each mesh carrying
+    ``metadata["segment"]`` (and "keyframe", "frame" when known; see ``sequence_segments``). Stored per
+    segment: one PLY (its first frame, with the faces) and, for a segment of several frames, the vertices of
+    all its frames (segment_NNNN.npy, (frames, V, 3)); sequence.json lists the segments and frames."""
 
     name = "MeshSequence"
 
@@ -309,20 +331,47 @@ class MeshSequence(DataType):
 
         if not (isinstance(v, list) and all(isinstance(m, trimesh.Trimesh) for m in v)):
             return "expected a list of trimesh.Trimesh"
+        for start, stop in sequence_segments(v):
+            for i in range(start + 1, stop):
+                if len(v[i].vertices) != len(v[start].vertices) or not np.array_equal(v[i].faces, v[start].faces):
+                    return f"meshes {start} and {i} are in one segment but do not share their faces"
         return None
 
     @classmethod
     def save(cls, v, folder: Path):
-        for i, m in enumerate(v):
-            m.export(folder / f"frame_{i:05d}.ply")
-        (folder / "sequence.json").write_text(json.dumps({"count": len(v)}))
+        segments = []
+        for s, (start, stop) in enumerate(sequence_segments(v)):
+            v[start].export(folder / f"segment_{s:04d}.ply")
+            if stop - start > 1:
+                np.save(folder / f"segment_{s:04d}.npy", np.stack([np.asarray(m.vertices) for m in v[start:stop]]))
+            segments.append({"start": start, "stop": stop, "segment": v[start].metadata.get("segment"),
+                             "keyframe": v[start].metadata.get("keyframe")})
+        frames = [m.metadata.get("frame") for m in v]
+        doc = {"count": len(v), "segments": segments, "frames": frames if any(f is not None for f in frames) else None}
+        (folder / "sequence.json").write_text(json.dumps(doc))
 
     @classmethod
     def load(cls, folder: Path):
         import trimesh
 
-        n = json.loads((folder / "sequence.json").read_text())["count"]
-        return [trimesh.load(folder / f"frame_{i:05d}.ply", process=False, force="mesh") for i in range(n)]
+        doc = json.loads((folder / "sequence.json").read_text())
+        out = []
+        for s, seg in enumerate(doc["segments"]):
+            first = trimesh.load(folder / f"segment_{s:04d}.ply", process=False, force="mesh")
+            n = seg["stop"] - seg["start"]
+            points = np.load(folder / f"segment_{s:04d}.npy") if n > 1 else [np.asarray(first.vertices)]
+            for k in range(n):
+                m = trimesh.Trimesh(points[k], first.faces, process=False)
+                for key in ("segment", "keyframe"):
+                    if seg.get(key) is not None:
+                        m.metadata[key] = seg[key]
+                out.append(m)
+        if len(out) != doc["count"]:
+            raise DataError(f"{folder}: sequence.json says {doc['count']} meshes, the segments hold {len(out)}")
+        for m, f in zip(out, doc.get("frames") or []):
+            if f is not None:
+                m.metadata["frame"] = f
+        return out
 
     @classmethod
     def preview(cls, value, size, companions):

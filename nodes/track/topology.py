@@ -23,25 +23,28 @@ def _components(n: int, faces: np.ndarray) -> int:
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    used = np.zeros(n, bool)
-    used[faces.ravel()] = True
+    used = np.bincount(faces.ravel(), minlength=n) > 0
     rows = np.concatenate([faces[:, 0], faces[:, 1]])
     cols = np.concatenate([faces[:, 1], faces[:, 2]])
     k, label = connected_components(coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)), directed=False)
     return int(len(np.unique(label[used])))
 
 
-def _boundary_loops(faces: np.ndarray) -> tuple[int, int]:
-    """(boundary edges, boundary loops): edges used by one face, and the cycles they form."""
+def _edge_keys(faces: np.ndarray, n: int) -> np.ndarray:
+    """One integer key per face side (sorted vertex pair a * n + b)."""
+    e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    return e[:, 0] * n + e[:, 1]
+
+
+def _boundary_loops(uniq: np.ndarray, counts: np.ndarray, n: int) -> tuple[int, int]:
+    """(boundary edges, boundary loops): edges used by one face side, and the cycles they form."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
-    uniq, counts = np.unique(e, axis=0, return_counts=True)
     border = uniq[counts == 1]
     if len(border) == 0:
         return 0, 0
-    verts, inv = np.unique(border.ravel(), return_inverse=True)
+    verts, inv = np.unique(np.stack([border // n, border % n], axis=1).ravel(), return_inverse=True)
     inv = inv.reshape(-1, 2)
     m = len(verts)
     k, _ = connected_components(coo_matrix((np.ones(len(inv)), (inv[:, 0], inv[:, 1])), shape=(m, m)), directed=False)
@@ -56,11 +59,11 @@ def mesh_topology(vertices, faces) -> dict:
     if len(faces) == 0:
         return {"vertices": n, "faces": 0, "edges": 0, "components": 0, "boundary_loops": 0, "euler": 0, "genus": 0,
                 "closed": False}
-    e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
-    edges = len(np.unique(e[:, 0] * n + e[:, 1]))
-    used = len(np.unique(faces))
+    uniq, counts = np.unique(_edge_keys(faces, n), return_counts=True)
+    edges = len(uniq)
+    used = int(np.count_nonzero(np.bincount(faces.ravel(), minlength=n)))
     c = _components(n, faces)
-    border_edges, b = _boundary_loops(faces)
+    border_edges, b = _boundary_loops(uniq, counts, n)
     chi = used - edges + len(faces)
     genus = max(0, (2 * c - b - chi) // 2)
     return {"vertices": n, "faces": int(len(faces)), "edges": int(edges), "components": c, "boundary_loops": b,

@@ -1,0 +1,234 @@
+"""Dynamic-mesh exports a production pipeline reads, from a tracked mesh sequence (one connectivity per segment):
+
+    USD (usd-core)   one UsdGeom.Mesh per segment under /DynamicMesh: faces once, ``points`` (and ``extent``)
+                     time-sampled at the frame numbers, ``visibility`` invisible outside the segment's frames;
+                     binary crate (.usdc), up axis Z, metres, time codes per second = fps.
+    glTF (pygltflib) one node + mesh per segment: its first frame as the base POSITION, every later frame a
+                     morph target (displacement), an animation whose STEP weights switch on one target per
+                     frame and whose STEP scale shows the node only during its segment (.glb).
+    Draco (DracoPy)  one .drc per frame, vertex order preserved (vertex i stays the same surface point within
+                     a segment), positions quantised to ``bits``.
+
+``sizes`` compares the storage of the dynamic mesh with that of per-frame meshes (binary PLY / Draco).
+"""
+from __future__ import annotations
+
+import io
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from nodes.common.types import sequence_segments
+
+
+def frame_numbers(meshes) -> list[int]:
+    """The frame number of each mesh (metadata "frame"), else its index."""
+    return [int(m.metadata.get("frame", i)) for i, m in enumerate(meshes)]
+
+
+# ---------------------------------------------------------------- USD
+def usd_bytes(meshes, fps: float = 25.0) -> bytes:
+    """The sequence as a binary USD layer (see the module docstring)."""
+    from pxr import Gf, Usd, UsdGeom, Vt
+
+    frames = frame_numbers(meshes)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "dynamic_mesh.usdc"
+        stage = Usd.Stage.CreateNew(str(path))
+        UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+        UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+        stage.SetTimeCodesPerSecond(fps)
+        stage.SetFramesPerSecond(fps)
+        if frames:
+            stage.SetStartTimeCode(frames[0])
+            stage.SetEndTimeCode(frames[-1])
+        root = UsdGeom.Xform.Define(stage, "/DynamicMesh")
+        stage.SetDefaultPrim(root.GetPrim())
+        for s, (a, b) in enumerate(sequence_segments(meshes)):
+            faces = np.asarray(meshes[a].faces, np.int32)
+            prim = UsdGeom.Mesh.Define(stage, f"/DynamicMesh/segment_{s:04d}")
+            prim.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(faces), 3, np.int32)))
+            prim.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(faces.ravel()))
+            prim.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+            prim.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
+            prim.GetPrim().SetCustomDataByKey("keyframe", int(meshes[a].metadata.get("keyframe", frames[a])))
+            points, extent, vis = prim.CreatePointsAttr(), prim.CreateExtentAttr(), prim.CreateVisibilityAttr()
+            for k in range(a, b):
+                p = np.ascontiguousarray(meshes[k].vertices, np.float32)
+                t = Usd.TimeCode(frames[k])
+                points.Set(Vt.Vec3fArray.FromNumpy(p), t)
+                lo, hi = (p.min(axis=0), p.max(axis=0)) if len(p) else (np.zeros(3), np.zeros(3))
+                extent.Set(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]), t)
+            if a > 0:
+                vis.Set(UsdGeom.Tokens.invisible, Usd.TimeCode(frames[0]))
+            vis.Set(UsdGeom.Tokens.inherited, Usd.TimeCode(frames[a]))
+            if b < len(meshes):
+                vis.Set(UsdGeom.Tokens.invisible, Usd.TimeCode(frames[b]))
+        stage.GetRootLayer().Save()
+        return path.read_bytes()
+
+
+def usd_points(data: bytes, frame: int) -> np.ndarray:
+    """Points of the segment visible at ``frame`` in a layer written by ``usd_bytes`` (as a reader sees it)."""
+    from pxr import Usd, UsdGeom
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "read.usdc"
+        path.write_bytes(data)
+        stage = Usd.Stage.Open(str(path))
+        for prim in stage.GetPrimAtPath("/DynamicMesh").GetChildren():
+            mesh = UsdGeom.Mesh(prim)
+            if mesh.ComputeVisibility(Usd.TimeCode(frame)) != UsdGeom.Tokens.invisible:
+                return np.array(mesh.GetPointsAttr().Get(Usd.TimeCode(frame)), np.float32)
+    raise KeyError(f"no segment is visible at frame {frame}")
+
+
+# ---------------------------------------------------------------- glTF
+def gltf_bytes(meshes, fps: float = 25.0) -> bytes:
+    """The sequence as a binary glTF (.glb) with morph-target animation (see the module docstring)."""
+    import pygltflib as G
+
+    frames = frame_numbers(meshes)
+    blob = io.BytesIO()
+    gltf = G.GLTF2(asset=G.Asset(generator="volcap track.export"), scene=0)
+    gltf.scenes.append(G.Scene(nodes=[]))
+    animation = G.Animation(name="dynamic_mesh", channels=[], samplers=[])
+
+    def add(array: np.ndarray, target: int | None, minmax: bool = False, component=G.FLOAT, kind=G.VEC3) -> int:
+        data = np.ascontiguousarray(array)
+        pad = (-blob.tell()) % 4
+        blob.write(b"\0" * pad)
+        offset = blob.tell()
+        blob.write(data.tobytes())
+        gltf.bufferViews.append(G.BufferView(buffer=0, byteOffset=offset, byteLength=data.nbytes, target=target))
+        acc = G.Accessor(bufferView=len(gltf.bufferViews) - 1, componentType=component, count=len(data), type=kind)
+        if minmax:
+            flat = data.reshape(len(data), -1)
+            acc.min = flat.min(axis=0).tolist() if len(flat) else None
+            acc.max = flat.max(axis=0).tolist() if len(flat) else None
+        gltf.accessors.append(acc)
+        return len(gltf.accessors) - 1
+
+    t0 = frames[0] if frames else 0
+    end = (frames[-1] - t0) / fps if frames else 0.0
+    for s, (a, b) in enumerate(sequence_segments(meshes)):
+        base = np.asarray(meshes[a].vertices, np.float32)
+        faces = np.asarray(meshes[a].faces, np.uint32).ravel()
+        pos = add(base, G.ARRAY_BUFFER, minmax=True)
+        ind = add(faces, G.ELEMENT_ARRAY_BUFFER, component=G.UNSIGNED_INT, kind=G.SCALAR)
+        targets = [{"POSITION": add(np.asarray(meshes[k].vertices, np.float32) - base, G.ARRAY_BUFFER, minmax=True)}
+                   for k in range(a + 1, b)]
+        prim = G.Primitive(attributes=G.Attributes(POSITION=pos), indices=ind, mode=G.TRIANGLES, targets=targets or None)
+        gltf.meshes.append(G.Mesh(name=f"segment_{s:04d}", primitives=[prim], weights=[0.0] * len(targets) or None))
+        gltf.nodes.append(G.Node(name=f"segment_{s:04d}", mesh=len(gltf.meshes) - 1))
+        node = len(gltf.nodes) - 1
+        gltf.scenes[0].nodes.append(node)
+        times = np.array([(frames[k] - t0) / fps for k in range(a, b)], np.float32)
+        if targets:
+            weights = np.zeros((b - a, len(targets)), np.float32)
+            weights[np.arange(1, b - a), np.arange(len(targets))] = 1.0
+            t_in = add(times, None, minmax=True, kind=G.SCALAR)
+            w_out = add(weights.ravel(), None, kind=G.SCALAR)
+            animation.samplers.append(G.AnimationSampler(input=t_in, output=w_out, interpolation=G.ANIM_STEP))
+            animation.channels.append(G.AnimationChannel(sampler=len(animation.samplers) - 1,
+                                                         target=G.AnimationChannelTarget(node=node, path="weights")))
+        # shown only during its frames: STEP scale 0 -> 1 -> 0
+        keys = [(0.0, 0.0)] if a > 0 else []
+        keys.append((float(times[0]), 1.0))
+        if b < len(meshes):
+            keys.append(((frames[b] - t0) / fps, 0.0))
+        if len(keys) > 1 or a > 0:
+            s_in = add(np.array([k[0] for k in keys], np.float32), None, minmax=True, kind=G.SCALAR)
+            s_out = add(np.array([[k[1]] * 3 for k in keys], np.float32), None)
+            animation.samplers.append(G.AnimationSampler(input=s_in, output=s_out, interpolation=G.ANIM_STEP))
+            animation.channels.append(G.AnimationChannel(sampler=len(animation.samplers) - 1,
+                                                         target=G.AnimationChannelTarget(node=node, path="scale")))
+            if a > 0:
+                gltf.nodes[node].scale = [0.0, 0.0, 0.0]
+    if animation.channels:
+        gltf.animations.append(animation)
+    data = blob.getvalue()
+    gltf.buffers.append(G.Buffer(byteLength=len(data)))
+    gltf.set_binary_blob(data)
+    gltf.extras = {"fps": fps, "duration": end, "frames": frames}
+    out = gltf.save_to_bytes()
+    return b"".join(out) if isinstance(out, list) else bytes(out)
+
+
+def gltf_frame(data: bytes, index: int) -> np.ndarray:
+    """Positions of the ``index``-th frame (0-based over the whole sequence) as a reader evaluates the .glb:
+    at that frame's time (extras: frames, fps), the node whose STEP scale is not 0, its base plus its morph
+    targets weighted by the STEP weights."""
+    import pygltflib as G
+
+    g = G.GLTF2.load_from_bytes(data)
+    blob = g.binary_blob()
+
+    def read(acc_index: int) -> np.ndarray:
+        acc = g.accessors[acc_index]
+        view = g.bufferViews[acc.bufferView]
+        width = {G.SCALAR: 1, G.VEC3: 3}[acc.type]
+        dtype = {G.FLOAT: np.float32, G.UNSIGNED_INT: np.uint32}[acc.componentType]
+        arr = np.frombuffer(blob, dtype, acc.count * width, view.byteOffset + (acc.byteOffset or 0))
+        return arr.reshape(acc.count, width) if width > 1 else arr
+
+    frames = g.extras["frames"]
+    fps = g.extras["fps"]
+    anim = g.animations[0] if g.animations else None
+    t = (frames[index] - frames[0]) / fps
+    for node_i in g.scenes[0].nodes:
+        node = g.nodes[node_i]
+        scale = np.array(node.scale or [1.0, 1.0, 1.0])
+        weights = None
+        for ch in anim.channels if anim else []:
+            if ch.target.node != node_i:
+                continue
+            smp = anim.samplers[ch.sampler]
+            keys, vals = read(smp.input), read(smp.output)
+            k = int(np.searchsorted(keys, t + 1e-6) - 1)
+            if ch.target.path == "scale":
+                scale = vals[k] if k >= 0 else scale
+            else:
+                n_t = len(g.meshes[node.mesh].primitives[0].targets)
+                weights = vals.reshape(len(keys), n_t)[max(k, 0)] if k >= 0 else np.zeros(n_t)
+        if scale[0] == 0:
+            continue
+        prim = g.meshes[node.mesh].primitives[0]
+        p = read(prim.attributes.POSITION).astype(np.float64)
+        for w, tg in zip(weights if weights is not None else [], prim.targets or []):
+            if w:
+                p = p + w * read(tg["POSITION"])
+        return p.astype(np.float32)
+    raise KeyError(f"no node is visible at frame index {index} ({fps} fps)")
+
+
+# ---------------------------------------------------------------- Draco and sizes
+def draco_frames(meshes, bits: int = 14) -> list[bytes]:
+    """One Draco buffer per frame, vertex order preserved."""
+    import DracoPy
+
+    return [DracoPy.encode(np.asarray(m.vertices, np.float32), np.asarray(m.faces, np.uint32), quantization_bits=bits,
+                           compression_level=7, preserve_order=True) for m in meshes]
+
+
+def ply_size(mesh) -> int:
+    return len(mesh.export(file_type="ply"))
+
+
+def sizes(dynamic, reconstructions=None, files: dict | None = None, bits: int = 14) -> dict:
+    """Bytes of the dynamic mesh (raw: float32 points per frame + int32 faces once per segment; and each
+    exported file) and, given the per-frame reconstructions, of those as binary PLY and as Draco."""
+    segs = sequence_segments(dynamic)
+    raw = sum(len(m.vertices) * 12 for m in dynamic) + sum(len(dynamic[a].faces) * 12 for a, _ in segs)
+    out = {"frames": len(dynamic), "segments": len(segs), "dynamic_raw_bytes": int(raw),
+           "dynamic_ply_per_frame_bytes": int(sum(ply_size(m) for m in dynamic))}
+    for name, data in (files or {}).items():
+        out.setdefault("files", {})[name] = len(data)
+    if reconstructions is not None:
+        rec_raw = sum(len(m.vertices) * 12 + len(m.faces) * 12 for m in reconstructions)
+        out["reconstruction_raw_bytes"] = int(rec_raw)
+        out["reconstruction_ply_bytes"] = int(sum(ply_size(m) for m in reconstructions))
+        out["reconstruction_draco_bytes"] = int(sum(len(b) for b in draco_frames(reconstructions, bits)))
+        out["dynamic_vs_reconstruction_raw"] = raw / max(1, rec_raw)
+    return out

@@ -1,0 +1,230 @@
+"""Nodes of the track stage: classify a mesh sequence (Table 8.1), crop silhouettes for sequence work, track
+keyframe meshes into a dynamic mesh, export it (USD / glTF / Draco)."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import trimesh
+
+from nodegraph import Files, Input, Node, NodeError, Output, Param, Table
+from nodes.common.types import CameraSet, Masks, MaskSet, Mesh, MeshSequence, sequence_segments
+
+from . import formats as exporters
+from .deform import FitParams
+from .topology import classify_sequence, mesh_topology, sequence_class
+from .tracking import Frames, TrackParams, track_sequence
+
+
+class Classify(Node):
+    """The class of a mesh sequence after the seed chapter's Table 8.1 (Arcila 2011), per frame range: dynamic
+    mesh (constant vertex count, connectivity and topology), stable mesh sequence (constant topology) or
+    unconstrained mesh sequence (topology changes); with vertex count, genus and components per frame.
+    Connect either per-frame meshes or a mesh sequence (e.g. the output of track)."""
+
+    type_name = "track.classify"
+    version = 1
+    per = "sequence"
+    inputs = {
+        "meshes": Input(Mesh, optional=True, doc="per-frame meshes (arrive as a list)"),
+        "sequence": Input(MeshSequence, optional=True, doc="or a mesh sequence"),
+    }
+    outputs = {"report": Output(Table, "class of the whole sequence, ranges with their class, per-frame topology")}
+
+    def run(self, meshes=None, sequence=None):
+        if (meshes is None) == (sequence is None):
+            raise NodeError("track.classify: connect exactly one of 'meshes' and 'sequence'")
+        seq = sequence if sequence is not None else meshes
+        frames = list(self.frames) if meshes is not None and len(self.frames) == len(seq) else [
+            int(m.metadata.get("frame", i)) for i, m in enumerate(seq)]
+        pairs = [(np.asarray(m.vertices), np.asarray(m.faces)) for m in seq]
+        topo = [mesh_topology(v, f) for v, f in pairs]
+        ranges = classify_sequence(pairs, topo)
+        for r in ranges:
+            r["frames"] = r["stop"] - r["start"] + 1
+            r["start"], r["stop"] = frames[r["start"]], frames[r["stop"]]
+        counts = {}
+        for r in ranges:
+            counts[r["class"]] = counts.get(r["class"], 0) + r["frames"]
+        return {"report": {
+            "class": sequence_class(pairs, topo),
+            "ranges": ranges,
+            "frames_per_class": counts,
+            "topology": {"components": [t["components"] for t in topo], "genus": [t["genus"] for t in topo],
+                         "vertices": [t["vertices"] for t in topo]},
+            "frame_numbers": {"first": frames[0] if frames else None, "last": frames[-1] if frames else None},
+        }}
+
+
+class CropViews(Node):
+    """Masks and cameras cropped to the silhouette's bounding box plus a margin (principal point shifted):
+    the same point test and silhouettes in a fraction of the memory, for a sequence node that holds every
+    frame's masks (track). Mesh pixels beyond the margin are not seen by a silhouette score on cropped views."""
+
+    type_name = "track.crop"
+    version = 1
+    inputs = {"masks": Masks, "cameras": CameraSet}
+    outputs = {"masks": Masks, "cameras": CameraSet}
+    params = {"margin": Param(int, 48, range=(0, 100000), doc="pixels kept around each silhouette's box")}
+
+    def run(self, masks, cameras, *, margin):
+        from nodes.common.cameras import Cameras
+        from nodes.common.silhouettes import check_masks
+
+        binary = check_masks(masks, cameras, "track.crop")
+        out_m, out_a, out_c = [], [], []
+        for i, (cam, m) in enumerate(zip(cameras, binary)):
+            ys, xs = np.nonzero(m > 127)
+            if len(xs) == 0:
+                x0, y0, x1, y1 = 0, 0, 1, 1
+            else:
+                x0, y0 = max(0, int(xs.min()) - margin), max(0, int(ys.min()) - margin)
+                x1, y1 = min(m.shape[1], int(xs.max()) + 1 + margin), min(m.shape[0], int(ys.max()) + 1 + margin)
+            out_m.append(np.ascontiguousarray(m[y0:y1, x0:x1]))
+            if masks.alpha is not None:
+                out_a.append(np.ascontiguousarray(masks.alpha[i][y0:y1, x0:x1]))
+            out_c.append(cam.cropped(x0, y0, x1 - x0, y1 - y0))
+        return {"masks": MaskSet(out_m, out_a if masks.alpha is not None else None, list(masks.names)),
+                "cameras": Cameras(out_c)}
+
+
+class Track(Node):
+    """Per-frame reconstructions (an unconstrained mesh sequence) -> a dynamic mesh per segment: keyframes
+    chosen automatically (fewest components, lowest genus, largest area among the frames left), each
+    keyframe's mesh deformed forwards and backwards onto every frame's reconstruction (embedded deformation
+    graph with an ARAP regulariser; point-to-plane terms both ways and a silhouette term when masks and cameras
+    are connected; then per-vertex detail along the normals), a new segment where the fit fails (topology
+    change, too fast a motion). Output: the tracked sequence (one face array per segment) and per-frame
+    residuals in voxels (surface distance both ways, silhouette IoU against the reconstruction's own)."""
+
+    type_name = "track"
+    version = 1
+    per = "sequence"
+    inputs = {
+        "meshes": Input(Mesh, doc="each frame's reconstruction (arrive as a list)"),
+        "masks": Input(Masks, optional=True, doc="silhouettes per frame (track.crop keeps them small)"),
+        "cameras": Input(CameraSet, optional=True, doc="cameras per frame, with masks"),
+    }
+    outputs = {
+        "sequence": Output(MeshSequence, "tracked meshes, metadata segment / keyframe / frame"),
+        "residuals": Output(Table, "per-frame residuals (voxels), segments, keyframes"),
+    }
+    params = {
+        "voxel": Param(float, 0.0, range=(0.0, None), doc="metres per voxel (distances are in voxels); 0 = median edge length"),
+        "spacing": Param(float, 4.0, range=(1.0, 100.0), doc="deformation graph node spacing, voxels"),
+        "iterations": Param(int, 10, range=(1, 100), doc="ICP iterations per frame"),
+        "arap": Param(float, 1.0, range=(0.0, None), doc="ARAP stiffness at the last iteration (starts 8x higher)"),
+        "silhouette": Param(float, 1.0, range=(0.0, None), doc="silhouette term weight (with masks and cameras)"),
+        "samples": Param(int, 6000, range=(100, None), doc="vertices sampled per surface for the fit"),
+        "fail_mean": Param(float, 1.0, range=(0.0, None), doc="a fit fails beyond this mean surface distance, voxels"),
+        "fail_p95": Param(float, 3.0, range=(0.0, None), doc="... or this 95th percentile reconstruction -> tracked"),
+        "max_iou_drop": Param(float, 0.01, range=(0.0, 1.0), doc="... or this silhouette IoU below the reconstruction's"),
+        "min_views": Param(int, 0, range=(0, None), doc="silhouette vote: 0 = all views; k = inside at least k"),
+    }
+
+    def run(self, meshes, masks=None, cameras=None, *, voxel, spacing, iterations, arap, silhouette, samples,
+            fail_mean, fail_p95, max_iou_drop, min_views):
+        if (masks is None) != (cameras is None):
+            raise NodeError("track: connect both 'masks' and 'cameras', or neither")
+        if not meshes:
+            raise NodeError("track: no meshes")
+        for name, lst in (("masks", masks), ("cameras", cameras)):
+            if lst is not None and len(lst) != len(meshes):
+                raise NodeError(f"track: {len(lst)} {name} for {len(meshes)} meshes")
+        frames = list(self.frames) if len(self.frames) == len(meshes) else list(range(len(meshes)))
+        t0 = time.perf_counter()
+        data = Frames(meshes, masks, cameras, voxel, min_views)
+        params = TrackParams(spacing, data.voxel, fail_mean, fail_p95, max_iou_drop,
+                             FitParams(iterations=iterations, arap=arap, arap_start=8.0 * arap, silhouette=silhouette,
+                                       samples=samples))
+        results, segments = track_sequence(data, params)
+        seconds = time.perf_counter() - t0
+        out = []
+        for i, r in enumerate(results):
+            seg = segments[r.segment]
+            m = trimesh.Trimesh(r.vertices, seg.faces, process=False)
+            m.metadata.update(segment=r.segment, keyframe=frames[seg.keyframe], frame=frames[i])
+            out.append(m)
+        for seg in segments:
+            self.log.info("segment %d: keyframe %d, frames %d..%d; %s | %s", seg.index, frames[seg.keyframe],
+                          frames[seg.start], frames[seg.stop], seg.reason_start, seg.reason_stop)
+        return {"sequence": out, "residuals": residual_table(results, segments, frames, data, seconds)}
+
+
+def residual_table(results, segments, frames, data, seconds) -> dict:
+    """The residuals Table: scalars, ``residual`` lists the report draws (distance = mean of both directions,
+    95th percentile reconstruction -> tracked, IoU drop), ``timeline`` per frame, ``segments``."""
+    dist = [0.5 * (r.accuracy_mean + r.completeness_mean) for r in results]
+    lengths = [s.stop - s.start + 1 for s in segments]
+    table = {
+        "frames": len(results), "segment_count": len(segments), "voxel": data.voxel,
+        "segment_length_median": float(np.median(lengths)), "segment_length_min": int(min(lengths)),
+        "distance_mean": float(np.mean(dist)), "distance_max": float(np.max(dist)),
+        "seconds": seconds, "seconds_per_frame": seconds / len(results),
+        "residual": {"distance": dist, "distance_p95": [r.completeness_p95 for r in results]},
+        "timeline": {
+            "frame": frames, "segment": [r.segment for r in results],
+            "keyframe": [frames[r.keyframe] for r in results],
+            "accuracy_mean": [r.accuracy_mean for r in results], "accuracy_p95": [r.accuracy_p95 for r in results],
+            "completeness_mean": [r.completeness_mean for r in results],
+            "completeness_p95": [r.completeness_p95 for r in results],
+            "seconds": [r.seconds for r in results],
+        },
+        "segments": [{
+            "start": frames[s.start], "stop": frames[s.stop], "frames": s.stop - s.start + 1,
+            "keyframe": frames[s.keyframe], "vertices": int(len(results[s.keyframe].vertices)), "faces": int(len(s.faces)),
+            "graph_nodes": s.nodes, "genus": data.stats[s.keyframe]["genus"],
+            "components": data.stats[s.keyframe]["components"], "ended_before": s.reason_start, "ended_after": s.reason_stop,
+        } for s in segments],
+    }
+    if data.has_views:
+        drop = [max(0.0, r.iou_reconstruction - r.iou) for r in results]
+        table["residual"]["iou_drop"] = drop
+        table["iou_drop_max"] = float(max(drop))
+        table["timeline"]["iou"] = [r.iou for r in results]
+        table["timeline"]["iou_reconstruction"] = [r.iou_reconstruction for r in results]
+    return table
+
+
+class Export(Node):
+    """A tracked mesh sequence as files a pipeline reads: USD with time-sampled points (one mesh per segment,
+    visible during its frames), glTF with morph-target animation per segment, Draco per frame (vertex order
+    kept); ``sizes`` compares its storage with the per-frame reconstructions when those are connected."""
+
+    type_name = "track.export"
+    version = 1
+    per = "sequence"
+    publishes = True
+    inputs = {
+        "sequence": Input(MeshSequence, doc="tracked meshes (track)"),
+        "meshes": Input(Mesh, optional=True, doc="the per-frame reconstructions, for the storage comparison"),
+    }
+    outputs = {"files": Files, "sizes": Output(Table, "bytes of each export and of the per-frame meshes")}
+    params = {
+        "name": Param(str, "dynamic_mesh", doc="file name stem (USD/glTF), folder name (Draco frames)"),
+        "formats": Param(list, ["usd", "gltf", "draco"], item=str, doc="any of usd, gltf, draco"),
+        "fps": Param(float, 25.0, range=(0.001, None), doc="frames per second (time codes)"),
+        "draco_bits": Param(int, 14, range=(1, 30), doc="Draco position quantisation bits"),
+    }
+
+    def run(self, sequence, meshes=None, *, name, formats: list, fps, draco_bits):
+        unknown = sorted(set(formats) - {"usd", "gltf", "draco"})
+        if unknown:
+            raise NodeError(f"track.export: unknown formats {unknown}; use usd, gltf, draco")
+        if not sequence:
+            raise NodeError("track.export: the sequence is empty")
+        files = {}
+        if "usd" in formats:
+            files[f"{name}.usdc"] = exporters.usd_bytes(sequence, fps)
+        if "gltf" in formats:
+            files[f"{name}.glb"] = exporters.gltf_bytes(sequence, fps)
+        if "draco" in formats:
+            for m, data in zip(sequence, exporters.draco_frames(sequence, draco_bits)):
+                files[f"{name}_draco/frame_{int(m.metadata.get('frame', 0)):05d}.drc"] = data
+        sizes = exporters.sizes(sequence, meshes, None, draco_bits)
+        sizes["files"] = {k: len(v) for k, v in files.items() if not k.endswith(".drc")}
+        if "draco" in formats:
+            sizes["dynamic_draco_bytes"] = int(sum(len(v) for k, v in files.items() if k.endswith(".drc")))
+        sizes["segments_frames"] = [b - a for a, b in sequence_segments(sequence)]
+        return {"files": files, "sizes": sizes}
+
