@@ -304,14 +304,16 @@ class Target:
 @dataclass
 class FitParams:
     iterations: int = 10          # ICP iterations per frame
+    inner: int = 4                # local/global ARAP steps per ICP iteration (one factorisation)
     arap: float = 1.0             # ARAP weight at the last iteration (relative to the data terms)
-    arap_start: float = 8.0       # ... at the first (the stiffness is relaxed geometrically)
+    arap_start: float = 4.0       # ... at the first (the stiffness is relaxed geometrically)
     point: float = 0.1            # point-to-point share of the source -> target term
     silhouette: float = 1.0       # silhouette term weight (0: off)
-    reject: float = 6.0           # correspondences farther than this (voxels) at the first iteration ...
+    reject: float = 10.0          # correspondences farther than this (voxels) at the first iteration ...
     reject_end: float = 2.5       # ... shrinking to this at the last
     normal_cos: float = 0.3       # correspondences whose normals differ by more (cosine below) are rejected
-    robust: float = 1.5           # Geman-McClure scale (voxels) of the point-to-plane residuals
+    robust: float = 1.5           # Geman-McClure scale (voxels) of the point-to-plane residuals at the last
+                                  # iteration (earlier: larger, in proportion to the rejection distance)
     samples: int = 6000           # source vertices and target vertices sampled for the graph fit
     detail: float = 1.0           # rings of neighbours the normal displacement is smoothed over (0: no detail step)
     detail_reach: float = 2.0     # largest normal displacement (voxels)
@@ -453,15 +455,24 @@ class Registration:
         nr /= np.maximum(np.linalg.norm(nr, axis=1, keepdims=True), 1e-12)
         return x, nr, p
 
-    def _accumulate(self, Q: np.ndarray, q: np.ndarray, A_pairs: np.ndarray, rhs: np.ndarray):
-        """Add sum over samples of (w w^T) (x) Q_s to the pair blocks and (w (x) q_s) to the right-hand side."""
-        ww = self.w[:, :, None] * self.w[:, None, :]                                   # (S, K, K)
-        vals = ww.reshape(len(self.w), -1)[:, :, None] * Q.reshape(len(Q), 1, 9)        # (S, K*K, 9)
-        A_pairs += np.bincount(self.acc_index, vals.ravel(), minlength=A_pairs.size).reshape(A_pairs.shape)
-        r = (self.w[:, :, None] * q[:, None, :])                                        # (S, K, 3)
-        np.add.at(rhs, (self.idx[:, :, None] * 3 + np.arange(3)).ravel(), r.ravel())
+    def _rhs(self, h: np.ndarray, Q: np.ndarray, state: GraphState, w_a: float) -> np.ndarray:
+        """Right-hand side for the rotations in ``state``: data rows give q_s = h_s - Q_s p_s(R) per sample
+        (p: the translation-free position), ARAP rows (t_k - t_j - c_jk) with c_jk = (R_j - I)(g_k - g_j)."""
+        jk = self.graph.directed
+        R = state.R[self.idx]
+        p = np.einsum("sk,ska->sa", self.w, np.einsum("skab,skb->ska", R, self.off) + self.graph.nodes[self.idx])
+        q = h - np.einsum("sab,sb->sa", Q.reshape(-1, 3, 3), p)
+        rhs = np.bincount((self.idx[:, :, None] * 3 + np.arange(3)).ravel(), (self.w[:, :, None] * q[:, None, :]).ravel(),
+                          minlength=self.n3)
+        ce = np.einsum("nab,nb->na", state.R[jk[:, 0]], self.rest_edges) - self.rest_edges
+        rhs += np.bincount((jk[:, 1, None] * 3 + np.arange(3)).ravel(), (w_a * ce).ravel(), minlength=self.n3)
+        rhs -= np.bincount((jk[:, 0, None] * 3 + np.arange(3)).ravel(), (w_a * ce).ravel(), minlength=self.n3)
+        return rhs
 
     def fit(self, state: GraphState, target: Target) -> tuple[GraphState, FitInfo]:
+        """ICP iterations: correspondences, then (rotations fixed) the normal equations in t are assembled and
+        factorised once and ``inner`` local/global ARAP steps reuse the factorisation (only the right-hand side
+        depends on the rotations)."""
         import time
 
         from scipy.sparse.linalg import splu
@@ -475,16 +486,16 @@ class Registration:
         S = len(self.src)
         tgt = target.query.used[_sample(len(target.query.used), prm.samples, prm.seed + 1)]
         q, nq = target.vertices[tgt], target.normals[tgt]
-        jk = graph.directed
-        rest_e = graph.nodes[jk[:, 1]] - graph.nodes[jk[:, 0]]
+        self.rest_edges = graph.nodes[graph.directed[:, 1]] - graph.nodes[graph.directed[:, 0]]
         iters = max(1, prm.iterations)
         eye9 = np.eye(3).ravel()
         for it in range(iters):
             s = it / max(1, iters - 1)
             arap = prm.arap_start * (prm.arap / prm.arap_start) ** s
             reject = prm.reject + (prm.reject_end - prm.reject) * s
+            robust = prm.robust * reject / prm.reject_end                # residual scale shrinks with the reach
             t0 = time.perf_counter()
-            xs, ns, ps = self._sample_state(state)
+            xs, ns, _ = self._sample_state(state)
             _, j = target.query.nearest_vertex(xs, reject)
             ok = j >= 0
             jj = np.maximum(j, 0)
@@ -496,46 +507,44 @@ class Registration:
             ok_q &= np.einsum("ij,ij->i", ns[i_q], nq) > prm.normal_cos
             clock["match"] += time.perf_counter() - t0
             t0 = time.perf_counter()
-            # per sample: Q_s = sum of w a a^T over its rows, q_s = sum of w a b (rows a . (W_s t) = b)
+            # every row reads a . x_s = a . c for one sample s: per sample Q_s = sum w a a^T, h_s = sum w a a^T c
             Q = np.zeros((S, 9))
-            qv = np.zeros((S, 3))
-            r = np.einsum("ij,ij->i", nc, xs - c)
-            gm = np.where(ok, 1.0 / (1.0 + (r / prm.robust) ** 2) ** 2, 0.0) / max(1, ok.sum())
-            b = np.einsum("ij,ij->i", nc, c - ps)
-            Q += gm[:, None] * (nc[:, :, None] * nc[:, None, :]).reshape(S, 9)
-            qv += (gm * b)[:, None] * nc
+            h = np.zeros((S, 3))
+            r = np.einsum("ij,ij->i", nc, xs - c)                       # source -> target, point-to-plane
+            gm = np.where(ok, 1.0 / (1.0 + (r / robust) ** 2) ** 2, 0.0) / max(1, ok.sum())
+            nn = (nc[:, :, None] * nc[:, None, :]).reshape(S, 9)
+            Q += gm[:, None] * nn
+            h += (gm * np.einsum("ij,ij->i", nc, c))[:, None] * nc
             if prm.point > 0:                                             # a little point-to-point
                 Q += (prm.point * gm)[:, None] * eye9
-                qv += (prm.point * gm)[:, None] * (c - ps)
+                h += (prm.point * gm)[:, None] * c
             rq = np.einsum("ij,ij->i", nq, xs[i_q] - q)                   # target -> source
-            gq = np.where(ok_q, 1.0 / (1.0 + (rq / prm.robust) ** 2) ** 2, 0.0) / max(1, ok_q.sum())
-            bq = np.einsum("ij,ij->i", nq, q - ps[i_q])
+            gq = np.where(ok_q, 1.0 / (1.0 + (rq / robust) ** 2) ** 2, 0.0) / max(1, ok_q.sum())
             np.add.at(Q, i_q, gq[:, None] * (nq[:, :, None] * nq[:, None, :]).reshape(-1, 9))
-            np.add.at(qv, i_q, (gq * bq)[:, None] * nq)
+            np.add.at(h, i_q, (gq * np.einsum("ij,ij->i", nq, q))[:, None] * nq)
             if prm.silhouette > 0 and target.views is not None:
                 vi, g, dist = silhouette_rows(xs, target)
                 if len(vi):
                     ws = prm.silhouette / S
-                    bs = np.einsum("ij,ij->i", g, xs[vi] - ps[vi]) + dist
+                    goal = xs[vi] + g * dist[:, None]                     # the outline, along the gradient
                     np.add.at(Q, vi, ws * (g[:, :, None] * g[:, None, :]).reshape(-1, 9))
-                    np.add.at(qv, vi, (ws * bs)[:, None] * g)
+                    np.add.at(h, vi, (ws * np.einsum("ij,ij->i", g, goal))[:, None] * g)
             A_pairs = np.zeros((len(self.pair_j), 9))
-            rhs = np.zeros(self.n3)
-            self._accumulate(Q, qv, A_pairs, rhs)
-            # ARAP: (t_k - t_j - c_jk)^2 per directed edge, c_jk = R_j (g_k - g_j) - (g_k - g_j)
-            w_a = arap / max(1, len(jk))
-            ce = np.einsum("nab,nb->na", state.R[jk[:, 0]], rest_e) - rest_e
+            ww = self.w[:, :, None] * self.w[:, None, :]
+            vals = ww.reshape(S, -1)[:, :, None] * Q.reshape(S, 1, 9)
+            A_pairs += np.bincount(self.acc_index, vals.ravel(), minlength=A_pairs.size).reshape(A_pairs.shape)
+            w_a = arap / max(1, len(graph.directed))
             for pair, sign in ((self.edge_jj, 1.0), (self.edge_kk, 1.0), (self.edge_jk, -1.0), (self.edge_kj, -1.0)):
                 np.add.at(A_pairs, pair, sign * w_a * eye9)
-            np.add.at(rhs, (jk[:, 1, None] * 3 + np.arange(3)).ravel(), (w_a * ce).ravel())
-            np.add.at(rhs, (jk[:, 0, None] * 3 + np.arange(3)).ravel(), (-w_a * ce).ravel())
             A_pairs[self.diag_pair] += 1e-8 * eye9
             A = self.pattern.copy()
             A.data = A_pairs.ravel()[self.gather]
             clock["assemble"] += time.perf_counter() - t0
             t0 = time.perf_counter()
-            state.t = splu(A, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True}).solve(rhs).reshape(-1, 3)
-            state.R = arap_rotations(graph, state.t)
+            lu = splu(A, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
+            for _ in range(max(1, prm.inner)):
+                state.t = lu.solve(self._rhs(h, Q, state, w_a)).reshape(-1, 3)
+                state.R = arap_rotations(graph, state.t)
             clock["solve"] += time.perf_counter() - t0
             info.matched_source = float(ok.mean()) if S else 0.0
             info.matched_target = float(ok_q.mean()) if len(ok_q) else 0.0

@@ -9,13 +9,14 @@ free-viewpoint video", section 7: tracked keyframe subsequences).
        embedded deformation graph + ARAP, point-to-plane both ways, silhouettes), then its surface detail is
        brought onto that frame (deform.detail); then backwards from the keyframe the same way.
     3. A frame whose fit fails ends the segment (the topology changed, or the motion was too large): mean
-       surface distance beyond ``fail_mean`` voxels either way, 95th percentile of the reconstruction's distance
-       to the tracked surface beyond ``fail_p95`` voxels (a part the tracked mesh does not reach), or the
+       surface distance beyond ``fail_mean`` voxels either way, 95th percentile of either distance beyond
+       ``fail_p95`` voxels (a part the tracked mesh does not reach, or a membrane across a new hole), or the
        tracked mesh's silhouette IoU more than ``max_iou_drop`` below the reconstruction's own.
     4. Repeat from 1 until every frame belongs to a segment. Within a segment every frame has the keyframe's
        faces: one connectivity, per-vertex trajectories; a texture atlas per segment serves all its frames.
 
-Distances are in voxels (``voxel`` metres; 0 = the median edge length of the first reconstruction).
+Distances are in voxels (``voxel`` metres; 0 = twice the median edge length of the first reconstruction:
+refined and relaxed marching-cubes meshes have about two edges per voxel, plain marching cubes one).
 """
 from __future__ import annotations
 
@@ -35,9 +36,9 @@ log = logging.getLogger("volcap.track")
 @dataclass
 class TrackParams:
     spacing: float = 4.0          # deformation graph node spacing (voxels)
-    voxel: float = 0.0            # metres per voxel; 0 = median edge length of the first reconstruction
+    voxel: float = 0.0            # metres per voxel; 0 = twice the median edge length of the first reconstruction
     fail_mean: float = 1.0        # a fit fails beyond this mean surface distance (voxels), either direction
-    fail_p95: float = 3.0         # ... or this 95th percentile of the reconstruction -> tracked distance
+    fail_p95: float = 3.0         # ... or this 95th percentile of either distance
     max_iou_drop: float = 0.01    # ... or a silhouette IoU this far below the reconstruction's (with views)
     fit: FitParams = field(default_factory=FitParams)
 
@@ -117,7 +118,7 @@ class Frames:
         self.cameras = cameras
         self.min_views = min_views
         first = next((m for m in meshes if len(m.faces)), None)
-        self.voxel = voxel or (median_edge(np.asarray(first.vertices), first.faces) if first is not None else 1.0)
+        self.voxel = voxel or (2.0 * median_edge(np.asarray(first.vertices), first.faces) if first is not None else 1.0)
         self.origin = np.asarray(first.vertices).min(axis=0) if first is not None else np.zeros(3)
         self.stats = []
         for m in meshes:
@@ -164,6 +165,8 @@ def _failure(res: dict, iou: float | None, iou_rec: float | None, p: TrackParams
                 f"> {p.fail_mean}")
     if res["completeness_p95"] > p.fail_p95:
         return f"95th percentile reconstruction -> tracked {res['completeness_p95']:.2f} voxels > {p.fail_p95}"
+    if res["accuracy_p95"] > p.fail_p95:
+        return f"95th percentile tracked -> reconstruction {res['accuracy_p95']:.2f} voxels > {p.fail_p95}"
     if iou is not None and iou_rec is not None and iou_rec - iou > p.max_iou_drop:
         return f"silhouette IoU {iou:.4f} is {iou_rec - iou:.4f} below the reconstruction's {iou_rec:.4f}"
     return ""

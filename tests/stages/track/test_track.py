@@ -1,0 +1,304 @@
+"""track: topology and the Table 8.1 classes, the deformation graph fit, keyframe tracking on the synthetic
+figure with known correspondences, segments at a topology change, silhouettes, the exports, the sequence type."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from rig import ring_rig
+
+from nodegraph import NodeError, Table
+from nodegraph.graphfile import load_graph
+from nodegraph.testing import run_node
+from nodes.common.meshops import split_edges, unique_edges
+from nodes.common.types import Mesh, MeshSequence, MaskSet, sequence_segments
+from nodes.synth import scenes
+from nodes.track import deform, formats
+from nodes.track.topology import DYNAMIC, STABLE, UNCONSTRAINED, classify_sequence, mesh_topology
+
+ROOT = Path(__file__).resolve().parents[3]
+VOXEL = 0.03                 # the coarse figure is meshed on a 3 cm grid: distances below are in these voxels
+
+
+# ---------------------------------------------------------------- a figure with known correspondences
+def figure_frame(frame: int, seed: int):
+    """The coarse walking figure at ``frame`` remeshed differently per ``seed`` (vertices shuffled, a fifth of
+    the edges split), and the sparse map M from the rest mesh's vertices: true positions = M @ posed vertices."""
+    from scipy.sparse import coo_matrix, identity, vstack
+
+    rest, weights, _ = scenes.figure_rest(VOXEL)
+    rots, pos = scenes.figure_pose(frame)
+    posed = scenes.skin(rest.vertices, weights, rots, pos)
+    rng = np.random.default_rng(seed)
+    edges, face_edges = unique_edges(rest.faces)
+    split = rng.random(len(edges)) < 0.2
+    v, f = split_edges(posed, rest.faces, edges, face_edges, split, posed[edges].mean(axis=1))
+    n0 = len(rest.vertices)
+    mids = edges[split]
+    M = vstack([identity(n0, format="csr"),
+                coo_matrix((np.full(2 * len(mids), 0.5), (np.repeat(np.arange(len(mids)), 2), mids.ravel())),
+                           shape=(len(mids), n0)).tocsr()]).tocsr()
+    perm = rng.permutation(len(v))               # new vertex i is old vertex perm[i]
+    inv = np.empty_like(perm)
+    inv[perm] = np.arange(len(perm))
+    return trimesh.Trimesh(v[perm], inv[f], process=False), M[perm]
+
+
+def truth(frame: int) -> np.ndarray:
+    rest, weights, _ = scenes.figure_rest(VOXEL)
+    return scenes.skin(rest.vertices, weights, *scenes.figure_pose(frame))
+
+
+@pytest.fixture(scope="module")
+def walk():
+    frames = [0, 2, 4, 6, 8]
+    return frames, [figure_frame(f, seed=10 + f) for f in frames]
+
+
+# ---------------------------------------------------------------- topology and classes
+def test_topology_counts():
+    sphere, torus = trimesh.creation.icosphere(2), trimesh.creation.torus(1.0, 0.3)
+    two = trimesh.util.concatenate([sphere, sphere.copy().apply_translation([3, 0, 0])])
+    opened = trimesh.Trimesh(sphere.vertices, sphere.faces[:-3], process=False)
+    t = [mesh_topology(m.vertices, m.faces) for m in (sphere, torus, two, opened)]
+    assert [(x["components"], x["genus"], x["boundary_loops"], x["closed"]) for x in t] == [
+        (1, 0, 0, True), (1, 1, 0, True), (2, 0, 0, True), (1, 0, 1, False)]
+    assert t[0]["euler"] == 2 and t[1]["euler"] == 0
+
+
+def test_classify_ranges_follow_table_8_1():
+    s, b, t = trimesh.creation.icosphere(2), trimesh.creation.box(), trimesh.creation.torus(1.0, 0.3)
+    moved = lambda m, k: trimesh.Trimesh(m.vertices * (1 + 0.1 * k), m.faces, process=False)  # noqa: E731
+    seq = [moved(s, 0), moved(s, 1), moved(s, 2), b, t, moved(s, 3), moved(b, 1), moved(b, 2)]
+    ranges = classify_sequence([(m.vertices, m.faces) for m in seq])
+    assert [(r["start"], r["stop"], r["class"]) for r in ranges] == [
+        (0, 2, DYNAMIC), (3, 3, STABLE), (4, 4, UNCONSTRAINED), (5, 5, STABLE), (6, 7, DYNAMIC)]
+    out = run_node("track.classify", {"meshes": seq}, frames=list(range(100, 108)))["report"]
+    assert out["class"] == UNCONSTRAINED and out["ranges"][0] == {"start": 100, "stop": 102, "class": DYNAMIC, "frames": 3}
+    assert out["topology"]["genus"] == [0, 0, 0, 0, 1, 0, 0, 0]
+    assert run_node("track.classify", {"meshes": seq[:3]}, frames=[0, 1, 2])["report"]["class"] == DYNAMIC
+    assert run_node("track.classify", {"meshes": seq[:4]}, frames=[0, 1, 2, 3])["report"]["class"] == STABLE
+    with pytest.raises(NodeError, match="exactly one"):
+        run_node("track.classify", {})
+
+
+def test_classify_golden(walk, golden):
+    frames, data = walk
+    out = run_node("track.classify", {"meshes": [m for m, _ in data]}, frames=frames)["report"]
+    assert out["class"] == STABLE            # remeshed every frame: one topology, changing connectivity
+    golden.check("track_classify_walk", out, Table)
+
+
+# ---------------------------------------------------------------- geometry pieces
+def test_closest_point_matches_brute_force():
+    rng = np.random.default_rng(1)
+    m = trimesh.creation.icosphere(2)
+    m = trimesh.Trimesh(m.vertices * (1 + 0.1 * rng.standard_normal((len(m.vertices), 1))), m.faces, process=False)
+    p = rng.normal(size=(300, 3)) * 0.6
+    q, d = deform.SurfaceQuery(m.vertices, m.faces).closest(p)
+    tri = m.triangles
+    brute = deform.closest_on_triangles(p[:, None, :], tri[None, :, 0], tri[None, :, 1], tri[None, :, 2])
+    bd = np.linalg.norm(brute - p[:, None, :], axis=2).min(axis=1)
+    assert np.allclose(np.linalg.norm(q - p, axis=1), d)
+    # nearest-vertex one-ring search is exact here except where a farther vertex's face is closer
+    assert np.mean(np.isclose(d, bd, atol=1e-9)) > 0.97 and np.all(d >= bd - 1e-12) and np.max(d - bd) < 0.05
+
+
+def test_graph_is_geodesic_and_fit_recovers_a_bend():
+    # a capsule bent by 20 degrees in one step (its tip moves 9 voxels): the fit (same connectivity, so the
+    # truth is vertex for vertex) lands on it
+    cap = trimesh.creation.capsule(height=2.0, radius=0.3, count=[24, 24])
+    rest = cap.vertices
+    angle = np.radians(20) * np.clip((rest[:, 2] + 0.2) / 1.3, 0, 1)
+    bent = rest.copy()
+    bent[:, 0] = rest[:, 0] * np.cos(angle) + np.maximum(rest[:, 2], -0.2) * np.sin(angle)
+    bent[:, 2] = np.where(rest[:, 2] > -0.2, -0.2 + (rest[:, 2] + 0.2) * np.cos(angle) - rest[:, 0] * np.sin(angle), rest[:, 2])
+    voxel = 0.05
+    src = deform.Target(rest, cap.faces, rest.min(axis=0), voxel)
+    tgt = deform.Target(bent, cap.faces, rest.min(axis=0), voxel)
+    graph = deform.build_graph(src.vertices, cap.faces, spacing=4.0)
+    assert 10 < len(graph.nodes) < len(rest) / 4
+    assert np.allclose(graph.vertex_weights.sum(axis=1), 1)
+    reg = deform.Registration(graph, cap.faces, deform.FitParams())
+    state, info = reg.fit(deform.GraphState.identity(graph), tgt)
+    x = deform.detail(graph.deform(state), cap.faces, tgt, reg.params)
+    err = np.linalg.norm(x - tgt.vertices, axis=1)
+    before = np.linalg.norm(src.vertices - tgt.vertices, axis=1)
+    assert before.max() > 8 and err.mean() < 1.2 and np.percentile(err, 95) < 2.0, (before.max(), err.mean())
+    _, d = tgt.query.closest(x)
+    assert d.mean() < 0.1
+    # rotations stay rotations
+    R = state.R
+    assert np.allclose(np.einsum("nab,nac->nbc", R, R), np.eye(3), atol=1e-9) and np.allclose(np.linalg.det(R), 1)
+
+
+# ---------------------------------------------------------------- tracking
+def correspondence_error(seq, data, frames) -> np.ndarray:
+    """Per frame: mean distance (voxels) between each tracked vertex and where its body point truly is.
+    Tracked vertices are the keyframe's remeshed vertices; their truth at frame t is M_key @ truth(t)."""
+    out = []
+    for m, f in zip(seq, frames):
+        key = frames.index(m.metadata["keyframe"])
+        M = data[key][1]
+        out.append(np.linalg.norm(m.vertices - M @ truth(f), axis=1).mean() / VOXEL)
+    return np.array(out)
+
+
+def test_track_figure_constant_connectivity_and_true_correspondences(walk):
+    frames, data = walk
+    out = run_node("track", {"meshes": [m for m, _ in data]}, {"voxel": VOXEL}, frames=frames, roundtrip=True)
+    seq, table = out["sequence"], out["residuals"]
+    assert sequence_segments(seq) == [(0, 5)] and table["segment_count"] == 1
+    assert all(np.array_equal(m.faces, seq[0].faces) for m in seq)
+    assert [m.metadata["frame"] for m in seq] == frames
+    key = frames.index(seq[0].metadata["keyframe"])
+    assert np.array_equal(seq[key].vertices, data[key][0].vertices)       # the keyframe is its reconstruction
+    assert max(table["residual"]["distance"]) < 0.25                       # voxels, both directions
+    err = correspondence_error(seq, data, frames)
+    # the identity map (each frame's vertices where they were at the keyframe) is far off: the limbs swing
+    still = [np.linalg.norm(data[key][0].vertices - data[key][1] @ truth(f), axis=1).mean() / VOXEL for f in frames]
+    assert err.max() < 0.6 and max(still) > 2.0, (err, still)
+
+
+def test_track_starts_a_segment_at_a_topology_change():
+    sphere = trimesh.creation.icosphere(3, radius=1.0)
+    torus = trimesh.creation.torus(0.9, 0.35, major_sections=48, minor_sections=16)
+    seq = [trimesh.Trimesh(sphere.vertices * [1 + 0.03 * k, 1, 1], sphere.faces, process=False) for k in range(3)]
+    seq += [trimesh.Trimesh(torus.vertices * [1 + 0.03 * k, 1, 1], torus.faces, process=False) for k in range(3)]
+    out = run_node("track", {"meshes": seq}, {"voxel": 0.05}, frames=list(range(6)))
+    segs = out["residuals"]["segments"]
+    assert [(s["start"], s["stop"], s["genus"]) for s in segs] == [(0, 2, 0), (3, 5, 1)]
+    assert "frame 3" in segs[0]["ended_after"] and segs[0]["keyframe"] in (0, 1, 2)
+    assert sequence_segments(out["sequence"]) == [(0, 3), (3, 6)]
+    classes = run_node("track.classify", {"sequence": out["sequence"]})["report"]["ranges"]
+    assert [(r["start"], r["stop"], r["class"]) for r in classes] == [(0, 2, DYNAMIC), (3, 5, DYNAMIC)]
+
+
+def test_track_with_silhouettes_keeps_iou(golden):
+    cams = ring_rig(6, 200, 150, radius=3.0, z=0.9, target=(0, 0, 0.9), fov=55)
+    frames = [0, 3, 6]
+    data = [figure_frame(f, seed=f) for f in frames]
+    from nodes.common import raster
+
+    masks = [MaskSet([np.where(s > 0, 255, 0).astype(np.uint8) for s in raster.silhouette(truth(f), scenes.figure_rest(VOXEL)[0].faces, cams)])
+             for f in frames]
+    crop = [run_node("track.crop", {"masks": m, "cameras": cams}, {"margin": 8}) for m in masks]
+    assert all(c["masks"].masks[0].size < m.masks[0].size for c, m in zip(crop, masks))
+    out = run_node("track", {"meshes": [m for m, _ in data], "masks": [c["masks"] for c in crop],
+                             "cameras": [c["cameras"] for c in crop]}, {"voxel": VOXEL}, frames=frames)
+    table = out["residuals"]
+    assert table["segment_count"] == 1 and table["iou_drop_max"] <= 0.01
+    assert min(table["timeline"]["iou"]) > 0.9
+    last = out["sequence"][-1]
+    golden.check("track_figure_frame6", last, Mesh, count_rtol=0.0, hausdorff=0.2 * VOXEL)
+
+
+def test_track_errors_name_the_problem():
+    m = trimesh.creation.icosphere(2)
+    with pytest.raises(NodeError, match="both 'masks' and 'cameras'"):
+        run_node("track", {"meshes": [m], "masks": [MaskSet([np.zeros((4, 4), np.uint8)])]})
+    with pytest.raises(NodeError, match="2 masks for 1 meshes"):
+        run_node("track", {"meshes": [m], "masks": [None, None], "cameras": [None, None]})
+
+
+def test_empty_frame_is_its_own_segment():
+    s = trimesh.creation.icosphere(2)
+    empty = trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), process=False)
+    out = run_node("track", {"meshes": [s, empty, s]}, {"voxel": 0.1}, frames=[0, 1, 2])
+    assert [(x["start"], x["stop"]) for x in out["residuals"]["segments"]] == [(0, 0), (1, 1), (2, 2)]
+    assert len(out["sequence"][1].faces) == 0
+
+
+# ---------------------------------------------------------------- exports and the sequence type
+@pytest.fixture(scope="module")
+def tracked_pair():
+    sphere, box = trimesh.creation.icosphere(2), trimesh.creation.box()
+    seq = [trimesh.Trimesh(sphere.vertices * (1 + 0.1 * k), sphere.faces, process=False) for k in range(3)]
+    seq += [trimesh.Trimesh(box.vertices + [0.1 * k, 0, 0], box.faces, process=False) for k in range(2)]
+    for i, m in enumerate(seq):
+        m.metadata.update(segment=int(i >= 3), keyframe=10 if i < 3 else 13, frame=10 + i)
+    return seq
+
+
+def test_usd_points_at_frame_k_equal_ours(tracked_pair):
+    data = formats.usd_bytes(tracked_pair, fps=25.0)
+    for m in tracked_pair:
+        got = formats.usd_points(data, m.metadata["frame"])
+        assert np.array_equal(got, np.asarray(m.vertices, np.float32))
+    from pxr import Usd, UsdGeom
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "a.usdc"
+        p.write_bytes(data)
+        stage = Usd.Stage.Open(str(p))
+        assert stage.GetTimeCodesPerSecond() == 25.0 and (stage.GetStartTimeCode(), stage.GetEndTimeCode()) == (10, 14)
+        seg1 = UsdGeom.Mesh(stage.GetPrimAtPath("/DynamicMesh/segment_0001"))
+        assert seg1.ComputeVisibility(Usd.TimeCode(12)) == UsdGeom.Tokens.invisible
+        assert list(seg1.GetFaceVertexIndicesAttr().Get()) == tracked_pair[3].faces.ravel().tolist()
+
+
+def test_gltf_and_draco_reproduce_the_frames(tracked_pair):
+    import DracoPy
+
+    glb = formats.gltf_bytes(tracked_pair, fps=25.0)
+    for k, m in enumerate(tracked_pair):
+        assert np.allclose(formats.gltf_frame(glb, k), m.vertices, atol=1e-6)
+    scene = trimesh.load(trimesh.util.wrap_as_stream(glb), file_type="glb")      # another reader opens it
+    assert len(scene.geometry) == 2
+    frames = formats.draco_frames(tracked_pair, bits=14)
+    for m, buf in zip(tracked_pair, frames):
+        d = DracoPy.decode(buf)
+        assert np.array_equal(d.faces, m.faces)                                  # vertex order preserved
+        assert np.abs(d.points - m.vertices).max() <= np.ptp(m.vertices, axis=0).max() / 2 ** 13
+
+
+def test_export_node_publishes_and_sizes(tracked_pair):
+    out = run_node("track.export", {"sequence": tracked_pair, "meshes": tracked_pair}, {"name": "walk"})
+    names = set(out["files"])
+    assert {"walk.usdc", "walk.glb"} <= names and sum(n.startswith("walk_draco/") for n in names) == 5
+    s = out["sizes"]
+    assert s["segments_frames"] == [3, 2] and s["files"]["walk.usdc"] == len(out["files"]["walk.usdc"])
+    assert s["dynamic_raw_bytes"] < s["reconstruction_raw_bytes"]
+    with pytest.raises(NodeError, match="unknown formats"):
+        run_node("track.export", {"sequence": tracked_pair}, {"formats": ["fbx"]})
+
+
+def test_mesh_sequence_roundtrip_keeps_segments(tracked_pair, tmp_path):
+    MeshSequence.save(tracked_pair, tmp_path)
+    back = MeshSequence.load(tmp_path)
+    assert [m.metadata for m in back] == [m.metadata for m in tracked_pair]
+    assert all(np.array_equal(a.vertices, b.vertices) and np.array_equal(a.faces, b.faces) for a, b in zip(back, tracked_pair))
+    assert len(list(tmp_path.glob("*.ply"))) == 2                                # one PLY per segment
+    bad = list(tracked_pair)
+    bad[1] = trimesh.Trimesh(bad[3].vertices, bad[3].faces, process=False, metadata={"segment": 0})
+    assert "do not share their faces" in MeshSequence.check(bad)
+
+
+def test_crop_keeps_the_point_test():
+    from nodes.common.silhouettes import Silhouettes, inside_hull
+
+    cams = ring_rig(4, 160, 120, radius=3.0, z=0.5, target=(0, 0, 0.5))
+    sphere = trimesh.creation.icosphere(3, radius=0.4).apply_translation([0, 0, 0.5])
+    from nodes.common import raster
+
+    masks = MaskSet([np.where(s > 0, 255, 0).astype(np.uint8) for s in raster.silhouette(sphere.vertices, sphere.faces, cams)])
+    out = run_node("track.crop", {"masks": masks, "cameras": cams}, {"margin": 4})
+    p = np.random.default_rng(0).uniform([-0.6, -0.6, -0.1], [0.6, 0.6, 1.1], (4000, 3))
+    full = inside_hull(p, Silhouettes.from_inputs(masks, cams))
+    cropped = inside_hull(p, Silhouettes.from_inputs(out["masks"], out["cameras"]))
+    assert full.sum() > 100 and np.array_equal(full, cropped)
+    uv, _ = cams.project(p, 0)
+    uv_c, _ = out["cameras"].project(p, 0)
+    c0 = out["cameras"][0]
+    assert np.allclose(uv - uv_c, [cams[0].K[0, 2] - c0.K[0, 2], cams[0].K[1, 2] - c0.K[1, 2]])
+
+
+# ---------------------------------------------------------------- graphs
+@pytest.mark.parametrize("name", ["track_synth.yaml", "track_child_rope.yaml"])
+def test_track_graphs_validate(name):
+    g = load_graph(ROOT / "graphs" / name)
+    assert {"track", "track.classify", "track.export"} <= {s.type_name for s in g.nodes.values()}
+
