@@ -172,8 +172,10 @@ def _failure(res: dict, iou: float | None, iou_rec: float | None, p: TrackParams
     return ""
 
 
-def track_sequence(frames: Frames, params: TrackParams, progress=None) -> tuple[list[FrameResult | None], list[Segment]]:
-    """Segments of tracked meshes covering every frame (see the module docstring)."""
+def track_sequence(frames: Frames, params: TrackParams, progress=None, keyframe: int | None = None
+                   ) -> tuple[list[FrameResult | None], list[Segment]]:
+    """Segments of tracked meshes covering every frame (see the module docstring). ``keyframe``: the first
+    segment's keyframe (index) instead of the automatic choice."""
     n = len(frames)
     results: list[FrameResult | None] = [None] * n
     segments: list[Segment] = []
@@ -181,7 +183,7 @@ def track_sequence(frames: Frames, params: TrackParams, progress=None) -> tuple[
     fit_p = params.fit
     while not done.all():
         todo = np.flatnonzero(~done)
-        k = int(min(todo, key=lambda i: keyframe_key(frames.stats[i])))
+        k = int(min(todo, key=lambda i: keyframe_key(frames.stats[i]))) if keyframe is None or segments else keyframe
         seg_index = len(segments)
         key_mesh = frames.meshes[k]
         faces = np.asarray(key_mesh.faces, np.int64)

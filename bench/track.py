@@ -1,0 +1,321 @@
+"""Temporal structuring (track): quality on the synthetic walking figure with ground-truth correspondences, the
+whole child_rope sequence, and speed at ~20k vertices, each against trimesh.registration.nricp_amberg (the
+baseline a user would otherwise pick, REFERENCES.md) in the same run. Prints tables; writes pictures to docs/.
+
+    python bench/track.py synth [--nricp-frames 3]    # graphs/track_synth.yaml, 100 frames at 128^3
+    python bench/track.py speed                       # ~20k vertices (hull 104^3), ours per frame vs nricp_amberg
+    python bench/track.py child_rope                  # graphs/track_child_rope.yaml, 200 frames
+    options: --cache DIR (default ./.volcap-cache), --frames A:B, --no-pictures
+
+The per-frame reconstructions come from the graphs through the engine and its cache (the first run computes
+them: ~5 s per frame), so a second run only re-measures. The correspondence error of the synthetic run: each
+tracked vertex is attached at its keyframe to the nearest point of the true surface (a face and barycentric
+coordinates); the figure keeps its topology over frames, so that body point's true position is known in every
+frame. "tracking error" = |(x_t - x_key) - (g_t - g_key)| (the motion of the point, which leaves out the
+visual hull's own offset from the truth); "absolute" = |x_t - g_t|.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+os.environ.setdefault("VOLCAP_DATA", str(ROOT.parent / "shared" / "data"))
+
+from nodegraph import Table  # noqa: E402
+from nodegraph.cache import Cache  # noqa: E402
+from nodegraph.executors import LocalExecutor  # noqa: E402
+from nodegraph.graphfile import load_graph  # noqa: E402
+from nodegraph.run import run_graph  # noqa: E402
+from nodes.common import types as T  # noqa: E402
+from nodes.track.deform import SurfaceQuery  # noqa: E402
+from nodes.track.tracking import Frames, TrackParams, track_sequence, surface_residuals  # noqa: E402
+
+DOCS = ROOT / "docs"
+
+
+def header():
+    from nodegraph import clrt
+
+    cpu = next((ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name")), platform.processor())
+    print(f"OpenCL device: {clrt.device_name()}")
+    print(f"CPU: {cpu}, {os.cpu_count()} cores; load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+
+
+def run(graph_file: Path, cache: Path, frames: str | None, upto: str | None = None, overrides=()):
+    """Run a graph (or the part of it ``upto`` depends on) through the engine; returns its run records."""
+    import networkx as nx
+
+    g = load_graph(graph_file, overrides=list(overrides), frames=frames)
+    if upto:
+        keep = nx.ancestors(g.dag, upto) | {upto}
+        g.nodes = {k: v for k, v in g.nodes.items() if k in keep}
+        g.dag = g.dag.subgraph(keep).copy()
+    out = cache / "bench_out" / graph_file.stem
+    t0 = time.perf_counter()
+    res = run_graph(g, Cache(cache), out, LocalExecutor(1), progress=True)
+    if not res.ok:
+        raise SystemExit(f"{graph_file}: {len(res.failures)} items failed: {res.failures[0].get('error')}")
+    print(f"{graph_file.name}: {res.counts()} in {time.perf_counter() - t0:.1f} s")
+    return res.records
+
+
+def outputs(records, node: str, port: str, dtype):
+    recs = sorted((r for r in records if r["node"] == node), key=lambda r: (r["frame"] is None, r["frame"] or 0))
+    return [dtype.load(Path(r["cache_dir"]) / port) for r in recs], recs
+
+
+def nricp_chain(meshes, count: int):
+    """trimesh nricp_amberg frame to frame (default steps) from meshes[0]: (vertices per frame, seconds each)."""
+    from trimesh.registration import nricp_amberg
+
+    current = meshes[0]
+    out, secs = [np.asarray(current.vertices)], [0.0]
+    for m in meshes[1:count]:
+        t0 = time.perf_counter()
+        v = nricp_amberg(current, m)
+        secs.append(time.perf_counter() - t0)
+        current = trimesh.Trimesh(v, current.faces, process=False)
+        out.append(v)
+    return out, secs
+
+
+# ---------------------------------------------------------------- synthetic figure
+def attach(truth_key: trimesh.Trimesh, points: np.ndarray):
+    """Faces and barycentric coordinates of the nearest points of the true surface."""
+    closest, _, face = SurfaceQuery(truth_key.vertices, truth_key.faces).closest(points, with_faces=True)
+    return face, trimesh.triangles.points_to_barycentric(truth_key.triangles[face], closest)
+
+
+def carried(truth_t: trimesh.Trimesh, face, bary) -> np.ndarray:
+    return np.einsum("vk,vka->va", bary, truth_t.vertices[truth_t.faces[face]])
+
+
+def correspondence(track_v: dict, key: int, truth: dict, voxel: float) -> dict:
+    """Per frame of ``track_v`` (frame -> vertices): tracking and absolute error (voxels) against the truth."""
+    face, bary = attach(truth[key], track_v[key])
+    g_key = carried(truth[key], face, bary)
+    rows = {}
+    for f, x in track_v.items():
+        g = carried(truth[f], face, bary)
+        rows[f] = (np.linalg.norm((x - track_v[key]) - (g - g_key), axis=1).mean() / voxel,
+                   np.linalg.norm(x - g, axis=1).mean() / voxel)
+    return rows
+
+
+def bench_synth(args):
+    from nodes.synth import scenes
+
+    graph = ROOT / "graphs/track_synth.yaml"
+    records = run(graph, args.cache, args.frames)
+    recon, recs = outputs(records, "relax", "mesh", T.Mesh)
+    vols, _ = outputs([r for r in records if r["frame"] == recs[0]["frame"]], "hull", "volume", T.Volume)
+    voxel = float(vols[0].voxel_size.max())
+    seq = outputs(records, "track", "sequence", T.MeshSequence)[0][0]
+    table = outputs(records, "track", "residuals", Table)[0][0]
+    track_rec = next(r for r in records if r["node"] == "track")
+    frames = [m.metadata["frame"] for m in seq]
+    truth = {f: scenes.build("figure", f).mesh for f in frames}
+    print(f"\nsynthetic walking figure: {len(frames)} frames, hull 128^3 (voxel {voxel * 1000:.2f} mm), "
+          f"{len(recon[0].vertices)} vertices per reconstruction")
+    segs = T.sequence_segments(seq)
+    constant = all(np.array_equal(seq[a].faces, seq[i].faces) for a, b in segs for i in range(a, b))
+    # our distances were computed in the track node's voxel; restate them in this hull's voxel
+    scale = table["voxel"] / voxel
+    acc = np.array(table["timeline"]["accuracy_mean"]) * scale
+    comp = np.array(table["timeline"]["completeness_mean"]) * scale
+    ours = {}
+    for a, b in segs:
+        key = frames.index(seq[a].metadata["keyframe"])
+        ours.update(correspondence({frames[i]: np.asarray(seq[i].vertices) for i in range(a, b)}, frames[key], truth, voxel))
+    err = np.array([ours[f][0] for f in frames])
+    absolute = np.array([ours[f][1] for f in frames])
+    key0 = seq[0].metadata["keyframe"]
+    same_phase = [f for f in frames if (f - frames[-1]) % 24 == 0]
+    print(f"ours: {len(segs)} segment(s), keyframe(s) {sorted({m.metadata['keyframe'] for m in seq})}; constant connectivity "
+          f"per segment: {constant}; track node {track_rec['seconds']:.1f} s = {track_rec['seconds'] / len(frames):.2f} s/frame")
+    print(f"  surface distance to each frame's reconstruction, voxels: tracked->rec mean {acc.mean():.3f} (max {acc.max():.3f}), "
+          f"rec->tracked mean {comp.mean():.3f} (max {comp.max():.3f})")
+    print(f"  correspondence error vs truth, voxels: tracking mean {err.mean():.2f} (max {err.max():.2f}); absolute mean "
+          f"{absolute.mean():.2f} (max {absolute.max():.2f}; at the keyframe {ours[key0][1]:.2f} = the hull's own offset)")
+    print(f"  drift: tracking error first frame {err[0]:.2f}, last {err[-1]:.2f} (ratio {err[-1] / max(err[0], 1e-9):.2f}); "
+          f"same gait phase as the last frame (frames {same_phase}): {[round(ours[f][0], 2) for f in same_phase]}")
+    # nricp_amberg frame to frame from frame 0, and ours from the same start, on the first frames
+    n = min(args.nricp_frames, len(frames))
+    if n > 1:
+        print(f"\nnricp_amberg frame to frame (default steps) on frames {frames[0]}..{frames[n - 1]} "
+              f"({len(recon[0].vertices)} vertices); ours tracked from frame {frames[0]} too:")
+        nv, nsec = nricp_chain(recon[:n], n)
+        fr = Frames(recon[:n], voxel=table["voxel"])
+        t0 = time.perf_counter()
+        res, _ = track_sequence(fr, TrackParams(voxel=table["voxel"]), keyframe=0)
+        osec = (time.perf_counter() - t0) / max(1, n - 1)
+        e_n = correspondence({frames[i]: v for i, v in enumerate(nv)}, frames[0], truth, voxel)
+        e_o = correspondence({frames[i]: r.vertices for i, r in enumerate(res)}, frames[0], truth, voxel)
+        print(f"{'frame':>6} {'nricp s':>8} {'nricp surf':>10} {'nricp err':>9} | {'ours s':>7} {'ours surf':>9} {'ours err':>8}")
+        for i in range(1, n):
+            tq = Frames([recon[i]], voxel=voxel).target(0)
+            sn = surface_residuals((nv[i] - tq.origin) / voxel, recon[0].faces, tq)
+            so = surface_residuals((res[i].vertices - tq.origin) / voxel, recon[0].faces, tq)
+            print(f"{frames[i]:>6} {nsec[i]:>8.1f} {0.5 * (sn['accuracy_mean'] + sn['completeness_mean']):>10.3f} "
+                  f"{e_n[frames[i]][0]:>9.2f} | {res[i].seconds:>7.2f} {0.5 * (so['accuracy_mean'] + so['completeness_mean']):>9.3f} "
+                  f"{e_o[frames[i]][0]:>8.2f}")
+        print(f"mean seconds per frame: nricp_amberg {np.mean(nsec[1:]):.1f}, ours {osec:.2f} "
+              f"({np.mean(nsec[1:]) / osec:.0f}x)")
+    if not args.no_pictures:
+        picture(seq, [0, 24, 49, 74, 99], DOCS / "track_synth.png", "synthetic walk: one tracked mesh, frames")
+        plot_residuals(table, DOCS / "track_synth_residuals.png", "synthetic walk", extra=("tracking error vs truth", err))
+
+
+# ---------------------------------------------------------------- speed at ~20k vertices
+def bench_speed(args):
+    from trimesh.registration import nricp_amberg
+
+    records = run(ROOT / "graphs/track_synth.yaml", args.cache, "0:11", upto="relax", overrides=["hull.resolution=104"])
+    recon, _ = outputs(records, "relax", "mesh", T.Mesh)
+    vols, _ = outputs([r for r in records if r["frame"] == 0], "hull", "volume", T.Volume)
+    voxel = float(vols[0].voxel_size.max())
+    nv = np.mean([len(m.vertices) for m in recon])
+    fr = Frames(recon, voxel=voxel)
+    t0 = time.perf_counter()
+    res, segs = track_sequence(fr, TrackParams(voxel=voxel), keyframe=0)
+    total = time.perf_counter() - t0
+    per = [r.seconds for r in res[1:]]
+    print(f"\nspeed: synthetic figure, hull 104^3, {nv:.0f} vertices per frame, {len(recon)} frames, {len(segs)} segment(s)")
+    print(f"ours: {np.median(per):.2f} s per frame median (min {min(per):.2f}, max {max(per):.2f}); whole run incl. graph "
+          f"build {total:.1f} s = {total / (len(recon) - 1):.2f} s/frame")
+    t0 = time.perf_counter()
+    nricp_amberg(recon[0], recon[1])
+    tn = time.perf_counter() - t0
+    print(f"nricp_amberg (default steps), frame 0 -> 1: {tn:.1f} s; ratio {tn / np.median(per):.0f}x")
+    print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+
+
+# ---------------------------------------------------------------- child_rope
+def bench_child_rope(args):
+    graph = ROOT / "graphs/track_child_rope.yaml"
+    records = run(graph, args.cache, args.frames)
+    seq = outputs(records, "track", "sequence", T.MeshSequence)[0][0]
+    table = outputs(records, "track", "residuals", Table)[0][0]
+    before = outputs(records, "classify", "report", Table)[0][0]
+    after = outputs(records, "tracked", "report", Table)[0][0]
+    sizes = outputs(records, "export", "sizes", Table)[0][0]
+    scores, _ = outputs(records, "score", "report", Table)
+    track_rec = next(r for r in records if r["node"] == "track")
+    lengths = [s["frames"] for s in table["segments"]]
+    drop = np.array(table["residual"]["iou_drop"])
+    print(f"\nchild_rope: {table['frames']} frames, reconstructions {before['class']} "
+          f"({len(before['ranges'])} ranges, genus {min(before['topology']['genus'])}..{max(before['topology']['genus'])}, "
+          f"{min(before['topology']['vertices'])}..{max(before['topology']['vertices'])} vertices)")
+    print(f"tracked: {len(lengths)} segments, lengths {lengths}; median {np.median(lengths):.0f} (goal >= 60), "
+          f"classes after: {after['frames_per_class']}")
+    print(f"silhouette IoU of the tracked mesh vs the frame's own refined reconstruction: drop mean {drop.mean():.4f}, "
+          f"max {drop.max():.4f} (frames above 0.01: {int((drop > 0.01).sum())}); reconstruction IoU mean "
+          f"{np.mean([s['mean_iou'] for s in scores]):.4f}")
+    print(f"residual (voxels, mean of both ways): mean {table['distance_mean']:.3f}, max {table['distance_max']:.3f}; "
+          f"track node {track_rec['seconds']:.0f} s = {track_rec['seconds'] / table['frames']:.2f} s/frame")
+    for s in table["segments"]:
+        print(f"  segment {s['start']:>3}..{s['stop']:>3} key {s['keyframe']:>3} genus {s['genus']} {s['vertices']} vertices; "
+              f"ended after: {s['ended_after']}")
+    mb = 1 / 1e6
+    print(f"storage: per-frame reconstructions PLY {sizes['reconstruction_ply_bytes'] * mb:.1f} MB, raw "
+          f"{sizes['reconstruction_raw_bytes'] * mb:.1f} MB, Draco {sizes['reconstruction_draco_bytes'] * mb:.1f} MB; dynamic "
+          f"mesh raw {sizes['dynamic_raw_bytes'] * mb:.1f} MB, " + ", ".join(f"{k} {v * mb:.1f} MB" for k, v in sizes["files"].items())
+          + f", Draco per frame {sizes.get('dynamic_draco_bytes', 0) * mb:.1f} MB")
+    if not args.no_pictures:
+        picks = [int(round(x)) for x in np.linspace(0, len(seq) - 1, 6)]
+        picture(seq, picks, DOCS / "track_child_rope.png", "child_rope: tracked meshes")
+        plot_residuals(table, DOCS / "track_child_rope_residuals.png", "child_rope")
+
+
+# ---------------------------------------------------------------- pictures
+def picture(seq, picks, path: Path, title: str):
+    """Tracked meshes at a few frames, coloured by their keyframe (rest) position so a surface point keeps its
+    colour while it is tracked; the segment and keyframe under each."""
+    os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+    import pyvista as pv
+
+    p = pv.Plotter(off_screen=True, window_size=(260 * len(picks), 420), shape=(1, len(picks)), border=False)
+    by_seg = {}
+    for m in seq:
+        by_seg.setdefault(m.metadata.get("segment"), np.asarray(m.vertices))   # first frame of each segment
+    for col, i in enumerate(picks):
+        m = seq[i]
+        rest = by_seg[m.metadata.get("segment")]
+        lo, hi = rest.min(axis=0), rest.max(axis=0)
+        u = (rest - lo) / np.maximum(hi - lo, 1e-9)
+        stripes = (np.floor(u[:, 2] * 24) % 2) * 0.55 + (np.floor(u[:, 0] * 8) % 2) * 0.35
+        faces = np.hstack([np.full((len(m.faces), 1), 3), m.faces]).ravel()
+        mesh = pv.PolyData(np.asarray(m.vertices), faces)
+        mesh["pattern"] = stripes
+        p.subplot(0, col)
+        p.add_mesh(mesh, scalars="pattern", cmap="viridis", show_scalar_bar=False, smooth_shading=True)
+        p.add_text(f"frame {m.metadata.get('frame', i)}  seg {m.metadata.get('segment')} (key {m.metadata.get('keyframe')})",
+                   font_size=9, color="black")
+        p.set_background("white")
+        p.camera_position = "yz"
+        p.camera.azimuth = 35
+        p.camera.elevation = 10
+        p.reset_camera()
+    p.screenshot(str(path))
+    p.close()
+    print(f"wrote {path}")
+
+
+def plot_residuals(table, path: Path, title: str, extra=None):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    f = table["timeline"]["frame"]
+    rows = 3 if "iou_drop" in table["residual"] or extra else 2
+    fig, ax = plt.subplots(rows, 1, figsize=(9, 2.2 * rows), sharex=True)
+    ax[0].plot(f, table["residual"]["distance"], label="mean surface distance (both ways)")
+    ax[0].plot(f, table["residual"]["distance_p95"], label="95th percentile", alpha=0.7)
+    ax[0].set_ylabel("voxels")
+    ax[0].legend(fontsize=7)
+    ax[1].step(f, table["timeline"]["segment"], where="mid", color="k")
+    ax[1].set_ylabel("segment")
+    for s in table["segments"]:
+        for a in ax:
+            a.axvline(s["start"] - 0.5, color="0.8", lw=0.6)
+        ax[0].plot([s["keyframe"]], [0], "rv", ms=4)
+    if "iou_drop" in table["residual"]:
+        ax[2].plot(f, table["residual"]["iou_drop"], color="tab:red")
+        ax[2].axhline(0.01, color="tab:red", ls=":", lw=0.8)
+        ax[2].set_ylabel("IoU drop")
+    elif extra:
+        ax[2].plot(f, extra[1], color="tab:green")
+        ax[2].set_ylabel(f"{extra[0]}\n(voxels)", fontsize=7)
+    ax[-1].set_xlabel("frame")
+    fig.suptitle(f"{title}: residual per frame (keyframes: red marks)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    print(f"wrote {path}")
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("what", choices=("synth", "speed", "child_rope"))
+    ap.add_argument("--cache", type=Path, default=ROOT / ".volcap-cache")
+    ap.add_argument("--frames", default=None)
+    ap.add_argument("--nricp-frames", type=int, default=3)
+    ap.add_argument("--no-pictures", action="store_true")
+    args = ap.parse_args()
+    header()
+    {"synth": bench_synth, "speed": bench_speed, "child_rope": bench_child_rope}[args.what](args)
+    print(f"load average at the end: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+
+
+if __name__ == "__main__":
+    main()
