@@ -6,8 +6,9 @@
     glTF (pygltflib) one node + mesh per segment: its first frame as the base POSITION, every later frame a
                      morph target (displacement), an animation whose STEP weights switch on one target per
                      frame and whose STEP scale shows the node only during its segment (.glb).
-    Draco (DracoPy)  one .drc per frame, vertex order preserved (vertex i stays the same surface point within
-                     a segment), positions quantised to ``bits``.
+    Draco (DracoPy)  per segment its connectivity once (a mesh, vertex order preserved) and per frame its
+                     positions only (a point cloud, vertex order preserved: vertex i stays the same surface point
+                     within a segment), positions quantised to ``bits``.
 
 ``sizes`` compares the storage of the dynamic mesh with that of per-frame meshes (binary PLY / Draco).
 """
@@ -205,11 +206,30 @@ def gltf_frame(data: bytes, index: int) -> np.ndarray:
 
 # ---------------------------------------------------------------- Draco and sizes
 def draco_frames(meshes, bits: int = 14) -> list[bytes]:
-    """One Draco buffer per frame, vertex order preserved."""
+    """One Draco mesh per frame (positions and faces), as per-frame reconstructions are stored."""
     import DracoPy
 
     return [DracoPy.encode(np.asarray(m.vertices, np.float32), np.asarray(m.faces, np.uint32), quantization_bits=bits,
-                           compression_level=7, preserve_order=True) for m in meshes]
+                           compression_level=7) for m in meshes]
+
+
+def draco_sequence(meshes, bits: int = 14) -> dict[str, bytes]:
+    """The dynamic mesh in Draco: per segment its connectivity once (``segment_NNNN.drc``: a mesh of its first
+    frame, vertex order preserved) and per frame its positions only (``frame_NNNNN.drc``: a point cloud, vertex
+    order preserved), so frame k's mesh is its points with its segment's faces."""
+    import DracoPy
+
+    frames = frame_numbers(meshes)
+    out = {}
+    for s, (a, b) in enumerate(sequence_segments(meshes)):
+        out[f"segment_{s:04d}.drc"] = DracoPy.encode(np.asarray(meshes[a].vertices, np.float32),
+                                                     np.asarray(meshes[a].faces, np.uint32), quantization_bits=bits,
+                                                     compression_level=7, preserve_order=True)
+        for k in range(a, b):
+            out[f"frame_{frames[k]:05d}.drc"] = DracoPy.encode(np.asarray(meshes[k].vertices, np.float32),
+                                                               quantization_bits=bits, compression_level=7,
+                                                               preserve_order=True)
+    return out
 
 
 def ply_size(mesh) -> int:

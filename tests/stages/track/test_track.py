@@ -248,17 +248,20 @@ def test_gltf_and_draco_reproduce_the_frames(tracked_pair):
         assert np.allclose(formats.gltf_frame(glb, k), m.vertices, atol=1e-6)
     scene = trimesh.load(trimesh.util.wrap_as_stream(glb), file_type="glb")      # another reader opens it
     assert len(scene.geometry) == 2
-    frames = formats.draco_frames(tracked_pair, bits=14)
-    for m, buf in zip(tracked_pair, frames):
-        d = DracoPy.decode(buf)
-        assert np.array_equal(d.faces, m.faces)                                  # vertex order preserved
-        assert np.abs(d.points - m.vertices).max() <= np.ptp(m.vertices, axis=0).max() / 2 ** 13
+    files = formats.draco_sequence(tracked_pair, bits=14)
+    assert sorted(files) == ["frame_00010.drc", "frame_00011.drc", "frame_00012.drc", "frame_00013.drc", "frame_00014.drc",
+                             "segment_0000.drc", "segment_0001.drc"]
+    for m in tracked_pair:
+        faces = DracoPy.decode(files[f"segment_{m.metadata['segment']:04d}.drc"]).faces
+        points = DracoPy.decode(files[f"frame_{m.metadata['frame']:05d}.drc"]).points
+        assert np.array_equal(faces, m.faces)                                    # vertex order preserved
+        assert np.abs(points - m.vertices).max() <= np.ptp(m.vertices, axis=0).max() / 2 ** 13
 
 
 def test_export_node_publishes_and_sizes(tracked_pair):
     out = run_node("track.export", {"sequence": tracked_pair, "meshes": tracked_pair}, {"name": "walk"})
     names = set(out["files"])
-    assert {"walk.usdc", "walk.glb"} <= names and sum(n.startswith("walk_draco/") for n in names) == 5
+    assert {"walk.usdc", "walk.glb"} <= names and sum(n.startswith("walk_draco/") for n in names) == 7
     s = out["sizes"]
     assert s["segments_frames"] == [3, 2] and s["files"]["walk.usdc"] == len(out["files"]["walk.usdc"])
     assert s["dynamic_raw_bytes"] < s["reconstruction_raw_bytes"]
