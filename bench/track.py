@@ -243,7 +243,7 @@ def picture(seq, picks, path: Path, title: str):
     os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
     import pyvista as pv
 
-    p = pv.Plotter(off_screen=True, window_size=(260 * len(picks), 420), shape=(1, len(picks)), border=False)
+    p = pv.Plotter(off_screen=True, window_size=(240 * len(picks), 440), shape=(1, len(picks)), border=False)
     by_seg = {}
     for m in seq:
         by_seg.setdefault(m.metadata.get("segment"), np.asarray(m.vertices))   # first frame of each segment
@@ -252,7 +252,7 @@ def picture(seq, picks, path: Path, title: str):
         rest = by_seg[m.metadata.get("segment")]
         lo, hi = rest.min(axis=0), rest.max(axis=0)
         u = (rest - lo) / np.maximum(hi - lo, 1e-9)
-        stripes = (np.floor(u[:, 2] * 24) % 2) * 0.55 + (np.floor(u[:, 0] * 8) % 2) * 0.35
+        stripes = (np.floor(u[:, 2] * 20) % 2) * 0.55 + (np.floor(u[:, 0] * 6) % 2) * 0.3 + (np.floor(u[:, 1] * 6) % 2) * 0.15
         faces = np.hstack([np.full((len(m.faces), 1), 3), m.faces]).ravel()
         mesh = pv.PolyData(np.asarray(m.vertices), faces)
         mesh["pattern"] = stripes
@@ -261,10 +261,13 @@ def picture(seq, picks, path: Path, title: str):
         p.add_text(f"frame {m.metadata.get('frame', i)}  seg {m.metadata.get('segment')} (key {m.metadata.get('keyframe')})",
                    font_size=9, color="black")
         p.set_background("white")
-        p.camera_position = "yz"
-        p.camera.azimuth = 35
-        p.camera.elevation = 10
-        p.reset_camera()
+        lo_all = np.min([np.asarray(seq[j].vertices).min(axis=0) for j in picks], axis=0)
+        hi_all = np.max([np.asarray(seq[j].vertices).max(axis=0) for j in picks], axis=0)
+        centre, size = (lo_all + hi_all) / 2, float(np.max(hi_all - lo_all))
+        p.camera.focal_point = centre
+        p.camera.position = centre + size * np.array([1.6, -2.2, 0.5])
+        p.camera.up = (0, 0, 1)
+        p.camera.view_angle = 30
     p.screenshot(str(path))
     p.close()
     print(f"wrote {path}")

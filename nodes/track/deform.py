@@ -315,8 +315,9 @@ class FitParams:
     robust: float = 1.5           # Geman-McClure scale (voxels) of the point-to-plane residuals at the last
                                   # iteration (earlier: larger, in proportion to the rejection distance)
     samples: int = 6000           # source vertices and target vertices sampled for the graph fit
-    detail: float = 1.0           # rings of neighbours the normal displacement is smoothed over (0: no detail step)
+    detail: float = 2.0           # rings of neighbours the normal displacement is smoothed over (0: no detail step)
     detail_reach: float = 2.0     # largest normal displacement (voxels)
+    tangential: int = 5           # tangential smoothing steps after each detail pass (0: none)
     seed: int = 0
 
 
@@ -553,10 +554,18 @@ class Registration:
         return state, info
 
 
-def detail(x: np.ndarray, faces: np.ndarray, target: Target, params: FitParams, adjacency=None, passes: int = 2) -> np.ndarray:
-    """Move each vertex along its normal onto the target's tangent plane (nearest target vertex, within
-    ``detail_reach`` voxels, normals within 60 degrees), the displacements smoothed over ``detail`` rings of
-    neighbours by normalised convolution (vertices without a match take their neighbours' displacement)."""
+def detail(x: np.ndarray, faces: np.ndarray, target: Target, params: FitParams, adjacency=None, passes: int = 2,
+           offsets: np.ndarray | None = None) -> np.ndarray:
+    """Bring the surface detail of the target onto the graph-deformed surface, ``passes`` times:
+
+    1. each vertex moves along its normal onto the tangent plane of its nearest target vertex (within
+       ``detail_reach`` voxels, normals within 60 degrees), the displacements smoothed over ``detail`` rings of
+       neighbours by normalised convolution (vertices without a match take their neighbours' displacement);
+    2. ``tangential`` steps towards the keyframe's own triangle layout, restricted to each vertex's tangent
+       plane (``tangential_smooth`` with ``offsets``: the keyframe's umbrella offsets turned by the graph, see
+       ``laplacian_offsets``): the surface stays where it is, triangles crumpled by step 1 open up (a projection onto a faceted
+       reconstruction folds the triangles that land on different facets: on the walking figure 2650 folded
+       edges of 90k without, 670 with 2 x 5 steps; the keyframe reconstruction itself has 410)."""
     if params.detail <= 0 or len(faces) == 0:
         return x
     S = ring_operator(faces, len(x)) if adjacency is None else adjacency
@@ -577,7 +586,33 @@ def detail(x: np.ndarray, faces: np.ndarray, target: Target, params: FitParams, 
             num, den = S @ num, S @ den
         h = np.divide(num, den, out=np.zeros_like(num), where=den > 1e-9)
         x += h[:, None] * n
+        x = tangential_smooth(x, faces, S, params.tangential, offsets=offsets)
     return x
+
+
+def tangential_smooth(x: np.ndarray, faces: np.ndarray, S, steps: int, lam: float = 0.5,
+                      offsets: np.ndarray | None = None) -> np.ndarray:
+    """``steps`` of x_i += lam * P_i (mean of the neighbours + offsets_i - x_i), P_i the projection onto the
+    tangent plane (S = I + A). With ``offsets`` the keyframe's umbrella offsets (``laplacian_offsets``) the
+    keyframe layout is the fixed point, so an undeformed mesh does not slide; without, uniform smoothing."""
+    degree = np.maximum(np.asarray(S.sum(axis=1)).ravel() - 1.0, 1.0)
+    for _ in range(steps):
+        n = vertex_normals(x, faces)
+        move = (S @ x - x) / degree[:, None] - x
+        if offsets is not None:
+            move += offsets
+        move -= np.einsum("ij,ij->i", move, n)[:, None] * n
+        x = x + lam * move
+    return x
+
+
+def laplacian_offsets(graph: DeformationGraph, state: GraphState, S) -> np.ndarray:
+    """Per vertex the keyframe's umbrella offset v_i - mean of its neighbours, turned by the vertex's blend of
+    its nodes' rotations (sum_j w_ij R_j)."""
+    degree = np.maximum(np.asarray(S.sum(axis=1)).ravel() - 1.0, 1.0)
+    delta = graph.rest - (S @ graph.rest - graph.rest) / degree[:, None]
+    R = np.einsum("vk,vkab->vab", graph.vertex_weights, state.R[graph.vertex_nodes])
+    return np.einsum("vab,vb->va", R, delta)
 
 
 def ring_operator(faces: np.ndarray, count: int):

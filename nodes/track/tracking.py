@@ -216,7 +216,8 @@ def track_sequence(frames: Frames, params: TrackParams, progress=None, keyframe:
                     break
                 target = frames.target(i)
                 new_state, info = reg.fit(state, target)
-                x = deform.detail(graph.deform(new_state), faces, target, fit_p, rings)
+                x = deform.detail(graph.deform(new_state), faces, target, fit_p, rings,
+                                  offsets=deform.laplacian_offsets(graph, new_state, rings))
                 res = surface_residuals(x, faces, target, vf)
                 world = target.world(x)
                 iou = silhouette_iou(world, faces, frames.cameras[i], frames.masks[i].masks) if frames.has_views else None
