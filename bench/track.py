@@ -3,7 +3,7 @@ whole child_rope sequence, and speed at ~20k vertices, each against trimesh.regi
 baseline a user would otherwise pick, REFERENCES.md) in the same run. Prints tables; writes pictures to docs/.
 
     python bench/track.py synth [--nricp-frames 3]    # graphs/track_synth.yaml, 100 frames at 128^3
-    python bench/track.py speed                       # ~20k vertices (hull 104^3), ours per frame vs nricp_amberg
+    python bench/track.py speed                       # ~20k vertices (hull 96^3), ours per frame vs nricp_amberg
     python bench/track.py child_rope                  # graphs/track_child_rope.yaml, 200 frames
     options: --cache DIR (default ./.volcap-cache), --frames A:B, --no-pictures
 
@@ -179,7 +179,7 @@ def bench_synth(args):
 def bench_speed(args):
     from trimesh.registration import nricp_amberg
 
-    records = run(ROOT / "graphs/track_synth.yaml", args.cache, "0:11", upto="relax", overrides=["hull.resolution=104"])
+    records = run(ROOT / "graphs/track_synth.yaml", args.cache, "0:11", upto="relax", overrides=["hull.resolution=96"])
     recon, _ = outputs(records, "relax", "mesh", T.Mesh)
     vols, _ = outputs([r for r in records if r["frame"] == 0], "hull", "volume", T.Volume)
     voxel = float(vols[0].voxel_size.max())
@@ -189,7 +189,7 @@ def bench_speed(args):
     res, segs = track_sequence(fr, TrackParams(voxel=voxel), keyframe=0)
     total = time.perf_counter() - t0
     per = [r.seconds for r in res[1:]]
-    print(f"\nspeed: synthetic figure, hull 104^3, {nv:.0f} vertices per frame, {len(recon)} frames, {len(segs)} segment(s)")
+    print(f"\nspeed: synthetic figure, hull 96^3, {nv:.0f} vertices per frame, {len(recon)} frames, {len(segs)} segment(s)")
     print(f"ours: {np.median(per):.2f} s per frame median (min {min(per):.2f}, max {max(per):.2f}); whole run incl. graph "
           f"build {total:.1f} s = {total / (len(recon) - 1):.2f} s/frame")
     t0 = time.perf_counter()

@@ -596,8 +596,8 @@ def tangential_smooth(x: np.ndarray, faces: np.ndarray, S, steps: int, lam: floa
     tangent plane (S = I + A). With ``offsets`` the keyframe's umbrella offsets (``laplacian_offsets``) the
     keyframe layout is the fixed point, so an undeformed mesh does not slide; without, uniform smoothing."""
     degree = np.maximum(np.asarray(S.sum(axis=1)).ravel() - 1.0, 1.0)
+    n = vertex_normals(x, faces)                  # tangential steps barely turn the normals: computed once
     for _ in range(steps):
-        n = vertex_normals(x, faces)
         move = (S @ x - x) / degree[:, None] - x
         if offsets is not None:
             move += offsets
