@@ -306,3 +306,31 @@ def test_track_graphs_validate(name):
     g = load_graph(ROOT / "graphs" / name)
     assert {"track", "track.classify", "track.export"} <= {s.type_name for s in g.nodes.values()}
 
+
+
+# ---------------------------------------------------------------- real data
+@pytest.mark.realdata
+def test_child_rope_graph_tracks_a_few_frames(tmp_path, data_dir, monkeypatch):
+    from nodegraph.cache import Cache
+    from nodegraph.executors import LocalExecutor
+    from nodegraph.run import run_graph
+
+    monkeypatch.setenv("VOLCAP_DATA", str(data_dir))
+    g = load_graph(ROOT / "graphs/track_child_rope.yaml", overrides=["hull.resolution=64", "track.voxel=0.022"],
+                   frames="0:5")
+    res = run_graph(g, Cache(tmp_path / "cache"), tmp_path / "out", LocalExecutor(1), progress=False)
+    assert res.ok, res.failures
+    rec = {r["node"]: r for r in res.records if r["frame"] is None}
+    seq = MeshSequence.load(Path(rec["track"]["cache_dir"]) / "sequence")
+    table = Table.load(Path(rec["track"]["cache_dir"]) / "residuals")
+    assert [m.metadata["frame"] for m in seq] == [0, 1, 2, 3, 4]
+    for a, b in sequence_segments(seq):
+        assert all(np.array_equal(seq[i].faces, seq[a].faces) for i in range(a, b))
+    assert table["iou_drop_max"] <= 0.01 and max(table["residual"]["distance"]) <= 1.0
+    before = Table.load(Path(rec["classify"]["cache_dir"]) / "report")
+    after = Table.load(Path(rec["tracked"]["cache_dir"]) / "report")
+    assert before["class"] != "dynamic mesh"
+    multi = [b - a for a, b in sequence_segments(seq) if b - a > 1]           # every tracked segment: a dynamic mesh
+    assert multi and sorted(r["frames"] for r in after["ranges"] if r["class"] == DYNAMIC) == sorted(multi)
+    usd = (tmp_path / "out" / "child_rope_dynamic.usdc").read_bytes()
+    assert np.array_equal(formats.usd_points(usd, 3), np.asarray(seq[3].vertices, np.float32))
