@@ -316,7 +316,7 @@ def test_child_rope_graph_tracks_a_few_frames(tmp_path, data_dir, monkeypatch):
     from nodegraph.run import run_graph
 
     monkeypatch.setenv("VOLCAP_DATA", str(data_dir))
-    g = load_graph(ROOT / "graphs/track_child_rope.yaml", overrides=["hull.resolution=64", "track.voxel=0.022"],
+    g = load_graph(ROOT / "graphs/track_child_rope.yaml", overrides=["hull.resolution=64", "track.voxel=0.0244"],
                    frames="0:5")
     res = run_graph(g, Cache(tmp_path / "cache"), tmp_path / "out", LocalExecutor(1), progress=False)
     assert res.ok, res.failures
