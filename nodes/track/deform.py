@@ -308,15 +308,16 @@ class FitParams:
     arap: float = 1.0             # ARAP weight at the last iteration (relative to the data terms)
     arap_start: float = 4.0       # ... at the first (the stiffness is relaxed geometrically)
     point: float = 0.1            # point-to-point share of the source -> target term
-    silhouette: float = 1.0       # silhouette term weight (0: off)
-    reject: float = 10.0          # correspondences farther than this (voxels) at the first iteration ...
+    coverage: float = 1.0         # weight of the target -> source term (every part of the target reached)
+    silhouette: float = 4.0       # silhouette term weight (0: off)
+    reject: float = 15.0          # correspondences farther than this (voxels) at the first iteration ...
     reject_end: float = 2.5       # ... shrinking to this at the last
     normal_cos: float = 0.3       # correspondences whose normals differ by more (cosine below) are rejected
     robust: float = 1.5           # Geman-McClure scale (voxels) of the point-to-plane residuals at the last
                                   # iteration (earlier: larger, in proportion to the rejection distance)
     samples: int = 6000           # source vertices and target vertices sampled for the graph fit
     detail: float = 2.0           # rings of neighbours the normal displacement is smoothed over (0: no detail step)
-    detail_reach: float = 2.0     # largest normal displacement (voxels)
+    detail_reach: float = 4.0     # largest normal displacement (voxels)
     tangential: int = 5           # tangential smoothing steps after each detail pass (0: none)
     seed: int = 0
 
@@ -520,7 +521,7 @@ class Registration:
                 Q += (prm.point * gm)[:, None] * eye9
                 h += (prm.point * gm)[:, None] * c
             rq = np.einsum("ij,ij->i", nq, xs[i_q] - q)                   # target -> source
-            gq = np.where(ok_q, 1.0 / (1.0 + (rq / robust) ** 2) ** 2, 0.0) / max(1, ok_q.sum())
+            gq = prm.coverage * np.where(ok_q, 1.0 / (1.0 + (rq / robust) ** 2) ** 2, 0.0) / max(1, ok_q.sum())
             np.add.at(Q, i_q, gq[:, None] * (nq[:, :, None] * nq[:, None, :]).reshape(-1, 9))
             np.add.at(h, i_q, (gq * np.einsum("ij,ij->i", nq, q))[:, None] * nq)
             if prm.silhouette > 0 and target.views is not None:

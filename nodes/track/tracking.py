@@ -40,6 +40,7 @@ class TrackParams:
     fail_mean: float = 1.0        # a fit fails beyond this mean surface distance (voxels), either direction
     fail_p95: float = 3.0         # ... or this 95th percentile of either distance
     max_iou_drop: float = 0.01    # ... or a silhouette IoU this far below the reconstruction's (with views)
+    extrapolate: float = 0.7      # each frame starts from the last state plus this share of the last motion
     fit: FitParams = field(default_factory=FitParams)
 
 
@@ -159,6 +160,22 @@ class Frames:
         return self._iou[i]
 
 
+def predict(before: deform.GraphState, now: deform.GraphState, factor: float) -> deform.GraphState:
+    """The graph state one frame ahead at ``factor`` times the last frame's motion (0: stay): translations
+    extrapolated linearly, rotations by the same relative turn (R_now R_before^T R_now for factor 1, through
+    the nearest rotation for other factors)."""
+    if factor <= 0:
+        return now
+    t = now.t + factor * (now.t - before.t)
+    turn = np.einsum("nab,ncb->nac", now.R, before.R)                  # R_now R_before^T
+    turn = np.eye(3) + factor * (turn - np.eye(3))
+    U, _, Vt = np.linalg.svd(turn)
+    D = np.ones((len(U), 3))
+    D[:, 2] = np.sign(np.linalg.det(np.einsum("nab,nbc->nac", U, Vt)))
+    turn = np.einsum("nab,nb,nbc->nac", U, D, Vt)
+    return deform.GraphState(np.einsum("nab,nbc->nac", turn, now.R), t)
+
+
 def _failure(res: dict, iou: float | None, iou_rec: float | None, p: TrackParams) -> str:
     if max(res["accuracy_mean"], res["completeness_mean"]) > p.fail_mean:
         return (f"mean surface distance {max(res['accuracy_mean'], res['completeness_mean']):.2f} voxels "
@@ -207,6 +224,7 @@ def track_sequence(frames: Frames, params: TrackParams, progress=None, keyframe:
         seg = Segment(seg_index, k, k, k, faces, len(graph.nodes), "keyframe")
         for direction in (1, -1):
             state = deform.GraphState.identity(graph)
+            before = state                       # the state one frame earlier, for the motion prediction
             i = k + direction
             reason = "end of sequence"
             while 0 <= i < n and not done[i]:
@@ -215,7 +233,7 @@ def track_sequence(frames: Frames, params: TrackParams, progress=None, keyframe:
                     reason = f"frame {i}: empty reconstruction"
                     break
                 target = frames.target(i)
-                new_state, info = reg.fit(state, target)
+                new_state, info = reg.fit(predict(before, state, params.extrapolate), target)
                 x = deform.detail(graph.deform(new_state), faces, target, fit_p, rings,
                                   offsets=deform.laplacian_offsets(graph, new_state, rings))
                 res = surface_residuals(x, faces, target, vf)
@@ -229,7 +247,7 @@ def track_sequence(frames: Frames, params: TrackParams, progress=None, keyframe:
                 results[i] = FrameResult(world, seg_index, k, **res, iou=iou, iou_reconstruction=iou_rec,
                                          seconds=time.perf_counter() - t0)
                 done[i] = True
-                state = new_state
+                before, state = state, new_state
                 if direction > 0:
                     seg.stop = i
                 else:
