@@ -1,6 +1,7 @@
 """Temporal structuring (track): quality on the synthetic walking figure with ground-truth correspondences, the
 whole child_rope sequence, and speed at ~20k vertices, each against trimesh.registration.nricp_amberg (the
-baseline a user would otherwise pick, REFERENCES.md) in the same run. Prints tables; writes pictures to docs/.
+baseline a user would otherwise pick, REFERENCES.md) in the same run. Prints tables; writes pictures to docs/ (child_rope's
+meshes to out/: that data may not be published with the project).
 
     python bench/track.py synth [--nricp-frames 3]    # graphs/track_synth.yaml, 100 frames at 128^3
     python bench/track.py speed                       # ~20k vertices (hull 96^3), ours per frame vs nricp_amberg
@@ -147,7 +148,7 @@ def bench_synth(args):
     print(f"  correspondence error vs truth, voxels: tracking mean {err.mean():.2f} (max {err.max():.2f}); absolute mean "
           f"{absolute.mean():.2f} (max {absolute.max():.2f}; at the keyframe {ours[key0][1]:.2f} = the hull's own offset)")
     print(f"  drift: tracking error first frame {err[0]:.2f}, last {err[-1]:.2f} (ratio {err[-1] / max(err[0], 1e-9):.2f}); "
-          f"same gait phase as the last frame (frames {same_phase}): {[round(ours[f][0], 2) for f in same_phase]}")
+          f"same gait phase as the last frame (frames {same_phase}): {[round(float(ours[f][0]), 2) for f in same_phase]}")
     # nricp_amberg frame to frame from frame 0, and ours from the same start, on the first frames
     n = min(args.nricp_frames, len(frames))
     if n > 1:
@@ -232,7 +233,9 @@ def bench_child_rope(args):
           + f", Draco per frame {sizes.get('dynamic_draco_bytes', 0) * mb:.1f} MB")
     if not args.no_pictures:
         picks = [int(round(x)) for x in np.linspace(0, len(seq) - 1, 6)]
-        picture(seq, picks, DOCS / "track_child_rope.png", "child_rope: tracked meshes")
+        # child_rope may not be published with the project (SOURCE.md): its meshes go to out/, not docs/
+        (ROOT / "out").mkdir(exist_ok=True)
+        picture(seq, picks, ROOT / "out" / "track_child_rope.png", "child_rope: tracked meshes")
         plot_residuals(table, DOCS / "track_child_rope_residuals.png", "child_rope")
 
 
