@@ -52,7 +52,8 @@ __kernel void face_filter(__global const float* vn, __global const int* f, int n
 
 // One fairing step: out = p + (mean over the faces of m (m . (centroid - p))) + lam_t * (the neighbours' mean
 // minus p, projected onto the tangent plane of vn[i]). Each neighbour of a closed mesh's vertex is in two of
-// its faces, so the neighbours' mean is (sum of the faces' corners - count p) / (2 count).
+// its faces, so the neighbours' mean is (sum of the faces' corners - count p) / (2 count). A vertex with a
+// face turned against its filtered normal (a fold) takes half an umbrella step instead, which opens the fold.
 __kernel void fair_step(__global const float* v, __global const int* f, __global const int* off,
                         __global const int* idx, __global const float* m, __global const float* vn, float lam_t,
                         int nv, __global float* out)
@@ -66,6 +67,7 @@ __kernel void fair_step(__global const float* v, __global const int* f, __global
         return;
     }
     float3 dn = (float3)(0.0f), ring = (float3)(0.0f);
+    int folded = 0;
     for (int j = s; j < e; j++) {
         int k = idx[j];
         float3 a = vload3(f[3 * k], v), b = vload3(f[3 * k + 1], v), c = vload3(f[3 * k + 2], v);
@@ -73,10 +75,15 @@ __kernel void fair_step(__global const float* v, __global const int* f, __global
         float3 mf = vload3(k, m);
         dn = dn + mf * dot3(mf, corners / 3.0f - p);
         ring = ring + corners;
+        folded |= dot3(cross3(b - a, c - a), mf) < 0.0f;
     }
     float cnt = (float)(e - s);
-    dn = dn / cnt;
     float3 t = (ring - cnt * p) / (2.0f * cnt) - p;
+    if (folded) {
+        vstore3(p + 0.5f * t, i, out);
+        return;
+    }
+    dn = dn / cnt;
     float3 n = vload3(i, vn);
     t = t - dot3(t, n) * n;
     vstore3((p + dn) + lam_t * t, i, out);

@@ -242,6 +242,6 @@ __kernel void shell_interval(__global const float* p, __global const float* d, f
     float3 P = vload3(i, p), D = reach * vload3(i, d);
     float3 A = P - D, B = P + D;
     float2 r_in = exit_interval(A, B, tau_in, steps, FIELD_PASS);
-    float2 r_out = exit_interval(A, B, tau_out, steps, FIELD_PASS);
+    float2 r_out = tau_out == tau_in ? r_in : exit_interval(A, B, tau_out, steps, FIELD_PASS);
     vstore4((float4)(r_in.x, r_in.y, r_out.x, r_out.y), i, out);
 }

@@ -1,10 +1,11 @@
 """Nodes of the eval stage: quality metrics against ground truth (the work is in metrics.py)."""
 from __future__ import annotations
 
-from nodegraph import Node, Param, Table
+from nodegraph import Input, Node, NodeError, Param, Table
 from nodes.common import raster
-from nodes.common.types import CameraSet, Masks, Mesh
+from nodes.common.types import CameraSet, Masks, Mesh, Volume
 
+from .health import FOLD_DEG, SLIVER_DEG, mesh_health
 from .metrics import silhouette_report, surface_report
 
 
@@ -37,3 +38,32 @@ class EvalSurface(Node):
 
     def run(self, mesh, reference, *, samples, seed):
         return {"report": surface_report(mesh, reference, samples, seed)}
+
+
+class EvalMesh(Node):
+    """Mesh health: folded edges (adjacent face normals more than fold_deg apart), the distribution of the
+    triangles' minimum angles, roughness (mean dihedral angle); with a reference surface (synthetic scenes) the
+    area-weighted mean angle between the mesh's face normals and the reference's, over the faces within
+    `band` of it (default: one voxel of the volume input)."""
+
+    type_name = "eval.mesh"
+    version = 1
+    inputs = {"mesh": Mesh,
+              "reference": Input(Mesh, optional=True, doc="true surface (synthetic scenes): enables the normal error"),
+              "volume": Input(Volume, optional=True, doc="its voxel size is the default band of the normal error")}
+    outputs = {"report": Table}
+    params = {
+        "band": Param(float, 0.0, range=(0.0, None), doc="normal error over faces within this distance of the reference; "
+                      "0 = one voxel of the volume input"),
+        "fold_deg": Param(float, FOLD_DEG, range=(90.0, 180.0), doc="an edge is folded when its faces' normals are "
+                          "more than this many degrees apart"),
+        "sliver_deg": Param(float, SLIVER_DEG, range=(0.0, 60.0), doc="report the share of triangles whose minimum "
+                            "angle is below this"),
+    }
+
+    def run(self, mesh, reference=None, volume=None, *, band, fold_deg, sliver_deg):
+        if reference is not None and band <= 0:
+            if volume is None:
+                raise NodeError("eval.mesh: the normal error needs a band: connect 'volume' (one voxel) or set band > 0")
+            band = float(max(volume.voxel_size))
+        return {"report": mesh_health(mesh, reference, band, fold_deg, sliver_deg)}

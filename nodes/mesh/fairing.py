@@ -5,7 +5,8 @@ denoising", TVCG 2007; Taubin, "Linear anisotropic mesh filtering", 2001): face 
 mean of their corners' normals (``filter_rounds`` times), then every vertex moves towards the planes of its
 faces with those filtered normals (the mean of m (m . (centroid - p))), which flattens the marching-cubes
 staircase and the silhouettes' pixel steps without the shrinkage of Laplacian smoothing, and tangentially
-towards the mean of its neighbours (``lam_t``), which evens out the triangles (no slivers). Positions are then
+towards the mean of its neighbours (``lam_t``), which evens out the triangles (no slivers). A vertex with a
+face turned against its filtered normal (a fold) takes half an umbrella step instead, which opens the fold. Positions are then
 clamped to the shell of the silhouettes along fixed lines (``shell_clamp``).
 
 Vertex -> face incidence is a CSR table (``vertex_faces``) built once per mesh.
@@ -76,22 +77,26 @@ def fair_step_reference(v, f, off, idx, m, vn, lam_t: float) -> np.ndarray:
     m = np.asarray(m, np.float32)
     corners = (v[f[:, 0]] + v[f[:, 1]]) + v[f[:, 2]]
     counts = np.diff(off)
+    flipped = _dot(face_normals_reference(v, f), m) < 0
     dn = np.zeros_like(v)
     ring = np.zeros_like(v)
+    folded = np.zeros(len(v), bool)
     for j in range(int(counts.max(initial=0))):
         rows = np.flatnonzero(counts > j)
         k = idx[off[rows] + j]
         mf = m[k]
         dn[rows] = dn[rows] + mf * _dot(mf, corners[k] / np.float32(3.0) - v[rows])[:, None]
         ring[rows] = ring[rows] + corners[k]
+        folded[rows] |= flipped[k]
     out = v.copy()
     has = counts > 0
     cnt = counts[has].astype(np.float32)[:, None]
     p = v[has]
     t = (ring[has] - cnt * p) / (np.float32(2.0) * cnt) - p
+    umbrella = p + np.float32(0.5) * t
     n = np.asarray(vn, np.float32)[has]
     t = t - _dot(t, n)[:, None] * n
-    out[has] = (p + dn[has] / cnt) + np.float32(lam_t) * t
+    out[has] = np.where(folded[has, None], umbrella, (p + dn[has] / cnt) + np.float32(lam_t) * t)
     return out
 
 
@@ -257,15 +262,22 @@ def smoothed_normals(ops, v, filter_rounds: int, prefix: str = ""):
 def fair(ops, *, rounds: int = 2, iterations: int = 5, filter_rounds: int = 2, lam_t: float = 0.5,
          shell=None, reach: float = 0.0, across: float = 0.0, steps: int = 8):
     """The fairing loop: ``rounds`` x (lines along the smoothed normals and their shell intervals, then
-    ``iterations`` fairing steps each clamped to the shell). ``shell`` = (tau_in, tau_out) or None (free).
-    Returns the vertices (backend handle)."""
+    ``iterations`` fairing steps each clamped to the shell: along the line to its interval, across it to at
+    most ``across``). ``shell`` = (tau_in, tau_out) or None (free). A last clamp along fresh lines through the
+    final positions (nothing across) puts every vertex exactly into the shell. Returns the vertices (backend
+    handle)."""
     v = ops.v
     k = 0
+
+    def lines(v):
+        axis, _, _ = smoothed_normals(ops, v, filter_rounds, "axis_")
+        centre = ops.copy(v, "centre")
+        sh = ops.shell(centre, axis, reach, shell[0], shell[1], steps, "shell")
+        return centre, axis, sh
+
     for _ in range(rounds):
         if shell is not None:
-            axis, _, _ = smoothed_normals(ops, v, filter_rounds, "axis_")
-            centre = ops.copy(v, "centre")
-            sh = ops.shell(centre, axis, reach, shell[0], shell[1], steps, "shell")
+            centre, axis, sh = lines(v)
         for _ in range(iterations):
             _, m, plain = smoothed_normals(ops, v, filter_rounds)
             k += 1
@@ -273,4 +285,8 @@ def fair(ops, *, rounds: int = 2, iterations: int = 5, filter_rounds: int = 2, l
             if shell is not None:
                 k += 1
                 v = ops.clamp(v, centre, axis, sh, reach, across, f"v{k % 2}")
+    if shell is not None and rounds * iterations > 0:
+        centre, axis, sh = lines(v)
+        k += 1
+        v = ops.clamp(v, centre, axis, sh, reach, 0.0, f"v{k % 2}")
     return v

@@ -245,7 +245,9 @@ def shell_interval_reference(p, d, reach: float, field: SilhouetteField, tau_in:
     P = np.asarray(p, f).reshape(-1, 3)
     D = f(reach) * np.asarray(d, f).reshape(-1, 3)
     A, B = P - D, P + D
-    return np.stack([*exit_interval(A, B, field, tau_in, steps), *exit_interval(A, B, field, tau_out, steps)], axis=1)
+    r_in = exit_interval(A, B, field, tau_in, steps)
+    r_out = r_in if tau_out == tau_in else exit_interval(A, B, field, tau_out, steps)
+    return np.stack([*r_in, *r_out], axis=1)
 
 
 def pack_bits_reference(mask: np.ndarray) -> np.ndarray:

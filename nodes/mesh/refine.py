@@ -15,7 +15,7 @@ the mean of its neighbours within its tangent plane and back onto the hull along
 out, the folds open. Same faces as the input.
 
     field = SilhouetteField.from_inputs(masks, cameras, origin=volume centre)
-    vertices, stats = refine_vertices(mesh.vertices, mesh.faces, volume, field, steps=8, quality=3)
+    vertices, stats = refine_vertices(mesh.vertices, mesh.faces, volume, field, steps=8, quality=6)
 """
 from __future__ import annotations
 
@@ -65,7 +65,7 @@ def lattice_edges(vertices: np.ndarray, volume) -> tuple[np.ndarray, np.ndarray,
 
 
 # ---------------------------------------------------------------- work function
-def refine_vertices(vertices, faces, volume, field: SilhouetteField, steps: int = 8, quality: int = 3,
+def refine_vertices(vertices, faces, volume, field: SilhouetteField, steps: int = 8, quality: int = 6,
                     lam_t: float = 0.5, method: str = "opencl") -> tuple[np.ndarray, dict]:
     """Vertices onto the hull (Liang & Wong along grid edges, else along the normal within one voxel), then
     ``quality`` steps of tangential relaxation on the hull. Returns (vertices (V, 3) float64, counts)."""
@@ -116,7 +116,7 @@ class Refine(Node):
     outputs = {"mesh": Mesh}
     params = {
         "steps": Param(int, 8, range=(1, 40), doc="regula falsi iterations per crossing (each view)"),
-        "quality": Param(int, 3, range=(0, 50), doc="tangential relaxation steps on the hull; 0 = Liang & Wong alone"),
+        "quality": Param(int, 6, range=(0, 50), doc="tangential relaxation steps on the hull; 0 = Liang & Wong alone"),
         "min_views": Param(int, 0, range=(0, None), doc="0 = all views; k = inside at least k silhouettes (as the hull)"),
         "outside": Param(str, "carve", choices=POLICIES, doc="points projecting outside an image: carve, or ignore that view"),
         "use_alpha": Param(bool, True, doc="read soft alpha (8-bit) when the masks carry it, else the binary masks"),

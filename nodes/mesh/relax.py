@@ -13,7 +13,7 @@ then clamp each vertex to its line's shell interval (and at most ``across`` off 
 With ``keep_silhouettes`` false the fairing runs free (no masks needed). Same topology.
 
     field = SilhouetteField.from_inputs(masks, cameras, origin)
-    vertices = relax_vertices(mesh.vertices, mesh.faces, field, rounds=2, iterations=5)
+    vertices = relax_vertices(mesh.vertices, mesh.faces, field, rounds=1, iterations=8)
 """
 from __future__ import annotations
 
@@ -38,7 +38,7 @@ def mean_edge_length(vertices: np.ndarray, faces: np.ndarray) -> float:
     return float(np.mean(np.linalg.norm(v[f] - v[np.roll(f, 1, axis=1)], axis=2)))
 
 
-def relax_vertices(vertices, faces, field: SilhouetteField | None = None, *, rounds: int = 2, iterations: int = 5,
+def relax_vertices(vertices, faces, field: SilhouetteField | None = None, *, rounds: int = 1, iterations: int = 8,
                    filter_rounds: int = 2, lam_t: float = 0.5, inside_px: float = 0.0, outside_px: float = 0.4,
                    steps: int = 8, method: str = "opencl") -> np.ndarray:
     """Faired vertices (V, 3) float64; with ``field`` kept in the shell between ``inside_px`` pixels within
@@ -74,8 +74,8 @@ class Relax(Node):
               "cameras": Input(CameraSet, optional=True, doc="cameras of the masks (keep_silhouettes)")}
     outputs = {"mesh": Mesh}
     params = {
-        "rounds": Param(int, 2, range=(0, 100), doc="rounds: the shell is searched along fresh normals once per round"),
-        "iterations": Param(int, 5, range=(0, 100), doc="fairing steps per round"),
+        "rounds": Param(int, 1, range=(0, 100), doc="rounds: the shell is searched along fresh normals once per round"),
+        "iterations": Param(int, 8, range=(0, 100), doc="fairing steps per round"),
         "filter_rounds": Param(int, 2, range=(1, 20), doc="face-normal smoothing passes before each step"),
         "tangential": Param(float, 0.5, range=(0.0, 1.0), doc="tangential step towards the neighbours' mean (triangle quality)"),
         "keep_silhouettes": Param(bool, True, doc="keep the outline in every view within the shell (needs masks + cameras)"),
