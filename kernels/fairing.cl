@@ -119,3 +119,33 @@ __kernel void shell_clamp(__global const float* v, __global const float* centre,
     s = fmin(fmax(s, lo), hi);
     vstore3((A + (s * len) * n) + t, i, out);
 }
+
+// Fold repair: a vertex two of whose faces have unit normals more than 150 degrees apart (cos < -0.866) takes
+// half an umbrella step (towards the mean of its neighbours); the others stay.
+__kernel void unfold_step(__global const float* v, __global const int* f, __global const int* off,
+                          __global const int* idx, int nv, __global float* out, __global int* count)
+{
+    int i = get_global_id(0);
+    if (i >= nv) return;
+    float3 p = vload3(i, v);
+    int s = off[i], e = off[i + 1];
+    int folded = 0;
+    float3 ring = (float3)(0.0f);
+    for (int j = s; j < e; j++) {
+        int k = idx[j];
+        float3 a = vload3(f[3 * k], v), b = vload3(f[3 * k + 1], v), c = vload3(f[3 * k + 2], v);
+        ring = ring + ((a + b) + c);
+        float3 nj = unit3(cross3(b - a, c - a));
+        for (int l = s; l < j; l++) {
+            int q = idx[l];
+            float3 a2 = vload3(f[3 * q], v), b2 = vload3(f[3 * q + 1], v), c2 = vload3(f[3 * q + 2], v);
+            folded |= dot3(nj, unit3(cross3(b2 - a2, c2 - a2))) < -0.8660254f;
+        }
+    }
+    if (folded) {
+        float cnt = (float)(e - s);
+        p = p + 0.5f * ((ring - cnt * p) / (2.0f * cnt) - p);
+        atomic_inc(count);
+    }
+    vstore3(p, i, out);
+}

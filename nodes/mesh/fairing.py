@@ -121,6 +121,29 @@ def shell_clamp_reference(v, centre, axis, shell, reach: float, across: float) -
     return (A + (s * length)[:, None] * n) + t
 
 
+def unfold_step_reference(v, f, off, idx) -> tuple[np.ndarray, int]:
+    """Kernel ``unfold_step``: (vertices, how many moved)."""
+    v = np.asarray(v, np.float32)
+    fn = _unit(face_normals_reference(v, f))
+    corners = (v[f[:, 0]] + v[f[:, 1]]) + v[f[:, 2]]
+    out = v.copy()
+    moved = 0
+    for i in range(len(v)):
+        faces = idx[off[i]:off[i + 1]]
+        if not len(faces):
+            continue
+        n = fn[faces]
+        cos = (n[:, None, 0] * n[None, :, 0] + n[:, None, 1] * n[None, :, 1]) + n[:, None, 2] * n[None, :, 2]
+        if (cos < np.float32(-0.8660254)).any():
+            ring = np.zeros(3, np.float32)
+            for k in faces:
+                ring = ring + corners[k]
+            cnt = np.float32(len(faces))
+            out[i] = v[i] + np.float32(0.5) * ((ring - cnt * v[i]) / (np.float32(2.0) * cnt) - v[i])
+            moved += 1
+    return out, moved
+
+
 # ---------------------------------------------------------------- OpenCL
 class FairCL(Runner):
     """The fairing kernels on device buffers (kernels/fairing.cl)."""
@@ -143,6 +166,11 @@ class FairCL(Runner):
     def fair_step(self, d_v, d_f, d_off, d_idx, d_m, d_vn, lam_t: float, nv: int, d_out):
         self.launch("fair_step", *self._groups(nv), d_v, d_f, d_off, d_idx, d_m, d_vn, np.float32(lam_t), np.int32(nv),
                     d_out)
+
+    def unfold_step(self, d_v, d_f, d_off, d_idx, nv: int, d_out) -> int:
+        count = self.upload("unfold_count", np.zeros(1, np.int32))
+        self.launch("unfold_step", *self._groups(nv), d_v, d_f, d_off, d_idx, np.int32(nv), d_out, count)
+        return int(self.read(count, (1,), np.int32)[0])
 
     def shell_clamp(self, d_v, d_centre, d_axis, d_shell, reach: float, across: float, nv: int, d_out):
         self.launch("shell_clamp", *self._groups(nv), d_v, d_centre, d_axis, d_shell, np.float32(reach),
@@ -180,6 +208,9 @@ class NumPyOps:
 
     def clamp(self, v, centre, axis, shell, reach, across, role):
         return shell_clamp_reference(v, centre, axis, shell, reach, across)
+
+    def unfold(self, v, role):
+        return unfold_step_reference(v, self.f, self.off, self.idx)
 
     def copy(self, v, role):
         return np.array(v, copy=True)
@@ -240,6 +271,10 @@ class CLOps:
         self.k.shell_clamp(v, centre, axis, shell, reach, across, self.nv, out)
         return out
 
+    def unfold(self, v, role):
+        out = self._out(role, self.nv)
+        return out, self.k.unfold_step(v, self.d_f, self.d_off, self.d_idx, self.nv, out)
+
     def copy(self, v, role):
         out = self._out(role, self.nv)
         self.cl.enqueue_copy(self.k.queue, out, v, byte_count=self.nv * 12)
@@ -260,11 +295,13 @@ def smoothed_normals(ops, v, filter_rounds: int, prefix: str = ""):
 
 
 def fair(ops, *, rounds: int = 2, iterations: int = 5, filter_rounds: int = 2, lam_t: float = 0.5,
-         shell=None, reach: float = 0.0, across: float = 0.0, steps: int = 8):
+         shell=None, reach: float = 0.0, across: float = 0.0, steps: int = 8, clamp_steps: bool = True,
+         unfold: int = 12):
     """The fairing loop: ``rounds`` x (lines along the smoothed normals and their shell intervals, then
     ``iterations`` fairing steps each clamped to the shell: along the line to its interval, across it to at
-    most ``across``). ``shell`` = (tau_in, tau_out) or None (free). A last clamp along fresh lines through the
-    final positions (nothing across) puts every vertex exactly into the shell. Returns the vertices (backend
+    most ``across``; with ``clamp_steps`` false the steps run free). ``shell`` = (tau_in, tau_out) or None. A last clamp along fresh lines through the
+    final positions (nothing across) puts every vertex exactly into the shell; then at most ``unfold`` fold
+    repair steps move the vertices at a fold (faces more than 150 degrees apart), if any. Returns the vertices (backend
     handle)."""
     v = ops.v
     k = 0
@@ -276,17 +313,22 @@ def fair(ops, *, rounds: int = 2, iterations: int = 5, filter_rounds: int = 2, l
         return centre, axis, sh
 
     for _ in range(rounds):
-        if shell is not None:
+        if shell is not None and clamp_steps:
             centre, axis, sh = lines(v)
         for _ in range(iterations):
             _, m, plain = smoothed_normals(ops, v, filter_rounds)
             k += 1
             v = ops.fair_step(v, m, plain, lam_t, f"v{k % 2}")
-            if shell is not None:
+            if shell is not None and clamp_steps:
                 k += 1
                 v = ops.clamp(v, centre, axis, sh, reach, across, f"v{k % 2}")
     if shell is not None and rounds * iterations > 0:
         centre, axis, sh = lines(v)
         k += 1
         v = ops.clamp(v, centre, axis, sh, reach, 0.0, f"v{k % 2}")
+    for _ in range(unfold):  # folds the clamp left: half umbrella steps on the vertices at a fold
+        k += 1
+        v, moved = ops.unfold(v, f"v{k % 2}")
+        if not moved:
+            break
     return v

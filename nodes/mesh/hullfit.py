@@ -262,17 +262,24 @@ class FieldCL(Runner):
     on device buffers of float3 points relative to the field's origin."""
 
     source = source("hullfit.cl")
+    _packed: tuple = ()  # the mask arrays (kept alive) whose pixels are on the device now
 
     def prepare(self, field: SilhouetteField) -> "FieldCL":
+        """Upload the cameras and pack the masks. Packing is skipped when the field holds the very same mask
+        arrays (identity) as the last call, as when refine and relax run on one MaskSet in one process; the
+        arrays must not be changed in place in between."""
         import pyopencl as cl
 
         self.field = field
         sizes = field.sizes
+        self.cams = self.upload("cams", field.cams)
+        if len(self._packed) == len(field.masks) + 1 and self._packed[0] == field.soft and all(
+                a is b for a, b in zip(self._packed[1:], field.masks)):
+            return self
         per_view = [(w * h if field.soft else -(-w // 8) * h) for w, h in sizes]
         off = np.concatenate([[0], np.cumsum(per_view)]).astype(np.int64)
         if off[-1] >= 2**31:
             raise NodeError("the masks are too large for 32-bit offsets")
-        self.cams = self.upload("cams", field.cams)
         self.pix_off = self.upload("pix_off", off[:-1].astype(np.int32))
         self.pix = self.buffer("pix", max(int(off[-1]), 4))
         host = []  # zero-copy views of the host masks, alive until the queue is done
@@ -286,6 +293,7 @@ class FieldCL(Runner):
             self.launch("pack_bits", (round_up(-(-w // 8), 16), round_up(h, 4)), (16, 4), src, np.int32(w), np.int32(h),
                         self.pix, np.int32(off[v]))
         self.queue.finish()
+        self._packed = (field.soft, *field.masks)
         return self
 
     def field_args(self) -> tuple:

@@ -9,10 +9,11 @@ regula falsi in the one view that cuts the edge first). Vertices whose edge disa
 are searched for along their normal instead.
 
 Vertices that slid along their edges leave slivers (a vertex near a lattice corner next to its neighbours)
-and, where neighbours slid in opposite directions, folds. ``quality`` steps then move every vertex towards
-the mean of its neighbours within its tangent plane and back onto the hull along its smoothed normal
-(nodes/mesh/fairing.py with a shell of zero width): the vertices stay on the exact hull, the triangles even
-out, the folds open. Same faces as the input.
+and, where neighbours slid in opposite directions, folds. ``quality`` fairing steps (nodes/mesh/fairing.py:
+normals smoothed first, then each vertex towards its faces' planes and the mean of its neighbours) even out
+the triangles and open the folds; then every vertex goes back onto the exact hull along its smoothed normal
+(the fairing's final clamp, a shell of zero width), and fold repair steps follow where that left a fold.
+Same faces as the input.
 
     field = SilhouetteField.from_inputs(masks, cameras, origin=volume centre)
     vertices, stats = refine_vertices(mesh.vertices, mesh.faces, volume, field, steps=8, quality=6)
@@ -100,7 +101,7 @@ def refine_vertices(vertices, faces, volume, field: SilhouetteField, steps: int 
     if quality > 0 and len(faces):
         ops = CLOps(out, faces, fc) if method == "opencl" else NumPyOps(out, faces, field)
         out = ops.read(fair(ops, rounds=1, iterations=quality, filter_rounds=1, lam_t=lam_t, shell=(HULL, HULL),
-                            reach=0.5 * voxel, across=0.5 * voxel, steps=steps))
+                            reach=0.5 * voxel, steps=steps, clamp_steps=False))
     return out.astype(np.float64) + origin, stats
 
 

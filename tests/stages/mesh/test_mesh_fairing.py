@@ -71,3 +71,25 @@ def test_free_fairing_smooths_like_taubin_without_slivers():
     assert h1["roughness_deg"] <= 0.5 * h0["roughness_deg"]
     assert abs(out.volume / m.volume - 1) < 0.03
     assert h1["min_angle_below_10"] == 0 and h1["folded_edges"] == 0
+
+
+def test_unfold_step_matches_reference_and_opens_a_fold():
+    """A vertex of a sphere pushed past one of its neighbours: the vertices at the fold move (kernel == NumPy),
+    the others stay, and the repair loop leaves no folded edge."""
+    from nodes.mesh.fairing import unfold_step_reference
+
+    m = trimesh.creation.icosphere(2)
+    v = m.vertices.astype(np.float32).copy()
+    ring = m.vertex_neighbors[0]
+    v[0] = v[ring[0]] + (v[ring[0]] - v[0])  # across its neighbour: two of its faces turn over
+    f = m.faces.astype(np.int32)
+    assert mesh_health(trimesh.Trimesh(v, f, process=False))["folded_edges"] > 0
+    off, idx = vertex_faces(f, len(v))
+    want, moved = unfold_step_reference(v, f, off, idx)
+    ops = CLOps(v, f)
+    d_out, count = ops.unfold(ops.v, "t_unfold")
+    np.testing.assert_allclose(ops.read(d_out), want, atol=1e-6)
+    assert count == moved > 0 and (np.abs(want - v).max(axis=1) > 0).sum() == moved
+    for _ in range(12):
+        v, moved = unfold_step_reference(v, f, off, idx)
+    assert mesh_health(trimesh.Trimesh(v, f, process=False))["folded_edges"] == 0
