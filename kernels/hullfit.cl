@@ -168,6 +168,45 @@ inline float2 exit_interval(float3 A, float3 B, float tau, int steps, FIELD_ARGS
     return (float2)(a, b);
 }
 
+// Exits at two levels tau_hi > tau_lo on one segment in one pass over the views (carve): a view that sees the
+// point at the deeper level's best exit inside at tau_hi is skipped for both levels when the two best exits
+// coincide (one lookup). Writes (lo, hi) of the tau_hi exit to *r_hi and of the tau_lo exit to *r_lo, as
+// exit_interval would for each.
+inline void exit_two_levels(float3 A, float3 B, float tau_hi, float tau_lo, int steps, FIELD_ARGS, float2* r_hi,
+                            float2* r_lo)
+{
+    float3 d = B - A;
+    float lo1 = 1.0f, hi1 = 1.0f, lo2 = 1.0f, hi2 = 1.0f;
+    int dead1 = 0, dead2 = 0;
+    for (int v = 0; v < nviews; v++) {
+        __global const float* c = cams + v * CAM_FLOATS;
+        __global const uchar* p = pix + pix_off[v];
+        float f1 = view_value(c, p, soft, A + hi1 * d);
+        float f2 = hi2 == hi1 ? f1 : view_value(c, p, soft, A + hi2 * d);
+        int cut1 = !dead1 && f1 < tau_hi, cut2 = !dead2 && f2 < tau_lo;
+        if (!cut1 && !cut2) continue;
+        float fa = view_value(c, p, soft, A);
+        if (cut1) {
+            if (fa < tau_hi) { dead1 = 1; lo1 = hi1 = 0.0f; }
+            else {
+                float2 r = view_crossing(c, p, soft, A, d, tau_hi, fa - tau_hi, hi1, f1 - tau_hi, steps);
+                lo1 = r.x;
+                hi1 = r.y;
+            }
+        }
+        if (cut2) {
+            if (fa < tau_lo) { dead2 = 1; lo2 = hi2 = 0.0f; }
+            else {
+                float2 r = view_crossing(c, p, soft, A, d, tau_lo, fa - tau_lo, hi2, f2 - tau_lo, steps);
+                lo2 = r.x;
+                hi2 = r.y;
+            }
+        }
+    }
+    *r_hi = (float2)(lo1, hi1);
+    *r_lo = (float2)(lo2, hi2);
+}
+
 // ---------------------------------------------------------------- kernels
 
 // Bits of one binary view (uint8 mask, inside when > 127), one work item per output byte (x8 pixels).
@@ -241,7 +280,12 @@ __kernel void shell_interval(__global const float* p, __global const float* d, f
     if (i >= n) return;
     float3 P = vload3(i, p), D = reach * vload3(i, d);
     float3 A = P - D, B = P + D;
-    float2 r_in = exit_interval(A, B, tau_in, steps, FIELD_PASS);
-    float2 r_out = tau_out == tau_in ? r_in : exit_interval(A, B, tau_out, steps, FIELD_PASS);
+    float2 r_in, r_out;
+    if (tau_out == tau_in) r_out = r_in = exit_interval(A, B, tau_in, steps, FIELD_PASS);
+    else if (min_views == 0 && policy == 0 && tau_in > tau_out) exit_two_levels(A, B, tau_in, tau_out, steps, FIELD_PASS, &r_in, &r_out);
+    else {
+        r_in = exit_interval(A, B, tau_in, steps, FIELD_PASS);
+        r_out = exit_interval(A, B, tau_out, steps, FIELD_PASS);
+    }
     vstore4((float4)(r_in.x, r_in.y, r_out.x, r_out.y), i, out);
 }

@@ -213,6 +213,37 @@ def exit_interval(a, b, field: SilhouetteField, tau: float, steps: int) -> tuple
     return lo, hi
 
 
+def exit_two_levels(a, b, field: SilhouetteField, tau_hi: float, tau_lo: float, steps: int):
+    """Kernel ``exit_two_levels`` (carve vote, tau_hi > tau_lo): ((lo, hi) at tau_hi, (lo, hi) at tau_lo)."""
+    f = np.float32
+    a, b = np.asarray(a, f).reshape(-1, 3), np.asarray(b, f).reshape(-1, 3)
+    d = b - a
+    lo1, hi1, lo2, hi2 = (np.ones(len(a), f) for _ in range(4))
+    dead1, dead2 = np.zeros(len(a), bool), np.zeros(len(a), bool)
+    for v in range(len(field.cams)):
+        vals = np.pad(field.pixel_values(v), 1)
+        f1 = view_values(a + hi1[:, None] * d, field, v, vals)
+        f2 = f1.copy()
+        differ = np.flatnonzero(hi2 != hi1)
+        f2[differ] = view_values(a[differ] + hi2[differ, None] * d[differ], field, v, vals)
+        cut1 = ~dead1 & (f1 < f(tau_hi))
+        cut2 = ~dead2 & (f2 < f(tau_lo))
+        idx = np.flatnonzero(cut1 | cut2)
+        if not len(idx):
+            continue
+        fa = np.zeros(len(a), f)
+        fa[idx] = view_values(a[idx], field, v, vals)
+        for cut, dead, lo, hi, fx, tau in ((cut1, dead1, lo1, hi1, f1, tau_hi), (cut2, dead2, lo2, hi2, f2, tau_lo)):
+            sel = np.flatnonzero(cut)
+            out = fa[sel] < f(tau)
+            dead[sel[out]] = True
+            lo[sel[out]] = hi[sel[out]] = 0
+            sel = sel[~out]
+            lo[sel], hi[sel] = _crossing(a[sel], d[sel], field, v, vals, tau, fa[sel] - f(tau), hi[sel],
+                                         fx[sel] - f(tau), steps)
+    return (lo1, hi1), (lo2, hi2)
+
+
 def cross_reference(a, b, keep, field: SilhouetteField, tau: float, steps: int) -> tuple[np.ndarray, np.ndarray]:
     """Kernel ``cross_level``: (points, found)."""
     f = np.float32
@@ -245,8 +276,12 @@ def shell_interval_reference(p, d, reach: float, field: SilhouetteField, tau_in:
     P = np.asarray(p, f).reshape(-1, 3)
     D = f(reach) * np.asarray(d, f).reshape(-1, 3)
     A, B = P - D, P + D
-    r_in = exit_interval(A, B, field, tau_in, steps)
-    r_out = r_in if tau_out == tau_in else exit_interval(A, B, field, tau_out, steps)
+    if tau_out == tau_in:
+        r_in = r_out = exit_interval(A, B, field, tau_in, steps)
+    elif field.min_views == 0 and field.policy == "carve" and tau_in > tau_out:
+        r_in, r_out = exit_two_levels(A, B, field, tau_in, tau_out, steps)
+    else:
+        r_in, r_out = exit_interval(A, B, field, tau_in, steps), exit_interval(A, B, field, tau_out, steps)
     return np.stack([*r_in, *r_out], axis=1)
 
 
