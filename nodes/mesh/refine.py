@@ -13,7 +13,8 @@ and, where neighbours slid in opposite directions, folds. ``quality`` fairing st
 normals smoothed first, then each vertex towards its faces' planes and the mean of its neighbours) even out
 the triangles and open the folds; then every vertex goes back onto the exact hull along its smoothed normal
 (the fairing's final clamp, a shell of zero width), and fold repair steps follow where that left a fold.
-Same faces as the input.
+Same faces as the input by default; a triangle budget (``faces`` or ``edge_length``) subdivides and/or
+decimates (quadric error metrics, fast-simplification) before the quality steps.
 
     field = SilhouetteField.from_inputs(masks, cameras, origin=volume centre)
     vertices, stats = refine_vertices(mesh.vertices, mesh.faces, volume, field, steps=8, quality=6)
@@ -65,11 +66,47 @@ def lattice_edges(vertices: np.ndarray, volume) -> tuple[np.ndarray, np.ndarray,
     return inside, outside, ok
 
 
+# ---------------------------------------------------------------- triangle budget
+def target_face_count(vertices, faces, faces_param: int, edge_length: float) -> int:
+    """The face count asked for: ``faces_param`` when > 0, else the count whose equilateral triangles of side
+    ``edge_length`` cover the mesh's area when that is > 0, else the input's (0: keep)."""
+    if faces_param > 0:
+        return int(faces_param)
+    if edge_length > 0 and len(faces):
+        v = np.asarray(vertices, np.float64)
+        f = np.asarray(faces, np.int64)
+        area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1).sum()
+        return max(4, int(round(area / (np.sqrt(3) / 4 * edge_length ** 2))))
+    return 0
+
+
+def meet_budget(vertices, faces, target: int) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices, faces) with about ``target`` faces: 1-to-4 midpoint subdivision while below it, then quadric
+    decimation (fast-simplification, Garland & Heckbert) down to it. Vertices land near, not on, the hull:
+    the quality steps that follow put them back."""
+    import fast_simplification
+
+    from nodes.common.meshops import split_edges, unique_edges
+
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    if target <= 0 or len(f) == 0:
+        return v, f
+    while len(f) < target:
+        edges, face_edges = unique_edges(f)
+        v, f = split_edges(v, f, edges, face_edges, np.ones(len(edges), bool), v[edges].mean(axis=1))
+    if len(f) > target:
+        v, f = fast_simplification.simplify(v, f, target_count=int(target))
+    return np.asarray(v, np.float64), np.asarray(f, np.int64)
+
+
 # ---------------------------------------------------------------- work function
 def refine_vertices(vertices, faces, volume, field: SilhouetteField, steps: int = 8, quality: int = 6,
-                    lam_t: float = 0.5, method: str = "opencl") -> tuple[np.ndarray, dict]:
+                    lam_t: float = 0.5, method: str = "opencl", target_faces: int = 0):
     """Vertices onto the hull (Liang & Wong along grid edges, else along the normal within one voxel), then
-    ``quality`` steps of tangential relaxation on the hull. Returns (vertices (V, 3) float64, counts)."""
+    ``quality`` fairing steps and the projection back onto the hull. With ``target_faces`` > 0 the mesh is
+    first brought to that many faces (``meet_budget``) and (vertices, faces, counts) is returned; otherwise
+    (vertices (V, 3) float64, counts)."""
     vertices = np.asarray(vertices, np.float64).reshape(-1, 3)
     faces = np.asarray(faces, np.int64).reshape(-1, 3)
     stats = {"vertices": len(vertices), "on_edges": 0, "on_normals": 0}
@@ -98,18 +135,25 @@ def refine_vertices(vertices, faces, volume, field: SilhouetteField, steps: int 
             q, found = onto_reference(p[rest], normals, voxel, field, HULL, steps)
         out[rest] = q
     stats.update(on_edges=int(on.sum()), on_normals=int(found.sum()))
+    if target_faces > 0:
+        v, faces = meet_budget(out.astype(np.float64), faces, target_faces)
+        out = v.astype(np.float32)
+        quality = max(quality, 1)
     if quality > 0 and len(faces):
         ops = CLOps(out, faces, fc) if method == "opencl" else NumPyOps(out, faces, field)
         out = ops.read(fair(ops, rounds=1, iterations=quality, filter_rounds=1, lam_t=lam_t, shell=(HULL, HULL),
                             reach=0.5 * voxel, steps=steps, clamp_steps=False))
+    if target_faces > 0:
+        return out.astype(np.float64) + origin, faces, stats
     return out.astype(np.float64) + origin, stats
 
 
 # ---------------------------------------------------------------- node
 class Refine(Node):
     """Exact visual-hull surface (Liang & Wong 2008): every marching-cubes vertex moves along its grid edge to
-    where the edge leaves the hull of the silhouettes (read as a smooth B-spline field, sub-pixel), then a few
-    steps of tangential relaxation on the hull even out the triangles. Same faces as the input."""
+    where the edge leaves the hull of the silhouettes (read as a smooth B-spline field, sub-pixel), then fairing
+    steps even out the triangles and every vertex goes back onto the hull. Same faces as the input, or a
+    triangle budget (faces or edge_length: subdivision, then quadric decimation)."""
 
     type_name = "refine"
     version = 3
@@ -117,7 +161,10 @@ class Refine(Node):
     outputs = {"mesh": Mesh}
     params = {
         "steps": Param(int, 8, range=(1, 40), doc="regula falsi iterations per crossing (each view)"),
-        "quality": Param(int, 6, range=(0, 50), doc="tangential relaxation steps on the hull; 0 = Liang & Wong alone"),
+        "quality": Param(int, 6, range=(0, 50), doc="fairing steps before the projection onto the hull; 0 = Liang & Wong alone"),
+        "faces": Param(int, 0, range=(0, None), doc="triangle budget: about this many faces (0 = mc's faces)"),
+        "edge_length": Param(float, 0.0, range=(0.0, None), doc="triangle budget as a mean edge length, scene units "
+                             "(used when faces is 0; 0 = mc's faces)"),
         "min_views": Param(int, 0, range=(0, None), doc="0 = all views; k = inside at least k silhouettes (as the hull)"),
         "outside": Param(str, "carve", choices=POLICIES, doc="points projecting outside an image: carve, or ignore that view"),
         "use_alpha": Param(bool, True, doc="read soft alpha (8-bit) when the masks carry it, else the binary masks"),
@@ -125,11 +172,17 @@ class Refine(Node):
     }
     kernels = [source("hullfit.cl"), source("fairing.cl")]
 
-    def run(self, mesh, volume, masks, cameras, *, steps, quality, min_views, outside, use_alpha, method):
+    def run(self, mesh, volume, masks, cameras, *, steps, quality, faces, edge_length, min_views, outside, use_alpha,
+            method):
         origin = 0.5 * (np.asarray(volume.bbox_min, np.float64) + np.asarray(volume.bbox_max, np.float64))
         field = SilhouetteField.from_inputs(masks, cameras, origin, min_views, outside, use_alpha, node="refine")
+        target = target_face_count(mesh.vertices, mesh.faces, faces, edge_length)
         faces = np.asarray(mesh.faces)
-        vertices, stats = refine_vertices(mesh.vertices, faces, volume, field, steps, quality, method=method)
+        if target > 0:
+            vertices, faces, stats = refine_vertices(mesh.vertices, faces, volume, field, steps, quality, method=method,
+                                                     target_faces=target)
+        else:
+            vertices, stats = refine_vertices(mesh.vertices, faces, volume, field, steps, quality, method=method)
         self.log.info("refine: %d of %d vertices onto the hull along grid edges, %d along normals",
                       stats["on_edges"], stats["vertices"], stats["on_normals"])
         return {"mesh": trimesh.Trimesh(vertices, faces, process=False)}

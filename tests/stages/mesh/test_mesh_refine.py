@@ -136,3 +136,26 @@ def test_real_refine_128(data_dir, name, iou):
     assert ref["mean_iou"] >= iou
     assert h["faces"] == len(mesh.faces) and h["min_angle_below_5"] <= 0.001 and h["folded_edges"] <= 5
     assert trimesh.Trimesh(out.vertices, out.faces).is_watertight
+
+
+def test_refine_triangle_budget():
+    """faces / edge_length: the output has about the asked face count (subdivision, then quadric decimation),
+    stays closed, on the hull and close to the silhouettes; more faces follow the outlines better."""
+    cams, masks, vol, mesh = figure_case(48)
+    args = {"mesh": mesh, "volume": vol, "masks": masks, "cameras": cams}
+    base = run_node("refine", args)["mesh"]
+    fewer = run_node("refine", args, {"faces": len(mesh.faces) // 2}, roundtrip=True)["mesh"]
+    more = run_node("refine", args, {"faces": 3 * len(mesh.faces)})["mesh"]
+    edge = run_node("refine", args, {"edge_length": 2 * float(vol.voxel_size[0])})["mesh"]
+    assert abs(len(fewer.faces) - len(mesh.faces) // 2) <= 0.01 * len(mesh.faces)
+    assert abs(len(more.faces) - 3 * len(mesh.faces)) <= 0.01 * len(mesh.faces)
+    mean_edge = float(np.mean(edge.edges_unique_length))
+    assert 1.5 * vol.voxel_size[0] < mean_edge < 2.6 * vol.voxel_size[0]
+    ious = [silhouette_errors(m, masks, cams)[0].mean() for m in (fewer, base, more)]
+    print(f"faces {len(fewer.faces)} / {len(base.faces)} / {len(more.faces)}: mean IoU {ious}; edge_length 2 voxels -> "
+          f"{len(edge.faces)} faces, mean edge {mean_edge / vol.voxel_size[0]:.2f} voxels")
+    assert ious[0] < ious[1] < ious[2] and ious[0] > 0.99
+    for m in (fewer, more):  # (at a fifth of mc's faces, edge: fast-simplification may leave a non-manifold edge)
+        assert trimesh.Trimesh(m.vertices, m.faces).is_watertight
+    for m in (fewer, more, edge):
+        assert mesh_health(m)["min_angle_below_5"] <= 0.01
