@@ -25,7 +25,6 @@ nearest-pixel lookup: 2717 and 33577, with 21 % more vertices). The same point t
 from __future__ import annotations
 
 import numpy as np
-import trimesh
 
 from kernels import source
 from nodegraph import Node, Param
@@ -103,6 +102,8 @@ def refine_vertices(vertices, faces, volume, test, steps: int = 16) -> tuple[np.
     """Vertices moved onto the hull boundary: along their grid edge where its inside end passes the point
     test and its outside end fails it, else along the vertex normal within one voxel.
     Returns (vertices, moved along edges, moved along normals); the rest stay."""
+    import trimesh
+
     vertices = np.asarray(vertices, np.float64)
     a, b, ok = lattice_edges(vertices, volume)
     ends = test.inside(np.vstack([a, b]))
@@ -130,6 +131,8 @@ def split_towards_hull(vertices, faces, test, cameras: Cameras, reach: float, px
     """``rounds`` of conforming edge splits: an edge whose midpoint, moved onto the hull along the mean normal
     of its ends (within ``reach``, halved every round), moves more than ``px`` pixels in some view is split
     at that hull point. Returns (vertices, faces)."""
+    import trimesh
+
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces, np.int64).reshape(-1, 3)
     for _ in range(rounds):
@@ -172,6 +175,8 @@ class Refine(Node):
 
     def run(self, mesh, volume, masks, cameras, *, steps, split_rounds, split_px, outline, min_views, outside, use_alpha,
             method):
+        import trimesh
+
         views = Silhouettes.from_inputs(masks, cameras, min_views, outside, use_alpha, node="refine")
         if outline == "distance":
             views = views.distance_outline()

@@ -17,7 +17,6 @@ staircase. (Clamping after every half-step instead was tried: it ratchets thin p
 from __future__ import annotations
 
 import numpy as np
-import trimesh
 
 from kernels import source
 from nodegraph import Input, Node, NodeError, Param, clrt
@@ -83,6 +82,8 @@ def relax_vertices(mesh, iterations: int, lam: float = LAMBDA, mu: float = MU, v
     """Taubin-smoothed vertices of ``mesh``; with ``views`` fitted to the visual hull along the smoothed
     normals: outside vertices back to the boundary (searched from one mean edge length inside, else along
     their move), vertices that moved inwards back out by their inward move, at most to the boundary."""
+    import trimesh
+
     vertices = np.asarray(mesh.vertices)
     faces = np.asarray(mesh.faces)
     offsets, neighbours = vertex_neighbours(faces, len(vertices))
@@ -127,6 +128,8 @@ class Relax(Node):
 
     def run(self, mesh, masks=None, cameras=None, *, iterations, lam, mu, keep_silhouettes, steps, outline_sigma, min_views,
             outside, use_alpha, method):
+        import trimesh
+
         views = None
         if keep_silhouettes:
             if masks is None or cameras is None:
