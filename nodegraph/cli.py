@@ -27,6 +27,8 @@ def cmd_run(args) -> int:
     if args.device:
         os.environ["VOLCAP_CL_DEVICE"] = args.device  # inherited by worker processes
     graph = _load(args)
+    if args.keep_all or args.report:  # a report draws the values: keep them all
+        graph.keep_all()
     out = Path(args.out or Path("out") / Path(args.graph).stem)
     if args.executor == "dask":
         executor = make_executor("dask", args.workers or args.jobs, scheduler=args.scheduler)
@@ -65,7 +67,8 @@ def cmd_explain(args) -> int:
         frame = "all" if r["frame"] is None else r["frame"]
         state = "cached" if r["cached"] else "run   "
         why = "" if r["cached"] else "  changed: " + ", ".join(r["changed"])
-        print(f"{state} {r['node']}@{frame}  {r['key'][:12]}{why}")
+        mem = f"  in memory: {', '.join(r['in_memory'])}" if r["in_memory"] else ""
+        print(f"{state} {r['node']}@{frame}  {r['key'][:12]}{why}{mem}")
     n = sum(not r["cached"] for r in rows)
     print(f"{n} of {len(rows)} work items to run")
     return 0
@@ -172,7 +175,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--workers", type=_positive_int, help="dask: worker processes of the LocalCluster (default 2)")
     r.add_argument("--scheduler", help="dask: address of an existing scheduler (tcp://HOST:PORT)")
     r.add_argument("--device", help="OpenCL device: cpu, gpu or PLATFORM:DEVICE (see `devices`)")
-    r.add_argument("--report", action="store_true", help="write report.html into the output folder")
+    r.add_argument("--report", action="store_true", help="write report.html into the output folder (keeps every output)")
+    r.add_argument("--keep-all", action="store_true", help="store every output in the cache, not only the kept ones")
     r.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     graph_cmd("validate", "check a graph file without running it", cmd_validate)
     graph_cmd("explain", "dry run: which work items are cached, which run and why", cmd_explain)

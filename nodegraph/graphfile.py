@@ -26,7 +26,7 @@ from .types import compatible, describe_type
 
 MAX_FRAMES = 1_000_000  # a range beyond this is a typo, not a capture
 TOP_KEYS = ("frames", "defaults", "nodes", "description")
-NODE_KEYS = ("type", "in", "params", "doc")
+NODE_KEYS = ("type", "in", "params", "keep", "doc")
 NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
 
@@ -117,6 +117,7 @@ class NodeSpec:
     inputs: dict                       # port -> (source node, source port)
     line: int
     lines: dict = field(default_factory=dict)   # "param:NAME" / "in:PORT" -> line
+    keep: tuple = ()                   # output ports the graph asks to store in the cache (checkpoints)
 
 
 @dataclass
@@ -127,6 +128,12 @@ class Graph:
     upstream: dict[str, list[str]]    # node -> the nodes its inputs come from (file order)
     description: str = ""
     overrides: list = field(default_factory=list)   # the --set arguments it was loaded with
+
+    def keep_all(self) -> "Graph":
+        """Store every output of every node in the cache (a report draws them; debugging)."""
+        for spec in self.nodes.values():
+            spec.keep = tuple(spec.cls.outputs)
+        return self
 
     def order(self) -> list[str]:
         """Node names in dependency order (stable: file order among independent nodes)."""
@@ -251,6 +258,19 @@ def _validate(path: Path, where: str, data: _Map, problems: list[str], overrides
             continue
         cls = reg[t]
         spec = NodeSpec(name, t, cls, {}, {}, line)
+        if "keep" in entry:  # checkpoints: true (every output) or a list of output ports
+            keep, kline = entry["keep"], at(entry.lines["keep"])
+            if keep is True:
+                spec.keep = tuple(cls.outputs)
+            elif keep is False or keep is None:
+                spec.keep = ()
+            elif isinstance(keep, list) and all(isinstance(k, str) for k in keep):
+                bad = [k for k in keep if k not in cls.outputs]
+                for k in bad:
+                    problems.append(f"{kline}: node '{name}': keep: type '{t}' has no output '{k}'{suggest(k, cls.outputs)}")
+                spec.keep = tuple(k for k in keep if k in cls.outputs)
+            else:
+                problems.append(f"{kline}: node '{name}': keep must be true, false or a list of output ports, got {keep!r}")
         # parameters: declaration default < graph defaults < node params < --set
         given = entry.get("params") or {}
         if not isinstance(given, dict):
