@@ -8,6 +8,7 @@ Layout under the cache root:
     staging/                     folders being written (renamed into objects/ when complete; `gc` removes
                                  leftovers older than 6 hours, so it never pulls one from a running write)
     filehash.json                size+mtime -> content hash of external input files
+    imports.json                 what each node module imports, by content hash (nodegraph/fingerprint.py)
     index/                       last key per graph node and frame (for `explain`)
 
 A work item's outputs are written into a staging folder and renamed into place in one step, so a run
@@ -194,6 +195,7 @@ class Cache:
         for sub in ("objects", "staging", "index"):
             shutil.rmtree(self.root / sub, ignore_errors=True)
         (self.root / "filehash.json").unlink(missing_ok=True)
+        (self.root / "imports.json").unlink(missing_ok=True)
 
 
 STAGING_GRACE_S = 6 * 3600  # gc leaves younger staging folders alone: a running write may own them

@@ -19,10 +19,12 @@ Frame units (what runs together, what is kept):
   sequence items, and per-frame items several frames share (a frame-independent source).
 - Only the ports that must be *kept* are stored in the cache (``WorkItem.kept``): outputs of a type kept by
   default (small values: tables, cameras, boxes, files), exported files (publishing nodes), outputs read by
-  another unit (a sequence node, another frame), outputs nothing in the graph reads (results), and
+  another unit (a sequence node, another frame), the outputs of nodes nothing reads (results), and
   checkpoints: every output of a node class that declares ``checkpoint = True`` (a renderer) and the ports a
-  graph lists under a node's ``keep:``. Large intermediate values (images, masks, volumes, meshes) live only
-  in memory. Which values are kept never changes a key.
+  graph lists under a node's ``keep:``; an output nothing reads is kept when nothing reads any output of its
+  node (a result), not when a sibling output is read (a by-product, e.g. a key's despilled images beside the
+  masks the hull reads). Large intermediate values (images, masks, volumes, meshes) live only in memory.
+  Which values are kept never changes a key.
 - What runs is decided from the cache (nodegraph/run.py): an item with a kept port missing from the cache
   runs, and so do the items of its unit whose in-memory values it needs; the rest is up to date.
 """
@@ -31,9 +33,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from .graphfile import Graph
+from . import fingerprint
 from .fingerprint import implementation_fingerprint
 from .hashing import KEY_SCHEMA, FileHasher, digest
 from .node import InPath
+from .types import Files
 
 
 @dataclass
@@ -112,6 +116,7 @@ def make_plan(graph: Graph, hasher: FileHasher) -> tuple[list[WorkItem], dict[tu
                 items[key] = WorkItem(name, spec.type_name, cls.__module__, frame, frames, dict(spec.params),
                                       inputs, key, components, sorted(set(deps)))
     hasher.save()
+    fingerprint.save_parsed()
     _assign_units(graph, items, slot)
     return list(items.values()), slot
 
@@ -132,12 +137,8 @@ def _assign_units(graph: Graph, items: dict[str, WorkItem], slot: dict) -> None:
     for it in items.values():
         spec = graph.nodes[it.node]
         cls = spec.cls
-        kept = []
-        for port, out in cls.outputs.items():
-            users = readers.get((it.key, port), [])
-            from .types import Files
-
-            if (out.type.kept_by_default or cls.checkpoint or port in spec.keep or not users
-                    or (cls.publishes and issubclass(out.type, Files)) or any(u.unit != it.unit for u in users)):
-                kept.append(port)
-        it.kept = kept
+        read = {port: readers.get((it.key, port), []) for port in cls.outputs}
+        leaf = not any(read.values())  # nothing reads this node: its outputs are the graph's results
+        it.kept = [port for port, out in cls.outputs.items()
+                   if out.type.kept_by_default or cls.checkpoint or port in spec.keep or leaf
+                   or (cls.publishes and issubclass(out.type, Files)) or any(u.unit != it.unit for u in read[port])]

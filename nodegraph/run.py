@@ -42,6 +42,10 @@ class RunResult:
 
 
 def plan_graph(graph: Graph, cache: Cache):
+    from . import fingerprint
+
+    if cache.root.is_dir():
+        fingerprint.remember_in(cache.root / "imports.json")
     return make_plan(graph, FileHasher(cache.root / "filehash.json"))
 
 

@@ -189,6 +189,7 @@ def chroma_key_cl(rgb, key, *, side=1.0, luma_floor=16.0, inner=0.05, outer=0.2,
 def chroma_key_bits(images, key, *, side=1.0, luma_floor=16.0, inner=0.05, outer=0.2, black=0.0, edges=None,
                     out=None):
     """The chroma key's silhouettes (alpha >= 128, the key.chroma node's masks) of (H, W, 3) uint8 ``images``
+    (``key``: one key direction for all, or one per image)
     straight into the visual hull's device layout: ``nodes.hull.SilhouetteBits`` (bits and 8x8 block tables),
     with no alpha written, read back or re-packed; ``visual_hull`` takes the result as its masks. ``edges``:
     a garbage matte per view (``matte_edges``) or None; pixels outside the matte are not even read.
@@ -205,6 +206,9 @@ def chroma_key_bits(images, key, *, side=1.0, luma_floor=16.0, inner=0.05, outer
               for e in (edges if edges is not None else [None] * len(images))]
     if len(mattes) != len(images):
         raise NodeError(f"key.chroma: {len(images)} images but {len(mattes)} garbage mattes")
+    keys = [key] * len(images) if np.ndim(key) == 1 else list(key)
+    if len(keys) != len(images):
+        raise NodeError(f"key.chroma: {len(images)} images but {len(keys)} key colours")
     sizes = [(im.shape[1], im.shape[0]) for im in images]
     sil = SilhouetteBits.reuse(out, sizes)
     first = np.concatenate([[0], np.cumsum([len(e) for e in mattes])])
@@ -217,7 +221,7 @@ def chroma_key_bits(images, key, *, side=1.0, luma_floor=16.0, inner=0.05, outer
         host.append(src)
         w, h = sizes[v]
         rows = (h + 7) // 8 + 1  # work items: rows of the block table
-        run.launch("chroma_key_bits", rows, BITS_GROUP, src, np.int32(w), np.int32(h), cltypes.make_float2(*map(float, key)),
+        run.launch("chroma_key_bits", rows, BITS_GROUP, src, np.int32(w), np.int32(h), cltypes.make_float2(*map(float, keys[v])),
                    f(side), f(luma_floor), f(inner), f(1.0 / (outer - inner)), f(black), ebuf, np.int32(first[v]),
                    np.int32(len(mattes[v])), sil.bits, np.int32(sil.bit_off[v]), sil.sat, np.int32(sil.sat_off[v]))
     sil.prefix_columns()
