@@ -132,7 +132,8 @@ def cmd_cache(args) -> int:
 def cmd_devices(args) -> int:
     from .clrt import devices_table
 
-    for row in devices_table():
+    print("OpenCL devices, fastest first by a short probe kernel (ms, measured once per machine; * = used):")
+    for row in devices_table(refresh=args.refresh):
         print(row)
     return 0
 
@@ -190,7 +191,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--max-age", type=float, metavar="DAYS", help="gc: also remove entries unused for DAYS")
     c.add_argument("--cache", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
     c.set_defaults(fn=cmd_cache)
-    sub.add_parser("devices", help="list OpenCL devices").set_defaults(fn=cmd_devices)
+    dv = sub.add_parser("devices", help="list OpenCL devices, fastest first (the fastest is used by default)")
+    dv.add_argument("--refresh", action="store_true", help="measure the devices again")
+    dv.set_defaults(fn=cmd_devices)
     rp = sub.add_parser("report", help="write report.html for an existing output folder")
     rp.add_argument("out_dir")
     rp.set_defaults(fn=cmd_report)
