@@ -42,7 +42,7 @@ from nodegraph import clrt  # noqa: E402
 from nodegraph.testing import run_node  # noqa: E402
 from nodes.common.meshops import largest_component  # noqa: E402
 from nodes.eval.health import mesh_health  # noqa: E402
-from nodes.eval.metrics import silhouette_report  # noqa: E402
+from nodes.eval.silhouette import silhouette_report  # noqa: E402
 from nodes.hull.hull import visual_hull  # noqa: E402
 from nodes.mesh.hullfit import SilhouetteField  # noqa: E402
 from nodes.mesh.mc import marching_cubes  # noqa: E402

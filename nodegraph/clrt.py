@@ -4,8 +4,11 @@ OpenCL code. Sources are given by path (the stage packages know where theirs are
 is searched beside the source.
 
 ``VOLCAP_CL_PROFILE=1`` creates the queue with profiling enabled (events then carry kernel times).
-Device choice: ``VOLCAP_CL_DEVICE`` (or ``app.py run --device``) is either ``cpu``, ``gpu``, or
-``PLATFORM:DEVICE`` indices (as printed by ``app.py devices``). Default: first GPU, else first CPU.
+Device choice: ``VOLCAP_CL_DEVICE`` (or ``volcap run --device``) is either ``cpu``, ``gpu``, or
+``PLATFORM:DEVICE`` indices (as printed by ``volcap devices``). Default: the fastest device that builds
+kernels, by a short probe kernel measured once per machine (``ranking``; kept in
+~/.cache/volcap/opencl-devices.json). The runtime matters: on one 2-core EPYC the pip PoCL 3.0 ran the key
+kernels 5-10x slower than Debian's PoCL 3.1 (README, Benchmarks).
 Never fork after this module has created a context (PoCL hangs); the process pools use spawn.
 """
 from __future__ import annotations
@@ -39,6 +42,92 @@ NO_DEVICE_HELP = ("install a working OpenCL CPU device: `pip install pocl-binary
                   "does not know this CPU, the distribution's PoCL (`apt-get install pocl-opencl-icd`); ./setup.sh does this")
 
 
+# A short, representative probe: per work item, arithmetic on 16 floats read and written as vectors (the shape
+# of the stages' per-pixel and per-voxel kernels), over 2^20 items.
+PROBE_SOURCE = """
+__kernel void probe(__global const float4* a, __global float4* b, int n)
+{
+    int i = get_global_id(0);
+    if (i >= n) return;
+    float4 x = a[i], y = a[(i * 7) % n];
+    for (int k = 0; k < 24; k++) x = fma(x, (float4)(1.0001f), y / (fabs(x) + (float4)(1.5f)));
+    b[i] = x;
+}
+"""
+PROBE_ITEMS = 1 << 20
+
+
+def device_id(dev) -> str:
+    p = dev.platform
+    return f"{p.name} {p.version} | {dev.name} | {dev.driver_version}"
+
+
+def probe_ms(dev) -> float | None:
+    """Milliseconds of the probe kernel on ``dev`` (best of 5), or None when the device cannot build or run it."""
+    import time
+
+    import pyopencl as cl
+
+    try:
+        ctx = cl.Context([dev])
+        q = cl.CommandQueue(ctx)
+        prg = cl.Program(ctx, PROBE_SOURCE).build()
+        k = cl.Kernel(prg, "probe")
+        host = np.random.default_rng(0).random(4 * PROBE_ITEMS, dtype=np.float32)
+        a = cl.Buffer(ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=host)
+        b = cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, host.nbytes)
+        k.set_args(a, b, np.int32(PROBE_ITEMS))
+        best = float("inf")
+        for i in range(6):
+            t = time.perf_counter()
+            cl.enqueue_nd_range_kernel(q, k, (PROBE_ITEMS,), (64,))
+            q.finish()
+            if i:  # the first launch warms up
+                best = min(best, time.perf_counter() - t)
+        out = np.empty(8, np.float32)
+        cl.enqueue_copy(q, out, b)
+        return best * 1e3 if np.all(np.isfinite(out)) else None
+    except Exception:
+        return None
+
+
+def _ranking_file() -> Path:
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "volcap" / "opencl-devices.json"
+
+
+def ranking(refresh: bool = False) -> list[tuple[float | None, int, int, object]]:
+    """Every OpenCL device with its probe time (ms; None = cannot build or run kernels), fastest first. The
+    times are measured once per machine (a device is known by platform, device and driver version) and kept
+    in ~/.cache/volcap/opencl-devices.json; ``refresh`` measures again."""
+    import json
+
+    import pyopencl as cl
+
+    path = _ranking_file()
+    try:
+        known = {} if refresh else json.loads(path.read_text())
+    except (OSError, ValueError):
+        known = {}
+    rows, changed = [], False
+    for pi, p in enumerate(cl.get_platforms()):
+        for di, d in enumerate(p.get_devices()):
+            did = device_id(d)
+            if did not in known:
+                known[did] = probe_ms(d)
+                changed = True
+            rows.append((known[did], pi, di, d))
+    if changed:
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(".tmp")
+            tmp.write_text(json.dumps(known, indent=1))
+            os.replace(tmp, path)
+        except OSError:
+            pass
+    return sorted(rows, key=lambda r: (r[0] is None, r[0] if r[0] is not None else 0.0, r[1], r[2]))
+
+
 def _choose_device():
     try:
         import pyopencl as cl
@@ -49,27 +138,23 @@ def _choose_device():
     if not devices:
         raise OpenCLUnavailable(f"OpenCL platforms exist but expose no device; {NO_DEVICE_HELP}")
     want = os.environ.get("VOLCAP_CL_DEVICE", "").strip().lower()
-    if want in ("cpu", "gpu"):
-        kind = cl.device_type.CPU if want == "cpu" else cl.device_type.GPU
-        match = [d for _, _, d in devices if d.type & kind]
-        if not match:
-            raise OpenCLUnavailable(f"VOLCAP_CL_DEVICE={want}: no such OpenCL device; have: " + ", ".join(d.name for *_, d in devices))
-        working = [d for d in match if _builds(d)]
-        if not working:
-            raise OpenCLUnavailable(f"VOLCAP_CL_DEVICE={want}: no {want} device can build kernels; {NO_DEVICE_HELP}")
-        return working[0]
-    if want:
+    if want and want not in ("cpu", "gpu"):
         try:
             pi, di = (int(x) for x in want.split(":"))
             return platforms[pi].get_devices()[di]
         except (ValueError, IndexError):
-            raise OpenCLUnavailable(f"VOLCAP_CL_DEVICE={want!r}: expected cpu, gpu or PLATFORM:DEVICE (see `app.py devices`)") from None
-    # default: the first GPU, else the first CPU device, that can actually build a kernel
-    ordered = sorted(devices, key=lambda e: 0 if e[2].type & cl.device_type.GPU else 1)
-    for *_, d in ordered:
-        if _builds(d):
-            return d
-    raise OpenCLUnavailable("no OpenCL device can build kernels (" + ", ".join(d.name for *_, d in devices) + f"); {NO_DEVICE_HELP}")
+            raise OpenCLUnavailable(f"VOLCAP_CL_DEVICE={want!r}: expected cpu, gpu or PLATFORM:DEVICE (see `volcap devices`)") from None
+    rows = ranking()
+    if want in ("cpu", "gpu"):
+        kind = cl.device_type.CPU if want == "cpu" else cl.device_type.GPU
+        rows = [r for r in rows if r[3].type & kind]
+        if not rows:
+            raise OpenCLUnavailable(f"VOLCAP_CL_DEVICE={want}: no such OpenCL device; have: " + ", ".join(d.name for *_, d in devices))
+    working = [r for r in rows if r[0] is not None]
+    if not working:
+        scope = f"no {want} device" if want else "no OpenCL device"
+        raise OpenCLUnavailable(f"{scope} can build kernels (" + ", ".join(d.name for *_, d in devices) + f"); {NO_DEVICE_HELP}")
+    return working[0][3]  # the fastest by the probe
 
 
 @lru_cache(maxsize=None)
@@ -190,7 +275,8 @@ class Runner:
         import pyopencl as cl
 
         mf = cl.mem_flags
-        return cl.Buffer(self.ctx, (mf.READ_WRITE if writable else mf.READ_ONLY) | mf.USE_HOST_PTR, hostbuf=arr)
+        flags = (mf.READ_WRITE if writable else mf.READ_ONLY) | mf.USE_HOST_PTR
+        return cl.Buffer(self.ctx, flags, hostbuf=np.ascontiguousarray(arr))
 
     def launch(self, name: str, global_size, local_size, *args, options: tuple[str, ...] = ()):
         """Enqueue kernel ``name`` over ``global_size`` (rounded up to whole ``local_size`` groups when given)."""
@@ -217,13 +303,21 @@ class Runner:
         self.queue.finish()
 
 
-def devices_table() -> list[str]:
+def devices_table(refresh: bool = False) -> list[str]:
+    """One line per OpenCL device, fastest first by the probe, the one runs use marked with '*'."""
     import pyopencl as cl
 
+    chosen = None
+    try:
+        chosen = device_id(_choose_device())
+    except OpenCLUnavailable:
+        pass
     rows = []
-    for pi, p in enumerate(cl.get_platforms()):
-        for di, d in enumerate(p.get_devices()):
-            rows.append(f"{pi}:{di}  {cl.device_type.to_string(d.type):4s}  {d.name}  ({p.name}, {d.max_compute_units} units)")
+    for ms, pi, di, d in ranking(refresh):
+        speed = f"{ms:8.1f} ms" if ms is not None else "  cannot build kernels"
+        mark = "*" if device_id(d) == chosen else " "
+        rows.append(f"{mark} {pi}:{di}  {cl.device_type.to_string(d.type):4s}  {speed}  {d.name}  "
+                    f"({d.platform.name} {d.platform.version}, {d.max_compute_units} units)")
     return rows
 
 

@@ -22,7 +22,6 @@ decimates (quadric error metrics, fast-simplification) before the quality steps.
 from __future__ import annotations
 
 import numpy as np
-import trimesh
 
 from kernels import source
 from nodegraph import Node, Param
@@ -174,6 +173,8 @@ class Refine(Node):
 
     def run(self, mesh, volume, masks, cameras, *, steps, quality, faces, edge_length, min_views, outside, use_alpha,
             method):
+        import trimesh
+
         origin = 0.5 * (np.asarray(volume.bbox_min, np.float64) + np.asarray(volume.bbox_max, np.float64))
         field = SilhouetteField.from_inputs(masks, cameras, origin, min_views, outside, use_alpha, node="refine")
         target = target_face_count(mesh.vertices, mesh.faces, faces, edge_length)

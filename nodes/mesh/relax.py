@@ -18,7 +18,6 @@ With ``keep_silhouettes`` false the fairing runs free (no masks needed). Same to
 from __future__ import annotations
 
 import numpy as np
-import trimesh
 
 from kernels import source
 from nodegraph import Input, Node, NodeError, Param
@@ -92,6 +91,8 @@ class Relax(Node):
 
     def run(self, mesh, masks=None, cameras=None, *, rounds, iterations, filter_rounds, tangential, keep_silhouettes,
             outside_px, inside_px, steps, min_views, outside, use_alpha, method):
+        import trimesh
+
         if -inside_px > outside_px:
             raise NodeError(f"relax: the shell is empty (inside_px {inside_px} is beyond outside_px {outside_px})")
         field = None

@@ -10,7 +10,7 @@ import trimesh
 
 from nodes.common.cameras import Cameras, look_at
 from nodes.common.types import MaskSet
-from nodes.eval.metrics import silhouette_report
+from nodes.eval.silhouette import silhouette_report
 from nodes.hull.hull import visual_hull
 from nodes.mesh.mc import marching_cubes
 

@@ -12,7 +12,7 @@ from nodegraph.testing import run_node
 from nodes.common.meshops import unique_edges
 from nodes.common.types import MaskSet, Mesh, VoxelGrid
 from nodes.eval.health import mesh_health
-from nodes.eval.metrics import silhouette_report
+from nodes.eval.silhouette import silhouette_report
 from nodes.mesh.hullfit import SilhouetteField, inside_at
 from nodes.mesh.refine import lattice_edges
 

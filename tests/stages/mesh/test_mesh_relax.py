@@ -11,7 +11,7 @@ from nodegraph import NodeError
 from nodegraph.testing import run_node
 from nodes.common.types import MaskSet, Mesh
 from nodes.eval.health import mesh_health
-from nodes.eval.metrics import silhouette_report
+from nodes.eval.silhouette import silhouette_report
 from nodes.hull.hull import visual_hull
 
 
