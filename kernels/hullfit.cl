@@ -14,11 +14,11 @@
 // point inside is skipped (its own exit lies beyond, on a short segment), the others are bisected alone on
 // [0, best]. Other vote rules bisect the vote itself.
 #pragma OPENCL FP_CONTRACT OFF
-#include "camera.h"
+#include "silhouette.h"  // the projection (camera.h) and the visual hull's vote rule (hull_vote)
 
-#define IN 1
-#define BACKGROUND 2
-#define UNSEEN 3
+#define IN SIL_IN
+#define BACKGROUND SIL_BACKGROUND
+#define UNSEEN SIL_UNSEEN
 
 #define FIELD_ARGS __global const float* cams, int nviews, __global const uchar* pix, __global const int* pix_off, \
                    int soft, int min_views, int policy
@@ -117,13 +117,6 @@ inline float2 view_crossing(__global const float* c, __global const uchar* p, in
         }
     }
     return (float2)(a, b);
-}
-
-inline int hull_vote(int n_in, int n_bg, int nviews, int min_views, int policy)
-{
-    if (min_views > 0) return n_in >= min_views;
-    if (policy == 0) return n_in == nviews;
-    return n_bg == 0 && n_in >= 1;
 }
 
 inline int inside_at(float3 X, float tau, FIELD_ARGS)
