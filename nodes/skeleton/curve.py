@@ -62,8 +62,8 @@ def voxelize(vertices: np.ndarray, faces: np.ndarray, resolution: int, pad: int 
     w2 = ((b[:, 0] - a[:, 0]) * (cy - a[:, 1]) - (cx - a[:, 0]) * (b[:, 1] - a[:, 1]))
     with np.errstate(divide="ignore", invalid="ignore"):
         w1, w2 = w1 / d, w2 / d
-    hit = (d != 0) & (w1 >= 0) & (w2 >= 0) & (w1 + w2 <= 1)
-    z = (a[:, 2] + w1 * (b[:, 2] - a[:, 2]) + w2 * (c[:, 2] - a[:, 2]))[hit]
+        hit = (d != 0) & (w1 >= 0) & (w2 >= 0) & (w1 + w2 <= 1)
+        z = (a[:, 2] + w1 * (b[:, 2] - a[:, 2]) + w2 * (c[:, 2] - a[:, 2]))[hit]
     col = (cx * shape[1] + cy)[hit]
     order = np.lexsort((z, col))
     z, col = z[order], col[order]
@@ -344,6 +344,19 @@ def joint_tree(sk: VoxelSkeleton, *, prune: float = 2.0, prune_min: float = 0.0,
             while not key[chain[-1]]:
                 nxt = [w for w in adj[chain[-1]] if w != parent[chain[-1]]]
                 chain.append(nxt[0])
+            if deg[chain[-1]] == 1 and len(chain) > 3:
+                # TEASAR's paths end on the surface: end an extremity where the branch's radius says its
+                # medial axis ends (one typical radius before the tip)
+                tip = pts[chain[-1]]
+                r_end = float(np.median(rad[chain[max(1, len(chain) - 12):]]))
+                near = np.linalg.norm(pts[chain] - tip, axis=1) < r_end
+                cut = len(chain) - 1
+                while cut > 1 and near[cut - 1]:
+                    cut -= 1
+                chain = chain[:cut + 1]
+                deg_end = 1
+            else:
+                deg_end = deg[chain[-1]]
             line = _smooth(pts[chain], smooth)
             keep = _douglas_peucker(line, bend)
             prev = joint_of[v]
@@ -351,8 +364,7 @@ def joint_tree(sk: VoxelSkeleton, *, prune: float = 2.0, prune_min: float = 0.0,
                 joints.append(line[k])
                 radius.append(rad[chain[k]])
                 parents.append(prev)
-                end = chain[k]
-                kinds.append(("end" if deg[end] == 1 else "branch") if k == len(chain) - 1 else "bend")
+                kinds.append(("end" if deg_end == 1 else "branch") if k == len(chain) - 1 else "bend")
                 prev = len(joints) - 1
             joint_of[chain[-1]] = prev
     out = CurveSkeleton(np.array(joints), parents, [], np.array(radius), kinds)

@@ -45,6 +45,13 @@ class Trajectories:
     def count(self) -> int:
         return self.frames.shape[0]
 
+    def with_rest(self, rest: np.ndarray) -> "Trajectories":
+        """The same frames with another rest shape (no copies of the frame layouts)."""
+        out = object.__new__(Trajectories)
+        out.__dict__.update(self.__dict__)
+        out.rest = np.ascontiguousarray(rest, np.float64)
+        return out
+
 
 # ---------------------------------------------------------------- Kabsch from moments
 @dataclass

@@ -34,10 +34,11 @@ from .motion import Rig, Trajectories, edge_graph, label_adjacency
 
 @dataclass
 class SkinFit:
-    """``weights`` (V, J) dense with <= influences non-zeros per row; ``rotations`` (F, J, 3, 3),
+    """``rest`` (V, 3) the rest shape the fit skins; ``weights`` (V, J) dense with <= influences non-zeros per row; ``rotations`` (F, J, 3, 3),
     ``translations`` (F, J, 3): rest -> frame; ``joints`` (J, 3) rest pivots; ``parents``; per-frame
     ``rmse`` and ``max_error`` (F,); ``history``: total rmse after each iteration."""
 
+    rest: np.ndarray
     weights: np.ndarray
     rotations: np.ndarray
     translations: np.ndarray
@@ -97,17 +98,26 @@ def _homogeneous(rot, tr):
     return np.concatenate([rot, tr[..., None]], axis=-1)              # (F, J, 3, 4)
 
 
-def _candidates(labels, edges, parents, j):
-    """(J, C) candidate bones for the vertices of each part (-1 padded): itself, mesh and tree neighbours."""
+def candidates(rest, labels, edges, parents, j, radius: float) -> np.ndarray:
+    """(V, C) candidate bones per vertex (-1 padded): its part, the parts next to it (mesh edges, tree) and
+    the parts of rest vertices within ``radius`` (surfaces that nearly touch: the inner knees)."""
+    from scipy.spatial import cKDTree
+
     adj = label_adjacency(labels, edges, j) > 0
     for c, p in enumerate(parents):
         if p >= 0:
             adj[c, p] = adj[p, c] = True
-    lists = [[i] + [int(k) for k in np.flatnonzero(adj[i]) if k != i] for i in range(j)]
-    width = max(len(x) for x in lists)
-    out = np.full((j, width), -1, np.int64)
-    for i, x in enumerate(lists):
-        out[i, :len(x)] = x
+    np.fill_diagonal(adj, True)
+    near = np.zeros((len(rest), j), bool)
+    near[np.arange(len(rest)), labels] = True
+    near |= adj[labels]
+    pairs = cKDTree(rest).query_pairs(radius, output_type="ndarray")
+    if len(pairs):
+        near[pairs[:, 0], labels[pairs[:, 1]]] = True
+        near[pairs[:, 1], labels[pairs[:, 0]]] = True
+    width = int(near.sum(1).max())
+    order = np.argsort(~near, axis=1, kind="stable")[:, :width]           # allowed bones first
+    out = np.where(np.take_along_axis(near, order, axis=1), order, -1)
     return out
 
 
@@ -226,8 +236,8 @@ def _pose_frame(rest, q, idx, wv, wk_t, wk_sum, rot, tr, joints, parents, order,
     rows = np.arange(len(vh))[:, None]
 
     def predict(rot, tr):
-        every = np.matmul(vh[None], rot.transpose(0, 2, 1)) + tr[:, None]   # (J, V, 3): bone j moves vertex v
-        y = every[idx, rows]                                                 # (V, K, 3)
+        every = (vh @ rot.transpose(2, 0, 1).reshape(3, 3 * j)).reshape(len(vh), j, 3) + tr[None]  # bone j moves v
+        y = every[rows, idx]                                                 # (V, K, 3)
         return y, np.matmul(wv[:, None, :], y)[:, 0]
 
     y, p = predict(rot, tr)
@@ -287,8 +297,13 @@ def _pose_frame(rest, q, idx, wv, wk_t, wk_sum, rot, tr, joints, parents, order,
     return rot, tr
 
 
-def fit_poses_fixed(traj, weights, rot, tr, joints, parents, influences, steps: int = 2):
-    """The bone-motion step with fixed bone lengths (module docstring), every frame."""
+def fit_poses_fixed(traj, weights, rot, tr, joints, parents, influences, steps: int = 2, samples: int = 4000):
+    """The bone-motion step with fixed bone lengths (module docstring), every frame, on ``samples``
+    vertices spread evenly over the vertex order (every vertex when fewer; 3J + 3 unknowns per frame need
+    far fewer equations than a mesh has)."""
+    sel = np.unique(np.linspace(0, len(weights) - 1, min(samples, len(weights))).astype(np.int64))
+    weights = weights[sel]
+    rest, frames = traj.rest[sel], traj.frames[:, sel]
     idx = np.argsort(-weights, axis=1)[:, :influences]
     wv = np.take_along_axis(weights, idx, axis=1)
     wk = wv[:, :, None] * subtree_matrix(parents)[idx]                  # (V, K, J)
@@ -296,12 +311,54 @@ def fit_poses_fixed(traj, weights, rot, tr, joints, parents, influences, steps: 
     order = topological(parents)
     rot, tr = rot.copy(), tr.copy()
     for t in range(traj.count):
-        rot[t], tr[t] = _pose_frame(traj.rest, traj.frames[t], idx, wv, wk_t, wk_sum, rot[t], tr[t], joints, parents,
-                                    order, steps)
+        rot[t], tr[t] = _pose_frame(rest, frames[t], idx, wv, wk_t, wk_sum, rot[t], tr[t], joints, parents, order, steps)
     # re-orthonormalise (numerical drift) and restore the exact pivot chain
     u, _, vt = np.linalg.svd(rot)
     rot = u @ vt
     return constrain(rot, tr, joints, parents)
+
+
+def fit_pivots(traj, weights, rot, tr, joints, parents, reg: float = 1e-6):
+    """Rest-pose joint pivots that lower the error with rotations and weights fixed (bone lengths stay fixed
+    over frames; only the rest skeleton changes). Moving pivot c_j by dc moves bone j and its whole
+    subtree by (R_parent - R_j) dc at each frame, so the update is one linear least-squares problem in
+    3 (J - 1) unknowns: (sum_t A_jt^T Omega_jk A_kt) dc = sum_t A_jt^T (omega^T r_t)_j with A_jt =
+    R_parent,t - R_j,t, omega = W D (subtree weight sums), Omega = omega^T omega. The root pivot stays."""
+    j = len(parents)
+    omega = weights @ subtree_matrix(parents)                            # (V, J)
+    big = omega.T @ omega                                                # (J, J)
+    a = np.zeros_like(rot)                                               # (F, J, 3, 3)
+    for k, p in enumerate(parents):
+        if p >= 0:
+            a[:, k] = rot[:, p] - rot[:, k]
+    pred = lbs(traj.rest, weights, rot, tr)
+    res = traj.frames - pred                                             # (F, V, 3)
+    rhs_vec = np.einsum("vj,fva->fja", omega, res)                       # (F, J, 3)
+    ata = np.einsum("fjab,fkac->jkbc", a, a)                             # sum_t A_j^T A_k
+    lhs = (big[:, :, None, None] * ata).transpose(0, 2, 1, 3).reshape(3 * j, 3 * j)
+    rhs = np.einsum("fjab,fja->jb", a, rhs_vec).ravel()
+    keep = np.repeat([p >= 0 for p in parents], 3)
+    lhs, rhs = lhs[np.ix_(keep, keep)], rhs[keep]
+    lam = reg * max(float(np.trace(lhs)) / max(len(rhs), 1), 1e-30)
+    dc = np.zeros(3 * j)
+    dc[keep] = np.linalg.solve(lhs + lam * np.eye(len(rhs)), rhs)
+    joints = joints + dc.reshape(j, 3)
+    rot, tr = constrain(rot, tr, joints, parents)
+    return joints, rot, tr
+
+
+def fit_rest(traj: Trajectories, weights, rot, tr, anchor: np.ndarray, reg: float = 1e-6) -> np.ndarray:
+    """Rest positions that the skinned motion fits best, weights and bone motions fixed: per vertex
+    min_u sum_t |A_t u + b_t - q_t|^2 + reg * F |u - anchor|^2, with A_t = sum_j w_j R_tj and
+    b_t = sum_j w_j t_tj (a 3x3 system). A posed frame used as the rest shape is not exactly an LBS rest
+    shape where bones blend; this removes that error (Dem Bones keeps the given rest shape)."""
+    a = np.einsum("vj,fjab->vfab", weights, rot, optimize=True)            # (V, F, 3, 3)
+    b = np.einsum("vj,fja->vfa", weights, tr, optimize=True)                # (V, F, 3)
+    q = traj.frames.transpose(1, 0, 2)                                      # (V, F, 3)
+    f = traj.count
+    lhs = np.einsum("vfab,vfac->vbc", a, a) + reg * f * np.eye(3)
+    rhs = np.einsum("vfab,vfa->vb", a, q - b) + reg * f * anchor
+    return np.linalg.solve(lhs, rhs[..., None])[..., 0]
 
 
 # ---------------------------------------------------------------- bone motions: free (SSDR)
@@ -336,8 +393,11 @@ def fit_poses_free(traj, weights, rot, tr):
 
 # ---------------------------------------------------------------- the whole fit
 def fit_skin(traj: Trajectories, faces: np.ndarray, rig: Rig, *, influences: int = 4, iterations: int = 10,
-             smooth: float = 1e-6, fixed_lengths: bool = True, tol: float = 1e-4, log=None) -> SkinFit:
-    """Alternate the weights and bone-motion steps (module docstring) from the rig's rigid parts."""
+             smooth: float = 1e-6, fixed_lengths: bool = True, pivots: bool = True, rest: bool = True,
+             tol: float = 1e-4, log=None) -> SkinFit:
+    """Alternate the weights and bone-motion steps (module docstring) from the rig's rigid parts; with
+    fixed lengths, ``pivots`` also moves the rest-pose joints (fit_pivots) after each bone-motion step;
+    ``rest`` refits the rest shape (fit_rest) after it."""
     from nodes.common.meshops import vertex_neighbours
 
     joints = np.asarray(rig.joints, np.float64)
@@ -345,10 +405,12 @@ def fit_skin(traj: Trajectories, faces: np.ndarray, rig: Rig, *, influences: int
     j = len(parents)
     _, edges = edge_graph(traj.rest, faces)
     nbr = vertex_neighbours(faces, len(traj.rest))
-    cand = _candidates(rig.labels, edges, parents, j)[rig.labels]
+    diag = float(np.linalg.norm(np.ptp(traj.rest, axis=0)))
+    cand = candidates(traj.rest, rig.labels, edges, parents, j, 0.03 * diag)
     weights = np.zeros((len(traj.rest), j))
     weights[np.arange(len(traj.rest)), rig.labels] = 1.0
     rot, tr = rig.rotations.copy(), rig.translations.copy()
+    anchor = traj.rest
     if fixed_lengths:
         rot, tr = constrain(rot, tr, joints, parents)
         rot, tr = fit_poses_fixed(traj, weights, rot, tr, joints, parents, influences, steps=4)
@@ -358,8 +420,12 @@ def fit_skin(traj: Trajectories, faces: np.ndarray, rig: Rig, *, influences: int
         weights = fit_weights(traj, rot, tr, cand, weights, nbr, influences=influences, smooth=smooth)
         if fixed_lengths:
             rot, tr = fit_poses_fixed(traj, weights, rot, tr, joints, parents, influences)
+            if pivots:
+                joints, rot, tr = fit_pivots(traj, weights, rot, tr, joints, parents)
         else:
             rot, tr = fit_poses_free(traj, weights, rot, tr)
+        if rest:
+            traj = traj.with_rest(fit_rest(traj, weights, rot, tr, anchor))
         rmse, _ = errors(traj, weights, rot, tr)
         total = float(np.sqrt((rmse ** 2).mean()))
         history.append(total)
@@ -369,4 +435,4 @@ def fit_skin(traj: Trajectories, faces: np.ndarray, rig: Rig, *, influences: int
             break
         prev = total
     rmse, mx = errors(traj, weights, rot, tr)
-    return SkinFit(weights, rot, tr, joints, parents, rmse, mx, history)
+    return SkinFit(traj.rest, weights, rot, tr, joints, parents, rmse, mx, history)
