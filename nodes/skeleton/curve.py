@@ -2,7 +2,8 @@
 
 The centre lines are found the way TEASAR does (Sato et al. 2000; what kimimaro implements): a distance
 field to the boundary (DBF, scipy's exact EDT) makes paths near the surface expensive, and from a root at
-one extremity the cheapest paths through the solid run along its middle. The voxel farthest from the root
+one extremity (the end of its longest extent) the cheapest paths through the solid run along its middle.
+The voxel farthest from the root
 (plain geodesic distance) is joined to the root along that cheap path, every voxel within ``scale`` local
 radii (+ ``const`` voxels) of the path is marked as explained, and the next farthest voxel not yet
 explained is joined to the skeleton built so far, until none is left. The union of the paths is a tree.
@@ -110,28 +111,27 @@ def _largest_component(occ: np.ndarray) -> np.ndarray:
 def _voxel_edges(occ: np.ndarray, spacing: np.ndarray):
     """26-neighbour edges between inside voxels, each once: (a, b, length), indices into
     ``np.flatnonzero(occ)``; and the voxels' (i, j, k)."""
-    shape = np.array(occ.shape)
-    flat = np.flatnonzero(occ.ravel())
-    index = np.full(occ.size, -1, np.int64)
-    index[flat] = np.arange(len(flat))
-    ijk = np.stack(np.unravel_index(flat, occ.shape), axis=1)
+    padded = np.pad(occ, 1)
+    shape = np.array(padded.shape)
+    strides = np.array([shape[1] * shape[2], shape[2], 1])
+    pflat = np.flatnonzero(padded.ravel())
+    index = np.full(padded.size, -1, np.int64)
+    index[pflat] = np.arange(len(pflat))
     rows, cols, lengths = [], [], []
     for off in _OFFSETS:
-        n = ijk + off
-        ok = np.all((n >= 0) & (n < shape), axis=1)
-        src = np.flatnonzero(ok)
-        dst = index[np.ravel_multi_index(n[ok].T, occ.shape)]
+        dst = index[pflat + off @ strides]
         good = dst >= 0
-        rows.append(src[good])
+        rows.append(np.flatnonzero(good))
         cols.append(dst[good])
         lengths.append(np.full(int(good.sum()), float(np.linalg.norm(off * spacing))))
+    ijk = np.stack(np.unravel_index(pflat, padded.shape), axis=1) - 1
     return np.concatenate(rows), np.concatenate(cols), np.concatenate(lengths), ijk
 
 
 def _graph(a, b, w, n):
     from scipy.sparse import coo_matrix
 
-    return coo_matrix((np.r_[w, w], (np.r_[a, b], np.r_[b, a])), shape=(n, n)).tocsr()
+    return coo_matrix((np.concatenate([w, w]), (np.concatenate([a, b]), np.concatenate([b, a]))), shape=(n, n)).tocsr()
 
 
 def teasar(occ: np.ndarray, origin, voxel, *, scale: float = 1.5, const: float = 2.0,
@@ -142,38 +142,67 @@ def teasar(occ: np.ndarray, origin, voxel, *, scale: float = 1.5, const: float =
     ``pdrf_scale``, ``pdrf_exponent``: the penalty field pdrf_scale * (1 - DBF / max DBF) ** exponent + 1."""
     from scipy import ndimage
     from scipy.sparse.csgraph import dijkstra
-    from scipy.spatial import cKDTree
 
     spacing = np.broadcast_to(np.asarray(voxel, np.float64), (3,)).copy()
     origin = np.asarray(origin, np.float64)
     occ = _largest_component(np.asarray(occ, bool))
     if not occ.any():
         raise ValueError("the volume is empty")
-    padded = np.pad(occ, 1)
-    dbf = ndimage.distance_transform_edt(padded, sampling=spacing)[1:-1, 1:-1, 1:-1]
     flat = np.flatnonzero(occ.ravel())
-    d = dbf.ravel()[flat]
+    padded = np.pad(occ, 1)
+    d = ndimage.distance_transform_edt(padded, sampling=spacing)[1:-1, 1:-1, 1:-1].ravel()[flat]
     cost = pdrf_scale * (1.0 - d / d.max()) ** pdrf_exponent + 1.0
     a, b, w, ijk = _voxel_edges(occ, spacing)
     plain = _graph(a, b, w, len(flat))
-    penal = _graph(a, b, w * 0.5 * (cost[a] + cost[b]), len(flat))
+    penal = plain.copy()                      # same structure, edge length x mean penalty of its ends
+    rows = np.repeat(np.arange(len(flat)), np.diff(penal.indptr))
+    penal.data = penal.data * 0.5 * (cost[rows] + cost[penal.indices])
     pts = origin + (ijk + 0.5) * spacing
     if len(flat) == 1:
         return VoxelSkeleton(pts, np.array([-1]), d)
-    start = int(np.argmax(d))
-    far = dijkstra(plain, indices=start)
-    root = int(np.argmax(np.where(np.isfinite(far), far, -1)))
+    # root: an extremity, the voxel farthest along the solid's longest extent (TEASAR takes the voxel
+    # farthest from an arbitrary one; this one is as good for tracing and needs no search)
+    axis = int(np.argmax(np.ptp(ijk, axis=0) * spacing))
+    root = int(np.argmin(ijk[:, axis]))
     daf = dijkstra(plain, indices=root)
     _, pred = dijkstra(penal, indices=root, return_predecessors=True)
-    tree = cKDTree(pts)
     valid = np.isfinite(daf)
     in_skel = np.zeros(len(flat), bool)
     in_skel[root] = True
     parent = np.full(len(flat), -1, np.int64)
     step = float(spacing.min())
-    explain = lambda ids: tree.query_ball_point(pts[ids], scale * d[ids] + const * step)  # noqa: E731
-    for lst in explain(np.array([root])):
-        valid[lst] = False
+    # balls are stamped into a padded grid: offsets sorted by length, a ball of radius r is a prefix
+    r_max = scale * float(d.max()) + const * step
+    reach = np.ceil(r_max / spacing).astype(np.int64) + 1
+    axes = [np.arange(-k, k + 1) for k in reach]
+    off = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    norm = np.linalg.norm(off * spacing, axis=1)
+    order = np.argsort(norm)
+    norm = norm[order]
+    shape = np.array(occ.shape) + 2 * reach
+    strides = np.array([shape[1] * shape[2], shape[2], 1])
+    off_flat = (off[order] @ strides)
+    explained = np.zeros(int(np.prod(shape)), bool)
+    voxel_flat = (ijk + reach) @ strides
+
+    def explain(ids):
+        """Mark voxels within scale * DBF + const of the path as explained. Balls of path voxels a small
+        fraction of their radius apart nearly coincide: every ball is represented by one of them, enlarged
+        by the gap (so nothing a full ball set would mark is missed; at most a gap more is)."""
+        radius = scale * d[ids] + const * step
+        keep, i = [], 0
+        while i < len(ids):
+            keep.append(i)
+            i += max(1, int(0.2 * radius[i] / step))
+        keep = np.array(keep)
+        gap = np.diff(np.r_[keep, len(ids) - 1]) * step * np.sqrt(3)
+        counts = np.searchsorted(norm, np.minimum(radius[keep] + gap, r_max), side="right")
+        centres = np.repeat(voxel_flat[ids[keep]], counts)
+        within = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+        explained[centres + off_flat[within]] = True
+        valid[explained[voxel_flat]] = False
+
+    explain(np.array([root]))
     while valid.any():
         target = int(np.argmax(np.where(valid, daf, -1.0)))
         path = [target]
@@ -188,8 +217,7 @@ def teasar(occ: np.ndarray, origin, voxel, *, scale: float = 1.5, const: float =
         ids = np.array(path)
         in_skel[ids] = True
         valid[ids] = False
-        for lst in explain(ids):
-            valid[lst] = False
+        explain(ids)
     keep = np.flatnonzero(in_skel)
     remap = np.full(len(flat), -1, np.int64)
     remap[keep] = np.arange(len(keep))

@@ -318,12 +318,14 @@ def fit_poses_fixed(traj, weights, rot, tr, joints, parents, influences, steps: 
     return constrain(rot, tr, joints, parents)
 
 
-def fit_pivots(traj, weights, rot, tr, joints, parents, reg: float = 1e-6):
+def fit_pivots(traj, weights, rot, tr, joints, parents, anchor, reg: float = 1e-3):
     """Rest-pose joint pivots that lower the error with rotations and weights fixed (bone lengths stay fixed
     over frames; only the rest skeleton changes). Moving pivot c_j by dc moves bone j and its whole
     subtree by (R_parent - R_j) dc at each frame, so the update is one linear least-squares problem in
     3 (J - 1) unknowns: (sum_t A_jt^T Omega_jk A_kt) dc = sum_t A_jt^T (omega^T r_t)_j with A_jt =
-    R_parent,t - R_j,t, omega = W D (subtree weight sums), Omega = omega^T omega. The root pivot stays."""
+    R_parent,t - R_j,t, omega = W D (subtree weight sums), Omega = omega^T omega. The root pivot stays.
+    Along directions the motion leaves open (a hinge's axis) a Tikhonov term, ``reg`` x the largest
+    eigenvalue of the joint's block, keeps each pivot near ``anchor`` (skeletonize.sequence's joints)."""
     j = len(parents)
     omega = weights @ subtree_matrix(parents)                            # (V, J)
     big = omega.T @ omega                                                # (J, J)
@@ -337,12 +339,22 @@ def fit_pivots(traj, weights, rot, tr, joints, parents, reg: float = 1e-6):
     ata = np.einsum("fjab,fkac->jkbc", a, a)                             # sum_t A_j^T A_k
     lhs = (big[:, :, None, None] * ata).transpose(0, 2, 1, 3).reshape(3 * j, 3 * j)
     rhs = np.einsum("fjab,fja->jb", a, rhs_vec).ravel()
+    basis = []
+    for k in range(j):
+        block = lhs[3 * k:3 * k + 3, 3 * k:3 * k + 3]
+        ev, vec = np.linalg.eigh(block)
+        lam = reg * max(float(ev[-1]), 1e-30)
+        lhs[3 * k:3 * k + 3, 3 * k:3 * k + 3] += lam * np.eye(3)
+        rhs[3 * k:3 * k + 3] += lam * (anchor[k] - joints[k])
+        basis.append(vec[:, ev > 0.01 * max(float(ev[-1]), 1e-30)])   # directions the motion determines
     keep = np.repeat([p >= 0 for p in parents], 3)
     lhs, rhs = lhs[np.ix_(keep, keep)], rhs[keep]
-    lam = reg * max(float(np.trace(lhs)) / max(len(rhs), 1), 1e-30)
     dc = np.zeros(3 * j)
-    dc[keep] = np.linalg.solve(lhs + lam * np.eye(len(rhs)), rhs)
-    joints = joints + dc.reshape(j, 3)
+    dc[keep] = np.linalg.solve(lhs, rhs)
+    dc = dc.reshape(j, 3)
+    for k in range(j):  # no move along a hinge's axis (or any direction the data leave open)
+        dc[k] = basis[k] @ (basis[k].T @ dc[k])
+    joints = joints + dc
     rot, tr = constrain(rot, tr, joints, parents)
     return joints, rot, tr
 
@@ -421,7 +433,7 @@ def fit_skin(traj: Trajectories, faces: np.ndarray, rig: Rig, *, influences: int
         if fixed_lengths:
             rot, tr = fit_poses_fixed(traj, weights, rot, tr, joints, parents, influences)
             if pivots:
-                joints, rot, tr = fit_pivots(traj, weights, rot, tr, joints, parents)
+                joints, rot, tr = fit_pivots(traj, weights, rot, tr, joints, parents, rig.joints)
         else:
             rot, tr = fit_poses_free(traj, weights, rot, tr)
         if rest:
