@@ -402,8 +402,8 @@ def joint_tree(sk: VoxelSkeleton, *, prune: float = 2.0, prune_min: float = 0.0,
 
 def name_joints(sk: CurveSkeleton, up=(0.0, 0.0, 1.0)) -> list[str]:
     """Joint names: "root", "joint_K" inside; extremities "end_K", or for exactly five of them (a person)
-    "head" (the highest along ``up`` of the three that are not the two lowest), "foot_0/1" (the two lowest)
-    and "hand_0/1"."""
+    "foot_0/1" (the two lowest along ``up``), "head" (of the other three, the nearest to the root along the
+    tree: arms are longer than the neck, and a raised hand can be higher than the head) and "hand_0/1"."""
     names = ["root" if p < 0 else f"joint_{j}" for j, p in enumerate(sk.parents)]
     leaves = sk.leaves
     for k, j in enumerate(leaves):
@@ -414,7 +414,15 @@ def name_joints(sk: CurveSkeleton, up=(0.0, 0.0, 1.0)) -> list[str]:
         h = sk.joints[leaves] @ u
         order = [leaves[i] for i in np.argsort(h)]
         feet, rest = order[:2], order[2:]
-        head = max(rest, key=lambda j: sk.joints[j] @ u)
+
+        def reach(j):
+            length = 0.0
+            while sk.parents[j] >= 0:
+                length += float(np.linalg.norm(sk.joints[j] - sk.joints[sk.parents[j]]))
+                j = sk.parents[j]
+            return length
+
+        head = min(rest, key=reach)
         hands = [j for j in rest if j != head]
         names[head] = "head"
         for k, j in enumerate(feet):

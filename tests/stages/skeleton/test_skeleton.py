@@ -265,3 +265,41 @@ def test_figure_sequence_joints_and_error():
             joint = a if scenes.PARENTS[a] == b else b
             assert scenes.PARENTS[a] == b or scenes.PARENTS[b] == a
             assert np.linalg.norm(fit.joints[j] - true[joint]) < 2 * voxel, scenes.NAMES[joint]
+
+
+# ---------------------------------------------------------------- real data
+@pytest.mark.realdata
+@pytest.mark.parametrize("name", ["thu_wd_human", "inria_dancer"])
+def test_real_person_has_head_hands_feet_where_the_images_show_them(dataset_run, name):
+    """graphs/skeleton/NAME.yaml on frame 0: five extremities; each projects onto the silhouette (within
+    6 pixels) in every camera that sees it; along the graph's world up, the feet are in the lowest 15 % of
+    the person's height and the head in the top 25 % (named by reach, not height: a raised hand may be
+    higher). The pictures: docs/skeleton_NAME.png."""
+    from pathlib import Path
+
+    from nodegraph.graphfile import load_graph
+    from scipy import ndimage
+
+    graph = Path(__file__).resolve().parents[3] / "graphs" / "skeleton" / f"{name}.yaml"
+    res = dataset_run(graph)
+    sk = dataset_run.output(res, "skeleton", "skeleton")
+    rep = dataset_run.output(res, "skeleton", "report")
+    mesh = dataset_run.output(res, "relax", "mesh")
+    masks = dataset_run.output(res, "capture", "masks")
+    cams = dataset_run.output(res, "capture", "cameras")
+    assert sorted(rep["names"]) == ["foot_0", "foot_1", "hand_0", "hand_1", "head"]
+    ends = {n: sk.joints[sk.names.index(n)] for n in rep["names"]}
+    up = np.array(load_graph(graph).nodes["skeleton"].params["up"], float)
+    up /= np.linalg.norm(up)
+    h = np.asarray(mesh.vertices) @ up
+    rel = {n: (p @ up - h.min()) / np.ptp(h) for n, p in ends.items()}
+    assert rel["head"] > 0.75 and rel["foot_0"] < 0.15 and rel["foot_1"] < 0.15, rel
+    seen = 0
+    for v, m in enumerate(masks.masks):
+        near = ndimage.binary_dilation(m > 127, iterations=6)
+        uv, depth = cams.project(np.array(list(ends.values())), v)
+        px = np.round(uv).astype(int)
+        ok = (px[:, 0] >= 0) & (px[:, 1] >= 0) & (px[:, 0] < m.shape[1]) & (px[:, 1] < m.shape[0]) & (depth > 0)
+        assert near[px[ok, 1], px[ok, 0]].all(), f"view {v}: an extremity off the silhouette"
+        seen += int(ok.sum())
+    assert seen >= 5 * len(masks.masks) - 5
