@@ -97,3 +97,20 @@ def largest_component(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarr
     used[faces[keep].ravel()] = True
     remap = np.cumsum(used) - 1
     return vertices[used], remap[faces[keep]]
+
+
+def carried_vertex_colors(mesh, vertices: np.ndarray) -> np.ndarray | None:
+    """Vertex colours of ``mesh`` (None when it has none) for a mesh made from it whose first len(mesh.vertices)
+    vertices are the same vertices (moved or not) and whose further vertices are new (edge splits): those take
+    the colour of the nearest original vertex."""
+    if getattr(mesh.visual, "kind", None) != "vertex" or len(mesh.vertices) == 0:
+        return None
+    old = np.asarray(mesh.visual.vertex_colors)
+    n = len(old)
+    vertices = np.asarray(vertices, np.float64)
+    if len(vertices) <= n:
+        return old[: len(vertices)]
+    from scipy.spatial import cKDTree
+
+    _, nearest = cKDTree(np.asarray(mesh.vertices)).query(vertices[n:])
+    return np.vstack([old, old[nearest]])

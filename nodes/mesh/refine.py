@@ -30,7 +30,7 @@ import trimesh
 from kernels import source
 from nodegraph import Node, Param
 from nodes.common.cameras import Cameras
-from nodes.common.meshops import split_edges, unique_edges
+from nodes.common.meshops import carried_vertex_colors, split_edges, unique_edges
 from nodes.common.silhouettes import OUTLINES, POLICIES, Silhouettes, hull_test
 from nodes.common.types import CameraSet, Masks, Mesh, Volume
 
@@ -182,4 +182,5 @@ class Refine(Node):
         vertices, faces = split_towards_hull(vertices, faces, test, cameras, reach, split_px, split_rounds, steps)
         self.log.info("refine: %d of %d vertices onto the hull along grid edges, %d along normals; %d vertices after "
                       "splits", on_edge, len(mesh.vertices), on_normal, len(vertices))
-        return {"mesh": trimesh.Trimesh(vertices, faces, process=False)}
+        return {"mesh": trimesh.Trimesh(vertices, faces, vertex_colors=carried_vertex_colors(mesh, vertices),
+                                        process=False)}

@@ -21,7 +21,7 @@ import trimesh
 
 from kernels import source
 from nodegraph import Input, Node, NodeError, Param
-from nodes.common.meshops import vertex_neighbours
+from nodes.common.meshops import carried_vertex_colors, vertex_neighbours
 from nodes.common.silhouettes import POLICIES, Silhouettes, hull_test
 from nodes.common.types import CameraSet, Masks, Mesh
 
@@ -138,4 +138,5 @@ class Relax(Node):
             views = Silhouettes.from_inputs(masks, cameras, min_views, outside, use_alpha, node="relax")
             views = views.distance_outline(outline_sigma)
         out = relax_vertices(mesh, iterations, lam, mu, views, steps, method)
-        return {"mesh": trimesh.Trimesh(out.astype(np.float64), np.asarray(mesh.faces), process=False)}
+        return {"mesh": trimesh.Trimesh(out.astype(np.float64), np.asarray(mesh.faces),
+                                        vertex_colors=carried_vertex_colors(mesh, out), process=False)}
