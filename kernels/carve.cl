@@ -29,6 +29,7 @@
 #define SAMPLES 8      // at most SAMPLES x SAMPLES pixels sampled per voxel and view (strided when larger)
 #define PROTECTED 2     // occ bit 1: a silhouette needs this voxel (it is never tested again)
 #define BACK_FACING -0.5f   // item buffers skip views more than 120 degrees from a voxel's normal
+#define GUARD_OFFSET 0.4f  // the silhouette guard's rays pass the voxel centre and points this far off it (voxels)
 #define SPACE_RGB 0
 #define SPACE_LAB 1
 
@@ -319,9 +320,35 @@ __kernel void carve_test(__global const uint* list, int first, int count, int ax
     }
 }
 
-// Whether removing voxel (i, j, k) would leave the ray of some view through its centre without an occupied
-// voxel while that view's silhouette holds the centre. The ray is walked both ways from the centre in steps
-// of half a voxel along its major axis until it leaves the grid.
+// Whether removing voxel (i, j, k) would leave a viewing ray without an occupied voxel while that view's
+// silhouette holds the ray's pixel: the rays through the centre and through the six points GUARD_OFFSET of a
+// voxel from it along the axes (so rim voxels whose outer part alone covers the silhouette's edge stay). A ray
+// is walked both ways from its point in steps of half a voxel along its major axis until it leaves the grid.
+inline int ray_needs(__global const uchar* occ, __global const int* stamp, int step, int i, int j, int k, int nx,
+                     int ny, int nz, float4 vs, float3 X, __global const float* cam, float4 C, int pix_off,
+                     __global const uchar4* images, int limit)
+{
+    float depth;
+    float2 p = project_point(cam, X, &depth);
+    float fu = p.x + 0.5f, fv = p.y + 0.5f;
+    if (!(depth > 0.0f && fu >= 0.0f && fu < cam[22] && fv >= 0.0f && fv < cam[23])) return 0;
+    if (images[pix_off + (int)fv * (int)cam[22] + (int)fu].w <= 127) return 0;   // the vote's "inside" test
+    float3 d = X - C.xyz;
+    float dt = (0.5f * fmin(fmin(vs.x, vs.y), vs.z)) / fmax(fmax(fabs(d.x), fabs(d.y)), fabs(d.z));
+    if (!isfinite(dt)) return 0;
+    for (int dir = 1; dir >= -1; dir -= 2) {   // away from the camera first
+        for (int n = 1; n <= limit; n++) {
+            float tn = (float)(dir * n) * dt;
+            float3 P = X + tn * d;
+            int a = (int)floor(P.x / vs.x), b = (int)floor(P.y / vs.y), e = (int)floor(P.z / vs.z);
+            if (a < 0 || b < 0 || e < 0 || a >= nx || b >= ny || e >= nz) break;
+            if (a == i && b == j && e == k) continue;
+            if (staying(occ, stamp, step, a, b, e, nx, ny, nz)) return 0;
+        }
+    }
+    return 1;
+}
+
 inline int last_on_a_ray(__global const uchar* occ, __global const int* stamp, int step, int i, int j, int k, int nx,
                          int ny, int nz, float4 vs, float3 X, __global const float* cams, __global const float4* centres,
                          int nviews, __global const int* pix_off, __global const uchar4* images)
@@ -329,30 +356,15 @@ inline int last_on_a_ray(__global const uchar* occ, __global const int* stamp, i
     int limit = 2 * (nx + ny + nz) + 4;
     for (int c = 0; c < nviews; c++) {
         __global const float* cam = cams + CAM_FLOATS * c;
-        float depth;
-        float2 p = project_point(cam, X, &depth);
-        float fu = p.x + 0.5f, fv = p.y + 0.5f;
-        if (!(depth > 0.0f && fu >= 0.0f && fu < cam[22] && fv >= 0.0f && fv < cam[23])) continue;
-        int W = (int)cam[22];
-        if (images[pix_off[c] + (int)fv * W + (int)fu].w <= 127) continue;   // the vote's "inside" test
-        float3 d = X - centres[c].xyz;
-        float dt = (0.5f * fmin(fmin(vs.x, vs.y), vs.z)) / fmax(fmax(fabs(d.x), fabs(d.y)), fabs(d.z));
-        if (!isfinite(dt)) continue;
-        int covered = 0;
-        for (int dir = 1; dir >= -1 && !covered; dir -= 2) {   // away from the camera first
-            for (int n = 1; n <= limit; n++) {
-                float tn = (float)(dir * n) * dt;
-                float3 P = X + tn * d;
-                int a = (int)floor(P.x / vs.x), b = (int)floor(P.y / vs.y), e = (int)floor(P.z / vs.z);
-                if (a < 0 || b < 0 || e < 0 || a >= nx || b >= ny || e >= nz) break;
-                if (a == i && b == j && e == k) continue;
-                if (staying(occ, stamp, step, a, b, e, nx, ny, nz)) {
-                    covered = 1;
-                    break;
-                }
-            }
+        for (int q = 0; q < 7; q++) {
+            float3 P = X;
+            float o = (q & 1) ? -GUARD_OFFSET : GUARD_OFFSET;
+            if (q == 1 || q == 2) P.x = X.x + o * vs.x;
+            if (q == 3 || q == 4) P.y = X.y + o * vs.y;
+            if (q == 5 || q == 6) P.z = X.z + o * vs.z;
+            if (ray_needs(occ, stamp, step, i, j, k, nx, ny, nz, vs, P, cam, centres[c], pix_off[c], images, limit))
+                return 1;
         }
-        if (!covered) return 1;
     }
     return 0;
 }

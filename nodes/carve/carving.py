@@ -126,27 +126,34 @@ def _grouped(i, j, k, plane, n, shape) -> tuple[np.ndarray, np.ndarray]:
     return flat, offsets
 
 
-def layer_list(occ: np.ndarray, vs: np.ndarray, centres: np.ndarray, node: str = "carve.voxel_coloring"):
-    """Voxel colouring's layers: occupied voxels sorted by g(X) // min(vs), where g is the largest signed
-    distance to the facet planes of the convex hull of the camera centres (convex, <= 0 on the cameras, so it
-    grows along every viewing ray once outside). A NodeError when a voxel is not outside that hull."""
+def hull_distance(X: np.ndarray, centres: np.ndarray, vs, shape, node: str = "carve.voxel_coloring") -> np.ndarray:
+    """g(X) for points (N, 3): the largest signed distance to the facet planes of the convex hull of the camera
+    centres. g is convex and <= 0 at every camera, so along any ray from a camera it grows once it is positive:
+    a near-to-far order for every camera at once (Seitz & Dyer's ordinal visibility) where g > 0."""
     from scipy.spatial import ConvexHull, QhullError
 
     C = np.asarray(centres, np.float64)[:, :3]
-    scale = max(float(np.ptp(C, axis=0).max()), float(np.max(vs)) * max(occ.shape))
-    # a tiny tetrahedron at each camera makes the hull of a ring or a single camera three-dimensional
+    scale = max(float(np.ptp(C, axis=0).max()), float(np.max(vs)) * max(shape))
+    # a tiny tetrahedron at each camera makes the hull of a ring or of a single camera three-dimensional
     tet = scale * 1e-6 * np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], np.float64)
     pts = (C[:, None, :] + tet[None]).reshape(-1, 3)
     try:
         eq = ConvexHull(pts, qhull_options="QJ").equations
     except QhullError as exc:
         raise NodeError(f"{node}: no convex hull of the camera centres ({str(exc).splitlines()[0]})") from None
-    flat = np.flatnonzero(occ)
-    ijk = np.stack(np.unravel_index(flat, occ.shape), axis=1)
-    X = (ijk + 0.5) * vs.astype(np.float64)
+    X = np.asarray(X, np.float64)
     g = np.full(len(X), -np.inf)
     for n0, n1, n2, off in eq:
         g = np.maximum(g, X[:, 0] * n0 + X[:, 1] * n1 + X[:, 2] * n2 + off)
+    return g
+
+
+def layer_list(occ: np.ndarray, vs: np.ndarray, centres: np.ndarray, node: str = "carve.voxel_coloring"):
+    """Voxel colouring's layers: occupied voxels sorted by hull_distance(centre) // min(vs) (indices, offsets per
+    layer). A NodeError when a voxel is not outside the cameras' convex hull by half a voxel."""
+    flat = np.flatnonzero(occ)
+    X = (np.stack(np.unravel_index(flat, occ.shape), axis=1) + 0.5) * vs.astype(np.float64)
+    g = hull_distance(X, centres, vs, occ.shape, node)
     inside = g <= 0.5 * float(np.min(vs))
     if inside.any():
         raise NodeError(f"{node}: {int(inside.sum())} of {len(X)} voxels lie inside (or within half a voxel of) the "
@@ -154,7 +161,7 @@ def layer_list(occ: np.ndarray, vs: np.ndarray, centres: np.ndarray, node: str =
                         "& Dyer's ordinal visibility constraint); use carve.space_carving for cameras around the object")
     layer = np.floor(g / float(np.min(vs))).astype(np.int64)
     layer -= layer.min()
-    order = np.argsort(layer, kind="stable")
+    order = np.argsort(g, kind="stable")
     offsets = np.concatenate([[0], np.cumsum(np.bincount(layer, minlength=int(layer.max()) + 1))]).astype(np.int64)
     return flat[order].astype(np.uint32), offsets
 

@@ -15,6 +15,7 @@ SAMPLES = 8
 EMPTY = np.uint64(0xFFFFFFFFFFFFFFFF)
 PROTECTED = 2
 BACK_FACING = -0.5
+GUARD_OFFSET = f32(0.4)
 
 
 class CarveNumPy:
@@ -275,46 +276,56 @@ class CarveNumPy:
         bad = (views >= self.p.min_views) & (views >= 2) & (var > limit * limit)
         self.stamp[v[bad]] = step
 
+    def ray_needs(self, ijk, X, c, step, limit) -> np.ndarray:
+        """Kernel ``ray_needs`` for the rays from view c through the points X of voxels ijk."""
+        cam = self.views.cams[c]
+        vs = self.vs
+        u, w, _ = project_packed_f32(cam, X)
+        zc = ((cam[8] * X[:, 0] + cam[9] * X[:, 1]) + cam[10] * X[:, 2]) + cam[11]
+        with np.errstate(invalid="ignore"):
+            fu, fv = u + f32(0.5), w + f32(0.5)
+            seen = (zc * cam[24] > 0) & (fu >= 0) & (fu < cam[22]) & (fv >= 0) & (fv < cam[23])
+        pix = np.zeros(len(X), np.int64)
+        pix[seen] = fv[seen].astype(np.int64) * int(cam[22]) + fu[seen].astype(np.int64)
+        seen[seen] = self.inside[c][pix[seen]]
+        d = (X - self.views.centres[c, :3]).astype(f32)
+        vmin = f32(0.5) * min(vs[0], vs[1], vs[2])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            dt = vmin / np.maximum(np.maximum(np.abs(d[:, 0]), np.abs(d[:, 1])), np.abs(d[:, 2]))
+        seen &= np.isfinite(dt)
+        covered = np.zeros(len(X), bool)
+        for direction in (1, -1):
+            walking = seen & ~covered
+            for n in range(1, limit + 1):
+                if not walking.any():
+                    break
+                idx = np.flatnonzero(walking)
+                tn = f32(direction * n) * dt[idx]
+                P = X[idx] + tn[:, None] * d[idx]
+                q = np.floor(P / vs).astype(np.int64)
+                out = np.any((q < 0) | (q >= np.array(self.dims)), axis=1)
+                walking[idx[out]] = False
+                idx, q = idx[~out], q[~out]
+                same = np.all(q == ijk[idx], axis=1)
+                idx, q = idx[~same], q[~same]
+                hit = self.staying(q, step)
+                covered[idx[hit]] = True
+                walking[idx[hit]] = False
+        return seen & ~covered
+
     def last_on_a_ray(self, v, ijk, X, step) -> np.ndarray:
         """Per candidate: True when some view needs it (kernel ``last_on_a_ray``)."""
         nx, ny, nz = self.dims
-        vs = self.vs
         limit = 2 * (nx + ny + nz) + 4
         needed = np.zeros(len(v), bool)
-        vmin = f32(0.5) * min(vs[0], vs[1], vs[2])
         for c in range(len(self.px)):
-            cam = self.views.cams[c]
-            u, w, front = project_packed_f32(cam, X)
-            zc = ((cam[8] * X[:, 0] + cam[9] * X[:, 1]) + cam[10] * X[:, 2]) + cam[11]
-            with np.errstate(invalid="ignore"):
-                fu, fv = u + f32(0.5), w + f32(0.5)
-                seen = (zc * cam[24] > 0) & (fu >= 0) & (fu < cam[22]) & (fv >= 0) & (fv < cam[23])
-            pix = np.zeros(len(v), np.int64)
-            pix[seen] = fv[seen].astype(np.int64) * int(cam[22]) + fu[seen].astype(np.int64)
-            seen[seen] = self.inside[c][pix[seen]]
-            d = (X - self.views.centres[c, :3]).astype(f32)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                dt = vmin / np.maximum(np.maximum(np.abs(d[:, 0]), np.abs(d[:, 1])), np.abs(d[:, 2]))
-            seen &= np.isfinite(dt)
-            covered = np.zeros(len(v), bool)
-            for direction in (1, -1):
-                walking = seen & ~covered
-                for n in range(1, limit + 1):
-                    if not walking.any():
-                        break
-                    idx = np.flatnonzero(walking)
-                    tn = f32(direction * n) * dt[idx]
-                    P = X[idx] + tn[:, None] * d[idx]
-                    q = np.floor(P / vs).astype(np.int64)
-                    out = np.any((q < 0) | (q >= np.array(self.dims)), axis=1)
-                    walking[idx[out]] = False
-                    idx, q = idx[~out], q[~out]
-                    same = np.all(q == ijk[idx], axis=1)
-                    idx, q = idx[~same], q[~same]
-                    hit = self.staying(q, step)
-                    covered[idx[hit]] = True
-                    walking[idx[hit]] = False
-            needed |= seen & ~covered
+            for q in range(7):
+                P = X.copy()
+                if q:
+                    a = (q - 1) // 2
+                    o = -GUARD_OFFSET if q & 1 else GUARD_OFFSET
+                    P[:, a] = X[:, a] + o * self.vs[a]
+                needed |= self.ray_needs(ijk, P, c, step, limit)
         return needed
 
     def commit(self, name, first, count, axis, plane, sign, do_marks, step):
