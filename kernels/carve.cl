@@ -20,7 +20,9 @@
 //                 some view whose silhouette holds that centre (never carve through a silhouette); kept
 //                 surface voxels then mark their footprints in the views of the step (sweeps and layers).
 // Candidates of the same step never count as cover for each other, so the result does not depend on the
-// order in which work items run.
+// order in which work items run. An item pass may be incremental: a voxel removed by an item pass gives back its
+// pixels in the item buffers and flags its neighbours; carve_compact lists the flagged surface voxels, and the
+// next pass splats and tests only those (a full pass, rebuilding the buffers, confirms convergence).
 #pragma OPENCL FP_CONTRACT OFF
 #pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable
 #pragma OPENCL EXTENSION cl_khr_int64_extended_atomics : enable
@@ -320,6 +322,21 @@ __kernel void carve_test(__global const uint* list, int first, int count, int ax
     }
 }
 
+// The flagged voxels of the list that are occupied surface voxels, appended to `out` (in no particular order:
+// what follows does not depend on it); flags cleared.
+__kernel void carve_compact(__global const uint* list, int count, __global const uchar* occ, __global uchar* fresh,
+                            int nx, int ny, int nz, __global uint* out, __global int* counter)
+{
+    int t = get_global_id(0);
+    if (t >= count) return;
+    uint v = list[t];
+    if (!fresh[v]) return;
+    fresh[v] = 0;
+    if (!(occ[v] & 1)) return;
+    int k = v % nz, j = (v / nz) % ny, i = v / (nz * ny);
+    if (surface(occ, i, j, k, nx, ny, nz)) out[atomic_inc(counter)] = v;
+}
+
 // Whether removing voxel (i, j, k) would leave a viewing ray without an occupied voxel while that view's
 // silhouette holds the ray's pixel: the rays through the centre and through the six points GUARD_OFFSET of a
 // voxel from it along the axes (so rim voxels whose outer part alone covers the silhouette's edge stay). A ray
@@ -375,7 +392,7 @@ __kernel void carve_commit(__global const uint* list, int first, int count, int 
                            int do_marks, __global uchar* occ, __global const int* stamp, int step, int nx, int ny,
                            int nz, float4 vs, __global const float* cams, __global const float4* centres, int nviews,
                            __global const int* pix_off, __global const uchar4* images, __global uchar* marks,
-                           __global int* removed)
+                           __global int* removed, __global ulong* items, __global uchar* fresh)
 {
     int t = get_global_id(0);
     if (t >= count) return;
@@ -389,6 +406,24 @@ __kernel void carve_commit(__global const uint* list, int first, int count, int 
         } else {
             occ[v] = 0;
             atomic_inc(removed);
+            if (axis < 0 && !do_marks) {
+                // item pass: give back the pixels this voxel held in the item buffers, and flag its neighbours
+                // (now possibly surface) for the next incremental pass
+                for (int c = 0; c < nviews; c++) {
+                    __global const float* cam = cams + CAM_FLOATS * c;
+                    footprint_t f;
+                    if (!footprint(cam, X, vs, 1.0f, &f)) continue;
+                    int W = (int)cam[22];
+                    for (int y = f.r.z; y <= f.r.w; y++)
+                        for (int x = f.r.x; x <= f.r.y; x++) {
+                            int p = pix_off[c] + y * W + x;
+                            if ((uint)(items[p] & 0xFFFFFFFFUL) == v) items[p] = 0xFFFFFFFFFFFFFFFFUL;
+                        }
+                }
+                for (int a = max(i - 1, 0); a <= min(i + 1, nx - 1); a++)
+                    for (int b = max(j - 1, 0); b <= min(j + 1, ny - 1); b++)
+                        for (int e = max(k - 1, 0); e <= min(k + 1, nz - 1); e++) fresh[((size_t)a * ny + b) * nz + e] = 1;
+            }
             return;
         }
     }

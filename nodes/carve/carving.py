@@ -49,7 +49,7 @@ class CarveParams:
     max_angle: float = 70.0      # views seeing a voxel at more than this from its normal are not used (degrees)
     max_passes: int = 50         # space carving: passes of (6 sweeps +) 1 item pass; 0 = colour only
     cone: float = 65.0           # sweeps: a camera tests a voxel when its ray is within this of the sweep axis
-    sweep_fraction: float = 0.01  # sweep again while a pass removes more than this fraction of the surface voxels
+    sweep_fraction: float = 0.25  # sweep again while a pass removes more than this fraction of the surface voxels
 
     @property
     def cos_cone(self) -> float:
@@ -196,7 +196,12 @@ class CarveCL(Runner):
         self.npix = npix
         self.counter = self.buffer("removed", 4)
         cl.enqueue_fill_buffer(self.queue, self.counter, np.int32(0), 0, 4)
+        self.fresh = self.buffer("fresh", nvox)
+        cl.enqueue_fill_buffer(self.queue, self.fresh, np.uint8(0), 0, nvox)
+        self.fresh_counter = self.buffer("fresh_counter", 4)
+        self.nlist = len(grid.lists["x"][0])
         self.lists = {name: self.upload(f"list_{name}", idx) for name, (idx, _) in grid.lists.items()}
+        self.lists["fresh"] = self.buffer("list_fresh", 4 * max(1, len(grid.lists["x"][0])))
         self.dims = tuple(np.int32(d) for d in grid.dims)
 
         self.colors = self.buffer("colors", 4)
@@ -213,7 +218,8 @@ class CarveCL(Runner):
         self.k_commit = self.kernel("carve_commit")
         self.k_commit.set_args(self.lists["x"], np.int32(0), np.int32(0), np.int32(-1), np.float32(0), np.float32(0),
                                np.int32(0), self.occ, self.stamp, np.int32(0), *self.dims, grid.vs4, self.cams,
-                               self.centres, self.nviews, self.pix_off, self.images, self.marks, self.counter)
+                               self.centres, self.nviews, self.pix_off, self.images, self.marks, self.counter,
+                               self.items, self.fresh)
 
     def _step(self, k, name, first, count, axis, plane, sign, flag, step):
         import pyopencl as cl
@@ -256,6 +262,15 @@ class CarveCL(Runner):
     def commit(self, name, first, count, axis, plane, sign, do_marks, step):
         self._step(self.k_commit, name, first, count, axis, plane, sign, do_marks, step)
 
+    def compact(self) -> int:
+        """List the flagged surface voxels (list "fresh"); returns their number."""
+        import pyopencl as cl
+
+        cl.enqueue_fill_buffer(self.queue, self.fresh_counter, np.int32(0), 0, 4)
+        self.launch("carve_compact", self.nlist, self.GROUP, self.lists["x"], np.int32(self.nlist), self.occ, self.fresh,
+                    *self.dims, self.lists["fresh"], self.fresh_counter)
+        return int(self.read(self.fresh_counter, 1, np.int32)[0])
+
     def removed(self) -> int:
         import pyopencl as cl
 
@@ -294,21 +309,32 @@ class Carver:
             self.b.test(name, first, count, axis, plane, sign, 0, self.step)
             self.b.commit(name, first, count, axis, plane, sign, 1, self.step)
 
-    def item_pass(self) -> None:
-        """Every surface voxel tested in every camera, visibility from item buffers of the current surface."""
-        n = len(self.grid.lists["x"][0])
+    def item_pass(self, incremental: bool = False) -> str:
+        """Surface voxels tested in every camera, visibility from item buffers. Full: the buffers are rebuilt
+        from every surface voxel and all are tested. Incremental: only the surface voxels flagged by the last
+        item pass's removals are splatted into the buffers (which gave back the removed voxels' pixels) and
+        tested; none flagged means a full pass. Returns "full" or "incremental"."""
+        n = self.b.compact() if incremental else 0
         self.step += 1
+        if n:
+            self.b.splat("fresh", 0, n)
+            self.b.test("fresh", 0, n, -1, 0.0, 0, 1, self.step)
+            self.b.commit("fresh", 0, n, -1, 0.0, 0, 0, self.step)
+            return "incremental"
+        n = len(self.grid.lists["x"][0])
         self.b.reset_items()
         self.b.splat("x", 0, n)
         self.b.test("x", 0, n, -1, 0.0, 0, 1, self.step)
         self.b.commit("x", 0, n, -1, 0.0, 0, 0, self.step)
+        return "full"
 
     def space_carving(self) -> int:
-        """Passes until one removes nothing: 6 sweeps (while the previous pass removed more than
-        ``sweep_fraction`` of the surface voxels: deep carving) and one item pass (exact visibility, every view).
-        It ends on an item pass that removes nothing: every surface voxel is then photo-consistent in all the
-        views that see it (or protected, or seen in fewer than min_views)."""
-        total, sweeps = 0, True
+        """Passes until a full item pass removes nothing. A pass: 6 sweeps (the first pass, and again while a
+        pass removes more than ``sweep_fraction`` of the surface voxels: they carve deep at once), then one item
+        pass (exact visibility, every view): full after sweeps, else incremental (only what the last removals
+        exposed), full again when nothing is left to test. At the end every surface voxel is photo-consistent
+        in all the views that see it, or protected, or seen in fewer than min_views."""
+        total, sweeps, full = 0, True, True
         surface = max(1, surface_count(self.grid.occ))
         for k in range(self.p.max_passes):
             t = time.perf_counter()
@@ -318,13 +344,14 @@ class Carver:
                     for sign in (1, -1):
                         self.sweep(axis, sign)
                 by_sweeps = self.b.removed()
-            self.item_pass()
+            kind = self.item_pass(incremental=not (sweeps or full))
             by_items = self.b.removed()
             total += by_sweeps + by_items
-            self.log.append({"pass": k + 1, "sweeps": sweeps, "removed": by_sweeps + by_items,
+            self.log.append({"pass": k + 1, "sweeps": sweeps, "items": kind, "removed": by_sweeps + by_items,
                              "seconds": round(time.perf_counter() - t, 4)})
-            if by_items == 0 and (not sweeps or by_sweeps == 0):
+            if kind == "full" and by_items == 0 and by_sweeps == 0:
                 break
+            full = False
             sweeps = by_sweeps + by_items > self.p.sweep_fraction * surface
         return total
 

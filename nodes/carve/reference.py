@@ -31,6 +31,8 @@ class CarveNumPy:
         self.items = [np.full(len(p), EMPTY, np.uint64) for p in self.px]
         self.count = 0
         self.out = None
+        self.fresh = np.zeros(self.occ.size, bool)
+        self.lists = dict(grid.lists)
 
     # ---------------------------------------------------------------- geometry
     def ijk(self, v: np.ndarray) -> np.ndarray:
@@ -194,7 +196,7 @@ class CarveNumPy:
             self.items[c][:] = EMPTY
 
     def _surface_voxels(self, name, first, count):
-        v = self.grid.lists[name][0][first:first + count].astype(np.int64)
+        v = self.lists[name][0][first:first + count].astype(np.int64)
         v = v[(self.occ[v] & 1) > 0]
         ijk = self.ijk(v)
         s = self.surface(ijk, self.occupied)
@@ -211,7 +213,7 @@ class CarveNumPy:
             np.minimum.at(self.items[c], p[keep], key[owner[keep]])
 
     def test(self, name, first, count, axis, plane, sign, use_items, step, write_colors=False):
-        lst = self.grid.lists[name][0][first:first + count].astype(np.int64)
+        lst = self.lists[name][0][first:first + count].astype(np.int64)
         v, ijk = self._surface_voxels(name, first, count)
         if not write_colors:
             fresh = (self.occ[v] & PROTECTED) == 0
@@ -329,7 +331,7 @@ class CarveNumPy:
         return needed
 
     def commit(self, name, first, count, axis, plane, sign, do_marks, step):
-        v = self.grid.lists[name][0][first:first + count].astype(np.int64)
+        v = self.lists[name][0][first:first + count].astype(np.int64)
         v = v[(self.occ[v] & 1) > 0]
         ijk = self.ijk(v)
         X = self.centre(ijk)
@@ -347,9 +349,30 @@ class CarveNumPy:
                     continue
                 _, p, _ = self.pixels(c, Xs, 1.0)
                 self.marks[c][p] = 1
+        if axis < 0 and not do_marks and gone.any():
+            # item pass: give back the removed voxels' pixels, flag their neighbours
+            rv, rX = v[gone], X[gone]
+            for c in range(len(self.px)):
+                owner, p, _ = self.pixels(c, rX, 1.0)
+                mine = (self.items[c][p] & np.uint64(0xFFFFFFFF)) == rv[owner].astype(np.uint64)
+                self.items[c][p[mine]] = EMPTY
+            nb = (ijk[gone][:, None, :] + (np.argwhere(np.ones((3, 3, 3), bool)) - 1)[None]).reshape(-1, 3)
+            nb = nb[np.all((nb >= 0) & (nb < np.array(self.dims)), axis=1)]
+            self.fresh[np.ravel_multi_index(nb.T, self.dims)] = True
         self.occ[v[gone]] = 0
         self.occ[v[cand & ~gone]] = 1 | PROTECTED
         self.count += int(gone.sum())
+
+    def compact(self) -> int:
+        """Kernel ``carve_compact`` over list "x" (in list order: the order does not matter)."""
+        lst = self.lists["x"][0].astype(np.int64)
+        flagged = lst[self.fresh[lst]]
+        self.fresh[flagged] = False
+        flagged = flagged[(self.occ[flagged] & 1) > 0]
+        keep = self.surface(self.ijk(flagged), self.occupied)
+        out = flagged[keep].astype(np.uint32)
+        self.lists["fresh"] = (out, np.array([0, len(out)]))
+        return len(out)
 
     def removed(self) -> int:
         n, self.count = self.count, 0
