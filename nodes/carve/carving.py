@@ -50,6 +50,7 @@ class CarveParams:
     max_passes: int = 50         # space carving: passes of (6 sweeps +) 1 item pass; 0 = colour only
     cone: float = 65.0           # sweeps: a camera tests a voxel when its ray is within this of the sweep axis
     sweep_fraction: float = 0.25  # sweep again while a pass removes more than this fraction of the surface voxels
+    largest: bool = True         # keep only the largest 6-connected part (carving can cut off fragments)
 
     @property
     def cos_cone(self) -> float:
@@ -281,6 +282,11 @@ class CarveCL(Runner):
     def occupancy(self) -> np.ndarray:
         return self.read(self.occ, self.grid.dims, np.uint8) & np.uint8(1)
 
+    def set_occupancy(self, occ: np.ndarray):
+        import pyopencl as cl
+
+        cl.enqueue_copy(self.queue, self.occ, np.ascontiguousarray(occ, np.uint8).ravel(), is_blocking=True)
+
     def colours(self, count) -> tuple[np.ndarray, np.ndarray]:
         return self.read(self.colors, (count, 4), np.uint8), self.read(self.variance, count, np.float32)
 
@@ -382,6 +388,17 @@ class Carver:
         colors.reshape(-1, 3)[idx] = col[:, :3]
         views.reshape(-1)[idx] = col[:, 3]
         return colors, views, var[var >= 0]
+
+
+def largest_part(occ: np.ndarray) -> tuple[np.ndarray, int]:
+    """(occupancy of the largest 6-connected part, number of other parts dropped)."""
+    from scipy import ndimage
+
+    labels, n = ndimage.label(occ)
+    if n <= 1:
+        return occ, 0
+    keep = np.argmax(np.bincount(labels.ravel())[1:]) + 1
+    return (labels == keep).astype(np.uint8), n - 1
 
 
 def surface_count(occ: np.ndarray) -> int:
@@ -500,11 +517,16 @@ def carve(volume: VoxelGrid, images, masks, cameras: Cameras, params: CarveParam
     else:
         removed = carver.space_carving()
     out = backend.occupancy()
+    parts = 0
+    if params.largest and out.any():
+        out, parts = largest_part(out)
+        backend.set_occupancy(out)
     t2 = time.perf_counter()
     colors, seen, var_after = carver.colours()
     colors = fill_colours(out, colors, seen)
     stats = {
         "algorithm": algorithm, "voxels_in": int(occ.sum()), "voxels_out": int(out.sum()), "removed": removed,
+        "fragments_dropped": parts,
         "passes": carver.log, "space": params.space, "threshold": params.threshold,
         "surface_voxels_seen_out": int(len(var_after)),
         "variance_out": float(var_after.mean()) if len(var_after) else 0.0,
