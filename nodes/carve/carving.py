@@ -47,7 +47,7 @@ class CarveParams:
     min_views: int = 2           # a voxel seen in fewer views is kept untested
     footprint: float = 0.7       # sampled part of the voxel's projected half-size
     max_angle: float = 70.0      # views seeing a voxel at more than this from its normal are not used (degrees)
-    max_passes: int = 50         # space carving: passes of (6 sweeps +) 1 item pass; 0 = colour only
+    max_passes: int = 500        # space carving: passes of (6 sweeps +) 1 item pass; 0 = colour only
     cone: float = 65.0           # sweeps: a camera tests a voxel when its ray is within this of the sweep axis
     sweep_fraction: float = 0.25  # sweep again while a pass removes more than this fraction of the surface voxels
     largest: bool = True         # keep only the largest 6-connected part (carving can cut off fragments)
