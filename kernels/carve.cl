@@ -338,9 +338,8 @@ __kernel void carve_compact(__global const uint* list, int count, __global const
 }
 
 // Whether removing voxel (i, j, k) would leave a viewing ray without an occupied voxel while that view's
-// silhouette holds the ray's pixel: the ray through the centre and, where the silhouette's outline crosses the
-// voxel's footprint, the rays through the six points GUARD_OFFSET of a voxel from it along the axes (so rim
-// voxels whose outer part alone covers the silhouette's edge stay). A ray
+// silhouette holds the ray's pixel: the rays through the centre and through the six points GUARD_OFFSET of a
+// voxel from it along the axes (so rim voxels whose outer part alone covers the silhouette's edge stay). A ray
 // is walked both ways from its point in steps of half a voxel along its major axis until it leaves the grid.
 inline int ray_needs(__global const uchar* occ, __global const int* stamp, int step, int i, int j, int k, int nx,
                      int ny, int nz, float4 vs, float3 X, __global const float* cam, float4 C, int pix_off,
@@ -367,18 +366,6 @@ inline int ray_needs(__global const uchar* occ, __global const int* stamp, int s
     return 1;
 }
 
-// Whether the voxel's footprint in a view holds a background pixel (the silhouette's outline runs through it).
-inline int on_outline(__global const float* cam, float3 X, float4 vs, int pix_off, __global const uchar4* images)
-{
-    footprint_t f;
-    if (!footprint(cam, X, vs, 1.0f, &f)) return 0;
-    int W = (int)cam[22];
-    for (int y = f.r.z; y <= f.r.w; y++)
-        for (int x = f.r.x; x <= f.r.y; x++)
-            if (in_footprint(&f, x, y) && images[pix_off + y * W + x].w <= 127) return 1;
-    return 0;
-}
-
 inline int last_on_a_ray(__global const uchar* occ, __global const int* stamp, int step, int i, int j, int k, int nx,
                          int ny, int nz, float4 vs, float3 X, __global const float* cams, __global const float4* centres,
                          int nviews, __global const int* pix_off, __global const uchar4* images)
@@ -386,9 +373,7 @@ inline int last_on_a_ray(__global const uchar* occ, __global const int* stamp, i
     int limit = 2 * (nx + ny + nz) + 4;
     for (int c = 0; c < nviews; c++) {
         __global const float* cam = cams + CAM_FLOATS * c;
-        // the six off-centre rays only where the silhouette's outline crosses the voxel's footprint
-        int rays = on_outline(cam, X, vs, pix_off[c], images) ? 7 : 1;
-        for (int q = 0; q < rays; q++) {
+        for (int q = 0; q < 7; q++) {
             float3 P = X;
             float o = (q & 1) ? -GUARD_OFFSET : GUARD_OFFSET;
             if (q == 1 || q == 2) P.x = X.x + o * vs.x;

@@ -321,17 +321,13 @@ class CarveNumPy:
         limit = 2 * (nx + ny + nz) + 4
         needed = np.zeros(len(v), bool)
         for c in range(len(self.px)):
-            owner, p, _ = self.pixels(c, X, 1.0)
-            outline = np.bincount(owner[~self.inside[c][p]], minlength=len(v)) > 0
             for q in range(7):
                 P = X.copy()
-                if q and not outline.any():
-                    break
                 if q:
                     a = (q - 1) // 2
                     o = -GUARD_OFFSET if q & 1 else GUARD_OFFSET
                     P[:, a] = X[:, a] + o * self.vs[a]
-                needed |= self.ray_needs(ijk, P, c, step, limit) & (outline if q else True)
+                needed |= self.ray_needs(ijk, P, c, step, limit)
         return needed
 
     def commit(self, name, first, count, axis, plane, sign, do_marks, step):
