@@ -165,8 +165,8 @@ def main():
                   f"{r['iou_hull_min']:6.3f} {r['variance']:8.0f} {r['seconds']:6.2f}   (concave: accuracy "
                   f"{r['acc_concave']:.4f}, completeness {r['comp_concave']:.4f})")
             if r is not base:
-                print(f"{'':31s} volume error x{r['vol_err'] / base['vol_err']:.2f}, concave Chamfer "
-                      f"{100 * (1 - r['chamfer_concave'] / base['chamfer_concave']):+.0f} % lower, colour variance "
+                print(f"{'':31s} vs hull: volume error x{r['vol_err'] / base['vol_err']:.2f}, concave Chamfer "
+                      f"{100 * (r['chamfer_concave'] / base['chamfer_concave'] - 1):+.0f} %, colour variance "
                       f"x{r['variance'] / max(base['variance'], 1e-9):.2f}")
     print(f"load average now {os.getloadavg()[0]:.2f}")
 
