@@ -100,17 +100,16 @@ def largest_component(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarr
 
 
 def carried_vertex_colors(mesh, vertices: np.ndarray) -> np.ndarray | None:
-    """Vertex colours of ``mesh`` (None when it has none) for a mesh made from it whose first len(mesh.vertices)
-    vertices are the same vertices (moved or not) and whose further vertices are new (edge splits): those take
-    the colour of the nearest original vertex."""
+    """Vertex colours of ``mesh`` (None when it has none) for ``vertices`` of a mesh made from it: the same
+    colours when it has the same vertices (moved or not: refine and relax keep mc's connectivity), else the
+    colour of the nearest vertex of ``mesh`` (subdivided or decimated meshes)."""
     if getattr(mesh.visual, "kind", None) != "vertex" or len(mesh.vertices) == 0:
         return None
     old = np.asarray(mesh.visual.vertex_colors)
-    n = len(old)
     vertices = np.asarray(vertices, np.float64)
-    if len(vertices) <= n:
-        return old[: len(vertices)]
+    if len(vertices) == len(old):
+        return old
     from scipy.spatial import cKDTree
 
-    _, nearest = cKDTree(np.asarray(mesh.vertices)).query(vertices[n:])
-    return np.vstack([old, old[nearest]])
+    _, nearest = cKDTree(np.asarray(mesh.vertices)).query(vertices)
+    return old[nearest]

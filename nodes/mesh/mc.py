@@ -23,8 +23,7 @@ from functools import lru_cache
 import numpy as np
 
 from kernels import source
-from nodegraph import Node, NodeError, Param
-from nodegraph.clrt import DeviceBuffers
+from nodegraph import Node, NodeError, Param, clrt
 from nodes.common.meshops import largest_component
 from nodes.common.types import Mesh, Volume
 
@@ -183,42 +182,31 @@ def marching_cubes_reference(volume, level: float = 0.5) -> tuple[np.ndarray, np
 
 
 # ---------------------------------------------------------------- OpenCL
-def _rounded(n: int, group: int) -> int:
-    return -(-n // group) * group
-
-
-class MarchingCubesCL:
+class MarchingCubesCL(clrt.Runner):
     """Kernels, case tables and work buffers on the device (one per process; buffers grow and are reused)."""
 
+    source = source("mc.cl")
     GROUP = 32  # work-items per group along j: PoCL runs odd global sizes as tiny groups
 
     def __init__(self):
-        from nodegraph import clrt
-
-        self.ctx, self.queue = clrt.context()
+        super().__init__()
         ntri, table = case_table()
         self.ntri = clrt.to_device(ntri)
         self.table = clrt.to_device(table.astype(np.int8).reshape(256, -1))
         self.max_tris = table.shape[1]
-        self.buffers = DeviceBuffers(self.ctx)
-        self.host: dict[str, np.ndarray] = {}
+        self.host_arrays: dict[str, np.ndarray] = {}
 
-    def kernel(self, name: str, voxel: str):
-        from nodegraph import clrt
-
-        opts = (f"-DVOXEL={voxel}", f"-DMAX_TRIS={self.max_tris}") + (("-DVOXEL_UCHAR",) if voxel == "uchar" else ())
-        return clrt.kernel(source("mc.cl"), name, opts)
+    def voxel_options(self, voxel: str) -> tuple[str, ...]:
+        return (f"-DVOXEL={voxel}", f"-DMAX_TRIS={self.max_tris}") + (("-DVOXEL_UCHAR",) if voxel == "uchar" else ())
 
     def scratch(self, name: str, shape: tuple, dtype) -> np.ndarray:
         """A host array of this shape, kept between calls."""
-        arr = self.host.get(name)
+        arr = self.host_arrays.get(name)
         if arr is None or arr.shape != shape or arr.dtype != dtype:
-            arr = self.host[name] = np.empty(shape, dtype)
+            arr = self.host_arrays[name] = np.empty(shape, dtype)
         return arr
 
     def run(self, volume, level: float) -> tuple[np.ndarray, np.ndarray]:
-        import pyopencl as cl
-
         occ = volume.occupancy
         if occ.dtype == np.uint8:
             voxel = "uchar"
@@ -227,18 +215,17 @@ class MarchingCubesCL:
         else:
             voxel, occ = "float", occ.astype(np.float32, copy=False)
         occ = np.ascontiguousarray(occ)
+        opts = self.voxel_options(voxel)
         nx, ny, nz = occ.shape
         rows = (nx + 1) * (ny + 1)  # cell rows of the padded grid
         dims = (np.int32(nx), np.int32(ny), np.int32(nz), np.float32(level), np.int32(0 > level))
-        vol = cl.Buffer(self.ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.USE_HOST_PTR, hostbuf=occ)  # no copy on CPUs
-        spans = self.buffers.get("spans", nx * ny * 8)
-        cbuf = self.buffers.get("counts", 3 * rows * 4)
+        vol = self.host(occ)  # no copy on CPUs
+        spans = self.buffer("spans", nx * ny * 8)
+        cbuf = self.buffer("counts", 3 * rows * 4)
         g = self.GROUP
-        self.kernel("mc_spans", voxel)(self.queue, (_rounded(ny, g), nx), (g, 1), vol, *dims, spans)
-        cell_rows = ((_rounded(ny + 1, g), nx + 1), (g, 1))
-        self.kernel("mc_count", voxel)(self.queue, *cell_rows, vol, *dims, spans, self.ntri, cbuf)
-        counts = self.scratch("counts", (3, rows), np.int32)
-        cl.enqueue_copy(self.queue, counts, cbuf)
+        self.launch("mc_spans", (ny, nx), (g, 1), vol, *dims, spans, options=opts)
+        self.launch("mc_count", (ny + 1, nx + 1), (g, 1), vol, *dims, spans, self.ntri, cbuf, options=opts)
+        counts = self.read(cbuf, (3, rows), np.int32, out=self.scratch("counts", (3, rows), np.int32))
         offsets = self.scratch("offsets", (3, rows + 1), np.int32)  # exclusive prefix sums, totals last
         offsets[:2, 0] = 0
         np.cumsum(counts[:2], axis=1, out=offsets[:2, 1:])
@@ -246,25 +233,18 @@ class MarchingCubesCL:
         nv, nt = int(offsets[0, rows]), int(offsets[1, rows])
         out = np.empty(3 * (nv + nt), np.float32)
         if nt:
-            obuf = self.buffers.get("offsets", offsets.nbytes)
-            cl.enqueue_copy(self.queue, obuf, offsets, is_blocking=False)
-            outbuf = self.buffers.get("out", out.nbytes)
+            obuf = self.upload("offsets", offsets)
+            outbuf = self.buffer("out", out.nbytes)
             f4 = lambda a: np.array([*np.asarray(a, np.float32), 0], np.float32)  # noqa: E731
-            self.kernel("mc_emit", voxel)(self.queue, *cell_rows, vol, *dims, spans, self.ntri, self.table, obuf,
-                                          f4(volume.bbox_min), f4(volume.voxel_size), outbuf)
-            cl.enqueue_copy(self.queue, out, outbuf, is_blocking=True)
+            self.launch("mc_emit", (ny + 1, nx + 1), (g, 1), vol, *dims, spans, self.ntri, self.table, obuf,
+                        f4(volume.bbox_min), f4(volume.voxel_size), outbuf, options=opts)
+            self.read(outbuf, out.shape, np.float32, out=out)
         return out[: 3 * nv].reshape(nv, 3), out[3 * nv:].view(np.int32).reshape(nt, 3)
-
-
-_MC_CL: MarchingCubesCL | None = None
 
 
 def marching_cubes(volume, level: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
     """OpenCL marching cubes of a VoxelGrid: (vertices (N, 3) float32 world, faces (M, 3) int32)."""
-    global _MC_CL
-    if _MC_CL is None:
-        _MC_CL = MarchingCubesCL()
-    return _MC_CL.run(volume, level)
+    return MarchingCubesCL.get().run(volume, level)
 
 
 # ---------------------------------------------------------------- vertex colours

@@ -8,7 +8,7 @@ import trimesh
 
 from nodegraph.cli import main as cli
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_demo_graph_end_to_end(tmp_path):

@@ -19,7 +19,8 @@ import enginenodes  # noqa: F401  (t.source for the long-sequence test)
 from nodes.common.types import Bounds, CameraSet, Images, ImageSet, Masks, MaskSet, Mesh, MeshSequence, Skeleton, SkeletonData, TexturedMesh, Volume, VoxelGrid
 from nodegraph import DataError, Files, Node, NodeError, Param, Table
 from nodegraph.cache import Cache
-from nodes.common.cameras import Cameras, look_at
+from nodes.common.cameras import Cameras
+from rig import ring_rig
 from nodegraph.executors import LocalExecutor
 from nodegraph.graphfile import load_graph
 from nodegraph.preview import preview
@@ -32,11 +33,7 @@ W, H = 48, 40
 
 def ring(n=4, radius=3.0) -> Cameras:
     """n cameras on a horizontal ring (z up) looking at the origin."""
-    cams = []
-    for i in range(n):
-        a = 2 * np.pi * i / n
-        cams.append(look_at([radius * np.cos(a), radius * np.sin(a), 0.6], [0, 0, 0], [0, 0, 1], 50, W, H, f"cam{i:03d}"))
-    return Cameras(cams)
+    return ring_rig(n, W, H, radius=radius, z=0.6, fov=50, name="cam{i:03d}")
 
 
 def sphere_masks(cams: Cameras, r: float) -> list[np.ndarray]:
@@ -169,7 +166,7 @@ def run_to(tmp_path: Path, text: str) -> Path:
     g = tmp_path / "g.yaml"
     g.write_text(textwrap.dedent(text))
     out = tmp_path / "out"
-    run_graph(load_graph(g), Cache(tmp_path / "cache"), out, LocalExecutor(1), progress=False)
+    run_graph(load_graph(g).keep_all(), Cache(tmp_path / "cache"), out, LocalExecutor(1), progress=False)
     return out
 
 

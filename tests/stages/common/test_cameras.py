@@ -2,19 +2,14 @@
 import numpy as np
 import pytest
 
-from nodes.common.cameras import Camera, Cameras, look_at, project_points_cl
+from nodes.common.cameras import Camera, Cameras, project_points_cl
+from rig import ring_rig
 
 
 def ring(n, radius, height, target, width, height_px, fov=50.0, dist=None, name="c"):
-    cams = []
-    for i in range(n):
-        a = 2 * np.pi * i / n
-        eye = np.asarray(target) + [radius * np.cos(a), radius * np.sin(a), height]
-        c = look_at(eye, target, [0, 0, 1], fov, width, height_px, f"{name}{i}")
-        if dist is not None:
-            c.dist = np.asarray(dist, dtype=np.float64) * (1 + 0.1 * i)
-        cams.append(c)
-    return cams
+    scaled = None if dist is None else (lambda i: np.asarray(dist, dtype=np.float64) * (1 + 0.1 * i))
+    return list(ring_rig(n, width, height_px, radius=radius, z=height, target=target, fov=fov, dist=scaled,
+                         name=name + "{i}"))
 
 
 def scenes():

@@ -6,7 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from nodes.common.cameras import Camera, Cameras, look_at
+from nodes.common.cameras import Camera, Cameras
+from rig import ring_rig
 from nodegraph.errors import DataError
 from nodes.hull.bounds import auto_bounds, coarse_hull
 from nodes.common.calibration import camera_from_P, load_cameras, save_colmap, save_nerf
@@ -15,16 +16,13 @@ W, H = 320, 240
 
 
 def rig(dist=True) -> Cameras:
-    cams = []
-    for i in range(4):
-        a = 2 * np.pi * i / 4 + 0.3
-        c = look_at([4 * np.cos(a), 4 * np.sin(a), 1.5 + 0.2 * i], [0.1, -0.2, 0.4], [0, 0, 1], 55, W, H, f"view{i}")
+    cams = ring_rig(4, W, H, radius=4.0, z=lambda i, a: 1.5 + 0.2 * i, phase=0.3, center=(0, 0, 0),
+                    target=(0.1, -0.2, 0.4), fov=55, name="view{i}",
+                    dist=(lambda i: [-0.2, 0.05, 1e-3, -2e-3, 0.01 * (i % 2)]) if dist else None)
+    for i, c in enumerate(cams):
         c.K[0, 2] += 3.25 * i          # principal points off-centre, fy != fx
         c.K[1, 1] *= 1.01
-        if dist:
-            c.dist = np.array([-0.2, 0.05, 1e-3, -2e-3, 0.01 * (i % 2)])
-        cams.append(c)
-    return Cameras(cams)
+    return cams
 
 
 def nums(*arrays) -> str:

@@ -15,7 +15,7 @@ from nodegraph.graphfile import load_graph
 from nodegraph.run import run_graph
 from nodes.capture.load import load_capture, read_image
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[3]
 GRAPHS = ROOT / "graphs" / "datasets"
 
 
@@ -42,10 +42,10 @@ def exported_masks(res, node: str, frame: int = 0) -> list[np.ndarray]:
 
 
 @pytest.mark.realdata
-def test_thu_chroma_key_matches_shipped_masks(tmp_path, data_dir, monkeypatch):
-    res = run_dataset_graph("thu_wd_human_key", tmp_path, data_dir, monkeypatch, overrides=["hull.resolution=64"])
+def test_thu_chroma_key_matches_shipped_masks(dataset_run, real_capture):
+    res = dataset_run("thu_wd_human_key", ("hull.resolution=64",))
     keyed = exported_masks(res, "mattes")
-    shipped = load_capture(data_dir / "thu_wd_human")["masks"].masks
+    shipped = real_capture("thu_wd_human")["masks"].masks
     assert len(keyed) == len(shipped) == 20
     scores = [iou(k, s) for k, s in zip(keyed, shipped)]
     assert np.mean(scores) >= 0.95, np.round(scores, 3)

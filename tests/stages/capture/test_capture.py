@@ -4,7 +4,8 @@ import cv2
 import numpy as np
 import pytest
 
-from nodes.common.cameras import Cameras, look_at
+from nodes.common.cameras import Cameras
+from rig import ring_rig
 from nodegraph.errors import DataError, NodeError
 from nodegraph.testing import run_node
 from nodegraph.types import Table
@@ -16,13 +17,7 @@ CENTRE, RADIUS = np.array([0.2, -0.1, 0.5]), 0.6
 
 
 def sphere_rig(n=5) -> Cameras:
-    cams = []
-    for i in range(n):
-        a = 2 * np.pi * i / n
-        c = look_at(CENTRE + [3 * np.cos(a), 3 * np.sin(a), 1.0], CENTRE, [0, 0, 1], 45, W, H, f"cam{i}")
-        c.dist[0] = -0.05
-        cams.append(c)
-    return Cameras(cams)
+    return ring_rig(n, W, H, radius=3.0, z=1.0, target=CENTRE, fov=45, dist=[-0.05, 0, 0, 0, 0])
 
 
 def sphere_mask(cams: Cameras, v: int) -> np.ndarray:

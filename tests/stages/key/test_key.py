@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from nodes.common.cameras import Cameras, look_at
+from nodes.common.cameras import Cameras
+import rig
 from nodegraph.errors import NodeError
 from nodegraph.testing import run_node
 from nodes.common.types import ImageSet, Masks, MaskSet, VoxelGrid
@@ -20,12 +21,7 @@ def iou(a, b) -> float:
 
 
 def ring_rig(n=4, w=64, h=48, radius=4.0) -> Cameras:
-    cams = []
-    for i in range(n):
-        t = 2 * np.pi * i / n
-        eye = [radius * np.cos(t), radius * np.sin(t), 0.8]
-        cams.append(look_at(eye, [0, 0, 0], [0, 0, 1], 40, w, h, name=f"cam{i}"))
-    return Cameras(cams)
+    return rig.ring_rig(n, w, h, radius=radius, z=0.8, fov=40)
 
 
 def sphere_mask(cameras: Cameras, view: int, centre=(0, 0, 0), r=0.6) -> np.ndarray:
@@ -422,3 +418,17 @@ def test_golden_key_nodes(golden):
     cams, _, keyed, volume = consensus_scene()
     cons = run_node("key.consensus", {"masks": MaskSet(keyed[:2]), "cameras": Cameras(cams.cameras[:2]), "volume": volume})
     golden.check("key_consensus", cons["masks"], Masks)
+
+
+def test_grabcut_golden(small_stage, golden):
+    # start from a dilated (too fat) silhouette: GrabCut must pull it back towards the truth
+    import cv2
+
+    fat = [cv2.dilate(m, np.ones((5, 5), np.uint8)) for m in small_stage["masks"].masks]
+    out = run_node("key.grabcut", {"images": small_stage["images"], "masks": MaskSet(fat)})
+    def iou(a, b):
+        return np.logical_and(a > 127, b > 127).sum() / np.logical_or(a > 127, b > 127).sum()
+    before = np.mean([iou(f, t) for f, t in zip(fat, small_stage["masks"].masks)])
+    after = np.mean([iou(m, t) for m, t in zip(out["masks"].masks, small_stage["masks"].masks)])
+    assert before < 0.75 and after > 0.95, (before, after)
+    golden.check("key_grabcut_figure", out["masks"], Masks, iou=0.99)

@@ -9,7 +9,8 @@ import pytest
 
 from nodegraph import NodeError
 from nodes.common.types import Volume
-from nodes.common.cameras import Camera, Cameras, look_at
+from nodes.common.cameras import Camera, Cameras
+from rig import ring_rig
 from nodegraph.testing import run_node
 from nodes.common.types import MaskSet
 from nodes.hull.hull import hull_grid, visual_hull
@@ -19,14 +20,7 @@ CENTRE, RADIUS = np.array([0.1, -0.05, 0.0]), 0.6
 
 
 def ring(n=8, w=160, h=120, dist=None) -> Cameras:
-    cams = []
-    for i in range(n):
-        a = 2 * np.pi * i / n
-        c = look_at([3 * np.cos(a), 3 * np.sin(a), 0.8 * np.sin(3 * a)], [0, 0, 0], [0, 0, 1], 50, w, h, f"c{i}")
-        if dist is not None:
-            c = Camera(c.name, w, h, c.K, c.Rt, dist)
-        cams.append(c)
-    return Cameras(cams)
+    return ring_rig(n, w, h, radius=3.0, z=lambda i, a: 0.8 * np.sin(3 * a), fov=50, name="c{i}", dist=dist)
 
 
 def sphere_masks(cams: Cameras, centre=CENTRE, radius=RADIUS) -> MaskSet:
@@ -193,16 +187,15 @@ def test_sparse_equals_dense_over_three_or_more_levels(res):
 
 @pytest.mark.realdata
 @pytest.mark.parametrize("name, min_iou", [("thu_wd_human", 0.954), ("inria_dancer", 0.912)])
-def test_real_human_hull_mesh(data_dir, name, min_iou):
+def test_real_human_hull_mesh(real_capture, name, min_iou):
     import trimesh
 
     from nodes.hull.bounds import auto_bounds
-    from nodes.capture.load import load_capture
-    from nodes.eval.metrics import silhouette_report
+    from nodes.eval.silhouette import silhouette_report
     from nodes.common.meshops import largest_component
     from nodes.mesh.mc import marching_cubes
 
-    cap = load_capture(data_dir / name)
+    cap = real_capture(name)
     masks, cams = cap["masks"], cap["cameras"]
     box = auto_bounds(masks.masks, cams)
     vol = visual_hull(masks, cams, box, 128)
@@ -216,16 +209,27 @@ def test_real_human_hull_mesh(data_dir, name, min_iou):
 
 
 def test_silhouette_bits_from_masks_hold_the_masks_and_their_block_tables():
-    """HullCL.prepare: device bits unpack to the masks, the tables are the 8x8 block summed-area tables."""
+    """SilhouetteBits.from_masks: device bits unpack to the masks, the tables are the 8x8 block summed-area tables."""
     from nodes.common.silhouettes import SilhouetteBits, block_table_reference
-    from nodes.hull.hull import hull_cl
 
     rng = np.random.default_rng(3)
     masks = [(rng.random((h, w)) < 0.4).astype(np.uint8) * rng.integers(128, 256, (h, w), dtype=np.uint8)
              for w, h in ((53, 37), (64, 48), (9, 17))]  # odd sizes; values > 127 are inside
-    sil = hull_cl().prepare(masks, out=None)
+    sil = SilhouetteBits.from_masks(masks)
     assert isinstance(sil, SilhouetteBits) and sil.sizes == [(53, 37), (64, 48), (9, 17)]
     for m, bits, table in zip(masks, sil.masks(), sil.block_tables()):
         assert np.array_equal(bits, np.where(m > 127, 255, 0))
         assert np.array_equal(table, block_table_reference(m))
         assert table[-1, -1] == (m > 127).sum() > 0
+
+
+def test_bounds_golden(small_stage, golden):
+    out = run_node("bounds", {"masks": small_stage["masks"], "cameras": small_stage["cameras"]}, {"resolution": 32})
+    box = out["bounds"]
+    # the automatic box must contain the true mesh and stay reasonably tight (8 views: a loose hull)
+    lo, hi = small_stage["mesh"].bounds
+    assert np.all(box[0] <= lo) and np.all(box[1] >= hi)
+    assert np.prod(box[1] - box[0]) < 4 * np.prod(hi - lo)
+    from nodegraph import Array
+
+    golden.check("bounds_figure_8cams", box, Array, atol=1e-6)
