@@ -25,6 +25,7 @@ import numpy as np
 
 from kernels import source
 from nodegraph import Node, Param
+from nodes.common.meshops import carried_vertex_colors
 from nodes.common.silhouettes import POLICIES
 from nodes.common.types import CameraSet, Masks, Mesh, Volume
 
@@ -186,4 +187,4 @@ class Refine(Node):
             vertices, stats = refine_vertices(mesh.vertices, faces, volume, field, steps, quality, method=method)
         self.log.info("refine: %d of %d vertices onto the hull along grid edges, %d along normals",
                       stats["on_edges"], stats["vertices"], stats["on_normals"])
-        return {"mesh": trimesh.Trimesh(vertices, faces, process=False)}
+        return {"mesh": trimesh.Trimesh(vertices, faces, vertex_colors=carried_vertex_colors(mesh, vertices), process=False)}
