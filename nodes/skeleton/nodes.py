@@ -191,7 +191,7 @@ class Skin(Node):
     }
     params = {
         "influences": Param(int, 4, range=(1, 8), doc="most bones per vertex"),
-        "iterations": Param(int, 10, range=(1, 100), doc="weights / motion alternations (stops earlier when converged)"),
+        "iterations": Param(int, 15, range=(1, 100), doc="weights / motion alternations (stops earlier when converged)"),
         "smooth": Param(float, 1e-6, range=(0.0, 1.0), doc="Laplacian weight smoothing (x frames x diagonal^2)"),
         "lengths": Param(str, "fixed", choices=("fixed", "free"), doc="fixed: rotation-only joints; free: rigid bones (Dem Bones)"),
         "rest_fit": Param(bool, True, doc="refit the rest shape (a posed first frame is no exact LBS rest)"),

@@ -7,8 +7,9 @@ over vertices and frames:
 
 - weights, bone motions fixed: per vertex a small quadratic programme over the bones of its own part and
   the parts next to it (mesh or tree neighbours), min |sum_j w_j (y_j - q)|^2 over the frames (y_j: where
-  bone j takes v, q: the tracked position), w >= 0, sum w = 1, solved by accelerated projected gradient on
-  the simplex; then the ``influences`` largest are kept and solved again. Writing it with y_j - q makes the
+  bone j takes v, q: the tracked position), w >= 0, sum w = 1, solved by an active set (closed-form KKT
+  solves on the support, the most negative weight dropped each round; solve_simplex_qp is the projected-
+  gradient reference); then the ``influences`` largest are kept and solved again. Writing it with y_j - q makes the
   sum-to-one direction drop out, so the problem is well conditioned. ``smooth`` adds a Laplacian term
   (Jacobi: neighbours' previous weights) where the motion leaves the weights undetermined.
 - bone motions, weights fixed:
@@ -93,6 +94,66 @@ def solve_simplex_qp(h: np.ndarray, g: np.ndarray, allowed: np.ndarray, w0: np.n
     return w
 
 
+def _kkt_solve(hr, g, sup):
+    """Minimiser of w^T h w - 2 g^T w subject to sum w = 1 and w = 0 off ``sup`` (batched KKT systems)."""
+    n, k = g.shape
+    kkt = np.zeros((n, k + 1, k + 1))
+    kkt[:, :k, :k] = hr * (sup[:, :, None] & sup[:, None, :]) + (~sup)[:, :, None] * np.eye(k)
+    kkt[:, :k, k] = sup
+    kkt[:, k, :k] = sup
+    rhs = np.zeros((n, k + 1))
+    rhs[:, :k] = g * sup
+    rhs[:, k] = 1.0
+    return np.linalg.solve(kkt, rhs[..., None])[..., 0][:, :k] * sup
+
+
+def solve_simplex_active(h: np.ndarray, g: np.ndarray, allowed: np.ndarray, ridge: float = 1e-9) -> np.ndarray:
+    """Batched min w^T h w - 2 g^T w over the (allowed) simplex: a primal active-set method (Lawson-Hanson
+    style). From the best single bone, solve the problem on the support with sum w = 1 in closed form; if
+    a weight would go negative, step towards that solution until the first weight reaches 0 and drop it;
+    otherwise add the allowed bone whose multiplier says the objective still falls, until none does."""
+    n, k = g.shape
+    scale = np.maximum(np.trace(h, axis1=1, axis2=2) / k, 1e-300)
+    hr = h + (ridge * scale)[:, None, None] * np.eye(k)
+    diag = np.einsum("nii->ni", hr) - 2 * g
+    start = np.argmin(np.where(allowed, diag, np.inf), axis=1)
+    w = np.zeros((n, k))
+    w[np.arange(n), start] = 1.0
+    sup = np.zeros((n, k), bool)
+    sup[np.arange(n), start] = True
+    todo = allowed.any(1)
+    tol = 1e-12 * scale
+    for _ in range(4 * k + 4):
+        idx = np.flatnonzero(todo)
+        if not len(idx):
+            break
+        z = _kkt_solve(hr[idx], g[idx], sup[idx])
+        wi, si = w[idx], sup[idx]
+        blocked = si & (z < 0)
+        feasible = ~blocked.any(1)
+        # infeasible: step from w towards z until a weight reaches zero; drop it
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.where(blocked, wi / (wi - z), np.inf)
+        alpha = np.clip(ratio.min(1), 0.0, 1.0)
+        stepped = wi + alpha[:, None] * (z - wi)
+        hit = np.argmin(ratio, axis=1)
+        new_w = np.where(feasible[:, None], z, stepped)
+        new_w[~feasible, hit[~feasible]] = 0.0
+        new_w = np.maximum(new_w, 0.0)
+        new_sup = si.copy()
+        new_sup[~feasible, hit[~feasible]] = False
+        # feasible: the multiplier of each allowed bone off the support; add the most negative
+        grad = 2 * (np.einsum("nab,nb->na", hr[idx], new_w) - g[idx])
+        mu = np.sum(np.where(new_sup, grad, 0), 1) / np.maximum(new_sup.sum(1), 1)
+        lam = np.where(allowed[idx] & ~new_sup, grad - mu[:, None], np.inf)
+        enter = np.argmin(lam, axis=1)
+        add = feasible & (lam[np.arange(len(idx)), enter] < -tol[idx])
+        new_sup[add, enter[add]] = True
+        w[idx], sup[idx] = new_w, new_sup
+        todo[idx[feasible & ~add]] = False
+    return w / np.maximum(w.sum(1, keepdims=True), 1e-300)
+
+
 # ---------------------------------------------------------------- weights step
 def _homogeneous(rot, tr):
     return np.concatenate([rot, tr[..., None]], axis=-1)              # (F, J, 3, 4)
@@ -157,14 +218,13 @@ def fit_weights(traj: Trajectories, rot, tr, cand_of_vertex: np.ndarray, w_prev:
     h = h + (lam * deg)[:, None, None] * np.eye(c.shape[1])[None]
     g = g + lam * np.take_along_axis(mean_nbr, cs, axis=1)
     h = 0.5 * (h + h.transpose(0, 2, 1))
-    w0 = np.take_along_axis(w_prev, cs, axis=1) * valid
-    w = solve_simplex_qp(h, g, valid, w0)
+    w = solve_simplex_active(h, g, valid)
     if influences < c.shape[1]:
         order = np.argsort(-w, axis=1)
         keep = np.zeros_like(valid)
         np.put_along_axis(keep, order[:, :influences], True, axis=1)
-        keep &= valid
-        w = solve_simplex_qp(h, g, keep, w * keep)
+        keep &= valid & (w > 0)
+        w = solve_simplex_active(h, g, keep)
     out = np.zeros((v, j))
     np.add.at(out, (np.repeat(np.arange(v), c.shape[1]), cs.ravel()), (w * valid).ravel())
     return out
@@ -404,7 +464,7 @@ def fit_poses_free(traj, weights, rot, tr):
 
 
 # ---------------------------------------------------------------- the whole fit
-def fit_skin(traj: Trajectories, faces: np.ndarray, rig: Rig, *, influences: int = 4, iterations: int = 10,
+def fit_skin(traj: Trajectories, faces: np.ndarray, rig: Rig, *, influences: int = 4, iterations: int = 15,
              smooth: float = 1e-6, fixed_lengths: bool = True, pivots: bool = True, rest: bool = True,
              tol: float = 1e-4, log=None) -> SkinFit:
     """Alternate the weights and bone-motion steps (module docstring) from the rig's rigid parts; with

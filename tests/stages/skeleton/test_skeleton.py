@@ -173,6 +173,24 @@ def test_simplex_projection_and_qp():
     np.testing.assert_allclose(w, [[1 / 3, 2 / 3]], atol=1e-6)  # min 2a^2 + b^2 on a + b = 1
 
 
+def test_active_set_qp_matches_projected_gradient_reference():
+    """The weights step's active-set solver reaches the optimum the (slow) projected-gradient reference
+    converges to, on random ill-conditioned problems with some bones not allowed."""
+    rng = np.random.default_rng(0)
+    n, k = 400, 7
+    a = rng.normal(size=(n, 20, k)) * np.array([1, 1, 0.1, 0.01, 1, 3, 0.5])
+    q = rng.normal(size=(n, 20))
+    h = np.einsum("nta,ntb->nab", a - q[:, :, None], a - q[:, :, None])
+    g = rng.normal(size=(n, k)) * 0.1
+    allowed = rng.random((n, k)) > 0.25
+    allowed[:, 0] = True
+    obj = lambda w: np.einsum("na,nab,nb->n", w, h, w) - 2 * (g * w).sum(1)  # noqa: E731
+    wa = skinning.solve_simplex_active(h, g, allowed)
+    wf = skinning.solve_simplex_qp(h, g, allowed, allowed / allowed.sum(1, keepdims=True), 4000)
+    assert (wa >= 0).all() and np.allclose(wa.sum(1), 1) and (wa[~allowed] == 0).all()
+    assert (obj(wa) <= obj(wf) + 1e-7 * np.abs(obj(wf)) + 1e-12).all()
+
+
 # ---------------------------------------------------------------- nodes, golden, exports
 @pytest.fixture(scope="module")
 def tube_nodes():
