@@ -129,20 +129,22 @@ def figure_picture(frames: int = 100):
     skinned = lbs(np.asarray(b["rest"].vertices), sk.weights, sk.rotations, sk.translations)
     labels = np.argmax(sk.weights, axis=1)
     fig = plt.figure(figsize=(16, 6.5))
-    show = [0, 6, 12, 18]
+    show = [0, 6, 12, 18]   # a step is 24 frames
     cmap = plt.get_cmap("tab10")
     for i, f in enumerate(show):
         ax = fig.add_subplot(1, 5, i + 1)
         v = skinned[f]
-        ax.scatter(v[::3, 0], v[::3, 2], s=0.4, c=cmap(labels[::3] % 10), alpha=0.5)
+        a0 = 0 if i % 2 == 0 else 1                     # front view (x, z) and side view (y, z) in turn
+        ax.scatter(v[::3, a0], v[::3, 2], s=0.4, c=cmap(labels[::3] % 10), alpha=0.5)
         piv = np.einsum("jab,jb->ja", sk.rotations[f], sk.joints) + sk.translations[f]
         true = scenes.figure_pose(f)[1]
         for j, p in enumerate(sk.parents):
             if p >= 0:
-                ax.plot(piv[[j, p], 0], piv[[j, p], 2], "k-", lw=2)
-        ax.plot(piv[:, 0], piv[:, 2], "ko", ms=5)
-        ax.plot(true[:, 0], true[:, 2], "r+", ms=8, mew=1.5)
-        ax.set_title(f"frame {f}: rms {err['timeline']['rmse'][f] * 1000:.2f} mm", fontsize=10)
+                ax.plot(piv[[j, p], a0], piv[[j, p], 2], "k-", lw=2)
+        ax.plot(piv[:, a0], piv[:, 2], "ko", ms=5)
+        ax.plot(true[:, a0], true[:, 2], "r+", ms=8, mew=1.5)
+        ax.set_title(f"frame {f} ({'front' if a0 == 0 else 'side'}): rms {err['timeline']['rmse'][f] * 1000:.2f} mm",
+                     fontsize=10)
         ax.set_aspect("equal")
         ax.axis("off")
     ax = fig.add_subplot(1, 5, 5)
