@@ -95,17 +95,19 @@ __kernel void fair_step(__global const float* v, __global const int* f, __global
 // out_lo, out_hi). The vertex's offset along the line is clamped to [in_hi, out_lo] (the deep side: the first
 // point outside level tau_in, 0 when base is not that deep; the far side: the last point inside level tau_out),
 // its offset across the line to at most `across`. A line whose base is not inside even at tau_out has no
-// shell: only the offsets' limits apply ([0, 1] along, `across` across).
+// shell: only the offsets' limits apply ([0, 1] along, `across` across). With `onto` the vertex goes onto the
+// deep level instead: the middle of (in_lo, in_hi) (no shell when in_hi is 0).
 __kernel void shell_clamp(__global const float* v, __global const float* centre, __global const float* axis,
-                          __global const float* shell, float reach, float across, int nv, __global float* out)
+                          __global const float* shell, float reach, float across, int onto, int nv,
+                          __global float* out)
 {
     int i = get_global_id(0);
     if (i >= nv) return;
     float3 n = vload3(i, axis), p = vload3(i, v);
     float3 A = vload3(i, centre) - reach * n;
     float4 sh = vload4(i, shell);
-    float lo = sh.y, hi = sh.z;
-    if (sh.w == 0.0f) {  // base outside at tau_out: no shell on this line
+    float lo = sh.y, hi = onto ? sh.x : sh.z;
+    if ((onto ? sh.y : sh.w) == 0.0f) {  // base outside at that level: no shell on this line
         lo = 0.0f;
         hi = 1.0f;
     }

@@ -29,7 +29,8 @@ from nodes.common.silhouettes import POLICIES
 from nodes.common.types import CameraSet, Masks, Mesh, Volume
 
 from .fairing import CLOps, NumPyOps, fair, smoothed_normals
-from .hullfit import FieldCL, SilhouetteField, cross_reference, onto_reference
+from .hullfit import (RELAX_OUTSIDE_PX, FieldCL, FitLines, SilhouetteField, ball_cull, cross_reference, level_of,
+                      onto_reference)
 
 HULL = 0.5  # the field's level of the visual hull (the pixel-edge outline)
 
@@ -100,26 +101,34 @@ def meet_budget(vertices, faces, target: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 # ---------------------------------------------------------------- work function
+CULL_VOXELS = 1.6  # radius of each vertex's ball for view culling: its grid edge and its last search line lie in it
+
+
 def refine_vertices(vertices, faces, volume, field: SilhouetteField, steps: int = 8, quality: int = 6,
-                    lam_t: float = 0.5, method: str = "opencl", target_faces: int = 0):
+                    lam_t: float = 0.5, method: str = "opencl", target_faces: int = 0,
+                    relax_levels: tuple | None = (HULL, level_of(-RELAX_OUTSIDE_PX))):
     """Vertices onto the hull (Liang & Wong along grid edges, else along the normal within one voxel), then
     ``quality`` fairing steps and the projection back onto the hull. With ``target_faces`` > 0 the mesh is
     first brought to that many faces (``meet_budget``) and (vertices, faces, counts) is returned; otherwise
-    (vertices (V, 3) float64, counts)."""
+    (vertices (V, 3) float64, counts). The searches visit, per vertex, only the views that may see its
+    neighbourhood cut (``ball_cull``). The last search also finds the shell at ``relax_levels`` (relax's default
+    levels): counts["lines"] is then the FitLines relax can start from."""
     vertices = np.asarray(vertices, np.float64).reshape(-1, 3)
     faces = np.asarray(faces, np.int64).reshape(-1, 3)
-    stats = {"vertices": len(vertices), "on_edges": 0, "on_normals": 0}
+    stats = {"vertices": len(vertices), "on_edges": 0, "on_normals": 0, "lines": None}
     if len(vertices) == 0:
-        return vertices.copy(), stats
+        return (vertices.copy(), faces, stats) if target_faces > 0 else (vertices.copy(), stats)
     origin = field.origin
     voxel = float(np.max(volume.voxel_size))
     p = (vertices - origin).astype(np.float32)
     a, b, ok = lattice_edges(vertices, volume)
     a = np.where(ok[:, None], a - origin, p).astype(np.float32)  # not on an edge: an empty segment, no crossing
     b = np.where(ok[:, None], b - origin, p).astype(np.float32)
+    cull = None
     if method == "opencl":
         fc = FieldCL.get().prepare(field)
-        out, on = fc.cross_host(a, b, p, HULL, steps)
+        cull = fc.active(ball_cull(p, CULL_VOXELS * voxel))
+        out, on = fc.cross_host(a, b, p, HULL, steps, cull)
         ops = CLOps(out, faces, fc)
     else:
         out, on = cross_reference(a, b, p, field, HULL, steps)
@@ -138,13 +147,23 @@ def refine_vertices(vertices, faces, volume, field: SilhouetteField, steps: int 
         v, faces = meet_budget(out.astype(np.float64), faces, target_faces)
         out = v.astype(np.float32)
         quality = max(quality, 1)
+        if method == "opencl":
+            cull = fc.active(ball_cull(out, CULL_VOXELS * voxel))
     if quality > 0 and len(faces):
-        ops = CLOps(out, faces, fc) if method == "opencl" else NumPyOps(out, faces, field)
-        out = ops.read(fair(ops, rounds=1, iterations=quality, filter_rounds=1, lam_t=lam_t, shell=(HULL, HULL),
-                            reach=0.5 * voxel, steps=steps, clamp_steps=False))
+        ops = CLOps(out, faces, fc, cull) if method == "opencl" else NumPyOps(out, faces, field)
+        levels = relax_levels if relax_levels is not None else (HULL, HULL)
+        v, last = fair(ops, rounds=1, iterations=quality, filter_rounds=1, lam_t=lam_t, shell=levels,
+                       reach=0.5 * voxel, steps=steps, clamp_steps=False, final="onto")
+        out = ops.read(v)
+        result = out.astype(np.float64) + origin
+        if relax_levels is not None and last is not None:
+            stats["lines"] = FitLines(result, faces, field.key(), origin, tuple(levels), 0.5 * voxel,
+                                      ops.get(last[0]), ops.get(last[1]), ops.get(last[2], 4), cull)
+    else:
+        result = out.astype(np.float64) + origin
     if target_faces > 0:
-        return out.astype(np.float64) + origin, faces, stats
-    return out.astype(np.float64) + origin, stats
+        return result, faces, stats
+    return result, stats
 
 
 # ---------------------------------------------------------------- node
@@ -186,4 +205,8 @@ class Refine(Node):
             vertices, stats = refine_vertices(mesh.vertices, faces, volume, field, steps, quality, method=method)
         self.log.info("refine: %d of %d vertices onto the hull along grid edges, %d along normals",
                       stats["on_edges"], stats["vertices"], stats["on_normals"])
-        return {"mesh": trimesh.Trimesh(vertices, faces, process=False)}
+        out = trimesh.Trimesh(vertices, faces, process=False)
+        if stats["lines"] is not None:  # relax, when it runs next in this frame unit, starts from the last search
+            stats["lines"].vertices = np.asarray(out.vertices)
+            out.volcap_lines = stats["lines"]
+        return {"mesh": out}
