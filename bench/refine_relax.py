@@ -83,8 +83,8 @@ def refine_relax(mesh, vol, masks, cams):
     origin = 0.5 * (vol.bbox_min + vol.bbox_max)
     field = SilhouetteField.from_inputs(masks, cams, origin)
     v, stats = refine_vertices(mesh.vertices, mesh.faces, vol, field)
-    v = relax_vertices(v, mesh.faces, field, lines=stats["lines"])
-    return trimesh.Trimesh(v, np.asarray(mesh.faces), process=False)
+    v, faces = relax_vertices(v, mesh.faces, field, lines=stats["lines"])
+    return trimesh.Trimesh(v, faces, process=False)
 
 
 def fresh(masks):

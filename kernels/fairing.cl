@@ -122,8 +122,19 @@ __kernel void shell_clamp(__global const float* v, __global const float* centre,
     vstore3((A + (s * len) * n) + t, i, out);
 }
 
-// Fold repair: a vertex two of whose faces have unit normals more than 150 degrees apart (cos < -0.866) takes
-// half an umbrella step (towards the mean of its neighbours); the others stay.
+// Fold repair: a vertex two of whose faces that share an edge have unit normals more than 150 degrees apart
+// (cos < -0.866: the fold of eval.mesh) takes half an umbrella step (towards the mean of its neighbours); the
+// others stay.
+inline int other_shared(int4 a, int4 b, int i)
+{
+    // whether faces a and b (corners xyz), both holding vertex i, share another corner: an edge
+    int s = 0;
+    if (a.x != i) s |= a.x == b.x || a.x == b.y || a.x == b.z;
+    if (a.y != i) s |= a.y == b.x || a.y == b.y || a.y == b.z;
+    if (a.z != i) s |= a.z == b.x || a.z == b.y || a.z == b.z;
+    return s;
+}
+
 __kernel void unfold_step(__global const float* v, __global const int* f, __global const int* off,
                           __global const int* idx, int nv, __global float* out, __global int* count)
 {
@@ -135,12 +146,15 @@ __kernel void unfold_step(__global const float* v, __global const int* f, __glob
     float3 ring = (float3)(0.0f);
     for (int j = s; j < e; j++) {
         int k = idx[j];
-        float3 a = vload3(f[3 * k], v), b = vload3(f[3 * k + 1], v), c = vload3(f[3 * k + 2], v);
+        int4 fk = (int4)(f[3 * k], f[3 * k + 1], f[3 * k + 2], 0);
+        float3 a = vload3(fk.x, v), b = vload3(fk.y, v), c = vload3(fk.z, v);
         ring = ring + ((a + b) + c);
         float3 nj = unit3(cross3(b - a, c - a));
         for (int l = s; l < j; l++) {
             int q = idx[l];
-            float3 a2 = vload3(f[3 * q], v), b2 = vload3(f[3 * q + 1], v), c2 = vload3(f[3 * q + 2], v);
+            int4 fq = (int4)(f[3 * q], f[3 * q + 1], f[3 * q + 2], 0);
+            if (!other_shared(fk, fq, i)) continue;
+            float3 a2 = vload3(fq.x, v), b2 = vload3(fq.y, v), c2 = vload3(fq.z, v);
             folded |= dot3(nj, unit3(cross3(b2 - a2, c2 - a2))) < -0.8660254f;
         }
     }

@@ -102,7 +102,9 @@ inline int view_state(__global const float* c, __global const uchar* p, int soft
 
 // One view's crossing of level tau on [0, hi] of A + t d, A inside (ga = f(A) - tau >= 0) and the point at hi
 // outside (gb < 0): Illinois regula falsi, at most `steps` iterations, stopping when the bracket is shorter
-// than 2^-12. Returns the bracket (last inside, first outside).
+// than 2^-12 or at a point whose field is within ROOT_TOL of tau ((t, t) then). Returns the bracket (last
+// inside, first outside).
+#define ROOT_TOL 1e-4f
 inline float2 view_crossing(__global const float* c, __global const uchar* p, int soft, float3 A, float3 d,
                             float tau, float ga, float hi, float gb, int steps)
 {
@@ -112,6 +114,7 @@ inline float2 view_crossing(__global const float* c, __global const uchar* p, in
         float t = b - gb * ((b - a) / (gb - ga));
         if (!(t > a && t < b)) t = 0.5f * (a + b);
         float g = view_value(c, p, soft, A + t * d) - tau;
+        if (fabs(g) < ROOT_TOL) return (float2)(t, t);  // on the level (within 1e-4 pixel on a straight edge)
         if (g >= 0.0f) {
             a = t;
             ga = g;
@@ -175,8 +178,8 @@ inline float2 exit_interval(float3 A, float3 B, float tau, int steps, FIELD_ARGS
 }
 
 // Exits at two levels tau_hi > tau_lo on one segment in one pass over the views (carve): a view that sees the
-// point at the deeper level's best exit inside at tau_hi is skipped for both levels when the two best exits
-// coincide (one lookup). Writes (lo, hi) of the tau_hi exit to *r_hi and of the tau_lo exit to *r_lo, as
+// point at the far level's best exit (hi2 >= hi1) inside at tau_hi is skipped for both levels (one lookup: along
+// the segment outwards the field falls, so both its own exits lie beyond); otherwise it is looked up at hi1 too. Writes (lo, hi) of the tau_hi exit to *r_hi and of the tau_lo exit to *r_lo, as
 // exit_interval would for each.
 inline void exit_two_levels(float3 A, float3 B, float tau_hi, float tau_lo, int steps, FIELD_ARGS, int use,
                             __global const uint* w, float2* r_hi, float2* r_lo)
@@ -188,8 +191,9 @@ inline void exit_two_levels(float3 A, float3 B, float tau_hi, float tau_lo, int 
         if (!VISIT(v)) continue;
         __global const float* c = cams + v * CAM_FLOATS;
         __global const uchar* p = pix + pix_off[v];
-        float f1 = view_value(c, p, soft, A + hi1 * d);
-        float f2 = hi2 == hi1 ? f1 : view_value(c, p, soft, A + hi2 * d);
+        float f2 = view_value(c, p, soft, A + hi2 * d);
+        if (f2 >= tau_hi) continue;  // inside at both levels at the far best exit: its own exits lie beyond
+        float f1 = hi2 == hi1 ? f2 : view_value(c, p, soft, A + hi1 * d);
         int cut1 = !dead1 && f1 < tau_hi, cut2 = !dead2 && f2 < tau_lo;
         if (!cut1 && !cut2) continue;
         float fa = view_value(c, p, soft, A);

@@ -122,7 +122,8 @@ def shell_clamp_reference(v, centre, axis, shell, reach: float, across: float, o
 
 
 def unfold_step_reference(v, f, off, idx) -> tuple[np.ndarray, int]:
-    """Kernel ``unfold_step``: (vertices, how many moved)."""
+    """Kernel ``unfold_step``: (vertices, how many moved). A vertex is at a fold when two of its faces that share an
+    edge have unit normals more than 150 degrees apart."""
     v = np.asarray(v, np.float32)
     fn = _unit(face_normals_reference(v, f))
     corners = (v[f[:, 0]] + v[f[:, 1]]) + v[f[:, 2]]
@@ -134,7 +135,10 @@ def unfold_step_reference(v, f, off, idx) -> tuple[np.ndarray, int]:
             continue
         n = fn[faces]
         cos = (n[:, None, 0] * n[None, :, 0] + n[:, None, 1] * n[None, :, 1]) + n[:, None, 2] * n[None, :, 2]
-        if (cos < np.float32(-0.8660254)).any():
+        corner = f[faces]
+        others = [set(c.tolist()) - {i} for c in corner]
+        share = np.array([[bool(a & b) for b in others] for a in others])
+        if ((cos < np.float32(-0.8660254)) & share).any():
             ring = np.zeros(3, np.float32)
             for k in faces:
                 ring = ring + corners[k]
@@ -319,7 +323,8 @@ def fair(ops, *, rounds: int = 2, iterations: int = 5, filter_rounds: int = 2, l
     ``final``: "none", "clamp" (a last clamp along fresh lines through the final positions, nothing across: every
     vertex exactly into the shell) or "onto" (the same onto the deep level tau_in). Then at most ``unfold`` fold
     repair steps move the vertices at a fold (faces more than 150 degrees apart), if any. Returns (vertices,
-    the final lines (centre, axis, shell) or None) as backend handles."""
+    the final lines (centre, axis, shell) or None) as backend handles, and how many vertices were still at a
+    fold before the last repair step (0: no fold left)."""
     v = ops.v
     k = 0
 
@@ -344,9 +349,10 @@ def fair(ops, *, rounds: int = 2, iterations: int = 5, filter_rounds: int = 2, l
         last = search(v)
         k += 1
         v = ops.clamp(v, *last, reach, 0.0, f"v{k % 2}", onto=final == "onto")
+    moved = 0
     for _ in range(unfold):  # folds the clamp left: half umbrella steps on the vertices at a fold
         k += 1
         v, moved = ops.unfold(v, f"v{k % 2}")
         if not moved:
             break
-    return v, last
+    return v, last, moved

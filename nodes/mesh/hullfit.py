@@ -35,6 +35,7 @@ from nodes.common.silhouettes import POLICIES, SilhouetteBits, check_masks, chec
 
 IN, BACKGROUND, UNSEEN = 1, 2, 3
 RELAX_OUTSIDE_PX = 0.4  # relax's default outside_px (refine searches that level ahead for it)
+ROOT_TOL = 1e-4         # a crossing stops at a point whose field is this close to the level (kernel ROOT_TOL)
 
 
 def bspline2(x: float) -> float:
@@ -189,9 +190,11 @@ def _crossing(a, d, field, v, vals, tau, ga, hi, gb, steps):
         t[bad] = f(0.5) * (A[bad] + B[bad])
         g = view_values(a[idx] + t[:, None] * d[idx], field, v, vals) - f(tau)
         up = g >= 0
+        on = np.abs(g) < f(ROOT_TOL)
         s = side[idx]
-        a0[idx] = np.where(up, t, A)
-        b0[idx] = np.where(up, B, t)
+        a0[idx] = np.where(up | on, t, A)
+        b0[idx] = np.where(up & ~on, B, t)
+        go[idx[on]] = False
         ga[idx] = np.where(up, g, np.where(s == -1, f(0.5) * GA, GA))
         gb[idx] = np.where(up, np.where(s == 1, f(0.5) * GB, GB), g)
         side[idx] = np.where(up, 1, -1)
@@ -242,11 +245,11 @@ def exit_two_levels(a, b, field: SilhouetteField, tau_hi: float, tau_lo: float, 
     dead1, dead2 = np.zeros(len(a), bool), np.zeros(len(a), bool)
     for v in range(len(field.cams)):
         vals = np.pad(field.pixel_values(v), 1)
-        f1 = view_values(a + hi1[:, None] * d, field, v, vals)
-        f2 = f1.copy()
-        differ = np.flatnonzero(hi2 != hi1)
-        f2[differ] = view_values(a[differ] + hi2[differ, None] * d[differ], field, v, vals)
-        cut1 = ~dead1 & (f1 < f(tau_hi))
+        f2 = view_values(a + hi2[:, None] * d, field, v, vals)
+        f1 = f2.copy()
+        differ = np.flatnonzero((hi2 != hi1) & (f2 < f(tau_hi)))
+        f1[differ] = view_values(a[differ] + hi1[differ, None] * d[differ], field, v, vals)
+        cut1 = ~dead1 & (f1 < f(tau_hi)) & (f2 < f(tau_hi))
         cut2 = ~dead2 & (f2 < f(tau_lo))
         idx = np.flatnonzero(cut1 | cut2)
         if not len(idx):

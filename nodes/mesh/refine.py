@@ -28,6 +28,7 @@ from nodegraph import Node, Param
 from nodes.common.silhouettes import POLICIES
 from nodes.common.types import CameraSet, Masks, Mesh, Volume
 
+from .budget import meet_budget, repair_folds
 from .fairing import CLOps, NumPyOps, fair, smoothed_normals
 from .hullfit import (RELAX_OUTSIDE_PX, FieldCL, FitLines, SilhouetteField, ball_cull, cross_reference, level_of,
                       onto_reference)
@@ -80,26 +81,6 @@ def target_face_count(vertices, faces, faces_param: int, edge_length: float) -> 
     return 0
 
 
-def meet_budget(vertices, faces, target: int) -> tuple[np.ndarray, np.ndarray]:
-    """(vertices, faces) with about ``target`` faces: 1-to-4 midpoint subdivision while below it, then quadric
-    decimation (fast-simplification, Garland & Heckbert) down to it. Vertices land near, not on, the hull:
-    the quality steps that follow put them back."""
-    import fast_simplification
-
-    from nodes.common.meshops import split_edges, unique_edges
-
-    v = np.asarray(vertices, np.float64)
-    f = np.asarray(faces, np.int64)
-    if target <= 0 or len(f) == 0:
-        return v, f
-    while len(f) < target:
-        edges, face_edges = unique_edges(f)
-        v, f = split_edges(v, f, edges, face_edges, np.ones(len(edges), bool), v[edges].mean(axis=1))
-    if len(f) > target:
-        v, f = fast_simplification.simplify(v, f, target_count=int(target))
-    return np.asarray(v, np.float64), np.asarray(f, np.int64)
-
-
 # ---------------------------------------------------------------- work function
 CULL_VOXELS = 1.6  # radius of each vertex's ball for view culling: its grid edge and its last search line lie in it
 
@@ -115,7 +96,7 @@ def refine_vertices(vertices, faces, volume, field: SilhouetteField, steps: int 
     levels): counts["lines"] is then the FitLines relax can start from."""
     vertices = np.asarray(vertices, np.float64).reshape(-1, 3)
     faces = np.asarray(faces, np.int64).reshape(-1, 3)
-    stats = {"vertices": len(vertices), "on_edges": 0, "on_normals": 0, "lines": None}
+    stats = {"vertices": len(vertices), "on_edges": 0, "on_normals": 0, "lines": None, "folds_left": 0}
     if len(vertices) == 0:
         return (vertices.copy(), faces, stats) if target_faces > 0 else (vertices.copy(), stats)
     origin = field.origin
@@ -152,11 +133,14 @@ def refine_vertices(vertices, faces, volume, field: SilhouetteField, steps: int 
     if quality > 0 and len(faces):
         ops = CLOps(out, faces, fc, cull) if method == "opencl" else NumPyOps(out, faces, field)
         levels = relax_levels if relax_levels is not None else (HULL, HULL)
-        v, last = fair(ops, rounds=1, iterations=quality, filter_rounds=1, lam_t=lam_t, shell=levels,
-                       reach=0.5 * voxel, steps=steps, clamp_steps=False, final="onto")
+        v, last, folds = fair(ops, rounds=1, iterations=quality, filter_rounds=1, lam_t=lam_t, shell=levels,
+                              reach=0.5 * voxel, steps=steps, clamp_steps=False, final="onto")
         out = ops.read(v)
         result = out.astype(np.float64) + origin
-        if relax_levels is not None and last is not None:
+        count = len(result)
+        if folds:  # a fold the repair steps could not open (after decimation): flip or collapse its edge
+            result, faces, stats["folds_left"] = repair_folds(result, faces)
+        if relax_levels is not None and last is not None and len(result) == count:  # (no vertex gone: they fit)
             stats["lines"] = FitLines(result, faces, field.key(), origin, tuple(levels), 0.5 * voxel,
                                       ops.get(last[0]), ops.get(last[1]), ops.get(last[2], 4), cull)
     else:

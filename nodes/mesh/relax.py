@@ -13,7 +13,7 @@ then clamp each vertex to its line's shell interval (and at most ``across`` off 
 With ``keep_silhouettes`` false the fairing runs free (no masks needed). Same topology.
 
     field = SilhouetteField.from_inputs(masks, cameras, origin)
-    vertices = relax_vertices(mesh.vertices, mesh.faces, field, rounds=1, iterations=8)
+    vertices, faces = relax_vertices(mesh.vertices, mesh.faces, field, rounds=1, iterations=8)
 """
 from __future__ import annotations
 
@@ -24,6 +24,7 @@ from nodegraph import Input, Node, NodeError, Param
 from nodes.common.silhouettes import POLICIES
 from nodes.common.types import CameraSet, Masks, Mesh
 
+from .budget import repair_folds
 from .fairing import CLOps, NumPyOps, fair
 from .hullfit import RELAX_OUTSIDE_PX, FieldCL, FitLines, SilhouetteField, level_of
 
@@ -40,15 +41,16 @@ def mean_edge_length(vertices: np.ndarray, faces: np.ndarray) -> float:
 def relax_vertices(vertices, faces, field: SilhouetteField | None = None, *, rounds: int = 1, iterations: int = 8,
                    filter_rounds: int = 2, lam_t: float = 0.5, inside_px: float = 0.0,
                    outside_px: float = RELAX_OUTSIDE_PX, steps: int = 8, method: str = "opencl",
-                   lines: FitLines | None = None) -> np.ndarray:
-    """Faired vertices (V, 3) float64; with ``field`` kept in the shell between ``inside_px`` pixels within
-    the masks' outline and ``outside_px`` beyond it. ``lines``: refine's last search (FitLines), used for the
+                   lines: FitLines | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(faired vertices (V, 3) float64, faces); with ``field`` kept in the shell between ``inside_px`` pixels
+    within the masks' outline and ``outside_px`` beyond it. The vertices and faces are the input's unless a fold
+    the fairing could not open had its edge flipped or collapsed (``budget.repair_folds``). ``lines``: refine's last search (FitLines), used for the
     first round when it was made for these vertices, faces, field and levels (then ``field`` must have its
     origin)."""
     vertices = np.asarray(vertices, np.float64).reshape(-1, 3)
     faces = np.asarray(faces, np.int64).reshape(-1, 3)
     if len(vertices) == 0 or len(faces) == 0 or rounds * iterations == 0:
-        return vertices.copy()
+        return vertices.copy(), faces
     shell = None if field is None else (level_of(inside_px), level_of(-outside_px))
     if lines is not None and (field is None or not lines.fits(vertices, faces, field, shell)):
         lines = None
@@ -64,9 +66,12 @@ def relax_vertices(vertices, faces, field: SilhouetteField | None = None, *, rou
     if lines is not None:
         first = (ops.put(lines.centre, "l_centre"), ops.put(lines.axis, "l_axis"), ops.put(lines.shell, "l_shell", 4))
         reach = lines.reach
-    out, _ = fair(ops, rounds=rounds, iterations=iterations, filter_rounds=filter_rounds, lam_t=lam_t, shell=shell,
-                  reach=reach, across=0.5 * edge, steps=steps, lines=first)
-    return ops.read(out).astype(np.float64) + origin
+    out, _, folds = fair(ops, rounds=rounds, iterations=iterations, filter_rounds=filter_rounds, lam_t=lam_t,
+                         shell=shell, reach=reach, across=0.5 * edge, steps=steps, lines=first)
+    result = ops.read(out).astype(np.float64) + origin
+    if folds:  # a fold the repair steps could not open: flip or collapse its edge
+        result, faces, _ = repair_folds(result, faces)
+    return result, faces
 
 
 # ---------------------------------------------------------------- node
@@ -114,7 +119,7 @@ class Relax(Node):
             v = np.asarray(mesh.vertices, np.float64)
             origin = lines.origin if lines is not None else (0.5 * (v.min(axis=0) + v.max(axis=0)) if len(v) else np.zeros(3))
             field = SilhouetteField.from_inputs(masks, cameras, origin, min_views, outside, use_alpha, node="relax")
-        out = relax_vertices(mesh.vertices, mesh.faces, field, rounds=rounds, iterations=iterations,
+        out, faces = relax_vertices(mesh.vertices, mesh.faces, field, rounds=rounds, iterations=iterations,
                              filter_rounds=filter_rounds, lam_t=tangential, inside_px=inside_px,
                              outside_px=outside_px, steps=steps, method=method, lines=lines)
-        return {"mesh": trimesh.Trimesh(out, np.asarray(mesh.faces), process=False)}
+        return {"mesh": trimesh.Trimesh(out, faces, process=False)}
