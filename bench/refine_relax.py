@@ -6,6 +6,8 @@ frozen in bench/legacy_surface.py) and the decimation baseline a user would othe
 Scenes, 128^3 hull (nodes.hull) + marching cubes (largest component):
   synth figure   the synth node's walking figure, ring of 24 cameras at 1920x1080 (bench/e2e.py's rig), with the
                  true surface: normal error (eval.mesh, faces within one voxel of the truth)
+  crease robot   a procedural mesh with sharp creases and thin parts (crease_robot), rendered by the project's
+                 rasterizer into a dome of 24 cameras at 1920x1080; normal error against it
   real data      thu_wd_human (20 x 1024x768), inria_dancer (8 x 780x582), shipped masks
 Rows per scene:
   mc 128 / mc 256        plain marching cubes (the grid's own surface)
@@ -93,7 +95,44 @@ def fresh(masks):
                    list(masks.names))
 
 
+def crease_robot():
+    """A procedural mesh with sharp creases and thin parts (the "rendered third-party mesh" of the issue): a box
+    torso and a box turned 30 degrees about two axes, a ball head, limbs of 3 to 6 voxels' diameter at 128^3, a
+    fin 1.3 voxels thick and a torus handle, overlapping (one connected object; its silhouettes are the union's)."""
+    from trimesh.creation import box, cylinder, icosphere, torus
+    from trimesh.transformations import rotation_matrix
+
+    def at(m, xyz, rot=None):
+        if rot is not None:
+            m.apply_transform(rot)
+        m.apply_translation(xyz)
+        return m
+
+    parts = [at(box((0.6, 0.36, 0.8)), (0, 0, 1.0)),
+             at(box((0.3, 0.3, 0.3)), (0.0, 0.0, 1.45), rotation_matrix(0.52, (1, 1, 0))),
+             at(icosphere(3, radius=0.17), (0, 0, 1.72)),
+             at(box((0.022, 0.3, 0.45)), (0.0, -0.32, 1.05)),                      # fin
+             at(torus(0.22, 0.03), (0.0, 0.0, 0.55), rotation_matrix(np.pi / 2, (1, 0, 0)))]
+    for side in (-1, 1):
+        parts.append(at(cylinder(radius=0.035, height=0.7, sections=24), (side * 0.5, 0, 1.05),
+                        rotation_matrix(side * 0.7, (0, 1, 0))))                    # arms (4 voxels)
+        parts.append(at(cylinder(radius=0.055, height=0.62, sections=24), (side * 0.17, 0, 0.31)))  # legs
+        parts.append(at(cylinder(radius=0.014, height=0.4, sections=16), (side * 0.1, 0.0, 1.95),
+                        rotation_matrix(side * 0.4, (0, 1, 0))))                    # antennae (1.6 voxels)
+    return trimesh.util.concatenate(parts)
+
+
 def scene(name: str):
+    if name == "crease robot":
+        from nodes.common import raster
+        from nodes.synth.render import ring_rig
+
+        truth = crease_robot()
+        lo, hi = truth.bounds
+        centre, radius = 0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo))
+        cams = ring_rig(24, centre, radius, 40.0, 1920, 1080, dome=True)
+        masks = MaskSet(raster.silhouette(np.asarray(truth.vertices), np.asarray(truth.faces), cams), None, cams.names)
+        return masks, cams, cube_around(np.array([lo - 0.05, hi + 0.05])), truth
     if name == "synth figure":
         st = run_node("synth", {}, {"scene": "figure", "rig": "ring", "cameras": 24, "width": 1920, "height": 1080,
                                     "background": "green", "shadow": False})
@@ -117,7 +156,7 @@ def main():
 
     print(f"OpenCL device: {clrt.device_name()}; CPU: {cpu_model()}, {os.cpu_count()} cores; "
           f"load average {os.getloadavg()[0]:.2f} {os.getloadavg()[1]:.2f} {os.getloadavg()[2]:.2f}")
-    names = ["synth figure"] + [n for n in args.datasets.split(",") if n]
+    names = ["synth figure", "crease robot"] + [n for n in args.datasets.split(",") if n]
     for name in names:
         masks, cams, box, truth = scene(name)
         vol, mesh = mc_mesh(masks, cams, box, 128)

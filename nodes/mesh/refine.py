@@ -12,9 +12,12 @@ Vertices that slid along their edges leave slivers (a vertex near a lattice corn
 and, where neighbours slid in opposite directions, folds. ``quality`` fairing steps (nodes/mesh/fairing.py:
 normals smoothed first, then each vertex towards its faces' planes and the mean of its neighbours) even out
 the triangles and open the folds; then every vertex goes back onto the exact hull along its smoothed normal
-(the fairing's final clamp, a shell of zero width), and fold repair steps follow where that left a fold.
-Same faces as the input by default; a triangle budget (``faces`` or ``edge_length``) subdivides and/or
-decimates (quadric error metrics, fast-simplification) before the quality steps.
+(the fairing's final clamp onto the hull's level), and fold repair steps follow where that left a fold (then
+edge flips or collapses, nodes/mesh/budget.py). That last search also finds relax's outer level on the same
+lines: the mesh carries it (``volcap_lines``, in memory only) and relax, run next in the frame unit, starts
+from it. The searches visit, per vertex, only the views that may cut its neighbourhood (``hullfit.ball_cull``).
+Same faces as the input by default; a triangle budget (``faces`` or ``edge_length``) splits the edges with the
+largest chord error or decimates (quadric error metrics, fast-simplification) before the quality steps.
 
     field = SilhouetteField.from_inputs(masks, cameras, origin=volume centre)
     vertices, stats = refine_vertices(mesh.vertices, mesh.faces, volume, field, steps=8, quality=6)
@@ -155,10 +158,10 @@ class Refine(Node):
     """Exact visual-hull surface (Liang & Wong 2008): every marching-cubes vertex moves along its grid edge to
     where the edge leaves the hull of the silhouettes (read as a smooth B-spline field, sub-pixel), then fairing
     steps even out the triangles and every vertex goes back onto the hull. Same faces as the input, or a
-    triangle budget (faces or edge_length: subdivision, then quadric decimation)."""
+    triangle budget (faces or edge_length: edge splits by chord error, or quadric decimation; fold-free)."""
 
     type_name = "refine"
-    version = 3
+    version = 4
     inputs = {"mesh": Mesh, "volume": Volume, "masks": Masks, "cameras": CameraSet}
     outputs = {"mesh": Mesh}
     params = {

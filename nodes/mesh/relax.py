@@ -8,7 +8,9 @@ within it (levels of the smooth silhouette field, nodes/mesh/hullfit.py). Inside
 (nodes/mesh/fairing.py): face normals are smoothed first, vertices move towards the planes of their faces
 with the smoothed normals and evenly along the surface. Every ``iterations`` steps make one round: each round
 sets each vertex's line along its smoothed normal and searches the shell on it once on the device; the steps
-then clamp each vertex to its line's shell interval (and at most ``across`` off it).
+then clamp each vertex to its line's shell interval (and at most ``across`` off it). When refine ran just
+before in the same frame unit, its last search (``volcap_lines`` on its mesh: the same lines, both levels) is
+the first round's, and relax searches nothing itself with the default one round.
 
 With ``keep_silhouettes`` false the fairing runs free (no masks needed). Same topology.
 
@@ -82,7 +84,7 @@ class Relax(Node):
     slivers; same topology."""
 
     type_name = "relax"
-    version = 3
+    version = 4
     inputs = {"mesh": Mesh,
               "masks": Input(Masks, optional=True, doc="silhouettes to stay within (keep_silhouettes)"),
               "cameras": Input(CameraSet, optional=True, doc="cameras of the masks (keep_silhouettes)")}
