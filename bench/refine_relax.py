@@ -84,7 +84,7 @@ def refine_relax(mesh, vol, masks, cams):
     starts from refine's last search, handed over in memory)."""
     origin = 0.5 * (vol.bbox_min + vol.bbox_max)
     field = SilhouetteField.from_inputs(masks, cams, origin)
-    v, stats = refine_vertices(mesh.vertices, mesh.faces, vol, field)
+    v, _, stats = refine_vertices(mesh.vertices, mesh.faces, vol, field)
     v, faces = relax_vertices(v, mesh.faces, field, lines=stats["lines"])
     return trimesh.Trimesh(v, faces, process=False)
 

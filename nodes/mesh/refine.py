@@ -20,7 +20,7 @@ Same faces as the input by default; a triangle budget (``faces`` or ``edge_lengt
 largest chord error or decimates (quadric error metrics, fast-simplification) before the quality steps.
 
     field = SilhouetteField.from_inputs(masks, cameras, origin=volume centre)
-    vertices, stats = refine_vertices(mesh.vertices, mesh.faces, volume, field, steps=8, quality=6)
+    vertices, faces, stats = refine_vertices(mesh.vertices, mesh.faces, volume, field, steps=8, quality=6)
 """
 from __future__ import annotations
 
@@ -28,6 +28,7 @@ import numpy as np
 
 from kernels import source
 from nodegraph import Node, Param
+from nodes.common.meshops import carried_vertex_colors
 from nodes.common.silhouettes import POLICIES
 from nodes.common.types import CameraSet, Masks, Mesh, Volume
 
@@ -93,15 +94,15 @@ def refine_vertices(vertices, faces, volume, field: SilhouetteField, steps: int 
                     relax_levels: tuple | None = (HULL, level_of(-RELAX_OUTSIDE_PX))):
     """Vertices onto the hull (Liang & Wong along grid edges, else along the normal within one voxel), then
     ``quality`` fairing steps and the projection back onto the hull. With ``target_faces`` > 0 the mesh is
-    first brought to that many faces (``meet_budget``) and (vertices, faces, counts) is returned; otherwise
-    (vertices (V, 3) float64, counts). The searches visit, per vertex, only the views that may see its
+    first brought to that many faces (``meet_budget``). Returns (vertices (V, 3) float64, faces, counts): the
+    faces change with a budget, and when a fold the fairing could not open had its edge collapsed. The searches visit, per vertex, only the views that may see its
     neighbourhood cut (``ball_cull``). The last search also finds the shell at ``relax_levels`` (relax's default
     levels): counts["lines"] is then the FitLines relax can start from."""
     vertices = np.asarray(vertices, np.float64).reshape(-1, 3)
     faces = np.asarray(faces, np.int64).reshape(-1, 3)
     stats = {"vertices": len(vertices), "on_edges": 0, "on_normals": 0, "lines": None, "folds_left": 0}
     if len(vertices) == 0:
-        return (vertices.copy(), faces, stats) if target_faces > 0 else (vertices.copy(), stats)
+        return vertices.copy(), faces, stats
     origin = field.origin
     voxel = float(np.max(volume.voxel_size))
     p = (vertices - origin).astype(np.float32)
@@ -148,9 +149,7 @@ def refine_vertices(vertices, faces, volume, field: SilhouetteField, steps: int 
                                       ops.get(last[0]), ops.get(last[1]), ops.get(last[2], 4), cull)
     else:
         result = out.astype(np.float64) + origin
-    if target_faces > 0:
-        return result, faces, stats
-    return result, stats
+    return result, faces, stats
 
 
 # ---------------------------------------------------------------- node
@@ -189,10 +188,10 @@ class Refine(Node):
             vertices, faces, stats = refine_vertices(mesh.vertices, faces, volume, field, steps, quality, method=method,
                                                      target_faces=target)
         else:
-            vertices, stats = refine_vertices(mesh.vertices, faces, volume, field, steps, quality, method=method)
+            vertices, faces, stats = refine_vertices(mesh.vertices, faces, volume, field, steps, quality, method=method)
         self.log.info("refine: %d of %d vertices onto the hull along grid edges, %d along normals",
                       stats["on_edges"], stats["vertices"], stats["on_normals"])
-        out = trimesh.Trimesh(vertices, faces, process=False)
+        out = trimesh.Trimesh(vertices, faces, vertex_colors=carried_vertex_colors(mesh, vertices), process=False)
         if stats["lines"] is not None:  # relax, when it runs next in this frame unit, starts from the last search
             stats["lines"].vertices = np.asarray(out.vertices)
             out.volcap_lines = stats["lines"]

@@ -23,6 +23,7 @@ import numpy as np
 
 from kernels import source
 from nodegraph import Input, Node, NodeError, Param
+from nodes.common.meshops import carried_vertex_colors
 from nodes.common.silhouettes import POLICIES
 from nodes.common.types import CameraSet, Masks, Mesh
 
@@ -124,4 +125,4 @@ class Relax(Node):
         out, faces = relax_vertices(mesh.vertices, mesh.faces, field, rounds=rounds, iterations=iterations,
                              filter_rounds=filter_rounds, lam_t=tangential, inside_px=inside_px,
                              outside_px=outside_px, steps=steps, method=method, lines=lines)
-        return {"mesh": trimesh.Trimesh(out, faces, process=False)}
+        return {"mesh": trimesh.Trimesh(out, faces, vertex_colors=carried_vertex_colors(mesh, out), process=False)}
