@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -24,9 +25,10 @@ def cmd_run(args) -> int:
     from .executors import make_executor
     from .run import run_graph
 
-    if args.device:
-        os.environ["VOLCAP_CL_DEVICE"] = args.device  # inherited by worker processes
     graph = _load(args)
+    if args.device:
+        _check_device(args.device)
+        os.environ["VOLCAP_CL_DEVICE"] = args.device  # inherited by worker processes
     out = Path(args.out or Path("out") / Path(args.graph).stem)
     if args.executor == "dask":
         executor = make_executor("dask", args.workers or args.jobs, scheduler=args.scheduler)
@@ -48,6 +50,23 @@ def cmd_run(args) -> int:
 
         print(f"report: {write_report(result.out_dir)}")
     return 1 if result.failures else 0
+
+
+def _check_device(spec: str):
+    """Refuse an OpenCL device that does not exist before any work runs (not in the first OpenCL node)."""
+    from .clrt import OpenCLUnavailable, _choose_device
+
+    old = os.environ.get("VOLCAP_CL_DEVICE")
+    os.environ["VOLCAP_CL_DEVICE"] = spec
+    try:
+        _choose_device()
+    except OpenCLUnavailable as exc:
+        raise VolcapError(f"--device {spec}: {exc}") from None
+    finally:
+        if old is None:
+            os.environ.pop("VOLCAP_CL_DEVICE", None)
+        else:
+            os.environ["VOLCAP_CL_DEVICE"] = old
 
 
 def cmd_validate(args) -> int:
@@ -151,6 +170,12 @@ def _positive_int(text: str) -> int:
     return n
 
 
+def _scheduler_address(text: str) -> str:
+    if not re.fullmatch(r"[A-Za-z][A-Za-z0-9+.-]*://[^\s/]+(/\S*)?", text) or len(text) > 1000:
+        raise argparse.ArgumentTypeError(f"expects a Dask scheduler address such as tcp://HOST:PORT, got {text[:100]!r}")
+    return text
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="volcap", description="Volumetric capture node graphs, run headless.")
     p.add_argument("--cache", help="cache folder (default $VOLCAP_CACHE or ./.volcap-cache)")
@@ -170,7 +195,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--jobs", "-j", type=_positive_int, help="parallel work items (default: CPU count; 1 = in this process)")
     r.add_argument("--executor", choices=["local", "dask"], default="local")
     r.add_argument("--workers", type=_positive_int, help="dask: worker processes of the LocalCluster (default 2)")
-    r.add_argument("--scheduler", help="dask: address of an existing scheduler (tcp://HOST:PORT)")
+    r.add_argument("--scheduler", type=_scheduler_address, help="dask: address of an existing scheduler (tcp://HOST:PORT)")
     r.add_argument("--device", help="OpenCL device: cpu, gpu or PLATFORM:DEVICE (see `devices`)")
     r.add_argument("--report", action="store_true", help="write report.html into the output folder")
     r.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
@@ -194,7 +219,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command == "run" and args.executor != "dask":
+        for opt in ("scheduler", "workers"):
+            if getattr(args, opt) is not None:
+                parser.error(f"--{opt} needs --executor dask")
     try:
         return args.fn(args)
     except GraphError as exc:
