@@ -2,7 +2,7 @@
 
 Layout under the cache root:
     objects/ab/abcdef.../        one work item's outputs, complete iff the folder exists
-        meta.json                key components, output types, wall time
+        meta.json                key components, output types, wall time, a content hash of every file
         PORT/...                 each output in its type's on-disk form
     staging/                     folders being written (renamed into objects/ when complete; `gc` removes
                                  leftovers older than 6 hours, so it never pulls one from a running write)
@@ -11,9 +11,15 @@ Layout under the cache root:
 
 A work item's outputs are written into a staging folder and renamed into place in one step, so a run
 killed mid-write leaves no half artifact: the item simply is not cached and the next run recomputes it.
+
+Content verification: ``write`` records a BLAKE2b-128 hash of every stored file in meta.json; ``load`` checks
+the files it reads against them (DataError "damaged"), ``verify`` checks a whole entry, and an entry whose
+meta.json is not a readable record is not a hit. A damaged entry is evicted and recomputed (run.py checks
+what a run will read before it starts; `cache verify` checks everything).
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
@@ -42,11 +48,33 @@ def atomic_write_text(path: Path, text: str):
     atomic_write_bytes(path, text.encode())
 
 
+HASH_NAME = "blake2b-128"
+
+
+def file_hash(path: Path) -> str:
+    """BLAKE2b-128 of a file's content (hex): fast, and any flipped bit changes it."""
+    h = hashlib.blake2b(digest_size=16)
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _valid_meta(meta) -> bool:
+    """A meta.json record the cache can use: a mapping whose 'files' maps ports to lists of paths (or None)."""
+    if not isinstance(meta, dict) or not isinstance(meta.get("files"), dict):
+        return False
+    if not all(v is None or (isinstance(v, list) and all(isinstance(f, str) for f in v)) for v in meta["files"].values()):
+        return False
+    return isinstance(meta.get("hashes", {}), dict)
+
+
 class Cache:
     def __init__(self, root: str | Path):
         self.root = Path(root).resolve()
         self.objects = self.root / "objects"
         self.staging = self.root / "staging"
+        self.verified: set[str] = set()   # keys whose whole content was checked by this object (see verify)
 
     def prepare(self):
         """Create the cache folders, or raise DataError saying why the cache cannot be used."""
@@ -63,23 +91,65 @@ class Cache:
         return self.objects / key[:2] / key
 
     def has(self, key: str) -> bool:
-        return (self.object_dir(key) / "meta.json").is_file()
+        """Whether ``key`` is stored: its folder holds a readable meta.json record (garbage is not a hit)."""
+        try:
+            return _valid_meta(json.loads((self.object_dir(key) / "meta.json").read_text()))
+        except (OSError, ValueError):
+            return False
 
     def meta(self, key: str) -> dict:
         try:
-            return json.loads((self.object_dir(key) / "meta.json").read_text())
+            meta = json.loads((self.object_dir(key) / "meta.json").read_text())
         except (OSError, ValueError) as exc:
             raise DataError(f"cache entry {key} is unreadable ({exc}); run `cache gc` or delete it") from None
+        if not _valid_meta(meta):
+            raise DataError(f"cache entry {key} is damaged: meta.json is not a cache record")
+        return meta
+
+    def _check_files(self, key: str, meta: dict, files: list[str]) -> str | None:
+        """What is wrong with ``files`` of the entry (missing, or content not matching meta.json), or None."""
+        d = self.object_dir(key)
+        hashes = meta.get("hashes")
+        for f in files:
+            p = d / f
+            if not p.is_file():
+                return f"{f} is missing"
+            if hashes is not None:   # entries written before content hashes can only be checked for presence
+                want = hashes.get(f)
+                try:
+                    got = file_hash(p)
+                except OSError as exc:
+                    return f"{f} cannot be read ({exc.strerror or exc})"
+                if want != got:
+                    return f"{f} does not match the content hash recorded when it was written"
+        return None
+
+    def verify(self, key: str) -> str | None:
+        """Check a whole entry: None when meta.json is a record and every file it lists is there with the
+        content it was written with, else what is wrong (the caller evicts it)."""
+        try:
+            meta = self.meta(key)
+        except DataError:
+            return "meta.json is missing or not a cache record"
+        problem = self._check_files(key, meta, [f for files in meta["files"].values() for f in files or []])
+        if problem is None:
+            self.verified.add(key)
+        return problem
 
     def load(self, key: str, port: str, dtype):
         folder = self.object_dir(key) / port
-        listed = self.meta(key).get("files", {}).get(port)
+        meta = self.meta(key)
+        listed = meta.get("files", {}).get(port)
         if listed is None and not folder.is_dir():
             return None  # an optional output that was None
         missing = [f for f in listed or [] if not (self.object_dir(key) / f).is_file()]
         if listed is None or missing:
             raise DataError(f"cache entry {key}/{port} ({dtype.name}) is incomplete: "
                             f"{missing[0] if missing else port + '/'} is missing")
+        if key not in self.verified:
+            problem = self._check_files(key, meta, listed)
+            if problem:
+                raise DataError(f"cache entry {key}/{port} ({dtype.name}) is damaged: {problem}")
         try:
             return dtype.load(folder)
         except DataError:
@@ -103,10 +173,13 @@ class Cache:
                 d.mkdir()
                 dtype.save(value, d)
                 files[port] = [p.relative_to(stage).as_posix() for p in dtype.files(d)]
-            meta = dict(meta, key=key, files=files, types=types, created=time.time())
+            hashes = {f: file_hash(stage / f) for listed in files.values() for f in listed or []}
+            meta = dict(meta, key=key, files=files, types=types, created=time.time(), hash=HASH_NAME, hashes=hashes)
             (stage / "meta.json").write_text(json.dumps(meta, indent=1, sort_keys=True))
             final = self.object_dir(key)
             final.parent.mkdir(parents=True, exist_ok=True)
+            if final.exists() and not self.has(key):  # a damaged entry (garbage meta.json): replace it
+                self.evict(key)
             try:
                 os.rename(stage, final)
             except OSError:
@@ -127,6 +200,8 @@ class Cache:
                 meta = json.loads((d / "meta.json").read_text())
             except (OSError, ValueError):
                 continue
+            if not _valid_meta(meta):
+                continue
             size = sum(f.stat().st_size for f in d.rglob("*") if f.is_file())
             yield d.name, meta, size
 
@@ -143,7 +218,7 @@ class Cache:
             removed += 1
         for d in list(self.objects.glob("*/*")) if self.objects.is_dir() else []:
             meta = d / "meta.json"
-            stale = not meta.is_file()
+            stale = not self.has(d.name)
             if not stale and max_age_days is not None:
                 stale = now - meta.stat().st_mtime > max_age_days * 86400
             if stale:
@@ -170,6 +245,22 @@ class Cache:
             except OSError:
                 return
             shutil.rmtree(trash, ignore_errors=True)
+
+    def verify_all(self):
+        """Check every entry (also those whose meta.json is garbage); yields (key, meta or None, problem or
+        None). The caller decides what to do with the damaged ones (``cache verify`` evicts them)."""
+        if not self.objects.is_dir():
+            return
+        for d in sorted(self.objects.glob("*/*")):
+            if not d.is_dir():
+                continue
+            key = d.name
+            problem = self.verify(key)
+            try:
+                meta = self.meta(key)
+            except DataError:
+                meta = None
+            yield key, meta, problem
 
     def clear(self):
         if self.root.exists() and not self.root.is_dir():

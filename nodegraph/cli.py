@@ -38,6 +38,8 @@ def cmd_run(args) -> int:
     counts = result.counts()
     print(f"{graph.path.name}: {len(result.records)} items in {result.seconds:.2f} s — "
           + ", ".join(f"{v} {k}" for k, v in sorted(counts.items())) + f"; run record: {result.out_dir / 'run.json'}")
+    for w in result.warnings:
+        print(f"warning: {w}", file=sys.stderr)
     for r in result.records:
         for w in r.get("warnings", []):
             frame = "" if r["frame"] is None else f" frame {r['frame']}"
@@ -139,6 +141,21 @@ def cmd_cache(args) -> int:
     elif args.action == "gc":
         n, freed = cache.gc(args.max_age)
         print(f"removed {n} entries, {freed / 1e6:.1f} MB")
+    elif args.action == "verify":
+        checked = damaged = legacy = 0
+        for key, meta, problem in cache.verify_all():
+            checked += 1
+            if meta is not None and "hashes" not in meta:
+                legacy += 1
+            if problem:
+                damaged += 1
+                frame = "?" if meta is None else ("all" if meta.get("frame") is None else meta.get("frame"))
+                where = "" if meta is None else f" ({meta.get('type', '?')} {meta.get('node', '?')}@{frame})"
+                print(f"damaged {key}{where}: {problem}")
+                cache.evict(key)
+        print(f"{checked} entries checked, {damaged} damaged" + (" (removed)" if damaged else "")
+              + (f"; {legacy} written before content hashes (only checked for missing files)" if legacy else ""))
+        return 1 if damaged else 0
     elif args.action == "clear":
         cache.clear()
         print(f"cleared {cache.root}")
@@ -207,7 +224,9 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("node")
     d.set_defaults(fn=cmd_describe)
     c = sub.add_parser("cache", help="inspect or clean the cache")
-    c.add_argument("action", choices=["ls", "gc", "clear"])
+    c.add_argument("action", choices=["ls", "gc", "verify", "clear"],
+                   help="ls: list entries; gc: remove leftovers (and old entries); verify: check every entry's content "
+                        "against its recorded hashes, remove damaged ones (exit 1 when any); clear: remove everything")
     c.add_argument("--max-age", type=float, metavar="DAYS", help="gc: also remove entries unused for DAYS")
     c.add_argument("--cache", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
     c.set_defaults(fn=cmd_cache)

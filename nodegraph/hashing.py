@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import stat
 import time
 from pathlib import Path
 
@@ -40,6 +41,7 @@ class FileHasher:
         self.db_path = db_path
         self.db: dict = {}
         self.dirty = False
+        self.skipped: dict[str, list[str]] = {}  # input folder -> entries that are not regular files (not read)
         if db_path and db_path.exists():
             try:
                 self.db = json.loads(db_path.read_text())
@@ -65,11 +67,15 @@ class FileHasher:
 
     def path(self, p: str | Path) -> str:
         """Content hash of a file, or of a folder's files (names and contents; hidden ones ignored,
-        symlinked files and folders followed)."""
+        symlinked files and folders followed). Only regular files are read: a FIFO, socket or device (or a
+        link to one, such as /dev/zero) would block or never end; in a folder such entries are recorded in
+        ``skipped`` (their names enter the hash), as an input path they are a DataError."""
         p = Path(p)
         try:
             if p.is_file():
                 return self.file(p)
+            if p.exists() and not p.is_dir():
+                raise DataError(f"input {p} is not a regular file or folder (a FIFO, socket or device?): it is not read")
             entries, seen = [], set()
             for root, dirs, files in os.walk(p, followlinks=True):
                 real = os.path.realpath(root)
@@ -83,7 +89,16 @@ class FileHasher:
                         continue
                     fp = Path(root) / name
                     rel = fp.relative_to(p).as_posix()
-                    entries.append([rel, self.file(fp) if fp.exists() else "broken link"])
+                    try:
+                        mode = fp.stat().st_mode
+                    except OSError:
+                        entries.append([rel, "broken link"])
+                        continue
+                    if stat.S_ISREG(mode):
+                        entries.append([rel, self.file(fp)])
+                    else:
+                        self.skipped.setdefault(str(p), []).append(rel)
+                        entries.append([rel, "not a regular file"])
             return digest(entries)
         except OSError as exc:
             raise DataError(f"cannot read input {p} to hash it: {exc}") from None

@@ -24,6 +24,7 @@ class RunResult:
     out_dir: Path
     seconds: float
     failures: list[dict] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)   # about the run as a whole (not one work item)
 
     @property
     def ok(self) -> bool:
@@ -36,25 +37,58 @@ class RunResult:
         return c
 
 
-def plan_graph(graph: Graph, cache: Cache):
-    return make_plan(graph, FileHasher(cache.root / "filehash.json"))
+def plan_graph(graph: Graph, cache: Cache, notes: list | None = None):
+    """Work items and slots of ``graph``; ``notes`` (a list) receives warnings about its inputs."""
+    hasher = FileHasher(cache.root / "filehash.json")
+    planned = make_plan(graph, hasher)
+    for folder, names in hasher.skipped.items():
+        if notes is not None:
+            shown = ", ".join(names[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
+            notes.append(f"input folder {folder}: {len(names)} entries are not regular files (FIFO, socket or "
+                         f"device) and were not read: {shown}")
+    return planned
 
 
 def _index_path(cache: Cache, graph: Graph, node: str, frame) -> Path:
     return cache.root / "index" / digest(str(graph.path))[:16] / f"{node}@{'all' if frame is None else frame}.json"
 
 
+def check_cached(graph: Graph, items: list[WorkItem], cache: Cache, evict: bool = True) -> tuple[set, dict]:
+    """(keys to run, {key: problem} of damaged entries). An item runs when it is not cached, or when its
+    cached content is read by this run (an input of an item that runs, or the files a publishing node
+    puts into the output folder) and fails verification: then it is evicted (``evict``) and recomputed, and
+    its own inputs are checked in turn. Items are in dependency order, so walking them backwards sees every
+    consumer before its producer."""
+    run_keys = {it.key for it in items if not cache.has(it.key)}
+    needed: set[str] = set()
+    damaged: dict[str, str] = {}
+    for it in reversed(items):
+        if it.key not in run_keys and (it.key in needed or graph.nodes[it.node].cls.publishes):
+            problem = cache.verify(it.key)
+            if problem:
+                damaged[it.key] = problem
+                run_keys.add(it.key)
+                if evict:
+                    cache.evict(it.key)
+        if it.key in run_keys:
+            needed.update(it.deps)
+    return run_keys, damaged
+
+
 def explain(graph: Graph, cache: Cache) -> list[dict]:
     """Per work item: cached or to run, and which parts of its key differ from the last run of the same
-    node and frame of this graph file."""
+    node and frame of this graph file (or that its cached result is damaged)."""
     items, slot = plan_graph(graph, cache)
     by_key = {it.key: it for it in items}
+    run_keys, damaged = check_cached(graph, items, cache, evict=False)
     rows = []
     for (node, frame), key in slot.items():
         it = by_key[key]
-        row = {"node": node, "frame": frame, "key": key, "cached": cache.has(key), "changed": []}
+        row = {"node": node, "frame": frame, "key": key, "cached": key not in run_keys, "changed": []}
         idx = _index_path(cache, graph, node, frame)
-        if not row["cached"]:
+        if key in damaged:
+            row["changed"] = [f"(cached result damaged: {damaged[key]})"]
+        elif not row["cached"]:
             try:
                 old = json.loads(idx.read_text())["components"]
                 row["changed"] = _diff(old, it.components)
@@ -85,12 +119,14 @@ def run_graph(graph: Graph, cache: Cache, out_dir: Path, executor, progress: boo
         (out_dir / ".volcap-write-test").unlink()
     except OSError as exc:
         raise DataError(f"output folder {out_dir} cannot be written: {exc.strerror or exc} (choose another with --out)") from None
-    items, slot = plan_graph(graph, cache)
+    notes: list[str] = []
+    items, slot = plan_graph(graph, cache, notes)
     by_key = {it.key: it for it in items}
     results: dict[str, dict] = {}
     to_run: list[WorkItem] = []
+    run_keys, damaged = check_cached(graph, items, cache)
     for it in items:
-        if cache.has(it.key):
+        if it.key not in run_keys:
             results[it.key] = {"status": "cached", "seconds": 0.0}
             cache.touch(it.key)
         else:
@@ -118,6 +154,9 @@ def run_graph(graph: Graph, cache: Cache, out_dir: Path, executor, progress: boo
         executor.run(to_run, specs, str(cache.root), on_result)
     if bar is not None:
         bar.close()
+    for key, problem in damaged.items():  # say so: a recomputed result that was cached is worth a line
+        if key in results:
+            results[key]["warnings"] = [f"its cached result was damaged ({problem}): recomputed"] + list(results[key].get("warnings") or [])
 
     records, failures = [], []
     for (node, frame), key in slot.items():
@@ -145,9 +184,11 @@ def run_graph(graph: Graph, cache: Cache, out_dir: Path, executor, progress: boo
         if res["status"] == "failed":
             failures.append(rec)
         records.append(rec)
-    result = RunResult(records, out_dir, time.perf_counter() - t0, failures)
+    result = RunResult(records, out_dir, time.perf_counter() - t0, failures, notes)
     doc = {"graph": str(graph.path), "overrides": graph.overrides, "frames": graph.frames, "cache": str(cache.root), "seconds": round(result.seconds, 3),
            "counts": result.counts(), "items": records}
+    if notes:
+        doc["warnings"] = notes
     atomic_write_text(out_dir / "run.json", json.dumps(doc, indent=1))
     return result
 
