@@ -38,6 +38,8 @@ def cmd_run(args) -> int:
     counts = result.counts()
     print(f"{graph.path.name}: {len(result.records)} items in {result.seconds:.2f} s — "
           + ", ".join(f"{v} {k}" for k, v in sorted(counts.items())) + f"; run record: {result.out_dir / 'run.json'}")
+    for line in result.summaries:
+        print(line)
     for w in result.warnings:
         print(f"warning: {w}", file=sys.stderr)
     for r in result.records:

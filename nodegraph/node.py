@@ -20,7 +20,9 @@ A node is a class: its ports, parameters and kernels are declared once, and vali
 (in frame order) and ``self.frames`` holds the frame numbers.
 ``uses_frame = True``: the frame number is part of the work (sources, per-frame file patterns); it is
 passed to ``run`` as ``frame=`` and is part of the cache key.
-``publishes = True``: the node's ``Files`` outputs are copied into the run's output folder.
+``publishes = True``: the node's ``Files`` outputs are copied into the run's output folder, and its ``Table``
+outputs are written there as JSON per frame and CSV per node (OUT/tables/NODE/FRAME.json, OUT/tables/NODE.csv).
+``summary = ("key", ...)``: Table keys printed in one line per node after a run (mean, and min/max over frames).
 
 Node types are found through the ``volcap.nodes`` entry-point group: each entry point names a module or
 a package, and every module of a package is imported (the built-in stages are one such package, plugins
@@ -166,6 +168,7 @@ class Node:
     per: ClassVar[str] = "frame"
     uses_frame: ClassVar[bool] = False
     publishes: ClassVar[bool] = False
+    summary: ClassVar[tuple] = ()     # Table keys summarised after a run (see the module docstring)
     inputs: ClassVar[dict] = {}
     outputs: ClassVar[dict] = {}
     params: ClassVar[dict] = {}

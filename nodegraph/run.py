@@ -25,6 +25,7 @@ class RunResult:
     seconds: float
     failures: list[dict] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)   # about the run as a whole (not one work item)
+    summaries: list[str] = field(default_factory=list)  # one line per node that declares `summary` keys
 
     @property
     def ok(self) -> bool:
@@ -159,6 +160,7 @@ def run_graph(graph: Graph, cache: Cache, out_dir: Path, executor, progress: boo
             results[key]["warnings"] = [f"its cached result was damaged ({problem}): recomputed"] + list(results[key].get("warnings") or [])
 
     records, failures = [], []
+    tables: dict[tuple[str, str], dict] = {}
     for (node, frame), key in slot.items():
         it = by_key[key]
         res = results.get(key, {"status": "skipped", "error": "not run", "seconds": 0.0})
@@ -172,7 +174,7 @@ def run_graph(graph: Graph, cache: Cache, out_dir: Path, executor, progress: boo
             rec["warnings"] = res["warnings"]
         if res["status"] in ("done", "cached"):
             try:
-                rec["published"] = _publish(graph, cache, it, out_dir)
+                rec["published"] = _publish(graph, cache, it, out_dir, node, frame, tables)
             except DataError as exc:  # a damaged cache entry: report it, drop it, the rerun recomputes it
                 cache.evict(key)
                 rec.update(status="failed", cache_dir=None, error=f"{exc}; the entry was removed, rerun to recompute it")
@@ -184,7 +186,8 @@ def run_graph(graph: Graph, cache: Cache, out_dir: Path, executor, progress: boo
         if res["status"] == "failed":
             failures.append(rec)
         records.append(rec)
-    result = RunResult(records, out_dir, time.perf_counter() - t0, failures, notes)
+    summaries = _publish_tables(graph, tables, out_dir)
+    result = RunResult(records, out_dir, time.perf_counter() - t0, failures, notes, summaries)
     doc = {"graph": str(graph.path), "overrides": graph.overrides, "frames": graph.frames, "cache": str(cache.root), "seconds": round(result.seconds, 3),
            "counts": result.counts(), "items": records}
     if notes:
@@ -193,15 +196,30 @@ def run_graph(graph: Graph, cache: Cache, out_dir: Path, executor, progress: boo
     return result
 
 
-def _publish(graph: Graph, cache: Cache, it: WorkItem, out_dir: Path) -> list[str]:
-    """Copy the Files outputs of a publishing node into the output folder (atomically per file)."""
+def _publish(graph: Graph, cache: Cache, it: WorkItem, out_dir: Path, node: str | None = None, frame=None,
+             tables: dict | None = None) -> list[str]:
+    """Copy the Files outputs of a publishing node into the output folder (atomically per file), and write its
+    Table outputs as OUT/tables/NODE/FRAME.json (collected in ``tables`` for the CSVs and summaries)."""
     cls = graph.nodes[it.node].cls
     if not cls.publishes:
         return []
-    from .types import Files
+    from .types import Files, Table
 
+    node = node or it.node
+    n_tables = sum(issubclass(d.type, Table) for d in cls.outputs.values())
     written = []
     for port, decl in cls.outputs.items():
+        if issubclass(decl.type, Table):
+            table = cache.load(it.key, port, Table)
+            if table is None:
+                continue
+            name = ("all" if frame is None else str(frame)) if n_tables == 1 else f"{port}_{'all' if frame is None else frame}"
+            target = out_dir / "tables" / node / f"{name}.json"
+            atomic_write_text(target, json.dumps(table, indent=1))
+            written.append(str(target))
+            if tables is not None:
+                tables.setdefault((node, port), {})[frame] = table
+            continue
         if not issubclass(decl.type, Files):
             continue
         files = cache.load(it.key, port, Files) or {}
@@ -211,3 +229,64 @@ def _publish(graph: Graph, cache: Cache, it: WorkItem, out_dir: Path) -> list[st
                 atomic_write_bytes(target, data)
             written.append(str(target))
     return written
+
+
+def _scalar(v) -> bool:
+    return isinstance(v, (int, float, str, bool)) or v is None
+
+
+def table_rows(table: dict) -> dict:
+    """A Table as CSV rows: key "" holds its scalar fields (one row), and every field that is a list of flat
+    mappings (e.g. per view) becomes its own list of rows."""
+    rows = {"": {k: v for k, v in table.items() if _scalar(v)}}
+    for k, v in table.items():
+        if isinstance(v, list) and v and all(isinstance(r, dict) and all(_scalar(x) for x in r.values()) for r in v):
+            rows[k] = v
+    return rows
+
+
+def _csv_text(rows: list[dict]) -> str:
+    import csv
+    import io
+
+    columns: list[str] = []
+    for r in rows:
+        columns += [k for k in r if k not in columns]
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=columns, lineterminator="\n")
+    w.writeheader()
+    w.writerows(rows)
+    return buf.getvalue()
+
+
+def _publish_tables(graph: Graph, tables: dict, out_dir: Path) -> list[str]:
+    """OUT/tables/NODE.csv (one row per frame: the scalar fields) and OUT/tables/NODE.FIELD.csv (one row per
+    frame and entry of a list field); returns one summary line per node that declares ``summary`` keys."""
+    lines = []
+    for (node, port), by_frame in tables.items():
+        cls = graph.nodes[node].cls
+        stem = node if sum(1 for n, _ in tables if n == node) == 1 else f"{node}.{port}"
+        frames = sorted(by_frame, key=lambda f: (f is not None, f if f is not None else 0))
+        per_key: dict[str, list[dict]] = {}
+        for f in frames:
+            for k, rows in table_rows(by_frame[f]).items():
+                frame_col = {"frame": "all" if f is None else f}
+                per_key.setdefault(k, []).extend([{**frame_col, **rows}] if k == "" else [{**frame_col, **r} for r in rows])
+        for k, rows in per_key.items():
+            atomic_write_text(out_dir / "tables" / (f"{stem}.csv" if k == "" else f"{stem}.{k}.csv"), _csv_text(rows))
+        parts = []
+        for k in cls.summary:
+            vals = [(f, by_frame[f].get(k)) for f in frames if isinstance(by_frame[f].get(k), (int, float))]
+            if not vals:
+                continue
+            xs = [v for _, v in vals]
+            text = f"{k} {sum(xs) / len(xs):.4g}"
+            if len(xs) > 1:
+                lo, hi = min(vals, key=lambda fv: fv[1]), max(vals, key=lambda fv: fv[1])
+                text += f" (min {lo[1]:.4g} frame {lo[0]}, max {hi[1]:.4g} frame {hi[0]})"
+            parts.append(text)
+        if parts:
+            n = len(frames)
+            lines.append(f"{node} ({graph.nodes[node].type_name}): {n} frame{'s' if n != 1 else ''}, "
+                         f"{'mean ' if n > 1 else ''}" + ", ".join(parts) + f"  [{out_dir / 'tables' / (stem + '.csv')}]")
+    return lines

@@ -42,6 +42,8 @@ class EvalSilhouette(Node):
 
     type_name = "eval.silhouette"
     version = 1
+    publishes = True     # the report goes to OUT/tables/ (JSON per frame, CSV per node)
+    summary = ("mean_iou", "min_iou")
     inputs = {"mesh": Mesh, "cameras": CameraSet, "masks": Masks}
     outputs = {"report": Table}
     kernels = [source("raster.cl")]
