@@ -13,8 +13,16 @@
     matlab      .mat file holding a cell array of 3x4 P matrices (Oxford VGG)
 A folder is searched for these files; per-camera files (calibration/*.xml, cam*/config.xml) make one set.
 
-Pixel convention: (0, 0) is the centre of the top-left pixel (nodegraph.cameras). COLMAP and transforms.json
-put it at the pixel's corner, so their principal points are shifted by 0.5 on import and export.
+Pixel convention: (0, 0) is the centre of the top-left pixel (nodes.common.cameras, as OpenCV's projectPoints).
+Each importer's convention for its files (CONVENTIONS; tests/stages/common/test_pixel_conventions.py checks
+every one against cv2.projectPoints on hand-written files):
+    colmap      corner  (0, 0) is the top-left pixel's corner: principal point - 0.5 on import, + 0.5 on export
+    nerf        corner  (cx, cy; default w/2, h/2, the image centre): - 0.5 on import, + 0.5 on export
+    middlebury  centre  K as given (the Middlebury evaluation projects with P = K [R|t] onto pixel centres)
+    opencv      centre  OpenCV's own calibration convention
+    ptext, inria, matlab, idr   centre   P = K [R|t] maps onto pixel centres at integers (Oxford VGG, INRIA,
+                        IDR/NeuS cast rays through integer pixel coordinates)
+    tsinghua    centre  K as given
 P matrices are decomposed (cv2.decomposeProjectionMatrix) into a metric camera when the result is physical
 (positive focal lengths of similar size, little skew, principal point near the image); otherwise they are
 kept as bare-P cameras (``Camera.from_P``), as for the non-metric Oxford dino.
@@ -32,6 +40,9 @@ from .cameras import Camera, Cameras
 from nodegraph.errors import DataError
 
 FORMATS = ("colmap", "nerf", "middlebury", "opencv", "ptext", "inria", "idr", "tsinghua", "matlab")
+# where a format puts pixel coordinate (0, 0): the top-left pixel's centre or its corner (see the docstring)
+CONVENTIONS = {"colmap": "corner", "nerf": "corner", "middlebury": "centre", "opencv": "centre", "ptext": "centre",
+               "inria": "centre", "idr": "centre", "tsinghua": "centre", "matlab": "centre"}
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".exr")
 
 
