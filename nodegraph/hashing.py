@@ -12,6 +12,7 @@ from pathlib import Path
 from .errors import DataError
 
 RACY_NS = 2_000_000_000  # see FileHasher.file
+MAX_INPUT_FILES = 500_000  # an input folder with more files is not a dataset but a file system
 KEY_SCHEMA = 1  # bump when the key recipe changes; old entries then simply stop matching
 
 
@@ -37,8 +38,9 @@ class FileHasher:
     """Hashes files and folders by content. Remembers (size, mtime_ns) -> hash per absolute path in
     ``db_path`` so unchanged files are not re-read; the path itself never enters a key."""
 
-    def __init__(self, db_path: Path | None):
+    def __init__(self, db_path: Path | None, exclude=()):
         self.db_path = db_path
+        self.exclude = [Path(e).resolve() for e in exclude]   # folders an input folder must not contain (the cache)
         self.db: dict = {}
         self.dirty = False
         self.skipped: dict[str, list[str]] = {}  # input folder -> entries that are not regular files (not read)
@@ -76,6 +78,11 @@ class FileHasher:
                 return self.file(p)
             if p.exists() and not p.is_dir():
                 raise DataError(f"input {p} is not a regular file or folder (a FIFO, socket or device?): it is not read")
+            real = Path(os.path.realpath(p))
+            for e in self.exclude:
+                if e == real or real in e.parents:
+                    raise DataError(f"input folder {p} contains the cache folder {e}, which changes with every run: "
+                                    "give the data folder itself")
             entries, seen = [], set()
             for root, dirs, files in os.walk(p, followlinks=True):
                 real = os.path.realpath(root)
@@ -87,6 +94,9 @@ class FileHasher:
                 for name in sorted(files):
                     if name.startswith("."):
                         continue
+                    if len(entries) >= MAX_INPUT_FILES:
+                        raise DataError(f"input folder {p} holds more than {MAX_INPUT_FILES:,} files: give the data "
+                                        "folder itself")
                     fp = Path(root) / name
                     rel = fp.relative_to(p).as_posix()
                     try:

@@ -40,7 +40,7 @@ class RunResult:
 
 def plan_graph(graph: Graph, cache: Cache, notes: list | None = None):
     """Work items and slots of ``graph``; ``notes`` (a list) receives warnings about its inputs."""
-    hasher = FileHasher(cache.root / "filehash.json")
+    hasher = FileHasher(cache.root / "filehash.json", exclude=[cache.root])
     planned = make_plan(graph, hasher)
     for folder, names in hasher.skipped.items():
         if notes is not None:

@@ -182,3 +182,26 @@ def test_huge_values_are_not_echoed_whole(tmp_path, capsys):
     assert cli(["validate", str(p)]) == 2
     err = capsys.readouterr().err
     assert "expects a number" in err and len(err) < 2000, len(err)
+
+
+# ---------------------------------------------------------------- found by the fuzz run (tests/fuzz/run_fuzz.py)
+def test_a_number_too_long_to_convert_is_a_message(tmp_path, capsys):
+    """Python refuses int() of more than 4300 digits: a ValueError traceback from the YAML constructor."""
+    p = tmp_path / "g.yaml"
+    p.write_text(OK_GRAPH)
+    assert cli(["validate", str(p), "--set", "a.value=" + "9" * 5000]) == 2
+    p.write_text("nodes:\n  a: {type: t.source, params: {value: " + "9" * 5000 + "}}\n")
+    assert cli(["validate", str(p)]) == 2
+    err = capsys.readouterr().err
+    assert "5,000 digits" in err and "Traceback" not in err, err[:500]
+
+
+def test_input_folders_that_cannot_be_data_are_refused(tmp_path, capsys):
+    """path: / walked the whole file system (with the cache in it) and hung; '' named the graph's own folder."""
+    p = tmp_path / "g.yaml"
+    for path, needle in (("/", "contains the cache folder"), ("''", "must not be empty"), ("/proc/self", "system folder")):
+        p.write_text(f"nodes:\n  d: {{type: t.readdir, params: {{path: {path}}}}}\n")
+        t0 = time.monotonic()
+        rc = cli(["--cache", str(tmp_path / "cache"), "run", str(p), "--out", str(tmp_path / "o"), "-q", "-j", "1"])
+        err = capsys.readouterr().err
+        assert rc == 2 and needle in err and time.monotonic() - t0 < 10, (path, rc, err)
