@@ -166,7 +166,7 @@ def run_graph(graph: Graph, cache: Cache, out_dir: Path, executor, progress: boo
         res = results.get(key, {"status": "skipped", "error": "not run", "seconds": 0.0})
         rec = {"node": node, "type": it.type_name, "frame": frame, "status": res["status"],
                "cache_hit": res["status"] == "cached", "seconds": round(res.get("seconds", 0.0), 4), "key": key,
-               "cache_dir": str(cache.object_dir(key)) if cache.has(key) else None,
+               "cache_dir": str(cache.object_dir(key)) if res["status"] in ("done", "cached") else None,
                "log": specs[key]["log"] if key in specs else None, "published": []}
         if res.get("error"):
             rec["error"] = res["error"]
