@@ -23,6 +23,8 @@ passed to ``run`` as ``frame=`` and is part of the cache key.
 ``publishes = True``: the node's ``Files`` outputs are copied into the run's output folder, and its ``Table``
 outputs are written there as JSON per frame and CSV per node (OUT/tables/NODE/FRAME.json, OUT/tables/NODE.csv).
 ``summary = ("key", ...)``: Table keys printed in one line per node after a run (mean, and min/max over frames).
+``checkpoint = True``: the node's outputs are always stored in the cache (a costly source such as a renderer),
+even when the nodes that read them run in the same process (nodegraph/plan.py says what is kept).
 
 Node types are found through the ``volcap.nodes`` entry-point group: each entry point names a module or
 a package, and every module of a package is imported (the built-in stages are one such package, plugins
@@ -169,6 +171,7 @@ class Node:
     uses_frame: ClassVar[bool] = False
     publishes: ClassVar[bool] = False
     summary: ClassVar[tuple] = ()     # Table keys summarised after a run (see the module docstring)
+    checkpoint: ClassVar[bool] = False
     inputs: ClassVar[dict] = {}
     outputs: ClassVar[dict] = {}
     params: ClassVar[dict] = {}

@@ -1,0 +1,116 @@
+"""The smooth silhouette field and its searches (kernels/hullfit.cl vs the NumPy references in
+nodes/mesh/hullfit.py): packed bits, the field along a straight edge, the point test, segment crossings, the
+search along directions and the shell interval, for binary and soft masks and every vote rule."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from meshcases import figure_case, rig
+
+from nodes.common.cameras import Cameras, look_at
+from nodes.common.types import MaskSet
+from nodes.mesh.hullfit import (FieldCL, SilhouetteField, cross_reference, inside_at, level_of, onto_reference,
+                                pack_bits_reference, shell_interval_reference, view_values)
+from nodes.mesh.refine import lattice_edges
+
+
+def test_levels_of_a_straight_edge():
+    """level_of: 0.5 on the pixel edge, slope 1 per pixel there, 0 / 1 a pixel and a half away; the field of a
+    view whose mask has a vertical edge matches it along a row."""
+    assert level_of(0) == pytest.approx(0.5)
+    assert level_of(0.5) == pytest.approx(0.875) and level_of(-0.5) == pytest.approx(0.125)
+    assert level_of(1.5) == pytest.approx(1.0) and level_of(-1.5) == pytest.approx(0.0)
+    assert (level_of(0.01) - level_of(-0.01)) / 0.02 == pytest.approx(1.0, rel=1e-2)
+    cam = look_at((0, 0, 5), (0, 0, 0), (0, 1, 0), 40, 40, 30)
+    m = np.zeros((30, 40), np.uint8)
+    m[:, :20] = 255                                  # inside left of the pixel edge u = 19.5
+    field = SilhouetteField.from_inputs(MaskSet([m]), Cameras([cam]), np.zeros(3))
+    u = np.linspace(17.0, 22.0, 41)
+    rays = Cameras([cam]).rays(0, np.stack([u, np.full_like(u, 14.0)], 1))
+    pts = (rays[0] + 5 * rays[1] / rays[1][:, 2:3] * np.sign(rays[1][:, 2:3])).astype(np.float32)
+    f = view_values(pts, field, 0)
+    want = [level_of(19.5 - x) for x in u]
+    np.testing.assert_allclose(f, want, atol=2e-3)
+
+
+@pytest.mark.parametrize("soft", [False, True])
+def test_kernels_match_reference(soft):
+    cams, masks, vol, mesh = figure_case(24, count=5, size=61, soft=soft)  # odd width: partial bit bytes
+    origin = 0.5 * (vol.bbox_min + vol.bbox_max)
+    field = SilhouetteField.from_inputs(masks, cams, origin)
+    assert field.soft == soft
+    fc = FieldCL.get().prepare(field)
+    if not soft:
+        np.testing.assert_array_equal(fc.pixels(), np.concatenate([pack_bits_reference(m).ravel() for m in masks.masks]))
+    rng = np.random.default_rng(1)
+    pts = rng.uniform(-0.8, 0.9, (3000, 3)).astype(np.float32)
+    for tau in (0.125, 0.5, 0.875):
+        want = inside_at(pts, field, tau)
+        assert 300 < want.sum() < 2700  # both kinds of point present
+        np.testing.assert_array_equal(fc.inside_host(pts, tau), want)
+
+    a, b, ok = lattice_edges(mesh.vertices, vol)
+    a, b = (a[ok] - origin).astype(np.float32), (b[ok] - origin).astype(np.float32)
+    keep = 0.5 * (a + b)
+    got, found = fc.cross_host(a, b, keep, 0.5, 8)
+    want, found_ref = cross_reference(a, b, keep, field, 0.5, 8)
+    assert found.mean() > 0.7  # 2.5 pixels per voxel, a 4-pixel alpha ramp: the nearest-pixel grid and the field differ
+    np.testing.assert_array_equal(found, found_ref)
+    assert (np.abs(got - want).max(axis=1) == 0).mean() > 0.999  # same float32 arithmetic: bit for bit
+    assert np.abs(got - want).max() < 1e-3 * vol.voxel_size[0]
+    # the crossing is on level 0.5: just inside is in, just outside is out
+    d = (b - a) / np.linalg.norm(b - a, axis=1, keepdims=True)
+    eps = 1e-3 * vol.voxel_size[0]
+    assert inside_at(got[found] - eps * d[found], field, 0.5).mean() > 0.99
+    assert (~inside_at(got[found] + eps * d[found], field, 0.5)).mean() > 0.99
+
+    voxel = float(vol.voxel_size[0])
+    p = (mesh.vertices - origin).astype(np.float32)
+    n = mesh.vertex_normals.astype(np.float32)
+    got, found = fc.onto_host(p, n, voxel, 0.5, 8)
+    want, found_ref = onto_reference(p, n, voxel, field, 0.5, 8)
+    assert found.mean() > 0.95
+    np.testing.assert_array_equal(found, found_ref)
+    assert np.abs(got - want).max() < 1e-3 * voxel
+
+    shell = fc.shell_host(p, n, voxel, level_of(0.3), level_of(-0.3), 8)
+    want = shell_interval_reference(p, n, voxel, field, level_of(0.3), level_of(-0.3), 8)
+    assert np.abs(shell - want).max() < 1e-4
+    ok = (shell[:, 1] > 0) & (shell[:, 2] < 1)
+    assert ok.mean() > 0.8 and np.all(shell[ok, 1] <= shell[ok, 2] + 1e-6)  # the eroded exit comes first
+
+
+@pytest.mark.parametrize("min_views, outside", [(4, "carve"), (0, "ignore")])
+def test_other_vote_rules_match_reference(min_views, outside):
+    """min_views and the ignore policy take the vote's own bisection: kernel == NumPy, and min_views 4 of 5
+    gives a bigger hull than the strict vote."""
+    cams, masks, vol, mesh = figure_case(20, count=5, size=48)
+    origin = 0.5 * (vol.bbox_min + vol.bbox_max)
+    field = SilhouetteField.from_inputs(masks, cams, origin, min_views, outside)
+    fc = FieldCL.get().prepare(field)
+    pts = np.random.default_rng(2).uniform(-1.2, 1.2, (2000, 3)).astype(np.float32)
+    want = inside_at(pts, field, 0.5)
+    np.testing.assert_array_equal(fc.inside_host(pts, 0.5), want)
+    strict = inside_at(pts, SilhouetteField.from_inputs(masks, cams, origin), 0.5)
+    assert want.sum() >= strict.sum() and not np.any(strict & ~want)
+    p = (mesh.vertices - origin).astype(np.float32)
+    n = mesh.vertex_normals.astype(np.float32)
+    voxel = float(vol.voxel_size[0])
+    got, found = fc.onto_host(p, n, voxel, 0.5, 6)
+    ref, found_ref = onto_reference(p, n, voxel, field, 0.5, 6)
+    assert found.mean() > 0.5 and (found == found_ref).mean() > 0.99
+    both = found & found_ref
+    assert np.abs(got[both] - ref[both]).max() < 1e-3 * voxel
+
+
+def test_field_checks_name_the_camera():
+    from nodegraph import NodeError
+
+    cams = rig(3, 32)
+    masks = [np.zeros((32, 32), np.uint8) for _ in range(3)]
+    alpha = [np.zeros((32, 32), np.float32) for _ in range(3)]
+    alpha[1] = np.full((32, 32), np.nan, np.float32)
+    with pytest.raises(NodeError, match="cam001.*NaN"):
+        SilhouetteField.from_inputs(MaskSet(masks, alpha), cams, np.zeros(3))
+    with pytest.raises(NodeError, match="min_views 4"):
+        SilhouetteField.from_inputs(MaskSet(masks), cams, np.zeros(3), min_views=4)
