@@ -78,6 +78,7 @@ class Cache:
         self.objects = self.root / "objects"
         self.staging = self.root / "staging"
         self.verified: set[str] = set()   # keys whose whole content was checked by this object (see verify)
+        self._metas: dict[str, dict] = {}
 
     def prepare(self):
         """Create the cache folders, or raise DataError saying why the cache cannot be used."""
@@ -93,30 +94,39 @@ class Cache:
     def object_dir(self, key: str) -> Path:
         return self.objects / key[:2] / key
 
+    def _read_meta(self, key: str) -> dict | None:
+        """meta.json of ``key`` when it is a valid record, else None. Valid records are remembered by this object
+        (an entry never changes once in place; evict and write forget it)."""
+        meta = self._metas.get(key)
+        if meta is None:
+            try:
+                meta = json.loads((self.object_dir(key) / "meta.json").read_text())
+            except (OSError, ValueError):
+                return None
+            if not _valid_meta(meta):
+                return None
+            self._metas[key] = meta
+        return meta
+
     def has(self, key: str) -> bool:
         """Whether ``key`` is stored: its folder holds a readable meta.json record (garbage is not a hit)."""
-        try:
-            return _valid_meta(json.loads((self.object_dir(key) / "meta.json").read_text()))
-        except (OSError, ValueError):
-            return False
+        return self._read_meta(key) is not None
 
     def stored(self, key: str) -> set[str] | None:
         """The output ports stored in ``key``'s entry (a port whose value was None counts), or None when there is
         no readable entry."""
-        try:
-            meta = json.loads((self.object_dir(key) / "meta.json").read_text())
-        except (OSError, ValueError):
-            return None
-        return set(meta["files"]) if _valid_meta(meta) else None
+        meta = self._read_meta(key)
+        return None if meta is None else set(meta["files"])
 
     def meta(self, key: str) -> dict:
+        meta = self._read_meta(key)
+        if meta is not None:
+            return meta
         try:
-            meta = json.loads((self.object_dir(key) / "meta.json").read_text())
+            json.loads((self.object_dir(key) / "meta.json").read_text())
         except (OSError, ValueError) as exc:
             raise DataError(f"cache entry {key} is unreadable ({exc}); run `cache gc` or delete it") from None
-        if not _valid_meta(meta):
-            raise DataError(f"cache entry {key} is damaged: meta.json is not a cache record")
-        return meta
+        raise DataError(f"cache entry {key} is damaged: meta.json is not a cache record")
 
     def _check_files(self, key: str, meta: dict, files: list[str]) -> str | None:
         """What is wrong with ``files`` of the entry (missing, or content not matching meta.json), or None."""
@@ -195,6 +205,8 @@ class Cache:
             (stage / "meta.json").write_text(json.dumps(meta, indent=1, sort_keys=True))
             final = self.object_dir(key)
             final.parent.mkdir(parents=True, exist_ok=True)
+            self._metas.pop(key, None)
+            self.verified.discard(key)
             old = self.stored(key)
             if final.exists() and (old is None or not set(files) <= old):  # damaged (garbage meta.json), or more
                 self.evict(key)                                             # ports than the entry there: replace it
@@ -254,6 +266,8 @@ class Cache:
 
     def evict(self, key: str):
         """Remove one entry (e.g. found corrupt): moved aside in one step, then deleted."""
+        self._metas.pop(key, None)
+        self.verified.discard(key)
         d = self.object_dir(key)
         if d.is_dir():
             self.staging.mkdir(parents=True, exist_ok=True)

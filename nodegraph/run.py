@@ -366,7 +366,9 @@ def _publish(graph: Graph, cache: Cache, it: WorkItem, out_dir: Path, published:
                 continue
             name = ("all" if frame is None else str(frame)) if n_tables == 1 else f"{port}_{'all' if frame is None else frame}"
             target = out_dir / "tables" / node / f"{name}.json"
-            atomic_write_text(target, json.dumps(table, indent=1))
+            if not published.current(target, it.key):
+                atomic_write_text(target, json.dumps(table, indent=1))
+                published.record(target, it.key)
             written.append(str(target))
             if tables is not None:
                 tables.setdefault((node, port), {})[frame] = table
@@ -430,7 +432,13 @@ def _publish_tables(graph: Graph, tables: dict, out_dir: Path) -> list[str]:
                 frame_col = {"frame": "all" if f is None else f}
                 per_key.setdefault(k, []).extend([{**frame_col, **rows}] if k == "" else [{**frame_col, **r} for r in rows])
         for k, rows in per_key.items():
-            atomic_write_text(out_dir / "tables" / (f"{stem}.csv" if k == "" else f"{stem}.{k}.csv"), _csv_text(rows))
+            target, text = out_dir / "tables" / (f"{stem}.csv" if k == "" else f"{stem}.{k}.csv"), _csv_text(rows)
+            try:
+                same = target.read_text() == text
+            except (OSError, UnicodeDecodeError):
+                same = False
+            if not same:
+                atomic_write_text(target, text)
         parts = []
         for k in cls.summary:
             vals = [(f, by_frame[f].get(k)) for f in frames if isinstance(by_frame[f].get(k), (int, float))]
