@@ -78,19 +78,26 @@ def _refs(it: WorkItem):
             yield r
 
 
-def to_run(items: list[WorkItem], cache: Cache, gone=()) -> tuple[set[str], dict[str, set | None]]:
-    """(keys of the items that must run, stored ports per key) — see the module docstring. Entries in ``gone``
-    count as not stored (damaged ones that explain does not evict)."""
+def to_run(items: list[WorkItem], cache: Cache, gone=()) -> tuple[dict[str, str], dict[str, set | None]]:
+    """(why each item that must run runs, by key; stored ports per key) — see the module docstring. Entries in
+    ``gone`` count as not stored (damaged ones that explain does not evict)."""
     stored = {it.key: None if it.key in gone else cache.stored(it.key) for it in items}
     kept = {it.key: set(it.kept) for it in items}
-    must: set[str] = set()
+    label = {it.key: it.label for it in items}
+    must: dict[str, str] = {}
     for it in reversed(items):  # items are in dependency order: readers come after their sources
         have = stored[it.key] or set()
-        if it.key in must or not kept[it.key] <= have:
-            must.add(it.key)
+        if it.key not in must and not kept[it.key] <= have:
+            must[it.key] = "not in the cache" if stored[it.key] is None else \
+                f"kept output {', '.join(sorted(kept[it.key] - have))} not in the cache"
+        if it.key in must:
             for r in _refs(it):
-                if r["port"] not in kept.get(r["key"], ()) or r["port"] not in (stored.get(r["key"]) or set()):
-                    must.add(r["key"])
+                if r["key"] in must:
+                    continue
+                if r["port"] not in kept.get(r["key"], ()):
+                    must[r["key"]] = f"its {r['port']} lives in memory and {label[it.key]} runs"
+                elif r["port"] not in (stored.get(r["key"]) or set()):
+                    must[r["key"]] = f"kept output {r['port']} not in the cache"
     return must, stored
 
 
@@ -205,10 +212,9 @@ def explain(graph: Graph, cache: Cache) -> list[dict]:
                 if index is None:
                     raise ValueError
                 if label not in index:
-                    row["changed"] = ["(no earlier run)"]
+                    row["changed"] = [f"(no earlier run; {must[key]})"]
                 else:
-                    row["changed"] = _diff(index[label]["components"], it.components) or [
-                        "(a kept output is missing from the cache, or an item that runs needs this in-memory value)"]
+                    row["changed"] = _diff(index[label]["components"], it.components) or [f"(nothing: {must[key]})"]
             except (KeyError, TypeError, ValueError):
                 row["changed"] = ["(earlier run record unreadable)"]
         rows.append(row)
