@@ -1,0 +1,475 @@
+"""Which camera paints which face: per-view visibility and quality, MRF view selection, per-camera colour
+gains, blend weights that cross-fade across view seams, and global seam levelling.
+
+    stats = face_view_stats(vertices, faces, cameras, frame_images, valid)   # quality (V, F), colour (V, F, 3)
+    labels = select_views(stats.quality, stats.colour, face_neighbours(faces))
+    gains = camera_gains(stats.quality, stats.colour)                          # (V, 3), exposure / white balance
+    face_view, weight = blend_weights(labels, stats.quality, faces, len(vertices), feather=2)
+    offset = level_seams(vertices, faces, face_view, weight, cameras, frame_images, valid, gains)
+
+Visibility (Waechter et al. 2014, with margins against background bleeding): a face is usable in a view
+when it faces the camera and its centroid and three inner points pass the z-buffer test, fall on valid
+pixels (the mask eroded by ``margin`` pixels) and lie ``edge_px`` pixels away from any depth edge or the
+mesh's outline. Quality = projected area in pixels x cosine (resolution and frontality), times a per-view
+sharpness factor. Selection minimises sum_f D(f, l_f) + smoothness * #{neighbour faces with another label}
+(Potts) with D = 1 - q / max_q, plus a penalty for colours inconsistent with the face's other views
+(occluders and registration errors), by iterated conditional modes over random halves of the faces.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from kernels import source
+from nodegraph import clrt
+from nodes.common.cameras import Cameras
+from nodes.common.meshops import unique_edges, vertex_neighbours
+
+KERNELS = source("texture.cl")
+INVISIBLE = 1e6
+
+
+class TextureCL(clrt.Runner):
+    source = KERNELS
+
+
+@dataclass
+class FrameImages:
+    """A frame's images (and valid masks) laid out once for the kernels: RGB bytes view after view."""
+
+    images: list[np.ndarray]          # (H, W, 3) uint8 per view
+    valid: list[np.ndarray]           # (H, W) uint8 1 = may be sampled
+    packed: np.ndarray                # all images, concatenated bytes
+    packed_valid: np.ndarray          # all valid masks, concatenated bytes
+    offsets: np.ndarray               # (V,) int64 byte offset of each image in ``packed``
+
+    @classmethod
+    def build(cls, images, masks=None, margin: int = 2) -> "FrameImages":
+        valid = [valid_mask(im.shape[:2], None if masks is None else masks[i], margin) for i, im in enumerate(images)]
+        sizes = np.array([im.size for im in images], np.int64)
+        offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+        packed = np.concatenate([np.ascontiguousarray(im).reshape(-1) for im in images])
+        packed_valid = np.concatenate([v.reshape(-1) for v in valid])
+        return cls(list(images), valid, packed, packed_valid, offsets)
+
+
+def valid_mask(shape, mask, margin: int) -> np.ndarray:
+    """uint8 1 where a pixel may be sampled: inside the mask eroded by ``margin`` pixels (all pixels without a
+    mask)."""
+    import cv2
+
+    if mask is None:
+        return np.ones(shape, np.uint8)
+    m = (np.asarray(mask) > 127).astype(np.uint8)
+    if margin > 0:
+        m = cv2.erode(m, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin + 1, 2 * margin + 1)),
+                      borderValue=0)
+    return m
+
+
+@dataclass
+class FaceViews:
+    quality: np.ndarray   # (V, F) float32, 0 = not usable
+    colour: np.ndarray    # (V, F, 3) float32 mean colour (0..255) where usable
+
+
+def _tolerances(vertices, depth_tol, edge_tol):
+    diag = float(np.linalg.norm(np.ptp(vertices, axis=0))) if len(vertices) else 1.0
+    return depth_tol * diag, edge_tol * diag
+
+
+def face_view_stats(vertices, faces, cameras: Cameras, frame: FrameImages, *, depth_tol=0.01, edge_tol=0.02,
+                    edge_px=2) -> FaceViews:
+    """Per view and face: quality and mean colour (kernel ``face_views`` over the z-buffer of kernels/raster.cl).
+    ``depth_tol`` and ``edge_tol`` are fractions of the mesh's bounding-box diagonal."""
+    import pyopencl as cl
+
+    from nodes.common.raster import MeshRaster
+
+    v = np.ascontiguousarray(vertices, np.float32)
+    f = np.ascontiguousarray(faces, np.int32)
+    nv, nf = len(cameras), len(f)
+    quality = np.zeros((nv, nf), np.float32)
+    colour = np.zeros((nv, nf, 3), np.float32)
+    if nf == 0:
+        return FaceViews(quality, colour)
+    dt, et = _tolerances(v, depth_tol, edge_tol)
+    r = MeshRaster(v, f, cameras)
+    tcl = TextureCL.get()
+    d_img = tcl.host(frame.packed)
+    d_valid = tcl.host(frame.packed_valid)
+    d_q = tcl.buffer("fv_quality", 4 * nf)
+    d_c = tcl.buffer("fv_colour", 12 * nf)
+    centres = cameras.centers
+    for view in range(nv):
+        zbuf = r.zbuffer(view)
+        off = int(frame.offsets[view])
+        n = cameras[view].width * cameras[view].height
+        img = d_img.get_sub_region(off, 3 * n) if off else d_img
+        val = d_valid.get_sub_region(off // 3, n) if off else d_valid
+        tcl.launch("face_views", (nf,), (64,), r.d_verts, r.d_faces, np.int32(nf), r.d_cams, np.int32(view),
+                   cl.cltypes.make_float4(*centres[view], 0), zbuf, val, img, np.float32(dt), np.float32(et),
+                   np.int32(edge_px), d_q, d_c)
+        tcl.read(d_q, (nf,), np.float32, out=quality[view])
+        tcl.read(d_c, (nf, 3), np.float32, out=colour[view])
+    return FaceViews(quality, colour)
+
+
+def _sample_rgb_reference(img, p):
+    h, w = img.shape[:2]
+    x = np.clip(p[:, 0], 0, w - 1).astype(np.float32)
+    y = np.clip(p[:, 1], 0, h - 1).astype(np.float32)
+    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    im = img.astype(np.float32)
+    return (1 - fy) * ((1 - fx) * im[y0, x0] + fx * im[y0, x1]) + fy * ((1 - fx) * im[y1, x0] + fx * im[y1, x1])
+
+
+def face_view_stats_reference(vertices, faces, cameras: Cameras, frame: FrameImages, *, depth_tol=0.01,
+                              edge_tol=0.02, edge_px=2) -> FaceViews:
+    """NumPy version of ``face_view_stats`` (z-buffer from raster.rasterize_reference)."""
+    from nodes.common.raster import rasterize_reference
+
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    nv, nf = len(cameras), len(f)
+    quality = np.zeros((nv, nf), np.float32)
+    colour = np.zeros((nv, nf, 3), np.float32)
+    dt, et = _tolerances(v, depth_tol, edge_tol)
+    A, B, C = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    G = (A + B + C) / 3
+    n = np.cross(B - A, C - A)
+    pts = [G, G + 0.8 * (A - G), G + 0.8 * (B - G), G + 0.8 * (C - G)]
+    for view in range(nv):
+        cam = cameras[view]
+        w, h = cam.width, cam.height
+        depth = rasterize_reference(v, f, cameras, view)[1]
+        to_cam = cameras.centers[view] - G
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cosine = np.einsum("ij,ij->i", n, to_cam) / (np.linalg.norm(n, axis=1) * np.linalg.norm(to_cam, axis=1))
+        ok = np.nan_to_num(cosine) > 0
+        corners = [cameras.project(X, view) for X in (A, B, C)]
+        for _, z in corners:
+            ok &= z > 1e-6
+        (pa, _), (pb, _), (pc, _) = corners
+        area = 0.5 * np.abs((pb[:, 0] - pa[:, 0]) * (pc[:, 1] - pa[:, 1]) - (pb[:, 1] - pa[:, 1]) * (pc[:, 0] - pa[:, 0]))
+        acc = np.zeros((nf, 3), np.float32)
+        valid = frame.valid[view]
+        for X in pts:
+            p, z = cameras.project(X, view)
+            inside = (p[:, 0] > -0.5) & (p[:, 1] > -0.5) & (p[:, 0] < w - 0.5) & (p[:, 1] < h - 0.5) & (z > 1e-6)
+            ok &= inside
+            x = np.where(inside, np.floor(p[:, 0] + 0.5), 0).astype(np.int64)
+            y = np.where(inside, np.floor(p[:, 1] + 0.5), 0).astype(np.int64)
+            ok &= valid[y, x] != 0
+            ok &= z <= depth[y, x] + dt
+            for dx, dy in ((edge_px, 0), (-edge_px, 0), (0, edge_px), (0, -edge_px)):
+                xx, yy = x + dx, y + dy
+                inb = (xx >= 0) & (yy >= 0) & (xx < w) & (yy < h)
+                ok &= inb
+                d = depth[np.clip(yy, 0, h - 1), np.clip(xx, 0, w - 1)]
+                with np.errstate(invalid="ignore"):
+                    ok &= np.abs(d - z) <= et
+            acc += _sample_rgb_reference(frame.images[view], p)
+        quality[view] = np.where(ok, area * cosine, 0)
+        colour[view] = np.where(ok[:, None], acc * 0.25, 0)
+    return FaceViews(quality, colour)
+
+
+# ---------------------------------------------------------------- selection
+def face_neighbours(faces) -> np.ndarray:
+    """(F, 3): the face across side k of each face (side k runs from corner k to corner k+1), -1 on a
+    border or a non-manifold edge."""
+    faces = np.asarray(faces, np.int64).reshape(-1, 3)
+    nbr = np.full((len(faces), 3), -1, np.int64)
+    if len(faces) == 0:
+        return nbr
+    _, fe = unique_edges(faces)
+    flat = fe.ravel()
+    order = np.argsort(flat, kind="stable")
+    e = flat[order]
+    counts = np.bincount(e, minlength=int(e.max()) + 1)
+    pair = counts[e] == 2
+    starts = np.flatnonzero(np.r_[True, e[1:] != e[:-1]])
+    first = np.repeat(starts, counts[e[starts]])
+    other = np.where(np.arange(len(e)) == first, first + 1, first)
+    slot = order                                     # flat slot (face * 3 + side) of each sorted entry
+    ok = pair
+    nbr.ravel()[slot[ok]] = (slot[other[ok]] // 3)
+    return nbr
+
+
+def view_sharpness(images, valid) -> np.ndarray:
+    """(V,) relative sharpness of each view: median gradient energy inside the valid region, divided by the
+    median over views (1 = typical; a blurred or defocused view scores lower)."""
+    import cv2
+
+    s = []
+    for im, m in zip(images, valid):
+        g = cv2.cvtColor(im, cv2.COLOR_RGB2GRAY)
+        small = g if g.shape[1] <= 1024 else cv2.resize(g, (g.shape[1] // 2, g.shape[0] // 2), interpolation=cv2.INTER_AREA)
+        ms = m if m.shape == small.shape else cv2.resize(m, small.shape[::-1], interpolation=cv2.INTER_NEAREST)
+        lap = np.abs(cv2.Laplacian(small, cv2.CV_32F))
+        vals = lap[ms > 0]
+        s.append(float(np.mean(vals)) if vals.size else 0.0)
+    s = np.asarray(s)
+    med = np.median(s[s > 0]) if np.any(s > 0) else 1.0
+    return np.clip(s / med, 0.25, 2.0) if med > 0 else np.ones(len(s))
+
+
+def data_cost(quality, colour, gains=None, *, consistency=40.0) -> np.ndarray:
+    """(F, V) cost of painting face f from view v: 1 - q / max_q in [0, 1], +1 where the view's colour is
+    further than ``consistency`` (0..255 units) from the face's median colour over its views (when it has
+    at least three), INVISIBLE where the face is not usable."""
+    q = np.asarray(quality, np.float32).T                    # (F, V)
+    qmax = q.max(axis=1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cost = np.where(q > 0, 1 - q / np.where(qmax > 0, qmax, 1), INVISIBLE).astype(np.float32)
+    c = np.transpose(colour, (1, 0, 2)).astype(np.float32)   # (F, V, 3)
+    if gains is not None:
+        c = c * np.asarray(gains, np.float32)[None]
+    vis = q > 0
+    many = vis.sum(axis=1) >= 3
+    if consistency > 0 and np.any(many):
+        cm = np.where(vis[many][..., None], c[many], np.nan)
+        med = np.nanmedian(cm, axis=1)
+        dist = np.linalg.norm(c[many] - med[:, None], axis=2)
+        bad = vis[many] & (dist > consistency)
+        sub = cost[many]
+        sub[bad] += 1.0
+        cost[many] = sub
+    return cost
+
+
+def select_views(cost, nbr, *, smoothness=0.5, iterations=12, seed=0) -> np.ndarray:
+    """Labels (F,) minimising sum D(f, l_f) + smoothness * #{neighbours with another label} (Potts), by
+    iterated conditional modes: each round updates a random half of the faces to their best label given
+    their neighbours' labels. Faces with no usable view get -1."""
+    cost = np.asarray(cost, np.float32)
+    nf, nv = cost.shape
+    labels = np.argmin(cost, axis=1)
+    none = cost[np.arange(nf), labels] >= INVISIBLE
+    if smoothness > 0 and nf:
+        rng = np.random.default_rng(seed)
+        rows = np.arange(nf)
+        valid_nbr = nbr >= 0
+        for _ in range(iterations):
+            agree = np.zeros((nf, nv), np.float32)
+            for k in range(3):
+                has = valid_nbr[:, k] & ~none[np.maximum(nbr[:, k], 0)]
+                agree[rows[has], labels[nbr[has, k]]] += 1.0
+            total = agree.sum(axis=1, keepdims=True)
+            energy = cost + smoothness * (total - agree)
+            best = np.argmin(energy, axis=1)
+            move = (rng.random(nf) < 0.5) & (best != labels)
+            if not np.any(move):
+                break
+            labels = np.where(move, best, labels)
+    labels = np.where(none, -1, labels)
+    return labels
+
+
+def camera_gains(quality, colour, *, iterations=6, min_level=8.0) -> np.ndarray:
+    """(V, 3) per-camera, per-channel gains that make the views agree (exposure and white balance): the
+    model colour[v, f] = a_v * t_f is fitted in log space over every face seen by at least two views
+    (alternating robust means, residuals beyond 0.3 ignored), normalised so the gains' geometric mean is 1.
+    Returns 1 / a_v."""
+    q = np.asarray(quality)
+    nv = q.shape[0]
+    vis = q > 0
+    both = vis.sum(axis=0) >= 2
+    c = np.asarray(colour, np.float64)[:, both]             # (V, F', 3)
+    m = vis[:, both][..., None] & (c > min_level)           # (V, F', 3)
+    if not np.any(m):
+        return np.ones((nv, 3), np.float32)
+    L = np.log(np.maximum(c, 1e-3))
+    a = np.zeros((nv, 1, 3))
+    w = m.astype(np.float64)
+    for _ in range(iterations):
+        t = (w * (L - a)).sum(axis=0) / np.maximum(w.sum(axis=0), 1e-9)               # (F', 3)
+        r = L - a - t[None]
+        wr = w * (np.abs(r) < 0.3)
+        a = a + ((wr * r).sum(axis=1, keepdims=True) / np.maximum(wr.sum(axis=1, keepdims=True), 1e-9))
+        seen = w.sum(axis=1, keepdims=True) > 0
+        a = np.where(seen, a, 0.0)
+        a -= a[seen[:, 0, 0]].mean(axis=0, keepdims=True) if np.any(seen) else 0
+        w = wr if wr.sum() > 0.5 * m.sum() else w
+    return np.exp(-a[:, 0, :]).astype(np.float32)
+
+
+# ---------------------------------------------------------------- blending and levelling
+def vertex_adjacency(faces, n_vertices):
+    """Row-normalised sparse (V, V) averaging over each vertex and its umbrella neighbours."""
+    from scipy.sparse import csr_matrix
+
+    off, nb = vertex_neighbours(faces, n_vertices)
+    rows = np.repeat(np.arange(n_vertices), np.diff(off))
+    data = np.ones(len(nb) + n_vertices)
+    A = csr_matrix((data, (np.r_[rows, np.arange(n_vertices)], np.r_[nb, np.arange(n_vertices)])),
+                   shape=(n_vertices, n_vertices))
+    deg = np.asarray(A.sum(axis=1)).ravel()
+    return csr_matrix(A.multiply(1.0 / deg[:, None]))
+
+
+def blend_weights(labels, quality, faces, n_vertices, *, feather=2, K=4):
+    """Soft labels that cross-fade between views over ``feather`` vertex rings on each side of a view seam.
+
+    Per vertex, the share of its faces painted by each view is averaged ``feather`` times over the vertex
+    neighbourhoods; per face the (at most K) views with the largest weight at its corners among those
+    that see it are kept. Returns (face_view (F, K) int32, -1 = unused slot; weight (F, 3, K) float32,
+    per corner). Inside a patch one view has weight 1: the texture stays as sharp as its best view."""
+    faces = np.asarray(faces, np.int64)
+    nf = len(faces)
+    nviews = quality.shape[0]
+    face_view = np.full((nf, K), -1, np.int32)
+    weight = np.zeros((nf, 3, K), np.float32)
+    has = labels >= 0
+    if not np.any(has):
+        return face_view, weight
+    from scipy.sparse import csr_matrix
+
+    rows = faces[has].ravel()
+    cols = np.repeat(labels[has], 3)
+    W = csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n_vertices, nviews)).toarray()
+    s = W.sum(axis=1, keepdims=True)
+    W = np.divide(W, s, out=np.zeros_like(W), where=s > 0)
+    if feather > 0:
+        A = vertex_adjacency(faces, n_vertices)
+        for _ in range(feather):
+            W = A @ W
+    corner = W[faces]                                        # (F, 3, V)
+    visible = (np.asarray(quality).T > 0)                    # (F, V)
+    score = corner.sum(axis=1) * visible
+    score[np.flatnonzero(has), labels[has]] += 1e-3          # the face's own label always stays
+    order = np.argsort(-score, axis=1)[:, :K]
+    top = np.take_along_axis(score, order, axis=1)
+    keep = top > 0
+    face_view[:] = np.where(keep, order, -1)
+    cw = np.take_along_axis(corner, order[:, None, :].repeat(3, axis=1), axis=2)   # (F, 3, K)
+    cw = np.where(keep[:, None, :], cw, 0)
+    own = (order == labels[:, None]) & has[:, None]           # corners where every kept weight is 0: own view
+    dead = cw.sum(axis=2) <= 0
+    cw = np.where(dead[:, :, None] & own[:, None, :], 1.0, cw)
+    weight[:] = cw
+    return face_view, weight
+
+
+def vertex_view_samples(vertices, index, views, cameras: Cameras, frame: FrameImages, radius=1.5):
+    """Colour (N, 3) of vertex index[i] seen in view views[i] (mean of five bilinear samples within ``radius``
+    pixels) and whether all five fell on valid pixels."""
+    vertices = np.asarray(vertices, np.float64)
+    out = np.zeros((len(views), 3), np.float32)
+    ok = np.zeros(len(views), bool)
+    for v in np.unique(views):
+        sel = np.flatnonzero(views == v)
+        p, z = cameras.project(vertices[index[sel]], int(v))
+        img, val = frame.images[v], frame.valid[v]
+        h, w = val.shape
+        good = z > 1e-6
+        acc = np.zeros((len(sel), 3), np.float32)
+        for dx, dy in ((0, 0), (radius, 0), (-radius, 0), (0, radius), (0, -radius)):
+            q = p + (dx, dy)
+            inside = (q[:, 0] > -0.5) & (q[:, 1] > -0.5) & (q[:, 0] < w - 0.5) & (q[:, 1] < h - 0.5)
+            x = np.where(inside, np.floor(q[:, 0] + 0.5), 0).astype(np.int64)
+            y = np.where(inside, np.floor(q[:, 1] + 0.5), 0).astype(np.int64)
+            good &= inside & (val[y, x] != 0)
+            acc += _sample_rgb_reference(img, np.nan_to_num(q))
+        out[sel] = acc / 5
+        ok[sel] = good
+    return out, ok
+
+
+def level_seams(vertices, faces, face_view, weight, cameras: Cameras, frame: FrameImages, gains, *,
+                smoothness=0.1, regular=1e-3):
+    """Global seam levelling (Waechter et al. 2014, sec. 5): an additive colour offset g per (vertex, view)
+    pair used by the blend, such that at every vertex the views agree (f_va + g_va = f_vb + g_vb, f = the
+    gain-corrected colour of the vertex in the view) while offsets vary smoothly along the surface
+    (smoothness * (g_va - g_wa) = 0 on mesh edges) and stay small (regular * g = 0): one sparse least-squares
+    problem, three right-hand sides. Returns offsets (F, 3, K, 3) for the face slots (0..255 units)."""
+    from scipy.sparse import coo_matrix, csr_matrix
+    from scipy.sparse.linalg import splu
+
+    faces = np.asarray(faces, np.int64)
+    nf, K = face_view.shape
+    offset = np.zeros((nf, 3, K, 3), np.float32)
+    nviews = len(cameras)
+    slot_v = np.repeat(faces[:, :, None], K, axis=2)                     # (F, 3, K) vertex of each slot
+    slot_view = np.repeat(face_view[:, None, :], 3, axis=1).astype(np.int64)
+    used = slot_view >= 0
+    keys = slot_v[used] * nviews + slot_view[used]
+    nodes, inverse = np.unique(keys, return_inverse=True)
+    n = len(nodes)
+    if n == 0:
+        return offset
+    node_vertex, node_view = nodes // nviews, nodes % nviews
+    colour, ok = vertex_view_samples(vertices, node_vertex, node_view, cameras, frame)
+    colour = colour * np.asarray(gains, np.float32)[node_view]
+    # seam equations: consecutive nodes of one vertex (nodes are sorted by vertex, then view)
+    same = (node_vertex[1:] == node_vertex[:-1]) & ok[1:] & ok[:-1]
+    i0 = np.flatnonzero(same)
+    i1 = i0 + 1
+    # smoothness: mesh edges whose two ends both have a node for the same view
+    edges, _ = unique_edges(faces)
+    e_rows = (np.zeros(0, np.int64), np.zeros(0, np.int64))
+    if len(edges):
+        a_keys = np.repeat(edges[:, 0], nviews) * nviews + np.tile(np.arange(nviews), len(edges))
+        b_keys = np.repeat(edges[:, 1], nviews) * nviews + np.tile(np.arange(nviews), len(edges))
+        ia = np.searchsorted(nodes, a_keys)
+        ib = np.searchsorted(nodes, b_keys)
+        ia_ok = (ia < n) & (nodes[np.minimum(ia, n - 1)] == a_keys)
+        ib_ok = (ib < n) & (nodes[np.minimum(ib, n - 1)] == b_keys)
+        both = ia_ok & ib_ok
+        e_rows = (ia[both], ib[both])
+    m_seam, m_edge = len(i0), len(e_rows[0])
+    r = np.arange(m_seam)
+    rows = [r, r]
+    cols = [i0, i1]
+    vals = [np.ones(m_seam), -np.ones(m_seam)]
+    if m_edge:
+        re = m_seam + np.arange(m_edge)
+        rows += [re, re]
+        cols += [e_rows[0], e_rows[1]]
+        vals += [np.full(m_edge, smoothness), np.full(m_edge, -smoothness)]
+    A = coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(m_seam + m_edge, n))
+    A = csr_matrix(A)
+    b = np.zeros((m_seam + m_edge, 3))
+    b[:m_seam] = colour[i1] - colour[i0]
+    M = (A.T @ A + regular ** 2 * _eye(n)).tocsc()
+    g = splu(M).solve(np.asarray(A.T @ b))
+    offset[used] = g[inverse].astype(np.float32)
+    return offset
+
+
+def _eye(n):
+    from scipy.sparse import identity
+
+    return identity(n, format="csr")
+
+
+def fallback_vertex_colours(labels, colour, gains, faces, n_vertices, rounds=50) -> np.ndarray:
+    """(V, 3) colours for places no view may paint: each vertex averages the selected-view colours of its
+    faces; vertices without any are filled by repeated neighbourhood averaging (a harmonic fill)."""
+    faces = np.asarray(faces, np.int64)
+    col = np.zeros((n_vertices, 3))
+    cnt = np.zeros(n_vertices)
+    has = labels >= 0
+    if np.any(has):
+        fc = colour[labels[has], np.flatnonzero(has)] * np.asarray(gains)[labels[has]]
+        for k in range(3):
+            np.add.at(col, faces[has, k], fc)
+            np.add.at(cnt, faces[has, k], 1)
+    known = cnt > 0
+    col[known] /= cnt[known, None]
+    if not np.all(known) and np.any(known) and len(faces):
+        A = vertex_adjacency(faces, n_vertices)
+        filled = known.astype(np.float64)
+        for _ in range(rounds):                    # masked averaging: grows inwards from the known vertices
+            w = A @ filled
+            x = np.divide(A @ (col * filled[:, None]), w[:, None], out=np.zeros_like(col), where=w[:, None] > 0)
+            col = np.where(known[:, None], col, x)
+            filled = np.where(known, 1.0, (w > 0).astype(np.float64))
+    if not np.any(known):
+        col[:] = 128
+    return col.astype(np.float32)
