@@ -302,10 +302,16 @@ def sample_texture(texture: np.ndarray, uv01: np.ndarray) -> np.ndarray:
 
     uv = np.asarray(uv01, np.float32).reshape(-1, 2)
     h, w = texture.shape[:2]
-    mx = (uv[:, 0] * w - 0.5).reshape(1, -1)
-    my = ((1.0 - uv[:, 1]) * h - 0.5).reshape(1, -1)
-    out = cv2.remap(np.ascontiguousarray(texture), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    return out.reshape(-1, texture.shape[2]).astype(np.float32)
+    n = len(uv)
+    cols = 4096                                   # cv2.remap wants maps below 32767 on each side
+    rows = max(1, -(-n // cols))
+    mx = np.zeros(rows * cols, np.float32)
+    my = np.zeros(rows * cols, np.float32)
+    mx[:n] = uv[:, 0] * w - 0.5
+    my[:n] = (1.0 - uv[:, 1]) * h - 0.5
+    out = cv2.remap(np.ascontiguousarray(texture), mx.reshape(rows, cols), my.reshape(rows, cols), cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(-1, texture.shape[2])[:n].astype(np.float32)
 
 
 def render_texture(vertices, faces, face_uv, texture, cameras: Cameras, view: int, *, face_colours=None,
