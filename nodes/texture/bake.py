@@ -178,25 +178,31 @@ def bake_samples_reference(sample_face, sample_bary, vertices, faces, cameras, f
 
 
 # ---------------------------------------------------------------- filling
-def push_pull(rgb: np.ndarray, known: np.ndarray) -> np.ndarray:
-    """Fill unknown pixels from known ones by a pyramid (push: weighted downsampling; pull: upsample into
-    the holes). Known pixels are unchanged."""
+def push_pull(rgb: np.ndarray, known: np.ndarray, coarse: int = 16) -> np.ndarray:
+    """Fill unknown texels (outside the charts and their gutter) with a smooth extension of the known ones:
+    a pyramid of weighted averages down to 1/``coarse`` resolution (holes there filled from coarser levels),
+    upsampled once. Known texels are unchanged. Keeps mipmaps and PNG compression clean."""
     import cv2
 
+    h, w = known.shape
+    wt = known.astype(np.float32)
+    c = rgb.astype(np.float32) * wt[..., None]
+    ch, cw = max(1, -(-h // coarse)), max(1, -(-w // coarse))
+    c = cv2.resize(c, (cw, ch), interpolation=cv2.INTER_AREA)
+    wt = cv2.resize(wt, (cw, ch), interpolation=cv2.INTER_AREA)
     levels = []
-    c = rgb.astype(np.float32) * known[..., None]
-    w = known.astype(np.float32)
-    while min(w.shape) > 1:
-        levels.append((c, w))
-        h2, w2 = (w.shape[0] + 1) // 2, (w.shape[1] + 1) // 2
-        c = cv2.resize(c, (w2, h2), interpolation=cv2.INTER_AREA)
-        w = cv2.resize(w, (w2, h2), interpolation=cv2.INTER_AREA)
-    filled = np.divide(c, w[..., None], out=np.zeros_like(c), where=w[..., None] > 0)
-    for c, w in reversed(levels):
-        up = cv2.resize(filled, (w.shape[1], w.shape[0]), interpolation=cv2.INTER_LINEAR)
-        mine = np.divide(c, w[..., None], out=np.zeros_like(c), where=w[..., None] > 0)
-        a = np.clip(w, 0, 1)[..., None]
+    while True:
+        levels.append((c, wt))
+        if min(wt.shape) <= 1:
+            break
+        c = cv2.resize(c, ((c.shape[1] + 1) // 2, (c.shape[0] + 1) // 2), interpolation=cv2.INTER_AREA)
+        wt = cv2.resize(wt, ((wt.shape[1] + 1) // 2, (wt.shape[0] + 1) // 2), interpolation=cv2.INTER_AREA)
+    c, wt = levels[-1]
+    filled = np.divide(c, wt[..., None], out=np.full_like(c, 128.0), where=wt[..., None] > 0)
+    for c, wt in reversed(levels[:-1]):
+        up = cv2.resize(filled, (wt.shape[1], wt.shape[0]), interpolation=cv2.INTER_LINEAR)
+        mine = np.divide(c, wt[..., None], out=np.zeros_like(c), where=wt[..., None] > 0)
+        a = np.clip(wt * 4, 0, 1)[..., None]
         filled = a * mine + (1 - a) * up
-    out = rgb.astype(np.float32).copy()
-    out[~known] = filled[~known]
-    return out
+    up = cv2.resize(filled, (w, h), interpolation=cv2.INTER_LINEAR)
+    return np.where(known[..., None], rgb, up)

@@ -123,8 +123,9 @@ def _sample_rgb_reference(img, p):
     x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
     x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
     fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-    im = img.astype(np.float32)
-    return (1 - fy) * ((1 - fx) * im[y0, x0] + fx * im[y0, x1]) + fy * ((1 - fx) * im[y1, x0] + fx * im[y1, x1])
+    f32 = np.float32
+    return ((1 - fy) * ((1 - fx) * img[y0, x0].astype(f32) + fx * img[y0, x1].astype(f32))
+            + fy * ((1 - fx) * img[y1, x0].astype(f32) + fx * img[y1, x1].astype(f32)))
 
 
 def face_view_stats_reference(vertices, faces, cameras: Cameras, frame: FrameImages, *, depth_tol=0.01,
@@ -233,9 +234,12 @@ def data_cost(quality, colour, gains=None, *, consistency=40.0) -> np.ndarray:
     vis = q > 0
     many = vis.sum(axis=1) >= 3
     if consistency > 0 and np.any(many):
-        cm = np.where(vis[many][..., None], c[many], np.nan)
-        med = np.nanmedian(cm, axis=1)
-        dist = np.linalg.norm(c[many] - med[:, None], axis=2)
+        cs = c[many]
+        vm = vis[many]
+        srt = np.sort(np.where(vm[..., None], cs, np.inf), axis=1)           # visible values first, in order
+        mid = ((vm.sum(axis=1) - 1) // 2)[:, None, None]
+        med = np.take_along_axis(srt, np.repeat(mid, 3, axis=2), axis=1)[:, 0, :]   # (lower) median per channel
+        dist = np.linalg.norm(cs - med[:, None], axis=2)
         bad = vis[many] & (dist > consistency)
         sub = cost[many]
         sub[bad] += 1.0
@@ -271,7 +275,7 @@ def select_views(cost, nbr, *, smoothness=0.5, iterations=12, seed=0) -> np.ndar
     return labels
 
 
-def camera_gains(quality, colour, *, iterations=6, min_level=8.0) -> np.ndarray:
+def camera_gains(quality, colour, *, iterations=6, min_level=8.0, max_faces=20000) -> np.ndarray:
     """(V, 3) per-camera, per-channel gains that make the views agree (exposure and white balance): the
     model colour[v, f] = a_v * t_f is fitted in log space over every face seen by at least two views
     (alternating robust means, residuals beyond 0.3 ignored), normalised so the gains' geometric mean is 1.
@@ -279,14 +283,16 @@ def camera_gains(quality, colour, *, iterations=6, min_level=8.0) -> np.ndarray:
     q = np.asarray(quality)
     nv = q.shape[0]
     vis = q > 0
-    both = vis.sum(axis=0) >= 2
-    c = np.asarray(colour, np.float64)[:, both]             # (V, F', 3)
+    both = np.flatnonzero(vis.sum(axis=0) >= 2)
+    if len(both) > max_faces:                               # an even subsample is plenty for V x 3 unknowns
+        both = both[np.linspace(0, len(both) - 1, max_faces).astype(np.int64)]
+    c = np.asarray(colour)[:, both].astype(np.float32)      # (V, F', 3)
     m = vis[:, both][..., None] & (c > min_level)           # (V, F', 3)
     if not np.any(m):
         return np.ones((nv, 3), np.float32)
     L = np.log(np.maximum(c, 1e-3))
-    a = np.zeros((nv, 1, 3))
-    w = m.astype(np.float64)
+    a = np.zeros((nv, 1, 3), np.float32)
+    w = m.astype(np.float32)
     for _ in range(iterations):
         t = (w * (L - a)).sum(axis=0) / np.maximum(w.sum(axis=0), 1e-9)               # (F', 3)
         r = L - a - t[None]
@@ -382,70 +388,109 @@ def vertex_view_samples(vertices, index, views, cameras: Cameras, frame: FrameIm
 
 
 def level_seams(vertices, faces, face_view, weight, cameras: Cameras, frame: FrameImages, gains, *,
-                smoothness=0.1, regular=1e-3):
-    """Global seam levelling (Waechter et al. 2014, sec. 5): an additive colour offset g per (vertex, view)
-    pair used by the blend, such that at every vertex the views agree (f_va + g_va = f_vb + g_vb, f = the
-    gain-corrected colour of the vertex in the view) while offsets vary smoothly along the surface
-    (smoothness * (g_va - g_wa) = 0 on mesh edges) and stay small (regular * g = 0): one sparse least-squares
-    problem, three right-hand sides. Returns offsets (F, 3, K, 3) for the face slots (0..255 units)."""
-    from scipy.sparse import coo_matrix, csr_matrix
-    from scipy.sparse.linalg import splu
+                smoothness=0.3, regular=0.1, band=4, tol=1e-4, maxiter=200):
+    """Seam levelling (after Waechter et al. 2014, sec. 5), within a band of ``band`` vertex rings around the
+    view seams: an additive colour offset g per (vertex, view) pair used by the blend, such that at every
+    vertex the views agree (f_va + g_va = f_vb + g_vb, f = the gain-corrected colour of the vertex in the
+    view), offsets vary smoothly along the surface (smoothness * (g_va - g_wa) = 0 on mesh edges) and fade to
+    0 at the band's edge (the per-camera gains already did the global part), and stay small (regular * g = 0).
+    One sparse least-squares problem (normal equations by conjugate gradients, Jacobi preconditioner), three
+    right-hand sides. Returns offsets (F, 3, K, 3) for the face slots (0..255 units)."""
+    from scipy.sparse import coo_matrix, csr_matrix, diags
 
     faces = np.asarray(faces, np.int64)
     nf, K = face_view.shape
     offset = np.zeros((nf, 3, K, 3), np.float32)
     nviews = len(cameras)
+    nvert = len(vertices)
     slot_v = np.repeat(faces[:, :, None], K, axis=2)                     # (F, 3, K) vertex of each slot
     slot_view = np.repeat(face_view[:, None, :], 3, axis=1).astype(np.int64)
     used = slot_view >= 0
-    keys = slot_v[used] * nviews + slot_view[used]
-    nodes, inverse = np.unique(keys, return_inverse=True)
-    n = len(nodes)
-    if n == 0:
+    keys = np.unique(slot_v[used] * nviews + slot_view[used])
+    kv = keys // nviews
+    seam = np.zeros(nvert, bool)
+    seam[kv[1:][kv[1:] == kv[:-1]]] = True                               # vertices with two or more views
+    if not np.any(seam):
         return offset
+    A_adj = vertex_adjacency(faces, nvert)
+    inband = seam.astype(np.float64)
+    for _ in range(band):
+        inband = np.maximum(inband, (A_adj @ inband > 0).astype(np.float64))
+    inband = inband > 0
+    nodes = keys[inband[kv]]
+    n = len(nodes)
     node_vertex, node_view = nodes // nviews, nodes % nviews
     colour, ok = vertex_view_samples(vertices, node_vertex, node_view, cameras, frame)
     colour = colour * np.asarray(gains, np.float32)[node_view]
-    # seam equations: consecutive nodes of one vertex (nodes are sorted by vertex, then view)
-    same = (node_vertex[1:] == node_vertex[:-1]) & ok[1:] & ok[:-1]
+    same = (node_vertex[1:] == node_vertex[:-1]) & ok[1:] & ok[:-1]      # nodes are sorted by vertex, then view
     i0 = np.flatnonzero(same)
     i1 = i0 + 1
-    # smoothness: mesh edges whose two ends both have a node for the same view
     edges, _ = unique_edges(faces)
-    e_rows = (np.zeros(0, np.int64), np.zeros(0, np.int64))
+    edges = edges[inband[edges[:, 0]] | inband[edges[:, 1]]]
+    rows, cols, vals = [np.arange(len(i0))] * 2, [i0, i1], [np.ones(len(i0)), -np.ones(len(i0))]
+    m = len(i0)
     if len(edges):
-        a_keys = np.repeat(edges[:, 0], nviews) * nviews + np.tile(np.arange(nviews), len(edges))
-        b_keys = np.repeat(edges[:, 1], nviews) * nviews + np.tile(np.arange(nviews), len(edges))
-        ia = np.searchsorted(nodes, a_keys)
-        ib = np.searchsorted(nodes, b_keys)
-        ia_ok = (ia < n) & (nodes[np.minimum(ia, n - 1)] == a_keys)
-        ib_ok = (ib < n) & (nodes[np.minimum(ib, n - 1)] == b_keys)
-        both = ia_ok & ib_ok
-        e_rows = (ia[both], ib[both])
-    m_seam, m_edge = len(i0), len(e_rows[0])
-    r = np.arange(m_seam)
-    rows = [r, r]
-    cols = [i0, i1]
-    vals = [np.ones(m_seam), -np.ones(m_seam)]
-    if m_edge:
-        re = m_seam + np.arange(m_edge)
-        rows += [re, re]
-        cols += [e_rows[0], e_rows[1]]
-        vals += [np.full(m_edge, smoothness), np.full(m_edge, -smoothness)]
-    A = coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(m_seam + m_edge, n))
-    A = csr_matrix(A)
-    b = np.zeros((m_seam + m_edge, 3))
-    b[:m_seam] = colour[i1] - colour[i0]
-    M = (A.T @ A + regular ** 2 * _eye(n)).tocsc()
-    g = splu(M).solve(np.asarray(A.T @ b))
-    offset[used] = g[inverse].astype(np.float32)
+        table = np.full((nvert, nviews), -1, np.int64)                    # node id per (vertex, view)
+        table[node_vertex, node_view] = np.arange(n)
+        ta, tb = table[edges[:, 0]], table[edges[:, 1]]                  # (E, views)
+        # an edge whose other end is outside the band (offset 0 there) pins the offset towards 0
+        a_out = ~inband[edges[:, 0]][:, None]
+        b_out = ~inband[edges[:, 1]][:, None]
+        both = (ta >= 0) & (tb >= 0)
+        one_a = (ta >= 0) & b_out
+        one_b = (tb >= 0) & a_out
+        for sel, r_cols, signed in ((both, (ta, tb), True), (one_a, (ta,), False), (one_b, (tb,), False)):
+            k = int(sel.sum())
+            if k == 0:
+                continue
+            rr = m + np.arange(k)
+            rows.append(rr)
+            cols.append(r_cols[0][sel])
+            vals.append(np.full(k, smoothness))
+            if signed:
+                rows.append(rr)
+                cols.append(r_cols[1][sel])
+                vals.append(np.full(k, -smoothness))
+            m += k
+    A = csr_matrix(coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(m, n)))
+    b = np.zeros((m, 3))
+    b[:len(i0)] = colour[i1] - colour[i0]
+    M = (A.T @ A + diags(np.full(n, regular ** 2))).tocsr()
+    rhs = np.asarray(A.T @ b)
+    g = block_pcg(M, rhs, tol=tol, maxiter=maxiter)
+    # offsets of every slot: the node's value inside the band, 0 outside
+    slot_keys = slot_v * nviews + np.maximum(slot_view, 0)
+    idx = np.searchsorted(nodes, slot_keys)
+    hit = used & (idx < n) & (nodes[np.minimum(idx, n - 1)] == slot_keys)
+    offset[hit] = g[idx[hit]].astype(np.float32)
     return offset
 
 
-def _eye(n):
-    from scipy.sparse import identity
-
-    return identity(n, format="csr")
+def block_pcg(M, B, *, tol=1e-4, maxiter=200):
+    """Solve M X = B (M symmetric positive definite, sparse; B (n, k)) by conjugate gradients with a Jacobi
+    preconditioner, all k columns at once. Stops when every column's residual is below tol * |b|."""
+    d = M.diagonal()
+    inv = np.where(d > 0, 1.0 / np.where(d > 0, d, 1), 1.0)[:, None]
+    X = np.zeros_like(B, dtype=np.float64)
+    R = np.asarray(B, np.float64).copy()
+    Z = inv * R
+    P = Z.copy()
+    rz = np.einsum("ij,ij->j", R, Z)
+    bnorm = np.maximum(np.linalg.norm(B, axis=0), 1e-30)
+    for _ in range(maxiter):
+        if np.all(np.linalg.norm(R, axis=0) <= tol * bnorm):
+            break
+        Q = M @ P
+        pq = np.einsum("ij,ij->j", P, Q)
+        alpha = np.divide(rz, pq, out=np.zeros_like(rz), where=pq != 0)
+        X += alpha * P
+        R -= alpha * Q
+        Z = inv * R
+        rz_new = np.einsum("ij,ij->j", R, Z)
+        beta = np.divide(rz_new, rz, out=np.zeros_like(rz), where=rz != 0)
+        P = Z + beta * P
+        rz = rz_new
+    return X
 
 
 def fallback_vertex_colours(labels, colour, gains, faces, n_vertices, rounds=50) -> np.ndarray:
@@ -465,11 +510,16 @@ def fallback_vertex_colours(labels, colour, gains, faces, n_vertices, rounds=50)
     if not np.all(known) and np.any(known) and len(faces):
         A = vertex_adjacency(faces, n_vertices)
         filled = known.astype(np.float64)
+        unknown = np.flatnonzero(~known)
+        Au = A[unknown]
         for _ in range(rounds):                    # masked averaging: grows inwards from the known vertices
-            w = A @ filled
-            x = np.divide(A @ (col * filled[:, None]), w[:, None], out=np.zeros_like(col), where=w[:, None] > 0)
-            col = np.where(known[:, None], col, x)
-            filled = np.where(known, 1.0, (w > 0).astype(np.float64))
+            w = Au @ filled
+            x = np.divide(Au @ (col * filled[:, None]), w[:, None], out=np.zeros((len(unknown), 3)), where=w[:, None] > 0)
+            col[unknown] = x
+            before = filled[unknown].sum()
+            filled[unknown] = (w > 0).astype(np.float64)
+            if filled[unknown].sum() == before == len(unknown):
+                break
     if not np.any(known):
         col[:] = 128
     return col.astype(np.float32)
