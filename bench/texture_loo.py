@@ -30,6 +30,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 from nodes.common.cameras import Cameras  # noqa: E402
 from nodes.common.raster import rasterize, render_texture  # noqa: E402
 from nodes.common.types import CameraSet, Images, Masks, Mesh  # noqa: E402
+from nodes.texture.quality import background_texels  # noqa: E402
 from nodes.texture.texturing import Settings, texture_mesh  # noqa: E402
 
 DATASETS = {  # graph, mesh node, masks node (port 'masks'), images node (port 'images'), cameras node
@@ -89,31 +90,6 @@ def vertex_colour_baseline(vertices, faces, images, masks, cams, tol_frac=0.01):
         cnt[ok] += 1
     col = np.where(cnt[:, None] > 0, acc / np.maximum(cnt, 1)[:, None], 128)
     return col.astype(np.float32)
-
-
-def background_texels(res, vertices, faces, masks, cams):
-    """(texels whose surface point is outside every mask that sees it in the image, of those the ones painted
-    from an image). Inner texels only (not the gutter)."""
-    tf = res.texel_face
-    inner = np.flatnonzero(tf.reshape(-1) >= 0)
-    # texel centre -> barycentrics -> 3-D point (NumPy, as the kernel)
-    from nodes.texture.bake import texel_bary_reference
-
-    bary = texel_bary_reference(tf, res.atlas.face_uv).reshape(-1, 3)[inner]
-    f = tf.reshape(-1)[inner]
-    X = np.einsum("nc,ncd->nd", bary, np.asarray(vertices, np.float64)[np.asarray(faces)[f]])
-    inside_any = np.zeros(len(X), bool)
-    seen_any = np.zeros(len(X), bool)
-    for i in range(len(cams)):
-        uv, z = cams.project(X, i)
-        h, w = masks[i].shape
-        x, y = np.round(uv[:, 0]).astype(np.int64), np.round(uv[:, 1]).astype(np.int64)
-        ok = (x >= 0) & (y >= 0) & (x < w) & (y < h) & (z > 0)
-        seen_any |= ok
-        inside_any[ok] |= masks[i][y[ok], x[ok]] > 127
-    bg = seen_any & ~inside_any
-    painted = res.texel_weight.reshape(-1)[inner] > 0
-    return int(bg.sum()), int((bg & painted).sum())
 
 
 def evaluate(name, cache, held_n, use_meshlab, size, picture=None):
@@ -212,7 +188,7 @@ def main():
         rows, extra = evaluate(name, Path(args.cache), args.held, not args.no_meshlab, args.size, pic)
         table.append((name, rows, extra))
     print(f"\nleave-one-camera-out PSNR (dB) inside mask and render, median over held-out cameras; load {os.getloadavg()}")
-    print(f"| dataset | faces | views | vertex colours | MeshLab | ours (vertex mode) | **ours** | bg texels (painted) | ours s/frame | MeshLab s/frame |")
+    print("| dataset | faces | views | vertex colours | MeshLab | ours (vertex mode) | **ours** | bg texels (painted) | ours s/frame | MeshLab s/frame |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     for name, rows, ex in table:
         med = {k: (np.nanmedian(v) if v and not np.all(np.isnan(v)) else float("nan")) for k, v in rows.items()}

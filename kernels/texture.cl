@@ -51,20 +51,21 @@ inline int pixel_ok(__global const uchar *valid, int w, int h, float2 p, int *id
     return valid[*idx] != 0;
 }
 
-// One view: per face quality (0 = not usable) and mean colour of its four sample points.
+// One view (its image at byte img_off of the concatenated images): per face quality (0 = not usable) and mean colour of its four sample points.
 // A face is usable when it faces the camera and each sample point (centroid, and the corners pulled a
 // fifth of the way to it) projects onto a valid pixel (eroded mask), passes the depth test against the
 // z-buffer (within depth_tol), and no pixel ``edge_px`` away along the axes differs from its depth by more
 // than edge_tol (depth edges and the mesh's own outline: where registration errors show the wrong surface).
 __kernel void face_views(__global const float *verts, __global const int *faces, int nfaces,
                          __global const float *cams, int view, float4 centre,
-                         __global const ulong *zbuf, __global const uchar *valid, __global const uchar *img,
-                         float depth_tol, float edge_tol, int edge_px,
+                         __global const ulong *zbuf, __global const uchar *valid_all, __global const uchar *img_all,
+                         long img_off, float depth_tol, float edge_tol, int edge_px,
                          __global float *quality, __global float *colour)
 {
     int f = get_global_id(0);
     if (f >= nfaces) return;
     __global const float *cam = cams + CAM_FLOATS * view;
+    __global const uchar *img = img_all + img_off, *valid = valid_all + img_off / 3;
     int w = (int)cam[22], h = (int)cam[23];
     float3 A = vertex3(verts, faces[3 * f]), B = vertex3(verts, faces[3 * f + 1]), C = vertex3(verts, faces[3 * f + 2]);
     float3 G = (A + B + C) / 3.0f;

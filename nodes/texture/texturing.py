@@ -45,6 +45,7 @@ class Result:
     blend: Blend
     texel_face: np.ndarray | None = None
     texel_weight: np.ndarray | None = None
+    texel_inner: np.ndarray | None = None      # (S, S) bool: texel centre inside a face (not the gutter)
     linear: np.ndarray | None = None           # (S, S, 3) float32 linear-light texture (atlas mode)
     timings: dict = field(default_factory=dict)
     stats: dict = field(default_factory=dict)
@@ -146,7 +147,7 @@ def texture_mesh(vertices, faces, images, masks, cameras, s: Settings = Settings
     info.update({"charts": atlas.n_charts, "texels_covered": int(np.sum(inner >= 0)),
                  "texels_from_fallback": int(np.sum(need & (inner.reshape(-1) >= 0)))})
     return Result(atlas, texture, None, labels, blend, texel_face=texel_face, texel_weight=w.reshape(size, size),
-                  timings=timings, stats=info)
+                  texel_inner=inner >= 0, timings=timings, stats=info)
 
 
 # ---------------------------------------------------------------- trimesh output

@@ -105,11 +105,8 @@ def face_view_stats(vertices, faces, cameras: Cameras, frame: FrameImages, *, de
     for view in range(nv):
         zbuf = r.zbuffer(view)
         off = int(frame.offsets[view])
-        n = cameras[view].width * cameras[view].height
-        img = d_img.get_sub_region(off, 3 * n) if off else d_img
-        val = d_valid.get_sub_region(off // 3, n) if off else d_valid
         tcl.launch("face_views", (nf,), (64,), r.d_verts, r.d_faces, np.int32(nf), r.d_cams, np.int32(view),
-                   cl.cltypes.make_float4(*centres[view], 0), zbuf, val, img, np.float32(dt), np.float32(et),
+                   cl.cltypes.make_float4(*centres[view], 0), zbuf, d_valid, d_img, np.int64(off), np.float32(dt), np.float32(et),
                    np.int32(edge_px), d_q, d_c)
         tcl.read(d_q, (nf,), np.float32, out=quality[view])
         tcl.read(d_c, (nf, 3), np.float32, out=colour[view])
