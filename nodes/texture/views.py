@@ -326,6 +326,7 @@ def blend_weights(labels, quality, faces, n_vertices, *, feather=2, K=4):
     faces = np.asarray(faces, np.int64)
     nf = len(faces)
     nviews = quality.shape[0]
+    K = min(K, nviews)
     face_view = np.full((nf, K), -1, np.int32)
     weight = np.zeros((nf, 3, K), np.float32)
     has = labels >= 0
@@ -342,15 +343,17 @@ def blend_weights(labels, quality, faces, n_vertices, *, feather=2, K=4):
         A = vertex_adjacency(faces, n_vertices)
         for _ in range(feather):
             W = A @ W
-    corner = W[faces]                                        # (F, 3, V)
+    W = W.astype(np.float32)
     visible = (np.asarray(quality).T > 0)                    # (F, V)
-    score = corner.sum(axis=1) * visible
+    score = (W[faces[:, 0]] + W[faces[:, 1]] + W[faces[:, 2]]) * visible
     score[np.flatnonzero(has), labels[has]] += 1e-3          # the face's own label always stays
-    order = np.argsort(-score, axis=1)[:, :K]
+    order = np.argpartition(-score, K - 1, axis=1)[:, :K] if nviews > K else np.tile(np.arange(nviews), (nf, 1))
     top = np.take_along_axis(score, order, axis=1)
+    srt = np.argsort(-top, axis=1, kind="stable")          # the K best, best first
+    order, top = np.take_along_axis(order, srt, axis=1), np.take_along_axis(top, srt, axis=1)
     keep = top > 0
     face_view[:] = np.where(keep, order, -1)
-    cw = np.take_along_axis(corner, order[:, None, :].repeat(3, axis=1), axis=2)   # (F, 3, K)
+    cw = np.stack([np.take_along_axis(W[faces[:, c]], order, axis=1) for c in range(3)], axis=1)   # (F, 3, K)
     cw = np.where(keep[:, None, :], cw, 0)
     own = (order == labels[:, None]) & has[:, None]           # corners where every kept weight is 0: own view
     dead = cw.sum(axis=2) <= 0
@@ -385,7 +388,7 @@ def vertex_view_samples(vertices, index, views, cameras: Cameras, frame: FrameIm
 
 
 def level_seams(vertices, faces, face_view, weight, cameras: Cameras, frame: FrameImages, gains, *,
-                smoothness=0.3, regular=0.1, band=4, tol=1e-4, maxiter=200):
+                smoothness=0.3, regular=0.1, band=3, tol=1e-3, maxiter=100):
     """Seam levelling (after Waechter et al. 2014, sec. 5), within a band of ``band`` vertex rings around the
     view seams: an additive colour offset g per (vertex, view) pair used by the blend, such that at every
     vertex the views agree (f_va + g_va = f_vb + g_vb, f = the gain-corrected colour of the vertex in the
