@@ -153,46 +153,114 @@ def chart_uv(vertices, faces, chart, chart_dir) -> np.ndarray:
     return out
 
 
+def _chart_masks(local_uv, chart, order, scale, cell, pad):
+    """Per chart: occupancy on a grid of ``cell`` texels (its triangles rasterised at ``scale`` texels per world
+    unit, dilated by ``pad`` cells for the gutter)."""
+    import cv2
+
+    masks = []
+    kernel = np.ones((2 * pad + 1, 2 * pad + 1), np.uint8) if pad > 0 else None
+    for c, idx in order:
+        pts = local_uv[idx] * (scale / cell)
+        w = int(np.ceil(pts[..., 0].max())) + 1 + 2 * pad
+        h = int(np.ceil(pts[..., 1].max())) + 1 + 2 * pad
+        m = np.zeros((h, w), np.uint8)
+        ext = np.ptp(pts, axis=1).max(axis=1)
+        big = ext > 2                                       # triangles over two cells wide are filled ...
+        if np.any(big):
+            q = np.round((pts[big] + pad) * 16).astype(np.int32)
+            cv2.fillPoly(m, list(q), 1, lineType=cv2.LINE_8, shift=4)
+        # ... smaller ones are covered by the cells of their corners, edge midpoints and centroid
+        p7 = np.concatenate([pts, 0.5 * (pts + np.roll(pts, 1, axis=1)), pts.mean(axis=1, keepdims=True)], axis=1)
+        cor = np.clip(np.floor(p7.reshape(-1, 2) + pad).astype(np.int64), 0, [w - 1, h - 1])
+        m[cor[:, 1], cor[:, 0]] = 1
+        if kernel is not None:
+            m = cv2.dilate(m, kernel)
+        masks.append(m)
+    return masks
+
+
+def _skyline_place(masks, width_cells, height_cells):
+    """Tetris packing: each mask (largest first) drops to the lowest place over the current skyline, tried
+    upright and turned 90 degrees. Returns per mask (x, y, turned) in cells, or None when it does not fit."""
+    from numpy.lib.stride_tricks import sliding_window_view
+
+    sky = np.zeros(width_cells, np.int64)
+    out = []
+    for m in masks:
+        best = None
+        for turned, mm in ((False, m), (True, np.ascontiguousarray(m.T[::-1]))):
+            h, w = mm.shape
+            if w > width_cells:
+                continue
+            filled = mm.any(axis=0)
+            bottom = np.where(filled, np.argmax(mm, axis=0), h)          # first occupied row from the top
+            top = np.where(filled, h - np.argmax(mm[::-1], axis=0), 0)   # one past the last occupied row
+            win = sliding_window_view(sky, w)                           # (W - w + 1, w)
+            y = np.max(np.where(filled, win - bottom, -h), axis=1)
+            y = np.maximum(y, 0)
+            peak = np.max(np.where(filled, y[:, None] + top, 0), axis=1)
+            x = int(np.argmin(peak))
+            if best is None or peak[x] < best[0]:
+                best = (int(peak[x]), x, int(y[x]), turned, top, filled)
+        if best is None or best[0] > height_cells:
+            return None
+        peak, x, y, turned, top, filled = best
+        seg = sky[x:x + len(top)]
+        sky[x:x + len(top)] = np.where(filled, y + top, seg)
+        out.append((x, y, turned))
+    return out
+
+
 def pack_charts(local_uv, chart, size: int, gutter: int = 2):
-    """Scale and place charts (shelf packing of bounding boxes, tallest first) into a size x size atlas.
-    Returns (face_uv (F, 3, 2) texel coordinates, scale in texels per world unit)."""
+    """Scale and place charts into a size x size atlas: charts rasterised on a grid of cells (gutter
+    included) are dropped Tetris-like onto a skyline, largest first, upright or turned 90 degrees; the scale
+    is the largest found (a few trials from an area estimate) at which all fit. Returns (face_uv (F, 3, 2)
+    texel coordinates, scale in texels per world unit)."""
     nC = int(chart.max()) + 1 if len(chart) else 0
     if nC == 0:
         return np.zeros_like(local_uv, np.float32), 1.0
-    ext = np.zeros((nC, 2))
-    np.maximum.at(ext, chart, local_uv.max(axis=1))
-    area = float(np.sum((ext[:, 0]) * (ext[:, 1])))
-    order = np.argsort(-ext[:, 1], kind="stable")
-
-    def place(scale):
-        w = np.ceil(ext[:, 0] * scale) + 2 * gutter + 1
-        h = np.ceil(ext[:, 1] * scale) + 2 * gutter + 1
-        pos = np.zeros((nC, 2))
-        x = y = shelf = 0.0
-        for c in order:
-            if w[c] > size:
-                return None
-            if x + w[c] > size:
-                y += shelf
-                x = shelf = 0.0
-            pos[c] = (x, y)
-            x += w[c]
-            shelf = max(shelf, h[c])
-        return pos if y + shelf <= size else None
-
-    hi = size / np.sqrt(max(area, 1e-30))                      # fills the square exactly: an upper bound
-    lo = hi * 0.05
-    while place(lo) is None and lo > 1e-12:
-        lo *= 0.5
-    for _ in range(18):
-        mid = 0.5 * (lo + hi)
-        if place(mid) is not None:
-            lo = mid
+    cell = max(2, size // 512)
+    pad = max(1, -(-gutter // cell))
+    ncell = size // cell
+    srt = np.argsort(chart, kind="stable")
+    bounds = np.searchsorted(chart[srt], np.arange(nC + 1))
+    groups = [(c, srt[bounds[c]:bounds[c + 1]]) for c in range(nC)]
+    v = local_uv
+    area = np.zeros(nC)
+    tri = 0.5 * np.abs((v[:, 1, 0] - v[:, 0, 0]) * (v[:, 2, 1] - v[:, 0, 1]) - (v[:, 1, 1] - v[:, 0, 1]) * (v[:, 2, 0] - v[:, 0, 0]))
+    np.add.at(area, chart, tri)
+    groups.sort(key=lambda g: -area[g[0]])
+    scale = 0.75 * size / np.sqrt(max(area.sum(), 1e-30))       # surface at 56 % of the atlas: a first guess
+    best = None
+    lo_fail = None
+    for _ in range(6):
+        masks = _chart_masks(v, chart, groups, scale, cell, pad)
+        placed = _skyline_place(masks, ncell, ncell)
+        if placed is not None:
+            best = (scale, masks, placed)
+            if lo_fail is not None and lo_fail / scale < 1.06:
+                break
+            scale = scale * 1.12 if lo_fail is None else np.sqrt(scale * lo_fail)
         else:
-            hi = mid
-    scale = lo
-    pos = place(scale)
-    face_uv = local_uv * scale + (pos[chart] + gutter + 0.5)[:, None, :]
+            lo_fail = scale
+            scale = scale * 0.88 if best is None else np.sqrt(scale * best[0])
+            if best is not None and lo_fail / best[0] < 1.06:
+                break
+    while best is None:                                           # tiny atlases: shrink until it fits
+        scale *= 0.8
+        masks = _chart_masks(v, chart, groups, scale, cell, pad)
+        placed = _skyline_place(masks, ncell, ncell)
+        if placed is not None:
+            best = (scale, masks, placed)
+    scale, masks, placed = best
+    face_uv = np.zeros_like(local_uv, np.float64)
+    for (c, idx), m, (x, y, turned) in zip(groups, masks, placed):
+        q = local_uv[idx] * scale + pad * cell                   # texels inside the chart's own box
+        if turned:                                                # (u, v) -> (v, W - u): the mask's turn
+            wcell = m.shape[1] * cell
+            q = np.stack([q[..., 1], wcell - q[..., 0]], axis=-1)
+        face_uv[idx] = q + np.array([x * cell, y * cell])
     return face_uv.astype(np.float32), scale
 
 
