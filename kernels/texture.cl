@@ -51,16 +51,18 @@ inline int pixel_ok(__global const uchar *valid, int w, int h, float2 p, int *id
     return valid[*idx] != 0;
 }
 
-// One view (its image at byte img_off of the concatenated images): per face quality (0 = not usable) and mean colour of its four sample points.
-// A face is usable when it faces the camera and each sample point (centroid, and the corners pulled a
-// fifth of the way to it) projects onto a valid pixel (eroded mask), passes the depth test against the
-// z-buffer (within depth_tol), and no pixel ``edge_px`` away along the axes differs from its depth by more
-// than edge_tol (depth edges and the mesh's own outline: where registration errors show the wrong surface).
+// One view (its image at byte img_off of the concatenated images): per face quality (0 = not usable) and mean
+// colour of its four sample points. A face is usable when it faces the camera and each sample point
+// (centroid, and the corners pulled a fifth of the way to it) projects onto a valid pixel (eroded mask),
+// passes the depth test against the z-buffer (within depth_tol), and no pixel ``edge_px`` away along the axes
+// differs from its depth by more than edge_tol (depth edges and the mesh's own outline: where registration
+// errors show the wrong surface). ``relaxed`` is the quality under the weaker test used when no view passes
+// the strict one: the centroid alone on a valid pixel and unoccluded (its colour is then the centroid's).
 __kernel void face_views(__global const float *verts, __global const int *faces, int nfaces,
                          __global const float *cams, int view, float4 centre,
                          __global const ulong *zbuf, __global const uchar *valid_all, __global const uchar *img_all,
                          long img_off, float depth_tol, float edge_tol, int edge_px,
-                         __global float *quality, __global float *colour)
+                         __global float *quality, __global float *relaxed, __global float *colour)
 {
     int f = get_global_id(0);
     if (f >= nfaces) return;
@@ -74,33 +76,44 @@ __kernel void face_views(__global const float *verts, __global const int *faces,
     float nl = length(n), cl = length(to_cam);
     float cosine = (nl > 0.0f && cl > 0.0f) ? dot(n, to_cam) / (nl * cl) : 0.0f;
     quality[f] = 0.0f;
+    relaxed[f] = 0.0f;
     colour[3 * f] = colour[3 * f + 1] = colour[3 * f + 2] = 0.0f;
     if (cosine <= 0.0f) return;
     float za, zb, zc;
     float2 pa = project_point(cam, A, &za), pb = project_point(cam, B, &zb), pc = project_point(cam, C, &zc);
     if (za <= NEAR_Z || zb <= NEAR_Z || zc <= NEAR_Z) return;
-    float area = 0.5f * fabs((pb.x - pa.x) * (pc.y - pa.y) - (pb.y - pa.y) * (pc.x - pa.x));
-    float3 sum = (float3)(0.0f);
+    float q = 0.5f * fabs((pb.x - pa.x) * (pc.y - pa.y) - (pb.y - pa.y) * (pc.x - pa.x)) * cosine;
+    float3 sum = (float3)(0.0f), first = (float3)(0.0f);
+    int strict = 1;
     for (int s = 0; s < 4; s++) {
         float3 X = s == 0 ? G : (s == 1 ? G + 0.8f * (A - G) : (s == 2 ? G + 0.8f * (B - G) : G + 0.8f * (C - G)));
         float z;
         float2 p = project_point(cam, X, &z);
         int idx;
-        if (z <= NEAR_Z || !pixel_ok(valid, w, h, p, &idx)) return;
-        if (z > zbuf_depth(zbuf, idx) + depth_tol) return;                 // occluded
+        if (z <= NEAR_Z || !pixel_ok(valid, w, h, p, &idx) || z > zbuf_depth(zbuf, idx) + depth_tol) {
+            strict = 0;
+            break;
+        }
+        float3 c = sample_rgb(img, w, h, p);
+        if (s == 0) {
+            relaxed[f] = q;
+            first = c;
+        }
         int x = idx % w, y = idx / w;
-        for (int k = 0; k < 4; k++) {
+        for (int k = 0; k < 4 && strict; k++) {
             int xx = x + (k == 0 ? edge_px : (k == 1 ? -edge_px : 0));
             int yy = y + (k == 2 ? edge_px : (k == 3 ? -edge_px : 0));
-            if (xx < 0 || yy < 0 || xx >= w || yy >= h) return;
-            if (fabs(zbuf_depth(zbuf, yy * w + xx) - z) > edge_tol) return;  // near a depth edge or the outline
+            if (xx < 0 || yy < 0 || xx >= w || yy >= h || fabs(zbuf_depth(zbuf, yy * w + xx) - z) > edge_tol)
+                strict = 0;                                                // near a depth edge or the outline
         }
-        sum += sample_rgb(img, w, h, p);
+        if (!strict) break;
+        sum += c;
     }
-    quality[f] = area * cosine;
-    colour[3 * f] = sum.x * 0.25f;
-    colour[3 * f + 1] = sum.y * 0.25f;
-    colour[3 * f + 2] = sum.z * 0.25f;
+    float3 col = strict ? sum * 0.25f : first;
+    if (strict) quality[f] = q;
+    colour[3 * f] = col.x;
+    colour[3 * f + 1] = col.y;
+    colour[3 * f + 2] = col.z;
 }
 
 // Atlas texel (x, y) has its centre at (x + 0.5, y + 0.5) in texel units; ``uv`` holds per face corner
@@ -157,13 +170,16 @@ __kernel void texel_bary(__global const int *texel_face, int size, __global cons
 
 // Per sample i (face sample_face[i] >= 0, barycentrics sample_bary[i]): colour = sum_k wt_k c_k / sum_k wt_k
 // over the face's K blend views, wt_k = sum_c b_c weight[f, c, k] (0 where the point projects onto an
-// invalid pixel), c_k = gain[view] * image sample + sum_c b_c offset[f, c, k]. out = (r, g, b, sum wt),
+// invalid pixel), c_k = gain[view] * image sample + sum_c b_c offset[f, c, k]; where face_blur[f] > 0 the
+// image sample is mixed with a 5-tap cross of radius blur_px (views that disagree: geometry or calibration
+// errors, where a sharp sample is sharply wrong from other viewpoints). out = (r, g, b, sum wt),
 // 0..255 scale; sum wt = 0: no view could colour it (the caller fills it).
 __kernel void bake(int nsamples, __global const int *sample_face, __global const float *sample_bary,
                    __global const float *verts, __global const int *faces, __global const float *cams,
                    __global const uchar *images, __global const uchar *valid, __global const long *img_off,
                    int K, __global const int *face_view, __global const float *weight,
-                   __global const float *offset, __global const float *gain, __global float4 *out)
+                   __global const float *offset, __global const float *gain, __global const float *face_blur,
+                   float blur_px, __global float4 *out)
 {
     int i = get_global_id(0);
     if (i >= nsamples) return;
@@ -184,7 +200,15 @@ __kernel void bake(int nsamples, __global const int *sample_face, __global const
         float2 p = project_point(cam, X, &z);
         int idx;
         if (z <= NEAR_Z || !pixel_ok(valid + img_off[v] / 3, w, h, p, &idx)) continue;
-        float3 c = sample_rgb(images + img_off[v], w, h, p) * vload3(v, gain);
+        float3 c = sample_rgb(images + img_off[v], w, h, p);
+        float bl = face_blur[f];
+        if (bl > 0.0f) {                          // views disagree here: a blurred sample (5-tap cross)
+            __global const uchar *im = images + img_off[v];
+            float3 cross5 = c + sample_rgb(im, w, h, p + (float2)(blur_px, 0.0f)) + sample_rgb(im, w, h, p - (float2)(blur_px, 0.0f))
+                          + sample_rgb(im, w, h, p + (float2)(0.0f, blur_px)) + sample_rgb(im, w, h, p - (float2)(0.0f, blur_px));
+            c = (1.0f - bl) * c + bl * 0.2f * cross5;
+        }
+        c *= vload3(v, gain);
         int o0 = ((f * 3) * K + k) * 3, o1 = ((f * 3 + 1) * K + k) * 3, o2 = ((f * 3 + 2) * K + k) * 3;
         c += b0 * (float3)(offset[o0], offset[o0 + 1], offset[o0 + 2])
            + b1 * (float3)(offset[o1], offset[o1 + 1], offset[o1 + 2])

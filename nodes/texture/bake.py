@@ -24,6 +24,11 @@ class Blend:
     weight: np.ndarray       # (F, 3, K) float32
     offset: np.ndarray       # (F, 3, K, 3) float32, 0..255 units
     gains: np.ndarray        # (V, 3) float32
+    blur: np.ndarray | None = None   # (F,) float32 0..1: how much of a blurred sample to use
+    blur_px: float = 2.0
+
+    def face_blur(self) -> np.ndarray:
+        return np.zeros(len(self.face_view), np.float32) if self.blur is None else np.asarray(self.blur, np.float32)
 
 
 # ---------------------------------------------------------------- UV rasterization
@@ -130,7 +135,8 @@ def bake_samples(sample_face, sample_bary, vertices, faces, cameras, frame: Fram
             tcl.upload("face_view", np.ascontiguousarray(blend.face_view, np.int32)),
             tcl.upload("weight", np.ascontiguousarray(blend.weight, np.float32)),
             tcl.upload("offset", np.ascontiguousarray(blend.offset, np.float32)),
-            tcl.upload("gain", np.ascontiguousarray(blend.gains, np.float32))]
+            tcl.upload("gain", np.ascontiguousarray(blend.gains, np.float32)),
+            tcl.upload("face_blur", blend.face_blur()), np.float32(blend.blur_px)]
     d_out = tcl.buffer("bake_out", 16 * max(n, 1))
     if n:
         tcl.launch("bake", (n,), (64,), np.int32(n), *args, d_out)
@@ -168,7 +174,13 @@ def bake_samples_reference(sample_face, sample_bary, vertices, faces, cameras, f
             y = np.where(inside, np.floor(p[:, 1] + 0.5), 0).astype(np.int64)
             ok = inside & (val[y, x] != 0)
             sel, p = sel[ok], p[ok]
-            c = _sample_rgb_reference(frame.images[vv], p) * blend.gains[vv] + off[sel]
+            img = frame.images[vv]
+            c = _sample_rgb_reference(img, p)
+            bl = blend.face_blur()[fs[sel]][:, None]
+            r = np.float32(blend.blur_px)
+            cross5 = c + sum(_sample_rgb_reference(img, p + d) for d in ((r, 0), (-r, 0), (0, r), (0, -r)))
+            c = np.where(bl > 0, (1 - bl) * c + bl * np.float32(0.2) * cross5, c)
+            c = c * blend.gains[vv] + off[sel]
             acc[sel] += wt[sel, None] * c
             wsum[sel] += wt[sel]
     good = wsum > 0

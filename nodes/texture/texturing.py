@@ -23,13 +23,18 @@ from .bake import Blend, add_gutter, bake_samples, push_pull, texel_bary, uv_ras
 @dataclass
 class Settings:
     size: int = 2048                # atlas texels per side
-    margin: int = 2                 # mask erosion, pixels
-    edge_px: int = 2                # distance kept from depth edges, pixels
+    margin: int = 1                 # mask erosion, pixels
+    edge_px: int = 1                # distance kept from depth edges, pixels
     depth_tol: float = 0.01         # z-buffer test tolerance, fraction of the mesh diagonal
     edge_tol: float = 0.02          # depth jump that counts as an edge, fraction of the mesh diagonal
     smoothness: float = 0.5         # Potts weight of the view selection
     consistency: float = 40.0       # colour distance (0..255) beyond which a view disagrees with a face's others
     feather: int = 2                # vertex rings of cross-fade on each side of a view seam
+    adaptive: bool = True           # blend towards a weighted average where the views disagree
+    spread_range: tuple = (4.0, 12.0)   # view disagreement (0..255) where that starts / is complete
+    blend_views: int = 8            # most views blended per face
+    average_power: float = 1.0      # quality exponent of the weighted average
+    blur_px: float = 2.0            # radius of the blurred sample used where views disagree (0: never)
     balance: bool = True            # per-camera exposure / white-balance gains
     level: bool = True              # global seam levelling (offsets per vertex and view)
     gutter: int = 2                 # texels around each chart
@@ -77,10 +82,12 @@ def choose(vertices, faces, cameras, frame, stats, s: Settings, nbr, timings: di
     t = time.perf_counter()
     gains = V.camera_gains(stats.quality, stats.colour) if s.balance else np.ones((len(cameras), 3), np.float32)
     sharp = V.view_sharpness(frame.images, frame.valid)
-    q = stats.quality * sharp[:, None].astype(np.float32)
-    cost = V.data_cost(q, stats.colour, gains, consistency=s.consistency)
+    q = stats.effective() * sharp[:, None].astype(np.float32)
+    cost, spread = V.data_cost(q, stats.colour, gains, consistency=s.consistency, return_spread=True)
     labels = V.select_views(cost, nbr, smoothness=s.smoothness)
-    face_view, weight = V.blend_weights(labels, q, faces, len(vertices), feather=s.feather)
+    face_view, weight = V.blend_weights(labels, q, faces, len(vertices), feather=s.feather,
+                                        spread=spread if s.adaptive else None, spread_range=s.spread_range,
+                                        K=s.blend_views, power=s.average_power)
     timings["selection"] = time.perf_counter() - t
     t = time.perf_counter()
     if s.level:
@@ -88,7 +95,11 @@ def choose(vertices, faces, cameras, frame, stats, s: Settings, nbr, timings: di
     else:
         offset = np.zeros(face_view.shape[:1] + (3,) + face_view.shape[1:] + (3,), np.float32)
     timings["levelling"] = time.perf_counter() - t
-    return labels, Blend(face_view, weight, offset, gains)
+    blur = None
+    if s.adaptive and s.blur_px > 0:
+        lo, hi = s.spread_range
+        blur = np.clip((spread - lo) / max(hi - lo, 1e-6), 0, 1).astype(np.float32)
+    return labels, Blend(face_view, weight, offset, gains, blur, s.blur_px)
 
 
 def texture_mesh(vertices, faces, images, masks, cameras, s: Settings = Settings(), *, atlas: Atlas | None = None,

@@ -71,7 +71,13 @@ def valid_mask(shape, mask, margin: int) -> np.ndarray:
 @dataclass
 class FaceViews:
     quality: np.ndarray   # (V, F) float32, 0 = not usable
-    colour: np.ndarray    # (V, F, 3) float32 mean colour (0..255) where usable
+    colour: np.ndarray    # (V, F, 3) float32 mean colour (0..255) where usable (the centroid's where relaxed)
+    relaxed: np.ndarray   # (V, F) float32 quality under the weaker test (centroid only, no edge margin)
+
+    def effective(self, weak=0.01) -> np.ndarray:
+        """Quality with views that pass only the relaxed test kept at ``weak`` times theirs: used only where
+        a face has no better view."""
+        return np.where(self.quality > 0, self.quality, weak * self.relaxed).astype(np.float32)
 
 
 def _tolerances(vertices, depth_tol, edge_tol):
@@ -91,15 +97,17 @@ def face_view_stats(vertices, faces, cameras: Cameras, frame: FrameImages, *, de
     f = np.ascontiguousarray(faces, np.int32)
     nv, nf = len(cameras), len(f)
     quality = np.zeros((nv, nf), np.float32)
+    relaxed = np.zeros((nv, nf), np.float32)
     colour = np.zeros((nv, nf, 3), np.float32)
     if nf == 0:
-        return FaceViews(quality, colour)
+        return FaceViews(quality, colour, relaxed)
     dt, et = _tolerances(v, depth_tol, edge_tol)
     r = MeshRaster(v, f, cameras)
     tcl = TextureCL.get()
     d_img = tcl.host(frame.packed)
     d_valid = tcl.host(frame.packed_valid)
     d_q = tcl.buffer("fv_quality", 4 * nf)
+    d_r = tcl.buffer("fv_relaxed", 4 * nf)
     d_c = tcl.buffer("fv_colour", 12 * nf)
     centres = cameras.centers
     for view in range(nv):
@@ -107,10 +115,11 @@ def face_view_stats(vertices, faces, cameras: Cameras, frame: FrameImages, *, de
         off = int(frame.offsets[view])
         tcl.launch("face_views", (nf,), (64,), r.d_verts, r.d_faces, np.int32(nf), r.d_cams, np.int32(view),
                    cl.cltypes.make_float4(*centres[view], 0), zbuf, d_valid, d_img, np.int64(off), np.float32(dt), np.float32(et),
-                   np.int32(edge_px), d_q, d_c)
+                   np.int32(edge_px), d_q, d_r, d_c)
         tcl.read(d_q, (nf,), np.float32, out=quality[view])
+        tcl.read(d_r, (nf,), np.float32, out=relaxed[view])
         tcl.read(d_c, (nf, 3), np.float32, out=colour[view])
-    return FaceViews(quality, colour)
+    return FaceViews(quality, colour, relaxed)
 
 
 def _sample_rgb_reference(img, p):
@@ -134,6 +143,7 @@ def face_view_stats_reference(vertices, faces, cameras: Cameras, frame: FrameIma
     f = np.asarray(faces, np.int64)
     nv, nf = len(cameras), len(f)
     quality = np.zeros((nv, nf), np.float32)
+    relaxed = np.zeros((nv, nf), np.float32)
     colour = np.zeros((nv, nf, 3), np.float32)
     dt, et = _tolerances(v, depth_tol, edge_tol)
     A, B, C = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
@@ -147,33 +157,39 @@ def face_view_stats_reference(vertices, faces, cameras: Cameras, frame: FrameIma
         to_cam = cameras.centers[view] - G
         with np.errstate(invalid="ignore", divide="ignore"):
             cosine = np.einsum("ij,ij->i", n, to_cam) / (np.linalg.norm(n, axis=1) * np.linalg.norm(to_cam, axis=1))
-        ok = np.nan_to_num(cosine) > 0
+        front = np.nan_to_num(cosine) > 0
         corners = [cameras.project(X, view) for X in (A, B, C)]
         for _, z in corners:
-            ok &= z > 1e-6
+            front &= z > 1e-6
         (pa, _), (pb, _), (pc, _) = corners
         area = 0.5 * np.abs((pb[:, 0] - pa[:, 0]) * (pc[:, 1] - pa[:, 1]) - (pb[:, 1] - pa[:, 1]) * (pc[:, 0] - pa[:, 0]))
         acc = np.zeros((nf, 3), np.float32)
+        strict = front.copy()
         valid = frame.valid[view]
-        for X in pts:
+        for s, X in enumerate(pts):
             p, z = cameras.project(X, view)
             inside = (p[:, 0] > -0.5) & (p[:, 1] > -0.5) & (p[:, 0] < w - 0.5) & (p[:, 1] < h - 0.5) & (z > 1e-6)
-            ok &= inside
             x = np.where(inside, np.floor(p[:, 0] + 0.5), 0).astype(np.int64)
             y = np.where(inside, np.floor(p[:, 1] + 0.5), 0).astype(np.int64)
-            ok &= valid[y, x] != 0
-            ok &= z <= depth[y, x] + dt
+            seen = inside & (valid[y, x] != 0) & (z <= depth[y, x] + dt)
+            c = _sample_rgb_reference(frame.images[view], p)
+            if s == 0:
+                centre_ok = front & seen
+                first = c
+            ok = seen.copy()
             for dx, dy in ((edge_px, 0), (-edge_px, 0), (0, edge_px), (0, -edge_px)):
                 xx, yy = x + dx, y + dy
                 inb = (xx >= 0) & (yy >= 0) & (xx < w) & (yy < h)
-                ok &= inb
                 d = depth[np.clip(yy, 0, h - 1), np.clip(xx, 0, w - 1)]
                 with np.errstate(invalid="ignore"):
-                    ok &= np.abs(d - z) <= et
-            acc += _sample_rgb_reference(frame.images[view], p)
-        quality[view] = np.where(ok, area * cosine, 0)
-        colour[view] = np.where(ok[:, None], acc * 0.25, 0)
-    return FaceViews(quality, colour)
+                    ok &= inb & (np.abs(d - z) <= et)
+            strict &= ok
+            acc += c
+        q = area * cosine
+        quality[view] = np.where(strict, q, 0)
+        relaxed[view] = np.where(centre_ok, q, 0)
+        colour[view] = np.where(strict[:, None], acc * 0.25, np.where(centre_ok[:, None], first, 0))
+    return FaceViews(quality, colour, relaxed)
 
 
 # ---------------------------------------------------------------- selection
@@ -217,10 +233,11 @@ def view_sharpness(images, valid) -> np.ndarray:
     return np.clip(s / med, 0.25, 2.0) if med > 0 else np.ones(len(s))
 
 
-def data_cost(quality, colour, gains=None, *, consistency=40.0) -> np.ndarray:
+def data_cost(quality, colour, gains=None, *, consistency=40.0, return_spread=False):
     """(F, V) cost of painting face f from view v: 1 - q / max_q in [0, 1], +1 where the view's colour is
     further than ``consistency`` (0..255 units) from the face's median colour over its views (when it has
-    at least three), INVISIBLE where the face is not usable."""
+    at least three), INVISIBLE where the face is not usable. With ``return_spread`` also (F,) the median
+    distance of a face's view colours from their median: how much its views disagree (0 with one view)."""
     q = np.asarray(quality, np.float32).T                    # (F, V)
     qmax = q.max(axis=1, keepdims=True)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -229,19 +246,23 @@ def data_cost(quality, colour, gains=None, *, consistency=40.0) -> np.ndarray:
     if gains is not None:
         c = c * np.asarray(gains, np.float32)[None]
     vis = q > 0
-    many = vis.sum(axis=1) >= 3
-    if consistency > 0 and np.any(many):
+    many = vis.sum(axis=1) >= 2
+    spread = np.zeros(len(q), np.float32)
+    if np.any(many):
         cs = c[many]
         vm = vis[many]
         srt = np.sort(np.where(vm[..., None], cs, np.inf), axis=1)           # visible values first, in order
         mid = ((vm.sum(axis=1) - 1) // 2)[:, None, None]
         med = np.take_along_axis(srt, np.repeat(mid, 3, axis=2), axis=1)[:, 0, :]   # (lower) median per channel
         dist = np.linalg.norm(cs - med[:, None], axis=2)
-        bad = vis[many] & (dist > consistency)
-        sub = cost[many]
-        sub[bad] += 1.0
-        cost[many] = sub
-    return cost
+        ds = np.sort(np.where(vm, dist, np.inf), axis=1)
+        spread[many] = np.take_along_axis(ds, mid[:, :, 0], axis=1)[:, 0]
+        if consistency > 0:
+            bad = vm & (dist > consistency) & (vm.sum(axis=1) >= 3)[:, None]
+            sub = cost[many]
+            sub[bad] += 1.0
+            cost[many] = sub
+    return (cost, spread) if return_spread else cost
 
 
 def select_views(cost, nbr, *, smoothness=0.5, iterations=12, seed=0) -> np.ndarray:
@@ -316,13 +337,19 @@ def vertex_adjacency(faces, n_vertices):
     return csr_matrix(A.multiply(1.0 / deg[:, None]))
 
 
-def blend_weights(labels, quality, faces, n_vertices, *, feather=2, K=4):
+def blend_weights(labels, quality, faces, n_vertices, *, feather=2, K=4, spread=None, spread_range=(8.0, 24.0),
+                  power=2.0):
     """Soft labels that cross-fade between views over ``feather`` vertex rings on each side of a view seam.
 
     Per vertex, the share of its faces painted by each view is averaged ``feather`` times over the vertex
     neighbourhoods; per face the (at most K) views with the largest weight at its corners among those
     that see it are kept. Returns (face_view (F, K) int32, -1 = unused slot; weight (F, 3, K) float32,
-    per corner). Inside a patch one view has weight 1: the texture stays as sharp as its best view."""
+    per corner). Inside a patch one view has weight 1: the texture stays as sharp as its best view.
+
+    Where the views disagree (``spread``, the faces' colour disagreement, beyond ``spread_range[0]``; fully at
+    ``spread_range[1]``) the geometry or calibration is off and no single view is right from elsewhere: there
+    the weights move towards a quality^power weighted average of the views that see the surface, which is
+    the least-squares guess for a view in between."""
     faces = np.asarray(faces, np.int64)
     nf = len(faces)
     nviews = quality.shape[0]
@@ -343,6 +370,19 @@ def blend_weights(labels, quality, faces, n_vertices, *, feather=2, K=4):
         A = vertex_adjacency(faces, n_vertices)
         for _ in range(feather):
             W = A @ W
+    if spread is not None and len(faces):
+        q = np.asarray(quality, np.float32).T                 # (F, V)
+        qmax = q.max(axis=1, keepdims=True)
+        qn = np.divide(q, qmax, out=np.zeros_like(q), where=qmax > 0) ** power
+        inc = csr_matrix((np.ones(3 * nf), (faces.ravel(), np.repeat(np.arange(nf), 3))), shape=(n_vertices, nf))
+        W_avg = np.asarray(inc @ qn)
+        sw = W_avg.sum(axis=1, keepdims=True)
+        W_avg = np.divide(W_avg, sw, out=np.zeros_like(W_avg), where=sw > 0)
+        lo, hi = spread_range
+        a_f = np.clip((np.asarray(spread, np.float32) - lo) / max(hi - lo, 1e-6), 0, 1)
+        cnt = np.asarray(inc.sum(axis=1)).ravel()
+        a_v = np.divide(inc @ a_f, cnt, out=np.zeros(n_vertices), where=cnt > 0)
+        W = (1 - a_v[:, None]) * W + a_v[:, None] * W_avg
     W = W.astype(np.float32)
     visible = (np.asarray(quality).T > 0)                    # (F, V)
     score = (W[faces[:, 0]] + W[faces[:, 1]] + W[faces[:, 2]]) * visible

@@ -52,6 +52,9 @@ def test_face_views_kernel_matches_reference():
     np.testing.assert_allclose(cl.quality[both], ref.quality[both], rtol=1e-3, atol=1e-5)  # float32 areas
     diff = np.abs(cl.colour[both] - ref.colour[both])
     assert np.percentile(diff, 99) < 0.5 and diff.max() < 60
+    rel_cl, rel_ref = cl.relaxed > 0, ref.relaxed > 0
+    assert np.mean(rel_cl == rel_ref) > 0.995 and rel_ref.sum() > 1.2 * vis_ref.sum()   # the weaker test passes more
+    assert np.all(rel_cl[vis_cl])                    # every strictly usable face passes the relaxed test
 
 
 def test_uv_raster_bary_and_bake_kernels_match_references():
@@ -70,7 +73,8 @@ def test_uv_raster_bary_and_bake_kernels_match_references():
     labels = V.select_views(V.data_cost(stats.quality, stats.colour), nbr)
     fv, w = V.blend_weights(labels, stats.quality, m.faces, len(m.vertices), feather=1)
     off = np.random.default_rng(1).normal(0, 3, fv.shape[:1] + (3,) + fv.shape[1:] + (3,)).astype(np.float32)
-    blend = B.Blend(fv, w, off, np.array([[1.0, 1.1, 0.9]] * 4, np.float32))
+    blur = np.where(np.arange(len(fv)) % 2 == 0, np.random.default_rng(2).uniform(0, 1, len(fv)), 0).astype(np.float32)
+    blend = B.Blend(fv, w, off, np.array([[1.0, 1.1, 0.9]] * 4, np.float32), blur, 2.0)
     flat = tf.reshape(-1)
     got = B.bake_samples(flat, bary.reshape(-1, 3), m.vertices, m.faces, s["cameras"], frame, blend)
     ref = B.bake_samples_reference(flat, bary.reshape(-1, 3), m.vertices, m.faces, s["cameras"], frame, blend)
