@@ -74,9 +74,14 @@ def meshlab_texture(vertices, faces, images, cameras, *, size=2048, mode="atlas"
     import cv2
     import trimesh
 
+    # a bare-P camera set in a mirrored frame (Oxford dino) has no rotation matrix: hand MeshLab the mirror
+    # image (z -> -z, winding flipped) and mirror its result back
+    mirror = any(not c.metric and np.linalg.det(c.Rt[:, :3]) * c.depth_sign < 0 for c in cameras)
+    S = np.diag([1.0, 1.0, -1.0]) if mirror else np.eye(3)
     with tempfile.TemporaryDirectory() as d:
         d = Path(d)
-        trimesh.Trimesh(vertices, faces, process=False).export(d / "mesh.ply")
+        fm = np.asarray(faces)[:, ::-1] if mirror else faces
+        trimesh.Trimesh(np.asarray(vertices) @ S, fm, process=False).export(d / "mesh.ply")
         paths, cams = [], []
         for i, (img, cam) in enumerate(zip(images, cameras)):
             p = d / f"view{i:03d}.png"
@@ -85,7 +90,7 @@ def meshlab_texture(vertices, faces, images, cameras, *, size=2048, mode="atlas"
                 bgr = np.dstack([bgr, masks[i]])
             cv2.imwrite(str(p), bgr)
             paths.append(str(p))
-            K, R, t = decompose(cam)
+            K, R, t = decompose(cam, S)
             cams.append({"K": K.tolist(), "R": R.tolist(), "t": t.tolist(), "width": cam.width, "height": cam.height})
         spec = {"mesh": str(d / "mesh.ply"), "images": paths, "cameras": cams, "out": str(d / "out"), "size": size,
                 "mode": mode, "alpha": masks is not None}
@@ -101,21 +106,26 @@ def meshlab_texture(vertices, faces, images, cameras, *, size=2048, mode="atlas"
         seconds = json.loads((d / "out" / "meshlab.json").read_text())["seconds"]
         name = "meshlab.obj" if mode == "atlas" else "meshlab.ply"
         mesh = trimesh.load(d / "out" / name, process=False, force="mesh")
+        if mirror:
+            mesh.vertices = np.asarray(mesh.vertices) @ S
         if mode == "atlas":
             tex = mesh.visual.material.image
             mesh.visual.material.image = tex.copy()       # read before the folder goes
         return mesh, seconds
 
 
-def decompose(cam):
-    """OpenCV K, R, t of a camera (a bare-P camera is decomposed; skew is dropped, MeshLab cannot hold it)."""
+def decompose(cam, S=np.eye(3)):
+    """OpenCV K, R, t of a camera for points S X (a bare-P camera is decomposed; its skew is dropped later:
+    MeshLab's camera cannot hold it)."""
     import cv2
 
     if cam.metric:
-        return cam.K, cam.Rt[:, :3], cam.Rt[:, 3]
-    P = cam.Rt * (cam.depth_sign if np.linalg.det(cam.Rt[:, :3]) * cam.depth_sign > 0 else -cam.depth_sign)
+        return cam.K, cam.Rt[:, :3] @ S, cam.Rt[:, 3]
+    P = cam.Rt.copy()
+    P[:, :3] = P[:, :3] @ S
+    P = P * cam.depth_sign                       # third row: positive depth in front
     if np.linalg.det(P[:, :3]) < 0:
-        P = -P
+        raise RuntimeError(f"camera {cam.name}: mirrored frame, no rotation matrix")
     K, R, c = cv2.decomposeProjectionMatrix(P)[:3]
     K = K / K[2, 2]
     C = (c[:3] / c[3]).ravel()
