@@ -223,7 +223,8 @@ def view_sharpness(images, valid) -> np.ndarray:
     s = []
     for im, m in zip(images, valid):
         g = cv2.cvtColor(im, cv2.COLOR_RGB2GRAY)
-        small = g if g.shape[1] <= 1024 else cv2.resize(g, (g.shape[1] // 2, g.shape[0] // 2), interpolation=cv2.INTER_AREA)
+        k = max(1, g.shape[1] // 512)                     # judged at about 512 pixels across
+        small = g if k == 1 else cv2.resize(g, (g.shape[1] // k, g.shape[0] // k), interpolation=cv2.INTER_AREA)
         ms = m if m.shape == small.shape else cv2.resize(m, small.shape[::-1], interpolation=cv2.INTER_NEAREST)
         lap = np.abs(cv2.Laplacian(small, cv2.CV_32F))
         vals = lap[ms > 0]
@@ -235,9 +236,10 @@ def view_sharpness(images, valid) -> np.ndarray:
 
 def data_cost(quality, colour, gains=None, *, consistency=40.0, return_spread=False):
     """(F, V) cost of painting face f from view v: 1 - q / max_q in [0, 1], +1 where the view's colour is
-    further than ``consistency`` (0..255 units) from the face's median colour over its views (when it has
-    at least three), INVISIBLE where the face is not usable. With ``return_spread`` also (F,) the median
-    distance of a face's view colours from their median: how much its views disagree (0 with one view)."""
+    further than ``consistency`` (0..255 units) from the face's mean colour over its views (the mean taken
+    again without views beyond twice that; when it has at least three), INVISIBLE where the face is not
+    usable. With ``return_spread`` also (F,) the mean distance of a face's view colours from that mean: how
+    much its views disagree (0 with one view)."""
     q = np.asarray(quality, np.float32).T                    # (F, V)
     qmax = q.max(axis=1, keepdims=True)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -246,19 +248,23 @@ def data_cost(quality, colour, gains=None, *, consistency=40.0, return_spread=Fa
     if gains is not None:
         c = c * np.asarray(gains, np.float32)[None]
     vis = q > 0
-    many = vis.sum(axis=1) >= 2
+    nvis = vis.sum(axis=1)
+    many = nvis >= 2
     spread = np.zeros(len(q), np.float32)
     if np.any(many):
         cs = c[many]
-        vm = vis[many]
-        srt = np.sort(np.where(vm[..., None], cs, np.inf), axis=1)           # visible values first, in order
-        mid = ((vm.sum(axis=1) - 1) // 2)[:, None, None]
-        med = np.take_along_axis(srt, np.repeat(mid, 3, axis=2), axis=1)[:, 0, :]   # (lower) median per channel
-        dist = np.linalg.norm(cs - med[:, None], axis=2)
-        ds = np.sort(np.where(vm, dist, np.inf), axis=1)
-        spread[many] = np.take_along_axis(ds, mid[:, :, 0], axis=1)[:, 0]
+        vm = vis[many][..., None].astype(np.float32)
+        n = nvis[many][:, None].astype(np.float32)
+        centre = (cs * vm).sum(axis=1) / n                                   # mean colour of the views ...
+        dist = np.linalg.norm(cs - centre[:, None], axis=2)
+        if consistency > 0:                                                   # ... again without far outliers
+            keep = vm[..., 0] * (dist <= 2 * consistency)
+            kn = keep.sum(axis=1, keepdims=True)
+            centre = np.where(kn > 0, (cs * keep[..., None]).sum(axis=1) / np.maximum(kn, 1), centre)
+            dist = np.linalg.norm(cs - centre[:, None], axis=2)
+        spread[many] = (dist * vm[..., 0]).sum(axis=1) / n[:, 0]
         if consistency > 0:
-            bad = vm & (dist > consistency) & (vm.sum(axis=1) >= 3)[:, None]
+            bad = (vm[..., 0] > 0) & (dist > consistency) & (nvis[many] >= 3)[:, None]
             sub = cost[many]
             sub[bad] += 1.0
             cost[many] = sub
@@ -293,7 +299,7 @@ def select_views(cost, nbr, *, smoothness=0.5, iterations=12, seed=0) -> np.ndar
     return labels
 
 
-def camera_gains(quality, colour, *, iterations=6, min_level=8.0, max_faces=20000) -> np.ndarray:
+def camera_gains(quality, colour, *, iterations=6, min_level=8.0, max_faces=8000) -> np.ndarray:
     """(V, 3) per-camera, per-channel gains that make the views agree (exposure and white balance): the
     model colour[v, f] = a_v * t_f is fitted in log space over every face seen by at least two views
     (alternating robust means, residuals beyond 0.3 ignored), normalised so the gains' geometric mean is 1.
@@ -428,14 +434,15 @@ def vertex_view_samples(vertices, index, views, cameras: Cameras, frame: FrameIm
 
 
 def level_seams(vertices, faces, face_view, weight, cameras: Cameras, frame: FrameImages, gains, *,
-                smoothness=0.3, regular=0.1, band=3, tol=1e-3, maxiter=100):
+                smoothness=0.3, regular=0.1, band=3, tol=1e-3, maxiter=100, min_weight=0.1):
     """Seam levelling (after Waechter et al. 2014, sec. 5), within a band of ``band`` vertex rings around the
     view seams: an additive colour offset g per (vertex, view) pair used by the blend, such that at every
     vertex the views agree (f_va + g_va = f_vb + g_vb, f = the gain-corrected colour of the vertex in the
     view), offsets vary smoothly along the surface (smoothness * (g_va - g_wa) = 0 on mesh edges) and fade to
     0 at the band's edge (the per-camera gains already did the global part), and stay small (regular * g = 0).
     One sparse least-squares problem (normal equations by conjugate gradients, Jacobi preconditioner), three
-    right-hand sides. Returns offsets (F, 3, K, 3) for the face slots (0..255 units)."""
+    right-hand sides. Only slots weighing at least ``min_weight`` at their corner take part (the rest keep 0).
+    Returns offsets (F, 3, K, 3) for the face slots (0..255 units)."""
     from scipy.sparse import coo_matrix, csr_matrix, diags
 
     faces = np.asarray(faces, np.int64)
@@ -445,7 +452,7 @@ def level_seams(vertices, faces, face_view, weight, cameras: Cameras, frame: Fra
     nvert = len(vertices)
     slot_v = np.repeat(faces[:, :, None], K, axis=2)                     # (F, 3, K) vertex of each slot
     slot_view = np.repeat(face_view[:, None, :], 3, axis=1).astype(np.int64)
-    used = slot_view >= 0
+    used = (slot_view >= 0) & (weight >= min_weight)        # slots that matter at their corner
     keys = np.unique(slot_v[used] * nviews + slot_view[used])
     kv = keys // nviews
     seam = np.zeros(nvert, bool)
