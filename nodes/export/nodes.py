@@ -104,14 +104,36 @@ class ExportTextured(Node):
     publishes = True
     inputs = {"mesh": TexturedMesh}
     outputs = {"files": Files}
-    params = {"path": Param(OutPath, "textured_{frame:04d}.glb", doc="output file pattern, relative to --out")}
+    params = {"path": Param(OutPath, "textured_{frame:04d}.glb", doc="output file pattern, relative to --out"),
+              "linear_exr": Param(bool, False, doc="also write the texture as linear-light float EXR (NAME_linear.exr)")}
 
-    def run(self, mesh, *, path, frame):
+    def run(self, mesh, *, path, linear_exr, frame):
         rel = _format(path, frame=frame)
         ext = Path(rel).suffix.lstrip(".").lower()
         if ext not in TEXTURED_FORMATS:
             raise NodeError(f"path {path!r}: unknown textured-mesh format '.{ext}' (use one of {', '.join(TEXTURED_FORMATS)})")
-        return {"files": textured_files(mesh, rel, ext)}
+        files = textured_files(mesh, rel, ext)
+        tex = texture_image(mesh)
+        if linear_exr and tex is not None:
+            files[str(Path(rel).with_suffix("")) + "_linear.exr"] = linear_exr_bytes(tex)
+        return {"files": files}
+
+
+def linear_exr_bytes(tex: np.ndarray) -> bytes:
+    """An sRGB 8-bit texture decoded to linear light, as a half-float RGB EXR file."""
+    import tempfile
+
+    import OpenEXR
+
+    c = tex.astype(np.float32) / 255.0
+    lin = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float16)
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "t.exr"
+        with OpenEXR.File(header, {"R": np.ascontiguousarray(lin[..., 0]), "G": np.ascontiguousarray(lin[..., 1]),
+                                   "B": np.ascontiguousarray(lin[..., 2])}) as f:
+            f.write(str(p))
+        return p.read_bytes()
 
 
 def texture_image(mesh) -> np.ndarray | None:

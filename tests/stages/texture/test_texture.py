@@ -239,7 +239,7 @@ def test_vertex_mode_and_exports_open_in_their_readers(tmp_path):
     assert vm.visual.kind == "vertex" and len(vm.vertices) == len(s["mesh"].vertices)
     files = {}
     for ext in ("glb", "obj", "usda", "usdz", "ply"):
-        files.update(run_node("export.textured", {"mesh": tm}, {"path": f"t/m.{ext}"})["files"])
+        files.update(run_node("export.textured", {"mesh": tm}, {"path": f"t/m.{ext}", "linear_exr": ext == "glb"})["files"])
     files.update(run_node("export.textured", {"mesh": vm}, {"path": "v/m.usda"})["files"])
     for k, v in files.items():
         (tmp_path / k).parent.mkdir(parents=True, exist_ok=True)
@@ -255,6 +255,14 @@ def test_vertex_mode_and_exports_open_in_their_readers(tmp_path):
     assert gl.materials[0].pbrMetallicRoughness.baseColorTexture.index == 0
     png = gl.binary_blob()[gl.bufferViews[gl.images[0].bufferView].byteOffset:][:8]
     assert png == b"\x89PNG\r\n\x1a\n"
+    # linear-light EXR beside: sRGB decoded (mid grey 128 -> 0.216)
+    import OpenEXR
+
+    with OpenEXR.File(str(tmp_path / "t/m_linear.exr")) as f:
+        lin = np.asarray(f.channels()["RGB"].pixels, np.float32)           # R, G, B read back as one RGB layer
+    srgb = np.asarray(g.visual.material.baseColorTexture.convert("RGB")).astype(np.float32) / 255
+    ref = np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4)
+    np.testing.assert_allclose(lin, ref, atol=2e-3)
     # OBJ + MTL + PNG
     o = trimesh.load(tmp_path / "t/m.obj", force="mesh")
     assert o.visual.kind == "texture" and o.visual.material.image.size == (128, 128)
