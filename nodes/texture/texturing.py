@@ -31,10 +31,10 @@ class Settings:
     consistency: float = 40.0       # colour distance (0..255) beyond which a view disagrees with a face's others
     feather: int = 2                # vertex rings of cross-fade on each side of a view seam
     adaptive: bool = True           # blend towards a weighted average where the views disagree
-    spread_range: tuple = (4.0, 12.0)   # view disagreement (0..255) where that starts / is complete
+    spread_range: tuple = (12.0, 32.0)  # view disagreement (0..255) where that starts / is complete
     blend_views: int = 8            # most views blended per face
-    average_power: float = 1.0      # quality exponent of the weighted average
-    blur_px: float = 2.0            # radius of the blurred sample used where views disagree (0: never)
+    average_power: float = 0.0      # quality exponent of the average (0: plain mean of the views)
+    blur_px: float = 3.0            # radius of the blurred sample used where views disagree (0: never)
     balance: bool = True            # per-camera exposure / white-balance gains
     level: bool = True              # global seam levelling (offsets per vertex and view)
     gutter: int = 2                 # texels around each chart
