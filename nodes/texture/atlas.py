@@ -7,10 +7,10 @@ to its normal; a few majority rounds over the face neighbours remove slivers (a 
 still faces, normal . d > 0.2); charts are the connected components of each direction's faces (through shared
 edges); charts below ``min_faces`` faces are merged into a neighbouring chart they face. Each chart is
 projected orthographically onto the plane perpendicular to its direction (so no face flips) and turned to its
-principal axes. Packing: shelves of chart bounding boxes sorted by height, with a ``gutter`` of texels,
-scaled by bisection to fill a ``size`` x ``size`` square. Orthographic projection is injective per chart
-only while no part of the chart hides another along its direction; ``overlap_texels`` counts atlas texels
-claimed by two non-adjacent faces (tested: 0 on the test scenes).
+principal axes. Packing: charts rasterised on a grid of cells (the ``gutter`` included) are dropped
+Tetris-like onto a skyline, largest first, upright or turned, at the largest scale found to fit a ``size`` x
+``size`` square. Orthographic projection is injective per chart only while no part of the chart hides another
+along its direction (tests count texels inside two faces: 0 on the cup and the figure).
 """
 from __future__ import annotations
 
@@ -124,8 +124,7 @@ def _basis(d):
 
 def chart_uv(vertices, faces, chart, chart_dir) -> np.ndarray:
     """(F, 3, 2) chart-local coordinates (world units): orthographic projection along the chart direction,
-    oriented so faces keep counter-clockwise winding in (x right, y down) texel space, turned to the chart's
-    principal axes, minimum at 0."""
+    turned to the chart's principal axes, minimum at 0."""
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces, np.int64)
     P = v[f]                                                 # (F, 3, 3)
@@ -138,7 +137,6 @@ def chart_uv(vertices, faces, chart, chart_dir) -> np.ndarray:
         if len(idx) == 0:
             continue
         u, w = _basis(chart_dir[c])
-        # texel y runs down: (u, -w) keeps a face seen from +d counter-clockwise on screen (y down flips it back)
         q = np.stack([P[idx] @ u, P[idx] @ w], axis=-1)     # (n, 3, 2)
         pts = q.reshape(-1, 2)
         mean = pts.mean(axis=0)

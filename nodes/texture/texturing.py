@@ -51,14 +51,8 @@ class Result:
     texel_face: np.ndarray | None = None
     texel_weight: np.ndarray | None = None
     texel_inner: np.ndarray | None = None      # (S, S) bool: texel centre inside a face (not the gutter)
-    linear: np.ndarray | None = None           # (S, S, 3) float32 linear-light texture (atlas mode)
     timings: dict = field(default_factory=dict)
     stats: dict = field(default_factory=dict)
-
-
-def srgb_to_linear(c: np.ndarray) -> np.ndarray:
-    c = np.asarray(c, np.float32) / 255.0
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
 
 
 def prepare(vertices, faces, images, masks, cameras, s: Settings, timings: dict):

@@ -1,19 +1,22 @@
 """Which camera paints which face: per-view visibility and quality, MRF view selection, per-camera colour
 gains, blend weights that cross-fade across view seams, and global seam levelling.
 
-    stats = face_view_stats(vertices, faces, cameras, frame_images, valid)   # quality (V, F), colour (V, F, 3)
-    labels = select_views(stats.quality, stats.colour, face_neighbours(faces))
+    frame = FrameImages.build(images, masks, margin=1)                         # images + valid (eroded) masks
+    stats = face_view_stats(vertices, faces, cameras, frame)                   # quality (V, F), colour (V, F, 3)
     gains = camera_gains(stats.quality, stats.colour)                          # (V, 3), exposure / white balance
-    face_view, weight = blend_weights(labels, stats.quality, faces, len(vertices), feather=2)
-    offset = level_seams(vertices, faces, face_view, weight, cameras, frame_images, valid, gains)
+    cost, spread = data_cost(stats.effective(), stats.colour, gains, return_spread=True)
+    labels = select_views(cost, face_neighbours(faces))
+    face_view, weight = blend_weights(labels, stats.effective(), faces, len(vertices), feather=2, spread=spread)
+    offset = level_seams(vertices, faces, face_view, weight, cameras, frame, gains)
 
 Visibility (Waechter et al. 2014, with margins against background bleeding): a face is usable in a view
 when it faces the camera and its centroid and three inner points pass the z-buffer test, fall on valid
 pixels (the mask eroded by ``margin`` pixels) and lie ``edge_px`` pixels away from any depth edge or the
 mesh's outline. Quality = projected area in pixels x cosine (resolution and frontality), times a per-view
-sharpness factor. Selection minimises sum_f D(f, l_f) + smoothness * #{neighbour faces with another label}
-(Potts) with D = 1 - q / max_q, plus a penalty for colours inconsistent with the face's other views
-(occluders and registration errors), by iterated conditional modes over random halves of the faces.
+sharpness factor; a weaker test (centroid only) backs up faces no view passes. Selection minimises
+sum_f D(f, l_f) + smoothness * #{neighbour faces with another label} (Potts) with D = 1 - q / max_q, plus a
+penalty for colours inconsistent with the face's other views (occluders and registration errors), by iterated
+conditional modes over random halves of the faces.
 """
 from __future__ import annotations
 
