@@ -38,6 +38,10 @@ def test_dataset_graph_runs(path, tmp_path, data_dir, monkeypatch):
     for p in meshes:
         m = trimesh.load(p, process=False)
         assert m.is_watertight and m.body_count == 1 and m.volume > 0, p.name
+    for p in [Path(p) for r in res.records if r["type"] == "export.textured" for p in r["published"]]:
+        if p.suffix == ".glb":                          # textured: the texture travels inside the GLB
+            m = trimesh.load(p, force="mesh")
+            assert m.visual.kind == "texture" and m.visual.material.baseColorTexture is not None, p.name
     for r in res.records:
         if r["type"] == "eval.silhouette":
             table = json.loads((Path(r["cache_dir"]) / "report/table.json").read_text())
