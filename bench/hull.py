@@ -20,7 +20,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from nodes.common.cameras import Cameras, look_at  # noqa: E402
 from nodes.common.types import MaskSet  # noqa: E402
-from nodes.hull.hull import hull_cl, hull_grid, hull_reference  # noqa: E402
+from nodes.common.silhouettes import SilhouetteBits  # noqa: E402
+from nodes.hull.hull import HullCL, hull_grid, hull_reference  # noqa: E402
 
 # (centre, radii) of the figure's ellipsoids, metres, z up
 FIGURE = [((0, 0, 1.2), (0.18, 0.12, 0.3)), ((0, 0, 1.65), (0.11, 0.11, 0.12)),
@@ -67,7 +68,7 @@ def main():
     ap.add_argument("--repeats", type=int, default=7)
     args = ap.parse_args()
     cases = [(128, 24)] if args.quick else [(r, n) for n in (24, 16, 8) for r in (128, 256, 512)]
-    h = hull_cl()
+    h = HullCL.get()
     print(f"{'grid':>14} {'cams':>4} {'voxels in':>10} {'numpy ms':>9} {'dense ms':>9} {'sparse ms':>9} {'prep ms':>8} {'equal':>6}")
     for res, ncam in cases:
         cams = ring_rig(ncam)
@@ -79,7 +80,7 @@ def main():
         dense = run("dense")
         t_sparse = best_ms(lambda: run("sparse"), args.repeats)
         t_dense = best_ms(lambda: run("dense"), max(1, args.repeats // 2))
-        t_prep = best_ms(lambda: h.prepare(masks), args.repeats)
+        t_prep = best_ms(lambda: SilhouetteBits.from_masks(masks, out=h.silhouettes), args.repeats)
         t_np = "-"
         if res <= 128:
             t = time.perf_counter()

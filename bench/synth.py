@@ -46,7 +46,9 @@ def main():
     ap.add_argument("--width", type=int, default=1920)
     ap.add_argument("--height", type=int, default=1080)
     a = ap.parse_args()
-    print(f"OpenCL rasterizer: {'yes' if raster.opencl_ready() else 'NO (NumPy reference)'}")
+    from nodegraph import clrt
+
+    print(f"OpenCL device: {clrt.device_name()}")
     base = {k: p.default for k, p in Synth.params.items()}
     base.update(cameras=a.cameras, width=a.width, height=a.height)
     rows = []

@@ -1,82 +1,19 @@
 // Visual hull: dense centre test and sparse coarse-to-fine classification (Loop, Zhang & Zhang, HPG 2013).
 //
-// Silhouettes (nodes/hull.py:SilhouetteBits) are prepared once per frame, from uint8 masks (pixel inside
-// when value > 127, i.e. its top bit) or straight from the images by a key (key.cl:chroma_key_bits):
-//   pack_block_rows  one bit per pixel (rows of ceil(W/8) bytes, a multiply trick on 8 bytes at once) and
-//                    the 8x8 pixel block counts prefixed along each block row, in one read of the mask;
-//   block_cols       the prefix down the columns: a summed-area table of 8x8 pixel blocks.
-// The centre test reads the bits; the coarse test reads the block table over the blocks covering a cell's
-// projected footprint, which is conservative: a cell is only called inside/outside when that is certain.
-// Camera layout and projection: kernels/camera.h (Cameras.pack(), 32 floats per camera).
-// Arithmetic order here is mirrored by nodes/hull.py:hull_reference so both give identical voxels.
+// Silhouettes (silhouette.h: bits + 8x8 block tables, nodes.common.silhouettes.SilhouetteBits) are prepared once
+// per frame from masks (silhouette.cl) or straight from the images by a key (key.cl:chroma_key_bits).
+// The centre test and the vote are silhouette.h's; the coarse test reads the block table over the blocks
+// covering a cell's projected footprint, which is conservative: a cell is only called inside/outside when that
+// is certain. Camera layout and projection: kernels/camera.h (Cameras.pack(), 32 floats per camera).
+// Arithmetic order here is mirrored by nodes/hull/hull.py:hull_reference so both give identical voxels.
 #pragma OPENCL FP_CONTRACT OFF
-#include "camera.h"
+#include "silhouette.h"
 
-#define IN 1
-#define NOTIN 2
-#define OUT 4
-#define OFF 8
-
-// ------------------------------------------------------------------ mask preparation
-// 8 mask pixels (bytes) to one byte of bits, pixel x0 + i in bit i
-inline uchar pack8(__global const uchar* p, int n)
-{
-    if (n >= 8) {
-        ulong v = as_ulong(vload8(0, p));
-        return (uchar)((((v >> 7) & 0x0101010101010101UL) * 0x0102040810204080UL) >> 56);
-    }
-    uchar b = 0;
-    for (int i = 0; i < n; i++) b |= (uchar)((p[i] >> 7) << i);
-    return b;
-}
-
-// One work-item per table row `by` of one view: packs the 8 mask rows of block row by - 1 into bits (rows of
-// Wb bytes) and writes their block counts prefixed along the row. Table rows have Wb+1 entries with a zero
-// first column; the table has Hb+1 rows with a zero first row. Reads the mask once, row by row.
-__kernel void pack_block_rows(__global const uchar* mask, int W, int H, __global uchar* bits, int bit_off,
-                              __global int* sat, int sat_off)
-{
-    int by = get_global_id(0);
-    int Wb = (W + 7) >> 3, Hb = (H + 7) >> 3;
-    if (by > Hb) return;
-    __global int* row = sat + sat_off + by * (Wb + 1);
-    row[0] = 0;
-    if (by == 0) {
-        for (int bx = 0; bx < Wb; bx++) row[bx + 1] = 0;
-        return;
-    }
-    int y0 = (by - 1) << 3, y1 = min(y0 + 8, H);
-    for (int bx = 0; bx < Wb; bx++) row[bx + 1] = 0;
-    for (int y = y0; y < y1; y++) {
-        __global const uchar* m = mask + (size_t)y * W;
-        __global uchar* b = bits + bit_off + (size_t)y * Wb;
-        for (int bx = 0; bx < Wb; bx++) {
-            uchar v = pack8(m + (bx << 3), W - (bx << 3));
-            b[bx] = v;
-            row[bx + 1] += popcount(v);
-        }
-    }
-    int acc = 0;
-    for (int bx = 1; bx <= Wb; bx++) {
-        acc += row[bx];
-        row[bx] = acc;
-    }
-}
-
-// One work-item per (block column, view): prefix down the columns. sizes: (W, H) per view.
-__kernel void block_cols(__global int* sat, __global const int* sat_off, __global const int2* sizes)
-{
-    int bx = get_global_id(0), v = get_global_id(1);
-    int2 wh = sizes[v];
-    int Wb = (wh.x + 7) >> 3, Hb = (wh.y + 7) >> 3;
-    if (bx > Wb) return;
-    __global int* t = sat + sat_off[v];
-    int acc = 0;
-    for (int by = 1; by <= Hb; by++) {
-        acc += t[by * (Wb + 1) + bx];
-        t[by * (Wb + 1) + bx] = acc;
-    }
-}
+// what one view says about a whole box of voxel centres (flags; 0 = unsure)
+#define BOX_IN 1      // every centre projects inside the silhouette
+#define BOX_NOTIN 2   // no centre is inside
+#define BOX_OUT 4     // some centre is seen on background
+#define BOX_OFF 8     // some centre is unseen
 
 // ------------------------------------------------------------------ projection
 inline float3 voxel_centre(float3 bmin, float3 vs, int i, int j, int k)
@@ -84,41 +21,17 @@ inline float3 voxel_centre(float3 bmin, float3 vs, int i, int j, int k)
     return (float3)(bmin.x + ((float)i + 0.5f) * vs.x, bmin.y + ((float)j + 0.5f) * vs.y, bmin.z + ((float)k + 0.5f) * vs.z);
 }
 
-// Centre test of one point in one view: IN, OUT (inside the image, background) or OFF (behind or outside).
-inline int centre_state(__global const float* c, __global const uchar* bits, float3 X)
-{
-    float3 xc = camera_point(c, X);
-    if (!(xc.z * c[24] > 0.0f)) return OFF;
-    float2 uv = pixel_point(c, distort_point(c, xc.xy / xc.z));
-    float fu = uv.x + 0.5f, fv = uv.y + 0.5f;
-    float W = c[22], H = c[23];
-    if (!(fu >= 0.0f && fu < W && fv >= 0.0f && fv < H)) return OFF;
-    int px = (int)fu, py = (int)fv, Wb = ((int)W + 7) >> 3;
-    return ((bits[py * Wb + (px >> 3)] >> (px & 7)) & 1) ? IN : OUT;
-}
-
-// Vote rule shared by every test: min_views > 0: inside when at least min_views views say IN; otherwise
-// "carve" (policy 0): every view says IN; "ignore" (policy 1): no view says OUT and at least one says IN.
-inline int voxel_inside(int n_in, int n_out, int nviews, int min_views, int policy)
-{
-    if (min_views > 0) return n_in >= min_views;
-    if (policy == 0) return n_in == nviews;
-    return n_out == 0 && n_in > 0;
-}
-
 inline int voxel_test(__global const float* cams, __global const uchar* bits, __global const int* bit_off,
                       int nviews, int min_views, int policy, float3 X)
 {
-    int n_in = 0, n_out = 0;
+    int n_in = 0, n_bg = 0;
     for (int v = 0; v < nviews; v++) {
         int s = centre_state(cams + v * CAM_FLOATS, bits + bit_off[v], X);
-        n_in += (s == IN);
-        n_out += (s == OUT);
-        // early exit once the answer cannot change
-        if (min_views > 0 ? (n_in >= min_views || n_in + (nviews - v - 1) < min_views)
-                          : (policy == 0 ? s != IN : n_out > 0)) break;
+        n_in += (s == SIL_IN);
+        n_bg += (s == SIL_BACKGROUND);
+        if (vote_decided(s, n_in, v, nviews, min_views, policy)) break;
     }
-    return voxel_inside(n_in, n_out, nviews, min_views, policy);
+    return hull_vote(n_in, n_bg, nviews, min_views, policy);
 }
 
 __kernel void hull_dense(__global const float* cams, int nviews, __global const uchar* bits,
@@ -150,7 +63,7 @@ inline float2 widen(float2 a, float abs_pad, float rel_pad)
     return (float2)(a.x - (abs_pad + rel_pad * m), a.y + (abs_pad + rel_pad * m));
 }
 
-// Flags (IN / NOTIN / OUT / OFF, or 0 when unsure) holding for every voxel centre of the box whose extreme
+// Flags (BOX_IN / BOX_NOTIN / BOX_OUT / BOX_OFF, or 0 when unsure) holding for every voxel centre of the box whose extreme
 // voxel centres are lo and hi, in one view. The centres' projections lie in the convex hull of the 8 corner
 // projections (pinhole part), distortion is bounded by interval arithmetic, and the pixel rectangle is
 // widened a little so float rounding can never make the test claim something false.
@@ -168,7 +81,7 @@ inline int box_state(__global const float* c, __global const int* sat, float3 lo
         xr = (float2)(fmin(xr.x, x), fmax(xr.y, x));
         yr = (float2)(fmin(yr.x, y), fmax(yr.y, y));
     }
-    if (behind == 8) return NOTIN | OFF;
+    if (behind == 8) return BOX_NOTIN | BOX_OFF;
     if (front != 8) return 0;
     xr = widen(xr, 1e-7f, 1e-5f);
     yr = widen(yr, 1e-7f, 1e-5f);
@@ -188,7 +101,7 @@ inline int box_state(__global const float* c, __global const int* sat, float3 lo
     float2 vr = widen(iscale(c[15], yr) + (float2)(c[16], c[16]), 0.01f, 1e-5f) + 0.5f;
     float W = c[22], H = c[23];
     if (!(isfinite(ur.x) && isfinite(ur.y) && isfinite(vr.x) && isfinite(vr.y))) return 0;
-    if (ur.y < 0.0f || ur.x >= W || vr.y < 0.0f || vr.x >= H) return NOTIN | OFF;
+    if (ur.y < 0.0f || ur.x >= W || vr.y < 0.0f || vr.x >= H) return BOX_NOTIN | BOX_OFF;
     int inside_image = ur.x >= 0.0f && ur.y < W && vr.x >= 0.0f && vr.y < H;
     int x0 = (int)fmax(ur.x, 0.0f), x1 = (int)fmin(ur.y, W - 1.0f);
     int y0 = (int)fmax(vr.x, 0.0f), y1 = (int)fmin(vr.y, H - 1.0f);
@@ -196,9 +109,9 @@ inline int box_state(__global const float* c, __global const int* sat, float3 lo
     int bx0 = x0 >> 3, bx1 = x1 >> 3, by0 = y0 >> 3, by1 = y1 >> 3;
     int sum = sat[(by1 + 1) * (Wb + 1) + bx1 + 1] - sat[by0 * (Wb + 1) + bx1 + 1]
             - sat[(by1 + 1) * (Wb + 1) + bx0] + sat[by0 * (Wb + 1) + bx0];
-    if (sum == 0) return inside_image ? (NOTIN | OUT) : NOTIN;
+    if (sum == 0) return inside_image ? (BOX_NOTIN | BOX_OUT) : BOX_NOTIN;
     int area = (min((bx1 + 1) << 3, Wi) - (bx0 << 3)) * (min((by1 + 1) << 3, Hi) - (by0 << 3));
-    return (inside_image && sum == area) ? IN : 0;
+    return (inside_image && sum == area) ? BOX_IN : 0;
 }
 
 // Cells of 2^level voxels, coded i | j << 10 | k << 20. Each cell is inside (filled), outside (left
@@ -223,10 +136,10 @@ __kernel void hull_cells(__global const float* cams, int nviews, __global const 
     // at level 1 the box corners are the 8 voxel centres themselves: test those directly
     for (int v = 0; v < nviews && level > 1; v++) {
         int s = box_state(cams + v * CAM_FLOATS, sat + sat_off[v], lo, hi);
-        n_in += (s & IN) != 0;
-        n_notin += (s & NOTIN) != 0;
-        n_out += (s & OUT) != 0;
-        n_off += (s & OFF) != 0;
+        n_in += (s & BOX_IN) != 0;
+        n_notin += (s & BOX_NOTIN) != 0;
+        n_out += (s & BOX_OUT) != 0;
+        n_off += (s & BOX_OFF) != 0;
         int in_max = nviews - n_notin, out_max = nviews - n_in - n_off;
         if (min_views > 0 || policy == 0) {
             int need = min_views > 0 ? min_views : nviews;

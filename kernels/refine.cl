@@ -2,30 +2,24 @@
 // silhouettes contain its projection; a segment from an inside point to an outside point is bisected to the
 // place where it leaves the hull.
 //
-// Silhouettes: binary masks (inside when value > 127 at the nearest pixel) or, when soft != 0, soft alpha
-// sampled bilinearly (inside when alpha >= 0.5), which puts the boundary between pixels.
+// Silhouettes: binary (silhouette.h bits: the nearest pixel, as the hull's centre test) or, when soft != 0, soft
+// alpha sampled bilinearly (inside when alpha >= 0.5), which puts the boundary between pixels.
 // Camera layout and projection: kernels/camera.h (Cameras.pack(), 32 floats per camera). Pixel centres are
-// integers.
-// Vote (as the hull node): min_views > 0: at least min_views views inside; else policy 0 (carve): every
-// view inside; policy 1 (ignore): no view on background and at least one inside.
-// Arithmetic order here is mirrored by nodes/refine.py (view_states, exit_reference, clamp_reference).
+// integers. The vote is silhouette.h's (as the hull node).
+// Arithmetic order here is mirrored by nodes/common/silhouettes.py (view_states, exit_reference, clamp_reference).
 #pragma OPENCL FP_CONTRACT OFF
-#include "camera.h"
+#include "silhouette.h"
 
-#define IN 1
-#define BACKGROUND 2
-#define UNSEEN 3
-
-// 1 = inside the silhouette, 2 = on background, 3 = behind the camera or outside the image.
-inline int view_state(__global const float* c, float3 X, __global const uchar* mask,
-                      __global const float* alpha, int soft)
+// What view c says about point X: SIL_IN, SIL_BACKGROUND or SIL_UNSEEN.
+inline int view_state(__global const float* c, float3 X, __global const uchar* bits, __global const float* alpha,
+                      int soft)
 {
     float3 xc = camera_point(c, X);
-    if (!(xc.z * c[24] > 0.0f)) return UNSEEN;
+    if (!(xc.z * c[24] > 0.0f)) return SIL_UNSEEN;
     float2 uv = pixel_point(c, distort_point(c, xc.xy / xc.z));
     float u = uv.x, v = uv.y;
-    int W = (int)c[22], H = (int)c[23];
-    if (!(u >= -0.5f && u < (float)W - 0.5f && v >= -0.5f && v < (float)H - 0.5f)) return UNSEEN;
+    int px, py, W = (int)c[22], H = (int)c[23];
+    if (!seen_pixel(u, v, c[22], c[23], &px, &py)) return SIL_UNSEEN;
     if (soft) {
         float fx0 = floor(u), fy0 = floor(v);
         float fx = u - fx0, fy = v - fy0;
@@ -34,36 +28,25 @@ inline int view_state(__global const float* c, float3 X, __global const uchar* m
         float top = (1.0f - fx) * alpha[y0 * W + x0] + fx * alpha[y0 * W + x1];
         float bottom = (1.0f - fx) * alpha[y1 * W + x0] + fx * alpha[y1 * W + x1];
         float a = (1.0f - fy) * top + fy * bottom;
-        return a >= 0.5f ? IN : BACKGROUND;
+        return a >= 0.5f ? SIL_IN : SIL_BACKGROUND;
     }
-    int px = (int)(u + 0.5f), py = (int)(v + 0.5f);
-    return mask[py * W + px] > 127 ? IN : BACKGROUND;
+    return silhouette_bit(bits, W, px, py) ? SIL_IN : SIL_BACKGROUND;
 }
 
-#define HULL_ARGS __global const float* cams, int nviews, __global const uchar* masks, __global const int* mask_off, \
+#define HULL_ARGS __global const float* cams, int nviews, __global const uchar* bits, __global const int* bit_off, \
                   __global const float* alpha, __global const int* alpha_off, int soft, int min_views, int policy
-#define HULL_PASS cams, nviews, masks, mask_off, alpha, alpha_off, soft, min_views, policy
+#define HULL_PASS cams, nviews, bits, bit_off, alpha, alpha_off, soft, min_views, policy
 
 inline int inside_hull(float3 X, HULL_ARGS)
 {
     int n_in = 0, n_bg = 0;
     for (int v = 0; v < nviews; v++) {
-        int s = view_state(cams + v * CAM_FLOATS, X, masks + mask_off[v], alpha + alpha_off[v], soft);
-        n_in += s == IN;
-        n_bg += s == BACKGROUND;
-        // stop as soon as the vote is decided
-        if (min_views > 0) {
-            if (n_in >= min_views) return 1;
-            if (n_in + (nviews - 1 - v) < min_views) return 0;
-        } else if (policy == 0) {
-            if (s != IN) return 0;
-        } else if (s == BACKGROUND) {
-            return 0;
-        }
+        int s = view_state(cams + v * CAM_FLOATS, X, bits + bit_off[v], alpha + alpha_off[v], soft);
+        n_in += s == SIL_IN;
+        n_bg += s == SIL_BACKGROUND;
+        if (vote_decided(s, n_in, v, nviews, min_views, policy)) break;
     }
-    if (min_views > 0) return n_in >= min_views;
-    if (policy == 0) return n_in == nviews;
-    return n_bg == 0 && n_in > 0;
+    return hull_vote(n_in, n_bg, nviews, min_views, policy);
 }
 
 // Parameter t in [lo, hi] of the segment A + t (B - A) after `steps` bisections, A taken as inside.

@@ -1,12 +1,14 @@
 """Content-addressed artifact store.
 
 Layout under the cache root:
-    objects/ab/abcdef.../        one work item's outputs, complete iff the folder exists
-        meta.json                key components, output types, wall time
-        PORT/...                 each output in its type's on-disk form
+    objects/ab/abcdef.../        one work item's kept outputs, complete iff the folder exists
+        meta.json                key components, output types, the stored ports' files, wall time
+        PORT/...                 each kept output in its type's on-disk form (an item's other outputs
+                                 lived only in memory: they are not in its entry)
     staging/                     folders being written (renamed into objects/ when complete; `gc` removes
                                  leftovers older than 6 hours, so it never pulls one from a running write)
     filehash.json                size+mtime -> content hash of external input files
+    imports.json                 what each node module imports, by content hash (nodegraph/fingerprint.py)
     index/                       last key per graph node and frame (for `explain`)
 
 A work item's outputs are written into a staging folder and renamed into place in one step, so a run
@@ -65,6 +67,14 @@ class Cache:
     def has(self, key: str) -> bool:
         return (self.object_dir(key) / "meta.json").is_file()
 
+    def stored(self, key: str) -> set[str] | None:
+        """The output ports stored in ``key``'s entry (a port whose value was None counts), or None when there is
+        no readable entry."""
+        try:
+            return set(json.loads((self.object_dir(key) / "meta.json").read_text()).get("files", {}))
+        except (OSError, ValueError, AttributeError):
+            return None
+
     def meta(self, key: str) -> dict:
         try:
             return json.loads((self.object_dir(key) / "meta.json").read_text())
@@ -73,7 +83,11 @@ class Cache:
 
     def load(self, key: str, port: str, dtype):
         folder = self.object_dir(key) / port
-        listed = self.meta(key).get("files", {}).get(port)
+        files = self.meta(key).get("files", {})
+        if port not in files:
+            raise DataError(f"cache entry {key} does not hold output '{port}' ({dtype.name}): it was kept in memory "
+                            "when the entry was written")
+        listed = files[port]
         if listed is None and not folder.is_dir():
             return None  # an optional output that was None
         missing = [f for f in listed or [] if not (self.object_dir(key) / f).is_file()]
@@ -88,7 +102,8 @@ class Cache:
             raise DataError(f"cache entry {key}/{port} ({dtype.name}) cannot be read: {type(exc).__name__}: {exc}") from None
 
     def write(self, key: str, outputs: dict, meta: dict) -> Path:
-        """Save ``outputs`` (port -> (dtype, value or None)) atomically under ``key``."""
+        """Save ``outputs`` (port -> (dtype, value or None)) atomically under ``key``. An existing entry (with
+        fewer ports kept) is replaced in one step."""
         self.staging.mkdir(parents=True, exist_ok=True)
         stage = self.staging / f"{key}.{os.getpid()}.{uuid.uuid4().hex[:8]}"
         stage.mkdir()
@@ -107,6 +122,9 @@ class Cache:
             (stage / "meta.json").write_text(json.dumps(meta, indent=1, sort_keys=True))
             final = self.object_dir(key)
             final.parent.mkdir(parents=True, exist_ok=True)
+            old = self.stored(key)
+            if old is not None and not set(files) <= old:  # more ports than the entry there: replace it
+                self.evict(key)
             try:
                 os.rename(stage, final)
             except OSError:
@@ -177,6 +195,7 @@ class Cache:
         for sub in ("objects", "staging", "index"):
             shutil.rmtree(self.root / sub, ignore_errors=True)
         (self.root / "filehash.json").unlink(missing_ok=True)
+        (self.root / "imports.json").unlink(missing_ok=True)
 
 
 STAGING_GRACE_S = 6 * 3600  # gc leaves younger staging folders alone: a running write may own them

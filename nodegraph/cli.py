@@ -27,6 +27,8 @@ def cmd_run(args) -> int:
     if args.device:
         os.environ["VOLCAP_CL_DEVICE"] = args.device  # inherited by worker processes
     graph = _load(args)
+    if args.keep_all or args.report:  # a report draws the values: keep them all
+        graph.keep_all()
     out = Path(args.out or Path("out") / Path(args.graph).stem)
     if args.executor == "dask":
         executor = make_executor("dask", args.workers or args.jobs, scheduler=args.scheduler)
@@ -65,7 +67,8 @@ def cmd_explain(args) -> int:
         frame = "all" if r["frame"] is None else r["frame"]
         state = "cached" if r["cached"] else "run   "
         why = "" if r["cached"] else "  changed: " + ", ".join(r["changed"])
-        print(f"{state} {r['node']}@{frame}  {r['key'][:12]}{why}")
+        mem = f"  in memory: {', '.join(r['in_memory'])}" if r["in_memory"] else ""
+        print(f"{state} {r['node']}@{frame}  {r['key'][:12]}{why}{mem}")
     n = sum(not r["cached"] for r in rows)
     print(f"{n} of {len(rows)} work items to run")
     return 0
@@ -129,7 +132,8 @@ def cmd_cache(args) -> int:
 def cmd_devices(args) -> int:
     from .clrt import devices_table
 
-    for row in devices_table():
+    print("OpenCL devices, fastest first by a short probe kernel (ms, measured once per machine; * = used):")
+    for row in devices_table(refresh=args.refresh):
         print(row)
     return 0
 
@@ -172,7 +176,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--workers", type=_positive_int, help="dask: worker processes of the LocalCluster (default 2)")
     r.add_argument("--scheduler", help="dask: address of an existing scheduler (tcp://HOST:PORT)")
     r.add_argument("--device", help="OpenCL device: cpu, gpu or PLATFORM:DEVICE (see `devices`)")
-    r.add_argument("--report", action="store_true", help="write report.html into the output folder")
+    r.add_argument("--report", action="store_true", help="write report.html into the output folder (keeps every output)")
+    r.add_argument("--keep-all", action="store_true", help="store every output in the cache, not only the kept ones")
     r.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     graph_cmd("validate", "check a graph file without running it", cmd_validate)
     graph_cmd("explain", "dry run: which work items are cached, which run and why", cmd_explain)
@@ -186,7 +191,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--max-age", type=float, metavar="DAYS", help="gc: also remove entries unused for DAYS")
     c.add_argument("--cache", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
     c.set_defaults(fn=cmd_cache)
-    sub.add_parser("devices", help="list OpenCL devices").set_defaults(fn=cmd_devices)
+    dv = sub.add_parser("devices", help="list OpenCL devices, fastest first (the fastest is used by default)")
+    dv.add_argument("--refresh", action="store_true", help="measure the devices again")
+    dv.set_defaults(fn=cmd_devices)
     rp = sub.add_parser("report", help="write report.html for an existing output folder")
     rp.add_argument("out_dir")
     rp.set_defaults(fn=cmd_report)

@@ -16,7 +16,10 @@ cache entries is versioned by hashing.KEY_SCHEMA.
 from __future__ import annotations
 
 import ast
+import hashlib
 import importlib.util
+import json
+import os
 import re
 from functools import lru_cache
 from importlib import metadata
@@ -45,9 +48,44 @@ def _module_file(name: str) -> tuple[Path | None, bool]:
     return Path(spec.origin), spec.submodule_search_locations is not None
 
 
+_PARSED: dict[str, list[str]] = {}   # (module, content hash) -> imported names: parsing is the slow part
+_STORE: Path | None = None
+
+
+def remember_in(path: Path | None):
+    """Keep the parsed import lists in ``path`` (a JSON file, e.g. in the cache folder) across processes: a
+    module whose text did not change is not parsed again."""
+    global _STORE
+    _STORE = path
+    if path is not None and path.is_file():
+        try:
+            _PARSED.update(json.loads(path.read_text()))
+        except (OSError, ValueError):
+            pass
+
+
+def save_parsed():
+    if _STORE is not None:
+        try:
+            tmp = _STORE.with_suffix(".tmp")
+            tmp.write_text(json.dumps(_PARSED))
+            os.replace(tmp, _STORE)
+        except OSError:
+            pass
+
+
 def imported_names(source: str, module: str, is_package: bool) -> set[str]:
     """Dotted names a module's source imports (absolute; parents included; ``from a import b`` gives a and
     a.b, which may be an attribute rather than a module)."""
+    memo = f"{module}:{int(is_package)}:{hashlib.sha1(source.encode()).hexdigest()}"
+    if memo in _PARSED:
+        return set(_PARSED[memo])
+    names = _imported_names(source, module, is_package)
+    _PARSED[memo] = sorted(names)
+    return names
+
+
+def _imported_names(source: str, module: str, is_package: bool) -> set[str]:
     names: set[str] = set()
     package = module if is_package else module.rpartition(".")[0]
     for node in ast.walk(ast.parse(source)):

@@ -18,7 +18,6 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import networkx as nx
 import yaml
 
 from .errors import GraphError
@@ -27,7 +26,7 @@ from .types import compatible, describe_type
 
 MAX_FRAMES = 1_000_000  # a range beyond this is a typo, not a capture
 TOP_KEYS = ("frames", "defaults", "nodes", "description")
-NODE_KEYS = ("type", "in", "params", "doc")
+NODE_KEYS = ("type", "in", "params", "keep", "doc")
 NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
 
@@ -118,6 +117,7 @@ class NodeSpec:
     inputs: dict                       # port -> (source node, source port)
     line: int
     lines: dict = field(default_factory=dict)   # "param:NAME" / "in:PORT" -> line
+    keep: tuple = ()                   # output ports the graph asks to store in the cache (checkpoints)
 
 
 @dataclass
@@ -125,14 +125,22 @@ class Graph:
     path: Path
     frames: list[int]
     nodes: dict[str, NodeSpec]
-    dag: nx.DiGraph
+    upstream: dict[str, list[str]]    # node -> the nodes its inputs come from (file order)
     description: str = ""
     overrides: list = field(default_factory=list)   # the --set arguments it was loaded with
+
+    def keep_all(self) -> "Graph":
+        """Store every output of every node in the cache (a report draws them; debugging)."""
+        for spec in self.nodes.values():
+            spec.keep = tuple(spec.cls.outputs)
+        return self
 
     def order(self) -> list[str]:
         """Node names in dependency order (stable: file order among independent nodes)."""
         pos = {n: i for i, n in enumerate(self.nodes)}
-        return list(nx.lexicographical_topological_sort(self.dag, key=lambda n: pos[n]))
+        order = topological_order(self.upstream, pos)
+        assert order is not None, "validated graphs have no cycle"
+        return order
 
 
 def parse_frames(value, where: str) -> list[int]:
@@ -250,6 +258,19 @@ def _validate(path: Path, where: str, data: _Map, problems: list[str], overrides
             continue
         cls = reg[t]
         spec = NodeSpec(name, t, cls, {}, {}, line)
+        if "keep" in entry:  # checkpoints: true (every output) or a list of output ports
+            keep, kline = entry["keep"], at(entry.lines["keep"])
+            if keep is True:
+                spec.keep = tuple(cls.outputs)
+            elif keep is False or keep is None:
+                spec.keep = ()
+            elif isinstance(keep, list) and all(isinstance(k, str) for k in keep):
+                bad = [k for k in keep if k not in cls.outputs]
+                for k in bad:
+                    problems.append(f"{kline}: node '{name}': keep: type '{t}' has no output '{k}'{suggest(k, cls.outputs)}")
+                spec.keep = tuple(k for k in keep if k in cls.outputs)
+            else:
+                problems.append(f"{kline}: node '{name}': keep must be true, false or a list of output ports, got {keep!r}")
         # parameters: declaration default < graph defaults < node params < --set
         given = entry.get("params") or {}
         if not isinstance(given, dict):
@@ -309,8 +330,7 @@ def _validate(path: Path, where: str, data: _Map, problems: list[str], overrides
             problems.append(f"{label}: no node named '{n}'{suggest(n, raw_nodes)}")
 
     # edges: sources exist, ports exist, types match, required inputs connected
-    dag = nx.DiGraph()
-    dag.add_nodes_from(nodes)
+    upstream: dict[str, list[str]] = {n: [] for n in nodes}
     for name, spec in nodes.items():
         for port, (src, sport) in spec.inputs.items():
             pline = spec.lines[f"in:{port}"]
@@ -328,16 +348,64 @@ def _validate(path: Path, where: str, data: _Map, problems: list[str], overrides
             if not compatible(have, want):
                 problems.append(f"{pline}: node '{name}': input '{port}' expects {describe_type(want)} but '{src}.{sport}' is {describe_type(have)}")
                 continue
-            dag.add_edge(src, name)
+            if src not in upstream[name]:
+                upstream[name].append(src)
         for port, inp in spec.cls.inputs.items():
             if not inp.optional and port not in spec.inputs:
                 problems.append(f"{at(spec.line)}: node '{name}': required input '{port}' ({describe_type(inp.type)}) is not connected")
-    try:
-        cycle = nx.find_cycle(dag)
-        names = " -> ".join([e[0] for e in cycle] + [cycle[0][0]])
-        problems.append(f"{at(nodes[cycle[0][0]].line)}: cycle in the graph: {names}")
-    except nx.NetworkXNoCycle:
-        pass
+    cycle = find_cycle(upstream)
+    if cycle:
+        problems.append(f"{at(nodes[cycle[0]].line)}: cycle in the graph: {' -> '.join(cycle + [cycle[0]])}")
     if problems:
         raise GraphError(problems)
-    return Graph(path, frames, nodes, dag, str(data.get("description", "")), list(overrides))
+    return Graph(path, frames, nodes, upstream, str(data.get("description", "")), list(overrides))
+
+
+def topological_order(upstream: dict[str, list[str]], pos: dict[str, int]) -> list[str] | None:
+    """Nodes in dependency order, the earliest in ``pos`` first among those ready (None when there is a cycle)."""
+    import heapq
+
+    waiting = {n: len(set(u)) for n, u in upstream.items()}
+    down: dict[str, list[str]] = {n: [] for n in upstream}
+    for n, ups in upstream.items():
+        for u in set(ups):
+            down[u].append(n)
+    ready = [(pos[n], n) for n, k in waiting.items() if k == 0]
+    heapq.heapify(ready)
+    order = []
+    while ready:
+        _, n = heapq.heappop(ready)
+        order.append(n)
+        for d in down[n]:
+            waiting[d] -= 1
+            if waiting[d] == 0:
+                heapq.heappush(ready, (pos[d], d))
+    return order if len(order) == len(upstream) else None
+
+
+def find_cycle(upstream: dict[str, list[str]]) -> list[str]:
+    """One cycle as a list of nodes, each feeding the next (and the last the first), or [] when there is none."""
+    state: dict[str, int] = {}  # 1 on the current path, 2 done
+    for start in upstream:
+        if state.get(start):
+            continue
+        path, stack = [], [(start, iter(upstream[start]))]
+        state[start] = 1
+        path.append(start)
+        while stack:
+            node, it = stack[-1]
+            nxt = next(it, None)
+            if nxt is None:
+                state[node] = 2
+                stack.pop()
+                path.pop()
+            elif state.get(nxt) == 1:
+                cyc = path[path.index(nxt):][::-1]  # the path runs downstream -> upstream; a cycle reads along the flow
+                order = list(upstream)
+                first = min(range(len(cyc)), key=lambda i: order.index(cyc[i]))  # start at the earliest in the file
+                return cyc[first:] + cyc[:first]
+            elif not state.get(nxt):
+                state[nxt] = 1
+                path.append(nxt)
+                stack.append((nxt, iter(upstream[nxt])))
+    return []

@@ -11,7 +11,8 @@ from pathlib import Path
 from .errors import DataError
 
 RACY_NS = 2_000_000_000  # see FileHasher.file
-KEY_SCHEMA = 1  # bump when the key recipe changes; old entries then simply stop matching
+KEY_SCHEMA = 2  # bump when the key recipe or the form of entries changes; old entries then simply stop matching
+# 2: images and masks stored as raw .npy (were PNG + EXR); entries hold only the kept ports
 
 
 def digest(obj) -> str:

@@ -21,6 +21,8 @@ A node is a class: its ports, parameters and kernels are declared once, and vali
 ``uses_frame = True``: the frame number is part of the work (sources, per-frame file patterns); it is
 passed to ``run`` as ``frame=`` and is part of the cache key.
 ``publishes = True``: the node's ``Files`` outputs are copied into the run's output folder.
+``checkpoint = True``: the node's outputs are always stored in the cache (a costly source such as a renderer),
+even when the nodes that read them run in the same process (nodegraph/plan.py says what is kept).
 
 Node types are found through the ``volcap.nodes`` entry-point group: each entry point names a module or
 a package, and every module of a package is imported (the built-in stages are one such package, plugins
@@ -153,6 +155,7 @@ class Node:
     per: ClassVar[str] = "frame"
     uses_frame: ClassVar[bool] = False
     publishes: ClassVar[bool] = False
+    checkpoint: ClassVar[bool] = False
     inputs: ClassVar[dict] = {}
     outputs: ClassVar[dict] = {}
     params: ClassVar[dict] = {}

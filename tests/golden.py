@@ -16,6 +16,7 @@ can be reviewed before committing. Golden folders live in tests/golden/NAME/ in 
 """
 from __future__ import annotations
 
+import json
 import math
 import shutil
 from pathlib import Path
@@ -39,12 +40,44 @@ class Golden:
             if folder.exists():
                 shutil.rmtree(folder)
             folder.mkdir(parents=True)
-            dtype.save(value, folder)
+            save(value, folder, dtype)
             self.rewritten.append(name)
             return
         assert folder.is_dir(), f"no golden file for '{name}' in {GOLDEN_DIR}: create it with pytest --update-golden and review it"
-        expected = dtype.load(folder)
+        expected = load(folder, dtype)
         compare(value, expected, dtype, name, **tol)
+
+
+# Golden images and masks are PNG (soft alpha EXR), viewable and small, whatever form the cache uses.
+def save(value, folder: Path, dtype):
+    import cv2
+
+    if issubclass(dtype, T.Masks):
+        for i, (n, m) in enumerate(zip(value.names, value.masks)):
+            cv2.imwrite(str(folder / f"{n}.png"), np.asarray(m))
+            if value.alpha is not None:
+                T.write_exr(folder / f"{n}.alpha.exr", value.alpha[i])
+        (folder / "names.json").write_text(json.dumps({"names": value.names, "alpha": value.alpha is not None}))
+    elif issubclass(dtype, T.Images):
+        for n, im in zip(value.names, value.images):
+            cv2.imwrite(str(folder / f"{n}.png"), np.asarray(im)[:, :, ::-1])
+        (folder / "names.json").write_text(json.dumps(value.names))
+    else:
+        dtype.save(value, folder)
+
+
+def load(folder: Path, dtype):
+    import cv2
+
+    if issubclass(dtype, T.Masks):
+        meta = json.loads((folder / "names.json").read_text())
+        masks = [cv2.imread(str(folder / f"{n}.png"), cv2.IMREAD_GRAYSCALE) for n in meta["names"]]
+        alpha = [T.read_exr(folder / f"{n}.alpha.exr") for n in meta["names"]] if meta["alpha"] else None
+        return T.MaskSet(masks, alpha, meta["names"])
+    if issubclass(dtype, T.Images):
+        names = json.loads((folder / "names.json").read_text())
+        return T.ImageSet([cv2.imread(str(folder / f"{n}.png"), cv2.IMREAD_COLOR)[:, :, ::-1] for n in names], names)
+    return dtype.load(folder)
 
 
 def compare(actual, expected, dtype, name, **tol):

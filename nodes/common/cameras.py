@@ -19,6 +19,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from kernels import source
+from nodegraph import clrt
 from nodegraph.errors import DataError
 
 PACK_FLOATS = 32  # floats per camera in the packed array the kernels read
@@ -245,32 +247,26 @@ def look_at(eye, target, up, fov_deg: float, width: int, height: int, name: str 
     return Camera(name, width, height, K, np.hstack([R, t[:, None]]))
 
 
+class ProjectCL(clrt.Runner):
+    """kernels/project.cl: points into every view at once."""
+
+    source = source("project.cl")
+
+
 def project_points_cl(cameras: Cameras, points, origin=None) -> tuple[np.ndarray, np.ndarray]:
     """OpenCL twin of ``Cameras.project`` for all views at once (kernels/project.cl).
 
     Points are shifted to ``origin`` (default: their mean) in float64 before the float32 kernel runs.
     Returns (uv (V, N, 2) float64, depth (V, N) float64)."""
-    import pyopencl as cl
-
-    from kernels import source
-    from nodegraph import clrt
-
     X = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     n, v = len(X), len(cameras)
     if n == 0:
         return np.zeros((v, 0, 2)), np.zeros((v, 0))
     o = X.mean(axis=0) if origin is None else np.asarray(origin, dtype=np.float64)
-    ctx, queue = clrt.context()
-    cams_buf = clrt.to_device(cameras.pack(origin=o))
-    pts_buf = clrt.to_device((X - o).astype(np.float32))
-    uv = np.empty((v, n, 2), dtype=np.float32)
-    depth = np.empty((v, n), dtype=np.float32)
-    uv_buf = cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, uv.nbytes)
-    depth_buf = cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, depth.nbytes)
-    knl = clrt.kernel(source("project.cl"), "project_points")
-    knl.set_args(cams_buf, pts_buf, np.int32(n), uv_buf, depth_buf)
-    cl.enqueue_nd_range_kernel(queue, knl, (n, v), None)
-    cl.enqueue_copy(queue, uv, uv_buf)
-    cl.enqueue_copy(queue, depth, depth_buf)
-    queue.finish()
+    run = ProjectCL.get()
+    uv_buf, depth_buf = run.buffer("uv", v * n * 8), run.buffer("depth", v * n * 4)
+    run.launch("project_points", (n, v), None, run.upload("cams", cameras.pack(origin=o)),
+               run.upload("points", (X - o).astype(np.float32)), np.int32(n), uv_buf, depth_buf)
+    uv = run.read(uv_buf, (v, n, 2), np.float32)
+    depth = run.read(depth_buf, (v, n), np.float32)
     return uv.astype(np.float64), depth.astype(np.float64)

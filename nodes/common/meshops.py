@@ -97,3 +97,19 @@ def largest_component(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarr
     used[faces[keep].ravel()] = True
     remap = np.cumsum(used) - 1
     return vertices[used], remap[faces[keep]]
+
+
+def carried_vertex_colors(mesh, vertices: np.ndarray) -> np.ndarray | None:
+    """Vertex colours of ``mesh`` (None when it has none) for ``vertices`` of a mesh made from it: the same
+    colours when it has the same vertices (moved or not: refine and relax keep mc's connectivity), else the
+    colour of the nearest vertex of ``mesh`` (subdivided or decimated meshes)."""
+    if getattr(mesh.visual, "kind", None) != "vertex" or len(mesh.vertices) == 0:
+        return None
+    old = np.asarray(mesh.visual.vertex_colors)
+    vertices = np.asarray(vertices, np.float64)
+    if len(vertices) == len(old):
+        return old
+    from scipy.spatial import cKDTree
+
+    _, nearest = cKDTree(np.asarray(mesh.vertices)).query(vertices)
+    return old[nearest]

@@ -12,17 +12,14 @@ face id.
 """
 from __future__ import annotations
 
-import logging
-from functools import lru_cache
 
 import numpy as np
 
 from kernels import source
-from nodegraph import NodeError, VolcapError, clrt
+from nodegraph import NodeError, clrt
 
 from .cameras import Cameras
 
-log = logging.getLogger("volcap.raster")
 
 KERNELS = source("raster.cl")
 NEAR = 1e-6          # camera z below which a vertex counts as behind the camera
@@ -151,19 +148,11 @@ def shade_reference(tri_id, bary, faces, normals, texcoords, face_material, mate
 
 
 # ---------------------------------------------------------------- OpenCL
-@lru_cache(maxsize=None)
-def opencl_ready() -> bool:
-    """True when kernels/raster.cl builds here; otherwise the NumPy references stand in (logged once)."""
-    try:
-        clrt.kernel(KERNELS, "shade")
-        return True
-    except VolcapError as exc:
-        log.warning("OpenCL rasterizer unavailable, using the (slower) NumPy reference: %s", str(exc).splitlines()[0])
-        return False
+class RasterCL(clrt.Runner):
+    """kernels/raster.cl: vertex projection, z-buffer, resolve, coverage, shading."""
 
-
-def _global(n: int, group: int = 64) -> tuple[int]:
-    return (max(group, (n + group - 1) // group * group),)
+    source = KERNELS
+    GROUP = 64
 
 
 class MeshRaster:
@@ -174,7 +163,8 @@ class MeshRaster:
 
         self.v, self.f = _mesh_arrays(vertices, faces)
         self.cameras = cameras
-        self.ctx, self.queue = clrt.context()
+        self.run = RasterCL.get()
+        self.ctx, self.queue = self.run.ctx, self.run.queue
         self._cl = cl
         self.d_verts = clrt.to_device(self.v if len(self.v) else np.zeros((1, 3), np.float32))
         self.d_faces = clrt.to_device(self.f if len(self.f) else np.zeros((1, 3), np.int32))
@@ -193,12 +183,11 @@ class MeshRaster:
         cl.enqueue_fill_buffer(self.queue, zbuf, np.uint64(0xFFFFFFFFFFFFFFFF), 0, 8 * n)
         if len(self.f) == 0:
             return zbuf
-        k = clrt.kernel(KERNELS, "project_vertices")
-        k.set_args(self.d_verts, self.d_cams, np.int32(view), np.int32(len(self.v)), np.float32(NEAR), self.d_proj)
-        cl.enqueue_nd_range_kernel(self.queue, k, _global(len(self.v)), None)
-        k = clrt.kernel(KERNELS, "raster_triangles")
-        k.set_args(self.d_faces, self.d_proj, np.int32(len(self.f)), np.int32(cam.width), np.int32(cam.height), zbuf)
-        cl.enqueue_nd_range_kernel(self.queue, k, _global(len(self.f)), None)
+        g = self.run.GROUP
+        self.run.launch("project_vertices", len(self.v), g, self.d_verts, self.d_cams, np.int32(view), np.int32(len(self.v)),
+                        np.float32(NEAR), self.d_proj)
+        self.run.launch("raster_triangles", len(self.f), g, self.d_faces, self.d_proj, np.int32(len(self.f)),
+                        np.int32(cam.width), np.int32(cam.height), zbuf)
         return zbuf
 
     def resolve(self, view: int, zbuf):
@@ -210,9 +199,8 @@ class MeshRaster:
         tri = cl.Buffer(self.ctx, rw, 4 * n)
         depth = cl.Buffer(self.ctx, rw, 4 * n)
         bary = cl.Buffer(self.ctx, rw, 12 * n)
-        k = clrt.kernel(KERNELS, "resolve")
-        k.set_args(zbuf, self.d_faces, self.d_proj, np.int32(cam.width), np.int32(cam.height), tri, depth, bary)
-        cl.enqueue_nd_range_kernel(self.queue, k, (cam.width, cam.height), None)
+        self.run.launch("resolve", (cam.width, cam.height), None, zbuf, self.d_faces, self.d_proj, np.int32(cam.width),
+                        np.int32(cam.height), tri, depth, bary)
         return tri, depth, bary
 
     def rasterize(self, view: int):
@@ -221,7 +209,7 @@ class MeshRaster:
         out = (np.empty((cam.height, cam.width), np.int32), np.empty((cam.height, cam.width), np.float32),
                np.empty((cam.height, cam.width, 3), np.float32))
         for host, dev in zip(out, (tri, depth, bary)):
-            self._cl.enqueue_copy(self.queue, host, dev)
+            self.run.read(dev, host.shape, host.dtype, out=host)
         return out
 
     def coverage(self, view: int) -> np.ndarray:
@@ -230,27 +218,18 @@ class MeshRaster:
         n = cam.width * cam.height
         zbuf = self.zbuffer(view)
         d_mask = cl.Buffer(self.ctx, cl.mem_flags.WRITE_ONLY, n)
-        k = clrt.kernel(KERNELS, "coverage")
-        k.set_args(zbuf, np.int32(n), d_mask)
-        cl.enqueue_nd_range_kernel(self.queue, k, _global(n), None)
-        mask = np.empty((cam.height, cam.width), np.uint8)
-        cl.enqueue_copy(self.queue, mask, d_mask)
-        return mask
+        self.run.launch("coverage", n, self.run.GROUP, zbuf, np.int32(n), d_mask)
+        return self.run.read(d_mask, (cam.height, cam.width), np.uint8)
 
 
 def rasterize(mesh_vertices, faces, cameras: Cameras, view: int):
     """Rasterize a mesh into one view. Returns (tri_id (H, W) int32, -1 = empty; depth (H, W) float32
     camera z, inf = empty; bary (H, W, 3) float32 perspective-correct barycentrics of the face's corners)."""
-    if not opencl_ready():
-        return rasterize_reference(mesh_vertices, faces, cameras, view)
     return MeshRaster(mesh_vertices, faces, cameras).rasterize(view)
 
 
 def silhouette(vertices, faces, cameras: Cameras) -> list[np.ndarray]:
     """Binary silhouette (uint8 0/255) of a mesh in every view."""
-    if not opencl_ready():
-        return [np.where(rasterize_reference(vertices, faces, cameras, i)[0] >= 0, 255, 0).astype(np.uint8)
-                for i in range(len(cameras))]
     r = MeshRaster(vertices, faces, cameras)
     return [r.coverage(i) for i in range(len(cameras))]
 
@@ -263,11 +242,6 @@ def render(vertices, faces, normals, texcoords, face_material, materials, camera
     """
     light = np.asarray(light, np.float64)
     light = light / np.linalg.norm(light)
-    if not opencl_ready():
-        out = [shade_reference(*rasterize_reference(vertices, faces, cameras, i)[::2], faces, normals, texcoords,
-                               face_material, materials, light, ambient, shadow, empty_rgb, n_object)
-               for i in range(len(cameras))]
-        return [o[0] for o in out], [o[1] for o in out]
     import pyopencl as cl
 
     r = MeshRaster(vertices, faces, cameras)
@@ -282,10 +256,8 @@ def render(vertices, faces, normals, texcoords, face_material, materials, camera
         tri, _, bary = r.resolve(view, r.zbuffer(view))
         d_rgb = cl.Buffer(r.ctx, cl.mem_flags.WRITE_ONLY, 3 * n)
         d_mask = cl.Buffer(r.ctx, cl.mem_flags.WRITE_ONLY, n)
-        k = clrt.kernel(KERNELS, "shade")
-        k.set_args(tri, bary, r.d_faces, d_norm, d_tex, d_fmat, d_mat, f4(*light, 0), np.float32(ambient),
-                   f4(*shadow), f4(*empty_rgb, 0), np.int32(n_object), np.int32(n), d_rgb, d_mask)
-        cl.enqueue_nd_range_kernel(r.queue, k, _global(n), None)
+        r.run.launch("shade", n, r.run.GROUP, tri, bary, r.d_faces, d_norm, d_tex, d_fmat, d_mat, f4(*light, 0),
+                     np.float32(ambient), f4(*shadow), f4(*empty_rgb, 0), np.int32(n_object), np.int32(n), d_rgb, d_mask)
         rgb = np.empty((cam.height, cam.width, 3), np.uint8)
         mask = np.empty((cam.height, cam.width), np.uint8)
         cl.enqueue_copy(r.queue, rgb, d_rgb)

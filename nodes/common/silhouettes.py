@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from kernels import source
-from nodegraph import NodeError
+from nodegraph import NodeError, clrt
 
 from .cameras import Cameras, project_packed_f32
 
@@ -78,33 +78,37 @@ def vote(n_in: np.ndarray, n_out: np.ndarray, nviews: int, min_views: int, polic
     return (n_out == 0) & (n_in >= max(1, min_seen))
 
 
-# ---------------------------------------------------------------- OpenCL
-class SilhouetteBits:
-    """Silhouettes on the OpenCL device, in the layout the hull kernels read (kernels/hull.cl), one per view:
-    one bit per pixel (rows of Wb = ceil(W/8) bytes, pixel x in bit x % 8 of byte x // 8) and the
-    (Hb+1) x (Wb+1) int32 summed-area table of its 8x8 pixel block counts (zero first row and column).
+# ---------------------------------------------------------------- OpenCL: silhouette bits
+class SilhouetteCL(clrt.Runner):
+    """kernels/silhouette.cl: bits and block tables from uint8 masks."""
 
-    Written from host masks (``HullCL.prepare``) or straight from the camera images by a key kernel
-    (``nodes.key.chroma_key_bits``): both write the bits and the block counts prefixed along rows, then
-    ``prefix_columns`` completes the tables. Allocated once per list of image sizes; hand it back as ``out=``
-    to the next frame's producer to reuse its buffers (its contents are then overwritten)."""
+    source = source("silhouette.cl")
+
+
+class SilhouetteBits:
+    """Silhouettes on the OpenCL device in the layout of kernels/silhouette.h, one per view: one bit per pixel
+    (rows of Wb = ceil(W/8) bytes, pixel x in bit x % 8 of byte x // 8) and the (Hb+1) x (Wb+1) int32
+    summed-area table of its 8x8 pixel block counts (zero first row and column).
+
+    Written from host masks (``from_masks``) or straight from the camera images by a key kernel
+    (``nodes.key.keying.chroma_key_bits``): both write the bits and the block counts prefixed along rows,
+    then ``prefix_columns`` completes the tables. Allocated once per list of image sizes; hand it back as
+    ``out=`` to the next frame's producer to reuse its buffers (its contents are then overwritten)."""
 
     def __init__(self, sizes: list[tuple[int, int]]):
-        import pyopencl as cl
-
-        from nodegraph import clrt
-
+        run = SilhouetteCL.get()
         self.sizes = [(int(w), int(h)) for w, h in sizes]
         wb = [(w + 7) // 8 for w, _ in self.sizes]
         hb = [(h + 7) // 8 for _, h in self.sizes]
         self.bit_off = np.concatenate([[0], np.cumsum([b * h for b, (_, h) in zip(wb, self.sizes)])]).astype(np.int64)
         self.sat_off = np.concatenate([[0], np.cumsum([(a + 1) * (b + 1) for a, b in zip(wb, hb)])]).astype(np.int64)
         if self.bit_off[-1] >= 2**31 or self.sat_off[-1] >= 2**31:
-            raise NodeError(f"hull: {len(sizes)} silhouettes are too large for 32-bit offsets")
-        ctx, _ = clrt.context()
+            raise NodeError(f"{len(sizes)} silhouettes are too large for 32-bit offsets")
+        import pyopencl as cl
+
         rw = cl.mem_flags.READ_WRITE
-        self.bits = cl.Buffer(ctx, rw, max(int(self.bit_off[-1]), 4))
-        self.sat = cl.Buffer(ctx, rw, max(int(self.sat_off[-1]) * 4, 4))
+        self.bits = cl.Buffer(run.ctx, rw, max(int(self.bit_off[-1]), 4))
+        self.sat = cl.Buffer(run.ctx, rw, max(int(self.sat_off[-1]) * 4, 4))
         self.bit_off_buf = clrt.to_device(self.bit_off[:-1].astype(np.int32))
         self.sat_off_buf = clrt.to_device(self.sat_off[:-1].astype(np.int32))
         self.sizes_buf = clrt.to_device(np.array(self.sizes, np.int32).reshape(-1, 2))
@@ -118,22 +122,32 @@ class SilhouetteBits:
         sizes = [(int(w), int(h)) for w, h in sizes]
         return out if out is not None and out.sizes == sizes else cls(sizes)
 
+    @classmethod
+    def from_masks(cls, masks: list[np.ndarray], out: "SilhouetteBits | None" = None) -> "SilhouetteBits":
+        """Host uint8 (H, W) masks (inside when > 127) to device bits and block tables (into ``out`` when it fits
+        these sizes). Returns when the device is done with the masks."""
+        run = SilhouetteCL.get()
+        sil = cls.reuse(out, [(m.shape[1], m.shape[0]) for m in masks])
+        host = []  # keep the zero-copy host buffers alive until the queue is done
+        for v, m in enumerate(masks):
+            src = run.host(m)
+            host.append(src)
+            rows = (m.shape[0] + 7) // 8 + 1  # work items: rows of the block table, in groups of 8 (PoCL's own
+            # choice ran them on one thread)
+            run.launch("pack_block_rows", rows, 8, src, np.int32(m.shape[1]), np.int32(m.shape[0]), sil.bits,
+                       np.int32(sil.bit_off[v]), sil.sat, np.int32(sil.sat_off[v]))
+        sil.prefix_columns()
+        run.finish()
+        return sil
+
     def prefix_columns(self):
         """Enqueue the column prefix that turns the row-prefixed block counts into summed-area tables."""
-        from nodegraph import clrt
-
         wb = max(w for w, _ in self.sizes) // 8 + 2
-        clrt.kernel(source("hull.cl"), "block_cols")(clrt.queue(), (wb, len(self)), None, self.sat, self.sat_off_buf,
-                                             self.sizes_buf)
+        SilhouetteCL.get().launch("block_cols", (wb, len(self)), None, self.sat, self.sat_off_buf, self.sizes_buf)
 
     def masks(self) -> list[np.ndarray]:
         """The silhouettes back on the host as uint8 (H, W) 0/255 masks (for checks; a read-back)."""
-        import pyopencl as cl
-
-        from nodegraph import clrt
-
-        raw = np.empty(int(self.bit_off[-1]), np.uint8)
-        cl.enqueue_copy(clrt.queue(), raw, self.bits)
+        raw = SilhouetteCL.get().read(self.bits, int(self.bit_off[-1]), np.uint8)
         out = []
         for v, (w, h) in enumerate(self.sizes):
             rows = raw[self.bit_off[v]:self.bit_off[v + 1]].reshape(h, -1)
@@ -142,12 +156,7 @@ class SilhouetteBits:
 
     def block_tables(self) -> list[np.ndarray]:
         """The (Hb+1, Wb+1) int32 summed-area tables back on the host (for checks; a read-back)."""
-        import pyopencl as cl
-
-        from nodegraph import clrt
-
-        raw = np.empty(int(self.sat_off[-1]), np.int32)
-        cl.enqueue_copy(clrt.queue(), raw, self.sat)
+        raw = SilhouetteCL.get().read(self.sat, int(self.sat_off[-1]), np.int32)
         return [raw[self.sat_off[v]:self.sat_off[v + 1]].reshape((h + 7) // 8 + 1, (w + 7) // 8 + 1)
                 for v, (w, h) in enumerate(self.sizes)]
 
@@ -228,33 +237,33 @@ class Silhouettes:
 
 # ---------------------------------------------------------------- NumPy reference
 def view_states(points: np.ndarray, views: Silhouettes, v: int) -> np.ndarray:
-    """Per point (N, 3 float32) in view ``v``: 1 inside the silhouette, 2 background, 3 unseen (behind the
-    camera or outside the image). Float32 in the kernel's order."""
+    """Per point (N, 3 float32) in view ``v``: IN, BACKGROUND or UNSEEN (behind the camera or outside the
+    image). Binary masks: the hull's centre test (``centre_states``); soft alpha: bilinear, inside at >= 0.5.
+    Float32 in the kernel's order (kernels/refine.cl view_state)."""
+    if views.alpha is None:
+        return centre_states(views.masks[v], views.cams[v], np.asarray(points, np.float32))
     c = views.cams[v]
     f = np.float32
     u, w, front = project_packed_f32(c, points)
     W, H = int(c[22]), int(c[23])
     with np.errstate(invalid="ignore"):
-        seen = front & (u >= f(-0.5)) & (u < f(W) - f(0.5)) & (w >= f(-0.5)) & (w < f(H) - f(0.5))
+        fu, fv = u + f(0.5), w + f(0.5)
+        seen = front & (fu >= 0) & (fu < c[22]) & (fv >= 0) & (fv < c[23])
     state = np.full(len(points), UNSEEN, np.uint8)
     u, w = u[seen], w[seen]
-    if views.alpha is not None:
-        a = views.alpha[v]
-        fx0, fy0 = np.floor(u), np.floor(w)
-        fx, fy = u - fx0, w - fy0
-        x0, x1 = np.clip(fx0.astype(np.int64), 0, W - 1), np.clip(fx0.astype(np.int64) + 1, 0, W - 1)
-        y0, y1 = np.clip(fy0.astype(np.int64), 0, H - 1), np.clip(fy0.astype(np.int64) + 1, 0, H - 1)
-        top = (f(1) - fx) * a[y0, x0] + fx * a[y0, x1]
-        bottom = (f(1) - fx) * a[y1, x0] + fx * a[y1, x1]
-        inside = (f(1) - fy) * top + fy * bottom >= f(0.5)
-    else:
-        inside = views.masks[v][(w + f(0.5)).astype(np.int64), (u + f(0.5)).astype(np.int64)] > 127
-    state[seen] = np.where(inside, IN, BACKGROUND)
+    a = views.alpha[v]
+    fx0, fy0 = np.floor(u), np.floor(w)
+    fx, fy = u - fx0, w - fy0
+    x0, x1 = np.clip(fx0.astype(np.int64), 0, W - 1), np.clip(fx0.astype(np.int64) + 1, 0, W - 1)
+    y0, y1 = np.clip(fy0.astype(np.int64), 0, H - 1), np.clip(fy0.astype(np.int64) + 1, 0, H - 1)
+    top = (f(1) - fx) * a[y0, x0] + fx * a[y0, x1]
+    bottom = (f(1) - fx) * a[y1, x0] + fx * a[y1, x1]
+    state[seen] = np.where((f(1) - fy) * top + fy * bottom >= f(0.5), IN, BACKGROUND)
     return state
 
 
 def inside_hull(points: np.ndarray, views: Silhouettes) -> np.ndarray:
-    """Boolean per point: inside the visual hull under the vote rule (see kernels/refine.cl)."""
+    """Boolean per point: inside the visual hull under the vote rule (kernels/refine.cl hull_inside)."""
     points = np.asarray(points, np.float32).reshape(-1, 3)
     n_in = np.zeros(len(points), np.int32)
     n_bg = np.zeros(len(points), np.int32)
@@ -303,91 +312,72 @@ def clamp_reference(a, b, views: Silhouettes, steps: int, dirs=None, reach: floa
 
 
 # ---------------------------------------------------------------- OpenCL
+class PointTestCL(clrt.Runner):
+    """kernels/refine.cl: the point test, exit (bisection) and clamp kernels."""
+
+    source = source("refine.cl")
+
+
 class HullTestCL:
-    """The silhouettes on the device and the kernels of kernels/refine.cl (point test, exit, clamp)."""
+    """The silhouettes of ``views`` on the device (binary masks as SilhouetteBits, soft alpha as floats) and the
+    point test kernels: ``inside``, ``exit``, ``clamp`` (as the NumPy ``inside_hull``, ``exit_reference``,
+    ``clamp_reference``)."""
+
+    GROUP = 64
 
     def __init__(self, views: Silhouettes):
-        from nodegraph import clrt
-
-        self.ctx, self.queue = clrt.context()
+        self.run = PointTestCL.get()
         self.views = views
-        sizes = [m.size for m in views.masks]
-        mask_off = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int32)
         self.d_cams = clrt.to_device(views.cams)
-        self.d_masks = clrt.to_device(np.concatenate([m.ravel() for m in views.masks]))
-        self.d_mask_off = clrt.to_device(mask_off)
         if views.alpha is not None:
+            sizes = [a.size for a in views.alpha]
             self.d_alpha = clrt.to_device(np.concatenate([a.ravel() for a in views.alpha]).astype(np.float32))
-            self.d_alpha_off = self.d_mask_off
+            self.d_alpha_off = clrt.to_device(np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int32))
+            self.bits = None
+            self.d_bits, self.d_bit_off = clrt.to_device(np.zeros(4, np.uint8)), clrt.to_device(np.zeros(len(sizes), np.int32))
         else:
+            self.bits = SilhouetteBits.from_masks(views.masks)
+            self.d_bits, self.d_bit_off = self.bits.bits, self.bits.bit_off_buf
             self.d_alpha = clrt.to_device(np.zeros(1, np.float32))
-            self.d_alpha_off = clrt.to_device(np.zeros(len(sizes), np.int32))
-        self.kernels = {k: clrt.kernel(source("refine.cl"), k) for k in ("hull_exit", "hull_clamp", "hull_inside")}
+            self.d_alpha_off = clrt.to_device(np.zeros(len(views.masks), np.int32))
 
     def hull_args(self) -> tuple:
         v = self.views
-        return (self.d_cams, np.int32(len(v.cams)), self.d_masks, self.d_mask_off, self.d_alpha, self.d_alpha_off,
+        return (self.d_cams, np.int32(len(v.cams)), self.d_bits, self.d_bit_off, self.d_alpha, self.d_alpha_off,
                 np.int32(v.alpha is not None), np.int32(v.min_views), np.int32(POLICIES.index(v.policy)))
 
-    def enqueue_exit(self, d_a, d_b, n: int, steps: int, d_out):
-        """Enqueue ``hull_exit`` on device buffers of n float3 points (no copies)."""
-        import pyopencl as cl
-
-        k = self.kernels["hull_exit"]
-        k.set_args(d_a, d_b, np.int32(n), np.int32(steps), *self.hull_args(), d_out)
-        cl.enqueue_nd_range_kernel(self.queue, k, (-(-n // 64) * 64,), None)
-
-    def enqueue_clamp(self, d_a, d_b, d_dirs, reach: float, n: int, steps: int, d_out):
-        """Enqueue ``hull_clamp`` on device buffers of n float3 points (no copies)."""
-        import pyopencl as cl
-
-        k = self.kernels["hull_clamp"]
-        k.set_args(d_a, d_b, d_dirs, np.float32(reach), np.int32(n), np.int32(steps), *self.hull_args(), d_out)
-        cl.enqueue_nd_range_kernel(self.queue, k, (-(-n // 64) * 64,), None)
-
-    def _run(self, arrays: list, enqueue) -> np.ndarray:
-        import pyopencl as cl
-
-        from nodegraph import clrt
-
-        arrays = [np.ascontiguousarray(x, np.float32).reshape(-1, 3) for x in arrays]
-        out = np.empty_like(arrays[0])
-        if len(out) == 0:
-            return out
-        d_out = cl.Buffer(self.ctx, cl.mem_flags.WRITE_ONLY, out.nbytes)
-        bufs = [clrt.to_device(x) for x in arrays]  # kept alive until the copy below has finished
-        enqueue(*bufs, d_out)
-        cl.enqueue_copy(self.queue, out, d_out, is_blocking=True)
-        return out
+    def _points(self, *arrays) -> list:
+        return [np.ascontiguousarray(x, np.float32).reshape(-1, 3) for x in arrays]
 
     def exit(self, a, b, steps: int) -> np.ndarray:
         """As ``exit_reference``."""
-        n = len(np.asarray(a).reshape(-1, 3))
-        return self._run([a, b], lambda da, db, do: self.enqueue_exit(da, db, n, steps, do))
+        a, b = self._points(a, b)
+        if len(a) == 0:
+            return a.copy()
+        out = self.run.buffer("out", a.nbytes)
+        self.run.launch("hull_exit", len(a), self.GROUP, self.run.host(a), self.run.host(b), np.int32(len(a)),
+                        np.int32(steps), *self.hull_args(), out)
+        return self.run.read(out, a.shape, np.float32)
 
     def clamp(self, a, b, steps: int, dirs=None, reach: float = 0.0) -> np.ndarray:
         """As ``clamp_reference``."""
-        n = len(np.asarray(a).reshape(-1, 3))
-        dirs = np.zeros((n, 3), np.float32) if dirs is None else dirs
-        return self._run([a, b, dirs], lambda da, db, dd, do: self.enqueue_clamp(da, db, dd, reach, n, steps, do))
+        a, b = self._points(a, b)
+        if len(a) == 0:
+            return a.copy()
+        (d,) = self._points(np.zeros_like(a) if dirs is None else dirs)
+        out = self.run.buffer("out", a.nbytes)
+        self.run.launch("hull_clamp", len(a), self.GROUP, self.run.host(a), self.run.host(b), self.run.host(d),
+                        np.float32(reach), np.int32(len(a)), np.int32(steps), *self.hull_args(), out)
+        return self.run.read(out, a.shape, np.float32)
 
     def inside(self, points) -> np.ndarray:
         """Boolean per point, as ``inside_hull``."""
-        import pyopencl as cl
-
-        from nodegraph import clrt
-
-        p = np.ascontiguousarray(points, np.float32).reshape(-1, 3)
-        out = np.zeros(len(p), np.uint8)
+        (p,) = self._points(points)
         if len(p) == 0:
-            return out.astype(bool)
-        d_out = cl.Buffer(self.ctx, cl.mem_flags.WRITE_ONLY, out.nbytes)
-        k = self.kernels["hull_inside"]
-        d_p = clrt.to_device(p)  # kept alive until the copy below has finished
-        k.set_args(d_p, np.int32(len(p)), *self.hull_args(), d_out)
-        cl.enqueue_nd_range_kernel(self.queue, k, (-(-len(p) // 64) * 64,), None)
-        cl.enqueue_copy(self.queue, out, d_out, is_blocking=True)
-        return out.astype(bool)
+            return np.zeros(0, bool)
+        out = self.run.buffer("inside", len(p))
+        self.run.launch("hull_inside", len(p), self.GROUP, self.run.host(p), np.int32(len(p)), *self.hull_args(), out)
+        return self.run.read(out, len(p), np.uint8).astype(bool)
 
 
 class HullTestNumPy:

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from nodegraph import Files, Node, NodeError, OutPath, Param
@@ -56,8 +55,11 @@ class ExportMasks(Node):
     }
 
     def run(self, masks, *, path, alpha, frame):
+        import cv2
+
         import tempfile
 
+        
         files = {}
         for i, (name, m) in enumerate(zip(masks.names, masks.masks)):
             rel = _format(path, frame=frame, camera=name)
@@ -159,6 +161,8 @@ def vertex_colours(mesh) -> np.ndarray | None:
 
 
 def _png(img: np.ndarray) -> bytes:
+    import cv2
+
     ok, buf = cv2.imencode(".png", np.ascontiguousarray(img[:, :, ::-1]))
     if not ok:
         raise NodeError("could not encode the texture as PNG")

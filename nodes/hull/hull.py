@@ -18,11 +18,10 @@ import math
 import numpy as np
 
 from kernels import source
-from nodegraph import NodeError
-from nodegraph.clrt import DeviceBuffers
+from nodegraph import Input, Node, NodeError, Param, clrt
 from nodes.common.cameras import PACK_FLOATS, Cameras
 from nodes.common.silhouettes import POLICIES, SilhouetteBits, centre_states, check_masks, check_silhouettes, vote
-from nodes.common.types import VoxelGrid
+from nodes.common.types import Bounds, CameraSet, Masks, Volume, VoxelGrid
 
 COARSE_CELLS = 16  # the first sparse level has at most this many cells along the longest side
 
@@ -67,52 +66,22 @@ def hull_reference(masks: list[np.ndarray], cameras: Cameras, bbox_min, voxel_si
     return vote(n_in, n_out, len(masks), min_views, policy).astype(np.uint8).reshape(dims)
 
 
-class HullCL:
-    """Device buffers and kernels of the hull, kept between frames (one per process)."""
+class HullCL(clrt.Runner):
+    """The hull kernels (kernels/hull.cl); buffers and coarse cell lists kept between frames."""
+
+    source = source("hull.cl")
+    GROUP = 64  # whole work-groups: PoCL runs odd sizes as tiny groups
 
     def __init__(self):
-        from nodegraph import clrt
-
-        self.ctx, self.queue = clrt.context()
-        self.k = {name: clrt.kernel(source("hull.cl"), name) for name in ("pack_block_rows", "hull_dense", "hull_cells")}
-        self.buffers = DeviceBuffers(self.ctx)
+        super().__init__()
         self.coarse: dict[tuple, np.ndarray] = {}
-        self.silhouettes: SilhouetteBits | None = None  # what prepare() fills, reused between frames
-
-    def upload(self, name: str, arr: np.ndarray):
-        import pyopencl as cl
-
-        buf = self.buffers.get(name, arr.nbytes)
-        cl.enqueue_copy(self.queue, buf, np.ascontiguousarray(arr), is_blocking=False)
-        return buf
-
-    def prepare(self, masks: list[np.ndarray], out: SilhouetteBits | None = None) -> SilhouetteBits:
-        """Host uint8 masks to device silhouettes: bits and 8x8-block summed-area tables (into ``out`` when it
-        fits, else into buffers kept here)."""
-        import pyopencl as cl
-
-        sizes = [(m.shape[1], m.shape[0]) for m in masks]
-        sil = SilhouetteBits.reuse(out if out is not None else self.silhouettes, sizes)
-        if out is None:
-            self.silhouettes = sil
-        mf = cl.mem_flags
-        host = []  # keep the zero-copy host buffers alive until the queue is done
-        for v, m in enumerate(masks):
-            src = cl.Buffer(self.ctx, mf.READ_ONLY | mf.USE_HOST_PTR, hostbuf=m)
-            host.append(src)
-            rows = (m.shape[0] + 7) // 8 + 1  # work items: rows of the block table, in groups of 8 (PoCL's own
-            # choice ran them on one thread)
-            self.k["pack_block_rows"](self.queue, (-(-rows // 8) * 8,), (8,), src, np.int32(m.shape[1]),
-                                      np.int32(m.shape[0]), sil.bits, np.int32(sil.bit_off[v]), sil.sat,
-                                      np.int32(sil.sat_off[v]))
-        sil.prefix_columns()
-        self.queue.finish()
-        return sil
+        self.silhouettes: SilhouetteBits | None = None  # what hull() packs host masks into, reused between frames
 
     def hull(self, masks, cameras: Cameras, bbox_min, voxel_size, dims, min_views=0, policy="carve",
              method="sparse") -> np.ndarray:
-        """Hull of host masks (list of uint8 (H, W)): ``prepare`` then ``carve``."""
-        return self.carve(self.prepare(masks), cameras, bbox_min, voxel_size, dims, min_views, policy, method)
+        """Hull of host masks (list of uint8 (H, W)): packed to device bits, then ``carve``."""
+        self.silhouettes = SilhouetteBits.from_masks(masks, out=self.silhouettes)
+        return self.carve(self.silhouettes, cameras, bbox_min, voxel_size, dims, min_views, policy, method)
 
     def carve(self, sil: SilhouetteBits, cameras: Cameras, bbox_min, voxel_size, dims, min_views=0, policy="carve",
               method="sparse") -> np.ndarray:
@@ -128,33 +97,28 @@ class HullCL:
         f4 = lambda a: np.array([*np.asarray(a, np.float32), 0], np.float32)  # noqa: E731
         common = (np.int32(nx), np.int32(ny), np.int32(nz), np.int32(min_views), np.int32(POLICIES.index(policy)))
         geo = (f4(bbox_min), f4(voxel_size))
-        vol = self.buffers.get("vol", nx * ny * nz)
+        vol = self.buffer("vol", nx * ny * nz)
         nviews = np.int32(len(sil))
         if method == "dense":
-            self.k["hull_dense"](self.queue, (nz, ny, nx), None, cams, nviews, bits, boff, *geo, *common, vol)
+            self.launch("hull_dense", (nz, ny, nx), None, cams, nviews, bits, boff, *geo, *common, vol)
         else:
             cl.enqueue_fill_buffer(self.queue, vol, np.uint8(0), 0, nx * ny * nz)
             level = max(1, math.ceil(math.log2(max(dims) / COARSE_CELLS))) if max(dims) > 1 else 1
             cells = self.coarse_cells(dims, level)
             src = self.upload("cells_a", cells)
             count = len(cells)
-            counter = np.zeros(1, np.int32)
-            cbuf = self.buffers.get("counter", 4)
+            cbuf = self.buffer("counter", 4)
             names = ["cells_a", "cells_b"]  # ping-pong: read the one, append children to the other
             while count:
                 names.reverse()
-                dst = self.buffers.get(names[0], 8 * count * 4)
+                dst = self.buffer(names[0], 8 * count * 4)
                 cl.enqueue_copy(self.queue, cbuf, np.zeros(1, np.int32), is_blocking=False)
-                groups = -(-count // 64) * 64  # whole work-groups: PoCL runs odd sizes as tiny groups
-                self.k["hull_cells"](self.queue, (groups,), (64,), cams, nviews, bits, boff, sat, soff, *geo, *common,
-                                     np.int32(level), src, np.int32(count), dst, cbuf, vol)
+                self.launch("hull_cells", count, self.GROUP, cams, nviews, bits, boff, sat, soff, *geo, *common,
+                            np.int32(level), src, np.int32(count), dst, cbuf, vol)
                 if level == 1:
                     break
-                cl.enqueue_copy(self.queue, counter, cbuf)
-                count, src, level = int(counter[0]), dst, level - 1
-        out = np.empty(dims, np.uint8)
-        cl.enqueue_copy(self.queue, out, vol, is_blocking=True)
-        return out
+                count, src, level = int(self.read(cbuf, 1, np.int32)[0]), dst, level - 1
+        return self.read(vol, dims, np.uint8)
 
     def coarse_cells(self, dims, level) -> np.ndarray:
         key = (*dims, level)
@@ -165,19 +129,11 @@ class HullCL:
         return self.coarse[key]
 
 
-_HULL_CL: HullCL | None = None
-
-
-def hull_cl() -> HullCL:
-    global _HULL_CL
-    if _HULL_CL is None:
-        _HULL_CL = HullCL()
-    return _HULL_CL
-
-
 def visual_hull(masks, cameras: Cameras, box, resolution=128, min_views=0, policy="carve", method="sparse") -> VoxelGrid:
-    """Visual hull over ``box`` (2, 3) as a VoxelGrid of uint8 0/1, from ``masks``: a MaskSet, or
-    SilhouetteBits already on the device (e.g. from nodes.key.chroma_key_bits; no host round trip)."""
+    """Visual hull over ``box`` (2, 3) as a VoxelGrid of uint8 0/1, from ``masks``: a MaskSet, or SilhouetteBits
+    already on the device (from the chroma key, as such or as the ``device`` of its MaskSet: no host round trip)."""
+    if getattr(masks, "device", None) is not None and method != "numpy":
+        masks = masks.device
     on_device = isinstance(masks, SilhouetteBits)
     if on_device:
         check_silhouettes(masks, cameras)
@@ -197,7 +153,41 @@ def visual_hull(masks, cameras: Cameras, box, resolution=128, min_views=0, polic
     if method == "numpy":
         occ = hull_reference(masks.masks() if on_device else arrays, cameras, bmin, vs, dims, min_views, policy)
     elif on_device:
-        occ = hull_cl().carve(masks, cameras, bmin, vs, dims, min_views, policy, method)
+        occ = HullCL.get().carve(masks, cameras, bmin, vs, dims, min_views, policy, method)
     else:
-        occ = hull_cl().hull(arrays, cameras, bmin, vs, dims, min_views, policy, method)
+        occ = HullCL.get().hull(arrays, cameras, bmin, vs, dims, min_views, policy, method)
     return VoxelGrid(occ, bmin, bmax)
+
+
+# ---------------------------------------------------------------- node
+class Hull(Node):
+    """Volumetric visual hull: voxels whose centre falls inside the silhouettes (OpenCL, coarse-to-fine)."""
+
+    type_name = "hull"
+    version = 1
+    inputs = {"masks": Masks, "cameras": CameraSet,
+              "bounds": Input(Bounds, optional=True, doc="box to carve when the bbox param is not given")}
+    outputs = {"volume": Volume}
+    params = {
+        "resolution": Param(int, 128, range=(8, 1024), doc="voxels along the longest bbox side; others proportional"),
+        "bbox": Param(list, None, item=float, length=6, doc="xmin ymin zmin xmax ymax zmax; default: the bounds input"),
+        "min_views": Param(int, 0, range=(0, None), doc="0 = all views; k = inside at least k silhouettes"),
+        "outside": Param(str, "carve", choices=POLICIES, doc="voxels projecting outside an image: carve, or ignore that view"),
+        "method": Param(str, "sparse", choices=("sparse", "dense", "numpy"), doc="coarse-to-fine, every voxel, or NumPy"),
+    }
+    kernels = [source("hull.cl")]
+
+    def run(self, masks, cameras, bounds=None, *, resolution, bbox, min_views, outside, method):
+        if bbox is not None:
+            box = np.array(bbox, dtype=np.float64).reshape(2, 3)
+            if not np.all(box[1] > box[0]):
+                raise NodeError(f"hull: param 'bbox' {bbox} needs max > min on every axis (xmin ymin zmin xmax ymax zmax)")
+        elif bounds is not None:
+            box = np.asarray(bounds, dtype=np.float64)
+        else:
+            raise NodeError("hull: no box to carve: set param 'bbox' or connect the 'bounds' input")
+        volume = visual_hull(masks, cameras, box, resolution, min_views, outside, method)
+        if not volume.occupancy.any():
+            self.log.warning("hull: no voxel is inside the silhouettes: the box %s misses the object, or the masks "
+                             "and cameras disagree (the mesh will be empty)", np.round(box, 6).ravel().tolist())
+        return {"volume": volume}

@@ -146,65 +146,11 @@ def grey_threshold_reference(rgb, t, use_max=False):
     return np.where(g > np.float32(t), 255, 0).astype(np.uint8)
 
 
-# ---------------------------------------------------------------- OpenCL runners
-class _Buffers:
-    """Device buffers kept between calls (by role and size), so a sequence of same-size frames allocates once."""
+# ---------------------------------------------------------------- OpenCL
+class KeyCL(clrt.Runner):
+    """The key kernels (kernels/key.cl); buffers kept between frames, so same-size frames allocate once."""
 
-    def __init__(self):
-        self._bufs = {}  # role -> (nbytes, buffer): one buffer per role, replaced when the size changes
-
-    def get(self, role: str, nbytes: int, flags, grow_only=False):
-        """The buffer of ``role``, reallocated when its size differs (or, with ``grow_only``, is too small)."""
-        import pyopencl as cl
-
-        have = self._bufs.get(role)
-        if have is None or (have[0] < nbytes if grow_only else have[0] != nbytes):
-            have = (nbytes, cl.Buffer(clrt.context()[0], flags, max(nbytes, 4)))
-            self._bufs[role] = have
-        return have[1]
-
-
-_buffers = _Buffers()
-
-
-def _upload(role: str, arr: np.ndarray, grow_only=False):
-    import pyopencl as cl
-
-    arr = np.ascontiguousarray(arr)
-    buf = _buffers.get(role, arr.nbytes, cl.mem_flags.READ_ONLY, grow_only)
-    cl.enqueue_copy(clrt.queue(), buf, arr, is_blocking=False)
-    return buf
-
-
-def _host_buffer(arr: np.ndarray):
-    """A read-only device buffer over the array's own memory (no copy on a CPU device); keep ``arr`` alive
-    until the queue has finished with it (the blocking reads below do)."""
-    import pyopencl as cl
-
-    flags = cl.mem_flags.READ_ONLY | cl.mem_flags.USE_HOST_PTR
-    return cl.Buffer(clrt.context()[0], flags, hostbuf=np.ascontiguousarray(arr))
-
-
-def _output(role: str, nbytes: int):
-    import pyopencl as cl
-
-    return _buffers.get(role, nbytes, cl.mem_flags.WRITE_ONLY)
-
-
-def _read(buf, shape, dtype=np.uint8) -> np.ndarray:
-    import pyopencl as cl
-
-    out = np.empty(shape, dtype)
-    cl.enqueue_copy(clrt.queue(), out, buf)
-    return out
-
-
-def _launch(name: str, npix: int, *args):
-    import pyopencl as cl
-
-    k = clrt.kernel(KERNELS, name)
-    k.set_args(*args)
-    cl.enqueue_nd_range_kernel(clrt.queue(), k, (npix,), None)
+    source = KERNELS
 
 
 CHROMA_PIX = 16  # pixels per work item of the chroma_key and difference_key kernels
@@ -217,29 +163,25 @@ def chroma_key_cl(rgb, key, *, side=1.0, luma_floor=16.0, inner=0.05, outer=0.2,
     """OpenCL ``chroma_key`` on one (H, W, 3) uint8 image: (alpha uint8 (H, W), despilled (H, W, 3) or None
     when ``despill`` is false). ``timings``, a dict, receives the seconds of upload / kernel / download
     (this waits for each step, so leave it None outside benchmarks)."""
-    import pyopencl as cl
     from pyopencl import cltypes
 
+    run = KeyCL.get()
     h, w = rgb.shape[:2]
     npix = h * w
     edges = np.zeros((0, 4), np.float32) if edges is None else np.asarray(edges, np.float32)
     clock = _Clock(timings)
-    src = _host_buffer(rgb)
-    spans = _buffers.get("matte_spans", 8 * h, cl.mem_flags.READ_WRITE)  # inside span of each row
+    src = run.host(rgb)
+    spans = run.buffer("matte_spans", 8 * h)  # inside span of each row
     if len(edges):
-        _launch("matte_rows", h, _upload("edges", edges, grow_only=True), np.int32(len(edges)), np.int32(w),
-                np.int32(h), spans)
+        run.launch("matte_rows", h, None, run.upload("edges", edges), np.int32(len(edges)), np.int32(w), np.int32(h), spans)
     clock.lap("upload")
-    alpha, desp = _output("alpha", npix), _output("rgb_out", npix * 3 if despill else 1)
+    alpha, desp = run.buffer("alpha", npix), run.buffer("rgb_out", npix * 3 if despill else 1)
     f = np.float32
-    k = clrt.kernel(KERNELS, "chroma_key")
-    k.set_args(src, np.int32(npix), cltypes.make_float2(*map(float, key)), f(side), f(luma_floor), f(inner),
-               f(1.0 / (outer - inner)), f(black), f(spill), np.int32(w), spans, np.int32(len(edges) > 0), alpha,
-               np.int32(bool(despill)), desp)
-    items = -(-npix // CHROMA_PIX)
-    cl.enqueue_nd_range_kernel(clrt.queue(), k, (-(-items // CHROMA_GROUP) * CHROMA_GROUP,), (CHROMA_GROUP,))
+    run.launch("chroma_key", -(-npix // CHROMA_PIX), CHROMA_GROUP, src, np.int32(npix),
+               cltypes.make_float2(*map(float, key)), f(side), f(luma_floor), f(inner), f(1.0 / (outer - inner)),
+               f(black), f(spill), np.int32(w), spans, np.int32(len(edges) > 0), alpha, np.int32(bool(despill)), desp)
     clock.lap("kernel")
-    out = _read(alpha, (h, w)), (_read(desp, (h, w, 3)) if despill else None)
+    out = run.read(alpha, (h, w)), (run.read(desp, (h, w, 3)) if despill else None)
     clock.lap("download")
     return out
 
@@ -247,12 +189,12 @@ def chroma_key_cl(rgb, key, *, side=1.0, luma_floor=16.0, inner=0.05, outer=0.2,
 def chroma_key_bits(images, key, *, side=1.0, luma_floor=16.0, inner=0.05, outer=0.2, black=0.0, edges=None,
                     out=None):
     """The chroma key's silhouettes (alpha >= 128, the key.chroma node's masks) of (H, W, 3) uint8 ``images``
+    (``key``: one key direction for all, or one per image)
     straight into the visual hull's device layout: ``nodes.hull.SilhouetteBits`` (bits and 8x8 block tables),
     with no alpha written, read back or re-packed; ``visual_hull`` takes the result as its masks. ``edges``:
     a garbage matte per view (``matte_edges``) or None; pixels outside the matte are not even read.
     ``out``: the SilhouetteBits of the previous frame, to reuse (overwritten). Returns when the device is done
     (the images may then change)."""
-    import pyopencl as cl
     from pyopencl import cltypes
 
     for v, im in enumerate(images):
@@ -264,25 +206,26 @@ def chroma_key_bits(images, key, *, side=1.0, luma_floor=16.0, inner=0.05, outer
               for e in (edges if edges is not None else [None] * len(images))]
     if len(mattes) != len(images):
         raise NodeError(f"key.chroma: {len(images)} images but {len(mattes)} garbage mattes")
+    keys = [key] * len(images) if np.ndim(key) == 1 else list(key)
+    if len(keys) != len(images):
+        raise NodeError(f"key.chroma: {len(images)} images but {len(keys)} key colours")
     sizes = [(im.shape[1], im.shape[0]) for im in images]
     sil = SilhouetteBits.reuse(out, sizes)
     first = np.concatenate([[0], np.cumsum([len(e) for e in mattes])])
-    ebuf = _upload("edges_all", np.concatenate([*mattes, np.zeros((1, 4), np.float32)]), grow_only=True)
-    k = clrt.kernel(KERNELS, "chroma_key_bits")
+    run = KeyCL.get()
+    ebuf = run.upload("edges_all", np.concatenate([*mattes, np.zeros((1, 4), np.float32)]))
     f = np.float32
-    q = clrt.queue()
     host = []
     for v, im in enumerate(images):
-        src = _host_buffer(im)
+        src = run.host(im)
         host.append(src)
         w, h = sizes[v]
-        k.set_args(src, np.int32(w), np.int32(h), cltypes.make_float2(*map(float, key)), f(side), f(luma_floor),
-                   f(inner), f(1.0 / (outer - inner)), f(black), ebuf, np.int32(first[v]), np.int32(len(mattes[v])),
-                   sil.bits, np.int32(sil.bit_off[v]), sil.sat, np.int32(sil.sat_off[v]))
         rows = (h + 7) // 8 + 1  # work items: rows of the block table
-        cl.enqueue_nd_range_kernel(q, k, (-(-rows // BITS_GROUP) * BITS_GROUP,), (BITS_GROUP,))
+        run.launch("chroma_key_bits", rows, BITS_GROUP, src, np.int32(w), np.int32(h), cltypes.make_float2(*map(float, keys[v])),
+                   f(side), f(luma_floor), f(inner), f(1.0 / (outer - inner)), f(black), ebuf, np.int32(first[v]),
+                   np.int32(len(mattes[v])), sil.bits, np.int32(sil.bit_off[v]), sil.sat, np.int32(sil.sat_off[v]))
     sil.prefix_columns()
-    q.finish()  # the images' zero-copy buffers must outlive the kernels
+    run.finish()  # the images' zero-copy buffers must outlive the kernels
     return sil
 
 
@@ -298,7 +241,7 @@ class _Clock:
     def lap(self, step: str):
         if self.timings is None:
             return
-        clrt.queue().finish()
+        KeyCL.get().finish()
         t = self.now()
         self.timings[step] = self.timings.get(step, 0.0) + t - self.t
         self.t = t
@@ -307,30 +250,24 @@ class _Clock:
 def difference_key_cl(rgb, mean, inv_var, *, cd_inner=4.0, cd_outer=8.0, shadow=0.5, highlight=1.2, still=3.0):
     """OpenCL ``difference_key`` on one (H, W, 3) uint8 image against a plate model (mean, inv_var: (H, W, 3)
     float32; read in place, not copied): (alpha uint8 (H, W), class uint8 (H, W))."""
-    import pyopencl as cl
-
+    run = KeyCL.get()
     h, w = rgb.shape[:2]
     npix = h * w
     f = np.float32
-    src = _host_buffer(rgb)
-    mbuf = _host_buffer(np.asarray(mean, f))
-    vbuf = _host_buffer(np.asarray(inv_var, f))
-    alpha, label = _output("alpha", npix), _output("label", npix)
-    k = clrt.kernel(KERNELS, "difference_key")
-    k.set_args(src, mbuf, vbuf, np.int32(npix), f(cd_inner), f(cd_outer), f(shadow), f(highlight), f(still),
-               alpha, label)
-    items = -(-npix // CHROMA_PIX)
-    cl.enqueue_nd_range_kernel(clrt.queue(), k, (-(-items // CHROMA_GROUP) * CHROMA_GROUP,), (CHROMA_GROUP,))
-    return _read(alpha, (h, w)), _read(label, (h, w))
+    bufs = run.host(rgb), run.host(np.asarray(mean, f)), run.host(np.asarray(inv_var, f))
+    alpha, label = run.buffer("alpha", npix), run.buffer("label", npix)
+    run.launch("difference_key", -(-npix // CHROMA_PIX), CHROMA_GROUP, *bufs, np.int32(npix), f(cd_inner), f(cd_outer),
+               f(shadow), f(highlight), f(still), alpha, label)
+    return run.read(alpha, (h, w)), run.read(label, (h, w))
 
 
 def grey_threshold_cl(rgb, t, use_max=False):
+    run = KeyCL.get()
     h, w = rgb.shape[:2]
     npix = h * w
-    src = _upload("rgb", rgb)
-    out = _output("alpha", npix)
-    _launch("grey_threshold", npix, src, np.int32(npix), np.float32(t), np.int32(bool(use_max)), out)
-    return _read(out, (h, w))
+    out = run.buffer("alpha", npix)
+    run.launch("grey_threshold", npix, None, run.host(rgb), np.int32(npix), np.float32(t), np.int32(bool(use_max)), out)
+    return run.read(out, (h, w))
 
 
 # ---------------------------------------------------------------- mask clean-up and consensus (CPU, OpenCV)
@@ -452,3 +389,30 @@ def plate_model(plate: np.ndarray, noise_floor: float) -> tuple[np.ndarray, np.n
     sigma = np.maximum(mad, noise_floor).astype(np.float32)
     inv_var = np.broadcast_to(1.0 / sigma**2, plate.shape).astype(np.float32, order="C")  # kernels read it in place
     return plate.astype(np.float32), inv_var
+
+
+# ---------------------------------------------------------------- device probe
+@clrt.register_probe
+def probe_keys() -> float:
+    """The OpenCL device probe of the key kernels (nodegraph.clrt ranks devices by it): the chroma key checked
+    against its NumPy reference on a small image (a device that disagrees is not used), then the best of 5 of
+    chroma_key + difference_key on a 1920x1080 frame held as NumPy gives it (not page-aligned), ms."""
+    import time
+
+    rng = np.random.default_rng(0)
+    small = rng.integers(0, 256, (37, 53, 3), dtype=np.uint8)
+    key = key_direction_from_rgb([31, 158, 56])
+    got, want = chroma_key_cl(small, key, despill=False)[0], chroma_key_reference(small, key)[0]
+    if np.abs(got.astype(int) - want.astype(int)).max() > 1:
+        raise RuntimeError("chroma_key disagrees with its NumPy reference on this device")
+    frame = np.ascontiguousarray(np.broadcast_to(np.array([40, 170, 60], np.uint8), (1080, 1920, 3)))
+    frame[300:800, 700:1200] = (180, 60, 50)
+    mean, inv_var = plate_model(np.ascontiguousarray(np.broadcast_to(np.array([40, 170, 60], np.uint8), frame.shape)), 4.0)
+    best = float("inf")
+    for i in range(6):
+        t = time.perf_counter()
+        chroma_key_cl(frame, key, despill=False)
+        difference_key_cl(frame, mean, inv_var)
+        if i:
+            best = min(best, time.perf_counter() - t)
+    return best * 1e3

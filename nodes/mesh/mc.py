@@ -23,8 +23,7 @@ from functools import lru_cache
 import numpy as np
 
 from kernels import source
-from nodegraph import Node, NodeError, Param
-from nodegraph.clrt import DeviceBuffers
+from nodegraph import Node, NodeError, Param, clrt
 from nodes.common.meshops import largest_component
 from nodes.common.types import Mesh, Volume
 
@@ -183,42 +182,31 @@ def marching_cubes_reference(volume, level: float = 0.5) -> tuple[np.ndarray, np
 
 
 # ---------------------------------------------------------------- OpenCL
-def _rounded(n: int, group: int) -> int:
-    return -(-n // group) * group
-
-
-class MarchingCubesCL:
+class MarchingCubesCL(clrt.Runner):
     """Kernels, case tables and work buffers on the device (one per process; buffers grow and are reused)."""
 
+    source = source("mc.cl")
     GROUP = 32  # work-items per group along j: PoCL runs odd global sizes as tiny groups
 
     def __init__(self):
-        from nodegraph import clrt
-
-        self.ctx, self.queue = clrt.context()
+        super().__init__()
         ntri, table = case_table()
         self.ntri = clrt.to_device(ntri)
         self.table = clrt.to_device(table.astype(np.int8).reshape(256, -1))
         self.max_tris = table.shape[1]
-        self.buffers = DeviceBuffers(self.ctx)
-        self.host: dict[str, np.ndarray] = {}
+        self.host_arrays: dict[str, np.ndarray] = {}
 
-    def kernel(self, name: str, voxel: str):
-        from nodegraph import clrt
-
-        opts = (f"-DVOXEL={voxel}", f"-DMAX_TRIS={self.max_tris}") + (("-DVOXEL_UCHAR",) if voxel == "uchar" else ())
-        return clrt.kernel(source("mc.cl"), name, opts)
+    def voxel_options(self, voxel: str) -> tuple[str, ...]:
+        return (f"-DVOXEL={voxel}", f"-DMAX_TRIS={self.max_tris}") + (("-DVOXEL_UCHAR",) if voxel == "uchar" else ())
 
     def scratch(self, name: str, shape: tuple, dtype) -> np.ndarray:
         """A host array of this shape, kept between calls."""
-        arr = self.host.get(name)
+        arr = self.host_arrays.get(name)
         if arr is None or arr.shape != shape or arr.dtype != dtype:
-            arr = self.host[name] = np.empty(shape, dtype)
+            arr = self.host_arrays[name] = np.empty(shape, dtype)
         return arr
 
     def run(self, volume, level: float) -> tuple[np.ndarray, np.ndarray]:
-        import pyopencl as cl
-
         occ = volume.occupancy
         if occ.dtype == np.uint8:
             voxel = "uchar"
@@ -227,18 +215,17 @@ class MarchingCubesCL:
         else:
             voxel, occ = "float", occ.astype(np.float32, copy=False)
         occ = np.ascontiguousarray(occ)
+        opts = self.voxel_options(voxel)
         nx, ny, nz = occ.shape
         rows = (nx + 1) * (ny + 1)  # cell rows of the padded grid
         dims = (np.int32(nx), np.int32(ny), np.int32(nz), np.float32(level), np.int32(0 > level))
-        vol = cl.Buffer(self.ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.USE_HOST_PTR, hostbuf=occ)  # no copy on CPUs
-        spans = self.buffers.get("spans", nx * ny * 8)
-        cbuf = self.buffers.get("counts", 3 * rows * 4)
+        vol = self.host(occ)  # no copy on CPUs
+        spans = self.buffer("spans", nx * ny * 8)
+        cbuf = self.buffer("counts", 3 * rows * 4)
         g = self.GROUP
-        self.kernel("mc_spans", voxel)(self.queue, (_rounded(ny, g), nx), (g, 1), vol, *dims, spans)
-        cell_rows = ((_rounded(ny + 1, g), nx + 1), (g, 1))
-        self.kernel("mc_count", voxel)(self.queue, *cell_rows, vol, *dims, spans, self.ntri, cbuf)
-        counts = self.scratch("counts", (3, rows), np.int32)
-        cl.enqueue_copy(self.queue, counts, cbuf)
+        self.launch("mc_spans", (ny, nx), (g, 1), vol, *dims, spans, options=opts)
+        self.launch("mc_count", (ny + 1, nx + 1), (g, 1), vol, *dims, spans, self.ntri, cbuf, options=opts)
+        counts = self.read(cbuf, (3, rows), np.int32, out=self.scratch("counts", (3, rows), np.int32))
         offsets = self.scratch("offsets", (3, rows + 1), np.int32)  # exclusive prefix sums, totals last
         offsets[:2, 0] = 0
         np.cumsum(counts[:2], axis=1, out=offsets[:2, 1:])
@@ -246,30 +233,46 @@ class MarchingCubesCL:
         nv, nt = int(offsets[0, rows]), int(offsets[1, rows])
         out = np.empty(3 * (nv + nt), np.float32)
         if nt:
-            obuf = self.buffers.get("offsets", offsets.nbytes)
-            cl.enqueue_copy(self.queue, obuf, offsets, is_blocking=False)
-            outbuf = self.buffers.get("out", out.nbytes)
+            obuf = self.upload("offsets", offsets)
+            outbuf = self.buffer("out", out.nbytes)
             f4 = lambda a: np.array([*np.asarray(a, np.float32), 0], np.float32)  # noqa: E731
-            self.kernel("mc_emit", voxel)(self.queue, *cell_rows, vol, *dims, spans, self.ntri, self.table, obuf,
-                                          f4(volume.bbox_min), f4(volume.voxel_size), outbuf)
-            cl.enqueue_copy(self.queue, out, outbuf, is_blocking=True)
+            self.launch("mc_emit", (ny + 1, nx + 1), (g, 1), vol, *dims, spans, self.ntri, self.table, obuf,
+                        f4(volume.bbox_min), f4(volume.voxel_size), outbuf, options=opts)
+            self.read(outbuf, out.shape, np.float32, out=out)
         return out[: 3 * nv].reshape(nv, 3), out[3 * nv:].view(np.int32).reshape(nt, 3)
-
-
-_MC_CL: MarchingCubesCL | None = None
 
 
 def marching_cubes(volume, level: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
     """OpenCL marching cubes of a VoxelGrid: (vertices (N, 3) float32 world, faces (M, 3) int32)."""
-    global _MC_CL
-    if _MC_CL is None:
-        _MC_CL = MarchingCubesCL()
-    return _MC_CL.run(volume, level)
+    return MarchingCubesCL.get().run(volume, level)
+
+
+# ---------------------------------------------------------------- vertex colours
+def vertex_colors(volume, vertices: np.ndarray, level: float = 0.5) -> np.ndarray:
+    """(N, 4) uint8 RGBA per vertex from ``volume.colors``: the colour of the nearest voxel inside the surface
+    (occupancy > level) among the 8 around the vertex, i.e. the inside end of the grid edge it lies on."""
+    occ = volume.occupancy
+    g = (np.asarray(vertices, np.float64) - volume.bbox_min) / volume.voxel_size - 0.5
+    base = np.floor(g).astype(np.int64)
+    best = np.full(len(g), np.inf)
+    pick = np.zeros((len(g), 3), np.int64)
+    dims = np.array(occ.shape[:3])
+    for c in range(8):
+        q = base + np.array([c & 1, c >> 1 & 1, c >> 2 & 1])
+        ok = np.all((q >= 0) & (q < dims), axis=1)
+        qc = np.clip(q, 0, dims - 1)
+        ok &= occ[qc[:, 0], qc[:, 1], qc[:, 2]] > level
+        d = np.where(ok, ((g - q) ** 2).sum(axis=1), np.inf)
+        better = d < best
+        best[better], pick[better] = d[better], q[better]
+    rgb = np.asarray(volume.colors)[pick[:, 0], pick[:, 1], pick[:, 2]]
+    return np.concatenate([rgb, np.full((len(g), 1), 255, np.uint8)], axis=1).astype(np.uint8)
 
 
 # ---------------------------------------------------------------- node
 class MarchingCubes(Node):
-    """Marching cubes: the volume's iso-surface at `level` as a watertight mesh with outward normals."""
+    """Marching cubes: the volume's iso-surface at `level` as a watertight mesh with outward normals; a
+    coloured volume (e.g. from carve) gives vertex colours."""
 
     type_name = "mc"
     version = 1
@@ -294,4 +297,10 @@ class MarchingCubes(Node):
         verts, faces = fn(volume, level)
         if largest:
             verts, faces = largest_component(verts, faces)
-        return {"mesh": trimesh.Trimesh(verts.astype(np.float64), faces.astype(np.int64), process=False)}
+        colors = None
+        if getattr(volume, "colors", None) is not None and len(verts):
+            if volume.colors.shape != (*occ.shape[:3], 3):
+                raise NodeError(f"mc: volume colors have shape {volume.colors.shape}, expected {(*occ.shape[:3], 3)}")
+            colors = vertex_colors(volume, verts, level)
+        return {"mesh": trimesh.Trimesh(verts.astype(np.float64), faces.astype(np.int64), vertex_colors=colors,
+                                        process=False)}

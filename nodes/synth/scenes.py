@@ -15,11 +15,15 @@ import math
 from dataclasses import dataclass
 from functools import lru_cache
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import trimesh
 
 from nodes.common.raster import CHECKER, PLAIN, STRIPES
 from nodes.common.types import SkeletonData
+
+if TYPE_CHECKING:
+    import trimesh
 
 SCENES = ("sphere", "cup", "figure")
 
@@ -54,6 +58,8 @@ def build(name: str, frame: int = 0) -> Scene:
 # ---------------------------------------------------------------- sphere and cup
 @lru_cache(maxsize=None)
 def _sphere_rest():
+    import trimesh
+
     m = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
     m.apply_translation([0, 0, 0.6])
     return m
@@ -79,6 +85,8 @@ def cup_profile(radius=0.35, height=0.45, wall=0.04, bottom=0.05, step=0.015) ->
 
 @lru_cache(maxsize=None)
 def _cup_rest():
+    import trimesh
+
     m = trimesh.creation.revolve(cup_profile(), sections=96)
     m.merge_vertices()
     return m
@@ -149,6 +157,8 @@ def _smooth_min(d: np.ndarray, k: float = 0.03) -> np.ndarray:
 @lru_cache(maxsize=None)
 def figure_rest(voxel: float = 0.015):
     """(mesh, weights (V, J), face material (F,)) of the rest pose; meshed once."""
+    import trimesh
+
     from skimage.measure import marching_cubes
 
     lo = np.array([-0.68, -0.3, -0.05])
@@ -214,6 +224,8 @@ def skin(vertices: np.ndarray, weights: np.ndarray, rots: np.ndarray, pos: np.nd
 
 
 def _figure(frame: int) -> Scene:
+    import trimesh
+
     rest, weights, face_material = figure_rest()
     rots, pos = figure_pose(frame)
     mesh = trimesh.Trimesh(skin(rest.vertices, weights, rots, pos), rest.faces.copy(), process=False)

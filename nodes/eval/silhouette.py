@@ -1,0 +1,50 @@
+"""Silhouette agreement of a mesh with masks, per view (the mesh rasterized into every camera)."""
+from __future__ import annotations
+
+import numpy as np
+
+from kernels import source
+from nodegraph import Node, Table
+from nodes.common import raster
+from nodes.common.cameras import Cameras
+from nodes.common.silhouettes import check_sizes
+from nodes.common.types import CameraSet, Masks, MaskSet, Mesh
+
+
+def silhouette_report(vertices, faces, cameras: Cameras, masks: MaskSet) -> dict:
+    """Per view: IoU of the mesh's silhouette with the mask (> 127), mesh pixels outside the mask and mask
+    pixels the mesh does not cover; plus mean / min IoU and the error sums over views."""
+    check_sizes(masks.masks, cameras, "eval.silhouette")
+    views = []
+    for cam, sil, m in zip(cameras, raster.silhouette(vertices, faces, cameras), masks.masks):
+        a, b = sil > 0, m > 127
+        union = int(np.logical_or(a, b).sum())
+        views.append({
+            "name": cam.name,
+            "iou": 1.0 if union == 0 else float(np.logical_and(a, b).sum() / union),
+            "mesh_outside_mask": int((a & ~b).sum()),
+            "mask_not_covered": int((b & ~a).sum()),
+        })
+    ious = [v["iou"] for v in views]
+    return {
+        "views": views,
+        "mean_iou": float(np.mean(ious)), "min_iou": float(np.min(ious)),
+        "mesh_outside_mask": sum(v["mesh_outside_mask"] for v in views),
+        "mask_not_covered": sum(v["mask_not_covered"] for v in views),
+        "mean_mesh_outside_mask": float(np.mean([v["mesh_outside_mask"] for v in views])),
+        "mean_mask_not_covered": float(np.mean([v["mask_not_covered"] for v in views])),
+    }
+
+
+class EvalSilhouette(Node):
+    """Silhouette agreement of a mesh with masks, per view: IoU, mesh pixels outside the mask, mask pixels
+    not covered; means and sums over views."""
+
+    type_name = "eval.silhouette"
+    version = 1
+    inputs = {"mesh": Mesh, "cameras": CameraSet, "masks": Masks}
+    outputs = {"report": Table}
+    kernels = [source("raster.cl")]
+
+    def run(self, mesh, cameras, masks):
+        return {"report": silhouette_report(mesh.vertices, mesh.faces, cameras, masks)}

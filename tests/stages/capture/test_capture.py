@@ -1,0 +1,177 @@
+"""The capture node on a synthetic dataset written in the test, its errors, video frames, the bounds node,
+and a golden check on the INRIA dancer."""
+import cv2
+import numpy as np
+import pytest
+
+from nodes.common.cameras import Cameras
+from rig import ring_rig
+from nodegraph.errors import DataError, NodeError
+from nodegraph.testing import run_node
+from nodegraph.types import Table
+from nodes.common.calibration import save_colmap
+from nodes.capture.load import load_capture
+
+W, H = 64, 48
+CENTRE, RADIUS = np.array([0.2, -0.1, 0.5]), 0.6
+
+
+def sphere_rig(n=5) -> Cameras:
+    return ring_rig(n, W, H, radius=3.0, z=1.0, target=CENTRE, fov=45, dist=[-0.05, 0, 0, 0, 0])
+
+
+def sphere_mask(cams: Cameras, v: int) -> np.ndarray:
+    """Analytic silhouette: pixels whose ray passes within RADIUS of the centre."""
+    uu, vv = np.meshgrid(np.arange(W), np.arange(H))
+    o, d = cams.rays(v, np.stack([uu.ravel(), vv.ravel()], 1))
+    t = ((CENTRE - o) * d).sum(1)
+    dist = np.linalg.norm(o + t[:, None] * d - CENTRE, axis=1)
+    return np.where(dist < RADIUS, 255, 0).astype(np.uint8).reshape(H, W)
+
+
+def write_dataset(root, cams):
+    """cam{i}/rgb.png, cam{i}/mask.png, cam{i}/plate.png and a COLMAP model in sparse/."""
+    save_colmap(cams, root / "sparse")
+    for v, c in enumerate(cams):
+        m = sphere_mask(cams, v)
+        img = np.zeros((H, W, 3), np.uint8)
+        img[:] = (40, 180, 60)
+        plate = img.copy()
+        img[m > 0] = (200, 50 + 10 * v, 30)
+        (root / c.name).mkdir(parents=True)
+        cv2.imwrite(str(root / c.name / "rgb.png"), img[:, :, ::-1])
+        cv2.imwrite(str(root / c.name / "mask.png"), m)
+        cv2.imwrite(str(root / c.name / "plate.png"), plate[:, :, ::-1])
+    return dict(images="{name}/rgb.png", masks="{name}/mask.png", background="{name}/plate.png", calibration="sparse")
+
+
+def test_capture_node_on_synthetic_dataset(tmp_path):
+    cams = sphere_rig()
+    patterns = write_dataset(tmp_path, cams)
+    out = run_node("capture", params={"path": str(tmp_path), **patterns}, roundtrip=True)
+    assert out["cameras"].names == cams.names
+    X = np.random.default_rng(0).normal(CENTRE, 0.3, (50, 3))
+    for v in range(len(cams)):
+        assert np.abs(out["cameras"].project(X, v)[0] - cams.project(X, v)[0]).max() < 1e-6
+        assert np.array_equal(out["masks"].masks[v], sphere_mask(cams, v))
+        assert tuple(out["images"].images[v][H // 2, 2]) == (40, 180, 60)
+        assert tuple(out["background"].images[v][H // 2, W // 2]) == (40, 180, 60)
+        assert 0.05 < (out["masks"].masks[v] > 0).mean() < 0.6
+
+
+def test_capture_errors_name_the_problem(tmp_path):
+    cams = sphere_rig()
+    patterns = write_dataset(tmp_path, cams)
+    with pytest.raises(DataError, match="frame 1 out of range"):
+        load_capture(tmp_path, 1, **patterns)
+    (tmp_path / "cam2" / "mask.png").unlink()
+    with pytest.raises(DataError, match="camera 2 'cam2'.*mask.png not found"):
+        load_capture(tmp_path, 0, **patterns)
+    cv2.imwrite(str(tmp_path / "cam2" / "mask.png"), np.zeros((H, W), np.uint8))
+    (tmp_path / "cam3" / "rgb.png").write_bytes(b"not a png")
+    with pytest.raises(DataError, match="cam3/rgb.png: unreadable"):
+        load_capture(tmp_path, 0, **patterns)
+    cv2.imwrite(str(tmp_path / "cam3" / "rgb.png"), np.zeros((H // 2, W // 2, 3), np.uint8))
+    with pytest.raises(DataError, match="camera 3 'cam3'.*32x24 but the calibration is for 64x48"):
+        load_capture(tmp_path, 0, **patterns)
+    cv2.imwrite(str(tmp_path / "cam3" / "rgb.png"), np.zeros((H, W, 3), np.uint8))
+    (tmp_path / "cam5").mkdir()
+    cv2.imwrite(str(tmp_path / "cam5" / "rgb.png"), np.zeros((H, W, 3), np.uint8))
+    with pytest.raises(DataError, match="6 camera folders .* 5 cameras"):
+        load_capture(tmp_path, 0, **patterns)
+    with pytest.raises(NodeError, match="pattern '{camera}/rgb.png'"):
+        load_capture(tmp_path, 0, **{**patterns, "images": "{camera}/rgb.png"})
+    with pytest.raises(DataError, match="not found"):
+        load_capture(tmp_path / "nowhere")
+
+
+def test_generic_folder_matches_images_by_camera_name(tmp_path):
+    """An unknown layout: calibration + images/ matched by camera name; when only some images are named
+    after cameras, the missing camera is named (matching the rest by order would swap views silently)."""
+    cams = sphere_rig(3)
+    save_colmap(cams, tmp_path)
+    (tmp_path / "images").mkdir()
+    for v, c in enumerate(cams):
+        cv2.imwrite(str(tmp_path / "images" / f"{c.name}.png"), np.full((H, W, 3), 50 + v, np.uint8))
+    out = load_capture(tmp_path)
+    assert [int(im[0, 0, 0]) for im in out["images"].images] == [50, 51, 52]
+    (tmp_path / "images" / "cam1.png").rename(tmp_path / "images" / "zz_extra.png")
+    with pytest.raises(DataError, match="no image named after camera\\(s\\) 1 'cam1'"):
+        load_capture(tmp_path)
+    for i, f in enumerate(sorted((tmp_path / "images").iterdir())):   # no file named after a camera: by order
+        f.rename(tmp_path / "images" / f"view_{i}.png")
+    assert [int(im[0, 0, 0]) for im in load_capture(tmp_path)["images"].images] == [50, 52, 51]
+
+
+def test_mask_size_error_names_both_files(tmp_path):
+    cams = sphere_rig(3)
+    patterns = write_dataset(tmp_path, cams)
+    cv2.imwrite(str(tmp_path / "cam1" / "mask.png"), np.zeros((H, W - 4), np.uint8))
+    with pytest.raises(DataError, match=r"camera 1 'cam1': mask \S*cam1/mask.png is 60x48 but the image \S*cam1/rgb.png is 64x48"):
+        load_capture(tmp_path, 0, **patterns)
+
+
+def test_video_frames_and_star_patterns(tmp_path):
+    """Frame N of a video pattern is the N-th frame; '*' patterns index sorted files."""
+    cams = sphere_rig(2)
+    save_colmap(cams, tmp_path)
+    for c in cams:
+        (tmp_path / c.name).mkdir()
+        vw = cv2.VideoWriter(str(tmp_path / c.name / "video.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 10, (W, H))
+        for f in range(4):
+            vw.write(np.full((H, W, 3), 40 * f + 20, np.uint8))
+            cv2.imwrite(str(tmp_path / c.name / f"still_{f:03d}.png"), np.full((H, W, 3), 40 * f + 20, np.uint8))
+        vw.release()
+    for f in range(4):
+        vid = load_capture(tmp_path, f, images="{name}/video.avi", calibration=".")
+        still = load_capture(tmp_path, f, images="{name}/still_*.png", calibration=".")
+        assert abs(int(vid["images"].images[1].mean()) - (40 * f + 20)) <= 2
+        assert int(still["images"].images[1].mean()) == 40 * f + 20
+    with pytest.raises(DataError, match="frame 4 out of range"):
+        load_capture(tmp_path, 4, images="{name}/video.avi", calibration=".")
+    with pytest.raises(DataError, match="frame 4 out of range: 4 frames"):
+        load_capture(tmp_path, 4, images="{name}/still_*.png", calibration=".")
+
+
+def test_bounds_node_auto_and_explicit():
+    cams = sphere_rig(6)
+    from nodes.common.types import MaskSet
+
+    masks = MaskSet([sphere_mask(cams, v) for v in range(len(cams))])
+    b = run_node("bounds", {"masks": masks, "cameras": cams}, {"margin": 0.0}, roundtrip=True)["bounds"]
+    # the box holds the sphere and is not much larger than a visual hull of 6 views can be
+    assert np.all(b[0] < CENTRE - RADIUS + 0.02) and np.all(b[1] > CENTRE + RADIUS - 0.02), b
+    assert np.all(b[1] - b[0] < 2 * RADIUS * 1.35), b
+    e = run_node("bounds", params={"bbox": [0, 0, 0, 1, 2, 3]})["bounds"]
+    np.testing.assert_array_equal(e, [[0, 0, 0], [1, 2, 3]])
+    with pytest.raises(NodeError, match="xmax > xmin"):
+        run_node("bounds", params={"bbox": [0, 0, 0, 1, -2, 3]})
+    with pytest.raises(NodeError, match="do not intersect|fewer than two"):
+        run_node("bounds", {"masks": MaskSet([np.zeros((H, W), np.uint8)] * 6), "cameras": cams})
+    cropped = MaskSet([m if v != 4 else m[:, : W // 2] for v, m in enumerate(masks.masks)])
+    with pytest.raises(NodeError, match="bounds: mask of camera 'cam4' is 32x48 but the camera is 64x48"):
+        run_node("bounds", {"masks": cropped, "cameras": cams})
+
+
+@pytest.mark.realdata
+def test_capture_golden_inria_dancer(data_dir, golden):
+    """Cameras, image sizes and mask areas of the dancer, as projections of fixed world points."""
+    cap = load_capture(data_dir / "inria_dancer")
+    cams = cap["cameras"]
+    pts = np.array([[0.3, -1.4, 0.0], [0.3, -1.4, 1.7], [0.0, -1.0, 0.9], [0.7, -1.8, 0.9]])
+    table = {c.name: {"size": [c.width, c.height], "uv": np.round(cams.project(pts, v)[0], 4).tolist(),
+                      "mask_pixels": int((cap["masks"].masks[v] > 0).sum()), "center": np.round(c.center, 6).tolist()}
+             for v, c in enumerate(cams)}
+    golden.check("capture_dancer", table, Table, rtol=1e-6, atol=1e-3)
+
+
+@pytest.mark.realdata
+def test_utrecht_video_matches_extracted_frames(data_dir):
+    """Frame 100 decoded from video.avi equals the PNG extracted by the dataset's curator; plates present."""
+    cap = load_capture(data_dir / "uu_infomcv_seated", frame=100)
+    assert cap["masks"] is None and len(cap["background"]) == 4
+    for v, name in enumerate(cap["cameras"].names):
+        png = cv2.imread(str(data_dir / "uu_infomcv_seated" / name / "frames" / "video_0100.png"))[:, :, ::-1]
+        assert np.array_equal(cap["images"].images[v], png)
+        plate = cv2.imread(str(data_dir / "uu_infomcv_seated" / name / "frames" / "background_0000.png"))[:, :, ::-1]
+        assert np.array_equal(cap["background"].images[v], plate)
