@@ -8,6 +8,8 @@ still works.
 """
 from __future__ import annotations
 
+__fingerprint__ = False  # drawing only: nothing here changes what a node computes (nodegraph/fingerprint.py)
+
 import math
 import os
 
