@@ -48,6 +48,10 @@ def test_dataset_graph_runs(path, dataset_run, data_dir, monkeypatch):
         # `largest` dropped it in silence
         parts = sorted((len(b.faces) for b in m.split(only_watertight=False)), reverse=True)
         assert parts[-1] >= 0.01 * parts[0] and len(parts) <= 3, (p.name, parts)
+    for p in [Path(p) for r in res.records if r["type"] == "export.textured" for p in r["published"]]:
+        if p.suffix == ".glb":                          # textured: the texture travels inside the GLB
+            m = trimesh.load(p, force="mesh")
+            assert m.visual.kind == "texture" and m.visual.material.baseColorTexture is not None, p.name
     for r in res.records:
         if r["type"] == "eval.silhouette":
             table = json.loads((Path(r["cache_dir"]) / "report/table.json").read_text())
