@@ -6,8 +6,8 @@
 // that value exactly. Binary masks are bits (rows of ceil(W/8) bytes, pixel x in bit x % 8 of byte x / 8);
 // soft masks one byte per pixel (alpha * 255). A view sees a point inside at level tau when it is in front of
 // the camera, on the image and f >= tau; otherwise on background, or unseen (behind / off the image).
-// Vote (nodes.common.silhouettes.vote): min_views > 0: at least min_views views inside; policy 0 (carve):
-// every view inside; policy 1 (ignore): no view on background and at least one inside.
+// Vote (silhouette.h hull_vote, nodes.common.silhouettes.vote): at most t = nviews - min_views views on background
+// (t = 0 when min_views is 0); policy 0 (carve): every view sees the point; policy 1 (ignore): at least one inside.
 //
 // Searches run along segments A -> B with A inside. Under "carve" (every view must see the point inside) the
 // hull's exit is the first exit over the views, found view by view: a view that sees the current best exit

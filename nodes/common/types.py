@@ -363,6 +363,10 @@ class TexturedMesh(Mesh):
     name = "TexturedMesh"
     filename = "mesh.glb"
 
+    @classmethod
+    def preview(cls, value, size, companions):
+        return previews.draw_textured_mesh(value, size, companions)
+
 
 class Skeleton(DataType):
     name = "Skeleton"
