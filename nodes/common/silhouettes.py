@@ -42,6 +42,16 @@ def check_sizes(arrays, cameras: Cameras, node: str, kind: str = "mask"):
             raise NodeError(f"{node}: {kind} of camera '{cam.name}' is {w}x{h} but the camera is {cam.width}x{cam.height}")
 
 
+def check_vote_inputs(masks, cameras, min_views: int, outside: str, node: str):
+    """A NodeError when masks or cameras are missing, min_views exceeds the cameras, or the policy is unknown."""
+    if masks is None or cameras is None:
+        raise NodeError(f"{node}: needs both 'masks' and 'cameras' inputs")
+    if min_views > len(cameras):
+        raise NodeError(f"{node}: min_views {min_views} is more than the {len(cameras)} cameras")
+    if outside not in POLICIES:
+        raise NodeError(f"{node}: outside must be one of {', '.join(POLICIES)}, got {outside!r}")
+
+
 def check_masks(masks, cameras: Cameras, node: str = "hull") -> list[np.ndarray]:
     """The masks (a MaskSet or a list) as contiguous uint8 (H, W) arrays, one per camera, or a NodeError
     naming the camera."""
@@ -194,13 +204,8 @@ class Silhouettes:
     def from_inputs(cls, masks, cameras: Cameras, min_views: int = 0, outside: str = "carve", use_alpha: bool = True,
                     node: str = "refine") -> "Silhouettes":
         """Check a MaskSet against the cameras (NodeError naming the camera) and pack both."""
-        if masks is None or cameras is None:
-            raise NodeError(f"{node}: needs both 'masks' and 'cameras' inputs")
+        check_vote_inputs(masks, cameras, min_views, outside, node)
         binary = check_masks(masks, cameras, node)
-        if min_views > len(cameras):
-            raise NodeError(f"{node}: min_views {min_views} is more than the {len(cameras)} cameras")
-        if outside not in POLICIES:
-            raise NodeError(f"{node}: outside must be one of {', '.join(POLICIES)}, got {outside!r}")
         soft = []
         use_alpha = use_alpha and masks.alpha is not None
         for i, (cam, m) in enumerate(zip(cameras, binary)):
