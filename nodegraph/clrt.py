@@ -4,8 +4,12 @@ OpenCL code. Sources are given by path (the stage packages know where theirs are
 is searched beside the source.
 
 ``VOLCAP_CL_PROFILE=1`` creates the queue with profiling enabled (events then carry kernel times).
-Device choice: ``VOLCAP_CL_DEVICE`` (or ``app.py run --device``) is either ``cpu``, ``gpu``, or
-``PLATFORM:DEVICE`` indices (as printed by ``app.py devices``). Default: first GPU, else first CPU.
+Device choice: ``VOLCAP_CL_DEVICE`` (or ``volcap run --device``) is either ``cpu``, ``gpu``, or
+``PLATFORM:DEVICE`` indices (as printed by ``volcap devices``). Default: the fastest device that builds
+kernels correctly, by the stages' probes measured once per machine in child processes (``ranking``; kept in
+~/.cache/volcap/opencl-devices.json; ``python -m nodegraph.clrt --rank [--refresh]``). The runtime matters:
+on a 2-core EPYC the pip PoCL 3.0 hangs in its compiler or crashes on the key kernels, Intel's CPU runtime
+is 2-12x slower than Debian's PoCL 3.1 on most of them (README, Benchmarks).
 Never fork after this module has created a context (PoCL hangs); the process pools use spawn.
 """
 from __future__ import annotations
@@ -23,20 +27,144 @@ class OpenCLUnavailable(VolcapError):
     pass
 
 
-def _builds(dev) -> bool:
-    """Whether a device can compile a kernel (the pip PoCL's LLVM 14 cannot on CPUs newer than it knows,
-    failing with "unknown target CPU 'generic'")."""
+NO_DEVICE_HELP = ("install a working OpenCL device: on Debian/Ubuntu `apt-get install pocl-opencl-icd` (./setup.sh does "
+                  "this), or your GPU vendor's OpenCL driver; `volcap devices` lists what works")
+
+
+# ---------------------------------------------------------------- device ranking
+# The stage packages register probes (``register_probe``): functions that run a few of their real kernels on
+# realistic data on the current device, check one against its NumPy reference (raising if it disagrees), and
+# return milliseconds. A device is ranked by the sum of the probes, each device measured in a child process with
+# a time limit (a broken runtime may hang in its compiler or crash), once per machine. Without registered probes
+# (the engine alone) a generic kernel stands in.
+_PROBES: list = []
+PROBE_TIMEOUT_S = 120.0
+GENERIC_PROBE = """
+__kernel void probe(__global const float4* a, __global float4* b, int n)
+{
+    int i = get_global_id(0);
+    if (i >= n) return;
+    float4 x = a[i], y = a[(i * 7) % n];
+    for (int k = 0; k < 24; k++) x = fma(x, (float4)(1.0001f), y / (fabs(x) + (float4)(1.5f)));
+    b[i] = x;
+}
+"""
+
+
+def register_probe(fn):
+    """Register ``fn() -> milliseconds`` (see above); returns ``fn``."""
+    _PROBES.append(fn)
+    return fn
+
+
+def _generic_probe() -> float:
+    import time
+
     import pyopencl as cl
 
+    ctx, q = context()
+    n = 1 << 20
+    prg = cl.Program(ctx, GENERIC_PROBE).build()
+    k = cl.Kernel(prg, "probe")
+    host = np.random.default_rng(0).random(4 * n, dtype=np.float32)
+    a = cl.Buffer(ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=host)
+    b = cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, host.nbytes)
+    k.set_args(a, b, np.int32(n))
+    best = float("inf")
+    for i in range(6):
+        t = time.perf_counter()
+        cl.enqueue_nd_range_kernel(q, k, (n,), (64,))
+        q.finish()
+        if i:
+            best = min(best, time.perf_counter() - t)
+    return best * 1e3
+
+
+def probe_here() -> float:
+    """The probes' milliseconds on this process's device (the child's side of ``probe_ms``)."""
+    from .node import registry
+
+    registry()  # the node packages register their probes when imported
+    return sum(fn() for fn in _PROBES) if _PROBES else _generic_probe()
+
+
+def device_id(dev) -> str:
+    p = dev.platform
+    return f"{p.name} {p.version} | {dev.name} | {dev.driver_version}"
+
+
+def probe_ms(pi: int, di: int) -> float | None:
+    """The probes' milliseconds on device PLATFORM:DEVICE, measured in a child process; None when it cannot
+    build or run them, gives wrong results, crashes or takes longer than PROBE_TIMEOUT_S."""
+    import json
+    import subprocess
+    import sys
+
+    env = dict(os.environ, VOLCAP_CL_DEVICE=f"{pi}:{di}")
     try:
-        cl.Program(cl.Context([dev]), "__kernel void probe(__global int *a) { a[0] = 1; }").build()
-        return True
-    except Exception:
-        return False
+        res = subprocess.run([sys.executable, "-m", "nodegraph.clrt", "--probe"], env=env, capture_output=True,
+                             text=True, timeout=PROBE_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        return None
+    try:
+        return float(json.loads(res.stdout.strip().splitlines()[-1])["ms"]) if res.returncode == 0 else None
+    except (ValueError, KeyError, IndexError, TypeError):
+        return None
 
 
-NO_DEVICE_HELP = ("install a working OpenCL CPU device: `pip install pocl-binary-distribution`, or, when its LLVM "
-                  "does not know this CPU, the distribution's PoCL (`apt-get install pocl-opencl-icd`); ./setup.sh does this")
+def _probes_version() -> str:
+    """A digest of the probes' sources (their modules and the generic kernel): new probes rank anew."""
+    import hashlib
+    import inspect
+
+    from .node import registry
+
+    registry()
+    h = hashlib.sha256(GENERIC_PROBE.encode())
+    for fn in _PROBES:
+        try:
+            h.update(Path(inspect.getsourcefile(fn)).read_bytes())
+        except (OSError, TypeError):
+            h.update(fn.__qualname__.encode())
+    return h.hexdigest()[:12]
+
+
+def _ranking_file() -> Path:
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "volcap" / "opencl-devices.json"
+
+
+def ranking(refresh: bool = False) -> list[tuple[float | None, int, int, object]]:
+    """Every OpenCL device with its probe time (ms; None = unusable), fastest first. Measured once per machine
+    (a device is known by platform, device and driver version, the probes by the version of the project's
+    sources) and kept in ~/.cache/volcap/opencl-devices.json; ``refresh`` measures again."""
+    import json
+
+    import pyopencl as cl
+
+    path = _ranking_file()
+    try:
+        known = {} if refresh else json.loads(path.read_text())
+    except (OSError, ValueError):
+        known = {}
+    version = _probes_version()
+    rows, changed = [], False
+    for pi, p in enumerate(cl.get_platforms()):
+        for di, d in enumerate(p.get_devices()):
+            did = f"{device_id(d)} | probes {version}"
+            if did not in known:
+                known[did] = probe_ms(pi, di)
+                changed = True
+            rows.append((known[did], pi, di, d))
+    if changed:
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(f".{os.getpid()}.tmp")
+            tmp.write_text(json.dumps(known, indent=1))
+            os.replace(tmp, path)
+        except OSError:
+            pass
+    return sorted(rows, key=lambda r: (r[0] is None, r[0] if r[0] is not None else 0.0, r[1], r[2]))
 
 
 def _choose_device():
@@ -49,27 +177,49 @@ def _choose_device():
     if not devices:
         raise OpenCLUnavailable(f"OpenCL platforms exist but expose no device; {NO_DEVICE_HELP}")
     want = os.environ.get("VOLCAP_CL_DEVICE", "").strip().lower()
-    if want in ("cpu", "gpu"):
-        kind = cl.device_type.CPU if want == "cpu" else cl.device_type.GPU
-        match = [d for _, _, d in devices if d.type & kind]
-        if not match:
-            raise OpenCLUnavailable(f"VOLCAP_CL_DEVICE={want}: no such OpenCL device; have: " + ", ".join(d.name for *_, d in devices))
-        working = [d for d in match if _builds(d)]
-        if not working:
-            raise OpenCLUnavailable(f"VOLCAP_CL_DEVICE={want}: no {want} device can build kernels; {NO_DEVICE_HELP}")
-        return working[0]
-    if want:
+    if want and want not in ("cpu", "gpu"):
         try:
             pi, di = (int(x) for x in want.split(":"))
             return platforms[pi].get_devices()[di]
         except (ValueError, IndexError):
-            raise OpenCLUnavailable(f"VOLCAP_CL_DEVICE={want!r}: expected cpu, gpu or PLATFORM:DEVICE (see `app.py devices`)") from None
-    # default: the first GPU, else the first CPU device, that can actually build a kernel
-    ordered = sorted(devices, key=lambda e: 0 if e[2].type & cl.device_type.GPU else 1)
-    for *_, d in ordered:
-        if _builds(d):
-            return d
-    raise OpenCLUnavailable("no OpenCL device can build kernels (" + ", ".join(d.name for *_, d in devices) + f"); {NO_DEVICE_HELP}")
+            raise OpenCLUnavailable(f"VOLCAP_CL_DEVICE={want!r}: expected cpu, gpu or PLATFORM:DEVICE (see `volcap devices`)") from None
+    rows = ranking()
+    if want in ("cpu", "gpu"):
+        kind = cl.device_type.CPU if want == "cpu" else cl.device_type.GPU
+        rows = [r for r in rows if r[3].type & kind]
+        if not rows:
+            raise OpenCLUnavailable(f"VOLCAP_CL_DEVICE={want}: no such OpenCL device; have: " + ", ".join(d.name for *_, d in devices))
+    working = [r for r in rows if r[0] is not None]
+    if not working:
+        scope = f"no {want} device" if want else "no OpenCL device"
+        raise OpenCLUnavailable(f"{scope} can build kernels (" + ", ".join(d.name for *_, d in devices) + f"); {NO_DEVICE_HELP}")
+    return pick(working)[3]
+
+
+def preference(dev) -> tuple:
+    """The documented order among devices that work (README, Benchmarks): GPUs, then PoCL 3.1 or newer, then
+    Intel's CPU runtime, then older PoCL (the pip PoCL 3.0 hangs or crashes on some of the key kernels)."""
+    import re
+
+    import pyopencl as cl
+
+    gpu = 0 if dev.type & cl.device_type.GPU else 1
+    version = dev.platform.version
+    m = re.search(r"PoCL (\d+)\.(\d+)", version)
+    if m:
+        runtime = 0 if (int(m.group(1)), int(m.group(2))) >= (3, 1) else 2
+    else:
+        runtime = 1
+    return gpu, runtime
+
+
+def pick(working: list) -> tuple:
+    """The device to use among ranked working ones: the documented first choice, unless the probes measured
+    another at least a quarter faster (so that the noise of a busy machine does not flip between two runtimes
+    of similar speed, while a much faster device, e.g. a GPU, always wins)."""
+    first = min(working, key=lambda r: (preference(r[3]), r[1], r[2]))
+    fastest = min(working, key=lambda r: r[0])
+    return fastest if fastest[0] < 0.75 * first[0] else first
 
 
 @lru_cache(maxsize=None)
@@ -218,13 +368,21 @@ class Runner:
         self.queue.finish()
 
 
-def devices_table() -> list[str]:
+def devices_table(refresh: bool = False) -> list[str]:
+    """One line per OpenCL device, fastest first by the probe, the one runs use marked with '*'."""
     import pyopencl as cl
 
+    chosen = None
+    try:
+        chosen = device_id(_choose_device())
+    except OpenCLUnavailable:
+        pass
     rows = []
-    for pi, p in enumerate(cl.get_platforms()):
-        for di, d in enumerate(p.get_devices()):
-            rows.append(f"{pi}:{di}  {cl.device_type.to_string(d.type):4s}  {d.name}  ({p.name}, {d.max_compute_units} units)")
+    for ms, pi, di, d in ranking(refresh):
+        speed = f"{ms:8.1f} ms" if ms is not None else "unusable (fails, hangs or disagrees)"
+        mark = "*" if device_id(d) == chosen else " "
+        rows.append(f"{mark} {pi}:{di}  {cl.device_type.to_string(d.type):4s}  {speed}  {d.name}  "
+                    f"({d.platform.name} {d.platform.version}, {d.max_compute_units} units)")
     return rows
 
 
@@ -242,10 +400,21 @@ def device_name() -> str:
     return f"{d.name} ({d.platform.name} {d.platform.version.split()[2] if len(d.platform.version.split()) > 2 else ''})".strip()
 
 
-if __name__ == "__main__":  # python -m nodegraph.clrt: is there a device that builds kernels?
+if __name__ == "__main__":  # python -m nodegraph.clrt [--rank | --probe]
+    import json
     import sys
 
+    if "--probe" in sys.argv:  # the child of probe_ms: run the probes on the device VOLCAP_CL_DEVICE names
+        try:
+            print(json.dumps({"ms": probe_here()}))
+        except Exception as exc:  # noqa: BLE001 - any failure means: not this device
+            print(f"probe failed: {type(exc).__name__}: {exc}", file=sys.stderr)
+            sys.exit(1)
+        sys.exit(0)
     try:
+        if "--rank" in sys.argv:
+            for row in devices_table(refresh="--refresh" in sys.argv):
+                print(row)
         print("OpenCL device:", device_name())
     except OpenCLUnavailable as exc:
         print(f"error: {exc}", file=sys.stderr)

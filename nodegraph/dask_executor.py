@@ -1,10 +1,11 @@
-"""Dask distributed executor: the same work items, submitted to a Dask cluster.
+"""Dask distributed executor: the same work units, submitted to a Dask cluster.
 
 - ``--executor dask`` starts a LocalCluster (``--workers N``, one thread each, spawned processes), or
   ``--scheduler tcp://HOST:PORT`` joins an existing cluster. The cache folder must then be on a filesystem
   every worker sees: it is the source of truth, results never travel through Dask.
-- Each work item is one task keyed by its cache key, with its upstream tasks as dependencies; the payload
-  is the item's plain spec (params and artifact keys), never a live object.
+- Each work unit (a frame's items, or one item: nodegraph/plan.py) is one task, with the units it reads from
+  as dependencies; the payload is the unit's plain spec (params and artifact keys), never a live object, and
+  only the per-item results travel back (values stay in the cache).
 - A worker plugin runs the node packages' start-up hooks once per worker process (an OpenCL context...).
 - A killed worker (OOM, node lost) makes Dask reschedule its tasks on another worker (up to the cluster's
   ``allowed-failures``); a node's own error is a result, not an exception, so it is never retried.
@@ -12,17 +13,22 @@
 from __future__ import annotations
 
 from .errors import VolcapError
-from .worker import execute, start_worker
+from .executors import unit_failed
+from .worker import execute_unit, start_worker
 
 
-def _run_item(spec: dict, cache_root: str, *upstream: dict) -> dict:
-    for up in upstream:
-        if up.get("status") != "done":
-            return {"status": "skipped", "error": up.get("skip_reason") or f"upstream '{up.get('node')}' failed",
-                    "seconds": 0.0, "node": spec["node"], "skip_reason": up.get("skip_reason") or f"upstream '{up.get('node')}' failed"}
-    res = execute(spec, cache_root)
-    res["node"] = spec["node"]
-    return res
+def _run_unit(spec: dict, cache_root: str, *upstream: dict) -> dict:
+    """Run a unit after the units it reads from; items of theirs that failed make their readers skip."""
+    failed = dict(spec.get("failed") or {})
+    for results in upstream:
+        for key, res in results.items():
+            if res.get("status") != "done":
+                failed[key] = res.get("node", "?")
+    results = execute_unit(dict(spec, failed=failed), cache_root)
+    names = {s["key"]: s["node"] for s in spec["items"]}
+    for key, res in results.items():
+        res["node"] = names[key]
+    return results
 
 
 class _StartPlugin:
@@ -47,7 +53,7 @@ class DaskExecutor:
         self.workers = workers or 2
         self.scheduler = scheduler
 
-    def run(self, items, specs, cache_root, on_result):
+    def run(self, units, cache_root, on_result):
         try:
             from distributed import Client, LocalCluster, as_completed
         except ImportError:
@@ -56,7 +62,7 @@ class DaskExecutor:
         if self.scheduler:
             try:
                 client = Client(self.scheduler, timeout="20s")
-            except OSError as exc:
+            except (OSError, ValueError, TypeError) as exc:  # unreachable, or an address Dask cannot parse
                 raise VolcapError(f"cannot reach the Dask scheduler {self.scheduler}: {exc}") from None
         else:
             from .executors import worker_threads
@@ -70,28 +76,30 @@ class DaskExecutor:
             plugin = type("VolcapStart", (_StartPlugin, WorkerPlugin), {})()
             client.register_plugin(plugin, name=_StartPlugin.name)
             futures = {}
-            for it in items:  # dependency order: upstream futures exist before their consumers
-                ups = [futures[d] for d in it.deps if d in futures]
-                futures[it.key] = client.submit(_run_item, specs[it.key], cache_root, *ups,
-                                                key=f"volcap-{it.node}-{it.key}", pure=False, retries=0)
+            for u in units:  # dependency order: upstream futures exist before their readers
+                ups = [futures[d] for d in u.deps if d in futures]
+                futures[u.key] = client.submit(_run_unit, u.spec, cache_root, *ups, key=f"volcap-{u.label}-{u.key[:16]}",
+                                               pure=False, retries=0)
             by_future = {f: k for k, f in futures.items()}
-            deps = {it.key: [d for d in it.deps if d in futures] for it in items}
-            names = {it.key: it.node for it in items}
-            status: dict[str, str] = {}
+            by_key = {u.key: u for u in units}
+            done_items: dict[str, str] = {}
             for fut in as_completed(list(futures.values())):
                 key = by_future[fut]
+                unit = by_key[key]
                 try:
-                    res = fut.result()
+                    results = fut.result()
                 except Exception as exc:  # KilledWorker after repeated worker deaths, lost scheduler...
-                    bad = [d for d in deps[key] if status.get(d, "failed") != "done"]
+                    ups = [s for d in unit.deps if d in by_key for s in by_key[d].spec["items"]]
+                    bad = [s for s in ups if done_items.get(s["key"], "failed") != "done"]
                     if bad:  # Dask passes an upstream exception on to its dependents: they never ran
-                        res = {"status": "skipped", "seconds": 0.0, "error": f"upstream '{names[bad[0]]}' failed"}
+                        results = {s["key"]: {"status": "skipped", "seconds": 0.0, "error": f"upstream '{bad[0]['node']}' failed"}
+                                   for s in unit.spec["items"]}
                     else:
-                        res = {"status": "failed", "seconds": 0.0, "error": f"{type(exc).__name__}: {exc}"}
-                status[key] = res["status"]
-                res.pop("node", None)
-                res.pop("skip_reason", None)
-                on_result(key, res)
+                        results = unit_failed(unit, f"{type(exc).__name__}: {exc}", cache_root)
+                for item, res in results.items():
+                    done_items[item] = res["status"]
+                    res.pop("node", None)
+                    on_result(item, res)
         finally:
             client.close()
             if cluster is not None:

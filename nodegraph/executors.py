@@ -1,10 +1,11 @@
-"""Executors run the work items that are not cached. Interface:
+"""Executors run the work units that are not up to date (nodegraph/plan.py, nodegraph/run.py). Interface:
 
-    executor.run(items, specs, cache_root, on_result)
+    executor.run(units, cache_root, on_result)
 
-``items`` are in dependency order, ``specs`` maps key -> plain-data spec (what ``worker.execute`` takes),
-``on_result(key, result)`` is called in the calling thread once per item, with result["status"] one of
-done / failed / skipped. An item whose input failed is skipped, never run; independent items go on.
+``units`` are in dependency order; each has ``key``, ``deps`` (keys of the units it reads from), ``label`` and
+``spec`` (plain data: what ``worker.execute_unit`` takes). ``on_result(item_key, result)`` is called in the
+calling thread once per item, with result["status"] one of done / failed / skipped. A unit runs once every
+unit it depends on has finished; an item whose input failed is skipped, never run; independent items go on.
 """
 from __future__ import annotations
 
@@ -15,44 +16,60 @@ import signal
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 
-from .worker import execute, start_worker
+from .worker import execute_unit, start_worker
 
 
 class _DependencyTracker:
-    """The ready set of a dependency graph, with failure propagation to descendants."""
+    """The ready set of a dependency graph of units: a unit is ready once every unit it reads from finished
+    (successfully or not: which of its items then run is decided inside the unit, item by item)."""
 
-    def __init__(self, items):
-        self.items = {it.key: it for it in items}
-        self.waiting = {it.key: {d for d in it.deps if d in self.items} for it in items}
-        self.children: dict[str, list[str]] = {k: [] for k in self.items}
+    def __init__(self, units):
+        self.units = {u.key: u for u in units}
+        self.waiting = {u.key: {d for d in u.deps if d in self.units} for u in units}
+        self.children: dict[str, list[str]] = {k: [] for k in self.units}
         for k, deps in self.waiting.items():
             for d in deps:
                 self.children[d].append(k)
-        self.ready = [it.key for it in items if not self.waiting[it.key]]
+        self.ready = [u.key for u in units if not self.waiting[u.key]]
+        self.failed_items: dict[str, str] = {}   # key -> node of the items that did not produce their outputs
 
-    def finished(self, key: str, ok: bool) -> list[str]:
-        """Record an outcome; return the keys that can no longer run (descendants of a failure)."""
-        if ok:
-            for c in self.children[key]:
-                if c not in self.waiting:  # already given up (another input failed)
-                    continue
-                self.waiting[c].discard(key)
-                if not self.waiting[c]:
-                    self.ready.append(c)
-            return []
-        doomed, stack = [], list(self.children[key])
-        while stack:
-            c = stack.pop()
-            if c in self.waiting and c not in doomed:
-                doomed.append(c)
-                del self.waiting[c]
-                stack.extend(self.children[c])
-        return doomed
+    def launch(self, key: str) -> dict:
+        """The unit's spec, told which items of other units failed."""
+        spec = dict(self.units[key].spec)
+        spec["failed"] = dict(self.failed_items)
+        return spec
+
+    def finished(self, key: str, results: dict):
+        names = {s["key"]: s["node"] for s in self.units[key].spec["items"]}
+        for item, res in results.items():
+            if res.get("status") != "done":
+                self.failed_items[item] = names.get(item, "?")
+        for c in self.children[key]:
+            self.waiting[c].discard(key)
+            if not self.waiting[c]:
+                self.ready.append(c)
 
 
-def _skip(tracker, key, on_result, reason_node):
-    for d in tracker.finished(key, ok=False):
-        on_result(d, {"status": "skipped", "error": f"upstream '{reason_node}' failed", "seconds": 0.0})
+def unit_failed(unit, error: str, cache_root: str) -> dict:
+    """Results of a unit whose worker never reported (killed, out of memory): the items whose kept outputs
+    reached the cache before it died are done; an item reading one that did not finish is skipped; the others
+    failed with ``error``."""
+    from .cache import Cache
+    from .worker import _input_keys
+
+    cache = Cache(cache_root)
+    out, bad = {}, {}
+    for s in unit.spec["items"]:
+        down = [k for k in _input_keys(s) if k in bad]
+        if s.get("kept") and set(s["kept"]) <= (cache.stored(s["key"]) or set()):
+            out[s["key"]] = {"status": "done", "seconds": 0.0}
+        elif down:
+            out[s["key"]] = {"status": "skipped", "seconds": 0.0, "error": f"upstream '{bad[down[0]]}' failed"}
+            bad[s["key"]] = bad[down[0]]
+        else:
+            out[s["key"]] = {"status": "failed", "seconds": 0.0, "error": error}
+            bad[s["key"]] = s["node"]
+    return out
 
 
 def worker_threads(workers: int) -> dict:
@@ -80,20 +97,21 @@ class LocalExecutor:
     def __init__(self, jobs: int | None = None):
         self.jobs = max(1, jobs or os.cpu_count() or 1)
 
-    def run(self, items, specs, cache_root, on_result):
-        tracker = _DependencyTracker(items)
-        if self.jobs == 1 or len(items) == 1:
+    def run(self, units, cache_root, on_result):
+        tracker = _DependencyTracker(units)
+
+        def report(key, results):
+            for item, res in results.items():
+                on_result(item, res)
+            tracker.finished(key, results)
+
+        if self.jobs == 1 or len(units) == 1:
             while tracker.ready:
                 key = tracker.ready.pop(0)
-                res = execute(specs[key], cache_root)
-                on_result(key, res)
-                if res["status"] == "done":
-                    tracker.finished(key, ok=True)
-                else:
-                    _skip(tracker, key, on_result, tracker.items[key].node)
+                report(key, execute_unit(tracker.launch(key), cache_root))
             return
         ctx = multiprocessing.get_context("spawn")
-        workers = min(self.jobs, len(items))
+        workers = min(self.jobs, len(units))
         init = {"initializer": _init_worker, "initargs": (worker_threads(workers),)}
         pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, **init)
         running = {}
@@ -102,28 +120,22 @@ class LocalExecutor:
                 while tracker.ready and len(running) < self.jobs:
                     key = tracker.ready.pop(0)
                     with _sigint_ignored():  # workers start ignoring Ctrl-C: this process handles it
-                        running[pool.submit(execute, specs[key], cache_root)] = key
+                        running[pool.submit(execute_unit, tracker.launch(key), cache_root)] = key
                 done, _ = wait(running, return_when=FIRST_COMPLETED)
                 broken = False
                 for fut in done:
                     key = running.pop(fut)
                     try:
-                        res = fut.result()
+                        results = fut.result()
                     except BrokenProcessPool:
                         broken = True
-                        res = {"status": "failed", "seconds": 0.0,
-                               "error": "the worker process died (killed, or out of memory); rerun to retry"}
+                        results = unit_failed(tracker.units[key], "the worker process died (killed, or out of memory); rerun to retry", cache_root)
                     except Exception as exc:  # pickling problems and the like
-                        res = {"status": "failed", "seconds": 0.0, "error": f"{type(exc).__name__}: {exc}"}
-                    on_result(key, res)
-                    if res["status"] == "done":
-                        tracker.finished(key, ok=True)
-                    else:
-                        _skip(tracker, key, on_result, tracker.items[key].node)
+                        results = unit_failed(tracker.units[key], f"{type(exc).__name__}: {exc}", cache_root)
+                    report(key, results)
                 if broken:  # the pool is unusable: fail what was in flight, start a new pool
                     for fut, key in list(running.items()):
-                        on_result(key, {"status": "failed", "seconds": 0.0, "error": "worker pool broke; rerun to retry"})
-                        _skip(tracker, key, on_result, tracker.items[key].node)
+                        report(key, unit_failed(tracker.units[key], "worker pool broke; rerun to retry", cache_root))
                     running.clear()
                     pool.shutdown(wait=False, cancel_futures=True)
                     pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, **init)

@@ -11,12 +11,17 @@ The fingerprint of a node class hashes
     the including file), recursively.
 Modules are named by their dotted names and files by their names relative to their package, never by
 absolute path, so a project that moves keeps its cache. The engine itself is not part of it: the form of
-cache entries is versioned by hashing.KEY_SCHEMA.
+cache entries is versioned by hashing.KEY_SCHEMA. A module that only draws (report previews) and cannot change
+what a node computes says so with a top-level ``__fingerprint__ = False``: it and what only it imports are left
+out, so editing a drawing does not invalidate every cache entry.
 """
 from __future__ import annotations
 
 import ast
+import hashlib
 import importlib.util
+import json
+import os
 import re
 from functools import lru_cache
 from importlib import metadata
@@ -26,6 +31,7 @@ from .hashing import digest
 
 ENTRY_POINT_GROUP = "volcap.nodes"
 _INCLUDE = re.compile(r'^\s*#\s*include\s+"([^"]+)"', re.M)
+_NOT_RESULTS = re.compile(r"^__fingerprint__\s*=\s*False\b", re.M)
 
 
 @lru_cache(maxsize=None)
@@ -45,9 +51,44 @@ def _module_file(name: str) -> tuple[Path | None, bool]:
     return Path(spec.origin), spec.submodule_search_locations is not None
 
 
+_PARSED: dict[str, list[str]] = {}   # (module, content hash) -> imported names: parsing is the slow part
+_STORE: Path | None = None
+
+
+def remember_in(path: Path | None):
+    """Keep the parsed import lists in ``path`` (a JSON file, e.g. in the cache folder) across processes: a
+    module whose text did not change is not parsed again."""
+    global _STORE
+    _STORE = path
+    if path is not None and path.is_file():
+        try:
+            _PARSED.update(json.loads(path.read_text()))
+        except (OSError, ValueError):
+            pass
+
+
+def save_parsed():
+    if _STORE is not None:
+        try:
+            tmp = _STORE.with_suffix(".tmp")
+            tmp.write_text(json.dumps(_PARSED))
+            os.replace(tmp, _STORE)
+        except OSError:
+            pass
+
+
 def imported_names(source: str, module: str, is_package: bool) -> set[str]:
     """Dotted names a module's source imports (absolute; parents included; ``from a import b`` gives a and
     a.b, which may be an attribute rather than a module)."""
+    memo = f"{module}:{int(is_package)}:{hashlib.sha1(source.encode()).hexdigest()}"
+    if memo in _PARSED:
+        return set(_PARSED[memo])
+    names = _imported_names(source, module, is_package)
+    _PARSED[memo] = sorted(names)
+    return names
+
+
+def _imported_names(source: str, module: str, is_package: bool) -> set[str]:
     names: set[str] = set()
     package = module if is_package else module.rpartition(".")[0]
     for node in ast.walk(ast.parse(source)):
@@ -84,11 +125,14 @@ def module_closure(module: str, roots: frozenset[str] | None = None) -> dict[str
         path, is_pkg = _module_file(name)
         if path is None:
             continue
+        source = path.read_text()
+        if _NOT_RESULTS.search(source):
+            continue
         found[name] = path
         parent = name.rpartition(".")[0]
         if parent:
             todo.append(parent)  # importing a.b.c runs a/__init__.py and a/b/__init__.py
-        todo.extend(imported_names(path.read_text(), name, is_pkg) - found.keys())
+        todo.extend(imported_names(source, name, is_pkg) - found.keys())
     return found
 
 

@@ -11,15 +11,33 @@ The contract (what the scheduler, the cache and `explain` rely on):
   frame number if the node ``uses_frame``, and the list of frames for a sequence node. Same key = same result, so an item whose key is in the cache is
   never rerun, and two items with the same key (a per-frame node fed only frame-independent data) run once.
 - An item runs when it is not cached and all its inputs exist; when an input failed, it is skipped.
+
+Frame units (what runs together, what is kept):
+- A frame's own items (per-frame items whose key no other frame shares) form one *unit*: they run together in
+  one worker, in dependency order, handing their values over in memory (a device-resident value, such as a
+  key's silhouettes packed for the hull, stays on the OpenCL device). Every other item is a unit of its own:
+  sequence items, and per-frame items several frames share (a frame-independent source).
+- Only the ports that must be *kept* are stored in the cache (``WorkItem.kept``): outputs of a type kept by
+  default (small values: tables, cameras, boxes, files), exported files (publishing nodes), outputs read by
+  another unit (a sequence node, another frame), the outputs of nodes nothing reads (results), and
+  checkpoints: every output of a node class that declares ``checkpoint = True`` (a renderer) and the ports a
+  graph lists under a node's ``keep:``; an output nothing reads is kept when nothing reads any output of its
+  node (a result), not when a sibling output is read (a by-product, e.g. a key's despilled images beside the
+  masks the hull reads). Large intermediate values (images, masks, volumes, meshes) live only in memory.
+  Which values are kept never changes a key.
+- What runs is decided from the cache (nodegraph/run.py): an item with a kept port missing from the cache
+  runs, and so do the items of its unit whose in-memory values it needs; the rest is up to date.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
 from .graphfile import Graph
+from . import fingerprint
 from .fingerprint import implementation_fingerprint
 from .hashing import KEY_SCHEMA, FileHasher, digest
 from .node import InPath
+from .types import Files
 
 
 @dataclass
@@ -34,6 +52,8 @@ class WorkItem:
     key: str
     components: dict                # the parts of the key, for `explain`
     deps: list[str] = field(default_factory=list)  # keys of the items producing the inputs
+    kept: list[str] = field(default_factory=list)  # output ports stored in the cache
+    unit: str = ""                  # "frame:N" for a frame's own items, else "item:KEY"
 
     @property
     def label(self) -> str:
@@ -42,7 +62,7 @@ class WorkItem:
     def spec(self, log_path: str | None = None) -> dict:
         return {"node": self.node, "type": self.type_name, "module": self.module, "frame": self.frame,
                 "frames": self.frames, "params": self.params, "inputs": self.inputs, "key": self.key,
-                "components": self.components, "log": log_path}
+                "components": self.components, "log": log_path, "kept": list(self.kept)}
 
 
 def _type_ref(t) -> str:
@@ -96,4 +116,29 @@ def make_plan(graph: Graph, hasher: FileHasher) -> tuple[list[WorkItem], dict[tu
                 items[key] = WorkItem(name, spec.type_name, cls.__module__, frame, frames, dict(spec.params),
                                       inputs, key, components, sorted(set(deps)))
     hasher.save()
+    fingerprint.save_parsed()
+    _assign_units(graph, items, slot)
     return list(items.values()), slot
+
+
+def _assign_units(graph: Graph, items: dict[str, WorkItem], slot: dict) -> None:
+    """Set each item's unit and kept ports (see the module docstring)."""
+    uses: dict[str, int] = {}
+    for key in slot.values():
+        uses[key] = uses.get(key, 0) + 1
+    for it in items.values():
+        own = graph.nodes[it.node].cls.per == "frame" and uses[it.key] == 1
+        it.unit = f"frame:{it.frame}" if own else f"item:{it.key}"
+    readers: dict[tuple[str, str], list[WorkItem]] = {}
+    for it in items.values():
+        for ref in it.inputs.values():
+            for r in (ref if isinstance(ref, list) else [ref] if ref else []):
+                readers.setdefault((r["key"], r["port"]), []).append(it)
+    for it in items.values():
+        spec = graph.nodes[it.node]
+        cls = spec.cls
+        read = {port: readers.get((it.key, port), []) for port in cls.outputs}
+        leaf = not any(read.values())  # nothing reads this node: its outputs are the graph's results
+        it.kept = [port for port, out in cls.outputs.items()
+                   if out.type.kept_by_default or cls.checkpoint or port in spec.keep or leaf
+                   or (cls.publishes and issubclass(out.type, Files)) or any(u.unit != it.unit for u in read[port])]

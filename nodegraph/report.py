@@ -233,6 +233,10 @@ def _previews(name: str, rec: dict, by_node: dict, dag: nx.DiGraph, out_dir: Pat
     figures = []
     for port, t in ports.items():
         folder = cache_dir / port
+        if port in (rec.get("in_memory") or []):
+            figures.append(f'<figure class="in-memory"><figcaption>{_e(port)} <small>{_e(t)}</small></figcaption>'
+                           '<p class="note">kept in memory only (run with --report or --keep-all to keep it)</p></figure>')
+            continue
         if not folder.is_dir() or (t == "Bounds" and "Cameras" in own):  # the cameras picture shows the box
             continue
         rel = Path("report") / _slug(name) / f"{frame}_{_slug(port)}.png"

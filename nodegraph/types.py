@@ -23,9 +23,12 @@ _TYPES: dict[str, type["DataType"]] = {}
 
 
 class DataType:
-    """Base of all port types."""
+    """Base of all port types. ``kept_by_default``: whether a value of this type is stored in the cache even
+    when its consumers run in the same process (small values: yes; images, masks, volumes, meshes: no — see
+    nodegraph/plan.py)."""
 
     name: ClassVar[str] = "Data"
+    kept_by_default: ClassVar[bool] = True
 
     def __init_subclass__(cls, **kw):
         super().__init_subclass__(**kw)

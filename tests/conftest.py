@@ -67,7 +67,7 @@ def dataset_run(tmp_path_factory, data_dir):
         key = (str(name), tuple(overrides), frames)
         if key not in runs:
             path = name if isinstance(name, Path) else ROOT / "graphs" / "datasets" / f"{name}.yaml"
-            g = load_graph(path, overrides=list(overrides), frames=frames)
+            g = load_graph(path, overrides=list(overrides), frames=frames).keep_all()  # tests read intermediate values
             out = base / f"out{len(runs)}"
             res = run_graph(g, Cache(base / "cache"), out, LocalExecutor(1), progress=False)
             assert res.ok, res.failures

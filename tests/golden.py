@@ -11,11 +11,13 @@ Tolerances per type (override with keyword arguments):
     Mesh    vertex and face counts within count_rtol, symmetric Hausdorff <= hausdorff (absolute units)
     Table   numbers within rtol / atol, everything else equal
     Array   allclose(rtol, atol)
+    Skeleton  same parents and names, joints within atol (default 1e-9), weights / motion within atol
 Regenerate deliberately with ``pytest --update-golden``; the run lists every file it rewrote so the diff
 can be reviewed before committing. Golden folders live in tests/golden/NAME/ in the type's own format.
 """
 from __future__ import annotations
 
+import json
 import math
 import shutil
 from pathlib import Path
@@ -39,12 +41,44 @@ class Golden:
             if folder.exists():
                 shutil.rmtree(folder)
             folder.mkdir(parents=True)
-            dtype.save(value, folder)
+            save(value, folder, dtype)
             self.rewritten.append(name)
             return
         assert folder.is_dir(), f"no golden file for '{name}' in {GOLDEN_DIR}: create it with pytest --update-golden and review it"
-        expected = dtype.load(folder)
+        expected = load(folder, dtype)
         compare(value, expected, dtype, name, **tol)
+
+
+# Golden images and masks are PNG (soft alpha EXR), viewable and small, whatever form the cache uses.
+def save(value, folder: Path, dtype):
+    import cv2
+
+    if issubclass(dtype, T.Masks):
+        for i, (n, m) in enumerate(zip(value.names, value.masks)):
+            cv2.imwrite(str(folder / f"{n}.png"), np.asarray(m))
+            if value.alpha is not None:
+                T.write_exr(folder / f"{n}.alpha.exr", value.alpha[i])
+        (folder / "names.json").write_text(json.dumps({"names": value.names, "alpha": value.alpha is not None}))
+    elif issubclass(dtype, T.Images):
+        for n, im in zip(value.names, value.images):
+            cv2.imwrite(str(folder / f"{n}.png"), np.asarray(im)[:, :, ::-1])
+        (folder / "names.json").write_text(json.dumps(value.names))
+    else:
+        dtype.save(value, folder)
+
+
+def load(folder: Path, dtype):
+    import cv2
+
+    if issubclass(dtype, T.Masks):
+        meta = json.loads((folder / "names.json").read_text())
+        masks = [cv2.imread(str(folder / f"{n}.png"), cv2.IMREAD_GRAYSCALE) for n in meta["names"]]
+        alpha = [T.read_exr(folder / f"{n}.alpha.exr") for n in meta["names"]] if meta["alpha"] else None
+        return T.MaskSet(masks, alpha, meta["names"])
+    if issubclass(dtype, T.Images):
+        names = json.loads((folder / "names.json").read_text())
+        return T.ImageSet([cv2.imread(str(folder / f"{n}.png"), cv2.IMREAD_COLOR)[:, :, ::-1] for n in names], names)
+    return dtype.load(folder)
 
 
 def compare(actual, expected, dtype, name, **tol):
@@ -77,6 +111,15 @@ def compare(actual, expected, dtype, name, **tol):
         _compare_json(actual, expected, name, tol.get("rtol", 1e-6), tol.get("atol", 1e-9))
     elif issubclass(dtype, E.Array):
         np.testing.assert_allclose(actual, expected, rtol=tol.get("rtol", 1e-6), atol=tol.get("atol", 0), err_msg=name)
+    elif issubclass(dtype, T.Skeleton):
+        assert list(actual.parents) == list(expected.parents), f"{name}: parents {actual.parents} vs golden {expected.parents}"
+        assert list(actual.names) == list(expected.names), f"{name}: names {actual.names} vs golden {expected.names}"
+        atol = tol.get("atol", 1e-9)
+        for what in ("joints", "weights", "rotations", "translations"):
+            a, e = getattr(actual, what), getattr(expected, what)
+            assert (a is None) == (e is None), f"{name}: {what} present in one of actual / golden only"
+            if e is not None:
+                np.testing.assert_allclose(a, e, rtol=0, atol=atol, err_msg=f"{name}: {what}")
     elif issubclass(dtype, T.Images):
         for a, e in zip(actual.images, expected.images, strict=True):
             d = np.abs(a.astype(int) - e.astype(int))

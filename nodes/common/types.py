@@ -20,23 +20,6 @@ from . import previews
 from .cameras import Cameras
 
 
-def _imread(path: Path, flags: int):
-    import cv2
-
-    img = cv2.imread(str(path), flags)
-    if img is None:
-        raise DataError(f"{path}: unreadable or corrupt image")
-    return img
-
-
-def _imwrite(path: Path, img: np.ndarray):
-    import cv2
-
-    params = [cv2.IMWRITE_PNG_COMPRESSION, 1] if path.suffix == ".png" else []
-    if not cv2.imwrite(str(path), img, params):
-        raise DataError(f"{path}: could not write image")
-
-
 def write_exr(path: Path, arr: np.ndarray, channel: str = "A"):
     import OpenEXR
 
@@ -56,35 +39,85 @@ def read_exr(path: Path, channel: str = "A") -> np.ndarray:
 
 
 # ---------------------------------------------------------------- values
-@dataclass
-class ImageSet:
-    """One frame of a capture: an RGB uint8 image (H, W, 3) per camera, in camera order."""
+class _Lazy:
+    """A per-camera set whose arrays may be produced on first use: a node can hand over a value whose costly
+    host form (a read-back from the OpenCL device, a despill) is only computed when a reader or the cache asks
+    for it. ``produce()`` returns the arrays; ``ready`` says whether they exist yet."""
 
-    images: list[np.ndarray]
-    names: list[str] = field(default_factory=list)
+    def __init__(self, produce, names):
+        self._produce = produce
+        self.names = list(names)
 
-    def __post_init__(self):
-        if not self.names:
-            self.names = [f"cam{i:03d}" for i in range(len(self.images))]
+    @property
+    def ready(self) -> bool:
+        return self._produce is None
+
+    def _materialise(self):
+        if self._produce is not None:
+            produce, self._produce = self._produce, None
+            self._set(*produce())
+
+
+class ImageSet(_Lazy):
+    """One frame of a capture: an RGB uint8 image (H, W, 3) per camera, in camera order.
+    ``ImageSet(images, names)``, or ``ImageSet.lazy(produce, names)`` (``produce() -> images``)."""
+
+    def __init__(self, images: list[np.ndarray], names: list[str] | None = None):
+        super().__init__(None, names or [f"cam{i:03d}" for i in range(len(images))])
+        self._images = list(images)
+
+    @classmethod
+    def lazy(cls, produce, names: list[str]) -> "ImageSet":
+        s = cls([], names)
+        s._produce = lambda: (produce(),)
+        return s
+
+    def _set(self, images):
+        self._images = list(images)
+
+    @property
+    def images(self) -> list[np.ndarray]:
+        self._materialise()
+        return self._images
 
     def __len__(self):
-        return len(self.images)
+        return len(self.names)
 
 
-@dataclass
-class MaskSet:
-    """Silhouettes per camera: binary uint8 masks (0 / 255) and optional soft alpha (float32 0..1)."""
+class MaskSet(_Lazy):
+    """Silhouettes per camera: binary uint8 masks (0 / 255) and optional soft alpha (float32 0..1).
 
-    masks: list[np.ndarray]
-    alpha: list[np.ndarray] | None = None
-    names: list[str] = field(default_factory=list)
+    ``device``: the same silhouettes already on the OpenCL device (nodes.common.silhouettes.SilhouetteBits),
+    when the producer made them there; a reader that can use them (the hull) then needs no host masks at all.
+    ``MaskSet.lazy(produce, names, device=...)`` defers the host masks (``produce() -> (masks, alpha)``)."""
 
-    def __post_init__(self):
-        if not self.names:
-            self.names = [f"cam{i:03d}" for i in range(len(self.masks))]
+    def __init__(self, masks: list[np.ndarray], alpha: list[np.ndarray] | None = None, names: list[str] | None = None,
+                 device=None):
+        super().__init__(None, names or [f"cam{i:03d}" for i in range(len(masks))])
+        self._masks, self._alpha = list(masks), (list(alpha) if alpha is not None else None)
+        self.device = device
+
+    @classmethod
+    def lazy(cls, produce, names: list[str], device=None) -> "MaskSet":
+        s = cls([], None, names, device)
+        s._produce = produce
+        return s
+
+    def _set(self, masks, alpha):
+        self._masks, self._alpha = list(masks), (list(alpha) if alpha is not None else None)
+
+    @property
+    def masks(self) -> list[np.ndarray]:
+        self._materialise()
+        return self._masks
+
+    @property
+    def alpha(self) -> list[np.ndarray] | None:
+        self._materialise()
+        return self._alpha
 
     def __len__(self):
-        return len(self.masks)
+        return len(self.names)
 
 
 @dataclass
@@ -114,39 +147,91 @@ class VoxelGrid:
 @dataclass
 class SkeletonData:
     """A joint tree: joint positions (J, 3), parent index per joint (-1 for the root), optional LBS
-    weights (V, J) for a mesh's vertices."""
+    weights (V, J) for a mesh's vertices, and optionally its motion over frames: ``rotations`` (F, J, 3, 3)
+    and ``translations`` (F, J, 3) take the rest pose (``joints``, the mesh the weights belong to) to each
+    frame, x -> R x + t per joint's bone (the skinning matrices); ``frames`` their frame numbers."""
 
     joints: np.ndarray
     parents: list[int]
     names: list[str] = field(default_factory=list)
     weights: np.ndarray | None = None
+    rotations: np.ndarray | None = None
+    translations: np.ndarray | None = None
+    frames: list[int] | None = None
+
+    def problem(self) -> str | None:
+        """What is inconsistent (shapes, parents that do not form a tree), or None."""
+        j = len(self.parents)
+        joints = np.asarray(self.joints)
+        if joints.shape != (j, 3):
+            return f"joints have shape {joints.shape}, expected ({j}, 3) for {j} parents"
+        if self.names and len(self.names) != j:
+            return f"{len(self.names)} names for {j} joints"
+        if sum(1 for p in self.parents if p < 0) != 1 and j:
+            return "a skeleton needs exactly one root (parent -1)"
+        for i, p in enumerate(self.parents):
+            seen, q = {i}, p
+            while q >= 0:
+                if q >= j or q in seen:
+                    return f"joint {i}: parent chain is not a tree (parent {q})"
+                seen.add(q)
+                q = self.parents[q]
+        if self.weights is not None and (np.ndim(self.weights) != 2 or np.shape(self.weights)[1] != j):
+            return f"weights have shape {np.shape(self.weights)}, expected (vertices, {j})"
+        if (self.rotations is None) != (self.translations is None):
+            return "rotations and translations come together"
+        if self.rotations is not None:
+            f = np.shape(self.rotations)[0]
+            if np.shape(self.rotations) != (f, j, 3, 3) or np.shape(self.translations) != (f, j, 3):
+                return f"motion shapes {np.shape(self.rotations)} / {np.shape(self.translations)} do not fit {j} joints"
+            if self.frames is not None and len(self.frames) != f:
+                return f"{len(self.frames)} frame numbers for {f} frames of motion"
+        return None
 
 
 # ---------------------------------------------------------------- types
+def _save_array(path: Path, arr: np.ndarray):
+    np.save(path, np.ascontiguousarray(arr), allow_pickle=False)
+
+
+def _load_array(path: Path) -> np.ndarray:
+    """A stored array, memory-mapped copy-on-write (no read until used; writable without touching the file)."""
+    try:
+        return np.load(path, mmap_mode="c", allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise DataError(f"{path}: unreadable array ({exc})") from None
+
+
 class Images(DataType):
+    """Stored as one raw .npy per camera (read by memory map: loading a frame of 24 HD images costs nothing
+    until a kernel reads it; see bench/formats.py for PNG and compressed forms measured against it)."""
+
     name = "Images"
+    kept_by_default = False  # large: passed in memory within a frame unless kept
 
     @classmethod
     def check(cls, v):
         if not isinstance(v, ImageSet):
             return f"expected an ImageSet, got {type(v).__name__}"
+        if not v.ready:
+            return None  # produced later by its own node's code, checked when it is
         for i, im in enumerate(v.images):
             if not (isinstance(im, np.ndarray) and im.dtype == np.uint8 and im.ndim == 3 and im.shape[2] == 3):
                 return f"image {i} must be an (H, W, 3) uint8 array"
+        if len(v.images) != len(v.names):
+            return f"{len(v.images)} images but {len(v.names)} names"
         return None
 
     @classmethod
     def save(cls, v: ImageSet, folder: Path):
         for name, im in zip(v.names, v.images):
-            _imwrite(folder / f"{name}.png", im[:, :, ::-1])
+            _save_array(folder / f"{name}.npy", im)
         (folder / "names.json").write_text(json.dumps(v.names))
 
     @classmethod
     def load(cls, folder: Path) -> ImageSet:
-        import cv2
-
         names = json.loads((folder / "names.json").read_text())
-        return ImageSet([np.ascontiguousarray(_imread(folder / f"{n}.png", cv2.IMREAD_COLOR)[:, :, ::-1]) for n in names], names)
+        return ImageSet([_load_array(folder / f"{n}.npy") for n in names], names)
 
     @classmethod
     def preview(cls, value, size, companions):
@@ -154,15 +239,22 @@ class Images(DataType):
 
 
 class Masks(DataType):
+    """Stored as one raw .npy per camera (uint8), and the soft alpha as .alpha.npy (float32)."""
+
     name = "Masks"
+    kept_by_default = False  # large: passed in memory within a frame unless kept
 
     @classmethod
     def check(cls, v):
         if not isinstance(v, MaskSet):
             return f"expected a MaskSet, got {type(v).__name__}"
+        if not v.ready:
+            return None  # produced later by its own node's code, checked when it is
         for i, m in enumerate(v.masks):
             if not (isinstance(m, np.ndarray) and m.dtype == np.uint8 and m.ndim == 2):
                 return f"mask {i} must be an (H, W) uint8 array"
+        if len(v.masks) != len(v.names):
+            return f"{len(v.masks)} masks but {len(v.names)} names"
         if v.alpha is not None and len(v.alpha) != len(v.masks):
             return "alpha must have one image per mask"
         return None
@@ -170,19 +262,17 @@ class Masks(DataType):
     @classmethod
     def save(cls, v: MaskSet, folder: Path):
         for i, (name, m) in enumerate(zip(v.names, v.masks)):
-            _imwrite(folder / f"{name}.png", m)
+            _save_array(folder / f"{name}.npy", m)
             if v.alpha is not None:
-                write_exr(folder / f"{name}.alpha.exr", v.alpha[i])
+                _save_array(folder / f"{name}.alpha.npy", np.asarray(v.alpha[i], np.float32))
         (folder / "names.json").write_text(json.dumps({"names": v.names, "alpha": v.alpha is not None}))
 
     @classmethod
     def load(cls, folder: Path) -> MaskSet:
-        import cv2
-
         meta = json.loads((folder / "names.json").read_text())
         names = meta["names"]
-        masks = [_imread(folder / f"{n}.png", cv2.IMREAD_GRAYSCALE) for n in names]
-        alpha = [read_exr(folder / f"{n}.alpha.exr") for n in names] if meta["alpha"] else None
+        masks = [_load_array(folder / f"{n}.npy") for n in names]
+        alpha = [_load_array(folder / f"{n}.alpha.npy") for n in names] if meta["alpha"] else None
         return MaskSet(masks, alpha, names)
 
     @classmethod
@@ -212,6 +302,7 @@ class CameraSet(DataType):
 
 class Volume(DataType):
     name = "Volume"
+    kept_by_default = False  # large: passed in memory within a frame unless kept
 
     @classmethod
     def check(cls, v):
@@ -243,6 +334,7 @@ class Mesh(DataType):
 
     name = "Mesh"
     filename: ClassVar[str] = "mesh.ply"
+    kept_by_default = False  # large: passed in memory within a frame unless kept
 
     @classmethod
     def check(cls, v):
@@ -271,26 +363,36 @@ class TexturedMesh(Mesh):
     name = "TexturedMesh"
     filename = "mesh.glb"
 
+    @classmethod
+    def preview(cls, value, size, companions):
+        return previews.draw_textured_mesh(value, size, companions)
+
 
 class Skeleton(DataType):
     name = "Skeleton"
 
     @classmethod
     def check(cls, v):
-        return None if isinstance(v, SkeletonData) else f"expected SkeletonData, got {type(v).__name__}"
+        if not isinstance(v, SkeletonData):
+            return f"expected SkeletonData, got {type(v).__name__}"
+        return v.problem()
 
     @classmethod
     def save(cls, v: SkeletonData, folder: Path):
-        doc = {"joints": np.asarray(v.joints).tolist(), "parents": list(map(int, v.parents)), "names": v.names}
+        doc = {"joints": np.asarray(v.joints).tolist(), "parents": list(map(int, v.parents)), "names": v.names,
+               "frames": None if v.frames is None else [int(f) for f in v.frames]}
         (folder / "skeleton.json").write_text(json.dumps(doc, indent=1))
-        if v.weights is not None:
-            np.save(folder / "weights.npy", v.weights)
+        for name in ("weights", "rotations", "translations"):
+            if getattr(v, name) is not None:
+                np.save(folder / f"{name}.npy", np.asarray(getattr(v, name)))
 
     @classmethod
     def load(cls, folder: Path) -> SkeletonData:
         doc = json.loads((folder / "skeleton.json").read_text())
-        w = folder / "weights.npy"
-        return SkeletonData(np.array(doc["joints"]), doc["parents"], doc["names"], np.load(w) if w.exists() else None)
+        arrays = {n: (np.load(folder / f"{n}.npy") if (folder / f"{n}.npy").exists() else None)
+                  for n in ("weights", "rotations", "translations")}
+        return SkeletonData(np.array(doc["joints"], dtype=np.float64).reshape(-1, 3), doc["parents"], doc["names"],
+                            frames=doc.get("frames"), **arrays)
 
     @classmethod
     def preview(cls, value, size, companions):

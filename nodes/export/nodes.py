@@ -7,7 +7,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from nodegraph import Files, Node, NodeError, OutPath, Param
@@ -55,8 +54,11 @@ class ExportMasks(Node):
     }
 
     def run(self, masks, *, path, alpha, frame):
+        import cv2
+
         import tempfile
 
+        
         files = {}
         for i, (name, m) in enumerate(zip(masks.names, masks.masks)):
             rel = _format(path, frame=frame, camera=name)

@@ -130,8 +130,10 @@ class HullCL(clrt.Runner):
 
 
 def visual_hull(masks, cameras: Cameras, box, resolution=128, min_views=0, policy="carve", method="sparse") -> VoxelGrid:
-    """Visual hull over ``box`` (2, 3) as a VoxelGrid of uint8 0/1, from ``masks``: a MaskSet, or
-    SilhouetteBits already on the device (e.g. from nodes.key.chroma_key_bits; no host round trip)."""
+    """Visual hull over ``box`` (2, 3) as a VoxelGrid of uint8 0/1, from ``masks``: a MaskSet, or SilhouetteBits
+    already on the device (from the chroma key, as such or as the ``device`` of its MaskSet: no host round trip)."""
+    if getattr(masks, "device", None) is not None and method != "numpy":
+        masks = masks.device
     on_device = isinstance(masks, SilhouetteBits)
     if on_device:
         check_silhouettes(masks, cameras)

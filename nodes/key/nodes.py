@@ -7,7 +7,7 @@ import numpy as np
 from nodegraph import Input, Node, NodeError, Param
 from nodes.common.types import Bounds, CameraSet, Images, ImageSet, Masks, MaskSet, Volume
 
-from .keying import (KERNELS, check_views, chroma_key_cl, clean_mask, difference_key_cl, estimate_key_direction,
+from .keying import (KERNELS, check_views, chroma_key_bits, chroma_key_cl, clean_mask, difference_key_cl, estimate_key_direction,
                      grabcut_band, grey_threshold_cl, hull_footprint, key_direction_from_rgb, maskset, matte_edges,
                      plate_model, disc)
 
@@ -43,16 +43,31 @@ class ChromaKey(Node):
             raise NodeError(f"key.chroma: param 'outer' ({outer}) must be larger than 'inner' ({inner})")
         if (cameras is None) != (bounds is None):
             raise NodeError("key.chroma: the garbage matte needs both inputs 'cameras' and 'bounds'")
-        check_views("key.chroma", images.images, cameras)
-        alphas, despilled = [], []
-        for v, im in enumerate(images.images):
-            key = key_direction_from_rgb(key_color) if key_color else estimate_key_direction(im)
-            edges = matte_edges(cameras, v, bounds, matte_margin) if cameras is not None else None
-            a, d = chroma_key_cl(im, key, side=side, luma_floor=luma_floor, inner=inner, outer=outer, black=black,
-                                 spill=spill, edges=edges, despill=spill > 0)
-            alphas.append(a)
-            despilled.append(d if spill > 0 else im)
-        return {"masks": maskset(alphas, images.names), "images": ImageSet(despilled, list(images.names))}
+        frames = images.images
+        check_views("key.chroma", frames, cameras)
+        keys = [key_direction_from_rgb(key_color) if key_color else estimate_key_direction(im) for im in frames]
+        edges = [matte_edges(cameras, v, bounds, matte_margin) for v in range(len(frames))] if cameras is not None else None
+        # The silhouettes go straight into the hull's device layout; the soft alpha, the host masks and the
+        # despilled images are computed only if a reader (or the cache) asks for them.
+        bits = chroma_key_bits(frames, keys, side=side, luma_floor=luma_floor, inner=inner, outer=outer, black=black,
+                               edges=edges)
+        full: dict = {}
+
+        def key_frames():
+            if not full:
+                alphas, despilled = [], []
+                for v, im in enumerate(frames):
+                    a, d = chroma_key_cl(im, keys[v], side=side, luma_floor=luma_floor, inner=inner, outer=outer,
+                                         black=black, spill=spill, edges=None if edges is None else edges[v],
+                                         despill=spill > 0)
+                    alphas.append(a)
+                    despilled.append(d if spill > 0 else im)
+                full.update(masks=maskset(alphas, images.names), images=despilled)
+            return full
+
+        names = list(images.names)
+        masks = MaskSet.lazy(lambda: (key_frames()["masks"].masks, key_frames()["masks"].alpha), names, device=bits)
+        return {"masks": masks, "images": ImageSet.lazy(lambda: key_frames()["images"], names)}
 
 
 class DifferenceKey(Node):

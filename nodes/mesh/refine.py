@@ -1,38 +1,43 @@
-"""Exact visual-hull surface from a marching-cubes mesh: vertices onto the hull, then edge splits where flat
-triangles stray from it.
+"""Exact visual-hull surface from a marching-cubes mesh: every vertex onto the hull along its grid edge, then a
+few steps of tangential relaxation on the hull that even out the triangles.
 
-Liang & Wong, "Exact visual hull from marching cubes" (VISAPP 2008). Marching cubes on an occupancy grid
-puts every vertex on an edge between two neighbouring voxel centres, one inside and one outside; the true
-hull surface crosses that edge somewhere between them. Bisection along the edge, testing each point against
-every silhouette, finds the crossing (kernels/refine.cl). Vertices whose edge disagrees with the point test
+Liang & Wong, "Exact visual hull from marching cubes" (VISAPP 2008). Marching cubes on an occupancy grid puts
+every vertex on an edge between two neighbouring voxel centres, one inside and one outside; the hull surface
+crosses that edge somewhere between them. The crossing is searched on the device view by view
+(nodes/mesh/hullfit.py: the silhouettes read as a smooth B-spline field, the crossing of level 0.5 found by
+regula falsi in the one view that cuts the edge first). Vertices whose edge disagrees with the point test
 are searched for along their normal instead.
 
-With every vertex on the hull, flat triangles between them still cut inside convex outlines and poke out of
-concave ones (chord error). So each edge whose midpoint, moved onto the hull along the normal, shifts by more
-than ``split_px`` pixels in some view is split there (nodes/subdivide.py, conforming), a few rounds.
+Vertices that slid along their edges leave slivers (a vertex near a lattice corner next to its neighbours)
+and, where neighbours slid in opposite directions, folds. ``quality`` fairing steps (nodes/mesh/fairing.py:
+normals smoothed first, then each vertex towards its faces' planes and the mean of its neighbours) even out
+the triangles and open the folds; then every vertex goes back onto the exact hull along its smoothed normal
+(the fairing's final clamp onto the hull's level), and fold repair steps follow where that left a fold (then
+edge flips or collapses, nodes/mesh/budget.py). That last search also finds relax's outer level on the same
+lines: the mesh carries it (``volcap_lines``, in memory only) and relax, run next in the frame unit, starts
+from it. The searches visit, per vertex, only the views that may cut its neighbourhood (``hullfit.ball_cull``).
+Same faces as the input by default; a triangle budget (``faces`` or ``edge_length``) splits the edges with the
+largest chord error or decimates (quadric error metrics, fast-simplification) before the quality steps.
 
-Binary masks are read through their signed distance outline (``Silhouettes.distance_outline``): 0.5 + the
-pixel distance to the other class, bilinear, inside at >= 0.5. Along straight runs it is the pixel edge, as
-nearest-pixel lookup; at staircase steps it rounds the corners, a continuous surface for the bisections
-(thu_wd_human at 128^3 after splits: 1766 mesh pixels outside the masks, 33911 mask pixels not covered;
-nearest-pixel lookup: 2717 and 33577, with 21 % more vertices). The same point test fits vertices to the hull in ``relax``.
-
-    views = Silhouettes.from_inputs(masks, cameras).distance_outline()
-    test = HullTestCL(views)                                  # or HullTestNumPy(views): the NumPy reference
-    v, on_edges, on_normals = refine_vertices(mesh.vertices, mesh.faces, volume, test)
-    v, f = split_towards_hull(v, mesh.faces, test, cameras, reach=voxel, px=0.25, rounds=2)
+    field = SilhouetteField.from_inputs(masks, cameras, origin=volume centre)
+    vertices, faces, stats = refine_vertices(mesh.vertices, mesh.faces, volume, field, steps=8, quality=6)
 """
 from __future__ import annotations
 
 import numpy as np
-import trimesh
 
 from kernels import source
 from nodegraph import Node, Param
-from nodes.common.cameras import Cameras
-from nodes.common.meshops import split_edges, unique_edges
-from nodes.common.silhouettes import OUTLINES, POLICIES, Silhouettes, hull_test
+from nodes.common.meshops import carried_vertex_colors
+from nodes.common.silhouettes import POLICIES
 from nodes.common.types import CameraSet, Masks, Mesh, Volume
+
+from .budget import meet_budget, repair_folds
+from .fairing import CLOps, NumPyOps, fair, smoothed_normals
+from .hullfit import (RELAX_OUTSIDE_PX, FieldCL, FitLines, SilhouetteField, ball_cull, cross_reference, level_of,
+                      onto_reference)
+
+HULL = 0.5  # the field's level of the visual hull (the pixel-edge outline)
 
 
 # ---------------------------------------------------------------- lattice edges
@@ -66,120 +71,128 @@ def lattice_edges(vertices: np.ndarray, volume) -> tuple[np.ndarray, np.ndarray,
     return inside, outside, ok
 
 
-def onto_hull(points, directions, reach, test, steps: int = 16) -> tuple[np.ndarray, np.ndarray]:
-    """Points moved along +-``directions`` (unit, outward) onto the hull boundary: an inside point searches
-    out to ``reach`` (scalar or per point), an outside point back in as far. Returns (points, found);
-    points with no boundary within reach stay where they are."""
-    p = np.asarray(points, np.float32).reshape(-1, 3)
-    step = np.broadcast_to(np.asarray(reach, np.float32).reshape(-1, 1), (len(p), 1)) * np.asarray(directions, np.float32)
-    inside = test.inside(p)
-    a = np.where(inside[:, None], p, p - step)
-    b = np.where(inside[:, None], p + step, p)
-    ends = test.inside(np.vstack([a, b]))
-    found = ends[: len(p)] & ~ends[len(p):]
-    out = p.copy()
-    if found.any():
-        out[found] = test.exit(a[found], b[found], steps)
-    return out.astype(np.float64), found
+# ---------------------------------------------------------------- triangle budget
+def target_face_count(vertices, faces, faces_param: int, edge_length: float) -> int:
+    """The face count asked for: ``faces_param`` when > 0, else the count whose equilateral triangles of side
+    ``edge_length`` cover the mesh's area when that is > 0, else the input's (0: keep)."""
+    if faces_param > 0:
+        return int(faces_param)
+    if edge_length > 0 and len(faces):
+        v = np.asarray(vertices, np.float64)
+        f = np.asarray(faces, np.int64)
+        area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1).sum()
+        return max(4, int(round(area / (np.sqrt(3) / 4 * edge_length ** 2))))
+    return 0
 
 
-def push_out(points, directions, reach, test, steps: int = 16) -> np.ndarray:
-    """Inside points moved outwards along ``directions`` by up to ``reach`` (per point), stopping at the hull
-    boundary; outside points and points with reach 0 stay."""
-    p = np.asarray(points, np.float32).reshape(-1, 3)
-    reach = np.asarray(reach, np.float32).reshape(-1)
-    go = np.flatnonzero(reach > 0)
-    go = go[test.inside(p[go])]
-    b = p[go] + reach[go, None] * np.asarray(directions, np.float32)[go]
-    stop = ~test.inside(b)
-    out = p.copy()
-    out[go[~stop]] = b[~stop]
-    if stop.any():
-        out[go[stop]] = test.clamp(p[go[stop]], b[stop], steps)
-    return out.astype(np.float64)
+# ---------------------------------------------------------------- work function
+CULL_VOXELS = 1.6  # radius of each vertex's ball for view culling: its grid edge and its last search line lie in it
 
 
-def refine_vertices(vertices, faces, volume, test, steps: int = 16) -> tuple[np.ndarray, int, int]:
-    """Vertices moved onto the hull boundary: along their grid edge where its inside end passes the point
-    test and its outside end fails it, else along the vertex normal within one voxel.
-    Returns (vertices, moved along edges, moved along normals); the rest stay."""
-    vertices = np.asarray(vertices, np.float64)
+def refine_vertices(vertices, faces, volume, field: SilhouetteField, steps: int = 8, quality: int = 6,
+                    lam_t: float = 0.5, method: str = "opencl", target_faces: int = 0,
+                    relax_levels: tuple | None = (HULL, level_of(-RELAX_OUTSIDE_PX))):
+    """Vertices onto the hull (Liang & Wong along grid edges, else along the normal within one voxel), then
+    ``quality`` fairing steps and the projection back onto the hull. With ``target_faces`` > 0 the mesh is
+    first brought to that many faces (``meet_budget``). Returns (vertices (V, 3) float64, faces, counts): the
+    faces change with a budget, and when a fold the fairing could not open had its edge collapsed. The searches visit, per vertex, only the views that may see its
+    neighbourhood cut (``ball_cull``). The last search also finds the shell at ``relax_levels`` (relax's default
+    levels): counts["lines"] is then the FitLines relax can start from."""
+    vertices = np.asarray(vertices, np.float64).reshape(-1, 3)
+    faces = np.asarray(faces, np.int64).reshape(-1, 3)
+    stats = {"vertices": len(vertices), "on_edges": 0, "on_normals": 0, "lines": None, "folds_left": 0}
+    if len(vertices) == 0:
+        return vertices.copy(), faces, stats
+    origin = field.origin
+    voxel = float(np.max(volume.voxel_size))
+    p = (vertices - origin).astype(np.float32)
     a, b, ok = lattice_edges(vertices, volume)
-    ends = test.inside(np.vstack([a, b]))
-    on_edge = ok & ends[: len(a)] & ~ends[len(a):]
-    out = vertices.copy()
-    out[on_edge] = test.exit(a[on_edge], b[on_edge], steps)
-    rest = np.flatnonzero(~on_edge)
+    a = np.where(ok[:, None], a - origin, p).astype(np.float32)  # not on an edge: an empty segment, no crossing
+    b = np.where(ok[:, None], b - origin, p).astype(np.float32)
+    cull = None
+    if method == "opencl":
+        fc = FieldCL.get().prepare(field)
+        cull = fc.active(ball_cull(p, CULL_VOXELS * voxel))
+        out, on = fc.cross_host(a, b, p, HULL, steps, cull)
+        ops = CLOps(out, faces, fc)
+    else:
+        out, on = cross_reference(a, b, p, field, HULL, steps)
+        ops = NumPyOps(out, faces, field)
+    rest = np.flatnonzero(~on)
     found = np.zeros(0, bool)
-    if len(rest):
-        normals = trimesh.Trimesh(vertices, faces, process=False).vertex_normals[rest]
-        out[rest], found = onto_hull(vertices[rest], normals, float(np.max(volume.voxel_size)), test, steps)
-    return out, int(on_edge.sum()), int(found.sum())
-
-
-def chord_shift(points, moved, cameras: Cameras) -> np.ndarray:
-    """Largest image distance (pixels, over all views) between each point and its moved twin."""
-    shift = np.zeros(len(points))
-    for v in range(len(cameras)):
-        shift = np.maximum(shift, np.linalg.norm(cameras.project(points, v)[0] - cameras.project(moved, v)[0], axis=1))
-    return np.nan_to_num(shift, nan=np.inf)
-
-
-def split_towards_hull(vertices, faces, test, cameras: Cameras, reach: float, px: float = 0.25, rounds: int = 2,
-                       steps: int = 16) -> tuple[np.ndarray, np.ndarray]:
-    """``rounds`` of conforming edge splits: an edge whose midpoint, moved onto the hull along the mean normal
-    of its ends (within ``reach``, halved every round), moves more than ``px`` pixels in some view is split
-    at that hull point. Returns (vertices, faces)."""
-    v = np.asarray(vertices, np.float64)
-    f = np.asarray(faces, np.int64).reshape(-1, 3)
-    for _ in range(rounds):
-        edges, face_edges = unique_edges(f)
-        normals = trimesh.Trimesh(v, f, process=False).vertex_normals
-        mid = 0.5 * (v[edges[:, 0]] + v[edges[:, 1]])
-        n = normals[edges[:, 0]] + normals[edges[:, 1]]
-        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-        on_hull, found = onto_hull(mid, n, reach, test, steps)
-        split = found & (chord_shift(mid, on_hull, cameras) > px)
-        if not split.any():
-            break
-        v, f = split_edges(v, f, edges, face_edges, split, on_hull)
-        reach /= 2
-    return v, f
+    if len(rest) and len(faces):
+        normals = ops.read(smoothed_normals(ops, ops.v, 1)[2])[rest]
+        if method == "opencl":
+            q, found = fc.onto_host(p[rest], normals, voxel, HULL, steps)
+        else:
+            q, found = onto_reference(p[rest], normals, voxel, field, HULL, steps)
+        out[rest] = q
+    stats.update(on_edges=int(on.sum()), on_normals=int(found.sum()))
+    if target_faces > 0:
+        v, faces = meet_budget(out.astype(np.float64), faces, target_faces)
+        out = v.astype(np.float32)
+        quality = max(quality, 1)
+        if method == "opencl":
+            cull = fc.active(ball_cull(out, CULL_VOXELS * voxel))
+    if quality > 0 and len(faces):
+        ops = CLOps(out, faces, fc, cull) if method == "opencl" else NumPyOps(out, faces, field)
+        levels = relax_levels if relax_levels is not None else (HULL, HULL)
+        v, last, folds = fair(ops, rounds=1, iterations=quality, filter_rounds=1, lam_t=lam_t, shell=levels,
+                              reach=0.5 * voxel, steps=steps, clamp_steps=False, final="onto")
+        out = ops.read(v)
+        result = out.astype(np.float64) + origin
+        count = len(result)
+        if folds:  # a fold the repair steps could not open (after decimation): flip or collapse its edge
+            result, faces, stats["folds_left"] = repair_folds(result, faces)
+        if relax_levels is not None and last is not None and len(result) == count:  # (no vertex gone: they fit)
+            stats["lines"] = FitLines(result, faces, field.key(), origin, tuple(levels), 0.5 * voxel,
+                                      ops.get(last[0]), ops.get(last[1]), ops.get(last[2], 4), cull)
+    else:
+        result = out.astype(np.float64) + origin
+    return result, faces, stats
 
 
 # ---------------------------------------------------------------- node
 class Refine(Node):
     """Exact visual-hull surface (Liang & Wong 2008): every marching-cubes vertex moves along its grid edge to
-    the point where the edge leaves the hull, found by bisection against every silhouette (sub-pixel: soft
-    alpha, or the signed distance outline of binary masks); then edges whose chord strays more than
-    split_px from the hull in some view are split onto it."""
+    where the edge leaves the hull of the silhouettes (read as a smooth B-spline field, sub-pixel), then fairing
+    steps even out the triangles and every vertex goes back onto the hull. Same faces as the input, or a
+    triangle budget (faces or edge_length: edge splits by chord error, or quadric decimation; fold-free)."""
 
     type_name = "refine"
-    version = 2
+    version = 4
     inputs = {"mesh": Mesh, "volume": Volume, "masks": Masks, "cameras": CameraSet}
     outputs = {"mesh": Mesh}
     params = {
-        "steps": Param(int, 16, range=(1, 30), doc="bisection steps per edge (error: voxel / 2^steps)"),
-        "split_rounds": Param(int, 2, range=(0, 6), doc="rounds of edge splits onto the hull; 0 = same topology as the input"),
-        "split_px": Param(float, 0.25, range=(0.01, 100.0), doc="split an edge when its midpoint is off the hull by more than this, in pixels"),
-        "outline": Param(str, "distance", choices=OUTLINES, doc="binary masks: signed distance outline (rounded steps), or nearest pixel"),
+        "steps": Param(int, 8, range=(1, 40), doc="regula falsi iterations per crossing (each view)"),
+        "quality": Param(int, 6, range=(0, 50), doc="fairing steps before the projection onto the hull; 0 = Liang & Wong alone"),
+        "faces": Param(int, 0, range=(0, None), doc="triangle budget: about this many faces (0 = mc's faces)"),
+        "edge_length": Param(float, 0.0, range=(0.0, None), doc="triangle budget as a mean edge length, scene units "
+                             "(used when faces is 0; 0 = mc's faces)"),
         "min_views": Param(int, 0, range=(0, None), doc="0 = all views; k = inside at least k silhouettes (as the hull)"),
         "outside": Param(str, "carve", choices=POLICIES, doc="points projecting outside an image: carve, or ignore that view"),
-        "use_alpha": Param(bool, True, doc="test against soft alpha (bilinear, >= 0.5) when the masks carry it"),
-        "method": Param(str, "opencl", choices=("opencl", "numpy"), doc="OpenCL kernel or the NumPy reference"),
+        "use_alpha": Param(bool, True, doc="read soft alpha (8-bit) when the masks carry it, else the binary masks"),
+        "method": Param(str, "opencl", choices=("opencl", "numpy"), doc="OpenCL kernels or the NumPy reference"),
     }
-    kernels = [source("refine.cl")]
+    kernels = [source("hullfit.cl"), source("fairing.cl")]
 
-    def run(self, mesh, volume, masks, cameras, *, steps, split_rounds, split_px, outline, min_views, outside, use_alpha,
+    def run(self, mesh, volume, masks, cameras, *, steps, quality, faces, edge_length, min_views, outside, use_alpha,
             method):
-        views = Silhouettes.from_inputs(masks, cameras, min_views, outside, use_alpha, node="refine")
-        if outline == "distance":
-            views = views.distance_outline()
-        test = hull_test(views, method)
+        import trimesh
+
+        origin = 0.5 * (np.asarray(volume.bbox_min, np.float64) + np.asarray(volume.bbox_max, np.float64))
+        field = SilhouetteField.from_inputs(masks, cameras, origin, min_views, outside, use_alpha, node="refine")
+        target = target_face_count(mesh.vertices, mesh.faces, faces, edge_length)
         faces = np.asarray(mesh.faces)
-        vertices, on_edge, on_normal = refine_vertices(mesh.vertices, faces, volume, test, steps)
-        reach = float(np.max(volume.voxel_size))
-        vertices, faces = split_towards_hull(vertices, faces, test, cameras, reach, split_px, split_rounds, steps)
-        self.log.info("refine: %d of %d vertices onto the hull along grid edges, %d along normals; %d vertices after "
-                      "splits", on_edge, len(mesh.vertices), on_normal, len(vertices))
-        return {"mesh": trimesh.Trimesh(vertices, faces, process=False)}
+        if target > 0:
+            vertices, faces, stats = refine_vertices(mesh.vertices, faces, volume, field, steps, quality, method=method,
+                                                     target_faces=target)
+        else:
+            vertices, faces, stats = refine_vertices(mesh.vertices, faces, volume, field, steps, quality, method=method)
+        self.log.info("refine: %d of %d vertices onto the hull along grid edges, %d along normals",
+                      stats["on_edges"], stats["vertices"], stats["on_normals"])
+        out = trimesh.Trimesh(vertices, faces, vertex_colors=carried_vertex_colors(mesh, vertices), process=False)
+        if stats["lines"] is not None:  # relax, when it runs next in this frame unit, starts from the last search
+            stats["lines"].vertices = np.asarray(out.vertices)
+            out.volcap_lines = stats["lines"]
+        return {"mesh": out}

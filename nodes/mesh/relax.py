@@ -1,138 +1,128 @@
-"""Taubin lambda|mu smoothing that keeps the silhouettes (kernels/relax.cl, kernels/refine.cl).
+"""Relaxation that removes the pixel and voxel aliasing without leaving the silhouettes.
 
-Taubin, "A signal processing approach to fair surface design" (SIGGRAPH 95): alternate a shrinking step
-(lambda > 0) and an inflating step (mu < -lambda) of the umbrella Laplacian, which removes the marching-cubes
-staircase without the shrinkage of plain Laplacian smoothing. With ``keep_silhouettes`` the smoothed mesh
-is then fitted to the visual hull in two moves along the smoothed normals, so silhouettes neither grow nor
-shrink: a vertex that ends outside goes back to the hull boundary (refine's point test, bisected from one
-mean edge length inside, else along its move); a vertex that smoothing moved inwards (thin limbs, convex
-rims) goes back out by as much, stopping at the boundary. Binary masks are read through their signed
-distance outline blurred by ``outline_sigma`` pixels, so the fit follows a smooth curve through the pixel
-staircase. (Clamping after every half-step instead was tried: it ratchets thin parts inwards.)
+The refined mesh lies on the exact visual hull of the masks, and that hull carries the masks' pixel
+staircase (horizontal stair streaks in a shaded render) and the grid's triangulation. The true surface's
+outline lies within half a pixel of the staircase, so the relaxation is free inside a *shell*: every view
+may see the surface's outline up to ``outside_px`` pixels beyond the mask edge and ``inside_px`` pixels
+within it (levels of the smooth silhouette field, nodes/mesh/hullfit.py). Inside the shell the mesh is faired
+(nodes/mesh/fairing.py): face normals are smoothed first, vertices move towards the planes of their faces
+with the smoothed normals and evenly along the surface. Every ``iterations`` steps make one round: each round
+sets each vertex's line along its smoothed normal and searches the shell on it once on the device; the steps
+then clamp each vertex to its line's shell interval (and at most ``across`` off it). When refine ran just
+before in the same frame unit, its last search (``volcap_lines`` on its mesh: the same lines, both levels) is
+the first round's, and relax searches nothing itself with the default one round.
 
-    offsets, neighbours = vertex_neighbours(faces, len(vertices))
-    v = taubin_cl(vertices, offsets, neighbours, iterations=10)      # taubin_reference: the NumPy version
-    v = relax_vertices(mesh, 10, views=views)                         # smoothing, then the fit to the hull
+With ``keep_silhouettes`` false the fairing runs free (no masks needed). Same topology.
+
+    field = SilhouetteField.from_inputs(masks, cameras, origin)
+    vertices, faces = relax_vertices(mesh.vertices, mesh.faces, field, rounds=1, iterations=8)
 """
 from __future__ import annotations
 
 import numpy as np
-import trimesh
 
 from kernels import source
-from nodegraph import Input, Node, NodeError, Param, clrt
-from nodes.common.meshops import vertex_neighbours
-from nodes.common.silhouettes import POLICIES, Silhouettes, hull_test
+from nodegraph import Input, Node, NodeError, Param
+from nodes.common.meshops import carried_vertex_colors
+from nodes.common.silhouettes import POLICIES
 from nodes.common.types import CameraSet, Masks, Mesh
 
-from .refine import push_out
-
-LAMBDA, MU = 0.6307, -0.6732
-
-
-def taubin_step_reference(v: np.ndarray, offsets: np.ndarray, neighbours: np.ndarray, factor: float) -> np.ndarray:
-    """One half-step: v + factor * (mean of neighbours - v), float32 in the kernel's order."""
-    v = np.asarray(v, np.float32)
-    counts = np.diff(offsets)
-    has = counts > 0
-    sums = np.zeros_like(v)
-    gathered = v[neighbours]
-    for j in range(int(counts.max(initial=0))):  # neighbour by neighbour, like the kernel's loop
-        rows = np.flatnonzero(counts > j)
-        sums[rows] += gathered[offsets[rows] + j]
-    out = v.copy()
-    mean = sums[has] / counts[has, None].astype(np.float32)
-    out[has] = v[has] + np.float32(factor) * (mean - v[has])
-    return out
+from .budget import repair_folds
+from .fairing import CLOps, NumPyOps, fair
+from .hullfit import RELAX_OUTSIDE_PX, FieldCL, FitLines, SilhouetteField, level_of
 
 
-def taubin_reference(vertices, offsets, neighbours, iterations: int, lam: float = LAMBDA, mu: float = MU) -> np.ndarray:
-    """``iterations`` lambda|mu pairs of umbrella smoothing (NumPy, float32)."""
-    v = np.asarray(vertices, np.float32)
-    for _ in range(iterations):
-        for factor in (lam, mu):
-            v = taubin_step_reference(v, offsets, neighbours, factor)
-    return v
+def mean_edge_length(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Mean length of the faces' sides (each interior edge counted twice)."""
+    if len(faces) == 0:
+        return 0.0
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    return float(np.mean(np.linalg.norm(v[f] - v[np.roll(f, 1, axis=1)], axis=2)))
 
 
-class RelaxCL(clrt.Runner):
-    """kernels/relax.cl: Taubin half-steps (vertices stay on the device between them)."""
-
-    source = source("relax.cl")
-    GROUP = 64
-
-
-def taubin_cl(vertices, offsets, neighbours, iterations: int, lam: float = LAMBDA, mu: float = MU) -> np.ndarray:
-    """OpenCL version of ``taubin_reference`` (vertices stay on the device between half-steps)."""
-    v = np.ascontiguousarray(vertices, np.float32).reshape(-1, 3)
-    n = len(v)
-    if n == 0 or iterations == 0:
-        return v.copy()
-    run = RelaxCL.get()
-    d_v, d_p = run.upload("v", v), run.buffer("p", v.nbytes)
-    d_off, d_nb = run.upload("offsets", np.asarray(offsets, np.int32)), run.upload("neighbours", np.asarray(neighbours, np.int32))
-    for _ in range(iterations):
-        for factor in (lam, mu):
-            run.launch("taubin_step", n, run.GROUP, d_v, d_off, d_nb, np.int32(n), np.float32(factor), d_p)
-            d_v, d_p = d_p, d_v
-    return run.read(d_v, v.shape, np.float32)
-
-
-def relax_vertices(mesh, iterations: int, lam: float = LAMBDA, mu: float = MU, views: Silhouettes | None = None,
-                   steps: int = 10, method: str = "opencl") -> np.ndarray:
-    """Taubin-smoothed vertices of ``mesh``; with ``views`` fitted to the visual hull along the smoothed
-    normals: outside vertices back to the boundary (searched from one mean edge length inside, else along
-    their move), vertices that moved inwards back out by their inward move, at most to the boundary."""
-    vertices = np.asarray(mesh.vertices)
-    faces = np.asarray(mesh.faces)
-    offsets, neighbours = vertex_neighbours(faces, len(vertices))
-    smooth = taubin_cl if method == "opencl" else taubin_reference
-    out = smooth(vertices, offsets, neighbours, iterations, lam, mu)
-    if views is None or len(vertices) == 0:
-        return out
-    reach = float(mesh.edges_unique_length.mean()) if len(faces) else 0.0
-    test = hull_test(views, method)
-    normals = trimesh.Trimesh(out, faces, process=False).vertex_normals
-    out = test.clamp(vertices, out, steps, normals, reach)
-    inwards = np.einsum("ij,ij->i", vertices - out, normals)
-    return push_out(out, normals, np.maximum(inwards, 0), test, steps)
+def relax_vertices(vertices, faces, field: SilhouetteField | None = None, *, rounds: int = 1, iterations: int = 8,
+                   filter_rounds: int = 2, lam_t: float = 0.5, inside_px: float = 0.0,
+                   outside_px: float = RELAX_OUTSIDE_PX, steps: int = 8, method: str = "opencl",
+                   lines: FitLines | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(faired vertices (V, 3) float64, faces); with ``field`` kept in the shell between ``inside_px`` pixels
+    within the masks' outline and ``outside_px`` beyond it. The vertices and faces are the input's unless a fold
+    the fairing could not open had its edge flipped or collapsed (``budget.repair_folds``). ``lines``: refine's last search (FitLines), used for the
+    first round when it was made for these vertices, faces, field and levels (then ``field`` must have its
+    origin)."""
+    vertices = np.asarray(vertices, np.float64).reshape(-1, 3)
+    faces = np.asarray(faces, np.int64).reshape(-1, 3)
+    if len(vertices) == 0 or len(faces) == 0 or rounds * iterations == 0:
+        return vertices.copy(), faces
+    shell = None if field is None else (level_of(inside_px), level_of(-outside_px))
+    if lines is not None and (field is None or not lines.fits(vertices, faces, field, shell)):
+        lines = None
+    origin = field.origin if field is not None else vertices.mean(axis=0)
+    edge = mean_edge_length(vertices, faces)
+    p = (vertices - origin).astype(np.float32)
+    if method == "opencl":
+        ops = CLOps(p, faces, FieldCL.get().prepare(field) if field is not None else None,
+                    lines.cull if lines is not None else None)
+    else:
+        ops = NumPyOps(p, faces, field)
+    first, reach = None, 0.5 * edge
+    if lines is not None:
+        first = (ops.put(lines.centre, "l_centre"), ops.put(lines.axis, "l_axis"), ops.put(lines.shell, "l_shell", 4))
+        reach = lines.reach
+    out, _, folds = fair(ops, rounds=rounds, iterations=iterations, filter_rounds=filter_rounds, lam_t=lam_t,
+                         shell=shell, reach=reach, across=0.5 * edge, steps=steps, lines=first)
+    result = ops.read(out).astype(np.float64) + origin
+    if folds:  # a fold the repair steps could not open: flip or collapse its edge
+        result, faces, _ = repair_folds(result, faces)
+    return result, faces
 
 
 # ---------------------------------------------------------------- node
 class Relax(Node):
-    """Taubin lambda|mu smoothing of a mesh (OpenCL). With keep_silhouettes (default) the result is fitted to the
-    visual hull of the masks (no vertex outside; inward moves undone up to the boundary), so silhouettes hold
-    while the staircase goes. Same topology."""
+    """Fairing that keeps the silhouettes: normals smoothed first, then vertices moved towards their faces'
+    smoothed planes and evenly along the surface, each step clamped to the shell where every view sees the
+    outline within a fraction of a pixel of the mask edge (keep_silhouettes). Removes stair streaks and
+    slivers; same topology."""
 
     type_name = "relax"
-    version = 2
+    version = 4
     inputs = {"mesh": Mesh,
-              "masks": Input(Masks, optional=True, doc="silhouettes to stay inside (keep_silhouettes)"),
+              "masks": Input(Masks, optional=True, doc="silhouettes to stay within (keep_silhouettes)"),
               "cameras": Input(CameraSet, optional=True, doc="cameras of the masks (keep_silhouettes)")}
     outputs = {"mesh": Mesh}
     params = {
-        "iterations": Param(int, 10, range=(0, 1000), doc="lambda|mu pairs"),
-        "lam": Param(float, LAMBDA, range=(0.0, 1.0), doc="shrinking factor lambda"),
-        "mu": Param(float, MU, range=(-1.0, 0.0), doc="inflating factor mu (|mu| > lambda)"),
-        "keep_silhouettes": Param(bool, True, doc="fit the result to the visual hull of masks + cameras"),
-        "steps": Param(int, 10, range=(1, 30), doc="bisection steps of the clamp"),
-        "outline_sigma": Param(float, 0.7, range=(0.0, 5.0), doc="binary masks: Gaussian blur (pixels) of the signed "
-                               "distance outline, a smooth curve through the pixel staircase"),
+        "rounds": Param(int, 1, range=(0, 100), doc="rounds: the shell is searched along fresh normals once per round"),
+        "iterations": Param(int, 8, range=(0, 100), doc="fairing steps per round"),
+        "filter_rounds": Param(int, 2, range=(1, 20), doc="face-normal smoothing passes before each step"),
+        "tangential": Param(float, 0.5, range=(0.0, 1.0), doc="tangential step towards the neighbours' mean (triangle quality)"),
+        "keep_silhouettes": Param(bool, True, doc="keep the outline in every view within the shell (needs masks + cameras)"),
+        "outside_px": Param(float, RELAX_OUTSIDE_PX, range=(0.0, 3.0), doc="how far beyond the mask edge the outline may go, pixels"),
+        "inside_px": Param(float, 0.0, range=(-1.0, 3.0), doc="how far within the mask edge the outline may go, pixels "
+                           "(negative: at least that far beyond)"),
+        "steps": Param(int, 8, range=(1, 40), doc="regula falsi iterations of the shell search"),
         "min_views": Param(int, 0, range=(0, None), doc="hull vote: 0 = all views; k = at least k silhouettes"),
         "outside": Param(str, "carve", choices=POLICIES, doc="points projecting outside an image: carve, or ignore that view"),
-        "use_alpha": Param(bool, True, doc="test against soft alpha when the masks carry it"),
+        "use_alpha": Param(bool, True, doc="read soft alpha when the masks carry it"),
         "method": Param(str, "opencl", choices=("opencl", "numpy"), doc="OpenCL kernels or the NumPy reference"),
     }
-    kernels = [source("relax.cl"), source("refine.cl")]
+    kernels = [source("hullfit.cl"), source("fairing.cl")]
 
-    def run(self, mesh, masks=None, cameras=None, *, iterations, lam, mu, keep_silhouettes, steps, outline_sigma, min_views,
-            outside, use_alpha, method):
-        views = None
+    def run(self, mesh, masks=None, cameras=None, *, rounds, iterations, filter_rounds, tangential, keep_silhouettes,
+            outside_px, inside_px, steps, min_views, outside, use_alpha, method):
+        import trimesh
+
+        if -inside_px > outside_px:
+            raise NodeError(f"relax: the shell is empty (inside_px {inside_px} is beyond outside_px {outside_px})")
+        field = None
+        lines = getattr(mesh, "volcap_lines", None)  # refine's last search, when it ran just before in this unit
         if keep_silhouettes:
             if masks is None or cameras is None:
                 raise NodeError("relax: keep_silhouettes needs the 'masks' and 'cameras' inputs connected "
                                 "(or set keep_silhouettes: false)")
-            views = Silhouettes.from_inputs(masks, cameras, min_views, outside, use_alpha, node="relax")
-            views = views.distance_outline(outline_sigma)
-        out = relax_vertices(mesh, iterations, lam, mu, views, steps, method)
-        return {"mesh": trimesh.Trimesh(out.astype(np.float64), np.asarray(mesh.faces), process=False)}
+            v = np.asarray(mesh.vertices, np.float64)
+            origin = lines.origin if lines is not None else (0.5 * (v.min(axis=0) + v.max(axis=0)) if len(v) else np.zeros(3))
+            field = SilhouetteField.from_inputs(masks, cameras, origin, min_views, outside, use_alpha, node="relax")
+        out, faces = relax_vertices(mesh.vertices, mesh.faces, field, rounds=rounds, iterations=iterations,
+                             filter_rounds=filter_rounds, lam_t=tangential, inside_px=inside_px,
+                             outside_px=outside_px, steps=steps, method=method, lines=lines)
+        return {"mesh": trimesh.Trimesh(out, faces, vertex_colors=carried_vertex_colors(mesh, out), process=False)}

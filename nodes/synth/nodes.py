@@ -19,6 +19,7 @@ class Synth(Node):
     type_name = "synth"
     version = 1
     uses_frame = True
+    checkpoint = True  # rendering costs seconds per frame: keep what it made for every later run
     inputs = {}
     outputs = {
         "images": Images, "masks": Masks, "cameras": CameraSet,

@@ -4,12 +4,16 @@ from __future__ import annotations
 
 import math
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import trimesh
 
 from nodes.common import raster
 from nodes.common.cameras import Cameras, look_at
 from nodes.common.raster import CHECKER, STRIPES
+
+if TYPE_CHECKING:
+    import trimesh
 
 from . import scenes
 
@@ -50,6 +54,8 @@ def room(half: float, height: float, backdrop: str, cells: float = 0.25) -> tupl
     """Floor, four walls and ceiling of a room, faces pointing inwards, cut into small cells (per-vertex lens
     distortion needs small triangles). Returns (mesh, face material index (0 floor, 1 walls), materials).
     ``backdrop`` "green": uniform chroma green everywhere; "plate": tiled floor, striped walls."""
+    import trimesh
+
     parts = []
     n = max(2, int(math.ceil(2 * half / cells)))
     m = max(2, int(math.ceil(height / cells)))
@@ -82,6 +88,8 @@ def room(half: float, height: float, backdrop: str, cells: float = 0.25) -> tupl
 
 def render_scene(scene: scenes.Scene, cameras: Cameras, backdrop: str, shadow: bool, with_object: bool = True):
     """(images, masks) of ``scene`` inside its room, as seen by ``cameras``."""
+    import trimesh
+
     centers = cameras.centers
     half = max(3.0, 1.3 * float(np.abs(centers[:, :2]).max()))
     height = max(3.0, 1.3 * float(centers[:, 2].max()))

@@ -15,11 +15,15 @@ import math
 from dataclasses import dataclass
 from functools import lru_cache
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import trimesh
 
 from nodes.common.raster import CHECKER, PLAIN, STRIPES
 from nodes.common.types import SkeletonData
+
+if TYPE_CHECKING:
+    import trimesh
 
 SCENES = ("sphere", "cup", "figure")
 
@@ -54,6 +58,8 @@ def build(name: str, frame: int = 0) -> Scene:
 # ---------------------------------------------------------------- sphere and cup
 @lru_cache(maxsize=None)
 def _sphere_rest():
+    import trimesh
+
     m = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
     m.apply_translation([0, 0, 0.6])
     return m
@@ -79,6 +85,8 @@ def cup_profile(radius=0.35, height=0.45, wall=0.04, bottom=0.05, step=0.015) ->
 
 @lru_cache(maxsize=None)
 def _cup_rest():
+    import trimesh
+
     m = trimesh.creation.revolve(cup_profile(), sections=96)
     m.merge_vertices()
     return m
@@ -149,6 +157,8 @@ def _smooth_min(d: np.ndarray, k: float = 0.03) -> np.ndarray:
 @lru_cache(maxsize=None)
 def figure_rest(voxel: float = 0.015):
     """(mesh, weights (V, J), face material (F,)) of the rest pose; meshed once."""
+    import trimesh
+
     from skimage.measure import marching_cubes
 
     lo = np.array([-0.68, -0.3, -0.05])
@@ -207,6 +217,30 @@ def figure_pose(frame: int) -> tuple[np.ndarray, np.ndarray]:
     return rots, pos
 
 
+def figure_keypoints(frame: int) -> dict[str, np.ndarray]:
+    """Ground truth for curve skeletons: key points of the figure's medial axis (its capsules' axes) at
+    ``frame``: the branch points (pelvis, chest), the five extremities (head_top, l/r_wrist, l/r_toe) and the
+    joints where the axis bends by more than 15 degrees (shoulders, hips, elbows, knees, ankles when bent)."""
+    rots, pos = figure_pose(frame)
+    p = {n: pos[i] for i, n in enumerate(NAMES)}
+
+    def posed(x, owner):
+        j = NAMES.index(owner)
+        return rots[j] @ (np.asarray(x, float) - REST[j]) + pos[j]
+
+    p["head_top"] = posed(CAPSULES[3][1], "head")
+    p["l_toe"], p["r_toe"] = posed(CAPSULES[16][1], "l_ankle"), posed(CAPSULES[17][1], "r_ankle")
+    keys = {k: p[k] for k in ("pelvis", "chest", "head_top", "l_wrist", "r_wrist", "l_toe", "r_toe")}
+    for a, b, c in [("chest", "l_shoulder", "l_elbow"), ("chest", "r_shoulder", "r_elbow"), ("l_shoulder", "l_elbow", "l_wrist"),
+                    ("r_shoulder", "r_elbow", "r_wrist"), ("pelvis", "l_hip", "l_knee"), ("pelvis", "r_hip", "r_knee"),
+                    ("l_hip", "l_knee", "l_ankle"), ("r_hip", "r_knee", "r_ankle"), ("l_knee", "l_ankle", "l_toe"),
+                    ("r_knee", "r_ankle", "r_toe")]:
+        u, v = p[b] - p[a], p[c] - p[b]
+        if np.degrees(np.arccos(np.clip(u @ v / np.linalg.norm(u) / np.linalg.norm(v), -1, 1))) > 15:
+            keys[b] = p[b]
+    return keys
+
+
 def skin(vertices: np.ndarray, weights: np.ndarray, rots: np.ndarray, pos: np.ndarray) -> np.ndarray:
     """Linear blend skinning: v' = sum_j w_j (R_j (v - rest_j) + p_j)."""
     per_joint = np.einsum("jab,vjb->vja", rots, vertices[:, None, :] - REST[None]) + pos[None]
@@ -214,6 +248,8 @@ def skin(vertices: np.ndarray, weights: np.ndarray, rots: np.ndarray, pos: np.nd
 
 
 def _figure(frame: int) -> Scene:
+    import trimesh
+
     rest, weights, face_material = figure_rest()
     rots, pos = figure_pose(frame)
     mesh = trimesh.Trimesh(skin(rest.vertices, weights, rots, pos), rest.faces.copy(), process=False)

@@ -6,7 +6,6 @@ from __future__ import annotations
 import time
 
 import numpy as np
-import trimesh
 
 from nodegraph import Input, Node, NodeError, Output, Param, Table
 from nodes.common.types import CameraSet, Masks, MaskSet, Mesh, MeshSequence
@@ -140,6 +139,8 @@ class Track(Node):
                                        samples=samples))
         results, segments = track_sequence(data, params)
         seconds = time.perf_counter() - t0
+        import trimesh
+
         out = []
         for i, r in enumerate(results):
             seg = segments[r.segment]

@@ -166,7 +166,7 @@ def run_to(tmp_path: Path, text: str) -> Path:
     g = tmp_path / "g.yaml"
     g.write_text(textwrap.dedent(text))
     out = tmp_path / "out"
-    run_graph(load_graph(g), Cache(tmp_path / "cache"), out, LocalExecutor(1), progress=False)
+    run_graph(load_graph(g).keep_all(), Cache(tmp_path / "cache"), out, LocalExecutor(1), progress=False)
     return out
 
 

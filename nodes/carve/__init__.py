@@ -1,0 +1,1 @@
+"""Photo-consistency carving: voxel colouring and space carving of the visual hull (OpenCL)."""

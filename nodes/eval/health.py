@@ -1,0 +1,128 @@
+"""Mesh health: what a look-dev review sees in a shaded render, as numbers.
+
+    folded edges     interior edges whose two faces' normals are more than ``fold_deg`` (150) degrees apart:
+                     a crease folded back onto itself, a black streak in a shaded render
+    minimum angles   distribution of each triangle's smallest angle (slivers shade badly and break later
+                     stages: texturing, skinning, simulation)
+    roughness        mean dihedral angle (angle between adjacent face normals), degrees
+    normal error     with a reference surface (synthetic scenes): area-weighted mean angle between each face's
+                     normal and the reference's normal at the nearest reference point, over the faces whose
+                     centroid lies within ``band`` of the reference (one voxel: concavities the visual hull
+                     cannot see are the hull's error, not the mesh's)
+
+    report = mesh_health(mesh, reference=truth, band=voxel)
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from nodegraph import Input, Node, NodeError, Param, Table
+from nodes.common.types import Mesh, Volume
+
+FOLD_DEG = 150.0
+SLIVER_DEG = 5.0
+
+
+def triangle_min_angles(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Smallest interior angle of each triangle, degrees (0 for a degenerate triangle)."""
+    p = np.asarray(vertices, np.float64)[np.asarray(faces, np.int64).reshape(-1, 3)]
+    angles = []
+    for k in range(3):
+        a = p[:, (k + 1) % 3] - p[:, k]
+        b = p[:, (k + 2) % 3] - p[:, k]
+        na, nb = np.linalg.norm(a, axis=1), np.linalg.norm(b, axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cos = np.einsum("ij,ij->i", a, b) / (na * nb)
+        angles.append(np.degrees(np.arccos(np.clip(np.nan_to_num(cos, nan=1.0), -1, 1))))
+    return np.min(angles, axis=0)
+
+
+def dihedral_angles(mesh) -> np.ndarray:
+    """Angle between the normals of every pair of faces sharing an edge, degrees (trimesh face adjacency)."""
+    if len(mesh.faces) == 0:
+        return np.zeros(0)
+    return np.degrees(np.asarray(mesh.face_adjacency_angles, np.float64))
+
+
+def normal_error(mesh, reference, band: float, samples: int = 2_000_000, seed: int = 0) -> dict:
+    """Area-weighted mean / median angle (degrees) between the face normals of ``mesh`` and the normal of the
+    ``reference`` face nearest to each face centroid, over faces whose centroid lies within ``band`` of the
+    reference; plus the fraction of the mesh area that lies within the band. The nearest reference point is
+    found among ``samples`` area-uniform points of the reference (scipy cKDTree), so distances are exact to
+    about the sample spacing."""
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    count = int(min(samples, max(10_000, reference.area / (0.05 * band) ** 2)))
+    points, face_id = trimesh.sample.sample_surface(reference, count, seed=seed)
+    dist, nearest = cKDTree(points).query(mesh.triangles_center)
+    near = dist <= band
+    area = mesh.area_faces
+    if not near.any():
+        return {"normal_error_mean_deg": float("nan"), "normal_error_median_deg": float("nan"),
+                "area_within_band": 0.0}
+    true_n = reference.face_normals[face_id[nearest[near]]]
+    cos = np.einsum("ij,ij->i", mesh.face_normals[near], true_n)
+    err = np.degrees(np.arccos(np.clip(cos, -1, 1)))
+    w = area[near]
+    order = np.argsort(err)
+    cum = np.cumsum(w[order])
+    median = float(err[order][np.searchsorted(cum, 0.5 * cum[-1])])
+    return {"normal_error_mean_deg": float(np.sum(err * w) / np.sum(w)), "normal_error_median_deg": median,
+            "area_within_band": float(w.sum() / area.sum())}
+
+
+def mesh_health(mesh, reference=None, band: float = 0.0, fold_deg: float = FOLD_DEG,
+                sliver_deg: float = SLIVER_DEG) -> dict:
+    """Folded edges, triangle minimum angles, roughness, watertightness; with a reference and band > 0 the
+    normal error (see the module docstring)."""
+    faces = np.asarray(mesh.faces)
+    dihedral = dihedral_angles(mesh)
+    min_angles = triangle_min_angles(mesh.vertices, faces)
+    n = max(len(faces), 1)
+    out = {
+        "vertices": int(len(mesh.vertices)), "faces": int(len(faces)),
+        "watertight": bool(mesh.is_watertight) if len(faces) else False,
+        "folded_edges": int((dihedral > fold_deg).sum()),
+        "folded_fraction": float((dihedral > fold_deg).sum() / max(len(dihedral), 1)),
+        "roughness_deg": float(dihedral.mean()) if len(dihedral) else 0.0,
+        "min_angle_below_5": float((min_angles < 5).sum() / n),
+        f"min_angle_below_{sliver_deg:g}": float((min_angles < sliver_deg).sum() / n),
+        "min_angle_below_10": float((min_angles < 10).sum() / n),
+        "min_angle_below_20": float((min_angles < 20).sum() / n),
+        "min_angle_median_deg": float(np.median(min_angles)) if len(faces) else 0.0,
+        "min_angle_histogram": np.histogram(min_angles, bins=12, range=(0, 60))[0].tolist(),
+    }
+    if reference is not None and band > 0 and len(faces):
+        out.update(normal_error(mesh, reference, band))
+    return out
+
+
+# ---------------------------------------------------------------- node
+class EvalMesh(Node):
+    """Mesh health: folded edges (adjacent face normals more than fold_deg apart), the distribution of the
+    triangles' minimum angles, roughness (mean dihedral angle); with a reference surface (synthetic scenes) the
+    area-weighted mean angle between the mesh's face normals and the reference's, over the faces within
+    `band` of it (default: one voxel of the volume input)."""
+
+    type_name = "eval.mesh"
+    version = 1
+    inputs = {"mesh": Mesh,
+              "reference": Input(Mesh, optional=True, doc="true surface (synthetic scenes): enables the normal error"),
+              "volume": Input(Volume, optional=True, doc="its voxel size is the default band of the normal error")}
+    outputs = {"report": Table}
+    params = {
+        "band": Param(float, 0.0, range=(0.0, None), doc="normal error over faces within this distance of the reference; "
+                      "0 = one voxel of the volume input"),
+        "fold_deg": Param(float, FOLD_DEG, range=(90.0, 180.0), doc="an edge is folded when its faces' normals are "
+                          "more than this many degrees apart"),
+        "sliver_deg": Param(float, SLIVER_DEG, range=(0.0, 60.0), doc="report the share of triangles whose minimum "
+                            "angle is below this"),
+    }
+
+    def run(self, mesh, reference=None, volume=None, *, band, fold_deg, sliver_deg):
+        if reference is not None and band <= 0:
+            if volume is None:
+                raise NodeError("eval.mesh: the normal error needs a band: connect 'volume' (one voxel) or set band > 0")
+            band = float(max(volume.voxel_size))
+        return {"report": mesh_health(mesh, reference, band, fold_deg, sliver_deg)}
