@@ -4,9 +4,9 @@ baseline a user would otherwise pick, REFERENCES.md) in the same run. Prints tab
 meshes to out/: that data may not be published with the project).
 
     python bench/track.py synth [--nricp-frames 3]    # graphs/track_synth.yaml, 100 frames at 128^3
-    python bench/track.py speed                       # ~20k vertices (hull 96^3), ours per frame vs nricp_amberg
+    python bench/track.py speed [--resolution 164]    # ~20k vertices (hull 164^3), ours per frame vs nricp_amberg
     python bench/track.py child_rope                  # graphs/track_child_rope.yaml, 200 frames
-    options: --cache DIR (default ./.volcap-cache), --frames A:B, --no-pictures
+    options: --cache DIR (default ./.volcap-cache), --frames A:B, --no-pictures, --set NODE.PARAM=VALUE (child_rope)
 
 The per-frame reconstructions come from the graphs through the engine and its cache (the first run computes
 them: ~5 s per frame), so a second run only re-measures. The correspondence error of the synthetic run: each
@@ -51,15 +51,21 @@ def header():
     print(f"CPU: {cpu}, {os.cpu_count()} cores; load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
 
 
-def run(graph_file: Path, cache: Path, frames: str | None, upto: str | None = None, overrides=()):
-    """Run a graph (or the part of it ``upto`` depends on) through the engine; returns its run records."""
-    import networkx as nx
-
+def run(graph_file: Path, cache: Path, frames: str | None, upto: str | None = None, overrides=(), keep_all=False):
+    """Run a graph (or the part of it ``upto`` depends on) through the engine; returns its run records.
+    ``keep_all``: store every output (intermediate ones, e.g. the hull's volume, are not kept by default)."""
     g = load_graph(graph_file, overrides=list(overrides), frames=frames)
+    if keep_all:
+        g.keep_all()
     if upto:
-        keep = nx.ancestors(g.dag, upto) | {upto}
+        keep, todo = set(), [upto]
+        while todo:
+            n = todo.pop()
+            if n not in keep:
+                keep.add(n)
+                todo.extend(g.upstream[n])
         g.nodes = {k: v for k, v in g.nodes.items() if k in keep}
-        g.dag = g.dag.subgraph(keep).copy()
+        g.upstream = {k: v for k, v in g.upstream.items() if k in keep}
     out = cache / "bench_out" / graph_file.stem
     t0 = time.perf_counter()
     res = run_graph(g, Cache(cache), out, LocalExecutor(1), progress=True)
@@ -118,7 +124,8 @@ def bench_synth(args):
     graph = ROOT / "graphs/track_synth.yaml"
     records = run(graph, args.cache, args.frames)
     recon, recs = outputs(records, "relax", "mesh", T.Mesh)
-    vols, _ = outputs([r for r in records if r["frame"] == recs[0]["frame"]], "hull", "volume", T.Volume)
+    first = recs[0]["frame"]
+    vols, _ = outputs(run(graph, args.cache, f"{first}:{first + 1}", upto="hull", keep_all=True), "hull", "volume", T.Volume)
     voxel = float(vols[0].voxel_size.max())
     seq = outputs(records, "track", "sequence", T.MeshSequence)[0][0]
     table = outputs(records, "track", "residuals", Table)[0][0]
@@ -142,13 +149,15 @@ def bench_synth(args):
     key0 = seq[0].metadata["keyframe"]
     same_phase = [f for f in frames if (f - frames[-1]) % 24 == 0]
     print(f"ours: {len(segs)} segment(s), keyframe(s) {sorted({m.metadata['keyframe'] for m in seq})}; constant connectivity "
-          f"per segment: {constant}; track node {track_rec['seconds']:.1f} s = {track_rec['seconds'] / len(frames):.2f} s/frame")
+          f"per segment: {constant}; track node {table['seconds']:.1f} s = {table['seconds_per_frame']:.2f} s/frame "
+          f"(when it was computed{', a cache hit now' if track_rec.get('cache_hit') else ''})")
     print(f"  surface distance to each frame's reconstruction, voxels: tracked->rec mean {acc.mean():.3f} (max {acc.max():.3f}), "
           f"rec->tracked mean {comp.mean():.3f} (max {comp.max():.3f})")
     print(f"  correspondence error vs truth, voxels: tracking mean {err.mean():.2f} (max {err.max():.2f}); absolute mean "
           f"{absolute.mean():.2f} (max {absolute.max():.2f}; at the keyframe {ours[key0][1]:.2f} = the hull's own offset)")
     print(f"  drift: tracking error first frame {err[0]:.2f}, last {err[-1]:.2f} (ratio {err[-1] / max(err[0], 1e-9):.2f}); "
           f"same gait phase as the last frame (frames {same_phase}): {[round(float(ours[f][0]), 2) for f in same_phase]}")
+    usd_check(records, seq, args.cache / "bench_out" / graph.stem)
     # nricp_amberg frame to frame from frame 0, and ours from the same start, on the first frames
     n = min(args.nricp_frames, len(frames))
     if n > 1:
@@ -176,13 +185,37 @@ def bench_synth(args):
         plot_residuals(table, DOCS / "track_synth_residuals.png", "synthetic walk", extra=("tracking error vs truth", err))
 
 
+def usd_check(records, seq, out: Path):
+    """The exported USD (in the run's output folder ``out``) opened with usd-core: points at every frame k
+    against ours at frame k; storage."""
+    from pxr import Usd, UsdGeom
+
+    usd = next(out.glob("*.usdc"))
+    stage = Usd.Stage.Open(str(usd))
+    meshes = [UsdGeom.Mesh(p) for p in stage.GetPrimAtPath("/DynamicMesh").GetChildren()]
+    worst = 0.0
+    for m in seq:
+        f = m.metadata["frame"]
+        vis = [u for u in meshes if u.ComputeVisibility(Usd.TimeCode(f)) != UsdGeom.Tokens.invisible]
+        got = np.array(vis[0].GetPointsAttr().Get(Usd.TimeCode(f)), np.float32)
+        worst = max(worst, float(np.abs(got - np.asarray(m.vertices, np.float32)).max()))
+    sizes = outputs(records, "export", "sizes", Table)[0][0]
+    mb = 1 / 1e6
+    print(f"  USD ({Path(usd).name}, usd-core {Usd.GetVersion()}): {len(seq)} frames, max |points(k) - ours(k)| = {worst:g} m; "
+          f"storage: per-frame PLY {sizes['reconstruction_ply_bytes'] * mb:.1f} MB (Draco {sizes['reconstruction_draco_bytes'] * mb:.1f} MB); "
+          "dynamic " + ", ".join(f"{k} {v * mb:.1f} MB" for k, v in sizes["files"].items())
+          + f", Draco per frame {sizes.get('dynamic_draco_bytes', 0) * mb:.1f} MB")
+
+
 # ---------------------------------------------------------------- speed at ~20k vertices
 def bench_speed(args):
     from trimesh.registration import nricp_amberg
 
-    records = run(ROOT / "graphs/track_synth.yaml", args.cache, "0:11", upto="relax", overrides=["hull.resolution=96"])
+    res = [f"hull.resolution={args.resolution}"]
+    records = run(ROOT / "graphs/track_synth.yaml", args.cache, "0:11", upto="relax", overrides=res)
     recon, _ = outputs(records, "relax", "mesh", T.Mesh)
-    vols, _ = outputs([r for r in records if r["frame"] == 0], "hull", "volume", T.Volume)
+    vols, _ = outputs(run(ROOT / "graphs/track_synth.yaml", args.cache, "0:1", upto="hull", overrides=res, keep_all=True),
+                      "hull", "volume", T.Volume)
     voxel = float(vols[0].voxel_size.max())
     nv = np.mean([len(m.vertices) for m in recon])
     fr = Frames(recon, voxel=voxel)
@@ -190,7 +223,7 @@ def bench_speed(args):
     res, segs = track_sequence(fr, TrackParams(voxel=voxel), keyframe=0)
     total = time.perf_counter() - t0
     per = [r.seconds for r in res[1:]]
-    print(f"\nspeed: synthetic figure, hull 96^3, {nv:.0f} vertices per frame, {len(recon)} frames, {len(segs)} segment(s)")
+    print(f"\nspeed: synthetic figure, hull {args.resolution}^3, {nv:.0f} vertices per frame, {len(recon)} frames, {len(segs)} segment(s)")
     print(f"ours: {np.median(per):.2f} s per frame median (min {min(per):.2f}, max {max(per):.2f}); whole run incl. graph "
           f"build {total:.1f} s = {total / (len(recon) - 1):.2f} s/frame")
     t0 = time.perf_counter()
@@ -203,7 +236,7 @@ def bench_speed(args):
 # ---------------------------------------------------------------- child_rope
 def bench_child_rope(args):
     graph = ROOT / "graphs/track_child_rope.yaml"
-    records = run(graph, args.cache, args.frames)
+    records = run(graph, args.cache, args.frames, overrides=args.set)
     seq = outputs(records, "track", "sequence", T.MeshSequence)[0][0]
     table = outputs(records, "track", "residuals", Table)[0][0]
     before = outputs(records, "classify", "report", Table)[0][0]
@@ -222,7 +255,8 @@ def bench_child_rope(args):
           f"max {drop.max():.4f} (frames above 0.01: {int((drop > 0.01).sum())}); reconstruction IoU mean "
           f"{np.mean([s['mean_iou'] for s in scores]):.4f}")
     print(f"residual (voxels, mean of both ways): mean {table['distance_mean']:.3f}, max {table['distance_max']:.3f}; "
-          f"track node {track_rec['seconds']:.0f} s = {track_rec['seconds'] / table['frames']:.2f} s/frame")
+          f"track node {table['seconds']:.0f} s = {table['seconds_per_frame']:.2f} s/frame (when it was computed"
+          f"{', a cache hit now' if track_rec.get('cache_hit') else ''})")
     for s in table["segments"]:
         print(f"  segment {s['start']:>3}..{s['stop']:>3} key {s['keyframe']:>3} genus {s['genus']} {s['vertices']} vertices; "
               f"ended after: {s['ended_after']}")
@@ -316,7 +350,9 @@ def main():
     ap.add_argument("--cache", type=Path, default=ROOT / ".volcap-cache")
     ap.add_argument("--frames", default=None)
     ap.add_argument("--nricp-frames", type=int, default=3)
+    ap.add_argument("--resolution", type=int, default=164, help="speed: hull resolution (164^3: ~20k vertices after relax)")
     ap.add_argument("--no-pictures", action="store_true")
+    ap.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", help="child_rope: graph overrides")
     args = ap.parse_args()
     header()
     {"synth": bench_synth, "speed": bench_speed, "child_rope": bench_child_rope}[args.what](args)
