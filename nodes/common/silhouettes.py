@@ -220,19 +220,24 @@ class Silhouettes:
 
     def distance_outline(self, sigma: float = 0.0) -> "Silhouettes":
         """Binary masks without alpha get alpha = 0.5 + signed pixel distance to the other class (positive
-        inside; cv2.distanceTransform between pixel centres, minus half a pixel), Gaussian-blurred by
+        inside; exact Euclidean distance between pixel centres, minus half a pixel), Gaussian-blurred by
         ``sigma`` pixels when > 0 (a smoother outline through the staircase). Bilinear >= 0.5 is then the
-        pixel edge along straight runs and a rounded corner at steps. Soft alpha is kept as is."""
+        pixel edge along straight runs and a rounded corner at steps. Soft alpha is kept as is.
+        scipy's exact transform, not cv2.distanceTransform(DIST_MASK_PRECISE): OpenCV's gives values that differ
+        in the last bit from call to call (mirror-image pixels swap them), which made the tracker's fits, and a
+        test, differ from run to run."""
         if self.alpha is not None:
             return self
         import cv2
+        from scipy.ndimage import distance_transform_edt
 
         fields = []
         for m in self.masks:
-            fg = (m > 127).astype(np.uint8)
-            to_bg = cv2.distanceTransform(fg, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-            to_fg = cv2.distanceTransform(1 - fg, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-            d = np.where(fg > 0, to_bg - 0.5, 0.5 - to_fg).astype(np.float32)
+            fg = m > 127
+            far = np.full(fg.shape, float(sum(fg.shape)))               # no pixel of the other class
+            to_bg = distance_transform_edt(fg) if not fg.all() else far
+            to_fg = distance_transform_edt(~fg) if fg.any() else far
+            d = np.where(fg, to_bg - 0.5, 0.5 - to_fg).astype(np.float32)
             if sigma > 0:
                 d = cv2.GaussianBlur(d, (0, 0), sigma)
             fields.append(d + np.float32(0.5))
