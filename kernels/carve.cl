@@ -30,8 +30,8 @@
 // decision reads counts no other decision of the step changes, so the result does not depend on the order in
 // which work items run.
 //
-// Steps (kernels): carve_sweeps runs the six plane sweeps of one space-carving round in order (a single work
-// item): per plane, test, guard, marks. An item pass: carve_compact lists the surface voxels, carve_splat writes
+// Steps (kernels): a space-carving round sweeps +x -x +y -y +z -z, plane by plane: carve_sweep_test, the
+// guard's kernels, carve_sweep_mark. An item pass: carve_compact lists the surface voxels, carve_splat writes
 // the item buffers, carve_test tests them, carve_expose, carve_decide and carve_apply carry out the guard. Voxel
 // colouring: per layer carve_test (marks), the guard's three, carve_mark.
 #pragma OPENCL FP_CONTRACT OFF
@@ -55,6 +55,9 @@
     __global const int* pix_off, __global const uchar* bits, __global const int* bit_off, int nviews
 #define VIEW_PASS cams, centres, win, pix_off, bits, bit_off, nviews
 #define GRID_ARGS int nx, int ny, int nz, float4 vs
+// voxels flagged for the next incremental pass: a bit per voxel and the list of the flagged ones
+#define FRESH_ARGS __global uint* fresh, __global uint* flist, __global int* nflist
+#define FRESH_PASS fresh, flist, nflist
 #define GRID_PASS nx, ny, nz, vs
 // the photo-consistency parameters: footprint scale, cos(cone), cos(max_angle), min_views, threshold,
 // adaptive, colour space, contrast
@@ -138,18 +141,30 @@ inline float cross2(float2 a, float2 b)
     return a.x * b.y - a.y * b.x;
 }
 
-inline int pixel_index(int4 w, int off, int x, int y)
-{
-    return off + (y - w.y) * w.z + (x - w.x);
-}
-
-inline int mask_bit(__global const uchar* bits, __global const int* bit_off, __global const float* cam, int c, int x,
-                    int y)
-{
-    return silhouette_bit(bits + bit_off[c], (int)cam[22], x, y);
-}
+// The pixel loops of view c (after `cam` and `w`): its silhouette (silhouette.h) and the offset of its window in
+// the pixel buffers.
+#define VIEW_ROWS(c) \
+    __global const uchar* mrow = bits + bit_off[c]; \
+    int mwidth = (int)cam[22]; \
+    int pbase = pix_off[c] - w.y * w.z - w.x
+#define MASK(x, y) silhouette_bit(mrow, mwidth, x, y)
+#define PIX(x, y) (pbase + (y) * w.z + (x))
 
 // ---------------------------------------------------------------- footprints
+// Pixel of a point given in camera coordinates xc (camera.h's projection after camera_point); writes its depth.
+inline float2 project_camera(__global const float* cam, float3 xc, float* depth)
+{
+    *depth = xc.z * cam[24];
+    return pixel_point(cam, distort_point(cam, xc.xy / xc.z));
+}
+
+// Half an edge of the voxel along axis a (0, 1, 2) in camera coordinates: R[:, a] * vs[a] / 2.
+inline float3 half_edge(__global const float* cam, int a, float4 vs)
+{
+    float h = 0.5f * (a == 0 ? vs.x : (a == 1 ? vs.y : vs.z));
+    return (float3)(cam[a] * h, cam[4 + a] * h, cam[8 + a] * h);
+}
+
 // Footprint of the voxel at X in a view (photo test, item buffers, marks): its cube projected through the local
 // affine approximation of the camera, i.e. the hexagon {p + a e0 + b e1 + c e2 : |a|, |b|, |c| <= 1} spanned by
 // the projected half-edges e0 e1 e2 (times `scale`) around the projected centre p. Pixels inside are those whose
@@ -168,10 +183,11 @@ typedef struct {
 inline int footprint(__global const float* cam, int4 w, float3 X, float4 vs, float scale, footprint_t* f)
 {
     float d0, d1, d2, d3;
-    float2 p = project_point(cam, X, &d0);
-    float2 px = project_point(cam, (float3)(X.x + 0.5f * vs.x, X.y, X.z), &d1);
-    float2 py = project_point(cam, (float3)(X.x, X.y + 0.5f * vs.y, X.z), &d2);
-    float2 pz = project_point(cam, (float3)(X.x, X.y, X.z + 0.5f * vs.z), &d3);
+    float3 xc = camera_point(cam, X);
+    float2 p = project_camera(cam, xc, &d0);
+    float2 px = project_camera(cam, xc + half_edge(cam, 0, vs), &d1);
+    float2 py = project_camera(cam, xc + half_edge(cam, 1, vs), &d2);
+    float2 pz = project_camera(cam, xc + half_edge(cam, 2, vs), &d3);
     if (!(d0 > 0.0f && d1 > 0.0f && d2 > 0.0f && d3 > 0.0f)) return 0;
     float2 e0 = scale * (px - p), e1 = scale * (py - p), e2 = scale * (pz - p);
     float hu = (fabs(e0.x) + fabs(e1.x)) + fabs(e2.x);
@@ -204,7 +220,8 @@ inline int in_footprint(const footprint_t* f, int x, int y)
 }
 
 // The silhouette guard's outline of the voxel's cube in a view, with an error bound. The eight corners are
-// projected exactly (camera.h, lens distortion included); the hexagon Z = {c + a e0 + b e1 + d e2 : |a|, |b|,
+// projected exactly (camera.h, lens distortion included; their camera coordinates from the centre's and the
+// half edges); the hexagon Z = {c + a e0 + b e1 + d e2 : |a|, |b|,
 // |d| <= 1} is their affine fit (c their mean, e_k half the mean edge along axis k), and delta the largest
 // distance of a projected corner from its corner of Z. The true outline (the convex hull of the projected
 // corners) then contains Z eroded by delta and lies inside Z dilated by delta. With d = delta + COVER_EPS:
@@ -222,11 +239,12 @@ typedef struct {
 inline int cube_outline(__global const float* cam, int4 w, float3 X, float4 vs, outline_t* o)
 {
     float2 P[8];
-    float hx = 0.5f * vs.x, hy = 0.5f * vs.y, hz = 0.5f * vs.z;
+    float3 xc = camera_point(cam, X);
+    float3 hx = half_edge(cam, 0, vs), hy = half_edge(cam, 1, vs), hz = half_edge(cam, 2, vs);
     for (int s = 0; s < 8; s++) {
         float d;
-        float3 Y = (float3)((s & 1) ? X.x + hx : X.x - hx, (s & 2) ? X.y + hy : X.y - hy, (s & 4) ? X.z + hz : X.z - hz);
-        P[s] = project_point(cam, Y, &d);
+        float3 Y = (((s & 1) ? xc + hx : xc - hx) + ((s & 2) ? hy : -hy)) + ((s & 4) ? hz : -hz);
+        P[s] = project_camera(cam, Y, &d);
         if (!(d > 0.0f && isfinite(P[s].x) && isfinite(P[s].y))) return 0;
     }
     float2 c = (((((((P[0] + P[1]) + P[2]) + P[3]) + P[4]) + P[5]) + P[6]) + P[7]) * 0.125f;
@@ -243,7 +261,7 @@ inline int cube_outline(__global const float* cam, int4 w, float3 X, float4 vs, 
         hi = fmax(hi, P[s]);
     }
     float d = sqrt(dd) + COVER_EPS;
-    float depth = camera_point(cam, X).z * cam[24];
+    float depth = xc.z * cam[24];
     if (!(depth > 0.0f)) return 0;
     o->key = as_uint(depth);
     o->c = c; o->e0 = e0; o->e1 = e1; o->e2 = e2;
@@ -321,6 +339,7 @@ inline int photo(uint v, float3 X, float3 g, int axis, float plane, float sign, 
             continue;
         __global const float* cam = cams + CAM_FLOATS * c;
         int4 w = win[c];
+        VIEW_ROWS(c);
         footprint_t f;
         if (!footprint(cam, w, X, vs, scale, &f)) continue;
         int4 r = f.r;
@@ -329,9 +348,9 @@ inline int photo(uint v, float3 X, float3 g, int axis, float plane, float sign, 
         int n = 0, total = 0;
         for (int y = r.z; y <= r.w; y += stride)
             for (int x = r.x; x <= r.y; x += stride) {
-                if (!mask_bit(bits, bit_off, cam, c, x, y) || !in_footprint(&f, x, y)) continue;
+                if (!MASK(x, y) || !in_footprint(&f, x, y)) continue;
                 total++;
-                int p = pixel_index(w, pix_off[c], x, y);
+                int p = PIX(x, y);
                 if (use_items ? (uint)(items[p] & 0xFFFFFFFFUL) != v : marks[p] != 0) continue;
                 uchar4 px = images[p];
                 float3 col = (float3)((float)px.x, (float)px.y, (float)px.z);
@@ -374,12 +393,13 @@ inline void cover_add(uint v, float3 X, int delta, VIEW_ARGS, float4 vs, __globa
     for (int c = 0; c < nviews; c++) {
         __global const float* cam = cams + CAM_FLOATS * c;
         int4 w = win[c];
+        VIEW_ROWS(c);
         outline_t o;
         if (!cube_outline(cam, w, X, vs, &o)) continue;
         for (int y = o.r.z; y <= o.r.w; y++)
             for (int x = o.r.x; x <= o.r.y; x++)
-                if (mask_bit(bits, bit_off, cam, c, x, y) && in_outline(&o, x, y, 0))
-                    atomic_add(&cover[pixel_index(w, pix_off[c], x, y)], delta);
+                if (MASK(x, y) && in_outline(&o, x, y, 0))
+                    atomic_add(&cover[PIX(x, y)], delta);
     }
 }
 
@@ -397,12 +417,13 @@ inline void claim(uint v, float3 X, VIEW_ARGS, float4 vs, __global const uint* c
     for (int c = 0; c < nviews; c++) {
         __global const float* cam = cams + CAM_FLOATS * c;
         int4 w = win[c];
+        VIEW_ROWS(c);
         outline_t o;
         if (!cube_outline(cam, w, X, vs, &o)) continue;
         for (int y = o.r.z; y <= o.r.w; y++)
             for (int x = o.r.x; x <= o.r.y; x++)
-                if (mask_bit(bits, bit_off, cam, c, x, y) && in_outline(&o, x, y, 0)) {
-                    int p = pixel_index(w, pix_off[c], x, y);
+                if (MASK(x, y) && in_outline(&o, x, y, 0)) {
+                    int p = PIX(x, y);
                     if (was) atomic_dec(&cover[p]);
                     atomic_min(&keeper[p], o.key);
                 }
@@ -457,12 +478,13 @@ inline void decide(uint v, int step, __global int* stamp, VIEW_ARGS, GRID_ARGS, 
     for (int c = 0; c < nviews && !needed; c++) {
         __global const float* cam = cams + CAM_FLOATS * c;
         int4 w = win[c];
+        VIEW_ROWS(c);
         outline_t o;
         if (!cube_outline(cam, w, X, vs, &o)) continue;
         for (int y = o.r.z; y <= o.r.w && !needed; y++)
             for (int x = o.r.x; x <= o.r.y; x++) {
-                if (!mask_bit(bits, bit_off, cam, c, x, y) || !in_outline(&o, x, y, 1)) continue;
-                int p = pixel_index(w, pix_off[c], x, y);
+                if (!MASK(x, y) || !in_outline(&o, x, y, 1)) continue;
+                int p = PIX(x, y);
                 if (cover[p] == 0 && (keeper[p] == o.key || keeper[p] == NO_KEEPER)) {
                     needed = 1;
                     break;
@@ -472,12 +494,47 @@ inline void decide(uint v, int step, __global int* stamp, VIEW_ARGS, GRID_ARGS, 
     stamp[v] = (step << 2) | (needed ? ST_KEEP : ST_GO);
 }
 
+// Flag the occupied voxels of the 3x3x3 block around (i, j, k) for the next incremental pass (once each).
+inline void flag_around(uint v, int i, int j, int k, GRID_ARGS, __global const uchar* occ, FRESH_ARGS)
+{
+    for (int a = max(i - 1, 0); a <= min(i + 1, nx - 1); a++)
+        for (int b = max(j - 1, 0); b <= min(j + 1, ny - 1); b++)
+            for (int e = max(k - 1, 0); e <= min(k + 1, nz - 1); e++) {
+                uint u = ((uint)a * ny + b) * nz + e;
+                if (!(occ[u] & 1)) continue;
+                uint old = atomic_or(&fresh[u >> 5], 1u << (u & 31));
+                if (!((old >> (u & 31)) & 1)) flist[atomic_inc(nflist)] = u;
+            }
+}
+
+// A removed voxel gave back pixels of a view: the voxel that now shows there is found along the ray from the
+// camera through the removed voxel's centre (steps of half a voxel beyond it, until a voxel that stays this step),
+// and it and its neighbours are flagged, so the next incremental pass splats and tests them.
+inline void reveal(uint v, int i, int j, int k, float3 X, float4 C, int step, __global const int* stamp, GRID_ARGS,
+                   __global const uchar* occ, FRESH_ARGS)
+{
+    float3 d = X - C.xyz;
+    float dt = (0.5f * fmin(fmin(vs.x, vs.y), vs.z)) / fmax(fmax(fabs(d.x), fabs(d.y)), fabs(d.z));
+    if (!isfinite(dt)) return;
+    int limit = 2 * (nx + ny + nz) + 4;
+    for (int n = 1; n <= limit; n++) {
+        float tn = (float)n * dt;
+        float3 P = X + tn * d;
+        int a = (int)floor(P.x / vs.x), b = (int)floor(P.y / vs.y), e = (int)floor(P.z / vs.z);
+        if (!inside_grid(a, b, e, nx, ny, nz)) return;
+        uint u = ((uint)a * ny + b) * nz + e;
+        if (u == v || !(occ[u] & 1) || stamp[u] == ((step << 2) | ST_GO)) continue;
+        flag_around(u, a, b, e, GRID_PASS, occ, FRESH_PASS);
+        return;
+    }
+}
+
 // Carry out a decision: bids withdrawn; a kept candidate counts again and is protected; a removed one leaves the
-// volume, gives back its pixels in the item buffers (use_items) and flags its 26 neighbours for the next
-// incremental pass.
+// volume, flags its occupied 26 neighbours for the next incremental pass and, in an item pass, gives back its
+// pixels in the item buffers, flagging in each view where it held pixels the voxels that now show there.
 inline void apply(uint v, int step, __global const int* stamp, VIEW_ARGS, GRID_ARGS, __global uchar* occ,
                   __global int* cover, __global uint* keeper, __global uint* counted, int use_items,
-                  __global ulong* items, __global uchar* fresh, __global int* removed)
+                  __global ulong* items, FRESH_ARGS, __global int* removed)
 {
     int k = v % nz, j = (v / nz) % ny, i = v / (nz * ny);
     float3 X = voxel_centre(i, j, k, vs);
@@ -485,12 +542,13 @@ inline void apply(uint v, int step, __global const int* stamp, VIEW_ARGS, GRID_A
     for (int c = 0; c < nviews; c++) {
         __global const float* cam = cams + CAM_FLOATS * c;
         int4 w = win[c];
+        VIEW_ROWS(c);
         outline_t o;
         if (!cube_outline(cam, w, X, vs, &o)) continue;
         for (int y = o.r.z; y <= o.r.w; y++)
             for (int x = o.r.x; x <= o.r.y; x++)
-                if (mask_bit(bits, bit_off, cam, c, x, y) && in_outline(&o, x, y, 0)) {
-                    int p = pixel_index(w, pix_off[c], x, y);
+                if (MASK(x, y) && in_outline(&o, x, y, 0)) {
+                    int p = PIX(x, y);
                     keeper[p] = NO_KEEPER;
                     if (keep) atomic_inc(&cover[p]);
                 }
@@ -502,62 +560,65 @@ inline void apply(uint v, int step, __global const int* stamp, VIEW_ARGS, GRID_A
     }
     occ[v] = 0;
     atomic_inc(removed);
-    if (use_items) {
-        for (int c = 0; c < nviews; c++) {
-            __global const float* cam = cams + CAM_FLOATS * c;
-            int4 w = win[c];
-            footprint_t f;
-            if (!footprint(cam, w, X, vs, 1.0f, &f)) continue;
-            for (int y = f.r.z; y <= f.r.w; y++)
-                for (int x = f.r.x; x <= f.r.y; x++) {
-                    int p = pixel_index(w, pix_off[c], x, y);
-                    if ((uint)(items[p] & 0xFFFFFFFFUL) == v) items[p] = EMPTY_ITEM;
+    flag_around(v, i, j, k, GRID_PASS, occ, FRESH_PASS);
+    if (!use_items) return;
+    for (int c = 0; c < nviews; c++) {
+        __global const float* cam = cams + CAM_FLOATS * c;
+        int4 w = win[c];
+        VIEW_ROWS(c);
+        footprint_t f;
+        if (!footprint(cam, w, X, vs, 1.0f, &f)) continue;
+        int given = 0;
+        for (int y = f.r.z; y <= f.r.w; y++)
+            for (int x = f.r.x; x <= f.r.y; x++) {
+                int p = PIX(x, y);
+                if ((uint)(items[p] & 0xFFFFFFFFUL) == v) {
+                    items[p] = EMPTY_ITEM;
+                    given = 1;
                 }
-        }
+            }
+        if (given) reveal(v, i, j, k, X, centres[c], step, stamp, GRID_PASS, occ, FRESH_PASS);
     }
-    for (int a = max(i - 1, 0); a <= min(i + 1, nx - 1); a++)
-        for (int b = max(j - 1, 0); b <= min(j + 1, ny - 1); b++)
-            for (int e = max(k - 1, 0); e <= min(k + 1, nz - 1); e++) fresh[((size_t)a * ny + b) * nz + e] = 1;
 }
 
-__kernel void carve_expose(__global const uint* cands, int count, __global const int* stamp, int step, VIEW_ARGS,
+__kernel void carve_expose(__global const uint* cands, __global const int* ncands, __global const int* stamp, int step, VIEW_ARGS,
                            GRID_ARGS, __global const uchar* occ, __global uint* counted, __global int* cover)
 {
     int t = get_global_id(0);
-    if (t >= count) return;
+    if (t >= *ncands) return;
     expose(cands[t], step, stamp, VIEW_PASS, GRID_PASS, occ, counted, cover);
 }
 
-__kernel void carve_decide(__global const uint* cands, int count, __global int* stamp, int step, VIEW_ARGS,
+__kernel void carve_decide(__global const uint* cands, __global const int* ncands, __global int* stamp, int step, VIEW_ARGS,
                            GRID_ARGS, __global const int* cover, __global const uint* keeper)
 {
     int t = get_global_id(0);
-    if (t >= count) return;
+    if (t >= *ncands) return;
     decide(cands[t], step, stamp, VIEW_PASS, GRID_PASS, cover, keeper);
 }
 
-__kernel void carve_apply(__global const uint* cands, int count, __global const int* stamp, int step, VIEW_ARGS,
+__kernel void carve_apply(__global const uint* cands, __global const int* ncands, __global const int* stamp, int step, VIEW_ARGS,
                           GRID_ARGS, __global uchar* occ, __global int* cover, __global uint* keeper,
-                          __global uint* counted, int use_items, __global ulong* items, __global uchar* fresh,
+                          __global uint* counted, int use_items, __global ulong* items, FRESH_ARGS,
                           __global int* removed)
 {
     int t = get_global_id(0);
-    if (t >= count) return;
-    apply(cands[t], step, stamp, VIEW_PASS, GRID_PASS, occ, cover, keeper, counted, use_items, items, fresh, removed);
+    if (t >= *ncands) return;
+    apply(cands[t], step, stamp, VIEW_PASS, GRID_PASS, occ, cover, keeper, counted, use_items, items, FRESH_PASS,
+          removed);
 }
 
 // ---------------------------------------------------------------- item passes
-// List the occupied surface voxels of `list` (fresh_only: only those flagged since the last pass); flags
-// cleared. Appended to `out` in no particular order (what follows does not depend on it).
-__kernel void carve_compact(__global const uint* list, int count, int fresh_only, __global const uchar* occ,
-                            __global uchar* fresh, int nx, int ny, int nz, __global uint* out, __global int* counter)
+// List the occupied surface voxels of `list` (all of them, or the flagged ones: flags cleared). Appended to `out`
+// in no particular order (what follows does not depend on it).
+__kernel void carve_compact(__global const uint* list, int count, int flagged, __global const uchar* occ,
+                            __global uint* fresh, int nx, int ny, int nz, __global uint* out, __global int* counter)
 {
     int t = get_global_id(0);
     if (t >= count) return;
     uint v = list[t];
-    int flagged = fresh[v];
-    if (flagged) fresh[v] = 0;
-    if ((fresh_only && !flagged) || !(occ[v] & 1)) return;
+    if (flagged) atomic_and(&fresh[v >> 5], ~(1u << (v & 31)));
+    if (!(occ[v] & 1)) return;
     int k = v % nz, j = (v / nz) % ny, i = v / (nz * ny);
     if (surface(occ, i, j, k, nx, ny, nz)) out[atomic_inc(counter)] = v;
 }
@@ -577,13 +638,14 @@ __kernel void carve_splat(__global const uint* list, int count, __global const u
         if (!facing(g, X, centres[c], BACK_FACING)) continue;   // clearly turned away: hidden anyway
         __global const float* cam = cams + CAM_FLOATS * c;
         int4 w = win[c];
+        VIEW_ROWS(c);
         footprint_t f;
         if (!footprint(cam, w, X, vs, 1.0f, &f)) continue;
         ulong key = ((ulong)as_uint(f.depth) << 32) | (ulong)v;
         for (int y = f.r.z; y <= f.r.w; y++)
             for (int x = f.r.x; x <= f.r.y; x++)
-                if (in_footprint(&f, x, y) && mask_bit(bits, bit_off, cam, c, x, y))
-                    atom_min(&items[pixel_index(w, pix_off[c], x, y)], key);
+                if (in_footprint(&f, x, y) && MASK(x, y))
+                    atom_min(&items[PIX(x, y)], key);
     }
 }
 
@@ -631,11 +693,12 @@ __kernel void carve_mark(__global const uint* list, int first, int count, __glob
     for (int c = 0; c < nviews; c++) {
         __global const float* cam = cams + CAM_FLOATS * c;
         int4 w = win[c];
+        VIEW_ROWS(c);
         footprint_t f;
         if (!footprint(cam, w, X, vs, 1.0f, &f)) continue;
         for (int y = f.r.z; y <= f.r.w; y++)
             for (int x = f.r.x; x <= f.r.y; x++)
-                if (in_footprint(&f, x, y)) marks[pixel_index(w, pix_off[c], x, y)] = 1;
+                if (in_footprint(&f, x, y)) marks[PIX(x, y)] = 1;
     }
 }
 
@@ -646,68 +709,50 @@ inline void mark_footprint(float3 X, int axis, float plane, float sign, VIEW_ARG
         if (!active(centres[c], axis, plane, sign)) continue;
         __global const float* cam = cams + CAM_FLOATS * c;
         int4 w = win[c];
+        VIEW_ROWS(c);
         footprint_t f;
         if (!footprint(cam, w, X, vs, 1.0f, &f)) continue;
         for (int y = f.r.z; y <= f.r.w; y++)
             for (int x = f.r.x; x <= f.r.y; x++)
-                if (in_footprint(&f, x, y)) marks[pixel_index(w, pix_off[c], x, y)] = 1;
+                if (in_footprint(&f, x, y)) marks[PIX(x, y)] = 1;
     }
 }
 
-// The six sweeps of a round, one after the other (+x -x +y -y +z -z; a single work item). A sweep visits the
-// planes in order (lists: the occupied voxels by plane along each axis, from offs[base.axis]); a plane is one
-// step (number step0 + 1024 * sweep + plane index): its surface voxels are tested in the cameras behind the
-// plane (visibility: marks of the voxels kept in earlier planes), the guard decides over the inconsistent ones,
-// and the plane's surface voxels that stay mark their footprints.
-__kernel void carve_sweeps(__global const uint* lists, __global const int* offs, int4 base, __global uint* pc,
-                           __global int* stamp, int step0, __global uchar* marks, int npix, __global uchar* occ,
-                           VIEW_ARGS, GRID_ARGS, TEST_ARGS, __global uint* counted, __global int* cover,
-                           __global uint* keeper, __global uchar* fresh, __global int* removed)
+// A plane of a sweep (axis, plane position, sign: +1 towards +axis), one step: its surface voxels (list[first ..
+// first + count) holds the plane's occupied voxels) are tested in the cameras behind the plane (visibility: marks
+// of the voxels kept in earlier planes of the sweep); inconsistent ones become candidates (then the guard's three
+// kernels); carve_sweep_mark: the plane's surface voxels that stay mark their footprints, and the candidate count
+// goes back to 0 for the next plane.
+__kernel void carve_sweep_test(__global const uint* list, int first, int count, int axis, float plane, float sign,
+                               int step, __global int* stamp, __global const uchar* marks, __global const uchar* occ,
+                               VIEW_ARGS, GRID_ARGS, TEST_ARGS, __global uint* cands, __global int* ncands,
+                               __global const uint* counted, __global int* cover, __global uint* keeper)
 {
-    if (get_global_id(0) != 0) return;
-    int ncand = 0;
-    for (int s = 0; s < 6; s++) {
-        int axis = s >> 1;
-        int dir = (s & 1) ? -1 : 1;
-        float sign = (float)dir;
-        int n = axis == 0 ? nx : (axis == 1 ? ny : nz);
-        float vsa = axis == 0 ? vs.x : (axis == 1 ? vs.y : vs.z);
-        int b0 = axis == 0 ? base.x : (axis == 1 ? base.y : base.z);
-        for (int q = 0; q < npix; q++) marks[q] = 0;
-        for (int t = 0; t < n; t++) {
-            int p = dir > 0 ? t : n - 1 - t;
-            float plane = (float)(dir > 0 ? p : p + 1) * vsa;
-            int step = step0 + 1024 * s + t;
-            int a0 = offs[b0 + p], a1 = offs[b0 + p + 1];
-            int nc = 0;
-            for (int u = a0; u < a1; u++) {
-                uint v = lists[u];
-                if ((occ[v] & (1 | PROTECTED)) != 1) continue;
-                int k = v % nz, j = (v / nz) % ny, i = v / (nz * ny);
-                if (!surface(occ, i, j, k, nx, ny, nz)) continue;
-                float3 X = voxel_centre(i, j, k, vs);
-                float3 g = voxel_normal(occ, i, j, k, nx, ny, nz);
-                float3 rgb;
-                float var;
-                int views;
-                if (photo(v, X, g, axis, plane, sign, marks, 0, 0, VIEW_PASS, GRID_PASS, TEST_PASS, &rgb, &var, &views)) {
-                    stamp[v] = (step << 2) | ST_CAND;
-                    pc[nc++] = v;
-                    claim(v, X, VIEW_PASS, vs, counted, cover, keeper);
-                }
-            }
-            for (int c = 0; c < nc; c++) expose(pc[c], step, stamp, VIEW_PASS, GRID_PASS, occ, counted, cover);
-            for (int c = 0; c < nc; c++) decide(pc[c], step, stamp, VIEW_PASS, GRID_PASS, cover, keeper);
-            for (int c = 0; c < nc; c++)
-                apply(pc[c], step, stamp, VIEW_PASS, GRID_PASS, occ, cover, keeper, counted, 0, 0, fresh, removed);
-            ncand += nc;
-            for (int u = a0; u < a1; u++) {
-                uint v = lists[u];
-                if (!(occ[v] & 1)) continue;
-                int k = v % nz, j = (v / nz) % ny, i = v / (nz * ny);
-                if (surface(occ, i, j, k, nx, ny, nz))
-                    mark_footprint(voxel_centre(i, j, k, vs), axis, plane, sign, VIEW_PASS, vs, marks);
-            }
-        }
-    }
+    int t = get_global_id(0);
+    if (t >= count) return;
+    uint v = list[first + t];
+    if ((occ[v] & (1 | PROTECTED)) != 1) return;
+    int k = v % nz, j = (v / nz) % ny, i = v / (nz * ny);
+    if (!surface(occ, i, j, k, nx, ny, nz)) return;
+    float3 X = voxel_centre(i, j, k, vs);
+    float3 g = voxel_normal(occ, i, j, k, nx, ny, nz);
+    float3 rgb;
+    float var;
+    int views;
+    if (photo(v, X, g, axis, plane, sign, marks, 0, 0, VIEW_PASS, GRID_PASS, TEST_PASS, &rgb, &var, &views))
+        candidate(v, X, step, stamp, cands, ncands, VIEW_PASS, vs, counted, cover, keeper);
+}
+
+__kernel void carve_sweep_mark(__global const uint* list, int first, int count, int axis, float plane, float sign,
+                               __global const uchar* occ, VIEW_ARGS, GRID_ARGS, __global uchar* marks,
+                               __global int* ncands)
+{
+    int t = get_global_id(0);
+    if (t == 0) *ncands = 0;
+    if (t >= count) return;
+    uint v = list[first + t];
+    if (!(occ[v] & 1)) return;
+    int k = v % nz, j = (v / nz) % ny, i = v / (nz * ny);
+    if (surface(occ, i, j, k, nx, ny, nz))
+        mark_footprint(voxel_centre(i, j, k, vs), axis, plane, sign, VIEW_PASS, vs, marks);
 }

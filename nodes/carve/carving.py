@@ -55,7 +55,7 @@ class CarveParams:
     max_angle: float = 70.0      # views seeing a voxel at more than this from its normal are not used (degrees)
     max_passes: int = 500        # space carving: passes of (6 sweeps +) 1 item pass; 0 = colour only
     cone: float = 65.0           # sweeps: a camera tests a voxel when its ray is within this of the sweep axis
-    sweep_fraction: float = 0.25  # sweep again while a pass removes more than this fraction of the surface voxels
+    sweep_rounds: int = 1        # space carving: the first passes that begin with a round of six sweeps
     largest: bool = True         # keep only the largest 6-connected part (carving can cut off fragments)
 
     @property
@@ -213,10 +213,13 @@ class CarveCL(Runner):
         self.occ = self.upload("occ", np.ascontiguousarray(grid.occ).ravel())
         self.stamp = self._filled("stamp", 4 * nvox, np.int32(0))
         self.counted = self._filled("counted", 4 * (nvox // 32 + 1), np.uint32(0))
-        self.fresh = self._filled("fresh", nvox, np.uint8(0))
+        self.fresh = self._filled("fresh", 4 * (nvox // 32 + 1), np.uint32(0))
+        self.nfresh = self._filled("nfresh", 4, np.int32(0))
         self.list_x = self.upload("list_x", grid.lists["x"][0])
         self.nlist = len(grid.lists["x"][0])
         self.surf = self.buffer("surf", 4 * max(1, self.nlist))
+        self.flist = self.buffer("flist", 4 * max(1, self.nlist))
+        self.fresh_args = (self.fresh, self.flist, self.nfresh)
         self.cands = self.buffer("cands", 4 * max(1, self.nlist))
         self.counter = self.buffer("counter", 4)
         self.ncands = self.buffer("ncands", 4)
@@ -233,7 +236,6 @@ class CarveCL(Runner):
         self.cover = self._filled("cover", 4 * npix, np.int32(0))
         self.keeper = self._filled("keeper", 4 * npix, np.uint32(0xFFFFFFFF))
         self.marks = self.buffer("marks", npix)
-        self.__dict__.pop("d_sweep", None)
         self.view_args = (self.upload("cams", views.cams), self.upload("centres", views.centres),
                           self.upload("win", views.wins), self.upload("pix_off", views.offsets.astype(np.int32)),
                           views.bits.bits, views.bits.bit_off_buf, self.nviews)
@@ -267,15 +269,64 @@ class CarveCL(Runner):
         return int(self.read(buf, 1, np.int32)[0])
 
     # ---- steps
+    def _prepared(self, name: str, args: tuple):
+        """Kernel ``name`` with all its arguments set (a step then sets only what changes)."""
+        k = self.kernel(name)
+        k.set_args(*args)
+        return k
+
+    def _enqueue(self, k, n: int):
+        import pyopencl as cl
+
+        cl.enqueue_nd_range_kernel(self.queue, k, (max(self.GROUP, -(-n // self.GROUP) * self.GROUP),), (self.GROUP,))
+
     def sweeps(self, step0: int):
-        """One round of six sweeps, in order (steps step0 + 1024 * sweep + plane)."""
+        """One round of six sweeps, in order, plane by plane (step step0 + 1024 * sweep + plane index). The
+        counts stay on the device: no waiting between planes."""
+        import pyopencl as cl
+
         lists = self.grid.lists["sweep"]
-        if not hasattr(self, "d_sweep"):
-            self.d_sweep = (self.upload("sweep_lists", lists["lists"]), self.upload("sweep_offs", lists["offs"]))
-        plane = max(1, int(np.max(np.diff(lists["offs"])))) if len(lists["offs"]) > 1 else 1
-        self.launch("carve_sweeps", 1, 1, *self.d_sweep, lists["base"], self.buffer("plane_cands", 4 * plane),
-                    self.stamp, np.int32(step0), self.marks, self.npix, self.occ, *self.view_args, *self.grid_args,
-                    *self.test_args, self.counted, self.cover, self.keeper, self.fresh, self.nremoved)
+        d_list = self.upload("sweep_lists", lists["lists"])
+        plane_args = (d_list, np.int32(0), np.int32(0), np.int32(0), np.float32(0), np.float32(0))
+        kt = self._prepared("carve_sweep_test", (*plane_args, np.int32(0), self.stamp, self.marks, self.occ,
+                                                 *self.view_args, *self.grid_args, *self.test_args, self.cands,
+                                                 self.ncands, self.counted, self.cover, self.keeper))
+        km = self._prepared("carve_sweep_mark", (*plane_args, self.occ, *self.view_args, *self.grid_args, self.marks,
+                                                 self.ncands))
+        guard = self._guard_kernels(False)
+        self._zero(self.ncands)
+        offs, base = lists["offs"], lists["base"]
+        for s in range(SWEEPS):
+            axis, sign = s >> 1, (-1 if s & 1 else 1)
+            n = self.grid.dims[axis]
+            cl.enqueue_fill_buffer(self.queue, self.marks, np.uint8(0), 0, int(self.npix))
+            for t in range(n):
+                p = t if sign > 0 else n - 1 - t
+                first, count = int(offs[base[axis] + p]), int(offs[base[axis] + p + 1] - offs[base[axis] + p])
+                if not count:
+                    continue
+                plane = np.float32(p if sign > 0 else p + 1) * self.grid.vs[axis]
+                step = np.int32(step0 + 1024 * s + t)
+                for k in (kt, km):
+                    for a, value in enumerate((np.int32(first), np.int32(count), np.int32(axis), np.float32(plane),
+                                               np.float32(sign)), start=1):
+                        k.set_arg(a, value)
+                kt.set_arg(6, step)
+                self._enqueue(kt, count)
+                for k in guard:
+                    k.set_arg(3, step)
+                    self._enqueue(k, count)
+                self._enqueue(km, count)
+
+    def _guard_kernels(self, use_items: bool) -> tuple:
+        """carve_expose, carve_decide, carve_apply over list "cands" (count on the device), step at argument 3."""
+        head = (self.cands, self.ncands, self.stamp, np.int32(0))
+        return (self._prepared("carve_expose", (*head, *self.view_args, *self.grid_args, self.occ, self.counted,
+                                                self.cover)),
+                self._prepared("carve_decide", (*head, *self.view_args, *self.grid_args, self.cover, self.keeper)),
+                self._prepared("carve_apply", (*head, *self.view_args, *self.grid_args, self.occ, self.cover, self.keeper,
+                                               self.counted, np.int32(use_items), self.items, *self.fresh_args,
+                                               self.nremoved)))
 
     def reset_items(self):
         import pyopencl as cl
@@ -288,11 +339,23 @@ class CarveCL(Runner):
         cl.enqueue_fill_buffer(self.queue, self.marks, np.uint8(0), 0, int(self.npix))
 
     def compact(self, fresh_only: bool) -> int:
-        """The surface voxels (fresh_only: those flagged since) into list "surf"; returns how many."""
+        """The surface voxels (fresh_only: those flagged since the last compaction, else all) into list "surf";
+        returns how many. Clears the flags."""
+        import pyopencl as cl
+
         self._zero(self.counter)
-        self.launch("carve_compact", self.nlist, self.GROUP, self.list_x, np.int32(self.nlist), np.int32(fresh_only),
-                    self.occ, self.fresh, *self.grid_args[:3], self.surf, self.counter)
-        return self._count(self.counter)
+        if fresh_only:
+            n = self._count(self.nfresh)
+            if n:
+                self.launch("carve_compact", n, self.GROUP, self.flist, np.int32(n), np.int32(1), self.occ, self.fresh,
+                            *self.grid_args[:3], self.surf, self.counter)
+        else:
+            cl.enqueue_fill_buffer(self.queue, self.fresh, np.uint32(0), 0, 4 * (self.grid.occ.size // 32 + 1))
+            self.launch("carve_compact", self.nlist, self.GROUP, self.list_x, np.int32(self.nlist), np.int32(0), self.occ,
+                        self.fresh, *self.grid_args[:3], self.surf, self.counter)
+        self._zero(self.nfresh)
+        self.nsurf = self._count(self.counter)
+        return self.nsurf
 
     def splat(self, n: int):
         self.launch("carve_splat", n, self.GROUP, self.surf, np.int32(n), self.occ, *self.view_args, *self.grid_args,
@@ -323,13 +386,9 @@ class CarveCL(Runner):
 
     def guard(self, step: int, n: int, use_items: bool):
         """The guard's decisions for the step's n candidates, then carried out."""
-        self.launch("carve_expose", n, self.GROUP, self.cands, np.int32(n), self.stamp, np.int32(step), *self.view_args,
-                    *self.grid_args, self.occ, self.counted, self.cover)
-        self.launch("carve_decide", n, self.GROUP, self.cands, np.int32(n), self.stamp, np.int32(step), *self.view_args,
-                    *self.grid_args, self.cover, self.keeper)
-        self.launch("carve_apply", n, self.GROUP, self.cands, np.int32(n), self.stamp, np.int32(step), *self.view_args,
-                    *self.grid_args, self.occ, self.cover, self.keeper, self.counted, np.int32(use_items), self.items,
-                    self.fresh, self.nremoved)
+        for k in self._guard_kernels(use_items):
+            k.set_arg(3, np.int32(step))
+            self._enqueue(k, n)
 
     def removed(self) -> int:
         n = self._count(self.nremoved)
@@ -344,11 +403,15 @@ class CarveCL(Runner):
 
         cl.enqueue_copy(self.queue, self.occ, np.ascontiguousarray(occ, np.uint8).ravel(), is_blocking=True)
 
-    def colours(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(surface voxels, (n, 4) uint8 mean colour and views, (n,) float32 variance) from one item pass."""
-        self.reset_items()
-        n = self.compact(False)
-        self.splat(n)
+    def colours(self, reuse: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(surface voxels, (n, 4) uint8 mean colour and views, (n,) float32 variance) from one item pass (reuse:
+        the item buffers and list of the last full pass)."""
+        if reuse:
+            n = self.nsurf
+        else:
+            self.reset_items()
+            n = self.compact(False)
+            self.splat(n)
         colors = self.buffer("colors", 4 * max(n, 1))
         variance = self.buffer("variance", 4 * max(n, 1))
         self._test(self.surf, 0, n, 0, True, True, colors, variance)
@@ -389,14 +452,15 @@ class Carver:
         return kind
 
     def space_carving(self) -> int:
-        """Passes until a full item pass removes nothing. A pass: a round of sweeps (the first pass, and again
-        while a pass removes more than ``sweep_fraction`` of the surface voxels: they carve deep at once), then one
-        item pass (exact visibility, every view): full after sweeps, else incremental (only what the last
-        removals exposed), full again when nothing is left to test. At the end every surface voxel is
-        photo-consistent in all the views that see it, or protected, or seen in fewer than min_views."""
-        total, sweeps, full = 0, True, True
-        surface = max(1, len(self.grid.lists["surface"][0]))
+        """Passes until a full item pass removes nothing. A pass: a round of sweeps (the first ``sweep_rounds``
+        passes: they carve deep at once), then one item pass (exact visibility, every view): full after sweeps,
+        else incremental (only what the last removals exposed), full again when nothing is left to test. At the
+        end every surface voxel is photo-consistent in all the views that see it, or protected, or seen in fewer
+        than min_views."""
+        total, full = 0, True
+        self.converged = False
         for k in range(self.p.max_passes):
+            sweeps = k < self.p.sweep_rounds
             t = time.perf_counter()
             by_sweeps = 0
             if sweeps:
@@ -408,9 +472,9 @@ class Carver:
             self.log.append({"pass": k + 1, "sweeps": sweeps, "items": kind, "removed": by_sweeps + by_items,
                              "seconds": round(time.perf_counter() - t, 4)})
             if kind == "full" and by_items == 0 and by_sweeps == 0:
+                self.converged = True      # the item buffers hold the volume as it is
                 break
             full = False
-            sweeps = by_sweeps + by_items > self.p.sweep_fraction * surface
         return total
 
     def voxel_coloring(self) -> int:
@@ -428,10 +492,11 @@ class Carver:
         self.log.append({"pass": 1, "removed": removed})
         return removed
 
-    def colours(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def colours(self, reuse: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(colors (nx, ny, nz, 3) uint8, views (nx, ny, nz) uint8, variance per surface voxel seen in >= 2 views)
-        of the current volume, from one item-buffer pass."""
-        idx, col, var = self.b.colours()
+        of the current volume, from one item-buffer pass (``reuse``: the last full pass's, when it removed
+        nothing)."""
+        idx, col, var = self.b.colours(reuse)
         colors = np.zeros((*self.grid.dims, 3), np.uint8)
         views = np.zeros(self.grid.dims, np.uint8)
         colors.reshape(-1, 3)[idx] = col[:, :3]
@@ -549,6 +614,9 @@ def carve(volume: VoxelGrid, images, masks, cameras: Cameras, params: CarveParam
     node = node or f"carve.{algorithm}"
     occ, ims, mks, bits = check_inputs(volume, images, masks, cameras, params, node, method)
     t0 = time.perf_counter()
+    specks = 0
+    if params.largest and occ.any():
+        occ, specks = largest_part(occ)        # the input's own specks first
     vs = volume.voxel_size.astype(np.float32)
     views = make_views(ims, mks, bits, cameras, volume.bbox_min, params.gain)
     flat = np.flatnonzero(occ).astype(np.uint32)
@@ -575,13 +643,14 @@ def carve(volume: VoxelGrid, images, masks, cameras: Cameras, params: CarveParam
     parts = 0
     if params.largest and out.any():
         out, parts = largest_part(out)
-        backend.set_occupancy(out)
+        if parts:
+            backend.set_occupancy(out)
     t2 = time.perf_counter()
-    colors, seen, var_after = carver.colours()
+    colors, seen, var_after = carver.colours(reuse=getattr(carver, "converged", False) and not parts)
     colors = fill_colours(out, colors, seen)
     stats = {
         "algorithm": algorithm, "voxels_in": int(occ.sum()), "voxels_out": int(out.sum()), "removed": removed,
-        "fragments_dropped": parts,
+        "fragments_dropped": specks + parts,
         "passes": carver.log, "space": params.space, "threshold": params.threshold,
         "surface_voxels_seen_out": int(len(var_after)),
         "variance_out": float(var_after.mean()) if len(var_after) else 0.0,

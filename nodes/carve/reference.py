@@ -6,8 +6,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from nodes.common.cameras import project_packed_f32
-
 from .photo import colour_space, dot3, spread
 
 f32 = np.float32
@@ -24,6 +22,37 @@ CUBE26 = np.argwhere(np.ones((3, 3, 3), bool)) - 1
 
 def cross2(ax, ay, bx, by):
     return ax * by - ay * bx
+
+
+def camera_point(cam, X):
+    """kernels/camera.h camera_point (float32, its order): (x, y, z) in camera coordinates."""
+    x, y, z = X[:, 0], X[:, 1], X[:, 2]
+    return (((cam[0] * x + cam[1] * y) + cam[2] * z) + cam[3], ((cam[4] * x + cam[5] * y) + cam[6] * z) + cam[7],
+            ((cam[8] * x + cam[9] * y) + cam[10] * z) + cam[11])
+
+
+def project_camera(cam, xc):
+    """Kernel ``project_camera``: (u, v, depth) of points in camera coordinates (the tail of project_packed_f32)."""
+    f = f32
+    xr, yr, zr = xc
+    with np.errstate(all="ignore"):
+        xn, yn = xr / zr, yr / zr
+        if np.any(cam[17:22] != 0):
+            k1, k2, p1, p2, k3 = cam[17:22]
+            r2 = xn * xn + yn * yn
+            radial = f(1) + r2 * (k1 + r2 * (k2 + r2 * k3))
+            xd = (xn * radial + ((f(2) * p1) * xn) * yn) + p2 * (r2 + (f(2) * xn) * xn)
+            yd = (yn * radial + p1 * (r2 + (f(2) * yn) * yn)) + ((f(2) * p2) * xn) * yn
+            xn, yn = xd, yd
+        u = (cam[12] * xn + cam[13] * yn) + cam[14]
+        v = cam[15] * yn + cam[16]
+    return u, v, zr * cam[24]
+
+
+def half_edge(cam, a, vs):
+    """Kernel ``half_edge``: R[:, a] * vs[a] / 2 (float32)."""
+    h = f32(0.5) * vs[a]
+    return cam[a] * h, cam[4 + a] * h, cam[8 + a] * h
 
 
 class CarveNumPy:
@@ -114,18 +143,15 @@ class CarveNumPy:
     def footprint(self, c: int, X: np.ndarray, scale: float) -> dict:
         """Kernel ``footprint`` per voxel centre: rectangle x0 x1 y0 y1 (int64, clipped to the window), ok,
         single, depth, and the hexagon (centre u v, half-edges e[k] = (eu, ev), limits lim[k])."""
-        cam = self.views.cams[c]
-        vs = self.vs
-        u0, v0, _ = project_packed_f32(cam, X)
+        cam = self.views.cams[c].astype(f32)
+        xc = camera_point(cam, X)
         d, pts = [], []
         for a in range(-1, 3):
-            Y = X.copy()
-            if a >= 0:
-                Y[:, a] = Y[:, a] + f32(0.5) * vs[a]
-            u, v, _ = project_packed_f32(cam, Y)
-            zc = ((cam[8] * Y[:, 0] + cam[9] * Y[:, 1]) + cam[10] * Y[:, 2]) + cam[11]
-            d.append(zc * cam[24])
+            Y = xc if a < 0 else tuple(x + h for x, h in zip(xc, half_edge(cam, a, self.vs)))
+            u, v, depth = project_camera(cam, Y)
+            d.append(depth)
             pts.append((u, v))
+        u0, v0 = pts[0]
         ok = (d[0] > 0) & (d[1] > 0) & (d[2] > 0) & (d[3] > 0)
         s = f32(scale)
         _, _, _, _, wx0, wy0, wx1, wy1 = self.window(c)
@@ -204,14 +230,19 @@ class CarveNumPy:
 
     def outline(self, c: int, X: np.ndarray) -> dict:
         """Kernel ``cube_outline`` per voxel centre."""
-        cam = self.views.cams[c]
-        h = f32(0.5) * self.vs
+        cam = self.views.cams[c].astype(f32)
+        xc = camera_point(cam, X)
+        hs = [half_edge(cam, a, self.vs) for a in range(3)]
         P, ok = [], np.ones(len(X), bool)
         for s in range(8):
-            Y = np.stack([X[:, a] + h[a] if s & (1 << a) else X[:, a] - h[a] for a in range(3)], axis=1).astype(f32)
-            u, v, front = project_packed_f32(cam, Y)
+            Y = []
+            for i in range(3):
+                a = xc[i] + hs[0][i] if s & 1 else xc[i] - hs[0][i]
+                a = a + (hs[1][i] if s & 2 else -hs[1][i])
+                Y.append(a + (hs[2][i] if s & 4 else -hs[2][i]))
+            u, v, depth = project_camera(cam, Y)
             with np.errstate(invalid="ignore"):
-                ok &= front & np.isfinite(u) & np.isfinite(v)
+                ok &= (depth > 0) & np.isfinite(u) & np.isfinite(v)
             P.append((u, v))
         _, _, _, _, wx0, wy0, wx1, wy1 = self.window(c)
         eighth = f32(0.125)
@@ -252,8 +283,7 @@ class CarveNumPy:
             y1 = np.minimum(np.floor(hi[1] + COVER_EPS), wy1)
             x0, x1 = np.minimum(x0, wx1 + f32(1)), np.maximum(x1, wx0 - f32(1))
             y0, y1 = np.minimum(y0, wy1 + f32(1)), np.maximum(y1, wy0 - f32(1))
-        zc = ((cam[8] * X[:, 0] + cam[9] * X[:, 1]) + cam[10] * X[:, 2]) + cam[11]
-        depth = (zc * cam[24]).astype(f32)
+        depth = (xc[2] * cam[24]).astype(f32)
         ok &= depth > 0
         conv = lambda a: np.where(ok, a, 0).astype(np.int64)  # noqa: E731
         return {"x0": conv(x0), "x1": conv(x1), "y0": conv(y0), "y1": conv(y1), "ok": ok, "c": (cx, cy), "e": e,
@@ -382,14 +412,50 @@ class CarveNumPy:
         if len(gone) == 0:
             return
         gX = X[~keep]
-        if use_items:
-            for c in range(len(self.px)):
-                owner, p, _ = self.pixels(c, gX, 1.0, rect_only=True)
-                mine = (self.items[c][p] & np.uint64(0xFFFFFFFF)) == gone[owner].astype(np.uint64)
-                self.items[c][p[mine]] = EMPTY
         gijk = self.ijk(gone)
-        nb = (gijk[:, None, :] + CUBE26[None]).reshape(-1, 3)
+        self.flag_around(gijk)
+        if not use_items:
+            return
+        limit = 2 * sum(self.dims) + 4
+        for c in range(len(self.px)):
+            owner, p, _ = self.pixels(c, gX, 1.0, rect_only=True)
+            mine = (self.items[c][p] & np.uint64(0xFFFFFFFF)) == gone[owner].astype(np.uint64)
+            self.items[c][p[mine]] = EMPTY
+            given = np.zeros(len(gone), bool)
+            given[owner[mine]] = True
+            if given.any():
+                self.reveal(gone[given], gX[given], c, step, limit)
+
+    def flag_around(self, ijk: np.ndarray):
+        """Kernel ``flag_around``: the 3x3x3 blocks around ``ijk`` flagged (occupied ones count)."""
+        nb = (ijk[:, None, :] + CUBE26[None]).reshape(-1, 3)
         self.fresh[self.flat(nb[self.in_grid(nb)])] = True
+
+    def reveal(self, v, X, c, step, limit):
+        """Kernel ``reveal`` for removed voxels v (centres X) in view c."""
+        d = (X - self.views.centres[c, :3]).astype(f32)
+        vmin = f32(0.5) * min(self.vs[0], self.vs[1], self.vs[2])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            dt = (vmin / np.maximum(np.maximum(np.abs(d[:, 0]), np.abs(d[:, 1])), np.abs(d[:, 2]))).astype(f32)
+        walking = np.isfinite(dt)
+        go = (step << 2) | ST_GO
+        found = []
+        for n in range(1, limit + 1):
+            if not walking.any():
+                break
+            idx = np.flatnonzero(walking)
+            tn = f32(n) * dt[idx]
+            P = X[idx] + tn[:, None] * d[idx]
+            q = np.floor(P / self.vs).astype(np.int64)
+            out = ~self.in_grid(q)
+            walking[idx[out]] = False
+            idx, q = idx[~out], q[~out]
+            u = self.flat(q)
+            hit = (u != v[idx]) & ((self.occ[u] & 1) > 0) & (self.stamp[u] != go)
+            walking[idx[hit]] = False
+            found.append(q[hit])
+        if found:
+            self.flag_around(np.concatenate(found))
 
     # ---------------------------------------------------------------- steps
     def sweeps(self, step0: int):
@@ -500,11 +566,13 @@ class CarveNumPy:
     def set_occupancy(self, occ: np.ndarray):
         self.occ = np.ascontiguousarray(occ, np.uint8).ravel().copy()
 
-    def colours(self):
-        self.reset_items()
-        n = self.compact(False)
-        self.splat(n)
-        lst = self.surf[:n]
+    def colours(self, reuse: bool = False):
+        if not reuse:
+            self.reset_items()
+            self.compact(False)
+            self.splat(len(self.surf))
+        lst = self.surf
+        n = len(lst)
         pos, v, ijk = self._tested(lst, write_colors=True)
         colors = np.zeros((n, 4), np.uint8)
         variance = np.full(n, f32(-1), f32)
