@@ -144,14 +144,20 @@ def surface_mask(occ: np.ndarray) -> np.ndarray:
 def sweep_lists(occ: np.ndarray) -> dict:
     """The sweeps' lists: the occupied voxels (flat indices) grouped by plane along x, then y, then z
     (``lists``); ``offs`` the plane offsets into it, axis a's n_a + 1 of them from ``base[a]``."""
-    flat = np.flatnonzero(occ)
-    coords = np.unravel_index(flat, occ.shape)
+    nx, ny, nz = occ.shape
     lists, offs, base = [], [], []
+    total = 0
     for a in range(3):
-        order = np.argsort(coords[a], kind="stable")
+        # nonzero of the grid with axis a first is sorted by the plane along a
+        moved = np.ascontiguousarray(np.moveaxis(occ, a, 0))
+        idx = np.nonzero(moved)
+        ijk = [None] * 3
+        for k, axis in enumerate([a] + [b for b in range(3) if b != a]):
+            ijk[axis] = idx[k].astype(np.int64)
+        lists.append((ijk[0] * ny + ijk[1]) * nz + ijk[2])
         base.append(sum(len(o) for o in offs))
-        offs.append(a * len(flat) + np.concatenate([[0], np.cumsum(np.bincount(coords[a], minlength=occ.shape[a]))]))
-        lists.append(flat[order])
+        offs.append(total + np.concatenate([[0], np.cumsum(np.count_nonzero(moved.reshape(moved.shape[0], -1), axis=1))]))
+        total += len(idx[0])
     return {"lists": np.concatenate(lists).astype(np.uint32), "offs": np.concatenate(offs).astype(np.int32),
             "base": np.array([*base, 0], np.int32)}
 
