@@ -55,7 +55,7 @@ class CarveParams:
     max_angle: float = 70.0      # views seeing a voxel at more than this from its normal are not used (degrees)
     max_passes: int = 500        # space carving: passes of (6 sweeps +) 1 item pass; 0 = colour only
     cone: float = 65.0           # sweeps: a camera tests a voxel when its ray is within this of the sweep axis
-    sweep_rounds: int = 1        # space carving: the first passes that begin with a round of six sweeps
+    sweep_fraction: float = 0.1  # sweep again while the last round removed more than this fraction of the voxels
     largest: bool = True         # keep only the largest 6-connected part (carving can cut off fragments)
 
     @property
@@ -458,15 +458,15 @@ class Carver:
         return kind
 
     def space_carving(self) -> int:
-        """Passes until a full item pass removes nothing. A pass: a round of sweeps (the first ``sweep_rounds``
-        passes: they carve deep at once), then one item pass (exact visibility, every view): full after sweeps,
-        else incremental (only what the last removals exposed), full again when nothing is left to test. At the
-        end every surface voxel is photo-consistent in all the views that see it, or protected, or seen in fewer
-        than min_views."""
-        total, full = 0, True
+        """Passes until a full item pass removes nothing. A pass: a round of sweeps (the first pass, and the next
+        ones while the last round removed more than ``sweep_fraction`` of the voxels it began with: sweeps carve
+        deep at once), then one item pass (exact visibility, every view): full after sweeps, else incremental (only
+        what the last removals exposed), full again when nothing is left to test. At the end every surface voxel
+        is photo-consistent in all the views that see it, or protected, or seen in fewer than min_views."""
+        total, full, sweeps = 0, True, True
+        voxels = int(self.grid.occ.sum())
         self.converged = False
         for k in range(self.p.max_passes):
-            sweeps = k < self.p.sweep_rounds
             t = time.perf_counter()
             by_sweeps = 0
             if sweeps:
@@ -481,6 +481,8 @@ class Carver:
                 self.converged = True      # the item buffers hold the volume as it is
                 break
             full = False
+            sweeps = sweeps and by_sweeps > self.p.sweep_fraction * voxels
+            voxels -= by_sweeps + by_items
         return total
 
     def voxel_coloring(self) -> int:

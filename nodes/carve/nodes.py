@@ -50,8 +50,8 @@ class SpaceCarving(Node):
         "cone": Param(float, 65.0, range=(10.0, 89.0), doc="sweeps: a camera tests a voxel when its ray is within "
                       "this many degrees of the sweep axis"),
         "max_passes": Param(int, 500, range=(0, 10000), doc="at most this many passes (0: colour the input only)"),
-        "sweep_rounds": Param(int, 1, range=(0, 100), doc="the first passes that begin with a round of six plane "
-                              "sweeps (then item-buffer passes only)"),
+        "sweep_fraction": Param(float, 0.1, range=(0.0, 1.0), doc="sweep again while the last round of sweeps removed "
+                                "more than this fraction of the voxels it began with (then item-buffer passes only)"),
     }
     kernels = [source("carve.cl")]
 
