@@ -13,6 +13,10 @@ CONSISTENCY = {
                        "mean colours from their mean, in units of `space` (rgb 0..255; lab: delta E)"),
     "adaptive": Param(float, 0.0, range=(0.0, 10.0), doc="add this times the RMS colour spread within a view's "
                       "footprint to the limit (Slabaugh et al. 2004: more tolerance over texture)"),
+    "contrast": Param(float, 0.0, range=(0.0, 100.0), doc="carve only when the colour deviation between views also "
+                      "exceeds this times the RMS colour spread within the views: refuses to carve on weak evidence "
+                      "(texture about as fine as the voxels, whose footprints differ from view to view); 1.2 keeps a "
+                      "tight hull over fine texture (the synth figure) as it is"),
     "space": Param(str, "rgb", choices=SPACES, doc="colour space of the test: sRGB values, or CIE L*a*b* (D65)"),
     "gain": Param(bool, False, doc="per-camera, per-channel gains matching each view's mean colour inside its mask"),
     "min_views": Param(int, 2, range=(2, 256), doc="a voxel seen in fewer views is kept untested"),

@@ -38,11 +38,11 @@ def inputs(s, volume=None):
 
 
 @pytest.mark.parametrize("algorithm", ["space_carving", "voxel_coloring"])
-@pytest.mark.parametrize("space, threshold", [("rgb", 30.0), ("lab", 10.0), ("rgb", 0.0)])
-def test_kernels_match_numpy_reference(small_cup, algorithm, space, threshold):
+@pytest.mark.parametrize("space, threshold, contrast", [("rgb", 30.0, 1.0), ("lab", 10.0, 0.0), ("rgb", 0.0, 0.0)])
+def test_kernels_match_numpy_reference(small_cup, algorithm, space, threshold, contrast):
     """Every step (sweeps, item passes, the guard's counts and bids, layers) in OpenCL and in NumPy: the same
     voxels and colours; threshold 0 makes nearly every surface voxel a candidate, so the guard decides."""
-    p = CarveParams(space=space, threshold=threshold)
+    p = CarveParams(space=space, threshold=threshold, contrast=contrast)
     cl = carve(small_cup["hull"], small_cup["images"], small_cup["masks"], small_cup["cameras"], p, algorithm)
     ref = carve(small_cup["hull"], small_cup["images"], small_cup["masks"], small_cup["cameras"], p, algorithm, "numpy")
     a, b = cl.volume.occupancy, ref.volume.occupancy
@@ -104,7 +104,8 @@ def test_guard_is_strict_with_zero_threshold(cup):
     voxels' cubes still cover every mask pixel the hull's cubes covered, in every view (the count of uncovered
     ones is 0, rendered by the z-buffer rasterizer, which shares no code with the guard), nothing leaves the
     hull, and it did carve: more than half the hull's voxels are gone."""
-    out = carve(cup["hull"], cup["images"], cup["masks"], cup["cameras"], CarveParams(threshold=0.0, largest=False))
+    out = carve(cup["hull"], cup["images"], cup["masks"], cup["cameras"],
+                CarveParams(threshold=0.0, contrast=0.0, largest=False))
     occ, hull = out.volume.occupancy.astype(bool), cup["hull"].occupancy.astype(bool)
     assert occ.sum() < 0.5 * hull.sum(), f"{int(occ.sum())} of {int(hull.sum())} voxels kept"
     assert not np.any(occ & ~hull)
