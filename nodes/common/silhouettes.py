@@ -193,8 +193,13 @@ def block_window(counts: np.ndarray, width: int, height: int) -> tuple[int, int,
 
 def mask_window(mask: np.ndarray) -> tuple[int, int, int, int]:
     """``block_window`` of a host mask (inside when > 127)."""
-    t = block_table_reference(mask)
-    return block_window(np.diff(np.diff(t, axis=0), axis=1), mask.shape[1], mask.shape[0])
+    inside = mask > 127
+    rows, cols = np.flatnonzero(inside.any(axis=1)), np.flatnonzero(inside.any(axis=0))
+    if len(rows) == 0:
+        return 0, 0, 0, 0
+    h, w = mask.shape
+    x0, y0 = 8 * (int(cols[0]) // 8), 8 * (int(rows[0]) // 8)
+    return x0, y0, min(w, 8 * (int(cols[-1]) // 8 + 1)) - x0, min(h, 8 * (int(rows[-1]) // 8 + 1)) - y0
 
 
 def silhouette_windows(sil: SilhouetteBits) -> np.ndarray:
