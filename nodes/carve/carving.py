@@ -56,7 +56,7 @@ class CarveParams:
     max_passes: int = 500        # space carving: passes of (6 sweeps +) 1 item pass; 0 = colour only
     cone: float = 65.0           # sweeps: a camera tests a voxel when its ray is within this of the sweep axis
     sweep_fraction: float = 0.1  # sweep again while the last round removed more than this fraction of the voxels
-    largest: bool = True         # keep only the largest 6-connected part (carving can cut off fragments)
+    largest: bool = True         # carve only the largest 6-connected part of the input (its specks go)
 
     @property
     def cos_cone(self) -> float:
@@ -404,11 +404,6 @@ class CarveCL(Runner):
     def occupancy(self) -> np.ndarray:
         return self.read(self.occ, self.grid.dims, np.uint8) & np.uint8(1)
 
-    def set_occupancy(self, occ: np.ndarray):
-        import pyopencl as cl
-
-        cl.enqueue_copy(self.queue, self.occ, np.ascontiguousarray(occ, np.uint8).ravel(), is_blocking=True)
-
     def colours(self, reuse: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(surface voxels, (n, 4) uint8 mean colour and views, (n,) float32 variance) from one item pass (reuse:
         the item buffers and list of the last full pass)."""
@@ -521,6 +516,13 @@ def largest_part(occ: np.ndarray) -> tuple[np.ndarray, int]:
         return occ, 0
     keep = np.argmax(np.bincount(labels.ravel())[1:]) + 1
     return (labels == keep).astype(np.uint8), n - 1
+
+
+def count_parts(occ: np.ndarray) -> int:
+    """Number of 6-connected parts."""
+    from scipy import ndimage
+
+    return int(ndimage.label(occ)[1])
 
 
 def surface_count(occ: np.ndarray) -> int:
@@ -648,17 +650,12 @@ def carve(volume: VoxelGrid, images, masks, cameras: Cameras, params: CarveParam
     else:
         removed = carver.space_carving()
     out = backend.occupancy()
-    parts = 0
-    if params.largest and out.any():
-        out, parts = largest_part(out)
-        if parts:
-            backend.set_occupancy(out)
     t2 = time.perf_counter()
-    colors, seen, var_after = carver.colours(reuse=getattr(carver, "converged", False) and not parts)
+    colors, seen, var_after = carver.colours(reuse=getattr(carver, "converged", False))
     colors = fill_colours(out, colors, seen)
     stats = {
         "algorithm": algorithm, "voxels_in": int(occ.sum()), "voxels_out": int(out.sum()), "removed": removed,
-        "fragments_dropped": specks + parts,
+        "input_specks_dropped": specks, "parts_out": count_parts(out),
         "passes": carver.log, "space": params.space, "threshold": params.threshold,
         "surface_voxels_seen_out": int(len(var_after)),
         "variance_out": float(var_after.mean()) if len(var_after) else 0.0,

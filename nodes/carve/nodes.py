@@ -23,8 +23,8 @@ CONSISTENCY = {
     "footprint": Param(float, 0.7, range=(0.1, 1.0), doc="sampled part of the voxel's projected cube (1 = all of it)"),
     "max_angle": Param(float, 70.0, range=(10.0, 90.0), doc="views seeing a voxel more than this many degrees off its "
                        "normal are not used (grazing views)"),
-    "largest": Param(bool, True, doc="keep only the largest 6-connected part of the result (carving can cut off "
-                     "fragments; the hull's own specks go too)"),
+    "largest": Param(bool, True, doc="carve only the largest 6-connected part of the input (its specks go); nothing "
+                     "is dropped after carving: a part the carving cut off stays when silhouettes need it"),
     "method": Param(str, "opencl", choices=("opencl", "numpy"), doc="OpenCL kernels or the NumPy reference (small grids)"),
 }
 INPUTS = {"volume": Volume, "images": Images, "masks": Masks, "cameras": CameraSet}

@@ -563,9 +563,6 @@ class CarveNumPy:
     def occupancy(self) -> np.ndarray:
         return (self.occ & 1).reshape(self.dims)
 
-    def set_occupancy(self, occ: np.ndarray):
-        self.occ = np.ascontiguousarray(occ, np.uint8).ravel().copy()
-
     def colours(self, reuse: bool = False):
         if not reuse:
             self.reset_items()
