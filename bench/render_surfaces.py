@@ -1,7 +1,7 @@
 """Shaded renders of plain marching cubes, refine, relax (and the seed's refine + relax) side by side, 128^3,
 written to docs/surface_<scene>.png (pyvista off-screen, smooth shading, seen from one of the scene's cameras).
 
-    python bench/render_surfaces.py [synth_figure thu_wd_human inria_dancer]
+    python bench/render_surfaces.py [synth_figure crease_robot thu_wd_human inria_dancer]
 """
 from __future__ import annotations
 
@@ -52,13 +52,13 @@ def main(names):
 
     out_dir = ROOT / "docs"
     for name in names:
-        masks, cams, box, truth = scene(name.replace("synth_", "synth "))
+        masks, cams, box, truth = scene(name.replace("_", " ") if name in ("synth_figure", "crease_robot") else name)
         vol, mesh = mc_mesh(masks, cams, box, 128)
         args = {"mesh": mesh, "volume": vol, "masks": masks, "cameras": cams}
         ref = run_node("refine", args)["mesh"]
         rel = run_node("relax", {"mesh": ref, "masks": masks, "cameras": cams})["mesh"]
         old = legacy_relax(legacy_refine(mesh, vol, masks, cams), masks, cams)
-        cam = cams[(3 if name.startswith("synth") else 1) % len(cams)]
+        cam = cams[{"synth_figure": 3, "crease_robot": 2}.get(name, 1) % len(cams)]
         lo, hi = rel.bounds
         panels = []
         for label, m in (("plain mc", mesh), ("refine", ref), ("relax", rel), ("seed: refine + relax", old)):
@@ -77,4 +77,4 @@ def main(names):
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:] or ["synth_figure", "thu_wd_human", "inria_dancer"])
+    main(sys.argv[1:] or ["synth_figure", "crease_robot", "thu_wd_human", "inria_dancer"])

@@ -95,17 +95,19 @@ __kernel void fair_step(__global const float* v, __global const int* f, __global
 // out_lo, out_hi). The vertex's offset along the line is clamped to [in_hi, out_lo] (the deep side: the first
 // point outside level tau_in, 0 when base is not that deep; the far side: the last point inside level tau_out),
 // its offset across the line to at most `across`. A line whose base is not inside even at tau_out has no
-// shell: only the offsets' limits apply ([0, 1] along, `across` across).
+// shell: only the offsets' limits apply ([0, 1] along, `across` across). With `onto` the vertex goes onto the
+// deep level instead: the middle of (in_lo, in_hi) (no shell when in_hi is 0).
 __kernel void shell_clamp(__global const float* v, __global const float* centre, __global const float* axis,
-                          __global const float* shell, float reach, float across, int nv, __global float* out)
+                          __global const float* shell, float reach, float across, int onto, int nv,
+                          __global float* out)
 {
     int i = get_global_id(0);
     if (i >= nv) return;
     float3 n = vload3(i, axis), p = vload3(i, v);
     float3 A = vload3(i, centre) - reach * n;
     float4 sh = vload4(i, shell);
-    float lo = sh.y, hi = sh.z;
-    if (sh.w == 0.0f) {  // base outside at tau_out: no shell on this line
+    float lo = sh.y, hi = onto ? sh.x : sh.z;
+    if ((onto ? sh.y : sh.w) == 0.0f) {  // base outside at that level: no shell on this line
         lo = 0.0f;
         hi = 1.0f;
     }
@@ -120,8 +122,19 @@ __kernel void shell_clamp(__global const float* v, __global const float* centre,
     vstore3((A + (s * len) * n) + t, i, out);
 }
 
-// Fold repair: a vertex two of whose faces have unit normals more than 150 degrees apart (cos < -0.866) takes
-// half an umbrella step (towards the mean of its neighbours); the others stay.
+// Fold repair: a vertex two of whose faces that share an edge have unit normals more than 150 degrees apart
+// (cos < -0.866: the fold of eval.mesh) takes half an umbrella step (towards the mean of its neighbours); the
+// others stay.
+inline int other_shared(int4 a, int4 b, int i)
+{
+    // whether faces a and b (corners xyz), both holding vertex i, share another corner: an edge
+    int s = 0;
+    if (a.x != i) s |= a.x == b.x || a.x == b.y || a.x == b.z;
+    if (a.y != i) s |= a.y == b.x || a.y == b.y || a.y == b.z;
+    if (a.z != i) s |= a.z == b.x || a.z == b.y || a.z == b.z;
+    return s;
+}
+
 __kernel void unfold_step(__global const float* v, __global const int* f, __global const int* off,
                           __global const int* idx, int nv, __global float* out, __global int* count)
 {
@@ -133,12 +146,15 @@ __kernel void unfold_step(__global const float* v, __global const int* f, __glob
     float3 ring = (float3)(0.0f);
     for (int j = s; j < e; j++) {
         int k = idx[j];
-        float3 a = vload3(f[3 * k], v), b = vload3(f[3 * k + 1], v), c = vload3(f[3 * k + 2], v);
+        int4 fk = (int4)(f[3 * k], f[3 * k + 1], f[3 * k + 2], 0);
+        float3 a = vload3(fk.x, v), b = vload3(fk.y, v), c = vload3(fk.z, v);
         ring = ring + ((a + b) + c);
         float3 nj = unit3(cross3(b - a, c - a));
         for (int l = s; l < j; l++) {
             int q = idx[l];
-            float3 a2 = vload3(f[3 * q], v), b2 = vload3(f[3 * q + 1], v), c2 = vload3(f[3 * q + 2], v);
+            int4 fq = (int4)(f[3 * q], f[3 * q + 1], f[3 * q + 2], 0);
+            if (!other_shared(fk, fq, i)) continue;
+            float3 a2 = vload3(fq.x, v), b2 = vload3(fq.y, v), c2 = vload3(fq.z, v);
             folded |= dot3(nj, unit3(cross3(b2 - a2, c2 - a2))) < -0.8660254f;
         }
     }

@@ -12,8 +12,9 @@
 // what one view says about a whole box of voxel centres (flags; 0 = unsure)
 #define BOX_IN 1      // every centre projects inside the silhouette
 #define BOX_NOTIN 2   // no centre is inside
-#define BOX_OUT 4     // some centre is seen on background
-#define BOX_OFF 8     // some centre is unseen
+#define BOX_OUT 4     // every centre is seen on background
+#define BOX_OFF 8     // every centre is unseen (behind the camera or outside the image)
+#define BOX_SEEN 16   // every centre is seen (in front, inside the image)
 
 // ------------------------------------------------------------------ projection
 inline float3 voxel_centre(float3 bmin, float3 vs, int i, int j, int k)
@@ -109,9 +110,10 @@ inline int box_state(__global const float* c, __global const int* sat, float3 lo
     int bx0 = x0 >> 3, bx1 = x1 >> 3, by0 = y0 >> 3, by1 = y1 >> 3;
     int sum = sat[(by1 + 1) * (Wb + 1) + bx1 + 1] - sat[by0 * (Wb + 1) + bx1 + 1]
             - sat[(by1 + 1) * (Wb + 1) + bx0] + sat[by0 * (Wb + 1) + bx0];
-    if (sum == 0) return inside_image ? (BOX_NOTIN | BOX_OUT) : BOX_NOTIN;
+    if (sum == 0) return inside_image ? (BOX_NOTIN | BOX_OUT | BOX_SEEN) : BOX_NOTIN;
     int area = (min((bx1 + 1) << 3, Wi) - (bx0 << 3)) * (min((by1 + 1) << 3, Hi) - (by0 << 3));
-    return (inside_image && sum == area) ? BOX_IN : 0;
+    if (!inside_image) return 0;
+    return sum == area ? (BOX_IN | BOX_SEEN) : BOX_SEEN;
 }
 
 // Cells of 2^level voxels, coded i | j << 10 | k << 20. Each cell is inside (filled), outside (left
@@ -132,7 +134,8 @@ __kernel void hull_cells(__global const float* cams, int nviews, __global const 
     int i1 = min(i0 + size, nx) - 1, j1 = min(j0 + size, ny) - 1, k1 = min(k0 + size, nz) - 1;
     float3 lo = voxel_centre(bmin.xyz, vs.xyz, i0, j0, k0), hi = voxel_centre(bmin.xyz, vs.xyz, i1, j1, k1);
 
-    int n_in = 0, n_notin = 0, n_out = 0, n_off = 0, inside = 0, outside = 0;
+    int n_in = 0, n_notin = 0, n_out = 0, n_off = 0, n_seen = 0, inside = 0, outside = 0;
+    int tol = min_views > 0 ? nviews - min_views : 0;  // background votes tolerated (silhouette.h hull_vote)
     // at level 1 the box corners are the 8 voxel centres themselves: test those directly
     for (int v = 0; v < nviews && level > 1; v++) {
         int s = box_state(cams + v * CAM_FLOATS, sat + sat_off[v], lo, hi);
@@ -140,14 +143,16 @@ __kernel void hull_cells(__global const float* cams, int nviews, __global const 
         n_notin += (s & BOX_NOTIN) != 0;
         n_out += (s & BOX_OUT) != 0;
         n_off += (s & BOX_OFF) != 0;
+        n_seen += (s & BOX_SEEN) != 0;
+        // bounds on every voxel's votes, views not yet asked counted either way: IN <= in_max,
+        // BACKGROUND in [n_out, out_max], and some view unseen for sure when n_off > 0
         int in_max = nviews - n_notin, out_max = nviews - n_in - n_off;
-        if (min_views > 0 || policy == 0) {
-            int need = min_views > 0 ? min_views : nviews;
-            inside = n_in >= need;
-            outside = in_max < need;
+        if (policy == 0) {
+            inside = n_seen == nviews && n_in >= nviews - tol;
+            outside = n_off > 0 || n_out > tol || in_max < nviews - tol;
         } else {
-            inside = out_max == 0 && n_in > 0;
-            outside = n_out > 0 || in_max == 0;
+            inside = out_max <= tol && n_in > 0;
+            outside = n_out > tol || in_max == 0;
         }
         if (inside || outside) break;
     }

@@ -42,23 +42,26 @@ inline int centre_state(__global const float* c, __global const uchar* bits, flo
     return silhouette_bit(bits, (int)c[22], px, py) ? SIL_IN : SIL_BACKGROUND;
 }
 
-// The vote over nviews views, n_in of which say SIL_IN and n_bg SIL_BACKGROUND. min_views > 0: inside when at
-// least min_views say IN; otherwise policy 0 ("carve"): every view says IN; policy 1 ("ignore"): no view says
-// BACKGROUND and at least one says IN.
+// The vote over nviews views, n_in of which say SIL_IN and n_bg SIL_BACKGROUND (the others: SIL_UNSEEN).
+// min_views > 0 tolerates t = nviews - min_views background votes (t = 0 when min_views is 0); the policy holds
+// either way: policy 0 ("carve"): every view sees the point and at most t say BACKGROUND; policy 1 ("ignore"):
+// at most t say BACKGROUND and at least one says IN.
 inline int hull_vote(int n_in, int n_bg, int nviews, int min_views, int policy)
 {
-    if (min_views > 0) return n_in >= min_views;
-    if (policy == 0) return n_in == nviews;
-    return n_bg == 0 && n_in > 0;
+    int tol = min_views > 0 ? nviews - min_views : 0;
+    if (policy == 0) return n_in + n_bg == nviews && n_bg <= tol;
+    return n_bg <= tol && n_in > 0;
 }
 
 // Whether the vote is decided once views 0..v have answered (the last one answered s): a loop over the views
-// may stop there and call hull_vote.
+// may stop there and call hull_vote. carve: an unseen view decides (outside); until then every view was seen,
+// so the background votes are v + 1 - n_in. ignore: one background vote decides when nothing is tolerated
+// (with a tolerance the loop runs to the end: the background count is not passed in).
 inline int vote_decided(int s, int n_in, int v, int nviews, int min_views, int policy)
 {
-    if (min_views > 0) return n_in >= min_views || n_in + (nviews - 1 - v) < min_views;
-    if (policy == 0) return s != SIL_IN;
-    return s == SIL_BACKGROUND;
+    int tol = min_views > 0 ? nviews - min_views : 0;
+    if (policy == 0) return s == SIL_UNSEEN || v + 1 - n_in > tol;
+    return tol == 0 && s == SIL_BACKGROUND;
 }
 
 #endif

@@ -2,7 +2,8 @@
 
 Layout under the cache root:
     objects/ab/abcdef.../        one work item's kept outputs, complete iff the folder exists
-        meta.json                key components, output types, the stored ports' files, wall time
+        meta.json                key components, output types, the stored ports' files, wall time, a content
+                                 hash of every file
         PORT/...                 each kept output in its type's on-disk form (an item's other outputs
                                  lived only in memory: they are not in its entry)
     staging/                     folders being written (renamed into objects/ when complete; `gc` removes
@@ -13,9 +14,15 @@ Layout under the cache root:
 
 A work item's outputs are written into a staging folder and renamed into place in one step, so a run
 killed mid-write leaves no half artifact: the item simply is not cached and the next run recomputes it.
+
+Content verification: ``write`` records a BLAKE2b-128 hash of every stored file in meta.json; ``load`` checks
+the files it reads against them (DataError "damaged"), ``verify`` checks a whole entry, and an entry whose
+meta.json is not a readable record is not a hit. A damaged entry is evicted and recomputed (run.py checks
+what a run will read before it starts; `cache verify` checks everything).
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
@@ -44,11 +51,34 @@ def atomic_write_text(path: Path, text: str):
     atomic_write_bytes(path, text.encode())
 
 
+HASH_NAME = "blake2b-128"
+
+
+def file_hash(path: Path) -> str:
+    """BLAKE2b-128 of a file's content (hex): fast, and any flipped bit changes it."""
+    h = hashlib.blake2b(digest_size=16)
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _valid_meta(meta) -> bool:
+    """A meta.json record the cache can use: a mapping whose 'files' maps ports to lists of paths (or None)."""
+    if not isinstance(meta, dict) or not isinstance(meta.get("files"), dict):
+        return False
+    if not all(v is None or (isinstance(v, list) and all(isinstance(f, str) for f in v)) for v in meta["files"].values()):
+        return False
+    return isinstance(meta.get("hashes", {}), dict)
+
+
 class Cache:
     def __init__(self, root: str | Path):
         self.root = Path(root).resolve()
         self.objects = self.root / "objects"
         self.staging = self.root / "staging"
+        self.verified: set[str] = set()   # keys whose whole content was checked by this object (see verify)
+        self._metas: dict[str, dict] = {}
 
     def prepare(self):
         """Create the cache folders, or raise DataError saying why the cache cannot be used."""
@@ -64,26 +94,74 @@ class Cache:
     def object_dir(self, key: str) -> Path:
         return self.objects / key[:2] / key
 
+    def _read_meta(self, key: str) -> dict | None:
+        """meta.json of ``key`` when it is a valid record, else None. Valid records are remembered by this object
+        (an entry never changes once in place; evict and write forget it)."""
+        meta = self._metas.get(key)
+        if meta is None:
+            try:
+                meta = json.loads((self.object_dir(key) / "meta.json").read_text())
+            except (OSError, ValueError):
+                return None
+            if not _valid_meta(meta):
+                return None
+            self._metas[key] = meta
+        return meta
+
     def has(self, key: str) -> bool:
-        return (self.object_dir(key) / "meta.json").is_file()
+        """Whether ``key`` is stored: its folder holds a readable meta.json record (garbage is not a hit)."""
+        return self._read_meta(key) is not None
 
     def stored(self, key: str) -> set[str] | None:
         """The output ports stored in ``key``'s entry (a port whose value was None counts), or None when there is
         no readable entry."""
-        try:
-            return set(json.loads((self.object_dir(key) / "meta.json").read_text()).get("files", {}))
-        except (OSError, ValueError, AttributeError):
-            return None
+        meta = self._read_meta(key)
+        return None if meta is None else set(meta["files"])
 
     def meta(self, key: str) -> dict:
+        meta = self._read_meta(key)
+        if meta is not None:
+            return meta
         try:
-            return json.loads((self.object_dir(key) / "meta.json").read_text())
+            json.loads((self.object_dir(key) / "meta.json").read_text())
         except (OSError, ValueError) as exc:
             raise DataError(f"cache entry {key} is unreadable ({exc}); run `cache gc` or delete it") from None
+        raise DataError(f"cache entry {key} is damaged: meta.json is not a cache record")
+
+    def _check_files(self, key: str, meta: dict, files: list[str]) -> str | None:
+        """What is wrong with ``files`` of the entry (missing, or content not matching meta.json), or None."""
+        d = self.object_dir(key)
+        hashes = meta.get("hashes")
+        for f in files:
+            p = d / f
+            if not p.is_file():
+                return f"{f} is missing"
+            if hashes is not None:   # entries written before content hashes can only be checked for presence
+                want = hashes.get(f)
+                try:
+                    got = file_hash(p)
+                except OSError as exc:
+                    return f"{f} cannot be read ({exc.strerror or exc})"
+                if want != got:
+                    return f"{f} does not match the content hash recorded when it was written"
+        return None
+
+    def verify(self, key: str) -> str | None:
+        """Check a whole entry: None when meta.json is a record and every file it lists is there with the
+        content it was written with, else what is wrong (the caller evicts it)."""
+        try:
+            meta = self.meta(key)
+        except DataError:
+            return "meta.json is missing or not a cache record"
+        problem = self._check_files(key, meta, [f for files in meta["files"].values() for f in files or []])
+        if problem is None:
+            self.verified.add(key)
+        return problem
 
     def load(self, key: str, port: str, dtype):
         folder = self.object_dir(key) / port
-        files = self.meta(key).get("files", {})
+        meta = self.meta(key)
+        files = meta["files"]
         if port not in files:
             raise DataError(f"cache entry {key} does not hold output '{port}' ({dtype.name}): it was kept in memory "
                             "when the entry was written")
@@ -94,6 +172,10 @@ class Cache:
         if listed is None or missing:
             raise DataError(f"cache entry {key}/{port} ({dtype.name}) is incomplete: "
                             f"{missing[0] if missing else port + '/'} is missing")
+        if key not in self.verified:
+            problem = self._check_files(key, meta, listed)
+            if problem:
+                raise DataError(f"cache entry {key}/{port} ({dtype.name}) is damaged: {problem}")
         try:
             return dtype.load(folder)
         except DataError:
@@ -118,13 +200,16 @@ class Cache:
                 d.mkdir()
                 dtype.save(value, d)
                 files[port] = [p.relative_to(stage).as_posix() for p in dtype.files(d)]
-            meta = dict(meta, key=key, files=files, types=types, created=time.time())
+            hashes = {f: file_hash(stage / f) for listed in files.values() for f in listed or []}
+            meta = dict(meta, key=key, files=files, types=types, created=time.time(), hash=HASH_NAME, hashes=hashes)
             (stage / "meta.json").write_text(json.dumps(meta, indent=1, sort_keys=True))
             final = self.object_dir(key)
             final.parent.mkdir(parents=True, exist_ok=True)
+            self._metas.pop(key, None)
+            self.verified.discard(key)
             old = self.stored(key)
-            if old is not None and not set(files) <= old:  # more ports than the entry there: replace it
-                self.evict(key)
+            if final.exists() and (old is None or not set(files) <= old):  # damaged (garbage meta.json), or more
+                self.evict(key)                                             # ports than the entry there: replace it
             try:
                 os.rename(stage, final)
             except OSError:
@@ -145,6 +230,8 @@ class Cache:
                 meta = json.loads((d / "meta.json").read_text())
             except (OSError, ValueError):
                 continue
+            if not _valid_meta(meta):
+                continue
             size = sum(f.stat().st_size for f in d.rglob("*") if f.is_file())
             yield d.name, meta, size
 
@@ -161,7 +248,7 @@ class Cache:
             removed += 1
         for d in list(self.objects.glob("*/*")) if self.objects.is_dir() else []:
             meta = d / "meta.json"
-            stale = not meta.is_file()
+            stale = not self.has(d.name)
             if not stale and max_age_days is not None:
                 stale = now - meta.stat().st_mtime > max_age_days * 86400
             if stale:
@@ -179,6 +266,8 @@ class Cache:
 
     def evict(self, key: str):
         """Remove one entry (e.g. found corrupt): moved aside in one step, then deleted."""
+        self._metas.pop(key, None)
+        self.verified.discard(key)
         d = self.object_dir(key)
         if d.is_dir():
             self.staging.mkdir(parents=True, exist_ok=True)
@@ -188,6 +277,22 @@ class Cache:
             except OSError:
                 return
             shutil.rmtree(trash, ignore_errors=True)
+
+    def verify_all(self):
+        """Check every entry (also those whose meta.json is garbage); yields (key, meta or None, problem or
+        None). The caller decides what to do with the damaged ones (``cache verify`` evicts them)."""
+        if not self.objects.is_dir():
+            return
+        for d in sorted(self.objects.glob("*/*")):
+            if not d.is_dir():
+                continue
+            key = d.name
+            problem = self.verify(key)
+            try:
+                meta = self.meta(key)
+            except DataError:
+                meta = None
+            yield key, meta, problem
 
     def clear(self):
         if self.root.exists() and not self.root.is_dir():

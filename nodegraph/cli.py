@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -24,9 +25,10 @@ def cmd_run(args) -> int:
     from .executors import make_executor
     from .run import run_graph
 
-    if args.device:
-        os.environ["VOLCAP_CL_DEVICE"] = args.device  # inherited by worker processes
     graph = _load(args)
+    if args.device:
+        _check_device(args.device)
+        os.environ["VOLCAP_CL_DEVICE"] = args.device  # inherited by worker processes
     if args.keep_all or args.report:  # a report draws the values: keep them all
         graph.keep_all()
     out = Path(args.out or Path("out") / Path(args.graph).stem)
@@ -38,6 +40,10 @@ def cmd_run(args) -> int:
     counts = result.counts()
     print(f"{graph.path.name}: {len(result.records)} items in {result.seconds:.2f} s — "
           + ", ".join(f"{v} {k}" for k, v in sorted(counts.items())) + f"; run record: {result.out_dir / 'run.json'}")
+    for line in result.summaries:
+        print(line)
+    for w in result.warnings:
+        print(f"warning: {w}", file=sys.stderr)
     for r in result.records:
         for w in r.get("warnings", []):
             frame = "" if r["frame"] is None else f" frame {r['frame']}"
@@ -50,6 +56,23 @@ def cmd_run(args) -> int:
 
         print(f"report: {write_report(result.out_dir)}")
     return 1 if result.failures else 0
+
+
+def _check_device(spec: str):
+    """Refuse an OpenCL device that does not exist before any work runs (not in the first OpenCL node)."""
+    from .clrt import OpenCLUnavailable, _choose_device
+
+    old = os.environ.get("VOLCAP_CL_DEVICE")
+    os.environ["VOLCAP_CL_DEVICE"] = spec
+    try:
+        _choose_device()
+    except OpenCLUnavailable as exc:
+        raise VolcapError(f"--device {spec}: {exc}") from None
+    finally:
+        if old is None:
+            os.environ.pop("VOLCAP_CL_DEVICE", None)
+        else:
+            os.environ["VOLCAP_CL_DEVICE"] = old
 
 
 def cmd_validate(args) -> int:
@@ -123,6 +146,21 @@ def cmd_cache(args) -> int:
     elif args.action == "gc":
         n, freed = cache.gc(args.max_age)
         print(f"removed {n} entries, {freed / 1e6:.1f} MB")
+    elif args.action == "verify":
+        checked = damaged = legacy = 0
+        for key, meta, problem in cache.verify_all():
+            checked += 1
+            if meta is not None and "hashes" not in meta:
+                legacy += 1
+            if problem:
+                damaged += 1
+                frame = "?" if meta is None else ("all" if meta.get("frame") is None else meta.get("frame"))
+                where = "" if meta is None else f" ({meta.get('type', '?')} {meta.get('node', '?')}@{frame})"
+                print(f"damaged {key}{where}: {problem}")
+                cache.evict(key)
+        print(f"{checked} entries checked, {damaged} damaged" + (" (removed)" if damaged else "")
+              + (f"; {legacy} written before content hashes (only checked for missing files)" if legacy else ""))
+        return 1 if damaged else 0
     elif args.action == "clear":
         cache.clear()
         print(f"cleared {cache.root}")
@@ -155,6 +193,12 @@ def _positive_int(text: str) -> int:
     return n
 
 
+def _scheduler_address(text: str) -> str:
+    if not re.fullmatch(r"[A-Za-z][A-Za-z0-9+.-]*://[^\s/]+(/\S*)?", text) or len(text) > 1000:
+        raise argparse.ArgumentTypeError(f"expects a Dask scheduler address such as tcp://HOST:PORT, got {text[:100]!r}")
+    return text
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="volcap", description="Volumetric capture node graphs, run headless.")
     p.add_argument("--cache", help="cache folder (default $VOLCAP_CACHE or ./.volcap-cache)")
@@ -174,7 +218,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--jobs", "-j", type=_positive_int, help="parallel work items (default: CPU count; 1 = in this process)")
     r.add_argument("--executor", choices=["local", "dask"], default="local")
     r.add_argument("--workers", type=_positive_int, help="dask: worker processes of the LocalCluster (default 2)")
-    r.add_argument("--scheduler", help="dask: address of an existing scheduler (tcp://HOST:PORT)")
+    r.add_argument("--scheduler", type=_scheduler_address, help="dask: address of an existing scheduler (tcp://HOST:PORT)")
     r.add_argument("--device", help="OpenCL device: cpu, gpu or PLATFORM:DEVICE (see `devices`)")
     r.add_argument("--report", action="store_true", help="write report.html into the output folder (keeps every output)")
     r.add_argument("--keep-all", action="store_true", help="store every output in the cache, not only the kept ones")
@@ -187,7 +231,9 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("node")
     d.set_defaults(fn=cmd_describe)
     c = sub.add_parser("cache", help="inspect or clean the cache")
-    c.add_argument("action", choices=["ls", "gc", "clear"])
+    c.add_argument("action", choices=["ls", "gc", "verify", "clear"],
+                   help="ls: list entries; gc: remove leftovers (and old entries); verify: check every entry's content "
+                        "against its recorded hashes, remove damaged ones (exit 1 when any); clear: remove everything")
     c.add_argument("--max-age", type=float, metavar="DAYS", help="gc: also remove entries unused for DAYS")
     c.add_argument("--cache", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
     c.set_defaults(fn=cmd_cache)
@@ -201,7 +247,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command == "run" and args.executor != "dask":
+        for opt in ("scheduler", "workers"):
+            if getattr(args, opt) is not None:
+                parser.error(f"--{opt} needs --executor dask")
     try:
         return args.fn(args)
     except GraphError as exc:

@@ -62,7 +62,7 @@ class DaskExecutor:
         if self.scheduler:
             try:
                 client = Client(self.scheduler, timeout="20s")
-            except OSError as exc:
+            except (OSError, ValueError, TypeError) as exc:  # unreachable, or an address Dask cannot parse
                 raise VolcapError(f"cannot reach the Dask scheduler {self.scheduler}: {exc}") from None
         else:
             from .executors import worker_threads

@@ -11,7 +11,9 @@ The fingerprint of a node class hashes
     the including file), recursively.
 Modules are named by their dotted names and files by their names relative to their package, never by
 absolute path, so a project that moves keeps its cache. The engine itself is not part of it: the form of
-cache entries is versioned by hashing.KEY_SCHEMA.
+cache entries is versioned by hashing.KEY_SCHEMA. A module that only draws (report previews) and cannot change
+what a node computes says so with a top-level ``__fingerprint__ = False``: it and what only it imports are left
+out, so editing a drawing does not invalidate every cache entry.
 """
 from __future__ import annotations
 
@@ -29,6 +31,7 @@ from .hashing import digest
 
 ENTRY_POINT_GROUP = "volcap.nodes"
 _INCLUDE = re.compile(r'^\s*#\s*include\s+"([^"]+)"', re.M)
+_NOT_RESULTS = re.compile(r"^__fingerprint__\s*=\s*False\b", re.M)
 
 
 @lru_cache(maxsize=None)
@@ -122,11 +125,14 @@ def module_closure(module: str, roots: frozenset[str] | None = None) -> dict[str
         path, is_pkg = _module_file(name)
         if path is None:
             continue
+        source = path.read_text()
+        if _NOT_RESULTS.search(source):
+            continue
         found[name] = path
         parent = name.rpartition(".")[0]
         if parent:
             todo.append(parent)  # importing a.b.c runs a/__init__.py and a/b/__init__.py
-        todo.extend(imported_names(path.read_text(), name, is_pkg) - found.keys())
+        todo.extend(imported_names(source, name, is_pkg) - found.keys())
     return found
 
 

@@ -21,13 +21,35 @@ from pathlib import Path
 import yaml
 
 from .errors import GraphError
-from .node import REQUIRED, InPath, Node, registry
+from .node import REQUIRED, InPath, Node, OutPath, registry, show
 from .types import compatible, describe_type
 
 MAX_FRAMES = 1_000_000  # a range beyond this is a typo, not a capture
+MAX_FRAME_NUMBER = 2**31 - 1
+MAX_FILE_BYTES = 1 << 20     # a graph file is a few kilobytes; a megabyte is not a graph, it is an accident
+MAX_SET_CHARS = 1 << 16      # one --set value
+MAX_VALUES = 1_000_000       # values in the document once YAML aliases are expanded (alias bombs)
+MAX_DEPTH = 64               # nesting of lists and mappings
+MAX_PATH_CHARS = 4096
+MAX_NAME_CHARS = 64          # node names (they name log files and folders)
+MAX_NAME_BYTES = 255         # one path component
 TOP_KEYS = ("frames", "defaults", "nodes", "description")
 NODE_KEYS = ("type", "in", "params", "keep", "doc")
-NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+NAME_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")   # used with fullmatch ('$' also matches before a final newline)
+# what YAML allows in a document (yaml.reader.Reader.NON_PRINTABLE): tab, newlines and printable characters
+NON_PRINTABLE = re.compile("[^\x09\x0A\x0D\x20-\x7E\x85\xA0-\uD7FF\uE000-\uFFFD\U00010000-\U0010ffff]")
+
+def q(value) -> str:
+    """A user's key, name or type for a message between quotes: text cleaned, anything else shown."""
+    return clean(value) if isinstance(value, str) else show(value)
+
+
+def clean(text: str, limit: int = 120) -> str:
+    """Text from the user (a --set argument, a key) for a message: control characters escaped, cut short."""
+    text = str(text)
+    cut = text[:limit]
+    out = NON_PRINTABLE.sub(lambda m: m.group(0).encode("unicode_escape").decode("ascii"), cut)
+    return out + (f"... ({len(text)} characters)" if len(text) > limit else "")
 
 
 class _Map(dict):
@@ -37,7 +59,12 @@ class _Map(dict):
     lines: dict
 
 
-class _Loader(yaml.SafeLoader):
+# libyaml (when PyYAML has it) parses ~10x faster than the pure-Python parser: a 1 MB file in well under a
+# second. Its composer recurses in C, so nesting is bounded from the event stream first (_check_depth).
+_BaseLoader = yaml.CSafeLoader if getattr(yaml, "__with_libyaml__", False) else yaml.SafeLoader
+
+
+class _Loader(_BaseLoader):
     duplicate_keys: list
 
 
@@ -70,26 +97,171 @@ def _construct_mapping(loader: _Loader, node, deep=False):
 _Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
 
 
-def parse_yaml(text: str, where: str):
-    loader = _Loader(text)
-    loader.duplicate_keys = []
+def _check_characters(text: str, where: str):
+    m = NON_PRINTABLE.search(text)
+    if m:
+        line = text.count("\n", 0, m.start()) + 1
+        col = m.start() - (text.rfind("\n", 0, m.start()) + 1) + 1
+        raise GraphError([f"{where}:{line}:{col}: character U+{ord(m.group(0)):04X} is not allowed in YAML "
+                          "(a control character or NUL: is this a text file?)"])
+
+
+def _check_tree(root, where: str):
+    """Refuse documents whose aliases expand beyond MAX_VALUES values, that nest deeper than MAX_DEPTH or
+    that refer to themselves: the composed node graph is walked once, shared (aliased) nodes counted once
+    with their expanded size."""
+    size: dict[int, int] = {}
+    height: dict[int, int] = {}
+    active: set[int] = set()
+    stack = [(root, False)]
+
+    def children(node):
+        if isinstance(node, yaml.SequenceNode):
+            return node.value
+        if isinstance(node, yaml.MappingNode):
+            return [x for kv in node.value for x in kv]
+        return []
+
+    def at(node) -> str:
+        return f"{where}:{node.start_mark.line + 1}"
+
+    while stack:
+        node, done = stack.pop()
+        nid = id(node)
+        if done:
+            active.discard(nid)
+            kids = children(node)
+            size[nid] = 1 + sum(size[id(k)] for k in kids)
+            height[nid] = 1 + max((height[id(k)] for k in kids), default=0)
+            if size[nid] > MAX_VALUES:
+                raise GraphError([f"{at(node)}: YAML aliases expand this value to more than {MAX_VALUES:,} values "
+                                  "(an alias bomb?); write it out, or use fewer aliases"])
+            if height[nid] > MAX_DEPTH:
+                raise GraphError([f"{at(node)}: lists and mappings nested more than {MAX_DEPTH} deep"])
+            continue
+        if nid in size:
+            continue
+        if nid in active:
+            raise GraphError([f"{at(node)}: a YAML alias refers to the value that contains it (recursive alias)"])
+        active.add(nid)
+        stack.append((node, True))
+        if len(active) > MAX_DEPTH + 1:
+            raise GraphError([f"{at(node)}: lists and mappings nested more than {MAX_DEPTH} deep"])
+        stack.extend((k, False) for k in children(node) if id(k) not in size)
+
+
+def _check_depth(text: str, where: str):
+    """Refuse nesting deeper than MAX_DEPTH from the parser's event stream (iterative), before anything
+    recursive (the composer, repr, json) sees the document; and numbers too long to convert."""
+    pre = _BaseLoader(text)
     try:
-        data = loader.get_single_data()
+        depth = 0
+        while True:
+            ev = pre.get_event()
+            if ev is None:
+                break
+            if isinstance(ev, (yaml.SequenceStartEvent, yaml.MappingStartEvent)):
+                depth += 1
+                if depth > MAX_DEPTH:
+                    raise GraphError([f"{where}:{ev.start_mark.line + 1}: lists and mappings nested more than "
+                                      f"{MAX_DEPTH} deep"])
+            elif isinstance(ev, (yaml.SequenceEndEvent, yaml.MappingEndEvent)):
+                depth -= 1
+            elif isinstance(ev, yaml.ScalarEvent) and len(ev.value) > 4000 and not ev.style and \
+                    re.fullmatch(r"[-+]?[0-9_]+", ev.value):
+                raise GraphError([f"{where}:{ev.start_mark.line + 1}: a number with {len(ev.value):,} digits "
+                                  "(quote it if it is text)"])
+    finally:
+        pre.dispose()
+
+
+def parse_yaml(text: str, where: str, limit: int = MAX_FILE_BYTES):
+    """(data, problems) of a YAML document; GraphError for what cannot be read: syntax, characters YAML does
+    not allow, alias bombs, nesting beyond MAX_DEPTH, more than ``limit`` characters."""
+    if len(text) > limit:
+        raise GraphError([f"{where}: too large ({len(text):,} characters; a graph file or value has at most {limit:,})"])
+    _check_characters(text, where)
+    loader = None
+    try:
+        _check_depth(text, where)
+        loader = _Loader(text)
+        loader.duplicate_keys = []
+        node = loader.get_single_node()
+        if node is None:
+            data = None
+        else:
+            _check_tree(node, where)
+            data = loader.construct_document(node)
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
         line = f"{mark.line + 1}:{mark.column + 1}" if mark else "?"
-        raise GraphError([f"{where}:{line}: YAML syntax error: {exc.problem or exc}"]) from None
+        raise GraphError([f"{where}:{line}: YAML syntax error: {clean(exc.problem or exc, 300)}"]) from None
     except yaml.YAMLError as exc:
-        raise GraphError([f"{where}: YAML error: {exc}"]) from None
+        raise GraphError([f"{where}: YAML error: {clean(exc, 300)}"]) from None
+    except RecursionError:
+        line = getattr(loader, "line", 0) + 1
+        raise GraphError([f"{where}:{line}: lists and mappings nested too deeply (more than {MAX_DEPTH})"]) from None
+    except (ValueError, OverflowError, TypeError) as exc:  # a constructor refusing a value (int digit limit ...)
+        raise GraphError([f"{where}: a value cannot be read: {clean(exc, 200)}"]) from None
     finally:
-        loader.dispose()
-    problems = [f"{where}:{line}: duplicate key '{k}'" for line, k in loader.duplicate_keys]
+        if loader is not None:
+            loader.dispose()
+    problems = [f"{where}:{line}: duplicate key {show(k)}" for line, k in loader.duplicate_keys]
     return data, problems
 
 
 def suggest(word: str, options) -> str:
+    if not isinstance(word, (str, int, float)) or len(str(word)) > 100:
+        return ""
     close = difflib.get_close_matches(str(word), [str(o) for o in options], n=1, cutoff=0.6)
     return f" (did you mean '{close[0]}'?)" if close else ""
+
+
+def check_path_length(text: str):
+    """ValueError when a path cannot exist on any file system we run on (too long, a name over 255 bytes)."""
+    if len(text) > MAX_PATH_CHARS:
+        raise ValueError(f"is too long as a path ({len(text):,} characters; at most {MAX_PATH_CHARS})")
+    for part in re.split(r"[/\\]", text):
+        if len(part.encode("utf-8", "surrogatepass")) > MAX_NAME_BYTES:
+            raise ValueError(f"has a file or folder name that is too long ({len(part):,} characters; at most "
+                             f"{MAX_NAME_BYTES} bytes): {clean(part, 40)}")
+
+
+def check_out_path(text: str):
+    """ValueError unless ``text`` is a relative path that stays inside the output folder."""
+    check_path_length(text)
+    if "\x00" in text:
+        raise ValueError("contains a NUL character")
+    parts = re.split(r"[/\\]", text)
+    if text.startswith(("/", "\\")) or re.match(r"[A-Za-z]:", text) or os.path.isabs(text):
+        raise ValueError(f"must be relative to the output folder, got {show(text)}")
+    if ".." in parts:
+        raise ValueError(f"must stay inside the output folder (no '..'), got {show(text)}")
+    if not text.strip() or not parts[-1].strip():
+        raise ValueError(f"must name a file, got {show(text)}")
+
+
+def _input_path(value: str, base: Path) -> Path:
+    """An input path parameter expanded and resolved; ValueError unless it names an existing regular file or
+    folder (a FIFO or a device would block or never end when read)."""
+    check_path_length(value)
+    if not value.strip():
+        raise ValueError("must not be empty (it would name the graph file's own folder)")
+    try:
+        resolved = expand_path(value, base)
+    except OSError as exc:
+        raise ValueError(f"cannot be used as a path ({exc.strerror or exc})") from None
+    check_path_length(str(resolved))
+    if len(resolved.parts) > 1 and resolved.parts[1] in ("proc", "sys", "dev"):
+        raise ValueError(f"lies in the system folder /{resolved.parts[1]}, which holds no data: {clean(resolved, 200)}")
+    try:
+        if not resolved.exists():
+            raise ValueError(f"path not found: {clean(resolved, 300)}")
+        if not (resolved.is_file() or resolved.is_dir()):
+            raise ValueError(f"is not a regular file or folder (a FIFO, socket or device?): {clean(resolved, 300)}")
+    except OSError as exc:
+        raise ValueError(f"cannot be used as a path ({exc.strerror or exc}): {clean(resolved, 300)}") from None
+    return resolved
 
 
 def expand_path(value: str, base: Path) -> Path:
@@ -144,36 +316,50 @@ class Graph:
 
 
 def parse_frames(value, where: str) -> list[int]:
+    def checked(frames: list[int]) -> list[int]:
+        if frames and max(abs(frames[0]), abs(frames[-1])) > MAX_FRAME_NUMBER:
+            raise ValueError(f"{where}: frame numbers must lie within ±{MAX_FRAME_NUMBER}; got {show(value)}")
+        return frames
+
     if isinstance(value, bool):
-        raise ValueError(f"{where}: frames must be A:B, N or a list of frame numbers; got {value!r}")
+        raise ValueError(f"{where}: frames must be A:B, N or a list of frame numbers; got {show(value)}")
     if isinstance(value, int):
-        return [value]
+        return checked([value])
+    if isinstance(value, list) and len(value) > MAX_FRAMES:
+        raise ValueError(f"{where}: the frames list has {len(value):,} entries (at most {MAX_FRAMES:,})")
     if isinstance(value, list) and value and all(isinstance(v, int) and not isinstance(v, bool) for v in value):
-        return sorted(set(value))
-    if isinstance(value, str) and re.fullmatch(r"\s*-?\d+\s*", value):
-        return [int(value)]
-    if isinstance(value, str):
+        return checked(sorted(set(value)))
+    if isinstance(value, str) and len(value) < 100 and re.fullmatch(r"\s*-?\d+\s*", value):
+        return checked([int(value)])
+    if isinstance(value, str) and len(value) < 100:
         m = re.fullmatch(r"\s*(-?\d+)\s*:\s*(-?\d+)\s*", value)
         if m:
             a, b = int(m.group(1)), int(m.group(2))
             if b - a > MAX_FRAMES:
-                raise ValueError(f"{where}: frame range {value!r} has {b - a} frames (at most {MAX_FRAMES})")
+                raise ValueError(f"{where}: frame range {show(value)} has {b - a} frames (at most {MAX_FRAMES})")
             if b > a:
-                return list(range(a, b))
-            raise ValueError(f"{where}: frame range {value!r} is empty (A:B is half-open, B must exceed A)")
-    raise ValueError(f"{where}: frames must be A:B, N or a list of frame numbers; got {value!r}")
+                return checked([a, b - 1]) and list(range(a, b))
+            raise ValueError(f"{where}: frame range {show(value)} is empty (A:B is half-open, B must exceed A)")
+    raise ValueError(f"{where}: frames must be A:B, N or a list of frame numbers; got {show(value)}")
 
 
 def load_graph(path: str | Path, overrides: list[str] = (), frames: str | None = None) -> Graph:
     """Read and validate a graph file. Raises GraphError listing every problem found."""
     path = Path(path)
-    where = str(path)
+    where = clean(path, 300)
     try:
-        text = path.read_text()
+        st = path.stat()
+        if not path.is_file():   # a folder, a FIFO or a device would block or never end
+            raise GraphError([f"{where}: not a regular file"])
+        if st.st_size > MAX_FILE_BYTES:
+            raise GraphError([f"{where}: too large ({st.st_size:,} bytes; a graph file has at most {MAX_FILE_BYTES:,})"])
+        text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise GraphError([f"{where}: graph file not found"]) from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise GraphError([f"{where}: cannot read graph file ({exc})"]) from None
+    except UnicodeDecodeError as exc:
+        raise GraphError([f"{where}: not UTF-8 text (byte {exc.start}: {exc.reason})"]) from None
+    except OSError as exc:
+        raise GraphError([f"{where}: cannot read graph file ({exc.strerror or exc})"]) from None
     data, problems = parse_yaml(text, where)
     if not isinstance(data, dict):
         raise GraphError(problems + [f"{where}:1: a graph file is a mapping with 'nodes:' (and optional 'frames:', 'defaults:')"])
@@ -187,7 +373,7 @@ def _validate(path: Path, where: str, data: _Map, problems: list[str], overrides
     reg = registry()
     for k in data:
         if k not in TOP_KEYS:
-            problems.append(f"{at(data.lines[k])}: unknown top-level key '{k}'{suggest(k, TOP_KEYS)}")
+            problems.append(f"{at(data.lines[k])}: unknown top-level key '{q(k)}'{suggest(k, TOP_KEYS)}")
 
     frames = [0]
     try:
@@ -205,13 +391,13 @@ def _validate(path: Path, where: str, data: _Map, problems: list[str], overrides
     for t, ps in defaults.items():
         line = defaults.lines[t]
         if not isinstance(t, str) or t not in reg:
-            problems.append(f"{at(line)}: defaults: unknown node type '{t}'{suggest(t, reg)}")
+            problems.append(f"{at(line)}: defaults: unknown node type '{q(t)}'{suggest(t, reg)}")
         elif not isinstance(ps, dict):
             problems.append(f"{at(line)}: defaults for '{t}' must be a mapping of parameters")
         else:
             for p in ps:
                 if p not in reg[t].params:
-                    problems.append(f"{at(ps.lines[p])}: defaults: node type '{t}' has no parameter '{p}'{suggest(p, reg[t].params)}")
+                    problems.append(f"{at(ps.lines[p])}: defaults: node type '{t}' has no parameter '{q(p)}'{suggest(p, reg[t].params)}")
 
     raw_nodes = data.get("nodes")
     if not isinstance(raw_nodes, dict) or not raw_nodes:
@@ -224,37 +410,37 @@ def _validate(path: Path, where: str, data: _Map, problems: list[str], overrides
     for ov in overrides:
         m = re.fullmatch(r"([A-Za-z_][A-Za-z0-9_]*)\.([A-Za-z_][A-Za-z0-9_]*)=(.*)", ov, re.S)
         if not m:
-            problems.append(f"--set {ov}: expected NODE.PARAM=VALUE")
+            problems.append(f"--set {clean(ov)}: expected NODE.PARAM=VALUE")
             continue
         try:
-            value, _ = parse_yaml(m.group(3), f"--set {ov}")
+            value, _ = parse_yaml(m.group(3), f"--set {clean(ov)}", MAX_SET_CHARS)
         except GraphError as exc:
             problems.extend(exc.problems)
             continue
-        sets[(m.group(1), m.group(2))] = (value, f"--set {ov}")
+        sets[(m.group(1), m.group(2))] = (value, f"--set {clean(ov)}")
 
     nodes: dict[str, NodeSpec] = {}
     for name, entry in raw_nodes.items():
         line = raw_nodes.lines[name]
         if not isinstance(name, str):  # YAML reads on/off/yes/no/true/null/1 as non-strings
-            problems.append(f"{at(line)}: node name {name!r} is read by YAML as {type(name).__name__}: quote it or "
+            problems.append(f"{at(line)}: node name {show(name)} is read by YAML as {type(name).__name__}: quote it or "
                             "use letters, digits and '_'")
             continue
-        if not NAME_RE.match(name):
-            problems.append(f"{at(line)}: node name '{name}' must be letters, digits and '_' (it is used as NAME.port)")
+        if not NAME_RE.fullmatch(name) or len(name) > MAX_NAME_CHARS:
+            problems.append(f"{at(line)}: node name {show(name)} must be letters, digits and '_' (it is used as NAME.port), at most {MAX_NAME_CHARS}")
             continue
         if not isinstance(entry, dict):
             problems.append(f"{at(line)}: node '{name}' must be a mapping with 'type:' (and 'in:', 'params:')")
             continue
         for k in entry:
             if k not in NODE_KEYS:
-                problems.append(f"{at(entry.lines[k])}: node '{name}': unknown key '{k}'{suggest(k, NODE_KEYS)}")
+                problems.append(f"{at(entry.lines[k])}: node '{name}': unknown key '{q(k)}'{suggest(k, NODE_KEYS)}")
         t = entry.get("type")
         if t is None:
             problems.append(f"{at(line)}: node '{name}' has no 'type:'")
             continue
         if not isinstance(t, str) or t not in reg:
-            problems.append(f"{at(entry.lines['type'])}: node '{name}': unknown node type '{t}'{suggest(t, reg)}")
+            problems.append(f"{at(entry.lines['type'])}: node '{name}': unknown node type '{q(t)}'{suggest(t, reg)}")
             continue
         cls = reg[t]
         spec = NodeSpec(name, t, cls, {}, {}, line)
@@ -267,10 +453,10 @@ def _validate(path: Path, where: str, data: _Map, problems: list[str], overrides
             elif isinstance(keep, list) and all(isinstance(k, str) for k in keep):
                 bad = [k for k in keep if k not in cls.outputs]
                 for k in bad:
-                    problems.append(f"{kline}: node '{name}': keep: type '{t}' has no output '{k}'{suggest(k, cls.outputs)}")
+                    problems.append(f"{kline}: node '{name}': keep: type '{t}' has no output '{q(k)}'{suggest(k, cls.outputs)}")
                 spec.keep = tuple(k for k in keep if k in cls.outputs)
             else:
-                problems.append(f"{kline}: node '{name}': keep must be true, false or a list of output ports, got {keep!r}")
+                problems.append(f"{kline}: node '{name}': keep must be true, false or a list of output ports, got {show(keep)}")
         # parameters: declaration default < graph defaults < node params < --set
         given = entry.get("params") or {}
         if not isinstance(given, dict):
@@ -279,7 +465,7 @@ def _validate(path: Path, where: str, data: _Map, problems: list[str], overrides
             given.lines = {}
         for p in given:
             if p not in cls.params:
-                problems.append(f"{at(given.lines[p])}: node '{name}': unknown parameter '{p}' for type '{t}'{suggest(p, cls.params)}")
+                problems.append(f"{at(given.lines[p])}: node '{name}': unknown parameter '{q(p)}' for type '{t}'{suggest(p, cls.params)}")
         for (n, p), (_, label) in sets.items():
             if n == name and p not in cls.params:
                 problems.append(f"{label}: node '{name}': unknown parameter '{p}'{suggest(p, cls.params)}")
@@ -301,10 +487,9 @@ def _validate(path: Path, where: str, data: _Map, problems: list[str], overrides
             try:
                 v = decl.coerce(value)
                 if decl.type is InPath and v is not None:
-                    resolved = expand_path(v, path.parent)
-                    if not resolved.exists():
-                        raise ValueError(f"path not found: {resolved}")
-                    v = InPath(str(resolved))
+                    v = InPath(str(_input_path(v, path.parent)))
+                elif decl.type is OutPath and v is not None:
+                    check_out_path(v)
                 spec.params[p] = v
             except ValueError as exc:
                 problems.append(f"{label}: node '{name}': parameter '{p}' {exc}")
@@ -317,17 +502,17 @@ def _validate(path: Path, where: str, data: _Map, problems: list[str], overrides
             pline = at(conns.lines[port])
             spec.lines[f"in:{port}"] = pline
             if port not in cls.inputs:
-                problems.append(f"{pline}: node '{name}': type '{t}' has no input '{port}'{suggest(port, cls.inputs)}")
+                problems.append(f"{pline}: node '{name}': type '{t}' has no input '{q(port)}'{suggest(port, cls.inputs)}")
                 continue
             if not (isinstance(src, str) and re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*\.[A-Za-z_][A-Za-z0-9_]*", src)):
-                problems.append(f"{pline}: node '{name}': input '{port}' must be NODE.PORT, got {src!r}")
+                problems.append(f"{pline}: node '{name}': input '{port}' must be NODE.PORT, got {show(src)}")
                 continue
             spec.inputs[port] = tuple(src.split("."))
         nodes[name] = spec
 
     for (n, _p), (_, label) in sets.items():
         if n not in raw_nodes:
-            problems.append(f"{label}: no node named '{n}'{suggest(n, raw_nodes)}")
+            problems.append(f"{label}: no node named '{q(n)}'{suggest(n, raw_nodes)}")
 
     # edges: sources exist, ports exist, types match, required inputs connected
     upstream: dict[str, list[str]] = {n: [] for n in nodes}
@@ -336,13 +521,13 @@ def _validate(path: Path, where: str, data: _Map, problems: list[str], overrides
             pline = spec.lines[f"in:{port}"]
             want = spec.cls.inputs[port].type
             if src not in raw_nodes:
-                problems.append(f"{pline}: node '{name}': input '{port}' refers to unknown node '{src}'{suggest(src, raw_nodes)}")
+                problems.append(f"{pline}: node '{name}': input '{port}' refers to unknown node '{q(src)}'{suggest(src, raw_nodes)}")
                 continue
             if src not in nodes:
                 continue  # that node had its own error
             outs = nodes[src].cls.outputs
             if sport not in outs:
-                problems.append(f"{pline}: node '{name}': input '{port}': node '{src}' ({nodes[src].type_name}) has no output '{sport}'{suggest(sport, outs)}")
+                problems.append(f"{pline}: node '{name}': input '{port}': node '{src}' ({nodes[src].type_name}) has no output '{q(sport)}'{suggest(sport, outs)}")
                 continue
             have = outs[sport].type
             if not compatible(have, want):

@@ -5,12 +5,14 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import stat
 import time
 from pathlib import Path
 
 from .errors import DataError
 
 RACY_NS = 2_000_000_000  # see FileHasher.file
+MAX_INPUT_FILES = 500_000  # an input folder with more files is not a dataset but a file system
 KEY_SCHEMA = 2  # bump when the key recipe or the form of entries changes; old entries then simply stop matching
 # 2: images and masks stored as raw .npy (were PNG + EXR); entries hold only the kept ports
 
@@ -37,10 +39,12 @@ class FileHasher:
     """Hashes files and folders by content. Remembers (size, mtime_ns) -> hash per absolute path in
     ``db_path`` so unchanged files are not re-read; the path itself never enters a key."""
 
-    def __init__(self, db_path: Path | None):
+    def __init__(self, db_path: Path | None, exclude=()):
         self.db_path = db_path
+        self.exclude = [Path(e).resolve() for e in exclude]   # folders an input folder must not contain (the cache)
         self.db: dict = {}
         self.dirty = False
+        self.skipped: dict[str, list[str]] = {}  # input folder -> entries that are not regular files (not read)
         if db_path and db_path.exists():
             try:
                 self.db = json.loads(db_path.read_text())
@@ -66,11 +70,20 @@ class FileHasher:
 
     def path(self, p: str | Path) -> str:
         """Content hash of a file, or of a folder's files (names and contents; hidden ones ignored,
-        symlinked files and folders followed)."""
+        symlinked files and folders followed). Only regular files are read: a FIFO, socket or device (or a
+        link to one, such as /dev/zero) would block or never end; in a folder such entries are recorded in
+        ``skipped`` (their names enter the hash), as an input path they are a DataError."""
         p = Path(p)
         try:
             if p.is_file():
                 return self.file(p)
+            if p.exists() and not p.is_dir():
+                raise DataError(f"input {p} is not a regular file or folder (a FIFO, socket or device?): it is not read")
+            real = Path(os.path.realpath(p))
+            for e in self.exclude:
+                if e == real or real in e.parents:
+                    raise DataError(f"input folder {p} contains the cache folder {e}, which changes with every run: "
+                                    "give the data folder itself")
             entries, seen = [], set()
             for root, dirs, files in os.walk(p, followlinks=True):
                 real = os.path.realpath(root)
@@ -82,9 +95,21 @@ class FileHasher:
                 for name in sorted(files):
                     if name.startswith("."):
                         continue
+                    if len(entries) >= MAX_INPUT_FILES:
+                        raise DataError(f"input folder {p} holds more than {MAX_INPUT_FILES:,} files: give the data "
+                                        "folder itself")
                     fp = Path(root) / name
                     rel = fp.relative_to(p).as_posix()
-                    entries.append([rel, self.file(fp) if fp.exists() else "broken link"])
+                    try:
+                        mode = fp.stat().st_mode
+                    except OSError:
+                        entries.append([rel, "broken link"])
+                        continue
+                    if stat.S_ISREG(mode):
+                        entries.append([rel, self.file(fp)])
+                    else:
+                        self.skipped.setdefault(str(p), []).append(rel)
+                        entries.append([rel, "not a regular file"])
             return digest(entries)
         except OSError as exc:
             raise DataError(f"cannot read input {p} to hash it: {exc}") from None

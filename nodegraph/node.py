@@ -20,7 +20,9 @@ A node is a class: its ports, parameters and kernels are declared once, and vali
 (in frame order) and ``self.frames`` holds the frame numbers.
 ``uses_frame = True``: the frame number is part of the work (sources, per-frame file patterns); it is
 passed to ``run`` as ``frame=`` and is part of the cache key.
-``publishes = True``: the node's ``Files`` outputs are copied into the run's output folder.
+``publishes = True``: the node's ``Files`` outputs are copied into the run's output folder, and its ``Table``
+outputs are written there as JSON per frame and CSV per node (OUT/tables/NODE/FRAME.json, OUT/tables/NODE.csv).
+``summary = ("key", ...)``: Table keys printed in one line per node after a run (mean, and min/max over frames).
 ``checkpoint = True``: the node's outputs are always stored in the cache (a costly source such as a renderer),
 even when the nodes that read them run in the same process (nodegraph/plan.py says what is kept).
 
@@ -35,6 +37,7 @@ import importlib
 import inspect
 import logging
 import pkgutil
+import reprlib
 from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
@@ -45,6 +48,16 @@ from .fingerprint import ENTRY_POINT_GROUP
 from .types import DataType, describe_type
 
 
+
+
+_repr = reprlib.Repr()
+_repr.maxstring, _repr.maxother, _repr.maxlist, _repr.maxdict, _repr.maxlevel = 80, 80, 8, 8, 3
+
+
+def show(value) -> str:
+    """A value for a message: repr with long strings, long lists and deep nesting cut short (never expands
+    an alias bomb; repr escapes control characters)."""
+    return _repr.repr(value)
 
 
 class _Required:
@@ -88,7 +101,7 @@ class Param:
             raise ValueError("must not be null")
         if self.type is list:
             if not isinstance(value, (list, tuple)):
-                raise ValueError(f"expects a list, got {value!r}")
+                raise ValueError(f"expects a list, got {show(value)}")
             if self.length is not None and len(value) != self.length:
                 raise ValueError(f"expects a list of {self.length} items, got {len(value)}")
             if self.item is not None:
@@ -96,11 +109,11 @@ class Param:
             return list(value)
         value = _coerce_scalar(self.type, value)
         if self.choices is not None and value not in self.choices:
-            raise ValueError(f"must be one of {', '.join(map(str, self.choices))}; got {value!r}")
+            raise ValueError(f"must be one of {', '.join(map(str, self.choices))}; got {show(value)}")
         if self.range is not None:
             lo, hi = self.range
             if (lo is not None and value < lo) or (hi is not None and value > hi):
-                raise ValueError(f"must be in [{'' if lo is None else lo}, {'' if hi is None else hi}]; got {value!r}")
+                raise ValueError(f"must be in [{'' if lo is None else lo}, {'' if hi is None else hi}]; got {show(value)}")
         return value
 
 
@@ -108,26 +121,28 @@ def _coerce_scalar(t: type, v: Any) -> Any:
     if t is bool:
         if isinstance(v, bool):
             return v
-        raise ValueError(f"expects true or false, got {v!r}")
+        raise ValueError(f"expects true or false, got {show(v)}")
     if t is int:
         if isinstance(v, bool) or not isinstance(v, int):
-            raise ValueError(f"expects an integer, got {v!r}")
+            raise ValueError(f"expects an integer, got {show(v)}")
         return v
     if t is float:
         if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise ValueError(f"expects a number, got {v!r}")
+            raise ValueError(f"expects a number, got {show(v)}")
         if v != v:  # NaN passes every range check and never equals itself
             raise ValueError("expects a number, got nan")
         if abs(v) == float("inf"):
-            raise ValueError(f"expects a finite number, got {v!r}")
+            raise ValueError(f"expects a finite number, got {show(v)}")
         return float(v)
     if t in (str, InPath, OutPath):
         if not isinstance(v, str):
-            raise ValueError(f"expects a string, got {v!r}")
+            raise ValueError(f"expects a string, got {show(v)}")
+        if "\x00" in v:
+            raise ValueError(f"contains a NUL character: {show(v)}")
         return t(v) if t is not str else v
     if isinstance(v, t):
         return v
-    raise ValueError(f"expects {t.__name__}, got {v!r}")
+    raise ValueError(f"expects {t.__name__}, got {show(v)}")
 
 
 @dataclass
@@ -155,6 +170,7 @@ class Node:
     per: ClassVar[str] = "frame"
     uses_frame: ClassVar[bool] = False
     publishes: ClassVar[bool] = False
+    summary: ClassVar[tuple] = ()     # Table keys summarised after a run (see the module docstring)
     checkpoint: ClassVar[bool] = False
     inputs: ClassVar[dict] = {}
     outputs: ClassVar[dict] = {}

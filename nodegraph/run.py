@@ -3,6 +3,8 @@
 What runs (``to_run``): walking the items from the last to the first, an item runs when a port it keeps is
 missing from the cache, or when an item that runs reads a value of it that lives only in memory (a unit
 recomputes its intermediate values from the nearest kept ones). Everything else is up to date.
+The cached entries the run will read (inputs of items that run, files to publish) are verified against
+their content hashes first (``verify_reads``): a damaged one is evicted and recomputed in the same run.
 
 run.json (in the output folder) records, per node and frame: status (done / cached / failed / skipped),
 cache_hit, wall seconds, key, the cache folder of its kept outputs, which ports were kept and which lived only
@@ -29,6 +31,8 @@ class RunResult:
     out_dir: Path
     seconds: float
     failures: list[dict] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)   # about the run as a whole (not one work item)
+    summaries: list[str] = field(default_factory=list)  # one line per node that declares `summary` keys
 
     @property
     def ok(self) -> bool:
@@ -41,12 +45,20 @@ class RunResult:
         return c
 
 
-def plan_graph(graph: Graph, cache: Cache):
+def plan_graph(graph: Graph, cache: Cache, notes: list | None = None):
+    """Work items and slots of ``graph``; ``notes`` (a list) receives warnings about its inputs."""
     from . import fingerprint
 
     if cache.root.is_dir():
         fingerprint.remember_in(cache.root / "imports.json")
-    return make_plan(graph, FileHasher(cache.root / "filehash.json"))
+    hasher = FileHasher(cache.root / "filehash.json", exclude=[cache.root])
+    planned = make_plan(graph, hasher)
+    for folder, names in hasher.skipped.items():
+        if notes is not None:
+            shown = ", ".join(names[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
+            notes.append(f"input folder {folder}: {len(names)} entries are not regular files (FIFO, socket or "
+                         f"device) and were not read: {shown}")
+    return planned
 
 
 @dataclass
@@ -66,18 +78,26 @@ def _refs(it: WorkItem):
             yield r
 
 
-def to_run(items: list[WorkItem], cache: Cache) -> tuple[set[str], dict[str, set | None]]:
-    """(keys of the items that must run, stored ports per key) — see the module docstring."""
-    stored = {it.key: cache.stored(it.key) for it in items}
+def to_run(items: list[WorkItem], cache: Cache, gone=()) -> tuple[dict[str, str], dict[str, set | None]]:
+    """(why each item that must run runs, by key; stored ports per key) — see the module docstring. Entries in
+    ``gone`` count as not stored (damaged ones that explain does not evict)."""
+    stored = {it.key: None if it.key in gone else cache.stored(it.key) for it in items}
     kept = {it.key: set(it.kept) for it in items}
-    must: set[str] = set()
+    label = {it.key: it.label for it in items}
+    must: dict[str, str] = {}
     for it in reversed(items):  # items are in dependency order: readers come after their sources
         have = stored[it.key] or set()
-        if it.key in must or not kept[it.key] <= have:
-            must.add(it.key)
+        if it.key not in must and not kept[it.key] <= have:
+            must[it.key] = "not in the cache" if stored[it.key] is None else \
+                f"kept output {', '.join(sorted(kept[it.key] - have))} not in the cache"
+        if it.key in must:
             for r in _refs(it):
-                if r["port"] not in kept.get(r["key"], ()) or r["port"] not in (stored.get(r["key"]) or set()):
-                    must.add(r["key"])
+                if r["key"] in must:
+                    continue
+                if r["port"] not in kept.get(r["key"], ()):
+                    must[r["key"]] = f"its {r['port']} lives in memory and {label[it.key]} runs"
+                elif r["port"] not in (stored.get(r["key"]) or set()):
+                    must[r["key"]] = f"kept output {r['port']} not in the cache"
     return must, stored
 
 
@@ -120,11 +140,63 @@ def _read_index(cache: Cache, graph: Graph) -> dict | None:
         return None
 
 
+def verify_reads(graph: Graph, items: list[WorkItem], cache: Cache, out_dir: Path | None = None,
+                 evict: bool = True) -> tuple[set[str], dict, dict[str, str]]:
+    """``to_run`` after checking the content of every cached entry the run will read: the entries holding inputs
+    of items that run, and those of publishing nodes whose files are not already in ``out_dir`` as published
+    (all of them when ``out_dir`` is None). A damaged entry (a file missing or not matching its recorded hash,
+    a garbage meta.json) is evicted (``evict``, else only counted as gone) and its item runs; what it reads is
+    checked in turn. Returns (must, stored, {key: problem})."""
+    damaged: dict[str, str] = {}
+    checked: set[str] = set()
+    published = _Published(out_dir) if out_dir is not None else None
+    while True:
+        must, stored = to_run(items, cache, gone=() if evict else set(damaged))
+        reads = {r["key"] for it in items if it.key in must for r in _refs(it) if r["key"] not in must}
+        for it in items:
+            if it.key not in must and stored[it.key] is not None and graph.nodes[it.node].cls.publishes:
+                if published is None or not _all_current(graph, cache, it, out_dir, published):
+                    reads.add(it.key)
+        fresh = [k for k in reads if k not in checked and stored.get(k) is not None]
+        found = False
+        for key in fresh:
+            checked.add(key)
+            problem = cache.verify(key)
+            if problem:
+                damaged[key] = problem
+                found = True
+                if evict:
+                    cache.evict(key)
+        if not found:
+            return must, stored, damaged
+
+
+def _all_current(graph: Graph, cache: Cache, it: WorkItem, out_dir: Path, published: "_Published") -> bool:
+    """Whether every file a publishing item exports is in the output folder as it was published from this key
+    (then its cache entry is not read); Table outputs are always read."""
+    from .types import Files
+
+    try:
+        files = cache.meta(it.key)["files"]
+    except DataError:
+        return False
+    for port, decl in graph.nodes[it.node].cls.outputs.items():
+        if not issubclass(decl.type, Files):
+            if port in files and files[port]:
+                return False
+            continue
+        targets = [out_dir / Path(f).relative_to(Path(port) / "files") for f in files.get(port) or []]
+        if not targets or not all(published.current(t, it.key) for t in targets):
+            return False
+    return True
+
+
 def explain(graph: Graph, cache: Cache) -> list[dict]:
     """Per work item: up to date or to run, which of its outputs are kept in the cache, and which parts of its
-    key differ from the last run of the same node and frame of this graph file."""
+    key differ from the last run of the same node and frame of this graph file (or that its cached result is
+    damaged)."""
     items, slot = plan_graph(graph, cache)
-    must, stored = to_run(items, cache)
+    must, stored, damaged = verify_reads(graph, items, cache, evict=False)
     by_key = {it.key: it for it in items}
     index = _read_index(cache, graph)
     rows = []
@@ -132,16 +204,17 @@ def explain(graph: Graph, cache: Cache) -> list[dict]:
         it = by_key[key]
         row = {"node": node, "frame": frame, "key": key, "cached": key not in must, "changed": [], "kept": list(it.kept),
                "in_memory": [p for p in graph.nodes[node].cls.outputs if p not in it.kept]}
-        if not row["cached"]:
+        if key in damaged:
+            row["changed"] = [f"(cached result damaged: {damaged[key]})"]
+        elif not row["cached"]:
             label = f"{node}@{'all' if frame is None else frame}"
             try:
                 if index is None:
                     raise ValueError
                 if label not in index:
-                    row["changed"] = ["(no earlier run)"]
+                    row["changed"] = [f"(no earlier run; {must[key]})"]
                 else:
-                    row["changed"] = _diff(index[label]["components"], it.components) or [
-                        "(a kept output is missing from the cache, or an item that runs needs this in-memory value)"]
+                    row["changed"] = _diff(index[label]["components"], it.components) or [f"(nothing: {must[key]})"]
             except (KeyError, TypeError, ValueError):
                 row["changed"] = ["(earlier run record unreadable)"]
         rows.append(row)
@@ -167,9 +240,10 @@ def run_graph(graph: Graph, cache: Cache, out_dir: Path, executor, progress: boo
         (out_dir / ".volcap-write-test").unlink()
     except OSError as exc:
         raise DataError(f"output folder {out_dir} cannot be written: {exc.strerror or exc} (choose another with --out)") from None
-    items, slot = plan_graph(graph, cache)
+    notes: list[str] = []
+    items, slot = plan_graph(graph, cache, notes)
     by_key = {it.key: it for it in items}
-    must, stored = to_run(items, cache)
+    must, stored, damaged = verify_reads(graph, items, cache, out_dir)
     results: dict[str, dict] = {}
     for it in items:
         if it.key not in must:
@@ -201,16 +275,20 @@ def run_graph(graph: Graph, cache: Cache, out_dir: Path, executor, progress: boo
         executor.run(units, str(cache.root), on_result)
     if bar is not None:
         bar.close()
+    for key, problem in damaged.items():  # say so: a recomputed result that was cached is worth a line
+        if key in results:
+            results[key]["warnings"] = [f"its cached result was damaged ({problem}): recomputed"] + list(results[key].get("warnings") or [])
 
     records, failures = [], []
     index = _read_index(cache, graph) or {}
     published = _Published(out_dir)
+    tables: dict[tuple[str, str], dict] = {}
     for (node, frame), key in slot.items():
         it = by_key[key]
         res = results.get(key, {"status": "skipped", "error": "not run", "seconds": 0.0})
         rec = {"node": node, "type": it.type_name, "frame": frame, "status": res["status"],
                "cache_hit": res["status"] == "cached", "seconds": round(res.get("seconds", 0.0), 4), "key": key,
-               "cache_dir": str(cache.object_dir(key)) if cache.has(key) else None,
+               "cache_dir": str(cache.object_dir(key)) if stored.get(key) is not None or (res["status"] == "done" and it.kept) else None,
                "log": specs[key]["log"] if key in specs else None, "published": [], "kept": list(it.kept),
                "in_memory": [p for p in graph.nodes[node].cls.outputs if p not in it.kept]}
         if res.get("error"):
@@ -219,7 +297,7 @@ def run_graph(graph: Graph, cache: Cache, out_dir: Path, executor, progress: boo
             rec["warnings"] = res["warnings"]
         if res["status"] in ("done", "cached"):
             try:
-                rec["published"] = _publish(graph, cache, it, out_dir, published)
+                rec["published"] = _publish(graph, cache, it, out_dir, published, node, frame, tables)
             except DataError as exc:  # a damaged cache entry: report it, drop it, the rerun recomputes it
                 cache.evict(key)
                 rec.update(status="failed", cache_dir=None, error=f"{exc}; the entry was removed, rerun to recompute it")
@@ -232,9 +310,12 @@ def run_graph(graph: Graph, cache: Cache, out_dir: Path, executor, progress: boo
         records.append(rec)
     atomic_write_text(_index_path(cache, graph), json.dumps(index))
     published.save()
-    result = RunResult(records, out_dir, time.perf_counter() - t0, failures)
+    summaries = _publish_tables(graph, tables, out_dir)
+    result = RunResult(records, out_dir, time.perf_counter() - t0, failures, notes, summaries)
     doc = {"graph": str(graph.path), "overrides": graph.overrides, "frames": graph.frames, "cache": str(cache.root), "seconds": round(result.seconds, 3),
            "counts": result.counts(), "items": records}
+    if notes:
+        doc["warnings"] = notes
     atomic_write_text(out_dir / "run.json", json.dumps(doc, indent=1))
     return result
 
@@ -272,15 +353,32 @@ class _Published:
             atomic_write_text(self.path, json.dumps(self.files))
 
 
-def _publish(graph: Graph, cache: Cache, it: WorkItem, out_dir: Path, published: _Published) -> list[str]:
-    """Copy the Files outputs of a publishing node into the output folder (atomically per file)."""
+def _publish(graph: Graph, cache: Cache, it: WorkItem, out_dir: Path, published: _Published, node: str | None = None,
+             frame=None, tables: dict | None = None) -> list[str]:
+    """Copy the Files outputs of a publishing node into the output folder (atomically per file), and write its
+    Table outputs as OUT/tables/NODE/FRAME.json (collected in ``tables`` for the CSVs and summaries)."""
     cls = graph.nodes[it.node].cls
     if not cls.publishes:
         return []
-    from .types import Files
+    from .types import Files, Table
 
+    node = node or it.node
+    n_tables = sum(issubclass(d.type, Table) for d in cls.outputs.values())
     written = []
     for port, decl in cls.outputs.items():
+        if issubclass(decl.type, Table):
+            table = cache.load(it.key, port, Table)
+            if table is None:
+                continue
+            name = ("all" if frame is None else str(frame)) if n_tables == 1 else f"{port}_{'all' if frame is None else frame}"
+            target = out_dir / "tables" / node / f"{name}.json"
+            if not published.current(target, it.key):
+                atomic_write_text(target, json.dumps(table, indent=1))
+                published.record(target, it.key)
+            written.append(str(target))
+            if tables is not None:
+                tables.setdefault((node, port), {})[frame] = table
+            continue
         if not issubclass(decl.type, Files):
             continue
         names = (cache.meta(it.key).get("files") or {}).get(port) or []
@@ -296,3 +394,70 @@ def _publish(graph: Graph, cache: Cache, it: WorkItem, out_dir: Path, published:
             published.record(target, it.key)
             written.append(str(target))
     return written
+
+
+def _scalar(v) -> bool:
+    return isinstance(v, (int, float, str, bool)) or v is None
+
+
+def table_rows(table: dict) -> dict:
+    """A Table as CSV rows: key "" holds its scalar fields (one row), and every field that is a list of flat
+    mappings (e.g. per view) becomes its own list of rows."""
+    rows = {"": {k: v for k, v in table.items() if _scalar(v)}}
+    for k, v in table.items():
+        if isinstance(v, list) and v and all(isinstance(r, dict) and all(_scalar(x) for x in r.values()) for r in v):
+            rows[k] = v
+    return rows
+
+
+def _csv_text(rows: list[dict]) -> str:
+    import csv
+    import io
+
+    columns: list[str] = []
+    for r in rows:
+        columns += [k for k in r if k not in columns]
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=columns, lineterminator="\n")
+    w.writeheader()
+    w.writerows(rows)
+    return buf.getvalue()
+
+
+def _publish_tables(graph: Graph, tables: dict, out_dir: Path) -> list[str]:
+    """OUT/tables/NODE.csv (one row per frame: the scalar fields) and OUT/tables/NODE.FIELD.csv (one row per
+    frame and entry of a list field); returns one summary line per node that declares ``summary`` keys."""
+    lines = []
+    for (node, port), by_frame in tables.items():
+        cls = graph.nodes[node].cls
+        stem = node if sum(1 for n, _ in tables if n == node) == 1 else f"{node}.{port}"
+        frames = sorted(by_frame, key=lambda f: (f is not None, f if f is not None else 0))
+        per_key: dict[str, list[dict]] = {}
+        for f in frames:
+            for k, rows in table_rows(by_frame[f]).items():
+                frame_col = {"frame": "all" if f is None else f}
+                per_key.setdefault(k, []).extend([{**frame_col, **rows}] if k == "" else [{**frame_col, **r} for r in rows])
+        for k, rows in per_key.items():
+            target, text = out_dir / "tables" / (f"{stem}.csv" if k == "" else f"{stem}.{k}.csv"), _csv_text(rows)
+            try:
+                same = target.read_text() == text
+            except (OSError, UnicodeDecodeError):
+                same = False
+            if not same:
+                atomic_write_text(target, text)
+        parts = []
+        for k in cls.summary:
+            vals = [(f, by_frame[f].get(k)) for f in frames if isinstance(by_frame[f].get(k), (int, float))]
+            if not vals:
+                continue
+            xs = [v for _, v in vals]
+            text = f"{k} {sum(xs) / len(xs):.4g}"
+            if len(xs) > 1:
+                lo, hi = min(vals, key=lambda fv: fv[1]), max(vals, key=lambda fv: fv[1])
+                text += f" (min {lo[1]:.4g} frame {lo[0]}, max {hi[1]:.4g} frame {hi[0]})"
+            parts.append(text)
+        if parts:
+            n = len(frames)
+            lines.append(f"{node} ({graph.nodes[node].type_name}): {n} frame{'s' if n != 1 else ''}, "
+                         f"{'mean ' if n > 1 else ''}" + ", ".join(parts) + f"  [{out_dir / 'tables' / (stem + '.csv')}]")
+    return lines

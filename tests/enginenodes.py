@@ -86,6 +86,17 @@ class ReadFile(Node):
         return {"out": np.frombuffer(Path(path).read_bytes(), dtype=np.uint8)}
 
 
+class ReadDir(Node):
+    """Total size of the regular files in an input folder (never opens anything else)."""
+
+    type_name = "t.readdir"
+    outputs = {"out": Array}
+    params = {"path": Param(InPath, doc="a folder")}
+
+    def run(self, *, path):
+        return {"out": np.array([sum(p.stat().st_size for p in sorted(Path(path).iterdir()) if p.is_file())])}
+
+
 class WriteText(Node):
     """Publishes a text file with the array's sum."""
 

@@ -11,6 +11,7 @@ Tolerances per type (override with keyword arguments):
     Mesh    vertex and face counts within count_rtol, symmetric Hausdorff <= hausdorff (absolute units)
     Table   numbers within rtol / atol, everything else equal
     Array   allclose(rtol, atol)
+    Skeleton  same parents and names, joints within atol (default 1e-9), weights / motion within atol
 Regenerate deliberately with ``pytest --update-golden``; the run lists every file it rewrote so the diff
 can be reviewed before committing. Golden folders live in tests/golden/NAME/ in the type's own format.
 """
@@ -110,6 +111,15 @@ def compare(actual, expected, dtype, name, **tol):
         _compare_json(actual, expected, name, tol.get("rtol", 1e-6), tol.get("atol", 1e-9))
     elif issubclass(dtype, E.Array):
         np.testing.assert_allclose(actual, expected, rtol=tol.get("rtol", 1e-6), atol=tol.get("atol", 0), err_msg=name)
+    elif issubclass(dtype, T.Skeleton):
+        assert list(actual.parents) == list(expected.parents), f"{name}: parents {actual.parents} vs golden {expected.parents}"
+        assert list(actual.names) == list(expected.names), f"{name}: names {actual.names} vs golden {expected.names}"
+        atol = tol.get("atol", 1e-9)
+        for what in ("joints", "weights", "rotations", "translations"):
+            a, e = getattr(actual, what), getattr(expected, what)
+            assert (a is None) == (e is None), f"{name}: {what} present in one of actual / golden only"
+            if e is not None:
+                np.testing.assert_allclose(a, e, rtol=0, atol=atol, err_msg=f"{name}: {what}")
     elif issubclass(dtype, T.Images):
         for a, e in zip(actual.images, expected.images, strict=True):
             d = np.abs(a.astype(int) - e.astype(int))

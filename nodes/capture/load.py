@@ -11,12 +11,25 @@ pattern. Masks: "alpha" takes the images' alpha channel; else grey images thresh
 
 Known dataset layouts are detected automatically: layouts.yaml beside this file lists them (a marker file
 pattern that identifies the folder, then the patterns); an unknown folder is read with ``load_cameras`` and
-an image folder whose files match the cameras by name or by order.
+an image folder (images/, image/ or the folder itself) whose files are paired with the cameras:
+  - by name (file stem = camera name), else
+  - by the number in their names: the one run of digits that tells the names apart on each side
+    (image_7.jpg <-> viff007_matrix), never by text order (image_10 sorts before image_2);
+  - every image needs its camera (an image left over is an error); a calibration with more cameras than
+    images is used for the cameras named by the images (the others are left out, with a warning);
+  - anything else (duplicate numbers, several varying numbers, no numbers) is refused: give patterns.
+The pairing is logged (the item log), and a warning says when it was made from numbers. Masks come from
+a masks/ or mask/ folder beside the images (same names), or the masks pattern; patterns there may also use
+{image}, the stem of the camera's image file.
+
+With patterns, files that match a pattern but belong to no camera of the calibration (a calibration file
+missing) are an error, not a camera fewer. Only regular files are read (a FIFO or a device never is).
 """
 from __future__ import annotations
 
 import glob
 import json
+import logging
 import re
 from pathlib import Path
 
@@ -25,12 +38,25 @@ import numpy as np
 from functools import lru_cache
 
 from nodegraph import DataError, NodeError
-from nodes.common.calibration import IMAGE_EXTS, MissingImageSize, load_cameras
+from nodes.common.calibration import IMAGE_EXTS, MissingImageSize, camera_names, load_cameras
 from nodes.common.cameras import Cameras
 from nodes.common.types import ImageSet, MaskSet
 
 VIDEO_EXTS = (".avi", ".mp4", ".mov", ".mkv")
 PATTERN_KEYS = ("calibration", "images", "masks", "background")
+
+
+LOG = logging.getLogger("volcap.capture")
+
+
+def natural_key(name: str) -> list:
+    """Sort key reading runs of digits as numbers: 2.png before 10.png."""
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", str(name))]
+
+
+def _regular(paths) -> list[Path]:
+    """The regular files among ``paths`` (links followed), in natural order: a FIFO or device is never read."""
+    return sorted((Path(p) for p in paths if Path(p).is_file()), key=lambda p: natural_key(str(p)))
 
 
 @lru_cache(maxsize=None)
@@ -59,7 +85,7 @@ def _expand(root: Path, pattern: str, cam: int, name: str, frame: int, extra: di
             raise DataError(f"camera {cam} '{name}': video {p} not found (pattern '{pattern}')")
         return p, frame
     if "*" in rel:
-        files = sorted(glob.glob(str(root / rel)))
+        files = [str(f) for f in _regular(glob.glob(str(root / rel)))]
         if not files:
             raise DataError(f"camera {cam} '{name}': no file matches {root / rel} (pattern '{pattern}')")
         if frame >= len(files):
@@ -140,10 +166,78 @@ def _nerf_transforms(root: Path, calibration: str) -> Path:
     return good[0]
 
 
-def _generic(root: Path, frame: int):
-    """Unknown folder: calibration found by load_cameras, images in images/ (or the folder) by name or order."""
-    img_dir = root / "images" if (root / "images").is_dir() else root
-    files = sorted(p for p in img_dir.iterdir() if p.suffix.lower() in IMAGE_EXTS)
+def _digits(names: list[str]) -> list[int] | None:
+    """Per name, the number that tells the names apart: all names hold the same count of digit runs and
+    exactly one run varies between them (a single name: its only run). None when there is no such number."""
+    runs = [[int(x) for x in re.findall(r"\d+", n)] for n in names]
+    if not runs or len({len(r) for r in runs}) != 1 or not runs[0]:
+        return None
+    if len(runs) == 1:
+        return runs[0] if len(runs[0]) == 1 else None
+    varying = [j for j in range(len(runs[0])) if len({r[j] for r in runs}) > 1]
+    return [r[varying[0]] for r in runs] if len(varying) == 1 else None
+
+
+def _list(items, n: int = 6) -> str:
+    items = list(items)
+    return ", ".join(map(str, items[:n])) + (f" and {len(items) - n} more" if len(items) > n else "")
+
+
+def pair_files(names: list[str], files: list[Path], folder: Path, what: str = "image", partner: str = "camera",
+               log=None) -> tuple[list[int], list[Path]]:
+    """Pair ``files`` with ``names`` (cameras): by name (file stem), else by the number in the names (see
+    the module docstring). Returns (index into names, file) pairs in the order of ``names``; DataError for an
+    ambiguous pairing or a file without a partner."""
+    log = log or LOG
+    stems = [f.stem for f in files]
+    index = {n: i for i, n in enumerate(names)}
+    by_name = [index.get(s) for s in stems]
+    if any(b is not None for b in by_name):
+        stray = [f.name for f, b in zip(files, by_name) if b is None]
+        if stray:
+            named = {b for b in by_name if b is not None}
+            missing = [f"{i} '{n}'" for i, n in enumerate(names) if i not in named]
+            first = (f"no {what} named after {partner}(s) {_list(missing)} (the other {partner}s' {what}s are there by "
+                     "name); ") if missing else ""
+            raise DataError(f"{folder}: {first}{what}(s) {_list(stray)} have no {partner} (not named after one of the "
+                            f"{len(names)} {partner}s: {_list(names, 4)}); is a calibration file missing?")
+        idx, how = by_name, "by name"
+    else:
+        cn, fn = _digits(names), _digits(stems)
+        if cn is None or fn is None or len(set(cn)) != len(cn) or len(set(fn)) != len(fn):
+            raise DataError(f"{folder}: cannot tell which {what} belongs to which {partner}: no {what} is named after a "
+                            f"{partner} ({_list(names, 3)}), and the numbers in the names do not identify them one to one "
+                            f"({what}s {_list([f.name for f in files], 3)}); give patterns with {{name}}, {{cam}} or "
+                            "{cam1} (images=, calibration=)")
+        pos = {n: i for i, n in enumerate(cn)}
+        stray = [f.name for f, n in zip(files, fn) if n not in pos]
+        if stray:
+            raise DataError(f"{folder}: {what}(s) {_list(stray)} have no {partner}: their numbers name none of the "
+                            f"{len(names)} {partner}s ({names[0]} .. {names[-1]}); is a calibration file missing?")
+        idx, how = [pos[n] for n in fn], "by the number in their names"
+    if len(set(idx)) != len(idx):
+        raise DataError(f"{folder}: several {what}s pair with the same {partner}")
+    order = sorted(range(len(files)), key=lambda j: idx[j])
+    keep, paired = [idx[j] for j in order], [files[j] for j in order]
+    pairs = [f"{f.name} -> {names[i]}" for i, f in zip(keep, paired)]
+    log.info("paired %d %ss with %ss %s: %s", len(pairs), what, partner, how, "; ".join(pairs))
+    if how != "by name":
+        shown = pairs if len(pairs) <= 4 else pairs[:3] + ["...", pairs[-1]]
+        log.warning("%s: no %s is named after a %s: paired the %d %ss with %ss by the number in their names "
+                    "(%s); give patterns to pair them otherwise", folder, what, partner, len(pairs), what, partner,
+                    ", ".join(shown))
+    unused = [n for i, n in enumerate(names) if i not in set(keep)]
+    if unused:
+        log.warning("%s: %d of the %d %ss have no %s and are left out: %s", folder, len(unused), len(names), partner,
+                    what, _list(unused, 10))
+    return keep, paired
+
+
+def _generic(root: Path, frame: int, masks: str, background: str, log) -> tuple:
+    """Unknown folder: calibration found by load_cameras, images in images/ or image/ (or the folder), paired
+    with the cameras (pair_files); masks from masks/ or mask/ beside them, or the masks pattern."""
+    img_dir = next((d for d in (root / "images", root / "image") if d.is_dir()), root)
+    files = _regular(p for p in img_dir.iterdir() if p.suffix.lower() in IMAGE_EXTS)
     if not files:
         raise DataError(f"{root}: unknown dataset layout and no images found (give the images= pattern)")
     if frame != 0:
@@ -151,17 +245,36 @@ def _generic(root: Path, frame: int):
     try:
         cams = load_cameras(root)
     except MissingImageSize:
-        cams = load_cameras(root, image_sizes=[_size(f) for f in files])
-    by_stem = {f.stem: f for f in files}
-    missing = [f"{i} '{c.name}'" for i, c in enumerate(cams) if c.name not in by_stem]
-    if not missing:
-        files = [by_stem[c.name] for c in cams]
-    elif len(missing) < len(cams):      # some files are named after cameras: matching by order would mix them up
-        raise DataError(f"{img_dir}: no image named after camera(s) {', '.join(missing)} (the other cameras' images "
-                        "are there by name)")
-    elif len(files) != len(cams):
-        raise DataError(f"{img_dir}: {len(files)} images but the calibration has {len(cams)} cameras, and their names do not match")
-    return cams, files
+        names = camera_names(root)
+        keep, files = pair_files(names, files, img_dir, log=log)
+        sizes = {names[i]: _size(f) for i, f in zip(keep, files)}
+        some = next(iter(sizes.values()))
+        cams = load_cameras(root, image_sizes={n: sizes.get(n, some) for n in names})
+    else:
+        keep, files = pair_files(cams.names, files, img_dir, log=log)
+    if len(keep) < len(cams):
+        cams = Cameras([cams[i] for i in keep])
+    extra = {c.name: {"image": f.stem} for c, f in zip(cams, files)}
+    mask_files = None
+    if masks and masks != "alpha":
+        mask_files = [_expand(root, masks, i, c.name, frame, extra) for i, c in zip(keep, cams)]
+    elif not masks:
+        mask_dir = next((d for d in (img_dir.parent / "masks", img_dir.parent / "mask") if d.is_dir() and d != img_dir), None)
+        if mask_dir is not None:
+            found = _regular(p for p in mask_dir.iterdir() if p.suffix.lower() in IMAGE_EXTS + (".pbm", ".pgm"))
+            if found:
+                stems = [f.stem for f in files]
+                mk, mf = pair_files(stems, found, mask_dir, what="mask", partner="image", log=log)
+                if len(mk) != len(stems):
+                    raise DataError(f"{mask_dir}: masks for {len(mk)} of the {len(stems)} images (missing: "
+                                    f"{_list(s for i, s in enumerate(stems) if i not in set(mk))}); give the masks pattern")
+                mask_files = [(f, None) for f in mf]
+    bg = None
+    if background:
+        bg = ImageSet([_rgb(read_image(*_expand(root, background, i, c.name, 0, extra))) for i, c in zip(keep, cams)],
+                      cams.names)
+    mask_imgs = [read_image(p, f) for p, f in mask_files] if mask_files else None
+    return cams, files, mask_imgs, [p for p, _ in mask_files] if mask_files else None, bg
 
 
 def _size(path: Path) -> tuple[int, int]:
@@ -171,9 +284,11 @@ def _size(path: Path) -> tuple[int, int]:
 
 # ------------------------------------------------------------------ loading
 def load_capture(path, frame: int = 0, images: str = "", masks: str = "", background: str = "",
-                 calibration: str = "", mask_threshold: int = 127) -> dict:
+                 calibration: str = "", mask_threshold: int = 127, log=None) -> dict:
     """One frame of a capture: {"images": ImageSet, "masks": MaskSet | None, "cameras": Cameras,
-    "background": ImageSet | None}. Empty patterns are auto-detected (see the module docstring)."""
+    "background": ImageSet | None}. Empty patterns are auto-detected (see the module docstring). ``log``
+    (the node's logger) receives the image-camera pairing and warnings about it."""
+    log = log or LOG
     root = Path(path)
     if not root.is_dir():
         raise DataError(f"capture folder {root} not found")
@@ -181,10 +296,11 @@ def load_capture(path, frame: int = 0, images: str = "", masks: str = "", backgr
         raise DataError(f"frame {frame} out of range (frames start at 0)")
     layout = detect_layout(root)
     given = {k: v for k, v in dict(images=images, masks=masks, background=background, calibration=calibration).items() if v}
-    if not layout and "images" not in given:
-        cams, files = _generic(root, frame)
+    if not layout and "images" not in given and "calibration" not in given:
+        cams, files, mask_imgs, mask_files, bg = _generic(root, frame, masks, background, log)
         imgs = [read_image(f) for f in files]
-        return _assemble(cams, imgs, [f for f in files], None, None, mask_threshold, masks or "")
+        return _assemble(cams, imgs, files, mask_imgs, bg, mask_threshold, masks or ("files" if mask_imgs else ""),
+                         mask_files)
     pat = {**layout, **given}
     if "calibration" not in pat or "images" not in pat:
         raise NodeError(f"{root}: unknown dataset layout: give both the calibration and images patterns")
@@ -204,12 +320,15 @@ def load_capture(path, frame: int = 0, images: str = "", masks: str = "", backgr
     try:
         cams = load_cameras(calib)
         raw = None
-    except MissingImageSize:
-        probe = load_cameras(calib, image_sizes=(1, 1))
-        img_files = [_expand(root, pat["images"], i, c.name, frame, extra) for i, c in enumerate(probe)]
+    except MissingImageSize:  # names first (they expand the patterns), then the sizes from those images
+        names = camera_names(calib)
+        img_files = [_expand(root, pat["images"], i, n, frame, extra) for i, n in enumerate(names)]
         raw = [read_image(p, f) for p, f in img_files]
         cams = load_cameras(calib, image_sizes=[(im.shape[1], im.shape[0]) for im in raw])
     _check_camera_count(root, pat["images"], cams)
+    for kind in ("images", "masks", "background"):
+        if pat.get(kind) and pat[kind] != "alpha" and not extra:
+            _check_unclaimed(root, pat[kind], cams, kind)
     if raw is None:
         img_files = [_expand(root, pat["images"], i, c.name, frame, extra) for i, c in enumerate(cams)]
         raw = [read_image(p, f) for p, f in img_files]
@@ -236,6 +355,32 @@ def _check_camera_count(root: Path, pattern: str, cams: Cameras):
     found = {Path(p).relative_to(root).parts[0] for p in glob.glob(str(root / anywhere))}
     if len(found) != len(cams):
         raise DataError(f"{root}: {len(found)} camera folders hold '{anywhere}' but the calibration has {len(cams)} cameras")
+
+
+def _check_unclaimed(root: Path, pattern: str, cams: Cameras, kind: str):
+    """Files that match ``pattern`` for some camera name but for none of the calibration's cameras (its
+    calibration file is missing, or the calibration is another set): a DataError naming them, not a camera
+    dropped in silence."""
+    if not re.search(r"\{(cam|cam1|name)[:}]", pattern) or re.search(r"\{(?!cam[:}]|cam1[:}]|name[:}]|frame[:}])", pattern):
+        return
+    anywhere = re.sub(r"\{[^}]*\}", "*", pattern)
+    every = {Path(p) for p in glob.glob(str(root / anywhere)) if Path(p).is_file()}
+    if len(every) > 100_000:
+        return
+    per_frame = re.sub(r"\{frame[^}]*\}", "*", pattern)
+    claimed = set()
+    for i, c in enumerate(cams):
+        try:
+            mine = per_frame.format(cam=i, cam1=i + 1, name=c.name)
+        except (KeyError, IndexError, ValueError):
+            return
+        claimed.update(Path(p) for p in glob.glob(str(root / glob.escape(mine).replace("[*]", "*"))))
+    stray = sorted((p for p in every - claimed), key=lambda p: natural_key(str(p)))
+    if stray:
+        rel = [p.relative_to(root).as_posix() for p in stray]
+        raise DataError(f"{root}: {kind} file(s) {_list(rel, 4)} match the pattern '{pattern}' but no camera of the "
+                        f"calibration ({len(cams)} cameras: {_list(cams.names, 4)}) claims them: is a calibration file "
+                        f"missing? (or give a {kind} pattern that does not match them)")
 
 
 def _assemble(cams: Cameras, raw: list, files: list, mask_imgs, bg, threshold: int, mask_mode: str,

@@ -30,4 +30,4 @@ class Capture(Node):
     }
 
     def run(self, *, path, images, masks, background, calibration, mask_threshold, frame):
-        return load_capture(path, frame, images, masks, background, calibration, mask_threshold)
+        return load_capture(path, frame, images, masks, background, calibration, mask_threshold, log=self.log)

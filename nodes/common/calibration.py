@@ -13,8 +13,16 @@
     matlab      .mat file holding a cell array of 3x4 P matrices (Oxford VGG)
 A folder is searched for these files; per-camera files (calibration/*.xml, cam*/config.xml) make one set.
 
-Pixel convention: (0, 0) is the centre of the top-left pixel (nodegraph.cameras). COLMAP and transforms.json
-put it at the pixel's corner, so their principal points are shifted by 0.5 on import and export.
+Pixel convention: (0, 0) is the centre of the top-left pixel (nodes.common.cameras, as OpenCV's projectPoints).
+Each importer's convention for its files (CONVENTIONS; tests/stages/common/test_pixel_conventions.py checks
+every one against cv2.projectPoints on hand-written files):
+    colmap      corner  (0, 0) is the top-left pixel's corner: principal point - 0.5 on import, + 0.5 on export
+    nerf        corner  (cx, cy; default w/2, h/2, the image centre): - 0.5 on import, + 0.5 on export
+    middlebury  centre  K as given (the Middlebury evaluation projects with P = K [R|t] onto pixel centres)
+    opencv      centre  OpenCV's own calibration convention
+    ptext, inria, matlab, idr   centre   P = K [R|t] maps onto pixel centres at integers (Oxford VGG, INRIA,
+                        IDR/NeuS cast rays through integer pixel coordinates)
+    tsinghua    centre  K as given
 P matrices are decomposed (cv2.decomposeProjectionMatrix) into a metric camera when the result is physical
 (positive focal lengths of similar size, little skew, principal point near the image); otherwise they are
 kept as bare-P cameras (``Camera.from_P``), as for the non-metric Oxford dino.
@@ -32,6 +40,9 @@ from .cameras import Camera, Cameras
 from nodegraph.errors import DataError
 
 FORMATS = ("colmap", "nerf", "middlebury", "opencv", "ptext", "inria", "idr", "tsinghua", "matlab")
+# where a format puts pixel coordinate (0, 0): the top-left pixel's centre or its corner (see the docstring)
+CONVENTIONS = {"colmap": "corner", "nerf": "corner", "middlebury": "centre", "opencv": "centre", "ptext": "centre",
+               "inria": "centre", "idr": "centre", "tsinghua": "centre", "matlab": "centre"}
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".exr")
 
 
@@ -51,9 +62,24 @@ def _finite(arr, what: str, path) -> np.ndarray:
     return arr
 
 
+class _NamesOnly:
+    """image_sizes for ``camera_names``: every camera gets a large placeholder size, so a reader can build its
+    cameras (and name them) before the images that give the real sizes are found."""
+
+    size = (1 << 14, 1 << 14)
+
+
+def camera_names(path, fmt: str = "auto") -> list[str]:
+    """The camera names of a calibration, in order, without knowing the image sizes (which a capture reads
+    from the images it finds through these names)."""
+    return load_cameras(path, fmt, image_sizes=_NamesOnly()).names
+
+
 def _size_for(i: int, name: str, image_sizes, path, folder: Path | None = None):
     """Image size of camera i: from image_sizes (one (w, h) for all, a list, or a dict by name), else read
     from an image file called ``name`` in ``folder``."""
+    if isinstance(image_sizes, _NamesOnly):
+        return image_sizes.size
     if image_sizes is not None:
         if isinstance(image_sizes, dict):
             if name not in image_sizes:
@@ -89,6 +115,11 @@ def camera_from_P(name: str, P, width: int, height: int, metric: str = "auto") -
     import cv2
 
     P = np.asarray(P, dtype=np.float64).reshape(3, 4)
+    if not np.any(P):
+        raise DataError(f"camera '{name}': projection matrix is all zero")
+    if np.all(np.isfinite(P)) and np.linalg.matrix_rank(P / np.abs(P).max()) < 3:
+        raise DataError(f"camera '{name}': projection matrix has rank {np.linalg.matrix_rank(P / np.abs(P).max())} "
+                        "(a camera's P has rank 3)")
     if metric == "no":
         return Camera.from_P(name, P, width, height)
     M = P[:, :3]
@@ -257,8 +288,18 @@ def read_ptext(path: Path, image_sizes=None) -> Cameras:
         P = _finite(nums, "P", f"{path}:{ln}")
         cname = Path(name).stem if name else f"cam{i:03d}"
         w, h = _size_for(i, name or cname, image_sizes, path, path.parent if name else None)
-        cams.append(camera_from_P(cname, P, w, h))
+        cams.append(_named(f"{path}:{ln}", camera_from_P, cname, P, w, h))
     return _checked(cams, path)
+
+
+def _named(where, fn, *args, **kw):
+    """fn(*args) with a DataError's message prefixed by ``where`` (the file, or file:line)."""
+    try:
+        return fn(*args, **kw)
+    except MissingImageSize:
+        raise
+    except DataError as exc:
+        raise DataError(f"{where}: {exc}") from None
 
 
 def read_inria(paths: list[Path], image_sizes=None) -> Cameras:
@@ -272,7 +313,7 @@ def read_inria(paths: list[Path], image_sizes=None) -> Cameras:
         if len(nums) != 12:
             raise DataError(f"{p}: expected 12 numbers (a 3x4 P), got {len(nums)}")
         w, h = _size_for(i, p.stem, image_sizes, p)
-        cams.append(camera_from_P(p.stem, _finite(nums, "P", p), w, h))
+        cams.append(_named(p, camera_from_P, p.stem, _finite(nums, "P", p), w, h))
     return _checked(cams, paths[0].parent)
 
 
@@ -305,8 +346,9 @@ def read_idr(path: Path, image_sizes=None) -> Cameras:
             W = _finite(z[k], k, path)
             S = _finite(z[f"scale_mat_{idx}"], f"scale_mat_{idx}", path) if f"scale_mat_{idx}" in z.files else np.eye(4)
             P = (W @ S)[:3, :4]
-            w, h = _size_for(i, idx, image_sizes, path)
-            cams.append(camera_from_P(f"{int(idx):03d}", P, w, h, metric="yes"))
+            name = f"{int(idx):03d}"
+            w, h = _size_for(i, name, image_sizes, path)
+            cams.append(_named(f"{path} ({k})", camera_from_P, name, P, w, h, metric="yes"))
     return Cameras(cams)
 
 
@@ -327,7 +369,7 @@ def read_matlab(path: Path, image_sizes=None) -> Cameras:
         if P.shape != (3, 4):
             raise DataError(f"{path}: cell {i + 1} of '{cells[0]}' is {P.shape}, not 3x4")
         w, h = _size_for(i, f"cam{i:03d}", image_sizes, path)
-        cams.append(camera_from_P(f"cam{i:03d}", _finite(P, f"P{{{i + 1}}}", path), w, h))
+        cams.append(_named(f"{path} (P{{{i + 1}}})", camera_from_P, f"cam{i:03d}", _finite(P, f"P{{{i + 1}}}", path), w, h))
     return _checked(cams, path)
 
 
@@ -404,7 +446,7 @@ def read_opencv(path: Path, image_sizes=None, name: str | None = None) -> Camera
         cams = []
         for i, (key, P) in enumerate(Ps):
             w, h = _size_for(i, key, image_sizes, path)
-            cams.append(camera_from_P(key, _finite(P, key, path), w, h))
+            cams.append(_named(f"{path} ({key})", camera_from_P, key, _finite(P, key, path), w, h))
         return _checked(cams, path)
     finally:
         fs.release()
@@ -427,7 +469,11 @@ def orient_bare_P(cams: list[Camera]) -> list[Camera]:
         return cams
     A, b = np.zeros((3, 3)), np.zeros(3)
     for c in cams:
-        d = np.linalg.solve(c.Rt[:, :3], [(c.width - 1) / 2, (c.height - 1) / 2, 1.0])
+        try:
+            d = np.linalg.solve(c.Rt[:, :3], [(c.width - 1) / 2, (c.height - 1) / 2, 1.0])
+        except np.linalg.LinAlgError:
+            raise DataError(f"camera '{c.name}': the left 3x3 part of its projection matrix is singular "
+                            "(not a pinhole camera)") from None
         d /= np.linalg.norm(d)
         Pm = np.eye(3) - np.outer(d, d)
         A += Pm
@@ -485,6 +531,9 @@ def _folder_candidates(folder: Path) -> list[tuple[str, object]]:
                 fmt = None
             if fmt and not (fmt == "opencv" and "checkerboard" in p.name.lower()):
                 out.append((fmt, p))
+    npz = [p for f, p in out if f == "idr"]
+    if len(npz) > 1 and any(p.name == "cameras_sphere.npz" for p in npz):  # NeuS ships cameras_sphere + cameras_large
+        out = [c for c in out if c[0] != "idr" or c[1].name == "cameras_sphere.npz"]
     singles = [p for f, p in out if f == "inria"]
     if len(singles) > 1:  # one <camera> file per camera: one set
         out = [c for c in out if c[0] != "inria"] + [("inria+", singles)]

@@ -1,5 +1,5 @@
 """Mesh operations shared by stages: unique edges, conforming edge splits, vertex neighbourhoods (CSR),
-connected components.
+connected components (the largest, or all but the small ones).
 
 Conforming edge splits: chosen edges get a new vertex, and every face adapts so the mesh stays crack-free
 (no T-junctions) and keeps its orientation ("red-green" refinement). A face with one split edge becomes two
@@ -80,23 +80,49 @@ def vertex_neighbours(faces: np.ndarray, count: int) -> tuple[np.ndarray, np.nda
     return np.cumsum(offsets).astype(np.int32), both[:, 1].astype(np.int32)
 
 
-def largest_component(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Keep the connected component (through shared vertices) with the most faces; drop unused vertices."""
+def component_sizes(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(component label per face, face count per label) of the components connected through shared vertices."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    if len(faces) == 0:
-        return vertices, faces
+    faces = np.asarray(faces)
     n = len(vertices)
     rows = np.concatenate([faces[:, 0], faces[:, 1]])
     cols = np.concatenate([faces[:, 1], faces[:, 2]])
     _, label = connected_components(coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)), directed=False)
     face_label = label[faces[:, 0]]
-    keep = face_label == np.bincount(face_label).argmax()
-    used = np.zeros(n, bool)
+    return face_label, np.bincount(face_label)
+
+
+def _keep_faces(vertices, faces, keep) -> tuple[np.ndarray, np.ndarray]:
+    used = np.zeros(len(vertices), bool)
     used[faces[keep].ravel()] = True
     remap = np.cumsum(used) - 1
     return vertices[used], remap[faces[keep]]
+
+
+def drop_small_components(vertices: np.ndarray, faces: np.ndarray, min_fraction: float):
+    """Keep the components (connected through shared vertices) with at least ``min_fraction`` of the largest
+    one's faces (1.0: the largest only); drop unused vertices. Returns (vertices, faces, face counts of the
+    components kept, face counts of those dropped), counts largest first."""
+    if len(faces) == 0:
+        return vertices, faces, np.zeros(0, np.int64), np.zeros(0, np.int64)
+    face_label, counts = component_sizes(vertices, faces)
+    big = counts.max()
+    keep_label = counts >= min_fraction * big
+    if min_fraction >= 1.0:  # exactly one, also when two components tie
+        keep_label = np.zeros(len(counts), bool)
+        keep_label[counts.argmax()] = True
+    v, f = _keep_faces(vertices, faces, keep_label[face_label])
+    return v, f, np.sort(counts[keep_label])[::-1], np.sort(counts[~keep_label & (counts > 0)])[::-1]
+
+
+def largest_component(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Keep the connected component (through shared vertices) with the most faces; drop unused vertices."""
+    if len(faces) == 0:
+        return vertices, faces
+    v, f, _, _ = drop_small_components(vertices, faces, 1.0)
+    return v, f
 
 
 def carried_vertex_colors(mesh, vertices: np.ndarray) -> np.ndarray | None:

@@ -8,6 +8,8 @@ still works.
 """
 from __future__ import annotations
 
+__fingerprint__ = False  # drawing only: nothing here changes what a node computes (nodegraph/fingerprint.py)
+
 import math
 import os
 
@@ -108,6 +110,67 @@ def draw_mesh(value, size, companions):
     if vtk_available():
         return _render_vtk([_vtk_mesh(value)], size, up, front)
     return _projections(np.asarray(value.vertices), size, up)
+
+
+def draw_textured_mesh(value, size, companions):
+    """Photos (top) over the textured mesh rendered into the same cameras (bottom), for three cameras spread
+    over the rig; without Images and Cameras companions, the 3-D view of ``draw_mesh``."""
+    if len(value.faces) == 0:
+        return None
+    images = _load_companion("Images", companions)
+    cams = _load_companion("Cameras", companions)
+    if images is None or cams is None or len(images) != len(cams):
+        return draw_mesh(value, size, companions)
+    from .raster import render_texture
+
+    picks = sorted(set(np.linspace(0, len(cams) - 1, min(3, len(cams)) + 1)[:-1].round().astype(int).tolist()))
+    faces = np.asarray(value.faces)
+    visual = value.visual
+    face_uv = face_colours = texture = None
+    if getattr(visual, "kind", None) == "texture" and visual.uv is not None:
+        texture = np.asarray((getattr(visual.material, "baseColorTexture", None) or visual.material.image).convert("RGB"))
+        face_uv = np.asarray(visual.uv, np.float32)[faces]
+    elif getattr(visual, "kind", None) == "vertex":
+        face_colours = np.asarray(visual.vertex_colors, np.float32)[:, :3][faces]
+    else:
+        return draw_mesh(value, size, companions)
+    tiles, names = [], []
+    for i in picks:
+        rgb, hit = render_texture(value.vertices, faces, face_uv, texture, cams, i, face_colours=face_colours,
+                                  background=(32, 32, 32))
+        ys, xs = np.nonzero(hit)
+        H, W = hit.shape
+        if len(ys):  # crop both to the rendered object, in a 3:4 (w:h) box with a margin
+            cy, cx = (ys.min() + ys.max()) / 2, (xs.min() + xs.max()) / 2
+            hh = 0.55 * max(ys.max() - ys.min() + 1, (xs.max() - xs.min() + 1) / 0.75)
+            hh = min(hh, H / 2, W / 2 / 0.75)
+            hw = 0.75 * hh
+            y0, x0 = int(np.clip(cy - hh, 0, H - 2 * hh)), int(np.clip(cx - hw, 0, W - 2 * hw))
+            y1, x1 = y0 + max(int(2 * hh), 1), x0 + max(int(2 * hw), 1)
+        else:
+            y0, y1, x0, x1 = 0, H, 0, W
+        tiles += [images.images[i][y0:y1, x0:x1], rgb[y0:y1, x0:x1]]
+        names += [f"photo {cams[i].name}", "textured"]
+    order = [tiles[k] for k in range(0, len(tiles), 2)] + [tiles[k] for k in range(1, len(tiles), 2)]
+    labels = [names[k] for k in range(0, len(names), 2)] + [names[k] for k in range(1, len(names), 2)]
+    return _rows_sheet(order, labels, len(picks), size)
+
+
+def _rows_sheet(tiles, names, cols, width):
+    """Tiles in rows of ``cols``, each scaled into a cell of ``width / cols`` pixels."""
+    import cv2
+
+    tw = max(width // cols, 8)
+    th = max(int(round(tw * max(t.shape[0] / t.shape[1] for t in tiles))), 8)
+    rows = -(-len(tiles) // cols)
+    sheet = np.full((rows * th, cols * tw, 3), 32, np.uint8)
+    for k, (tile, name) in enumerate(zip(tiles, names)):
+        r, c = divmod(k, cols)
+        scale = min(tw / tile.shape[1], th / tile.shape[0])
+        w, h = max(int(tile.shape[1] * scale), 1), max(int(tile.shape[0] * scale), 1)
+        sheet[r * th:r * th + h, c * tw:c * tw + w] = cv2.resize(tile, (w, h), interpolation=cv2.INTER_AREA)
+        cv2.putText(sheet, name, (c * tw + 3, r * th + 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 0), 1, cv2.LINE_AA)
+    return sheet
 
 
 def draw_mesh_sequence(value, size, companions):

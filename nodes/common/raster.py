@@ -265,3 +265,43 @@ def render(vertices, faces, normals, texcoords, face_material, materials, camera
         images.append(rgb)
         masks.append(mask)
     return images, masks
+
+
+def sample_texture(texture: np.ndarray, uv01: np.ndarray) -> np.ndarray:
+    """Bilinear lookup of an (S, S, 3) uint8 texture at texture coordinates (N, 2) in [0, 1], v up (OBJ /
+    trimesh convention; texel centres at (i + 0.5) / S). Returns (N, 3) float32 0..255."""
+    import cv2
+
+    uv = np.asarray(uv01, np.float32).reshape(-1, 2)
+    h, w = texture.shape[:2]
+    n = len(uv)
+    cols = 4096                                   # cv2.remap wants maps below 32767 on each side
+    rows = max(1, -(-n // cols))
+    mx = np.zeros(rows * cols, np.float32)
+    my = np.zeros(rows * cols, np.float32)
+    mx[:n] = uv[:, 0] * w - 0.5
+    my[:n] = (1.0 - uv[:, 1]) * h - 0.5
+    out = cv2.remap(np.ascontiguousarray(texture), mx.reshape(rows, cols), my.reshape(rows, cols), cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(-1, texture.shape[2])[:n].astype(np.float32)
+
+
+def render_texture(vertices, faces, face_uv, texture, cameras: Cameras, view: int, *, face_colours=None,
+                   background=(0, 0, 0)):
+    """Render a textured mesh into one view (no lighting: the texture is the colour). ``face_uv`` (F, 3, 2)
+    texture coordinates in [0, 1] (v up) of each face corner and ``texture`` (S, S, 3) uint8; or
+    ``face_colours`` (F, 3, 3) per-corner colours (vertex colours), interpolated. Returns (rgb (H, W, 3)
+    uint8, coverage (H, W) bool)."""
+    tri, _, bary = rasterize(vertices, faces, cameras, view)
+    hit = tri >= 0
+    f = tri[hit]
+    b = bary[hit].astype(np.float32)
+    if face_colours is not None:
+        col = np.einsum("nc,ncd->nd", b, np.asarray(face_colours, np.float32)[f])
+    else:
+        uv = np.einsum("nc,ncd->nd", b, np.asarray(face_uv, np.float32)[f])
+        col = sample_texture(texture, uv)
+    out = np.empty(tri.shape + (3,), np.uint8)
+    out[:] = np.asarray(background, np.uint8)
+    out[hit] = np.clip(col + 0.5, 0, 255).astype(np.uint8)
+    return out, hit

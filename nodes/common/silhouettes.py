@@ -2,10 +2,10 @@
 silhouettes?" (hull, bounds, refine, relax, carve): one vote rule, one host form, one device form.
 
 The vote (``vote``; kernels/silhouette.h ``hull_vote``): a point's projection into each view is inside the
-silhouette, on background, or unseen (behind the camera or outside the image). With min_views > 0 the
-point is inside when at least min_views views see it inside; otherwise policy "carve" needs every view to
-see it inside and policy "ignore" needs no view to see it on background and at least ``min_seen`` (1) to
-see it inside.
+silhouette, on background, or unseen (behind the camera or outside the image). min_views > 0 tolerates
+t = nviews - min_views background votes (t = 0 when min_views is 0), and the outside policy holds either way:
+policy "carve" needs every view to see the point and at most t to see it on background; policy "ignore"
+needs at most t views to see it on background and at least ``min_seen`` (1) to see it inside.
 
 Host forms: uint8 masks checked against the cameras (``check_masks``), ``Silhouettes`` (packed cameras,
 binary masks, optional soft alpha or a signed-distance outline: the sub-pixel point test of refine and relax).
@@ -42,6 +42,16 @@ def check_sizes(arrays, cameras: Cameras, node: str, kind: str = "mask"):
             raise NodeError(f"{node}: {kind} of camera '{cam.name}' is {w}x{h} but the camera is {cam.width}x{cam.height}")
 
 
+def check_vote_inputs(masks, cameras, min_views: int, outside: str, node: str):
+    """A NodeError when masks or cameras are missing, min_views exceeds the cameras, or the policy is unknown."""
+    if masks is None or cameras is None:
+        raise NodeError(f"{node}: needs both 'masks' and 'cameras' inputs")
+    if min_views > len(cameras):
+        raise NodeError(f"{node}: min_views {min_views} is more than the {len(cameras)} cameras")
+    if outside not in POLICIES:
+        raise NodeError(f"{node}: outside must be one of {', '.join(POLICIES)}, got {outside!r}")
+
+
 def check_masks(masks, cameras: Cameras, node: str = "hull") -> list[np.ndarray]:
     """The masks (a MaskSet or a list) as contiguous uint8 (H, W) arrays, one per camera, or a NodeError
     naming the camera."""
@@ -71,11 +81,10 @@ def centre_states(mask: np.ndarray, cam_row: np.ndarray, X: np.ndarray) -> np.nd
 def vote(n_in: np.ndarray, n_out: np.ndarray, nviews: int, min_views: int, policy: str, min_seen: int = 1) -> np.ndarray:
     """The hull's vote rule (see the module docstring): ``n_in`` / ``n_out`` views see the point inside / on
     background, of ``nviews``."""
-    if min_views > 0:
-        return n_in >= min_views
+    tolerance = nviews - min_views if min_views > 0 else 0
     if policy == "carve":
-        return n_in == nviews
-    return (n_out == 0) & (n_in >= max(1, min_seen))
+        return (n_in + n_out == nviews) & (n_out <= tolerance)
+    return (n_out <= tolerance) & (n_in >= max(1, min_seen))
 
 
 # ---------------------------------------------------------------- OpenCL: silhouette bits
@@ -223,13 +232,8 @@ class Silhouettes:
     def from_inputs(cls, masks, cameras: Cameras, min_views: int = 0, outside: str = "carve", use_alpha: bool = True,
                     node: str = "refine") -> "Silhouettes":
         """Check a MaskSet against the cameras (NodeError naming the camera) and pack both."""
-        if masks is None or cameras is None:
-            raise NodeError(f"{node}: needs both 'masks' and 'cameras' inputs")
+        check_vote_inputs(masks, cameras, min_views, outside, node)
         binary = check_masks(masks, cameras, node)
-        if min_views > len(cameras):
-            raise NodeError(f"{node}: min_views {min_views} is more than the {len(cameras)} cameras")
-        if outside not in POLICIES:
-            raise NodeError(f"{node}: outside must be one of {', '.join(POLICIES)}, got {outside!r}")
         soft = []
         use_alpha = use_alpha and masks.alpha is not None
         for i, (cam, m) in enumerate(zip(cameras, binary)):

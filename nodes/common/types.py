@@ -147,12 +147,46 @@ class VoxelGrid:
 @dataclass
 class SkeletonData:
     """A joint tree: joint positions (J, 3), parent index per joint (-1 for the root), optional LBS
-    weights (V, J) for a mesh's vertices."""
+    weights (V, J) for a mesh's vertices, and optionally its motion over frames: ``rotations`` (F, J, 3, 3)
+    and ``translations`` (F, J, 3) take the rest pose (``joints``, the mesh the weights belong to) to each
+    frame, x -> R x + t per joint's bone (the skinning matrices); ``frames`` their frame numbers."""
 
     joints: np.ndarray
     parents: list[int]
     names: list[str] = field(default_factory=list)
     weights: np.ndarray | None = None
+    rotations: np.ndarray | None = None
+    translations: np.ndarray | None = None
+    frames: list[int] | None = None
+
+    def problem(self) -> str | None:
+        """What is inconsistent (shapes, parents that do not form a tree), or None."""
+        j = len(self.parents)
+        joints = np.asarray(self.joints)
+        if joints.shape != (j, 3):
+            return f"joints have shape {joints.shape}, expected ({j}, 3) for {j} parents"
+        if self.names and len(self.names) != j:
+            return f"{len(self.names)} names for {j} joints"
+        if sum(1 for p in self.parents if p < 0) != 1 and j:
+            return "a skeleton needs exactly one root (parent -1)"
+        for i, p in enumerate(self.parents):
+            seen, q = {i}, p
+            while q >= 0:
+                if q >= j or q in seen:
+                    return f"joint {i}: parent chain is not a tree (parent {q})"
+                seen.add(q)
+                q = self.parents[q]
+        if self.weights is not None and (np.ndim(self.weights) != 2 or np.shape(self.weights)[1] != j):
+            return f"weights have shape {np.shape(self.weights)}, expected (vertices, {j})"
+        if (self.rotations is None) != (self.translations is None):
+            return "rotations and translations come together"
+        if self.rotations is not None:
+            f = np.shape(self.rotations)[0]
+            if np.shape(self.rotations) != (f, j, 3, 3) or np.shape(self.translations) != (f, j, 3):
+                return f"motion shapes {np.shape(self.rotations)} / {np.shape(self.translations)} do not fit {j} joints"
+            if self.frames is not None and len(self.frames) != f:
+                return f"{len(self.frames)} frame numbers for {f} frames of motion"
+        return None
 
 
 # ---------------------------------------------------------------- types
@@ -329,26 +363,36 @@ class TexturedMesh(Mesh):
     name = "TexturedMesh"
     filename = "mesh.glb"
 
+    @classmethod
+    def preview(cls, value, size, companions):
+        return previews.draw_textured_mesh(value, size, companions)
+
 
 class Skeleton(DataType):
     name = "Skeleton"
 
     @classmethod
     def check(cls, v):
-        return None if isinstance(v, SkeletonData) else f"expected SkeletonData, got {type(v).__name__}"
+        if not isinstance(v, SkeletonData):
+            return f"expected SkeletonData, got {type(v).__name__}"
+        return v.problem()
 
     @classmethod
     def save(cls, v: SkeletonData, folder: Path):
-        doc = {"joints": np.asarray(v.joints).tolist(), "parents": list(map(int, v.parents)), "names": v.names}
+        doc = {"joints": np.asarray(v.joints).tolist(), "parents": list(map(int, v.parents)), "names": v.names,
+               "frames": None if v.frames is None else [int(f) for f in v.frames]}
         (folder / "skeleton.json").write_text(json.dumps(doc, indent=1))
-        if v.weights is not None:
-            np.save(folder / "weights.npy", v.weights)
+        for name in ("weights", "rotations", "translations"):
+            if getattr(v, name) is not None:
+                np.save(folder / f"{name}.npy", np.asarray(getattr(v, name)))
 
     @classmethod
     def load(cls, folder: Path) -> SkeletonData:
         doc = json.loads((folder / "skeleton.json").read_text())
-        w = folder / "weights.npy"
-        return SkeletonData(np.array(doc["joints"]), doc["parents"], doc["names"], np.load(w) if w.exists() else None)
+        arrays = {n: (np.load(folder / f"{n}.npy") if (folder / f"{n}.npy").exists() else None)
+                  for n in ("weights", "rotations", "translations")}
+        return SkeletonData(np.array(doc["joints"], dtype=np.float64).reshape(-1, 3), doc["parents"], doc["names"],
+                            frames=doc.get("frames"), **arrays)
 
     @classmethod
     def preview(cls, value, size, companions):

@@ -40,6 +40,8 @@ class EvalSurface(Node):
 
     type_name = "eval.surface"
     version = 1
+    publishes = True     # the report goes to OUT/tables/ (JSON per frame, CSV per node)
+    summary = ("chamfer", "hausdorff", "hausdorff_rel")
     inputs = {"mesh": Mesh, "reference": Mesh}
     outputs = {"report": Table}
     params = {

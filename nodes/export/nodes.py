@@ -54,10 +54,11 @@ class ExportMasks(Node):
     }
 
     def run(self, masks, *, path, alpha, frame):
-        import tempfile
-
         import cv2
 
+        import tempfile
+
+        
         files = {}
         for i, (name, m) in enumerate(zip(masks.names, masks.masks)):
             rel = _format(path, frame=frame, camera=name)

@@ -100,13 +100,13 @@ def fair_step_reference(v, f, off, idx, m, vn, lam_t: float) -> np.ndarray:
     return out
 
 
-def shell_clamp_reference(v, centre, axis, shell, reach: float, across: float) -> np.ndarray:
+def shell_clamp_reference(v, centre, axis, shell, reach: float, across: float, onto: bool = False) -> np.ndarray:
     f = np.float32
     n, p = np.asarray(axis, f), np.asarray(v, f)
     A = np.asarray(centre, f) - f(reach) * n
     shell = np.asarray(shell, f)
-    lo, hi = shell[:, 1].copy(), shell[:, 2].copy()
-    none = shell[:, 3] == 0
+    lo, hi = shell[:, 1].copy(), shell[:, 0 if onto else 2].copy()
+    none = shell[:, 1 if onto else 3] == 0
     lo[none], hi[none] = 0, 1
     swap = lo > hi
     lo[swap] = hi[swap] = f(0.5) * (lo[swap] + hi[swap])
@@ -122,7 +122,8 @@ def shell_clamp_reference(v, centre, axis, shell, reach: float, across: float) -
 
 
 def unfold_step_reference(v, f, off, idx) -> tuple[np.ndarray, int]:
-    """Kernel ``unfold_step``: (vertices, how many moved)."""
+    """Kernel ``unfold_step``: (vertices, how many moved). A vertex is at a fold when two of its faces that share an
+    edge have unit normals more than 150 degrees apart."""
     v = np.asarray(v, np.float32)
     fn = _unit(face_normals_reference(v, f))
     corners = (v[f[:, 0]] + v[f[:, 1]]) + v[f[:, 2]]
@@ -134,7 +135,10 @@ def unfold_step_reference(v, f, off, idx) -> tuple[np.ndarray, int]:
             continue
         n = fn[faces]
         cos = (n[:, None, 0] * n[None, :, 0] + n[:, None, 1] * n[None, :, 1]) + n[:, None, 2] * n[None, :, 2]
-        if (cos < np.float32(-0.8660254)).any():
+        corner = f[faces]
+        others = [set(c.tolist()) - {i} for c in corner]
+        share = np.array([[bool(a & b) for b in others] for a in others])
+        if ((cos < np.float32(-0.8660254)) & share).any():
             ring = np.zeros(3, np.float32)
             for k in faces:
                 ring = ring + corners[k]
@@ -172,9 +176,10 @@ class FairCL(Runner):
         self.launch("unfold_step", *self._groups(nv), d_v, d_f, d_off, d_idx, np.int32(nv), d_out, count)
         return int(self.read(count, (1,), np.int32)[0])
 
-    def shell_clamp(self, d_v, d_centre, d_axis, d_shell, reach: float, across: float, nv: int, d_out):
+    def shell_clamp(self, d_v, d_centre, d_axis, d_shell, reach: float, across: float, nv: int, d_out,
+                    onto: bool = False):
         self.launch("shell_clamp", *self._groups(nv), d_v, d_centre, d_axis, d_shell, np.float32(reach),
-                    np.float32(across), np.int32(nv), d_out)
+                    np.float32(across), np.int32(onto), np.int32(nv), d_out)
 
 
 # ---------------------------------------------------------------- the fairing loop, on either backend
@@ -182,13 +187,14 @@ class NumPyOps:
     """The fairing loop's operations on host arrays (the references above and in hullfit). ``role`` names the
     output (it matters for the device backend only)."""
 
-    def __init__(self, vertices, faces, field=None):
+    def __init__(self, vertices, faces, field=None, cull=None):
         from . import hullfit
 
         self.h = hullfit
         self.f = np.ascontiguousarray(faces, np.int32).reshape(-1, 3)
         self.off, self.idx = vertex_faces(self.f, len(vertices))
         self.field = field
+        self.cull = cull  # (the reference visits every view: the cull changes nothing)
         self.v = np.asarray(vertices, np.float32).reshape(-1, 3)
 
     def face_normals(self, v, role):
@@ -206,11 +212,17 @@ class NumPyOps:
     def shell(self, v, axis, reach, tau_in, tau_out, steps, role):
         return self.h.shell_interval_reference(v, axis, reach, self.field, tau_in, tau_out, steps)
 
-    def clamp(self, v, centre, axis, shell, reach, across, role):
-        return shell_clamp_reference(v, centre, axis, shell, reach, across)
+    def clamp(self, v, centre, axis, shell, reach, across, role, onto=False):
+        return shell_clamp_reference(v, centre, axis, shell, reach, across, onto)
 
     def unfold(self, v, role):
         return unfold_step_reference(v, self.f, self.off, self.idx)
+
+    def put(self, x, role, width=3):
+        return np.asarray(x, np.float32).reshape(-1, width)
+
+    def get(self, x, width=3) -> np.ndarray:
+        return np.asarray(x, np.float32).reshape(-1, width).copy()
 
     def copy(self, v, role):
         return np.array(v, copy=True)
@@ -223,12 +235,13 @@ class CLOps:
     """The same operations on device buffers (FairCL, FieldCL); each output goes to the runner's buffer called
     ``role`` (kept between calls); ``read`` brings vertices back."""
 
-    def __init__(self, vertices, faces, field_cl=None):
+    def __init__(self, vertices, faces, field_cl=None, cull=None):
         import pyopencl as cl
 
         self.cl = cl
         self.k = FairCL.get()
         self.fc = field_cl
+        self.cull = cull  # hullfit.ball_cull with its active views: the shell searches visit only those
         f = np.ascontiguousarray(faces, np.int32).reshape(-1, 3)
         self.nv, self.nf = len(vertices), len(f)
         off, idx = vertex_faces(f, self.nv)
@@ -263,12 +276,12 @@ class CLOps:
 
     def shell(self, v, axis, reach, tau_in, tau_out, steps, role):
         out = self._out(role, self.nv, 4)
-        self.fc.shell(v, axis, reach, self.nv, tau_in, tau_out, steps, out)
+        self.fc.shell(v, axis, reach, self.nv, tau_in, tau_out, steps, out, self.cull)
         return out
 
-    def clamp(self, v, centre, axis, shell, reach, across, role):
+    def clamp(self, v, centre, axis, shell, reach, across, role, onto=False):
         out = self._out(role, self.nv)
-        self.k.shell_clamp(v, centre, axis, shell, reach, across, self.nv, out)
+        self.k.shell_clamp(v, centre, axis, shell, reach, across, self.nv, out, onto)
         return out
 
     def unfold(self, v, role):
@@ -283,6 +296,12 @@ class CLOps:
     def read(self, v) -> np.ndarray:
         return self.k.read(v, (self.nv, 3), np.float32)
 
+    def put(self, x, role, width=3):
+        return self.k.upload(role, np.ascontiguousarray(x, np.float32).reshape(-1, width))
+
+    def get(self, x, width=3) -> np.ndarray:
+        return self.k.read(x, (self.nv, width), np.float32)
+
 
 def smoothed_normals(ops, v, filter_rounds: int, prefix: str = ""):
     """(vertex normals of the filtered face normals, filtered face normals, plain vertex normals)."""
@@ -296,25 +315,29 @@ def smoothed_normals(ops, v, filter_rounds: int, prefix: str = ""):
 
 def fair(ops, *, rounds: int = 2, iterations: int = 5, filter_rounds: int = 2, lam_t: float = 0.5,
          shell=None, reach: float = 0.0, across: float = 0.0, steps: int = 8, clamp_steps: bool = True,
-         unfold: int = 12):
+         unfold: int = 12, final: str = "none", lines=None):
     """The fairing loop: ``rounds`` x (lines along the smoothed normals and their shell intervals, then
     ``iterations`` fairing steps each clamped to the shell: along the line to its interval, across it to at
-    most ``across``; with ``clamp_steps`` false the steps run free). ``shell`` = (tau_in, tau_out) or None. A last clamp along fresh lines through the
-    final positions (nothing across) puts every vertex exactly into the shell; then at most ``unfold`` fold
-    repair steps move the vertices at a fold (faces more than 150 degrees apart), if any. Returns the vertices (backend
-    handle)."""
+    most ``across``; with ``clamp_steps`` false the steps run free). ``shell`` = (tau_in, tau_out) or None;
+    ``lines`` = (centre, axis, shell intervals) of the first round when already searched (backend handles).
+    ``final``: "none", "clamp" (a last clamp along fresh lines through the final positions, nothing across: every
+    vertex exactly into the shell) or "onto" (the same onto the deep level tau_in). Then at most ``unfold`` fold
+    repair steps move the vertices at a fold (faces more than 150 degrees apart), if any. Returns (vertices,
+    the final lines (centre, axis, shell) or None) as backend handles, and how many vertices were still at a
+    fold before the last repair step (0: no fold left)."""
     v = ops.v
     k = 0
 
-    def lines(v):
+    def search(v):
         axis, _, _ = smoothed_normals(ops, v, filter_rounds, "axis_")
         centre = ops.copy(v, "centre")
         sh = ops.shell(centre, axis, reach, shell[0], shell[1], steps, "shell")
         return centre, axis, sh
 
-    for _ in range(rounds):
+    last = None
+    for r in range(rounds):
         if shell is not None and clamp_steps:
-            centre, axis, sh = lines(v)
+            centre, axis, sh = lines if (r == 0 and lines is not None) else search(v)
         for _ in range(iterations):
             _, m, plain = smoothed_normals(ops, v, filter_rounds)
             k += 1
@@ -322,13 +345,14 @@ def fair(ops, *, rounds: int = 2, iterations: int = 5, filter_rounds: int = 2, l
             if shell is not None and clamp_steps:
                 k += 1
                 v = ops.clamp(v, centre, axis, sh, reach, across, f"v{k % 2}")
-    if shell is not None and rounds * iterations > 0:
-        centre, axis, sh = lines(v)
+    if shell is not None and final != "none":
+        last = search(v)
         k += 1
-        v = ops.clamp(v, centre, axis, sh, reach, 0.0, f"v{k % 2}")
+        v = ops.clamp(v, *last, reach, 0.0, f"v{k % 2}", onto=final == "onto")
+    moved = 0
     for _ in range(unfold):  # folds the clamp left: half umbrella steps on the vertices at a fold
         k += 1
         v, moved = ops.unfold(v, f"v{k % 2}")
         if not moved:
             break
-    return v
+    return v, last, moved

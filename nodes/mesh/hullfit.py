@@ -31,9 +31,11 @@ from kernels import source
 from nodegraph import NodeError
 from nodegraph.clrt import Runner, round_up
 from nodes.common.cameras import Cameras, project_packed_f32
-from nodes.common.silhouettes import POLICIES, check_masks, vote
+from nodes.common.silhouettes import POLICIES, SilhouetteBits, check_masks, check_sizes, check_vote_inputs, vote
 
 IN, BACKGROUND, UNSEEN = 1, 2, 3
+RELAX_OUTSIDE_PX = 0.4  # relax's default outside_px (refine searches that level ahead for it)
+ROOT_TOL = 1e-4         # a crossing stops at a point whose field is this close to the level (kernel ROOT_TOL)
 
 
 def bspline2(x: float) -> float:
@@ -55,22 +57,30 @@ class SilhouetteField:
 
     cams: np.ndarray                 # (N, 32) float32, Cameras.pack(origin)
     origin: np.ndarray               # (3,) float64: points are given to the searches relative to it
-    masks: list[np.ndarray]          # uint8 (H, W): binary (> 127 inside) or alpha * 255
+    masks: list[np.ndarray] | None   # uint8 (H, W): binary (> 127 inside) or alpha * 255; None: read from ``bits``
     soft: bool
     min_views: int = 0
     policy: str = "carve"
+    bits: object = None              # the binary masks already on the device (SilhouetteBits), when the producer made them
+    image_sizes: list | None = None  # (W, H) per view
+    source: object = None            # the MaskSet it was made from (identity: what refine and relax may share)
+
+    def key(self) -> tuple:
+        """What makes two fields the same (the MaskSet by identity, the cameras by value, the vote rule)."""
+        return (self.source, self.soft, self.min_views, self.policy, self.cams.tobytes())
 
     @classmethod
     def from_inputs(cls, masks, cameras: Cameras, origin, min_views: int = 0, outside: str = "carve",
                     use_alpha: bool = True, node: str = "refine") -> "SilhouetteField":
         """Check a MaskSet against the cameras (NodeError naming the camera) and pack both."""
-        if masks is None or cameras is None:
-            raise NodeError(f"{node}: needs both 'masks' and 'cameras' inputs")
+        check_vote_inputs(masks, cameras, min_views, outside, node)
+        origin = np.asarray(origin, np.float64).reshape(3)
+        device = getattr(masks, "device", None)
+        if device is not None and not use_alpha:  # the producer's device silhouettes: no host masks needed
+            check_sizes([np.broadcast_to(np.uint8(0), (h, w)) for w, h in device.sizes], cameras, node)
+            return cls(cameras.pack(origin), origin, None, False, int(min_views), outside, device, list(device.sizes),
+                       masks)
         binary = check_masks(masks, cameras, node)
-        if min_views > len(cameras):
-            raise NodeError(f"{node}: min_views {min_views} is more than the {len(cameras)} cameras")
-        if outside not in POLICIES:
-            raise NodeError(f"{node}: outside must be one of {', '.join(POLICIES)}, got {outside!r}")
         soft = bool(use_alpha and masks.alpha is not None)
         levels = binary
         if soft:
@@ -83,16 +93,22 @@ class SilhouetteField:
                 if not np.all(np.isfinite(a)):
                     raise NodeError(f"{node}: alpha of camera '{cam.name}' contains NaN or infinity")
                 levels.append(np.ascontiguousarray(np.clip(np.rint(a * 255), 0, 255).astype(np.uint8)))
-        origin = np.asarray(origin, np.float64).reshape(3)
-        return cls(cameras.pack(origin), origin, levels, soft, int(min_views), outside)
+        return cls(cameras.pack(origin), origin, levels, soft, int(min_views), outside, None,
+                   [(m.shape[1], m.shape[0]) for m in binary], masks)
 
     @property
     def sizes(self) -> list[tuple[int, int]]:
-        return [(m.shape[1], m.shape[0]) for m in self.masks]
+        return self.image_sizes if self.image_sizes is not None else [(m.shape[1], m.shape[0]) for m in self.masks]
+
+    def host_masks(self) -> list[np.ndarray]:
+        """The per-view uint8 masks (read back from the device silhouettes when only those were given)."""
+        if self.masks is None:
+            self.masks = self.bits.masks()
+        return self.masks
 
     def pixel_values(self, v: int) -> np.ndarray:
         """View ``v``'s per-pixel values as the kernel reads them: 0/1 (binary, > 127) or level / 255."""
-        m = self.masks[v]
+        m = self.host_masks()[v]
         if self.soft:
             return m.astype(np.float32) * np.float32(1.0 / 255.0)
         return (m > 127).astype(np.float32)
@@ -169,9 +185,11 @@ def _crossing(a, d, field, v, vals, tau, ga, hi, gb, steps):
         t[bad] = f(0.5) * (A[bad] + B[bad])
         g = view_values(a[idx] + t[:, None] * d[idx], field, v, vals) - f(tau)
         up = g >= 0
+        on = np.abs(g) < f(ROOT_TOL)
         s = side[idx]
-        a0[idx] = np.where(up, t, A)
-        b0[idx] = np.where(up, B, t)
+        a0[idx] = np.where(up | on, t, A)
+        b0[idx] = np.where(up & ~on, B, t)
+        go[idx[on]] = False
         ga[idx] = np.where(up, g, np.where(s == -1, f(0.5) * GA, GA))
         gb[idx] = np.where(up, np.where(s == 1, f(0.5) * GB, GB), g)
         side[idx] = np.where(up, 1, -1)
@@ -222,11 +240,11 @@ def exit_two_levels(a, b, field: SilhouetteField, tau_hi: float, tau_lo: float, 
     dead1, dead2 = np.zeros(len(a), bool), np.zeros(len(a), bool)
     for v in range(len(field.cams)):
         vals = np.pad(field.pixel_values(v), 1)
-        f1 = view_values(a + hi1[:, None] * d, field, v, vals)
-        f2 = f1.copy()
-        differ = np.flatnonzero(hi2 != hi1)
-        f2[differ] = view_values(a[differ] + hi2[differ, None] * d[differ], field, v, vals)
-        cut1 = ~dead1 & (f1 < f(tau_hi))
+        f2 = view_values(a + hi2[:, None] * d, field, v, vals)
+        f1 = f2.copy()
+        differ = np.flatnonzero((hi2 != hi1) & (f2 < f(tau_hi)))
+        f1[differ] = view_values(a[differ] + hi1[differ, None] * d[differ], field, v, vals)
+        cut1 = ~dead1 & (f1 < f(tau_hi)) & (f2 < f(tau_hi))
         cut2 = ~dead2 & (f2 < f(tau_lo))
         idx = np.flatnonzero(cut1 | cut2)
         if not len(idx):
@@ -285,56 +303,193 @@ def shell_interval_reference(p, d, reach: float, field: SilhouetteField, tau_in:
     return np.stack([*r_in, *r_out], axis=1)
 
 
-def pack_bits_reference(mask: np.ndarray) -> np.ndarray:
-    """Kernel ``pack_bits`` for one view: (H, ceil(W/8)) uint8, pixel x in bit x % 8 of byte x // 8."""
-    return np.packbits(np.asarray(mask) > 127, axis=1, bitorder="little")
+def active_views_reference(cull, field: SilhouetteField) -> np.ndarray:
+    """Kernel ``active_views``: (N, ceil(views / 32)) uint32, bit v of a point's words 0 when view v sees its
+    whole ball cull[i] = (centre relative to the origin, radius) exactly inside (``ball_all_in``)."""
+    f = np.float32
+    cull = np.asarray(cull, f).reshape(-1, 4)
+    X, R = cull[:, :3], cull[:, 3]
+    nv = len(field.cams)
+    words = np.zeros((len(cull), -(-nv // 32)), np.uint32)
+    for v in range(nv):
+        c = field.cams[v].astype(f)
+        full = field_ones(field, v)
+        sat = np.pad(full.reshape(-(-full.shape[0] // 8), 8, -1, 8).sum(axis=(1, 3)).cumsum(0).cumsum(1),
+                     ((1, 0), (1, 0))) if full.size else np.zeros((1, 1), np.int64)
+        active = ~_ball_all_in(c, sat, X, R, full.shape)
+        words[:, v // 32] |= active.astype(np.uint32) << np.uint32(v % 32)
+    return words
+
+
+def field_ones(field: SilhouetteField, v: int) -> np.ndarray:
+    """View v's pixels whose value is exactly 1, padded with zeros to whole 8x8 blocks."""
+    ones = field.pixel_values(v) == 1.0
+    h, w = ones.shape
+    out = np.zeros((-(-h // 8) * 8, -(-w // 8) * 8), bool)
+    out[:h, :w] = ones
+    return out
+
+
+def _ball_all_in(c, sat, X, R, padded_shape) -> np.ndarray:
+    f = np.float32
+    xc = np.stack([((c[4 * k] * X[:, 0] + c[4 * k + 1] * X[:, 1]) + c[4 * k + 2] * X[:, 2]) + c[4 * k + 3]
+                   for k in range(3)], axis=1)
+    r0, r1, r2 = c[0:3], c[4:7], c[8:11]
+    zr = R * np.sqrt(np.sum(r2 * r2))
+    with np.errstate(all="ignore"):
+        ok = xc[:, 2] * c[24] > f(1.001) * zr
+        nx, ny = xc[:, 0] / xc[:, 2], xc[:, 1] / xc[:, 2]
+        k = R / (np.abs(xc[:, 2]) - zr)
+        dx = k * np.linalg.norm(r0[None] - nx[:, None] * r2[None], axis=1)
+        dy = k * np.linalg.norm(r1[None] - ny[:, None] * r2[None], axis=1)
+        d = c[17:22]
+        if np.any(d != 0):
+            r = np.sqrt(nx * nx + ny * ny) + dx + dy
+            rr = r * r
+            g = 1 + 2 * ((3 * abs(d[0]) + (5 * abs(d[1]) + 7 * abs(d[4]) * rr) * rr) * rr) + 12 * (abs(d[2]) + abs(d[3])) * r
+            dx = dy = g * np.maximum(dx, dy)
+        u, v, _ = project_packed_f32(c, X)
+        ru = f(1.01) * (abs(c[12]) * dx + abs(c[13]) * dy) + f(0.01)
+        rv = f(1.01) * abs(c[15]) * dy + f(0.01)
+        W, H = int(c[22]), int(c[23])
+        ok &= (u - ru >= -0.5) & (u + ru < W - 0.5) & (v - rv >= -0.5) & (v + rv < H - 0.5)
+        x0 = np.floor(u - ru + f(0.5)) - 1
+        x1 = np.floor(u + ru + f(0.5)) + 1
+        y0 = np.floor(v - rv + f(0.5)) - 1
+        y1 = np.floor(v + rv + f(0.5)) + 1
+    ok &= (x0 >= 0) & (y0 >= 0) & (x1 < W) & (y1 < H)
+    out = np.zeros(len(X), bool)
+    i = np.flatnonzero(ok)
+    bx0, bx1 = x0[i].astype(np.int64) >> 3, x1[i].astype(np.int64) >> 3
+    by0, by1 = y0[i].astype(np.int64) >> 3, y1[i].astype(np.int64) >> 3
+    count = (sat[by1 + 1, bx1 + 1] - sat[by0, bx1 + 1]) - (sat[by1 + 1, bx0] - sat[by0, bx0])
+    full = (np.minimum((bx1 + 1) * 8, W) - bx0 * 8) * (np.minimum((by1 + 1) * 8, H) - by0 * 8)
+    out[i] = count == full
+    return out
+
+
+def ball_cull(centres, radius, words: np.ndarray | None = None) -> dict:
+    """A cull for the searches: per point a ball (centre relative to the origin, radius) and the words of its
+    active views (None: to be computed by ``FieldCL.active``)."""
+    c = np.asarray(centres, np.float32).reshape(-1, 3)
+    r = np.broadcast_to(np.asarray(radius, np.float32), (len(c),))
+    return {"cull": np.ascontiguousarray(np.column_stack([c, r]), np.float32), "act": words}
+
+
+def split_cull(cull: dict, edges: np.ndarray) -> dict:
+    """The cull of new vertices at points of ``edges`` (E, 2): the ball centred between the ends' centres that lies in
+    both ends' balls (radius min(ra, rb) - |ca - cb| / 2, at least 0), with the views active for both."""
+    c = cull["cull"][edges]                               # (E, 2, 4)
+    gap = np.linalg.norm(c[:, 0, :3] - c[:, 1, :3], axis=1)
+    r = np.maximum(np.minimum(c[:, 0, 3], c[:, 1, 3]) - np.float32(0.5) * gap, 0)
+    new = np.column_stack([0.5 * (c[:, 0, :3] + c[:, 1, :3]), r]).astype(np.float32)
+    act = cull["act"][edges[:, 0]] & cull["act"][edges[:, 1]]
+    return {"cull": np.vstack([cull["cull"], new]), "act": np.vstack([cull["act"], act])}
+
+
+@dataclass
+class FitLines:
+    """A search of the shell along one line per vertex, handed from refine to relax in memory (as the attribute
+    ``volcap_lines`` of refine's mesh) when they run in one frame unit: refine's last search finds both of relax's
+    levels, so relax's first round needs no search of its own. Relax uses it only for the very vertices, faces
+    and field it was made for."""
+
+    vertices: np.ndarray             # float64 (V, 3): the mesh it belongs to
+    faces: np.ndarray
+    field_key: tuple
+    origin: np.ndarray               # points below are relative to it
+    levels: tuple                    # (tau_in, tau_out)
+    reach: float
+    centre: np.ndarray               # (V, 3) float32: each line is centre +- reach * axis
+    axis: np.ndarray                 # (V, 3) float32, unit
+    shell: np.ndarray                # (V, 4) float32: kernel shell_interval's output
+    cull: dict | None = None         # the cull the searches may use (ball_cull with its active views)
+
+    def fits(self, vertices, faces, field: SilhouetteField, levels) -> bool:
+        return (field.key() == self.field_key and np.allclose(levels, self.levels, rtol=0, atol=1e-7)
+                and np.array_equal(np.asarray(faces), self.faces) and np.array_equal(np.asarray(vertices), self.vertices))
 
 
 # ---------------------------------------------------------------- OpenCL
 class FieldCL(Runner):
-    """The field on the device (kernels/hullfit.cl) and the searches over it. ``prepare`` puts the masks there
-    (binary: packed bits, from the host arrays without a copy; soft: one byte per pixel); the searches then run
-    on device buffers of float3 points relative to the field's origin."""
+    """The field on the device (kernels/hullfit.cl) and the searches over it. ``prepare`` puts the masks there:
+    binary masks as SilhouetteBits (the device's one form of binary silhouettes: the producer's own when the
+    MaskSet carries them, else packed here), soft masks one byte per pixel plus the block tables of their opaque
+    pixels (for view culling). The searches then run on device buffers of float3 points relative to the field's
+    origin, optionally with a cull (``ball_cull``: per point a ball and its active views)."""
 
     source = source("hullfit.cl")
     _packed: tuple = ()  # the mask arrays (kept alive) whose pixels are on the device now
+    _own: SilhouetteBits | None = None  # what host masks are packed into, reused from frame to frame
 
     def prepare(self, field: SilhouetteField) -> "FieldCL":
-        """Upload the cameras and pack the masks. Packing is skipped when the field holds the very same mask
-        arrays (identity) as the last call, as when refine and relax run on one MaskSet in one process; the
+        """Upload the cameras and the masks. The masks are not packed again when the field holds the very same
+        mask arrays (identity) as the last call, as when refine and relax run on one MaskSet in one process; the
         arrays must not be changed in place in between."""
         import pyopencl as cl
 
         self.field = field
-        sizes = field.sizes
         self.cams = self.upload("cams", field.cams)
-        if len(self._packed) == len(field.masks) + 1 and self._packed[0] == field.soft and all(
-                a is b for a, b in zip(self._packed[1:], field.masks)):
+        key = (field.bits,) if field.bits is not None else (field.soft, *field.masks)
+        if field.soft and field.source is not None:  # soft levels are made anew from the alpha: the MaskSet decides
+            key = (True, field.source)
+        if len(key) == len(self._packed) and all(a is b for a, b in zip(key, self._packed)):
             return self
-        per_view = [(w * h if field.soft else -(-w // 8) * h) for w, h in sizes]
-        off = np.concatenate([[0], np.cumsum(per_view)]).astype(np.int64)
-        if off[-1] >= 2**31:
-            raise NodeError("the masks are too large for 32-bit offsets")
-        self.pix_off = self.upload("pix_off", off[:-1].astype(np.int32))
-        self.pix = self.buffer("pix", max(int(off[-1]), 4))
-        host = []  # zero-copy views of the host masks, alive until the queue is done
-        for v, m in enumerate(field.masks):
-            if field.soft:
+        if field.bits is not None:
+            self.sil = field.bits
+            self.pix, self.pix_off = self.sil.bits, self.sil.bit_off_buf
+            self._packed = key
+            return self
+        if field.soft:
+            per_view = [w * h for w, h in field.sizes]
+            off = np.concatenate([[0], np.cumsum(per_view)]).astype(np.int64)
+            if off[-1] >= 2**31:
+                raise NodeError("the masks are too large for 32-bit offsets")
+            self.pix_off = self.upload("pix_off", off[:-1].astype(np.int32))
+            self.pix = self.buffer("pix", max(int(off[-1]), 4))
+            for v, m in enumerate(field.masks):
                 cl.enqueue_copy(self.queue, self.pix, m, dst_offset=int(off[v]), is_blocking=False)
-                continue
-            src = self.host(m)
-            host.append(src)
-            h, w = m.shape
-            self.launch("pack_bits", (round_up(-(-w // 8), 16), round_up(h, 4)), (16, 4), src, np.int32(w), np.int32(h),
-                        self.pix, np.int32(off[v]))
+            opaque = [np.where(m == 255, np.uint8(255), np.uint8(0)) for m in field.masks]
+            self.sil = self._own = SilhouetteBits.from_masks(opaque, out=self._own)  # block tables of f == 1
+        else:
+            self.sil = self._own = SilhouetteBits.from_masks(field.masks, out=self._own)
+            self.pix, self.pix_off = self.sil.bits, self.sil.bit_off_buf
         self.queue.finish()
-        self._packed = (field.soft, *field.masks)
+        self._packed = key
         return self
 
     def field_args(self) -> tuple:
         f = self.field
         return (self.cams, np.int32(len(f.cams)), self.pix, self.pix_off, np.int32(f.soft), np.int32(f.min_views),
                 np.int32(POLICIES.index(f.policy)))
+
+    @property
+    def nwords(self) -> int:
+        return -(-len(self.field.cams) // 32)
+
+    def active(self, cull: dict) -> dict:
+        """``cull`` with its active views' words computed (kernel ``active_views``)."""
+        c = cull["cull"]
+        n = len(c)
+        d_c = self.upload("cull", c if n else np.zeros((1, 4), np.float32))
+        out = self.buffer("act", max(n * self.nwords * 4, 4))
+        self.launch("active_views", *self._groups(n), d_c, np.int32(n), self.cams, np.int32(len(self.field.cams)),
+                    self.sil.sat, self.sil.sat_off_buf, np.int32(self.nwords), out)
+        return {"cull": c, "act": self.read(out, (n, self.nwords), np.uint32)}
+
+    def cull_args(self, cull: dict | None, sub=None) -> tuple:
+        """Kernel arguments of a cull (rows ``sub`` of it when given), or of none: every view visited."""
+        if cull is None or cull.get("act") is None or max(self._levels, default=0) >= 0.9999:
+            return (self.buffer("no_cull", 16), self.buffer("no_act", 4), np.int32(self.nwords), np.int32(0))
+        c, a = cull["cull"], cull["act"]
+        if sub is not None:
+            c, a = c[sub], a[sub]
+        if len(c) == 0:
+            return (self.buffer("no_cull", 16), self.buffer("no_act", 4), np.int32(self.nwords), np.int32(0))
+        return (self.upload("cull_c", c), self.upload("cull_a", np.ascontiguousarray(a, np.uint32)),
+                np.int32(self.nwords), np.int32(1))
+
+    _levels: tuple = ()
 
     @staticmethod
     def _groups(n: int) -> tuple:
@@ -343,17 +498,20 @@ class FieldCL(Runner):
     def inside(self, d_p, n: int, tau: float, d_out):
         self.launch("inside_level", *self._groups(n), d_p, np.int32(n), np.float32(tau), *self.field_args(), d_out)
 
-    def cross(self, d_a, d_b, d_keep, n: int, tau: float, steps: int, d_out, d_found):
+    def cross(self, d_a, d_b, d_keep, n: int, tau: float, steps: int, d_out, d_found, cull=None):
+        self._levels = (tau,)
         self.launch("cross_level", *self._groups(n), d_a, d_b, d_keep, np.int32(n), np.float32(tau), np.int32(steps),
-                    *self.field_args(), d_out, d_found)
+                    *self.field_args(), *self.cull_args(cull), d_out, d_found)
 
-    def onto(self, d_p, d_dir, reach: float, n: int, tau: float, steps: int, d_out, d_found):
+    def onto(self, d_p, d_dir, reach: float, n: int, tau: float, steps: int, d_out, d_found, cull=None):
+        self._levels = (tau,)
         self.launch("onto_level", *self._groups(n), d_p, d_dir, np.float32(reach), np.int32(n), np.float32(tau),
-                    np.int32(steps), *self.field_args(), d_out, d_found)
+                    np.int32(steps), *self.field_args(), *self.cull_args(cull), d_out, d_found)
 
-    def shell(self, d_p, d_dir, reach: float, n: int, tau_in: float, tau_out: float, steps: int, d_out):
+    def shell(self, d_p, d_dir, reach: float, n: int, tau_in: float, tau_out: float, steps: int, d_out, cull=None):
+        self._levels = (tau_in, tau_out)
         self.launch("shell_interval", *self._groups(n), d_p, d_dir, np.float32(reach), np.int32(n), np.float32(tau_in),
-                    np.float32(tau_out), np.int32(steps), *self.field_args(), d_out)
+                    np.float32(tau_out), np.int32(steps), *self.field_args(), *self.cull_args(cull), d_out)
 
     # host-array conveniences (tests, small inputs)
     def _pts(self, role: str, x) -> tuple:
@@ -366,25 +524,24 @@ class FieldCL(Runner):
         self.inside(d, n, tau, out)
         return self.read(out, (n,), np.uint8).astype(bool)
 
-    def cross_host(self, a, b, keep, tau: float, steps: int):
+    def cross_host(self, a, b, keep, tau: float, steps: int, cull=None):
         (da, n), (db, _), (dk, _) = self._pts("h_a", a), self._pts("h_b", b), self._pts("h_k", keep)
         out, found = self.buffer("h_out", max(n * 12, 4)), self.buffer("h_u8", max(n, 4))
-        self.cross(da, db, dk, n, tau, steps, out, found)
+        self.cross(da, db, dk, n, tau, steps, out, found, cull)
         return self.read(out, (n, 3), np.float32), self.read(found, (n,), np.uint8).astype(bool)
 
-    def onto_host(self, p, d, reach: float, tau: float, steps: int):
+    def onto_host(self, p, d, reach: float, tau: float, steps: int, cull=None):
         (dp, n), (dd, _) = self._pts("h_a", p), self._pts("h_b", d)
         out, found = self.buffer("h_out", max(n * 12, 4)), self.buffer("h_u8", max(n, 4))
-        self.onto(dp, dd, reach, n, tau, steps, out, found)
+        self.onto(dp, dd, reach, n, tau, steps, out, found, cull)
         return self.read(out, (n, 3), np.float32), self.read(found, (n,), np.uint8).astype(bool)
 
-    def shell_host(self, p, d, reach: float, tau_in: float, tau_out: float, steps: int):
+    def shell_host(self, p, d, reach: float, tau_in: float, tau_out: float, steps: int, cull=None):
         (dp, n), (dd, _) = self._pts("h_a", p), self._pts("h_b", d)
         out = self.buffer("h_out4", max(n * 16, 4))
-        self.shell(dp, dd, reach, n, tau_in, tau_out, steps, out)
+        self.shell(dp, dd, reach, n, tau_in, tau_out, steps, out, cull)
         return self.read(out, (n, 4), np.float32)
 
     def pixels(self) -> np.ndarray:
-        """The packed masks back on the host (for checks)."""
-        return self.read(self.pix, (int(sum((w * h if self.field.soft else -(-w // 8) * h) for w, h in self.field.sizes)),),
-                         np.uint8)
+        """The binary masks' bits back on the host (for checks)."""
+        return self.read(self.sil.bits, (int(self.sil.bit_off[-1]),), np.uint8)

@@ -12,12 +12,15 @@ Vertices that slid along their edges leave slivers (a vertex near a lattice corn
 and, where neighbours slid in opposite directions, folds. ``quality`` fairing steps (nodes/mesh/fairing.py:
 normals smoothed first, then each vertex towards its faces' planes and the mean of its neighbours) even out
 the triangles and open the folds; then every vertex goes back onto the exact hull along its smoothed normal
-(the fairing's final clamp, a shell of zero width), and fold repair steps follow where that left a fold.
-Same faces as the input by default; a triangle budget (``faces`` or ``edge_length``) subdivides and/or
-decimates (quadric error metrics, fast-simplification) before the quality steps.
+(the fairing's final clamp onto the hull's level), and fold repair steps follow where that left a fold (then
+edge flips or collapses, nodes/mesh/budget.py). That last search also finds relax's outer level on the same
+lines: the mesh carries it (``volcap_lines``, in memory only) and relax, run next in the frame unit, starts
+from it. The searches visit, per vertex, only the views that may cut its neighbourhood (``hullfit.ball_cull``).
+Same faces as the input by default; a triangle budget (``faces`` or ``edge_length``) splits the edges with the
+largest chord error or decimates (quadric error metrics, fast-simplification) before the quality steps.
 
     field = SilhouetteField.from_inputs(masks, cameras, origin=volume centre)
-    vertices, stats = refine_vertices(mesh.vertices, mesh.faces, volume, field, steps=8, quality=6)
+    vertices, faces, stats = refine_vertices(mesh.vertices, mesh.faces, volume, field, steps=8, quality=6)
 """
 from __future__ import annotations
 
@@ -29,8 +32,10 @@ from nodes.common.meshops import carried_vertex_colors
 from nodes.common.silhouettes import POLICIES
 from nodes.common.types import CameraSet, Masks, Mesh, Volume
 
+from .budget import meet_budget, repair_folds
 from .fairing import CLOps, NumPyOps, fair, smoothed_normals
-from .hullfit import FieldCL, SilhouetteField, cross_reference, onto_reference
+from .hullfit import (RELAX_OUTSIDE_PX, FieldCL, FitLines, SilhouetteField, ball_cull, cross_reference, level_of,
+                      onto_reference)
 
 HULL = 0.5  # the field's level of the visual hull (the pixel-edge outline)
 
@@ -80,47 +85,35 @@ def target_face_count(vertices, faces, faces_param: int, edge_length: float) -> 
     return 0
 
 
-def meet_budget(vertices, faces, target: int) -> tuple[np.ndarray, np.ndarray]:
-    """(vertices, faces) with about ``target`` faces: 1-to-4 midpoint subdivision while below it, then quadric
-    decimation (fast-simplification, Garland & Heckbert) down to it. Vertices land near, not on, the hull:
-    the quality steps that follow put them back."""
-    import fast_simplification
-
-    from nodes.common.meshops import split_edges, unique_edges
-
-    v = np.asarray(vertices, np.float64)
-    f = np.asarray(faces, np.int64)
-    if target <= 0 or len(f) == 0:
-        return v, f
-    while len(f) < target:
-        edges, face_edges = unique_edges(f)
-        v, f = split_edges(v, f, edges, face_edges, np.ones(len(edges), bool), v[edges].mean(axis=1))
-    if len(f) > target:
-        v, f = fast_simplification.simplify(v, f, target_count=int(target))
-    return np.asarray(v, np.float64), np.asarray(f, np.int64)
-
-
 # ---------------------------------------------------------------- work function
+CULL_VOXELS = 1.6  # radius of each vertex's ball for view culling: its grid edge and its last search line lie in it
+
+
 def refine_vertices(vertices, faces, volume, field: SilhouetteField, steps: int = 8, quality: int = 6,
-                    lam_t: float = 0.5, method: str = "opencl", target_faces: int = 0):
+                    lam_t: float = 0.5, method: str = "opencl", target_faces: int = 0,
+                    relax_levels: tuple | None = (HULL, level_of(-RELAX_OUTSIDE_PX))):
     """Vertices onto the hull (Liang & Wong along grid edges, else along the normal within one voxel), then
     ``quality`` fairing steps and the projection back onto the hull. With ``target_faces`` > 0 the mesh is
-    first brought to that many faces (``meet_budget``) and (vertices, faces, counts) is returned; otherwise
-    (vertices (V, 3) float64, counts)."""
+    first brought to that many faces (``meet_budget``). Returns (vertices (V, 3) float64, faces, counts): the
+    faces change with a budget, and when a fold the fairing could not open had its edge collapsed. The searches visit, per vertex, only the views that may see its
+    neighbourhood cut (``ball_cull``). The last search also finds the shell at ``relax_levels`` (relax's default
+    levels): counts["lines"] is then the FitLines relax can start from."""
     vertices = np.asarray(vertices, np.float64).reshape(-1, 3)
     faces = np.asarray(faces, np.int64).reshape(-1, 3)
-    stats = {"vertices": len(vertices), "on_edges": 0, "on_normals": 0}
+    stats = {"vertices": len(vertices), "on_edges": 0, "on_normals": 0, "lines": None, "folds_left": 0}
     if len(vertices) == 0:
-        return vertices.copy(), stats
+        return vertices.copy(), faces, stats
     origin = field.origin
     voxel = float(np.max(volume.voxel_size))
     p = (vertices - origin).astype(np.float32)
     a, b, ok = lattice_edges(vertices, volume)
     a = np.where(ok[:, None], a - origin, p).astype(np.float32)  # not on an edge: an empty segment, no crossing
     b = np.where(ok[:, None], b - origin, p).astype(np.float32)
+    cull = None
     if method == "opencl":
         fc = FieldCL.get().prepare(field)
-        out, on = fc.cross_host(a, b, p, HULL, steps)
+        cull = fc.active(ball_cull(p, CULL_VOXELS * voxel))
+        out, on = fc.cross_host(a, b, p, HULL, steps, cull)
         ops = CLOps(out, faces, fc)
     else:
         out, on = cross_reference(a, b, p, field, HULL, steps)
@@ -139,13 +132,24 @@ def refine_vertices(vertices, faces, volume, field: SilhouetteField, steps: int 
         v, faces = meet_budget(out.astype(np.float64), faces, target_faces)
         out = v.astype(np.float32)
         quality = max(quality, 1)
+        if method == "opencl":
+            cull = fc.active(ball_cull(out, CULL_VOXELS * voxel))
     if quality > 0 and len(faces):
-        ops = CLOps(out, faces, fc) if method == "opencl" else NumPyOps(out, faces, field)
-        out = ops.read(fair(ops, rounds=1, iterations=quality, filter_rounds=1, lam_t=lam_t, shell=(HULL, HULL),
-                            reach=0.5 * voxel, steps=steps, clamp_steps=False))
-    if target_faces > 0:
-        return out.astype(np.float64) + origin, faces, stats
-    return out.astype(np.float64) + origin, stats
+        ops = CLOps(out, faces, fc, cull) if method == "opencl" else NumPyOps(out, faces, field)
+        levels = relax_levels if relax_levels is not None else (HULL, HULL)
+        v, last, folds = fair(ops, rounds=1, iterations=quality, filter_rounds=1, lam_t=lam_t, shell=levels,
+                              reach=0.5 * voxel, steps=steps, clamp_steps=False, final="onto")
+        out = ops.read(v)
+        result = out.astype(np.float64) + origin
+        count = len(result)
+        if folds:  # a fold the repair steps could not open (after decimation): flip or collapse its edge
+            result, faces, stats["folds_left"] = repair_folds(result, faces)
+        if relax_levels is not None and last is not None and len(result) == count:  # (no vertex gone: they fit)
+            stats["lines"] = FitLines(result, faces, field.key(), origin, tuple(levels), 0.5 * voxel,
+                                      ops.get(last[0]), ops.get(last[1]), ops.get(last[2], 4), cull)
+    else:
+        result = out.astype(np.float64) + origin
+    return result, faces, stats
 
 
 # ---------------------------------------------------------------- node
@@ -153,10 +157,10 @@ class Refine(Node):
     """Exact visual-hull surface (Liang & Wong 2008): every marching-cubes vertex moves along its grid edge to
     where the edge leaves the hull of the silhouettes (read as a smooth B-spline field, sub-pixel), then fairing
     steps even out the triangles and every vertex goes back onto the hull. Same faces as the input, or a
-    triangle budget (faces or edge_length: subdivision, then quadric decimation)."""
+    triangle budget (faces or edge_length: edge splits by chord error, or quadric decimation; fold-free)."""
 
     type_name = "refine"
-    version = 3
+    version = 4
     inputs = {"mesh": Mesh, "volume": Volume, "masks": Masks, "cameras": CameraSet}
     outputs = {"mesh": Mesh}
     params = {
@@ -184,7 +188,11 @@ class Refine(Node):
             vertices, faces, stats = refine_vertices(mesh.vertices, faces, volume, field, steps, quality, method=method,
                                                      target_faces=target)
         else:
-            vertices, stats = refine_vertices(mesh.vertices, faces, volume, field, steps, quality, method=method)
+            vertices, faces, stats = refine_vertices(mesh.vertices, faces, volume, field, steps, quality, method=method)
         self.log.info("refine: %d of %d vertices onto the hull along grid edges, %d along normals",
                       stats["on_edges"], stats["vertices"], stats["on_normals"])
-        return {"mesh": trimesh.Trimesh(vertices, faces, vertex_colors=carried_vertex_colors(mesh, vertices), process=False)}
+        out = trimesh.Trimesh(vertices, faces, vertex_colors=carried_vertex_colors(mesh, vertices), process=False)
+        if stats["lines"] is not None:  # relax, when it runs next in this frame unit, starts from the last search
+            stats["lines"].vertices = np.asarray(out.vertices)
+            out.volcap_lines = stats["lines"]
+        return {"mesh": out}

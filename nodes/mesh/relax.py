@@ -8,12 +8,14 @@ within it (levels of the smooth silhouette field, nodes/mesh/hullfit.py). Inside
 (nodes/mesh/fairing.py): face normals are smoothed first, vertices move towards the planes of their faces
 with the smoothed normals and evenly along the surface. Every ``iterations`` steps make one round: each round
 sets each vertex's line along its smoothed normal and searches the shell on it once on the device; the steps
-then clamp each vertex to its line's shell interval (and at most ``across`` off it).
+then clamp each vertex to its line's shell interval (and at most ``across`` off it). When refine ran just
+before in the same frame unit, its last search (``volcap_lines`` on its mesh: the same lines, both levels) is
+the first round's, and relax searches nothing itself with the default one round.
 
 With ``keep_silhouettes`` false the fairing runs free (no masks needed). Same topology.
 
     field = SilhouetteField.from_inputs(masks, cameras, origin)
-    vertices = relax_vertices(mesh.vertices, mesh.faces, field, rounds=1, iterations=8)
+    vertices, faces = relax_vertices(mesh.vertices, mesh.faces, field, rounds=1, iterations=8)
 """
 from __future__ import annotations
 
@@ -25,8 +27,9 @@ from nodes.common.meshops import carried_vertex_colors
 from nodes.common.silhouettes import POLICIES
 from nodes.common.types import CameraSet, Masks, Mesh
 
+from .budget import repair_folds
 from .fairing import CLOps, NumPyOps, fair
-from .hullfit import FieldCL, SilhouetteField, level_of
+from .hullfit import RELAX_OUTSIDE_PX, FieldCL, FitLines, SilhouetteField, level_of
 
 
 def mean_edge_length(vertices: np.ndarray, faces: np.ndarray) -> float:
@@ -39,25 +42,39 @@ def mean_edge_length(vertices: np.ndarray, faces: np.ndarray) -> float:
 
 
 def relax_vertices(vertices, faces, field: SilhouetteField | None = None, *, rounds: int = 1, iterations: int = 8,
-                   filter_rounds: int = 2, lam_t: float = 0.5, inside_px: float = 0.0, outside_px: float = 0.4,
-                   steps: int = 8, method: str = "opencl") -> np.ndarray:
-    """Faired vertices (V, 3) float64; with ``field`` kept in the shell between ``inside_px`` pixels within
-    the masks' outline and ``outside_px`` beyond it."""
+                   filter_rounds: int = 2, lam_t: float = 0.5, inside_px: float = 0.0,
+                   outside_px: float = RELAX_OUTSIDE_PX, steps: int = 8, method: str = "opencl",
+                   lines: FitLines | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(faired vertices (V, 3) float64, faces); with ``field`` kept in the shell between ``inside_px`` pixels
+    within the masks' outline and ``outside_px`` beyond it. The vertices and faces are the input's unless a fold
+    the fairing could not open had its edge flipped or collapsed (``budget.repair_folds``). ``lines``: refine's last search (FitLines), used for the
+    first round when it was made for these vertices, faces, field and levels (then ``field`` must have its
+    origin)."""
     vertices = np.asarray(vertices, np.float64).reshape(-1, 3)
     faces = np.asarray(faces, np.int64).reshape(-1, 3)
     if len(vertices) == 0 or len(faces) == 0 or rounds * iterations == 0:
-        return vertices.copy()
+        return vertices.copy(), faces
+    shell = None if field is None else (level_of(inside_px), level_of(-outside_px))
+    if lines is not None and (field is None or not lines.fits(vertices, faces, field, shell)):
+        lines = None
     origin = field.origin if field is not None else vertices.mean(axis=0)
     edge = mean_edge_length(vertices, faces)
     p = (vertices - origin).astype(np.float32)
     if method == "opencl":
-        ops = CLOps(p, faces, FieldCL.get().prepare(field) if field is not None else None)
+        ops = CLOps(p, faces, FieldCL.get().prepare(field) if field is not None else None,
+                    lines.cull if lines is not None else None)
     else:
         ops = NumPyOps(p, faces, field)
-    shell = None if field is None else (level_of(inside_px), level_of(-outside_px))
-    out = fair(ops, rounds=rounds, iterations=iterations, filter_rounds=filter_rounds, lam_t=lam_t, shell=shell,
-               reach=0.5 * edge, across=0.5 * edge, steps=steps)
-    return ops.read(out).astype(np.float64) + origin
+    first, reach = None, 0.5 * edge
+    if lines is not None:
+        first = (ops.put(lines.centre, "l_centre"), ops.put(lines.axis, "l_axis"), ops.put(lines.shell, "l_shell", 4))
+        reach = lines.reach
+    out, _, folds = fair(ops, rounds=rounds, iterations=iterations, filter_rounds=filter_rounds, lam_t=lam_t,
+                         shell=shell, reach=reach, across=0.5 * edge, steps=steps, lines=first)
+    result = ops.read(out).astype(np.float64) + origin
+    if folds:  # a fold the repair steps could not open: flip or collapse its edge
+        result, faces, _ = repair_folds(result, faces)
+    return result, faces
 
 
 # ---------------------------------------------------------------- node
@@ -68,7 +85,7 @@ class Relax(Node):
     slivers; same topology."""
 
     type_name = "relax"
-    version = 3
+    version = 4
     inputs = {"mesh": Mesh,
               "masks": Input(Masks, optional=True, doc="silhouettes to stay within (keep_silhouettes)"),
               "cameras": Input(CameraSet, optional=True, doc="cameras of the masks (keep_silhouettes)")}
@@ -79,7 +96,7 @@ class Relax(Node):
         "filter_rounds": Param(int, 2, range=(1, 20), doc="face-normal smoothing passes before each step"),
         "tangential": Param(float, 0.5, range=(0.0, 1.0), doc="tangential step towards the neighbours' mean (triangle quality)"),
         "keep_silhouettes": Param(bool, True, doc="keep the outline in every view within the shell (needs masks + cameras)"),
-        "outside_px": Param(float, 0.4, range=(0.0, 3.0), doc="how far beyond the mask edge the outline may go, pixels"),
+        "outside_px": Param(float, RELAX_OUTSIDE_PX, range=(0.0, 3.0), doc="how far beyond the mask edge the outline may go, pixels"),
         "inside_px": Param(float, 0.0, range=(-1.0, 3.0), doc="how far within the mask edge the outline may go, pixels "
                            "(negative: at least that far beyond)"),
         "steps": Param(int, 8, range=(1, 40), doc="regula falsi iterations of the shell search"),
@@ -97,15 +114,15 @@ class Relax(Node):
         if -inside_px > outside_px:
             raise NodeError(f"relax: the shell is empty (inside_px {inside_px} is beyond outside_px {outside_px})")
         field = None
+        lines = getattr(mesh, "volcap_lines", None)  # refine's last search, when it ran just before in this unit
         if keep_silhouettes:
             if masks is None or cameras is None:
                 raise NodeError("relax: keep_silhouettes needs the 'masks' and 'cameras' inputs connected "
                                 "(or set keep_silhouettes: false)")
             v = np.asarray(mesh.vertices, np.float64)
-            origin = 0.5 * (v.min(axis=0) + v.max(axis=0)) if len(v) else np.zeros(3)
+            origin = lines.origin if lines is not None else (0.5 * (v.min(axis=0) + v.max(axis=0)) if len(v) else np.zeros(3))
             field = SilhouetteField.from_inputs(masks, cameras, origin, min_views, outside, use_alpha, node="relax")
-        out = relax_vertices(mesh.vertices, mesh.faces, field, rounds=rounds, iterations=iterations,
+        out, faces = relax_vertices(mesh.vertices, mesh.faces, field, rounds=rounds, iterations=iterations,
                              filter_rounds=filter_rounds, lam_t=tangential, inside_px=inside_px,
-                             outside_px=outside_px, steps=steps, method=method)
-        return {"mesh": trimesh.Trimesh(out, np.asarray(mesh.faces), vertex_colors=carried_vertex_colors(mesh, out),
-                                        process=False)}
+                             outside_px=outside_px, steps=steps, method=method, lines=lines)
+        return {"mesh": trimesh.Trimesh(out, faces, vertex_colors=carried_vertex_colors(mesh, out), process=False)}

@@ -217,6 +217,30 @@ def figure_pose(frame: int) -> tuple[np.ndarray, np.ndarray]:
     return rots, pos
 
 
+def figure_keypoints(frame: int) -> dict[str, np.ndarray]:
+    """Ground truth for curve skeletons: key points of the figure's medial axis (its capsules' axes) at
+    ``frame``: the branch points (pelvis, chest), the five extremities (head_top, l/r_wrist, l/r_toe) and the
+    joints where the axis bends by more than 15 degrees (shoulders, hips, elbows, knees, ankles when bent)."""
+    rots, pos = figure_pose(frame)
+    p = {n: pos[i] for i, n in enumerate(NAMES)}
+
+    def posed(x, owner):
+        j = NAMES.index(owner)
+        return rots[j] @ (np.asarray(x, float) - REST[j]) + pos[j]
+
+    p["head_top"] = posed(CAPSULES[3][1], "head")
+    p["l_toe"], p["r_toe"] = posed(CAPSULES[16][1], "l_ankle"), posed(CAPSULES[17][1], "r_ankle")
+    keys = {k: p[k] for k in ("pelvis", "chest", "head_top", "l_wrist", "r_wrist", "l_toe", "r_toe")}
+    for a, b, c in [("chest", "l_shoulder", "l_elbow"), ("chest", "r_shoulder", "r_elbow"), ("l_shoulder", "l_elbow", "l_wrist"),
+                    ("r_shoulder", "r_elbow", "r_wrist"), ("pelvis", "l_hip", "l_knee"), ("pelvis", "r_hip", "r_knee"),
+                    ("l_hip", "l_knee", "l_ankle"), ("r_hip", "r_knee", "r_ankle"), ("l_knee", "l_ankle", "l_toe"),
+                    ("r_knee", "r_ankle", "r_toe")]:
+        u, v = p[b] - p[a], p[c] - p[b]
+        if np.degrees(np.arccos(np.clip(u @ v / np.linalg.norm(u) / np.linalg.norm(v), -1, 1))) > 15:
+            keys[b] = p[b]
+    return keys
+
+
 def skin(vertices: np.ndarray, weights: np.ndarray, rots: np.ndarray, pos: np.ndarray) -> np.ndarray:
     """Linear blend skinning: v' = sum_j w_j (R_j (v - rest_j) + p_j)."""
     per_joint = np.einsum("jab,vjb->vja", rots, vertices[:, None, :] - REST[None]) + pos[None]

@@ -1,5 +1,5 @@
 """Every graph in graphs/ validates; every dataset graph runs on the real data and produces watertight
-one-piece meshes, with silhouette scores where the graph computes them. Graphs whose chain other tests study
+meshes without specks, with silhouette scores where the graph computes them. Graphs whose chain other tests study
 at full resolution (refine/relax on thu_wd_human and inria_dancer, the keyed thu_wd_human) share that run
 (conftest.dataset_run); the others run with their hulls at 64^3 to stay quick."""
 from __future__ import annotations
@@ -42,7 +42,16 @@ def test_dataset_graph_runs(path, dataset_run, data_dir, monkeypatch):
     assert meshes, "a dataset graph should export a mesh"
     for p in meshes:
         m = trimesh.load(p, process=False)
-        assert m.is_watertight and m.body_count == 1 and m.volume > 0, p.name
+        assert m.is_watertight and m.volume > 0, p.name
+        # no specks: every part at least mc's min_part (1 %) of the largest. Not one piece: at 64^3 oxford_dino's
+        # tail comes apart from the body (1096 of 7820 faces; docs/mc_parts_oxford_dino_64.png), and mc's old
+        # `largest` dropped it in silence
+        parts = sorted((len(b.faces) for b in m.split(only_watertight=False)), reverse=True)
+        assert parts[-1] >= 0.01 * parts[0] and len(parts) <= 3, (p.name, parts)
+    for p in [Path(p) for r in res.records if r["type"] == "export.textured" for p in r["published"]]:
+        if p.suffix == ".glb":                          # textured: the texture travels inside the GLB
+            m = trimesh.load(p, force="mesh")
+            assert m.visual.kind == "texture" and m.visual.material.baseColorTexture is not None, p.name
     for r in res.records:
         if r["type"] == "eval.silhouette":
             table = json.loads((Path(r["cache_dir"]) / "report/table.json").read_text())

@@ -13,11 +13,11 @@ ROOT = Path(__file__).resolve().parents[2]
 
 def test_demo_graph_end_to_end(tmp_path):
     small = ["--set", "stage.width=240", "--set", "stage.height=180", "--set", "stage.cameras=8",
-             "--set", "hull.resolution=64", "--frames", "0:2"]
+             "--set", "hull.resolution=64", "--set", "texture.size=256", "--frames", "0:2"]
     args = ["--cache", str(tmp_path / "cache"), "run", str(ROOT / "graphs/demo.yaml"), "--out", str(tmp_path / "out"), "-q", "-j", "1"]
     assert cli(args + small) == 0
     doc = json.loads((tmp_path / "out/run.json").read_text())
-    assert doc["counts"] == {"done": 18}
+    assert doc["counts"] == {"done": 22}
     items = {(r["node"], r["frame"]): r for r in doc["items"]}
     for f in (0, 1):
         mesh = trimesh.load(tmp_path / f"out/demo_{f:04d}.ply", process=False)
@@ -27,9 +27,11 @@ def test_demo_graph_end_to_end(tmp_path):
         surf = json.loads((Path(items[("surface", f)]["cache_dir"]) / "report/table.json").read_text())
         assert surf["chamfer_rel"] < 0.01, surf["chamfer_rel"]
         assert len(list((tmp_path / "out/masks").glob(f"*/{f:04d}.png"))) == 8
+        glb = trimesh.load(tmp_path / f"out/demo_{f:04d}.glb", force="mesh")     # the textured mesh, texture embedded
+        assert glb.visual.kind == "texture" and glb.visual.material.baseColorTexture.size == (256, 256)
     # a second run is all cache hits and rewrites identical files
     before = (tmp_path / "out/demo_0000.ply").read_bytes()
     assert cli(args + small) == 0
     doc = json.loads((tmp_path / "out/run.json").read_text())
-    assert doc["counts"] == {"cached": 18}
+    assert doc["counts"] == {"cached": 22}
     assert (tmp_path / "out/demo_0000.ply").read_bytes() == before

@@ -196,9 +196,19 @@ def test_colours_reach_the_mesh_and_survive_refine_and_relax(small_cup):
     refined = run_node("refine", {"mesh": mesh, "volume": vol, "masks": s["masks"], "cameras": s["cameras"]},
                        roundtrip=True)["mesh"]
     assert refined.visual.kind == "vertex" and len(refined.visual.vertex_colors) == len(refined.vertices)
-    assert np.array_equal(np.asarray(refined.visual.vertex_colors)[: len(rgb), :3], rgb)
+    got = np.asarray(refined.visual.vertex_colors)[:, :3]
+    if len(refined.vertices) == len(mesh.vertices):  # mc's vertices, moved: their own colours
+        assert np.array_equal(got, rgb)
+    else:  # a fold's edge collapsed: every vertex still carries a colour of the carved volume's surface
+        assert {tuple(c) for c in got} <= {tuple(c) for c in rgb}
     relaxed = run_node("relax", {"mesh": refined, "masks": s["masks"], "cameras": s["cameras"]}, roundtrip=True)["mesh"]
-    assert np.array_equal(np.asarray(relaxed.visual.vertex_colors), np.asarray(refined.visual.vertex_colors))
+    before, after = np.asarray(refined.visual.vertex_colors), np.asarray(relaxed.visual.vertex_colors)
+    if len(relaxed.vertices) == len(refined.vertices):
+        assert np.array_equal(after, before)
+    else:  # relax collapsed a fold's edge
+        assert len(after) == len(relaxed.vertices) and {tuple(c) for c in after} <= {tuple(c) for c in before}
+    for m in (refined, relaxed):  # whatever collapsed, the faces index the vertices there are
+        assert m.faces.max() < len(m.vertices) and m.is_watertight
 
 
 def test_golden_space_carving(small_cup, golden):

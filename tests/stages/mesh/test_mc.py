@@ -127,7 +127,7 @@ def test_node_golden_and_largest_component(golden):
     occ[12:16, 4:8, 4:8] = 1
     two = VoxelGrid(occ, [0, 0, 0], [2.0, 1.2, 1.2])
     both = run_node("mc", {"volume": two})["mesh"]
-    one = run_node("mc", {"volume": two}, {"largest": True})["mesh"]
+    one = run_node("mc", {"volume": two}, {"largest": True, "min_part": 1.0})["mesh"]
     assert len(both.split(only_watertight=False)) == 2
     assert one.is_watertight and len(one.split(only_watertight=False)) == 1
     assert one.bounds[1][0] < 1.0 and len(one.faces) < len(both.faces)

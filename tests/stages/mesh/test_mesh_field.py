@@ -9,8 +9,8 @@ from meshcases import figure_case, rig
 
 from nodes.common.cameras import Cameras, look_at
 from nodes.common.types import MaskSet
-from nodes.mesh.hullfit import (FieldCL, SilhouetteField, cross_reference, inside_at, level_of, onto_reference,
-                                pack_bits_reference, shell_interval_reference, view_values)
+from nodes.mesh.hullfit import (FieldCL, SilhouetteField, active_views_reference, ball_cull, cross_reference, inside_at,
+                                level_of, onto_reference, shell_interval_reference, split_cull, view_values)
 from nodes.mesh.refine import lattice_edges
 
 
@@ -41,7 +41,8 @@ def test_kernels_match_reference(soft):
     assert field.soft == soft
     fc = FieldCL.get().prepare(field)
     if not soft:
-        np.testing.assert_array_equal(fc.pixels(), np.concatenate([pack_bits_reference(m).ravel() for m in masks.masks]))
+        want = [np.packbits(m > 127, axis=1, bitorder="little").ravel() for m in masks.masks]  # SilhouetteBits
+        np.testing.assert_array_equal(fc.pixels(), np.concatenate(want))
     rng = np.random.default_rng(1)
     pts = rng.uniform(-0.8, 0.9, (3000, 3)).astype(np.float32)
     for tau in (0.125, 0.5, 0.875):
@@ -114,3 +115,53 @@ def test_field_checks_name_the_camera():
         SilhouetteField.from_inputs(MaskSet(masks, alpha), cams, np.zeros(3))
     with pytest.raises(NodeError, match="min_views 4"):
         SilhouetteField.from_inputs(MaskSet(masks), cams, np.zeros(3), min_views=4)
+
+
+@pytest.mark.parametrize("soft, distorted", [(False, False), (True, False), (False, True)])
+def test_view_culling_is_exact(soft, distorted):
+    """active_views (kernel == NumPy): a view marked inactive sees every point of the vertex's ball at field 1
+    (so it cannot cut a search there), about half the views are skipped, and the searches with the cull give
+    the very same results as without it (bit for bit), also for segments that leave the ball (all views)."""
+    cams, masks, vol, mesh = figure_case(32, count=6, size=256, soft=soft)
+    if distorted:  # strong lens distortion and a skewed, non-square pixel: the ball's projected bound must hold
+        for k, c in enumerate(cams):
+            c.dist = np.array([-0.25, 0.08, 0.002, -0.003, 0.01]) * (1 + 0.2 * k)
+            c.K[0, 1], c.K[1, 1] = 0.4, 1.1 * c.K[1, 1]
+        masks = ball_masks_from(cams, masks)
+    origin = 0.5 * (vol.bbox_min + vol.bbox_max)
+    field = SilhouetteField.from_inputs(masks, cams, origin)
+    fc = FieldCL.get().prepare(field)
+    voxel = float(vol.voxel_size[0])
+    p = (mesh.vertices - origin).astype(np.float32)
+    radius = 0.8 * voxel  # 4.7 pixels
+    cull = fc.active(ball_cull(p, radius))
+    np.testing.assert_array_equal(cull["act"], active_views_reference(cull["cull"], field))
+    bits = np.unpackbits(cull["act"].view(np.uint8), axis=1, bitorder="little")[:, :len(cams)].astype(bool)
+    print(f"active views {bits.mean():.2f}")
+    assert 0.1 < bits.mean() < 0.75
+    rng = np.random.default_rng(4)
+    for v in range(len(cams)):  # points spread over each ball (its surface too) where view v is inactive
+        idle = np.flatnonzero(~bits[:, v])
+        d = rng.standard_normal((len(idle), 3))
+        d *= (radius * rng.uniform(0.5, 1.0, (len(idle), 1)) ** 0.3) / np.linalg.norm(d, axis=1, keepdims=True)
+        assert np.all(view_values((p[idle] + d).astype(np.float32), field, v) == 1.0)
+    n = mesh.vertex_normals.astype(np.float32)
+    for reach in (0.25 * voxel, 3.0 * voxel):  # within the balls; beyond them (every view visited)
+        want = fc.shell_host(p, n, reach, 0.5, level_of(-0.4), 8)
+        np.testing.assert_array_equal(fc.shell_host(p, n, reach, 0.5, level_of(-0.4), 8, cull), want)
+        got, found = fc.onto_host(p, n, reach, 0.5, 8, cull)
+        np.testing.assert_array_equal(got, fc.onto_host(p, n, reach, 0.5, 8)[0])
+    a, b, ok = lattice_edges(mesh.vertices, vol)
+    a, b = (a - origin).astype(np.float32), (b - origin).astype(np.float32)
+    np.testing.assert_array_equal(fc.cross_host(a, b, p, 0.5, 8, cull)[0], fc.cross_host(a, b, p, 0.5, 8)[0])
+    # the cull of points split from edges: balls inside both ends' balls, views active for both
+    edges = np.array([[0, 1], [2, 3]])
+    sub = split_cull(cull, edges)
+    assert len(sub["cull"]) == len(p) + 2
+    np.testing.assert_array_equal(sub["act"][-2:], cull["act"][[0, 2]] & cull["act"][[1, 3]])
+
+
+def ball_masks_from(cams, masks):
+    from meshcases import FIGURE, ball_masks
+
+    return MaskSet(ball_masks(FIGURE, cams).masks, None if masks.alpha is None else ball_masks(FIGURE, cams).alpha)

@@ -1,0 +1,169 @@
+"""Pictures of the skeleton stage, written to docs/:
+
+    python bench/render_skeletons.py [thu_wd_human inria_dancer figure]
+
+- skeleton_<dataset>.png: graphs/skeleton/<dataset>.yaml run on the real data (frame 0); the joint tree
+  of the relaxed mesh (skeletonize) projected onto three camera images, extremities labelled, beside the
+  tree from the hull volume. Checks by eye that the five extremities are the head, the hands and the feet.
+- skeleton_figure.png: the synth walking figure over 100 frames: skeletonize.sequence + skin (10 bones,
+  fixed bone lengths) on its true meshes; the rig drawn over the mesh at four frames (front view), the
+  part of each vertex in colour, and the LBS error per frame.
+Uses a cache in /tmp/volcap-skeleton-docs (reruns are quick).
+"""
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+os.environ.setdefault("VOLCAP_DATA", str(ROOT.parent / "shared" / "data"))
+
+CACHE = Path("/tmp/volcap-skeleton-docs")
+COLOURS = {"head": (255, 60, 60), "hand": (60, 200, 60), "foot": (60, 120, 255)}
+
+
+def run_graph_outputs(path: Path, wanted: list[tuple[str, str]]):
+    from nodegraph.cache import Cache
+    from nodegraph.executors import LocalExecutor
+    from nodegraph.graphfile import load_graph
+    from nodegraph.node import node_class
+    from nodegraph.run import run_graph
+
+    g = load_graph(path).keep_all()
+    res = run_graph(g, Cache(CACHE / "cache"), CACHE / "out", LocalExecutor(1), progress=False)
+    assert res.ok, res.failures
+    out = {}
+    for node, port in wanted:
+        [rec] = [r for r in res.records if r["node"] == node]
+        cls = node_class(rec["type"])
+        out[(node, port)] = Cache(CACHE / "cache").load(rec["key"], port, cls.outputs[port].type)
+    return out
+
+
+def draw_tree(img, uv, parents, names, colour=(255, 220, 0), thick=3):
+    import cv2
+
+    for j, p in enumerate(parents):
+        if p >= 0:
+            cv2.line(img, tuple(map(int, uv[j])), tuple(map(int, uv[p])), colour, thick, cv2.LINE_AA)
+    for j, (x, y) in enumerate(uv):
+        name = names[j] if j < len(names) else ""
+        kind = name.split("_")[0]
+        c = COLOURS.get(kind, (255, 255, 255) if name == "root" else colour)
+        cv2.circle(img, (int(x), int(y)), thick + 3 if kind in COLOURS or name == "root" else thick + 1, c, -1, cv2.LINE_AA)
+        if kind in COLOURS or name == "root":
+            cv2.putText(img, name, (int(x) + 8, int(y) - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 4, cv2.LINE_AA)
+            cv2.putText(img, name, (int(x) + 8, int(y) - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.6, c, 1, cv2.LINE_AA)
+
+
+def dataset_picture(name: str):
+    import cv2
+
+    vals = run_graph_outputs(ROOT / "graphs" / "skeleton" / f"{name}.yaml",
+                             [("capture", "images"), ("capture", "cameras"), ("skeleton", "skeleton"),
+                              ("skeleton", "report"), ("from_hull", "skeleton"), ("relax", "mesh")])
+    images, cams = vals[("capture", "images")], vals[("capture", "cameras")]
+    sk, hull_sk, rep = vals[("skeleton", "skeleton")], vals[("from_hull", "skeleton")], vals[("skeleton", "report")]
+    mesh = vals[("relax", "mesh")]
+    centre = np.asarray(mesh.vertices).mean(0)
+    # three views around the subject: the cameras facing it from the most different directions
+    dirs = np.array([(c.center - centre) / np.linalg.norm(c.center - centre) for c in cams.cameras])
+    views = [0]
+    while len(views) < 3:
+        views.append(int(np.argmin(np.max(dirs @ dirs[views].T, axis=1))))
+    tiles = []
+    for v in views:
+        img = images.images[v].copy()
+        pts_uv, _ = cams.project(np.asarray(mesh.vertices), v)
+        uv, _ = cams.project(sk.joints, v)
+        huv, _ = cams.project(hull_sk.joints, v)
+        lo = np.maximum(np.minimum(pts_uv.min(0), uv.min(0)) - 40, 0).astype(int)
+        hi = np.minimum(np.maximum(pts_uv.max(0), uv.max(0)) + 40, [img.shape[1], img.shape[0]]).astype(int)
+        a = img.copy()
+        draw_tree(a, uv, sk.parents, sk.names)
+        b = img.copy()
+        draw_tree(b, huv, hull_sk.parents, hull_sk.names, colour=(255, 140, 0))
+        crop = lambda x: x[lo[1]:hi[1], lo[0]:hi[0]]  # noqa: E731
+        pair = np.hstack([crop(a), crop(b)])
+        scale = 520 / pair.shape[0]
+        pair = cv2.resize(pair, (int(pair.shape[1] * scale), 520), interpolation=cv2.INTER_AREA)
+        for text, x0 in ((f"{cams.names[v]}: from the relaxed mesh", 8), ("from the hull volume", crop(a).shape[1] * scale + 8)):
+            cv2.putText(pair, text, (int(x0), 22), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (0, 0, 0), 4, cv2.LINE_AA)
+            cv2.putText(pair, text, (int(x0), 22), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (255, 255, 255), 1, cv2.LINE_AA)
+        tiles.append(pair)
+    width = max(t.shape[1] for t in tiles)
+    sheet = np.vstack([np.pad(t, ((0, 4), (0, width - t.shape[1]), (0, 0))) for t in tiles])
+    title = np.zeros((56, width, 3), np.uint8)
+    cv2.putText(title, f"{name}: skeletonize (relaxed mesh at 128^3), {rep['joints']} joints", (8, 22),
+                cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1, cv2.LINE_AA)
+    cv2.putText(title, f"extremities {', '.join(sorted(rep['names']))}, {rep['seconds'] * 1000:.0f} ms; "
+                f"hull volume: {len([p for p in range(len(hull_sk.parents)) if p not in hull_sk.parents])} extremities",
+                (8, 46), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1, cv2.LINE_AA)
+    sheet = np.vstack([title, sheet])
+    out = ROOT / "docs" / f"skeleton_{name}.png"
+    cv2.imwrite(str(out), sheet[:, :, ::-1])
+    print(out, rep)
+
+
+def figure_picture(frames: int = 100):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import trimesh
+
+    from nodegraph.testing import run_node
+    from nodes.skeleton.skinning import lbs
+    from nodes.synth import scenes
+
+    rest, w, _ = scenes.figure_rest()
+    meshes = [trimesh.Trimesh(scenes.skin(rest.vertices, w, *scenes.figure_pose(f)), rest.faces, process=False)
+              for f in range(frames)]
+    a = run_node("skeletonize.sequence", {"meshes": meshes}, {"bones": 10}, frames=list(range(frames)))
+    b = run_node("skin", {"meshes": meshes, "skeleton": a["skeleton"]}, {}, frames=list(range(frames)))
+    sk, err = b["skeleton"], b["error"]
+    skinned = lbs(np.asarray(b["rest"].vertices), sk.weights, sk.rotations, sk.translations)
+    labels = np.argmax(sk.weights, axis=1)
+    fig = plt.figure(figsize=(16, 6.5))
+    show = [0, 6, 12, 18]   # a step is 24 frames
+    cmap = plt.get_cmap("tab10")
+    for i, f in enumerate(show):
+        ax = fig.add_subplot(1, 5, i + 1)
+        v = skinned[f]
+        a0 = 0 if i % 2 == 0 else 1                     # front view (x, z) and side view (y, z) in turn
+        ax.scatter(v[::3, a0], v[::3, 2], s=0.4, c=cmap(labels[::3] % 10), alpha=0.5)
+        piv = np.einsum("jab,jb->ja", sk.rotations[f], sk.joints) + sk.translations[f]
+        true = scenes.figure_pose(f)[1]
+        for j, p in enumerate(sk.parents):
+            if p >= 0:
+                ax.plot(piv[[j, p], a0], piv[[j, p], 2], "k-", lw=2)
+        ax.plot(piv[:, a0], piv[:, 2], "ko", ms=5)
+        ax.plot(true[:, a0], true[:, 2], "r+", ms=8, mew=1.5)
+        ax.set_title(f"frame {f} ({'front' if a0 == 0 else 'side'}): rms {err['timeline']['rmse'][f] * 1000:.2f} mm",
+                     fontsize=10)
+        ax.set_aspect("equal")
+        ax.axis("off")
+    ax = fig.add_subplot(1, 5, 5)
+    t = err["timeline"]
+    ax.plot(t["frame"], np.array(t["rmse"]) * 1000, label="rms")
+    ax.plot(t["frame"], np.array(t["max"]) * 1000, label="max")
+    ax.set_xlabel("frame")
+    ax.set_ylabel("LBS error (mm)")
+    ax.set_title(f"rms {err['rmse'] * 1000:.3f} mm = {err['rmse_percent']:.4f} % of diagonal", fontsize=10)
+    ax.legend()
+    fig.suptitle(f"synth figure, {frames} frames: skeletonize.sequence + skin, {err['bones']} bones, fixed bone lengths "
+                 f"(spread {err['bone_length_spread']:.1e}); black: our joints, red +: true joints; colours: parts")
+    fig.tight_layout()
+    out = ROOT / "docs" / "skeleton_figure.png"
+    fig.savefig(out, dpi=80)
+    print(out, {k: v for k, v in err.items() if k not in ("timeline", "residual", "history")})
+
+
+if __name__ == "__main__":
+    names = sys.argv[1:] or ["thu_wd_human", "inria_dancer", "figure"]
+    for n in names:
+        figure_picture() if n == "figure" else dataset_picture(n)

@@ -1,0 +1,183 @@
+"""Export of textured meshes: glTF binary with the texture embedded, OBJ + MTL + PNG, USD with a
+UsdPreviewSurface texture (usda, usdc, usdz), PLY with vertex colours; optionally a linear-light EXR of the
+texture."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from nodegraph import Files, Node, NodeError, OutPath, Param
+from nodes.common.types import TexturedMesh
+
+from .nodes import _format
+
+TEXTURED_FORMATS = ("glb", "obj", "usda", "usdc", "usdz", "ply")
+
+
+class ExportTextured(Node):
+    """Write a textured mesh per frame for a production chain, chosen by the file suffix: .glb (binary glTF,
+    texture embedded), .obj (+ .mtl + .png beside it), .usda / .usdc (UsdPreviewSurface reading a .png
+    beside it) or .usdz (one package), .ply (vertex colours sampled from the texture)."""
+
+    type_name = "export.textured"
+    uses_frame = True
+    publishes = True
+    inputs = {"mesh": TexturedMesh}
+    outputs = {"files": Files}
+    params = {"path": Param(OutPath, "textured_{frame:04d}.glb", doc="output file pattern, relative to --out"),
+              "linear_exr": Param(bool, False, doc="also write the texture as linear-light float EXR (NAME_linear.exr)")}
+
+    def run(self, mesh, *, path, linear_exr, frame):
+        rel = _format(path, frame=frame)
+        ext = Path(rel).suffix.lstrip(".").lower()
+        if ext not in TEXTURED_FORMATS:
+            raise NodeError(f"path {path!r}: unknown textured-mesh format '.{ext}' (use one of {', '.join(TEXTURED_FORMATS)})")
+        files = textured_files(mesh, rel, ext)
+        tex = texture_image(mesh)
+        if linear_exr and tex is not None:
+            files[str(Path(rel).with_suffix("")) + "_linear.exr"] = linear_exr_bytes(tex)
+        return {"files": files}
+
+
+def linear_exr_bytes(tex: np.ndarray) -> bytes:
+    """An sRGB 8-bit texture decoded to linear light, as a half-float RGB EXR file."""
+    import tempfile
+
+    import OpenEXR
+
+    c = tex.astype(np.float32) / 255.0
+    lin = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float16)
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "t.exr"
+        with OpenEXR.File(header, {"R": np.ascontiguousarray(lin[..., 0]), "G": np.ascontiguousarray(lin[..., 1]),
+                                   "B": np.ascontiguousarray(lin[..., 2])}) as f:
+            f.write(str(p))
+        return p.read_bytes()
+
+
+def texture_image(mesh) -> np.ndarray | None:
+    """The base-colour texture of a trimesh mesh as (H, W, 3) uint8, or None."""
+    visual = mesh.visual
+    if getattr(visual, "kind", None) != "texture" or visual.uv is None:
+        return None
+    mat = visual.material
+    image = getattr(mat, "baseColorTexture", None) or getattr(mat, "image", None)
+    return None if image is None else np.asarray(image.convert("RGB"))
+
+
+def vertex_colours(mesh) -> np.ndarray | None:
+    """(V, 3) uint8 colours: the texture sampled at each vertex's UV, or the mesh's vertex colours."""
+    from nodes.common.raster import sample_texture
+
+    tex = texture_image(mesh)
+    if tex is not None:
+        return np.clip(sample_texture(tex, np.asarray(mesh.visual.uv)) + 0.5, 0, 255).astype(np.uint8)
+    if getattr(mesh.visual, "kind", None) == "vertex":
+        return np.asarray(mesh.visual.vertex_colors)[:, :3].astype(np.uint8)
+    return None
+
+
+def _png(img: np.ndarray) -> bytes:
+    import cv2
+
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(img[:, :, ::-1]))
+    if not ok:
+        raise NodeError("could not encode the texture as PNG")
+    return buf.tobytes()
+
+
+def textured_files(mesh, rel: str, ext: str) -> dict[str, bytes]:
+    """File name -> bytes for one textured mesh in format ``ext``."""
+    import trimesh
+
+    stem = Path(rel).with_suffix("")
+    if ext == "glb":
+        return {rel: mesh.export(file_type="glb")}
+    if ext == "ply":
+        cols = vertex_colours(mesh)
+        m = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+        if cols is not None:
+            m.visual = trimesh.visual.ColorVisuals(m, vertex_colors=np.hstack([cols, np.full((len(cols), 1), 255, np.uint8)]))
+        m.merge_vertices(merge_tex=True, merge_norm=True)       # the atlas split vertices at chart borders
+        return {rel: m.export(file_type="ply")}
+    tex = texture_image(mesh)
+    if ext == "obj":
+        from trimesh.exchange.obj import export_obj
+
+        mtl = f"{stem.name}.mtl"
+        text, extra = export_obj(mesh, include_texture=tex is not None, return_texture=True, mtl_name=mtl,
+                                 include_normals=False)
+        files = {rel: text.encode()}
+        for name, data in extra.items():
+            files[str(stem.parent / name)] = data
+        return files
+    return usd_files(mesh, tex, rel, ext)
+
+
+def usd_files(mesh, tex, rel: str, ext: str) -> dict[str, bytes]:
+    """A UsdGeom.Mesh with a UsdPreviewSurface material whose diffuseColor reads the texture (UsdUVTexture
+    through the ``st`` primvar), or displayColor from vertex colours."""
+    import tempfile
+
+    from pxr import Sdf, Usd, UsdGeom, UsdShade, UsdUtils, Vt
+
+    stem = Path(rel).with_suffix("")
+    png_name = f"{stem.name}.png"
+    with tempfile.TemporaryDirectory() as d:
+        d = Path(d)
+        layer = d / f"{stem.name}.{'usdc' if ext == 'usdz' else ext}"
+        stage = Usd.Stage.CreateNew(str(layer))
+        UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+        root = UsdGeom.Xform.Define(stage, "/Capture")
+        stage.SetDefaultPrim(root.GetPrim())
+        geom = UsdGeom.Mesh.Define(stage, "/Capture/Mesh")
+        geom.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(np.asarray(mesh.vertices, np.float32)))
+        geom.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(mesh.faces), 3, np.int32)))
+        geom.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.asarray(mesh.faces, np.int32).ravel()))
+        geom.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+        lo, hi = mesh.bounds
+        geom.CreateExtentAttr(Vt.Vec3fArray.FromNumpy(np.array([lo, hi], np.float32)))
+        mat = UsdShade.Material.Define(stage, "/Capture/Material")
+        surf = UsdShade.Shader.Define(stage, "/Capture/Material/PreviewSurface")
+        surf.CreateIdAttr("UsdPreviewSurface")
+        surf.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(1.0)
+        surf.CreateInput("metallic", Sdf.ValueTypeNames.Float).Set(0.0)
+        mat.CreateSurfaceOutput().ConnectToSource(surf.ConnectableAPI(), "surface")
+        files = {}
+        if tex is not None:
+            st = UsdGeom.PrimvarsAPI(geom).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex)
+            st.Set(Vt.Vec2fArray.FromNumpy(np.asarray(mesh.visual.uv, np.float32)))
+            reader = UsdShade.Shader.Define(stage, "/Capture/Material/STReader")
+            reader.CreateIdAttr("UsdPrimvarReader_float2")
+            reader.CreateInput("varname", Sdf.ValueTypeNames.Token).Set("st")
+            image = UsdShade.Shader.Define(stage, "/Capture/Material/Texture")
+            image.CreateIdAttr("UsdUVTexture")
+            image.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(png_name)
+            image.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set("sRGB")
+            image.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(reader.ConnectableAPI(), "result")
+            image.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
+            surf.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(image.ConnectableAPI(), "rgb")
+            png = _png(tex)
+            (d / png_name).write_bytes(png)
+            files[str(stem.parent / png_name)] = png
+        else:
+            cols = vertex_colours(mesh)
+            if cols is not None:
+                dc = geom.CreateDisplayColorPrimvar(UsdGeom.Tokens.vertex)
+                dc.Set(Vt.Vec3fArray.FromNumpy((cols / 255.0).astype(np.float32)))
+                reader = UsdShade.Shader.Define(stage, "/Capture/Material/ColorReader")
+                reader.CreateIdAttr("UsdPrimvarReader_float3")
+                reader.CreateInput("varname", Sdf.ValueTypeNames.Token).Set("displayColor")
+                reader.CreateOutput("result", Sdf.ValueTypeNames.Float3)
+                surf.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(reader.ConnectableAPI(), "result")
+        UsdShade.MaterialBindingAPI.Apply(geom.GetPrim()).Bind(mat)
+        stage.GetRootLayer().Save()
+        if ext == "usdz":
+            pkg = d / f"{stem.name}.usdz"
+            if not UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(layer)), str(pkg)):
+                raise NodeError(f"{rel}: USD could not write the usdz package")
+            return {rel: pkg.read_bytes()}
+        files[rel] = layer.read_bytes()
+        return files

@@ -1,0 +1,1 @@
+"""Input files other than a capture: meshes from disk (e.g. the reference of eval.surface)."""

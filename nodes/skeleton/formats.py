@@ -1,0 +1,303 @@
+"""A skinned, animated rig as files production tools read: USD (UsdSkel: Skeleton, Animation, a Mesh with
+joint indices and weights) and glTF 2.0 (a skin with inverse bind matrices, joint nodes, and one animation
+with a translation and a rotation channel per joint). Both can be read back here (read_usd, read_gltf) and
+re-skinned, which the tests do: the file's joint transforms at frame k must reproduce our skinned mesh.
+
+Conventions: the rig's bone j takes rest points x to R_tj x + t_tj at frame t (the skinning matrix M_tj).
+Each joint's bind (rest) transform is a pure translation to its rest pivot c_j; its world transform at frame
+t is W_tj = M_tj B_j (rotation R_tj, origin at the moved pivot), its local transform W_t,parent^-1 W_tj. So
+inverse(bind) * world = M_tj, which is what both formats skin with. USD matrices are row-vector (the
+transpose of ours), glTF's are column-major arrays; time codes are the frame numbers (USD) or frame / fps
+seconds from the first frame (glTF).
+"""
+from __future__ import annotations
+
+import re
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+
+def _names(names: list[str], count: int) -> list[str]:
+    """Valid, unique USD/glTF joint names."""
+    out, seen = [], set()
+    for j in range(count):
+        n = re.sub(r"[^A-Za-z0-9_]", "_", names[j] if j < len(names) and names[j] else f"joint_{j}")
+        if not n or n[0].isdigit():
+            n = "j_" + n
+        base, k = n, 1
+        while n in seen:
+            n, k = f"{base}_{k}", k + 1
+        seen.add(n)
+        out.append(n)
+    return out
+
+
+def world_transforms(joints, rotations, translations) -> np.ndarray:
+    """(F, J, 4, 4) joint world transforms W_tj = M_tj B_j (column-vector convention)."""
+    f, j = rotations.shape[:2]
+    w = np.zeros((f, j, 4, 4))
+    w[..., :3, :3] = rotations
+    w[..., :3, 3] = np.einsum("fjab,jb->fja", rotations, joints) + translations
+    w[..., 3, 3] = 1.0
+    return w
+
+
+def local_transforms(world: np.ndarray, parents: list[int]) -> np.ndarray:
+    """(F, J, 4, 4) joint transforms relative to their parents (the root's is its world transform)."""
+    out = world.copy()
+    for j, p in enumerate(parents):
+        if p >= 0:
+            out[:, j] = np.linalg.inv(world[:, p]) @ world[:, j]
+    return out
+
+
+def quaternions(rot: np.ndarray) -> np.ndarray:
+    """(..., 4) unit quaternions (x, y, z, w) of rotation matrices (..., 3, 3)."""
+    from scipy.spatial.transform import Rotation
+
+    shape = rot.shape[:-2]
+    return Rotation.from_matrix(rot.reshape(-1, 3, 3)).as_quat().reshape(*shape, 4)
+
+
+def sparse_influences(weights: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """(indices (V, k) int, weights (V, k) float) of the k largest weights per vertex, renormalised."""
+    idx = np.argsort(-weights, axis=1, kind="stable")[:, :k]
+    w = np.take_along_axis(weights, idx, axis=1)
+    s = w.sum(1, keepdims=True)
+    w = np.where(s > 0, w / np.where(s > 0, s, 1), np.eye(k)[0])
+    idx = np.where(w > 0, idx, 0)
+    return idx.astype(np.int64), w
+
+
+# ---------------------------------------------------------------- USD
+def write_usd(path: Path, vertices, faces, joints, parents, names, weights, rotations, translations, frames,
+              fps: float = 24.0, influences: int = 4):
+    """Write a UsdSkel rig: /Rig (SkelRoot) with Skeleton, its Animation and the bound Mesh."""
+    from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
+
+    names = _names(names, len(parents))
+    paths = []
+    for j, p in enumerate(parents):
+        paths.append(names[j] if p < 0 else f"{paths[p]}/{names[j]}")
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    stage.SetStartTimeCode(float(frames[0]))
+    stage.SetEndTimeCode(float(frames[-1]))
+    stage.SetTimeCodesPerSecond(fps)
+    root = UsdSkel.Root.Define(stage, "/Rig")
+    stage.SetDefaultPrim(root.GetPrim())
+    skel = UsdSkel.Skeleton.Define(stage, "/Rig/Skeleton")
+    skel.CreateJointsAttr(Vt.TokenArray(paths))
+    skel.CreateJointNamesAttr(Vt.TokenArray(names))
+    joints = np.asarray(joints, np.float64)
+    bind = np.tile(np.eye(4), (len(parents), 1, 1))
+    bind[:, :3, 3] = joints
+    rest_local = local_transforms(bind[None], parents)[0]
+    m4 = lambda a: Gf.Matrix4d(*np.asarray(a, np.float64).T.ravel().tolist())  # noqa: E731  column -> row convention
+    skel.CreateBindTransformsAttr(Vt.Matrix4dArray([m4(b) for b in bind]))
+    skel.CreateRestTransformsAttr(Vt.Matrix4dArray([m4(b) for b in rest_local]))
+    anim = UsdSkel.Animation.Define(stage, "/Rig/Skeleton/Animation")
+    anim.CreateJointsAttr(Vt.TokenArray(paths))
+    local = local_transforms(world_transforms(joints, rotations, translations), parents)
+    quats = quaternions(local[..., :3, :3])
+    t_attr, r_attr, s_attr = anim.CreateTranslationsAttr(), anim.CreateRotationsAttr(), anim.CreateScalesAttr()
+    s_attr.Set(Vt.Vec3hArray([Gf.Vec3h(1, 1, 1)] * len(parents)))
+    for k, fr in enumerate(frames):
+        code = Usd.TimeCode(float(fr))
+        t_attr.Set(Vt.Vec3fArray.FromNumpy(local[k, :, :3, 3].astype(np.float32)), code)
+        r_attr.Set(Vt.QuatfArray([Gf.Quatf(float(q[3]), float(q[0]), float(q[1]), float(q[2])) for q in quats[k]]), code)
+    UsdSkel.BindingAPI.Apply(skel.GetPrim()).CreateAnimationSourceRel().SetTargets([anim.GetPath()])
+    mesh = UsdGeom.Mesh.Define(stage, "/Rig/Mesh")
+    mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(np.asarray(vertices, np.float32)))
+    faces = np.asarray(faces, np.int32)
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray([3] * len(faces)))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(faces.ravel()))
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
+    binding = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
+    binding.CreateSkeletonRel().SetTargets([skel.GetPath()])
+    k = max(1, min(influences, len(parents)))
+    idx, w = sparse_influences(np.asarray(weights, np.float64), k)
+    binding.CreateJointIndicesPrimvar(False, k).Set(Vt.IntArray.FromNumpy(idx.astype(np.int32).ravel()))
+    binding.CreateJointWeightsPrimvar(False, k).Set(Vt.FloatArray.FromNumpy(w.astype(np.float32).ravel()))
+    binding.CreateGeomBindTransformAttr(Gf.Matrix4d(1.0))
+    del Sdf
+    stage.GetRootLayer().Save()
+
+
+def usd_bytes(**rig) -> bytes:
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "rig.usd"
+        write_usd(p, **rig)
+        return p.read_bytes()
+
+
+def read_usd(path: Path) -> dict:
+    """What a UsdSkel reader gets: rest points, faces, joint paths, frames (time samples), and per frame the
+    points skinned by UsdSkel itself (SkeletonQuery skinning transforms + SkinningQuery LBS)."""
+    from pxr import Usd, UsdGeom, UsdSkel
+
+    stage = Usd.Stage.Open(str(path))
+    root = UsdSkel.Root(stage.GetPrimAtPath("/Rig"))
+    mesh_prim = stage.GetPrimAtPath("/Rig/Mesh")
+    mesh = UsdGeom.Mesh(mesh_prim)
+    cache = UsdSkel.Cache()
+    cache.Populate(root, Usd.TraverseInstanceProxies())
+    skel = UsdSkel.Skeleton(stage.GetPrimAtPath("/Rig/Skeleton"))
+    sq = cache.GetSkelQuery(skel)
+    skin = cache.GetSkinningQuery(mesh_prim)
+    anim = UsdSkel.Animation(stage.GetPrimAtPath("/Rig/Skeleton/Animation"))
+    times = anim.GetRotationsAttr().GetTimeSamples()
+    rest = np.array(mesh.GetPointsAttr().Get(), np.float64)
+    counts = np.array(mesh.GetFaceVertexCountsAttr().Get())
+    faces = np.array(mesh.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3) if np.all(counts == 3) else None
+    skinned = []
+    for t in times:
+        xf = sq.ComputeSkinningTransforms(Usd.TimeCode(t))
+        pts = mesh.GetPointsAttr().Get(Usd.TimeCode(t))
+        ok = skin.ComputeSkinnedPoints(xf, pts, Usd.TimeCode(t))
+        if not ok:
+            raise ValueError(f"{path}: UsdSkel could not skin the mesh at time {t}")
+        skinned.append(np.array(pts, np.float64))
+    return {"rest": rest, "faces": faces, "joints": list(skel.GetJointsAttr().Get()), "times": list(times),
+            "skinned": np.array(skinned), "up": UsdGeom.GetStageUpAxis(stage), "fps": stage.GetTimeCodesPerSecond()}
+
+
+# ---------------------------------------------------------------- glTF
+def gltf_bytes(vertices, faces, joints, parents, names, weights, rotations, translations, frames, fps: float = 24.0,
+               influences: int = 4) -> bytes:
+    """A binary glTF (GLB): one skinned mesh, its joint nodes, one animation (LINEAR)."""
+    import pygltflib as G
+
+    names = _names(names, len(parents))
+    v = np.asarray(vertices, np.float32)
+    f = np.asarray(faces, np.uint32).ravel()
+    k = 4
+    idx, w = sparse_influences(np.asarray(weights, np.float64), min(k, len(parents)))
+    if idx.shape[1] < k:  # glTF's JOINTS_0 / WEIGHTS_0 hold four per vertex
+        idx = np.pad(idx, ((0, 0), (0, k - idx.shape[1])))
+        w = np.pad(w, ((0, 0), (0, k - w.shape[1])))
+    joints = np.asarray(joints, np.float64)
+    bind = np.tile(np.eye(4), (len(parents), 1, 1))
+    bind[:, :3, 3] = joints
+    ibm = np.linalg.inv(bind).transpose(0, 2, 1).astype(np.float32)     # column-major per matrix
+    rest_local = local_transforms(bind[None], parents)[0]
+    local = local_transforms(world_transforms(joints, rotations, translations), parents)
+    times = ((np.asarray(frames, np.float64) - frames[0]) / fps).astype(np.float32)
+    quats = quaternions(local[..., :3, :3]).astype(np.float32)            # (F, J, 4) xyzw
+    trans = local[..., :3, 3].astype(np.float32)
+
+    blob = bytearray()
+    views, accessors = [], []
+
+    def add(arr: np.ndarray, comp: int, typ: str, target=None, minmax=False) -> int:
+        while len(blob) % 4:
+            blob.append(0)
+        data = np.ascontiguousarray(arr).tobytes()
+        views.append(G.BufferView(buffer=0, byteOffset=len(blob), byteLength=len(data), target=target))
+        blob.extend(data)
+        count = arr.shape[0]
+        acc = G.Accessor(bufferView=len(views) - 1, componentType=comp, count=count, type=typ)
+        if minmax:
+            flat = arr.reshape(count, -1)
+            acc.min, acc.max = flat.min(0).tolist(), flat.max(0).tolist()
+        accessors.append(acc)
+        return len(accessors) - 1
+
+    a_pos = add(v, G.FLOAT, G.VEC3, G.ARRAY_BUFFER, minmax=True)
+    a_idx = add(f, G.UNSIGNED_INT, G.SCALAR, G.ELEMENT_ARRAY_BUFFER)
+    a_j = add(idx.astype(np.uint16), G.UNSIGNED_SHORT, G.VEC4, G.ARRAY_BUFFER)
+    a_w = add(w.astype(np.float32), G.FLOAT, G.VEC4, G.ARRAY_BUFFER)
+    a_ibm = add(ibm, G.FLOAT, G.MAT4)
+    a_time = add(times, G.FLOAT, G.SCALAR, minmax=True)
+    nodes = [G.Node(name="mesh", mesh=0, skin=0)]
+    first = len(nodes)
+    for j, p in enumerate(parents):
+        nodes.append(G.Node(name=names[j], translation=rest_local[j, :3, 3].tolist(), rotation=[0.0, 0.0, 0.0, 1.0]))
+    for j, p in enumerate(parents):
+        if p >= 0:
+            nodes[first + p].children.append(first + j)
+    samplers, channels = [], []
+    for j in range(len(parents)):
+        for path, data, typ in (("translation", trans[:, j], G.VEC3), ("rotation", quats[:, j], G.VEC4)):
+            samplers.append(G.AnimationSampler(input=a_time, output=add(data, G.FLOAT, typ), interpolation="LINEAR"))
+            channels.append(G.AnimationChannel(sampler=len(samplers) - 1,
+                                               target=G.AnimationChannelTarget(node=first + j, path=path)))
+    roots = [first + j for j, p in enumerate(parents) if p < 0]
+    gltf = G.GLTF2(
+        asset=G.Asset(version="2.0", generator="volcap skeleton"),
+        scene=0, scenes=[G.Scene(nodes=[0] + roots)], nodes=nodes,
+        meshes=[G.Mesh(primitives=[G.Primitive(attributes=G.Attributes(POSITION=a_pos, JOINTS_0=a_j, WEIGHTS_0=a_w),
+                                               indices=a_idx)])],
+        skins=[G.Skin(inverseBindMatrices=a_ibm, joints=[first + j for j in range(len(parents))], skeleton=roots[0])],
+        animations=[G.Animation(name="motion", samplers=samplers, channels=channels)],
+        accessors=accessors, bufferViews=views, buffers=[G.Buffer(byteLength=len(blob))],
+    )
+    gltf.set_binary_blob(bytes(blob))
+    return b"".join(gltf.save_to_bytes())
+
+
+def _accessor(gltf, blob: bytes, i: int) -> np.ndarray:
+    import pygltflib as G
+
+    acc = gltf.accessors[i]
+    view = gltf.bufferViews[acc.bufferView]
+    dtype = {G.FLOAT: np.float32, G.UNSIGNED_INT: np.uint32, G.UNSIGNED_SHORT: np.uint16, G.UNSIGNED_BYTE: np.uint8}[acc.componentType]
+    width = {G.SCALAR: 1, G.VEC2: 2, G.VEC3: 3, G.VEC4: 4, G.MAT4: 16}[acc.type]
+    start = (view.byteOffset or 0) + (acc.byteOffset or 0)
+    arr = np.frombuffer(blob, dtype, acc.count * width, start)
+    return arr.reshape(acc.count, width) if width > 1 else arr
+
+
+def read_gltf(data: bytes) -> dict:
+    """Load a GLB with pygltflib and skin its mesh the way a glTF viewer does at every keyframe: joint
+    matrices = global joint transform (from the animated node TRS) x inverse bind matrix."""
+    import pygltflib as G
+    from scipy.spatial.transform import Rotation
+
+    gltf = G.GLTF2.load_from_bytes(data)
+    blob = gltf.binary_blob()
+    prim = gltf.meshes[0].primitives[0]
+    pos = _accessor(gltf, blob, prim.attributes.POSITION).astype(np.float64)
+    faces = _accessor(gltf, blob, prim.indices).reshape(-1, 3)
+    jidx = _accessor(gltf, blob, prim.attributes.JOINTS_0).astype(np.int64)
+    wts = _accessor(gltf, blob, prim.attributes.WEIGHTS_0).astype(np.float64)
+    skin = gltf.skins[0]
+    ibm = _accessor(gltf, blob, skin.inverseBindMatrices).reshape(-1, 4, 4).transpose(0, 2, 1).astype(np.float64)
+    n = len(gltf.nodes)
+    parent = np.full(n, -1)
+    for i, node in enumerate(gltf.nodes):
+        for c in node.children or []:
+            parent[c] = i
+    anim = gltf.animations[0]
+    tracks = {}
+    times = None
+    for ch in anim.channels:
+        s = anim.samplers[ch.sampler]
+        times = _accessor(gltf, blob, s.input).astype(np.float64)
+        tracks[(ch.target.node, ch.target.path)] = _accessor(gltf, blob, s.output).astype(np.float64)
+    skinned = []
+    for k in range(len(times)):
+        local = np.tile(np.eye(4), (n, 1, 1))
+        for i, node in enumerate(gltf.nodes):
+            t = tracks.get((i, "translation"), [node.translation or [0, 0, 0]] * len(times))[k]
+            q = tracks.get((i, "rotation"), [node.rotation or [0, 0, 0, 1]] * len(times))[k]
+            local[i, :3, :3] = Rotation.from_quat(q).as_matrix()
+            local[i, :3, 3] = t
+        world = np.empty_like(local)
+        done = np.zeros(n, bool)
+
+        def glob(i):
+            if not done[i]:
+                world[i] = local[i] if parent[i] < 0 else glob(parent[i]) @ local[i]
+                done[i] = True
+            return world[i]
+
+        mats = np.array([glob(j) @ ibm[a] for a, j in enumerate(skin.joints)])        # (J, 4, 4)
+        per = np.einsum("jab,vb->vja", mats[:, :3, :3], pos) + mats[:, :3, 3][None]
+        skinned.append(np.einsum("vk,vka->va", wts, per[np.arange(len(pos))[:, None], jidx]))
+    return {"rest": pos, "faces": faces, "joints": [gltf.nodes[j].name for j in skin.joints], "times": times,
+            "skinned": np.array(skinned), "weights": wts, "indices": jidx}

@@ -1,0 +1,444 @@
+"""A skeleton from the motion of a dynamic mesh (constant connectivity over frames): rigid parts, their
+per-frame rigid transforms, joints between adjacent parts, a tree.
+
+Rigid parts (after De Aguiar et al. 2008 and the clustering that initialises SSDR, Le & Deng 2012): the
+rest mesh is cut into ``patches`` small, surface-connected patches (farthest-point seeds, geodesic Voronoi
+cells on the edge graph); neighbouring patches are merged greedily, cheapest first, where the cost of a
+merge is how much the best single rigid motion per frame of the union explains worse than two motions
+(the increase of the summed squared Kabsch residual; each patch keeps only first and second moments over
+frames, so a merge costs O(frames)). Merging stops at ``bones`` parts, or, with bones = 0, skips merges
+where the smaller part would follow the union's motion worse than ``tolerance`` (rms). Vertices are then moved to the neighbouring part whose motion fits their trajectory best
+(``refine`` rounds, k-means style), and every part gets its Kabsch transform per frame.
+
+Joints: between adjacent parts a and b the joint is the rest-pose point c that both motions move alike,
+min_c sum_t |(R_a c + t_a) - (R_b c + t_b)|^2, a 3x3 linear least-squares problem per pair; along the
+directions the motion does not determine (a hinge's axis, a joint that never bends) c stays nearest to the
+centre of the parts' common border (a Tikhonov term). The tree is the maximum spanning tree of the parts'
+adjacency (border length), rooted at the largest part; each part's joint is the one to its parent, the
+root's is the root part's centroid.
+
+    parts = rigid_parts(rest, frames, faces, bones=0)      # RigidParts: labels, transforms, adjacency
+    rig = build_rig(rest, frames, faces, parts)            # Rig: joints, parents, transforms, labels
+"""
+from __future__ import annotations
+
+import heapq
+from dataclasses import dataclass
+
+import numpy as np
+
+
+# ---------------------------------------------------------------- the data, in the layouts the products need
+class Trajectories:
+    """A dynamic mesh's rest positions (V, 3) and frames (F, V, 3), with the layouts used below computed
+    once: ``by_vertex`` (V, 3F), ``by_frame`` (3F, V), squared norms per vertex and frame ``qq`` (F, V)."""
+
+    def __init__(self, rest: np.ndarray, frames: np.ndarray):
+        self.rest = np.ascontiguousarray(rest, np.float64)
+        self.frames = np.ascontiguousarray(frames, np.float64)
+        f, v = self.frames.shape[:2]
+        self.by_vertex = np.ascontiguousarray(self.frames.transpose(1, 0, 2).reshape(v, 3 * f))
+        self.by_frame = np.ascontiguousarray(self.by_vertex.T)
+        self.qq = (self.frames * self.frames).sum(2)
+
+    @property
+    def count(self) -> int:
+        return self.frames.shape[0]
+
+    def with_rest(self, rest: np.ndarray) -> "Trajectories":
+        """The same frames with another rest shape (no copies of the frame layouts)."""
+        out = object.__new__(Trajectories)
+        out.__dict__.update(self.__dict__)
+        out.rest = np.ascontiguousarray(rest, np.float64)
+        return out
+
+
+# ---------------------------------------------------------------- Kabsch from moments
+@dataclass
+class Moments:
+    """Sufficient statistics of a vertex set for rigid fits rest -> each frame: count n, sums of rest
+    points sp (3,), of frame points sq (F, 3), of outer products spq (F, 3, 3) = sum p q^T, and of squared
+    norms spp (scalar), sqq (F,)."""
+
+    n: float
+    sp: np.ndarray
+    sq: np.ndarray
+    spq: np.ndarray
+    spp: float
+    sqq: np.ndarray
+
+    def __add__(self, o: "Moments") -> "Moments":
+        return Moments(self.n + o.n, self.sp + o.sp, self.sq + o.sq, self.spq + o.spq, self.spp + o.spp, self.sqq + o.sqq)
+
+
+def moments(rest: np.ndarray, frames: np.ndarray, idx: np.ndarray) -> Moments:
+    p, q = rest[idx], frames[:, idx]
+    return Moments(float(len(idx)), p.sum(0), q.sum(1), np.einsum("va,fvb->fab", p, q), float((p * p).sum()),
+                   (q * q).sum(axis=(1, 2)))
+
+
+def part_moments(traj: Trajectories, labels: np.ndarray, b: int) -> list[Moments]:
+    """Moments of every part at once (sparse one-hot products; no per-part copies)."""
+    from scipy.sparse import csr_matrix
+
+    rest, q = traj.rest, traj.by_vertex
+    f, v = traj.frames.shape[:2]
+    onehot = csr_matrix((np.ones(v), (labels, np.arange(v))), shape=(b, v))
+    n = np.asarray(onehot.sum(1)).ravel()
+    sp = onehot @ rest
+    sq = (onehot @ q).reshape(b, f, 3)
+    spq = np.stack([(onehot.multiply(rest[:, a][None])).tocsr() @ q for a in range(3)], axis=1)  # (B, 3, F*3)
+    spq = spq.reshape(b, 3, f, 3).transpose(0, 2, 1, 3)
+    spp = onehot @ (rest * rest).sum(1)
+    sqq = onehot @ traj.qq.T                                            # (B, F)
+    return [Moments(float(n[i]), sp[i], sq[i], spq[i], float(spp[i]), sqq[i]) for i in range(b)]
+
+
+def kabsch(m: Moments) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Best rigid motions rest -> frame of a moment set: (R (F, 3, 3), t (F, 3), residual (F,) = summed
+    squared distances after the fit)."""
+    pbar = m.sp / m.n
+    qbar = m.sq / m.n
+    cov = m.spq - m.n * pbar[None, :, None] * qbar[:, None, :]          # sum (p - pbar)(q - qbar)^T
+    u, s, vt = np.linalg.svd(cov)
+    d = np.sign(np.linalg.det(np.einsum("fab,fbc->fac", u, vt)))
+    d[d == 0] = 1.0
+    s = s.copy()
+    s[:, 2] *= d
+    vt = vt.copy()
+    vt[:, 2] *= d[:, None]
+    r = np.einsum("fba,fcb->fac", vt, u)                                # R = V diag(1,1,d) U^T
+    t = qbar - np.einsum("fab,b->fa", r, pbar)
+    spp_c = m.spp - m.n * pbar @ pbar
+    sqq_c = m.sqq - m.n * (qbar * qbar).sum(1)
+    res = np.maximum(spp_c + sqq_c - 2 * s.sum(1), 0.0)
+    return r, t, res
+
+
+def fit_rigid(rest: np.ndarray, frames: np.ndarray, idx: np.ndarray):
+    """Kabsch transforms (R (F, 3, 3), t (F, 3)) of vertices ``idx``, rest -> each frame."""
+    r, t, _ = kabsch(moments(rest, frames, idx))
+    return r, t
+
+
+# ---------------------------------------------------------------- mesh graph helpers
+def edge_graph(vertices: np.ndarray, faces: np.ndarray):
+    """Sparse symmetric vertex graph of the mesh edges, weighted by length."""
+    from scipy.sparse import coo_matrix
+
+    from nodes.common.meshops import unique_edges
+
+    e, _ = unique_edges(faces)
+    w = np.linalg.norm(vertices[e[:, 0]] - vertices[e[:, 1]], axis=1) + 1e-12
+    n = len(vertices)
+    return coo_matrix((np.r_[w, w], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr(), e
+
+
+def patches(vertices: np.ndarray, faces: np.ndarray, count: int) -> np.ndarray:
+    """Label (V,) of ``count`` surface patches: farthest-point seeds over geodesic (edge-graph) distance,
+    each vertex to its geodesically nearest seed. Vertices no seed reaches (other components) get seeds of
+    their own."""
+    from scipy.sparse.csgraph import dijkstra
+
+    g, _ = edge_graph(vertices, faces)
+    n = len(vertices)
+    count = max(1, min(count, n))
+    seeds = [int(np.argmax(np.linalg.norm(vertices - vertices.mean(0), axis=1)))]
+    dist = dijkstra(g, indices=seeds[0])
+    while len(seeds) < count:
+        far = np.where(np.isfinite(dist), dist, np.inf)
+        nxt = int(np.argmax(far))
+        if far[nxt] <= 0:
+            break
+        seeds.append(nxt)
+        dist = np.minimum(dist, dijkstra(g, indices=nxt, limit=float(dist[nxt]) if np.isfinite(dist[nxt]) else np.inf))
+    _, _, src = dijkstra(g, indices=seeds, min_only=True, return_predecessors=True)
+    label = np.full(n, -1, np.int64)
+    ok = src >= 0
+    order = np.argsort(seeds)
+    label[ok] = order[np.searchsorted(np.asarray(seeds)[order], src[ok])]
+    if not ok.all():  # pieces no seed reaches: one patch each
+        from scipy.sparse.csgraph import connected_components
+
+        _, comp = connected_components(g, directed=False)
+        for c in np.unique(comp[~ok]):
+            label[comp == c] = label.max() + 1
+    return label
+
+
+def label_adjacency(labels: np.ndarray, edges: np.ndarray, k: int) -> np.ndarray:
+    """(k, k) count of mesh edges joining each pair of labels (symmetric, zero diagonal)."""
+    a, b = labels[edges[:, 0]], labels[edges[:, 1]]
+    cut = a != b
+    adj = np.zeros((k, k), np.int64)
+    np.add.at(adj, (a[cut], b[cut]), 1)
+    np.add.at(adj, (b[cut], a[cut]), 1)
+    return adj
+
+
+def _connect_components(adj: np.ndarray, centroids: np.ndarray) -> np.ndarray:
+    """Join disconnected groups of the adjacency by their closest centroids (weight 1), so a tree exists."""
+    from scipy.sparse.csgraph import connected_components
+
+    adj = adj.copy()
+    while True:
+        n, lab = connected_components(adj > 0, directed=False)
+        if n <= 1:
+            return adj
+        a, b = np.flatnonzero(lab == 0), np.flatnonzero(lab != 0)
+        d = np.linalg.norm(centroids[a][:, None] - centroids[b][None], axis=2)
+        i, j = np.unravel_index(np.argmin(d), d.shape)
+        adj[a[i], b[j]] = adj[b[j], a[i]] = 1
+
+
+# ---------------------------------------------------------------- rigid parts
+@dataclass
+class RigidParts:
+    labels: np.ndarray          # (V,) part of each vertex
+    rotations: np.ndarray       # (F, B, 3, 3) rest -> frame
+    translations: np.ndarray    # (F, B, 3)
+    adjacency: np.ndarray       # (B, B) mesh edges between parts
+    residual: np.ndarray        # (B,) rms fit residual of each part over all frames
+
+
+def rigid_parts(rest: np.ndarray, frames: np.ndarray, faces: np.ndarray, *, bones: int = 0, tolerance: float = 0.005,
+                patch_count: int = 200, refine: int = 3) -> RigidParts:
+    """Rigid parts of a dynamic mesh (module docstring). ``rest`` (V, 3), ``frames`` (F, V, 3), ``faces``
+    (T, 3). ``bones``: number of parts (0: automatic); ``tolerance``: with bones = 0, the largest rms
+    residual of a part, relative to the rest mesh's bounding-box diagonal."""
+    traj = Trajectories(rest, frames)
+    rest, frames = traj.rest, traj.frames
+    diag = float(np.linalg.norm(np.ptp(rest, axis=0)))
+    _, edges = edge_graph(rest, faces)
+    label = patches(rest, faces, patch_count)
+    k = int(label.max()) + 1
+    mom: dict[int, Moments] = dict(enumerate(part_moments(traj, label, k)))
+    err = {i: float(kabsch(m)[2].sum()) for i, m in mom.items()}
+    cent = np.array([m.sp / m.n for m in mom.values()])
+    adj = _connect_components(label_adjacency(label, edges, k), cent)
+    nbr = {i: set(np.flatnonzero(adj[i])) for i in range(k)}
+    nf = frames.shape[0]
+    members = {i: [i] for i in range(k)}
+
+    def merge_cost(a, b):
+        m = mom[a] + mom[b]
+        e = float(kabsch(m)[2].sum())
+        return e - err[a] - err[b], e, m
+
+    heap = []
+    for a in range(k):
+        for b in nbr[a]:
+            if a < b:
+                heapq.heappush(heap, (merge_cost(a, b)[0], a, b))
+    target = 2 * bones if bones > 0 else 1
+    limit = (0.5 * tolerance * diag) ** 2
+    alive = k
+    while alive > target and heap:
+        c, a, b = heapq.heappop(heap)
+        if a not in mom or b not in mom:
+            continue
+        cost, e, m = merge_cost(a, b)
+        if abs(cost - c) > 1e-12 * max(1.0, abs(c)):  # stale entry: the parts changed since it was pushed
+            heapq.heappush(heap, (cost, a, b))
+            continue
+        if bones <= 0 and cost / (min(mom[a].n, mom[b].n) * nf) > limit:
+            continue  # the smaller part would follow the other's motion worse than the tolerance
+        mom[a], err[a] = m, e
+        del mom[b], err[b]
+        members[a] += members.pop(b)
+        nbr[a] = (nbr[a] | nbr.pop(b)) - {a, b}
+        for x in nbr[a]:
+            nbr[x].discard(b)
+            nbr[x].add(a)
+            heapq.heappush(heap, (merge_cost(min(a, x), max(a, x))[0], min(a, x), max(a, x)))
+        alive -= 1
+    part_of_patch = np.empty(k, np.int64)
+    for new, (_, pts) in enumerate(sorted(members.items())):
+        part_of_patch[pts] = new
+    labels = part_of_patch[label]
+    labels = _reassign(traj, edges, labels, refine)
+    labels = _eliminate(traj, edges, labels, bones, (tolerance * diag) ** 2, refine)
+    return _finish(traj, edges, labels)
+
+
+def _eliminate(traj, edges, labels, bones, limit, refine):
+    """Remove parts one at a time, the one whose vertices are best explained by their neighbouring parts'
+    motions first (a part straddling a joint splits between both sides, which a merge cannot do), until
+    ``bones`` remain, or (bones = 0) until removing any would cost its vertices more than ``limit`` (mean
+    squared distance per vertex and frame)."""
+    nf = traj.count
+    while True:
+        labels = np.searchsorted(np.unique(labels), labels)
+        b = int(labels.max()) + 1
+        if (bones > 0 and b <= bones) or b == 1:
+            return labels
+        rot, tr, _ = _transforms(traj, labels, b)
+        err = motion_errors(traj, rot, tr)
+        adj = label_adjacency(labels, edges, b) > 0
+        own = err[np.arange(len(labels)), labels]
+        other = np.where(adj[labels], err, np.inf)
+        best = other.min(axis=1)
+        count = np.bincount(labels, minlength=b)
+        cost = np.bincount(labels, weights=np.where(np.isfinite(best), best - own, np.inf), minlength=b)
+        cost = np.where(count > 0, cost, np.inf)
+        # parts with no neighbour (a separate piece) cannot be removed
+        worst = int(np.argmin(cost / np.maximum(count, 1) if bones <= 0 else cost))
+        if not np.isfinite(cost[worst]) or (bones <= 0 and cost[worst] / (count[worst] * nf) > limit):
+            return labels
+        idx = np.flatnonzero(labels == worst)
+        new = labels.copy()
+        new[idx] = np.argmin(other[idx], axis=1)
+        labels = _reassign(traj, edges, np.searchsorted(np.unique(new), new), refine)
+
+
+def _transforms(traj, labels, b):
+    f = traj.count
+    rot = np.empty((f, b, 3, 3))
+    tr = np.empty((f, b, 3))
+    res = np.empty(b)
+    for i, m in enumerate(part_moments(traj, labels, b)):
+        r, t, e = kabsch(m)
+        rot[:, i], tr[:, i] = r, t
+        res[i] = np.sqrt(e.sum() / (max(m.n, 1.0) * f))
+    return rot, tr, res
+
+
+def motion_errors(traj: Trajectories, rot: np.ndarray, tr: np.ndarray) -> np.ndarray:
+    """(V, B) squared distance, summed over frames, between each vertex's trajectory and where motion b
+    takes its rest position: sum_t |R_tb v + t_tb - q_tv|^2, from per-motion Gram matrices (no (V, B, F)
+    array)."""
+    f, b = rot.shape[:2]
+    x = np.concatenate([rot, tr[..., None]], axis=-1)                  # (F, B, 3, 4)
+    vh = np.c_[traj.rest, np.ones(len(traj.rest))]                     # (V, 4)
+    xs = x.transpose(1, 0, 2, 3).reshape(b, 3 * f, 4)                  # (B, 3F, 4), rows (frame, axis)
+    cross = traj.by_vertex @ xs.transpose(1, 0, 2).reshape(3 * f, 4 * b)  # sum_t q^T X   (V, B*4)
+    gram = np.einsum("bkc,bkd->bcd", xs, xs)                           # sum_t X^T X   (B, 4, 4)
+    pp = np.einsum("vc,bcd,vd->vb", vh, gram, vh, optimize=True)
+    pq = np.einsum("vbc,vc->vb", cross.reshape(-1, b, 4), vh)
+    return np.maximum(pp - 2 * pq + traj.qq.sum(0)[:, None], 0.0)
+
+
+def _reassign(traj, edges, labels, rounds):
+    """Move vertices to the neighbouring part (or their own) whose motion predicts their trajectory best."""
+    b = int(labels.max()) + 1
+    for _ in range(rounds):
+        rot, tr, _ = _transforms(traj, labels, b)
+        adj = label_adjacency(labels, edges, b) > 0
+        np.fill_diagonal(adj, True)
+        err = motion_errors(traj, rot, tr)
+        err[~adj[labels]] = np.inf
+        new = np.argmin(err, axis=1)
+        new = _keep_connected(new, edges, b, labels)
+        if np.array_equal(new, labels):
+            break
+        labels = new
+    return labels
+
+
+def _keep_connected(labels, edges, b, fallback):
+    """Vertices of a part that ended up cut off from the part's main piece go back to ``fallback``."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    same = labels[edges[:, 0]] == labels[edges[:, 1]]
+    e = edges[same]
+    n = len(labels)
+    _, comp = connected_components(coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)), directed=False)
+    out = labels.copy()
+    for i in range(b):
+        idx = np.flatnonzero(labels == i)
+        if len(idx) == 0:
+            continue
+        c = comp[idx]
+        main = np.bincount(c).argmax()
+        stray = idx[c != main]
+        out[stray] = fallback[stray]
+    if not np.array_equal(out, labels):
+        empty = [i for i in range(b) if not np.any(out == i)]
+        if empty:
+            return fallback
+    return out
+
+
+def _finish(traj, edges, labels) -> RigidParts:
+    used = np.unique(labels)
+    labels = np.searchsorted(used, labels)
+    b = len(used)
+    rot, tr, res = _transforms(traj, labels, b)
+    cent = np.array([traj.rest[labels == i].mean(0) for i in range(b)])
+    adj = _connect_components(label_adjacency(labels, edges, b), cent)
+    return RigidParts(labels, rot, tr, adj, res)
+
+
+# ---------------------------------------------------------------- joints and tree
+def joint_between(ra, ta, rb, tb, near: np.ndarray, reg: float = 1e-3) -> tuple[np.ndarray, float]:
+    """Rest-pose point c that motions a and b (R (F, 3, 3), t (F, 3)) move alike, nearest to ``near`` along
+    undetermined directions: min sum_t |(R_a - R_b) c + t_a - t_b|^2 + reg * s |c - near|^2 (s: the system's
+    scale). Returns (c, rms of the remaining mismatch over frames)."""
+    a = (ra - rb).reshape(-1, 3)
+    y = -(ta - tb).reshape(-1)
+    ata = a.T @ a
+    lam = reg * max(float(np.trace(ata)) / 3.0, 1e-12)
+    c = np.linalg.solve(ata + lam * np.eye(3), a.T @ y + lam * near)
+    mismatch = (a @ c - y).reshape(-1, 3)
+    return c, float(np.sqrt((mismatch ** 2).sum(1).mean()))
+
+
+@dataclass
+class Rig:
+    """A skeleton fitted to a dynamic mesh: per bone (= joint, one per rigid part) the rest-pose pivot
+    ``joints`` (J, 3), ``parents``, ``names``; ``rotations`` (F, J, 3, 3) and ``translations`` (F, J, 3) take
+    rest-pose points of the bone to each frame; ``labels`` (V,) the part of each vertex; ``joint_error``
+    (J,) rms mismatch of the two motions at each joint (0 at the root)."""
+
+    joints: np.ndarray
+    parents: list[int]
+    names: list[str]
+    rotations: np.ndarray
+    translations: np.ndarray
+    labels: np.ndarray
+    joint_error: np.ndarray
+    residual: np.ndarray
+
+
+def build_rig(rest: np.ndarray, faces: np.ndarray, parts: RigidParts) -> Rig:
+    """Joints between adjacent parts and a tree (module docstring); bones are reordered parents first."""
+    from scipy.sparse.csgraph import minimum_spanning_tree
+
+    rest = np.asarray(rest, np.float64)
+    b = parts.adjacency.shape[0]
+    sizes = np.bincount(parts.labels, minlength=b)
+    root = int(np.argmax(sizes))
+    _, edges = edge_graph(rest, faces)
+    if b == 1:
+        order, parent = [root], {root: -1}
+    else:
+        w = np.where(parts.adjacency > 0, 1.0 / (parts.adjacency + 1.0), 0.0)   # max border = min weight
+        mst = minimum_spanning_tree(w).toarray()
+        tree = (mst + mst.T) > 0
+        order, parent = [root], {root: -1}
+        for v in order:
+            for u in np.flatnonzero(tree[v]):
+                if int(u) not in parent:
+                    parent[int(u)] = v
+                    order.append(int(u))
+    new_index = {old: i for i, old in enumerate(order)}
+    joints = np.empty((b, 3))
+    jerr = np.zeros(b)
+    rot, tr = parts.rotations, parts.translations
+    for old in order:
+        i = new_index[old]
+        p = parent[old]
+        if p < 0:
+            joints[i] = rest[parts.labels == old].mean(0)
+            continue
+        a, c = parts.labels[edges[:, 0]], parts.labels[edges[:, 1]]
+        border = edges[((a == old) & (c == p)) | ((a == p) & (c == old))]
+        near = rest[border.ravel()].mean(0) if len(border) else 0.5 * (
+            rest[parts.labels == old].mean(0) + rest[parts.labels == p].mean(0))
+        joints[i], jerr[i] = joint_between(rot[:, old], tr[:, old], rot[:, p], tr[:, p], near)
+    perm = np.array(order)
+    parents = [-1 if parent[old] < 0 else new_index[parent[old]] for old in order]
+    labels = np.array([new_index[x] for x in range(b)])[parts.labels]
+    names = ["root" if p < 0 else f"bone_{i}" for i, p in enumerate(parents)]
+    return Rig(joints, parents, names, rot[:, perm], tr[:, perm], labels, jerr, parts.residual[perm])

@@ -1,0 +1,303 @@
+"""Nodes of the skeleton stage: skeletonize (a joint tree from one frame's solid), skeletonize.sequence (a
+skeleton from the rigid parts of a dynamic mesh's motion), skin (LBS weights and bone motions fitted to the
+sequence, rotation-only joints) and skeleton.export (UsdSkel and glTF skin + animation)."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from nodegraph import Files, Input, Node, NodeError, Output, Param, Table
+from nodes.common.types import Mesh, MeshSequence, Skeleton, SkeletonData, Volume
+
+
+# ---------------------------------------------------------------- per frame
+class Skeletonize(Node):
+    """Curve skeleton of one frame's solid (a closed mesh, voxelized, or a voxel volume) as a joint tree:
+    TEASAR centre lines through the distance field (what kimimaro does), short branches cut, re-rooted at
+    the tree's centre, joints at branch points, at bends (Douglas-Peucker) and at the extremities. A tree
+    with five extremities is named as a person (head, hand_0/1, foot_0/1, by ``up``)."""
+
+    type_name = "skeletonize"
+    version = 1
+    inputs = {
+        "mesh": Input(Mesh, optional=True, doc="a closed mesh (voxelized at 'resolution')"),
+        "volume": Input(Volume, optional=True, doc="or an occupancy volume (> 0.5 is inside)"),
+    }
+    outputs = {
+        "skeleton": Output(Skeleton, "joint tree (no weights)"),
+        "report": Output(Table, "joints, extremities and their names, voxel size, seconds"),
+    }
+    params = {
+        "resolution": Param(int, 128, range=(16, 1024), doc="voxels along the mesh's longest side (mesh input)"),
+        "scale": Param(float, 1.5, range=(0.0, 10.0), doc="a path explains voxels within scale x radius + const"),
+        "const": Param(float, 2.0, range=(0.0, 100.0), doc="... + const voxels"),
+        "prune": Param(float, 2.0, range=(0.0, 20.0), doc="cut extremity branches shorter than prune x radius at their fork"),
+        "bend": Param(float, 2.0, range=(0.1, 100.0), doc="Douglas-Peucker tolerance for bend joints, voxels"),
+        "smooth": Param(float, 1.0, range=(0.0, 100.0), doc="branch smoothing along the arc before simplifying, voxels"),
+        "up": Param(list, [0.0, 0.0, 1.0], item=float, length=3, doc="world up, to name a person's extremities"),
+    }
+
+    def run(self, mesh=None, volume=None, *, resolution, scale, const, prune, bend, smooth, up):
+        from .curve import curve_skeleton, voxelize
+
+        if (mesh is None) == (volume is None):
+            raise NodeError("skeletonize: connect exactly one of 'mesh' and 'volume'")
+        t0 = time.perf_counter()
+        if mesh is not None:
+            if len(mesh.faces) == 0:
+                raise NodeError("skeletonize: input 'mesh' has no faces")
+            occ, origin, voxel = voxelize(mesh.vertices, mesh.faces, resolution)
+            spacing = voxel
+        else:
+            occ = np.asarray(volume.occupancy) > (0.5 if volume.occupancy.dtype.kind == "f" else 0)
+            origin, spacing = volume.bbox_min, volume.voxel_size
+            if not np.allclose(spacing, spacing[0], rtol=1e-3):
+                self.log.warning("skeletonize: anisotropic voxels %s; distances use the true spacing", spacing)
+        if not occ.any():
+            raise NodeError(f"skeletonize: the {'mesh encloses no voxel' if mesh is not None else 'volume is empty'}")
+        sk = curve_skeleton(occ, origin, spacing, scale=scale, const=const, prune=prune, bend=bend, smooth=smooth, up=up)
+        seconds = time.perf_counter() - t0
+        leaves = sk.leaves
+        report = {
+            "joints": len(sk.parents), "extremities": len(leaves), "names": [sk.names[j] for j in leaves],
+            "kinds": {k: sk.kind.count(k) for k in ("root", "branch", "bend", "end")},
+            "voxel": float(np.min(spacing)), "voxels_inside": int(occ.sum()), "seconds": seconds,
+        }
+        return {"skeleton": SkeletonData(sk.joints, list(sk.parents), list(sk.names)), "report": report}
+
+
+# ---------------------------------------------------------------- sequences
+def _segments(meshes) -> list[tuple[int, int]]:
+    """Half-open runs of consecutive meshes with one connectivity: the same metadata["segment"] where the
+    meshes carry one (a tracked sequence), else the same vertex count and faces."""
+    out: list[tuple[int, int]] = []
+    for i, m in enumerate(meshes):
+        if out:
+            prev = meshes[i - 1]
+            a, b = prev.metadata.get("segment"), m.metadata.get("segment")
+            same = (a == b) if (a is not None and b is not None) else (
+                len(prev.vertices) == len(m.vertices) and prev.faces.shape == m.faces.shape
+                and bool(np.array_equal(prev.faces, m.faces)))
+            if same:
+                out[-1] = (out[-1][0], i + 1)
+                continue
+        out.append((i, i + 1))
+    return out
+
+
+def dynamic_mesh(node: Node, meshes, sequence, segment: int):
+    """(frames (F, V, 3), faces, frame numbers, segment range, segment count) of the chosen constant-
+    connectivity run of the connected input (per-frame meshes or a mesh sequence)."""
+    if (meshes is None) == (sequence is None):
+        raise NodeError(f"{node.type_name}: connect exactly one of 'meshes' and 'sequence'")
+    seq = list(sequence if sequence is not None else meshes)
+    if not seq:
+        raise NodeError(f"{node.type_name}: no meshes")
+    numbers = list(node.frames) if meshes is not None and len(node.frames) == len(seq) else [
+        int(m.metadata.get("frame", i)) for i, m in enumerate(seq)]
+    runs = _segments(seq)
+    if segment >= len(runs):
+        raise NodeError(f"{node.type_name}: param 'segment' is {segment} but the input has {len(runs)} segment(s)")
+    start, stop = runs[segment] if segment >= 0 else max(runs, key=lambda r: r[1] - r[0])
+    if stop - start < 2:
+        raise NodeError(f"{node.type_name}: the longest run of meshes with one connectivity has {stop - start} frame; "
+                        "a skeleton from motion needs a tracked sequence (track) of at least 2 frames")
+    faces = np.asarray(seq[start].faces, np.int64)
+    for i in range(start, stop):
+        if len(seq[i].vertices) != len(seq[start].vertices):
+            raise NodeError(f"{node.type_name}: mesh {i} has {len(seq[i].vertices)} vertices, mesh {start} of its "
+                            f"segment {len(seq[start].vertices)}")
+    frames = np.stack([np.asarray(m.vertices, np.float64) for m in seq[start:stop]])
+    if not np.all(np.isfinite(frames)):
+        raise NodeError(f"{node.type_name}: non-finite vertex positions in meshes {start}..{stop - 1}")
+    return frames, faces, numbers[start:stop], (start, stop), len(runs)
+
+
+class SkeletonizeSequence(Node):
+    """A skeleton from the motion of a dynamic mesh (a tracked sequence: constant connectivity): the rest
+    mesh (first frame of the segment) cut into surface patches, patches merged greedily where one rigid
+    motion per frame explains both, parts then removed one at a time where their neighbours' motions explain
+    their vertices (a part straddling a joint splits between both sides), vertices moved to the part that
+    fits their trajectory; joints where adjacent parts' motions agree (least squares, nearest the border
+    along a hinge's axis), a maximum-border spanning tree rooted at the largest part. Output: rest joints,
+    hard weights (the parts) and each bone's Kabsch motion per frame."""
+
+    type_name = "skeletonize.sequence"
+    version = 1
+    per = "sequence"
+    inputs = {
+        "meshes": Input(Mesh, optional=True, doc="per-frame meshes with one connectivity (arrive as a list)"),
+        "sequence": Input(MeshSequence, optional=True, doc="or a mesh sequence (track's output)"),
+    }
+    outputs = {
+        "skeleton": Output(Skeleton, "rest joints, parts as hard weights, bone motions per frame"),
+        "rest": Output(Mesh, "the rest mesh (first frame of the segment)"),
+        "report": Output(Table, "bones, per-bone rigid residual, joint mismatch, segment, seconds"),
+    }
+    params = {
+        "bones": Param(int, 0, range=(0, 256), doc="number of bones; 0 = automatic (tolerance)"),
+        "tolerance": Param(float, 0.005, range=(1e-5, 1.0), doc="automatic: keep parts whose vertices another part's motion misses by more (rms, x bbox diagonal)"),
+        "patches": Param(int, 200, range=(2, 5000), doc="initial surface patches"),
+        "segment": Param(int, -1, range=(-1, None), doc="which constant-connectivity segment; -1 = the longest"),
+    }
+
+    def run(self, meshes=None, sequence=None, *, bones, tolerance, patches, segment):
+        import trimesh
+
+        from .motion import build_rig, rigid_parts
+
+        frames, faces, numbers, (start, stop), nseg = dynamic_mesh(self, meshes, sequence, segment)
+        if bones > frames.shape[1]:
+            raise NodeError(f"skeletonize.sequence: {bones} bones for {frames.shape[1]} vertices")
+        t0 = time.perf_counter()
+        parts = rigid_parts(frames[0], frames, faces, bones=bones, tolerance=tolerance, patch_count=patches)
+        rig = build_rig(frames[0], faces, parts)
+        seconds = time.perf_counter() - t0
+        weights = np.zeros((frames.shape[1], len(rig.parents)))
+        weights[np.arange(frames.shape[1]), rig.labels] = 1.0
+        sk = SkeletonData(rig.joints, rig.parents, rig.names, weights, rig.rotations, rig.translations, numbers)
+        diag = float(np.linalg.norm(np.ptp(frames[0], axis=0)))
+        report = {
+            "bones": len(rig.parents), "frames": len(numbers), "vertices": int(frames.shape[1]),
+            "segment": {"start": int(start), "stop": int(stop), "count": nseg},
+            "vertices_per_bone": np.bincount(rig.labels, minlength=len(rig.parents)).tolist(),
+            "rigid_residual_rms": rig.residual.tolist(), "joint_mismatch_rms": rig.joint_error.tolist(),
+            "diagonal": diag, "seconds": seconds,
+        }
+        rest = trimesh.Trimesh(frames[0], faces, process=False)
+        return {"skeleton": sk, "rest": rest, "report": report}
+
+
+class Skin(Node):
+    """Linear-blend-skinning weights and bone motions fitted to a dynamic mesh (SSDR, Le & Deng 2012), from
+    skeletonize.sequence's skeleton: at most ``influences`` weights per vertex, smooth where the motion
+    leaves them open; ``lengths: fixed`` keeps the skeleton a tree of rotation-only joints (bone lengths
+    never change; the rest joints and the rest shape are refined), ``free`` lets every bone move rigidly on
+    its own as Dem Bones does. Reports the LBS reconstruction error per frame."""
+
+    type_name = "skin"
+    version = 1
+    per = "sequence"
+    inputs = {
+        "meshes": Input(Mesh, optional=True, doc="per-frame meshes with one connectivity (arrive as a list)"),
+        "sequence": Input(MeshSequence, optional=True, doc="or a mesh sequence (track's output)"),
+        "skeleton": Input(Skeleton, doc="skeletonize.sequence's skeleton (parts, motions) of the same input"),
+    }
+    outputs = {
+        "skeleton": Output(Skeleton, "rest joints, LBS weights, bone motions per frame"),
+        "rest": Output(Mesh, "the rest shape the weights skin"),
+        "error": Output(Table, "LBS reconstruction error per frame (rms, max; metres and % of the bbox diagonal)"),
+    }
+    params = {
+        "influences": Param(int, 4, range=(1, 8), doc="most bones per vertex"),
+        "iterations": Param(int, 15, range=(1, 100), doc="weights / motion alternations (stops earlier when converged)"),
+        "smooth": Param(float, 1e-6, range=(0.0, 1.0), doc="Laplacian weight smoothing (x frames x diagonal^2)"),
+        "lengths": Param(str, "fixed", choices=("fixed", "free"), doc="fixed: rotation-only joints; free: rigid bones (Dem Bones)"),
+        "rest_fit": Param(bool, True, doc="refit the rest shape (a posed first frame is no exact LBS rest)"),
+        "segment": Param(int, -1, range=(-1, None), doc="which constant-connectivity segment; -1 = the longest"),
+    }
+
+    def run(self, skeleton, meshes=None, sequence=None, *, influences, iterations, smooth, lengths, rest_fit, segment):
+        import trimesh
+
+        from .motion import Rig, Trajectories
+        from .skinning import fit_skin
+
+        frames, faces, numbers, _, _ = dynamic_mesh(self, meshes, sequence, segment)
+        if skeleton.weights is None or skeleton.rotations is None:
+            raise NodeError("skin: input 'skeleton' has no parts or motion: connect skeletonize.sequence's skeleton")
+        if skeleton.weights.shape[0] != frames.shape[1]:
+            raise NodeError(f"skin: the skeleton's weights cover {skeleton.weights.shape[0]} vertices, the meshes have "
+                            f"{frames.shape[1]}: connect the same sequence (and segment) as skeletonize.sequence")
+        if skeleton.rotations.shape[0] != frames.shape[0] or (skeleton.frames and list(skeleton.frames) != numbers):
+            raise NodeError(f"skin: the skeleton's motion has {skeleton.rotations.shape[0]} frames, the segment "
+                            f"{frames.shape[0]}: connect the same sequence (and segment) as skeletonize.sequence")
+        t0 = time.perf_counter()
+        labels = np.argmax(skeleton.weights, axis=1)
+        rig = Rig(np.asarray(skeleton.joints, np.float64), list(skeleton.parents), list(skeleton.names),
+                  np.asarray(skeleton.rotations, np.float64), np.asarray(skeleton.translations, np.float64), labels,
+                  np.zeros(len(skeleton.parents)), np.zeros(len(skeleton.parents)))
+        traj = Trajectories(frames[0], frames)
+        fit = fit_skin(traj, faces, rig, influences=influences, iterations=iterations, smooth=smooth,
+                       fixed_lengths=lengths == "fixed", rest=rest_fit, log=self.log.info)
+        seconds = time.perf_counter() - t0
+        diag = float(np.linalg.norm(np.ptp(frames[0], axis=0)))
+        sk = SkeletonData(fit.joints, fit.parents, list(skeleton.names), fit.weights, fit.rotations, fit.translations,
+                          numbers)
+        return {"skeleton": sk, "rest": trimesh.Trimesh(fit.rest, faces, process=False),
+                "error": error_table(fit, numbers, diag, seconds, lengths)}
+
+
+def bone_lengths(joints, parents, rotations, translations) -> np.ndarray:
+    """(F, J) distance between each joint's pivot and its parent's over frames (0 for the root)."""
+    pivots = np.einsum("fjab,jb->fja", rotations, joints) + translations
+    out = np.zeros(pivots.shape[:2])
+    for j, p in enumerate(parents):
+        if p >= 0:
+            own = pivots[:, j]
+            # where the parent's motion takes j's pivot: equal to own for rotation-only joints
+            out[:, j] = np.linalg.norm(own - pivots[:, p], axis=1)
+    return out
+
+
+def error_table(fit, numbers, diag, seconds, lengths) -> dict:
+    """The skin node's error Table: totals, and per frame (frame, rmse, max) in metres and % of diagonal."""
+    total = float(np.sqrt((fit.rmse ** 2).mean()))
+    bl = bone_lengths(fit.joints, fit.parents, fit.rotations, fit.translations)
+    child = [j for j, p in enumerate(fit.parents) if p >= 0]
+    spread = float(np.max((bl[:, child].max(0) - bl[:, child].min(0)) / np.maximum(bl[:, child].mean(0), 1e-12))) if child else 0.0
+    nnz = (fit.weights > 0).sum(1)
+    return {
+        "bones": len(fit.parents), "frames": len(numbers), "lengths": lengths, "diagonal": diag,
+        "rmse": total, "rmse_percent": 100 * total / diag, "max": float(fit.max_error.max()),
+        "max_percent": 100 * float(fit.max_error.max()) / diag,
+        "bone_length_spread": spread, "influences_max": int(nnz.max()), "influences_mean": float(nnz.mean()),
+        "iterations": len(fit.history), "history": [float(h) for h in fit.history], "seconds": seconds,
+        "residual": {"rmse": [float(x) for x in fit.rmse], "max": [float(x) for x in fit.max_error]},
+        "timeline": {"frame": [int(f) for f in numbers], "rmse": [float(x) for x in fit.rmse],
+                     "max": [float(x) for x in fit.max_error],
+                     "rmse_percent": [float(100 * x / diag) for x in fit.rmse]},
+    }
+
+
+class Export(Node):
+    """A skinned, animated rig as files: USD (UsdSkel Skeleton + Animation + bound Mesh with joint
+    indices/weights, time codes = frame numbers) and/or glTF 2.0 binary (skin, inverse bind matrices,
+    a translation + rotation channel per joint). Joint transforms at frame k reproduce the skinned mesh."""
+
+    type_name = "skeleton.export"
+    version = 1
+    per = "sequence"
+    publishes = True
+    inputs = {
+        "skeleton": Input(Skeleton, doc="skin's skeleton (weights and motion)"),
+        "rest": Input(Mesh, doc="the rest shape the weights belong to (skin's rest)"),
+    }
+    outputs = {"files": Files}
+    params = {
+        "name": Param(str, "rig", doc="file name stem"),
+        "formats": Param(str, "usd,gltf", choices=("usd,gltf", "usd", "gltf"), doc="which files"),
+        "fps": Param(float, 24.0, range=(1.0, 1000.0), doc="frames per second"),
+        "influences": Param(int, 4, range=(1, 8), doc="joint influences per vertex in USD (glTF: 4)"),
+    }
+
+    def run(self, skeleton, rest, *, name, formats, fps, influences):
+        from . import formats as fmt
+
+        if skeleton.weights is None or skeleton.rotations is None:
+            raise NodeError("skeleton.export: input 'skeleton' has no weights or motion: connect skin's skeleton")
+        if skeleton.weights.shape[0] != len(rest.vertices):
+            raise NodeError(f"skeleton.export: {skeleton.weights.shape[0]} weighted vertices but the rest mesh has "
+                            f"{len(rest.vertices)}: connect skin's rest and skeleton")
+        frames = list(skeleton.frames) if skeleton.frames else list(range(skeleton.rotations.shape[0]))
+        rig = dict(vertices=np.asarray(rest.vertices), faces=np.asarray(rest.faces), joints=np.asarray(skeleton.joints),
+                   parents=list(skeleton.parents), names=list(skeleton.names), weights=np.asarray(skeleton.weights),
+                   rotations=np.asarray(skeleton.rotations), translations=np.asarray(skeleton.translations),
+                   frames=frames, fps=fps)
+        files = {}
+        if "usd" in formats:
+            files[f"{name}.usd"] = fmt.usd_bytes(influences=influences, **rig)
+        if "gltf" in formats:
+            files[f"{name}.glb"] = fmt.gltf_bytes(**rig)
+        return {"files": files}

@@ -1,0 +1,510 @@
+"""Linear-blend-skinning weights and bone motions fitted to a dynamic mesh (SSDR, Le & Deng 2012), with
+bones of fixed length and rotation-only joints as an option.
+
+LBS: vertex v at frame t is sum_j w_vj (R_tj v + t_tj), v its rest position, w_v on the simplex with at
+most ``influences`` non-zero entries. The fit alternates two steps, each lowering the squared error summed
+over vertices and frames:
+
+- weights, bone motions fixed: per vertex a small quadratic programme over the bones of its own part and
+  the parts next to it (mesh or tree neighbours), min |sum_j w_j (y_j - q)|^2 over the frames (y_j: where
+  bone j takes v, q: the tracked position), w >= 0, sum w = 1, solved by an active set (closed-form KKT
+  solves on the support, the most negative weight dropped each round; solve_simplex_qp is the projected-
+  gradient reference); then the ``influences`` largest are kept and solved again. Writing it with y_j - q makes the
+  sum-to-one direction drop out, so the problem is well conditioned. ``smooth`` adds a Laplacian term
+  (Jacobi: neighbours' previous weights) where the motion leaves the weights undetermined.
+- bone motions, weights fixed:
+  * ``fixed_lengths`` (default): the skeleton is a tree of rotation-only joints; bone j's motion is its
+    parent's followed by a rotation about the joint's rest pivot, the root also translates, so every
+    joint stays where its parent puts it and bone lengths never change. Per frame, Gauss-Newton (with
+    Levenberg damping) on one rotation increment per joint (about its current world pivot, applied to its
+    whole subtree) and the root translation: 3J + 3 unknowns, normal equations from per-vertex subtree
+    sums, one BLAS product.
+  * free: SSDR's per-bone update, a weighted Procrustes fit of each bone to what the other bones leave
+    (what Dem Bones does; shared pivots then drift apart and bone lengths change over frames).
+
+    fit = fit_skin(traj, faces, rig, influences=4, iterations=10)   # SkinFit: weights, motions, errors
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .motion import Rig, Trajectories, edge_graph, label_adjacency
+
+
+@dataclass
+class SkinFit:
+    """``rest`` (V, 3) the rest shape the fit skins; ``weights`` (V, J) dense with <= influences non-zeros per row; ``rotations`` (F, J, 3, 3),
+    ``translations`` (F, J, 3): rest -> frame; ``joints`` (J, 3) rest pivots; ``parents``; per-frame
+    ``rmse`` and ``max_error`` (F,); ``history``: total rmse after each iteration."""
+
+    rest: np.ndarray
+    weights: np.ndarray
+    rotations: np.ndarray
+    translations: np.ndarray
+    joints: np.ndarray
+    parents: list[int]
+    rmse: np.ndarray
+    max_error: np.ndarray
+    history: list[float]
+
+
+# ---------------------------------------------------------------- LBS
+def lbs(rest: np.ndarray, weights: np.ndarray, rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
+    """Skinned positions (F, V, 3) (or (V, 3) for one frame's (J, 3, 3), (J, 3))."""
+    one = rotations.ndim == 3
+    r = rotations[None] if one else rotations
+    t = translations[None] if one else translations
+    out = np.einsum("vj,fjab,vb->fva", weights, r, rest, optimize=True) + np.einsum("vj,fja->fva", weights, t)
+    return out[0] if one else out
+
+
+def errors(traj: Trajectories, weights, rotations, translations) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame rms and max distance between the skinned and the given positions."""
+    d = np.linalg.norm(lbs(traj.rest, weights, rotations, translations) - traj.frames, axis=2)
+    return np.sqrt((d * d).mean(1)), d.max(1)
+
+
+# ---------------------------------------------------------------- simplex QP
+def project_simplex(x: np.ndarray, allowed: np.ndarray) -> np.ndarray:
+    """Row-wise Euclidean projection onto {w >= 0, sum w = 1, w = 0 where not allowed}."""
+    x = np.where(allowed, x, -1e30)
+    u = -np.sort(-x, axis=1)
+    css = np.cumsum(u, axis=1) - 1.0
+    k = np.arange(1, x.shape[1] + 1)
+    ok = (u - css / k) > 0
+    rho = ok.shape[1] - 1 - np.argmax(ok[:, ::-1], axis=1)
+    theta = css[np.arange(len(x)), rho] / (rho + 1)
+    return np.maximum(x - theta[:, None], 0.0) * allowed
+
+
+def solve_simplex_qp(h: np.ndarray, g: np.ndarray, allowed: np.ndarray, w0: np.ndarray, iterations: int = 150) -> np.ndarray:
+    """Batched min w^T h w - 2 g^T w over the (allowed) simplex, FISTA from ``w0``. h (N, K, K), g (N, K)."""
+    lip = np.linalg.eigvalsh(h)[:, -1]
+    step = 0.5 / np.maximum(lip, 1e-30)
+    w = project_simplex(w0, allowed)
+    z, tk = w.copy(), 1.0
+    for _ in range(iterations):
+        grad = 2.0 * (np.einsum("nab,nb->na", h, z) - g)
+        w_new = project_simplex(z - step[:, None] * grad, allowed)
+        tn = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * tk * tk))
+        z = w_new + ((tk - 1.0) / tn) * (w_new - w)
+        w, tk = w_new, tn
+    return w
+
+
+def _kkt_solve(hr, g, sup):
+    """Minimiser of w^T h w - 2 g^T w subject to sum w = 1 and w = 0 off ``sup`` (batched KKT systems)."""
+    n, k = g.shape
+    kkt = np.zeros((n, k + 1, k + 1))
+    kkt[:, :k, :k] = hr * (sup[:, :, None] & sup[:, None, :]) + (~sup)[:, :, None] * np.eye(k)
+    kkt[:, :k, k] = sup
+    kkt[:, k, :k] = sup
+    rhs = np.zeros((n, k + 1))
+    rhs[:, :k] = g * sup
+    rhs[:, k] = 1.0
+    return np.linalg.solve(kkt, rhs[..., None])[..., 0][:, :k] * sup
+
+
+def solve_simplex_active(h: np.ndarray, g: np.ndarray, allowed: np.ndarray, ridge: float = 1e-9) -> np.ndarray:
+    """Batched min w^T h w - 2 g^T w over the (allowed) simplex: a primal active-set method (Lawson-Hanson
+    style). From the best single bone, solve the problem on the support with sum w = 1 in closed form; if
+    a weight would go negative, step towards that solution until the first weight reaches 0 and drop it;
+    otherwise add the allowed bone whose multiplier says the objective still falls, until none does."""
+    n, k = g.shape
+    scale = np.maximum(np.trace(h, axis1=1, axis2=2) / k, 1e-300)
+    hr = h + (ridge * scale)[:, None, None] * np.eye(k)
+    diag = np.einsum("nii->ni", hr) - 2 * g
+    start = np.argmin(np.where(allowed, diag, np.inf), axis=1)
+    w = np.zeros((n, k))
+    w[np.arange(n), start] = 1.0
+    sup = np.zeros((n, k), bool)
+    sup[np.arange(n), start] = True
+    todo = allowed.any(1)
+    tol = 1e-12 * scale
+    for _ in range(4 * k + 4):
+        idx = np.flatnonzero(todo)
+        if not len(idx):
+            break
+        z = _kkt_solve(hr[idx], g[idx], sup[idx])
+        wi, si = w[idx], sup[idx]
+        blocked = si & (z < 0)
+        feasible = ~blocked.any(1)
+        # infeasible: step from w towards z until a weight reaches zero; drop it
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.where(blocked, wi / (wi - z), np.inf)
+        alpha = np.clip(ratio.min(1), 0.0, 1.0)
+        stepped = wi + alpha[:, None] * (z - wi)
+        hit = np.argmin(ratio, axis=1)
+        new_w = np.where(feasible[:, None], z, stepped)
+        new_w[~feasible, hit[~feasible]] = 0.0
+        new_w = np.maximum(new_w, 0.0)
+        new_sup = si.copy()
+        new_sup[~feasible, hit[~feasible]] = False
+        # feasible: the multiplier of each allowed bone off the support; add the most negative
+        grad = 2 * (np.einsum("nab,nb->na", hr[idx], new_w) - g[idx])
+        mu = np.sum(np.where(new_sup, grad, 0), 1) / np.maximum(new_sup.sum(1), 1)
+        lam = np.where(allowed[idx] & ~new_sup, grad - mu[:, None], np.inf)
+        enter = np.argmin(lam, axis=1)
+        add = feasible & (lam[np.arange(len(idx)), enter] < -tol[idx])
+        new_sup[add, enter[add]] = True
+        w[idx], sup[idx] = new_w, new_sup
+        todo[idx[feasible & ~add]] = False
+    return w / np.maximum(w.sum(1, keepdims=True), 1e-300)
+
+
+# ---------------------------------------------------------------- weights step
+def _homogeneous(rot, tr):
+    return np.concatenate([rot, tr[..., None]], axis=-1)              # (F, J, 3, 4)
+
+
+def candidates(rest, labels, edges, parents, j, radius: float) -> np.ndarray:
+    """(V, C) candidate bones per vertex (-1 padded): its part, the parts next to it (mesh edges, tree) and
+    the parts of rest vertices within ``radius`` (surfaces that nearly touch: the inner knees)."""
+    from scipy.spatial import cKDTree
+
+    adj = label_adjacency(labels, edges, j) > 0
+    for c, p in enumerate(parents):
+        if p >= 0:
+            adj[c, p] = adj[p, c] = True
+    np.fill_diagonal(adj, True)
+    near = np.zeros((len(rest), j), bool)
+    near[np.arange(len(rest)), labels] = True
+    near |= adj[labels]
+    pairs = cKDTree(rest).query_pairs(radius, output_type="ndarray")
+    if len(pairs):
+        near[pairs[:, 0], labels[pairs[:, 1]]] = True
+        near[pairs[:, 1], labels[pairs[:, 0]]] = True
+    width = int(near.sum(1).max())
+    order = np.argsort(~near, axis=1, kind="stable")[:, :width]           # allowed bones first
+    out = np.where(np.take_along_axis(near, order, axis=1), order, -1)
+    return out
+
+
+def fit_weights(traj: Trajectories, rot, tr, cand_of_vertex: np.ndarray, w_prev: np.ndarray, nbr, *, influences: int,
+                smooth: float) -> np.ndarray:
+    """The weights step (module docstring). ``cand_of_vertex`` (V, C) bone indices (-1 = none), ``w_prev``
+    (V, J), ``nbr`` (offsets, neighbours) CSR of mesh neighbours. Returns (V, J)."""
+    f, j = rot.shape[:2]
+    v = len(traj.rest)
+    x = _homogeneous(rot, tr)
+    xs = x.transpose(1, 0, 2, 3).reshape(j, 3 * f, 4)                  # (J, 3F, 4)
+    gram = np.einsum("jkc,lkd->jlcd", xs, xs)                           # sum_t X_j^T X_l  (J, J, 4, 4)
+    cross = (traj.by_vertex @ xs.transpose(1, 0, 2).reshape(3 * f, 4 * j)).reshape(v, j, 4)   # sum_t X_j^T q
+    vh = np.c_[traj.rest, np.ones(v)]
+    qq = traj.qq.sum(0)
+    c = cand_of_vertex
+    valid = c >= 0
+    cs = np.where(valid, c, 0)
+    # H_ab = sum_t (y_a - q).(y_b - q) = vh G_ab vh - g_a - g_b + qq   with g_a = sum_t y_a . q
+    h = np.empty((v, c.shape[1], c.shape[1]))
+    groups = {}
+    for i, key in enumerate(map(tuple, cs)):
+        groups.setdefault(key, []).append(i)
+    for key, idx in groups.items():
+        idx = np.asarray(idx)
+        k = np.asarray(key)
+        h[idx] = np.einsum("vc,abcd,vd->vab", vh[idx], gram[k][:, k], vh[idx], optimize=True)
+    gq = np.einsum("vac,vc->va", cross[np.arange(v)[:, None], cs], vh)     # (V, C)
+    h = h - gq[:, :, None] - gq[:, None, :] + qq[:, None, None]
+    g = np.zeros_like(gq)
+    # Laplacian smoothing: lam * sum_{u in N(v)} |w_v - w_u|^2 (neighbours' previous weights)
+    offsets, neighbours = nbr
+    deg = np.diff(offsets).astype(np.float64)
+    mean_nbr = np.add.reduceat(w_prev[neighbours], offsets[:-1], axis=0) if len(neighbours) else np.zeros_like(w_prev)
+    mean_nbr[deg == 0] = 0.0
+    lam = smooth * f * float(np.linalg.norm(np.ptp(traj.rest, axis=0))) ** 2
+    h = h + (lam * deg)[:, None, None] * np.eye(c.shape[1])[None]
+    g = g + lam * np.take_along_axis(mean_nbr, cs, axis=1)
+    h = 0.5 * (h + h.transpose(0, 2, 1))
+    w = solve_simplex_active(h, g, valid)
+    if influences < c.shape[1]:
+        order = np.argsort(-w, axis=1)
+        keep = np.zeros_like(valid)
+        np.put_along_axis(keep, order[:, :influences], True, axis=1)
+        keep &= valid & (w > 0)
+        w = solve_simplex_active(h, g, keep)
+    out = np.zeros((v, j))
+    np.add.at(out, (np.repeat(np.arange(v), c.shape[1]), cs.ravel()), (w * valid).ravel())
+    return out
+
+
+# ---------------------------------------------------------------- bone motions: fixed lengths (Gauss-Newton)
+def subtree_matrix(parents: list[int]) -> np.ndarray:
+    """D (J, J): D[d, k] = 1 when joint d is k or below k."""
+    j = len(parents)
+    d = np.eye(j)
+    for i in range(j):
+        p = parents[i]
+        while p >= 0:
+            d[i, p] = 1.0
+            p = parents[p]
+    return d
+
+
+def topological(parents: list[int]) -> list[int]:
+    order, seen = [], set()
+
+    def visit(i):
+        if i in seen:
+            return
+        if parents[i] >= 0:
+            visit(parents[i])
+        seen.add(i)
+        order.append(i)
+
+    for i in range(len(parents)):
+        visit(i)
+    return order
+
+
+def constrain(rot, tr, joints, parents):
+    """Rotation-only joints: keep each bone's rotation, set its translation so that its pivot goes where
+    its parent takes it (parents first). (F, J, 3, 3), (F, J, 3) -> same."""
+    tr = tr.copy()
+    for j in topological(parents):
+        p = parents[j]
+        if p >= 0:
+            pivot = np.einsum("fab,b->fa", rot[:, p], joints[j]) + tr[:, p]
+            tr[:, j] = pivot - np.einsum("fab,b->fa", rot[:, j], joints[j])
+    return rot, tr
+
+
+def _skew(a):
+    z = np.zeros(a.shape[:-1])
+    return np.stack([np.stack([z, -a[..., 2], a[..., 1]], -1), np.stack([a[..., 2], z, -a[..., 0]], -1),
+                     np.stack([-a[..., 1], a[..., 0], z], -1)], -2)
+
+
+def _rodrigues(w):
+    """Rotation matrices (..., 3, 3) of axis-angle vectors (..., 3)."""
+    th = np.linalg.norm(w, axis=-1)[..., None, None]
+    k = _skew(w)
+    small = th < 1e-12
+    s = np.where(small, 1.0, np.sin(th) / np.where(small, 1.0, th))
+    c = np.where(small, 0.5, (1 - np.cos(th)) / np.where(small, 1.0, th * th))
+    return np.eye(3) + s * k + c * (k @ k)
+
+
+def _pose_frame(rest, q, idx, wv, wk_t, wk_sum, rot, tr, joints, parents, order, steps):
+    """Gauss-Newton on one frame's joint rotations (and root translation) with fixed pivots. ``wk_t``
+    (V, J, K): w_va [bone idx_va is in the subtree of k]; ``wk_sum`` (V, J) its sum over a."""
+    j = len(parents)
+    vh = rest
+
+    rows = np.arange(len(vh))[:, None]
+
+    def predict(rot, tr):
+        every = (vh @ rot.transpose(2, 0, 1).reshape(3, 3 * j)).reshape(len(vh), j, 3) + tr[None]  # bone j moves v
+        y = every[rows, idx]                                                 # (V, K, 3)
+        return y, np.matmul(wv[:, None, :], y)[:, 0]
+
+    y, p = predict(rot, tr)
+    err = float(((q - p) ** 2).sum())
+    mu = None
+    for _ in range(steps):
+        pivots = np.einsum("jab,jb->ja", rot, joints) + tr              # world pivot of each joint
+        r = q - p
+        # S_vk = sum_a w_va [idx_va in subtree(k)] (y_va - pivot_k)
+        s = np.matmul(wk_t, y) - wk_sum[:, :, None] * pivots[None]
+        sf = s.reshape(len(q), 3 * j)
+        m = (sf.T @ sf).reshape(j, 3, j, 3).transpose(0, 2, 1, 3)          # M[k, l] = sum_v s_vk s_vl^T
+        n = 3 * j + 3
+        jtj = np.zeros((n, n))
+        tr_m = np.trace(m, axis1=2, axis2=3)
+        # blocks[k, l] = sum_v [s_vk]x^T [s_vl]x = tr(M[k, l]) I - M[l, k]
+        blocks = tr_m[:, :, None, None] * np.eye(3) - np.swapaxes(m, 0, 1)
+        jtj[:3 * j, :3 * j] = blocks.transpose(0, 2, 1, 3).reshape(3 * j, 3 * j)
+        # J = [ -[s_vk]x ... | I ]; J^T J[k, tau] = sum_v (-[s_vk]x)^T = [sum_v s_vk]x
+        jtj[:3 * j, 3 * j:] = _skew(s.sum(0)).reshape(3 * j, 3)
+        jtj[3 * j:, :3 * j] = jtj[:3 * j, 3 * j:].T
+        jtj[3 * j:, 3 * j:] = len(q) * np.eye(3)
+        jtr = np.empty(n)
+        c = (sf.T @ r).reshape(j, 3, 3)                                   # sum_v s_vk r_v^T
+        jtr[:3 * j] = np.stack([c[:, 1, 2] - c[:, 2, 1], c[:, 2, 0] - c[:, 0, 2], c[:, 0, 1] - c[:, 1, 0]], 1).ravel()
+        # (-[s]x)^T r = s x r, summed over v
+        jtr[3 * j:] = r.sum(0)
+        if mu is None:
+            mu = 1e-6 * float(np.trace(jtj)) / n + 1e-12
+        improved = False
+        for _ in range(6):
+            delta = np.linalg.solve(jtj + mu * np.diag(np.diag(jtj) + 1e-12), jtr)
+            dr = _rodrigues(delta[:3 * j].reshape(j, 3))
+            tau = delta[3 * j:]
+            # accumulated world motion A_d = A_parent o E_d, E_d: rotation dr_d about pivots_d; root adds tau
+            a_rot = np.empty_like(rot)
+            a_tr = np.empty_like(tr)
+            for d in order:
+                e_t = pivots[d] - dr[d] @ pivots[d]
+                if parents[d] < 0:
+                    a_rot[d], a_tr[d] = dr[d], e_t + tau
+                else:
+                    pr, pt = a_rot[parents[d]], a_tr[parents[d]]
+                    a_rot[d], a_tr[d] = pr @ dr[d], pr @ e_t + pt
+            new_rot = np.einsum("jab,jbc->jac", a_rot, rot)
+            new_tr = np.einsum("jab,jb->ja", a_rot, tr) + a_tr
+            y2, p2 = predict(new_rot, new_tr)
+            e2 = float(((q - p2) ** 2).sum())
+            if e2 < err:
+                rot, tr, y, p, err = new_rot, new_tr, y2, p2, e2
+                mu *= 0.3
+                improved = True
+                break
+            mu *= 10.0
+        if not improved or err == 0.0:
+            break
+    return rot, tr
+
+
+def fit_poses_fixed(traj, weights, rot, tr, joints, parents, influences, steps: int = 2, samples: int = 4000):
+    """The bone-motion step with fixed bone lengths (module docstring), every frame, on ``samples``
+    vertices spread evenly over the vertex order (every vertex when fewer; 3J + 3 unknowns per frame need
+    far fewer equations than a mesh has)."""
+    sel = np.unique(np.linspace(0, len(weights) - 1, min(samples, len(weights))).astype(np.int64))
+    weights = weights[sel]
+    rest, frames = traj.rest[sel], traj.frames[:, sel]
+    idx = np.argsort(-weights, axis=1)[:, :influences]
+    wv = np.take_along_axis(weights, idx, axis=1)
+    wk = wv[:, :, None] * subtree_matrix(parents)[idx]                  # (V, K, J)
+    wk_t, wk_sum = np.ascontiguousarray(wk.transpose(0, 2, 1)), wk.sum(1)
+    order = topological(parents)
+    rot, tr = rot.copy(), tr.copy()
+    for t in range(traj.count):
+        rot[t], tr[t] = _pose_frame(rest, frames[t], idx, wv, wk_t, wk_sum, rot[t], tr[t], joints, parents, order, steps)
+    # re-orthonormalise (numerical drift) and restore the exact pivot chain
+    u, _, vt = np.linalg.svd(rot)
+    rot = u @ vt
+    return constrain(rot, tr, joints, parents)
+
+
+def fit_pivots(traj, weights, rot, tr, joints, parents, anchor, reg: float = 1e-3):
+    """Rest-pose joint pivots that lower the error with rotations and weights fixed (bone lengths stay fixed
+    over frames; only the rest skeleton changes). Moving pivot c_j by dc moves bone j and its whole
+    subtree by (R_parent - R_j) dc at each frame, so the update is one linear least-squares problem in
+    3 (J - 1) unknowns: (sum_t A_jt^T Omega_jk A_kt) dc = sum_t A_jt^T (omega^T r_t)_j with A_jt =
+    R_parent,t - R_j,t, omega = W D (subtree weight sums), Omega = omega^T omega. The root pivot stays.
+    Along directions the motion leaves open (a hinge's axis) a Tikhonov term, ``reg`` x the largest
+    eigenvalue of the joint's block, keeps each pivot near ``anchor`` (skeletonize.sequence's joints)."""
+    j = len(parents)
+    omega = weights @ subtree_matrix(parents)                            # (V, J)
+    big = omega.T @ omega                                                # (J, J)
+    a = np.zeros_like(rot)                                               # (F, J, 3, 3)
+    for k, p in enumerate(parents):
+        if p >= 0:
+            a[:, k] = rot[:, p] - rot[:, k]
+    pred = lbs(traj.rest, weights, rot, tr)
+    res = traj.frames - pred                                             # (F, V, 3)
+    rhs_vec = np.einsum("vj,fva->fja", omega, res)                       # (F, J, 3)
+    ata = np.einsum("fjab,fkac->jkbc", a, a)                             # sum_t A_j^T A_k
+    lhs = (big[:, :, None, None] * ata).transpose(0, 2, 1, 3).reshape(3 * j, 3 * j)
+    rhs = np.einsum("fjab,fja->jb", a, rhs_vec).ravel()
+    basis = []
+    for k in range(j):
+        block = lhs[3 * k:3 * k + 3, 3 * k:3 * k + 3]
+        ev, vec = np.linalg.eigh(block)
+        lam = reg * max(float(ev[-1]), 1e-30)
+        lhs[3 * k:3 * k + 3, 3 * k:3 * k + 3] += lam * np.eye(3)
+        rhs[3 * k:3 * k + 3] += lam * (anchor[k] - joints[k])
+        basis.append(vec[:, ev > 0.01 * max(float(ev[-1]), 1e-30)])   # directions the motion determines
+    keep = np.repeat([p >= 0 for p in parents], 3)
+    lhs, rhs = lhs[np.ix_(keep, keep)], rhs[keep]
+    dc = np.zeros(3 * j)
+    dc[keep] = np.linalg.solve(lhs, rhs)
+    dc = dc.reshape(j, 3)
+    for k in range(j):  # no move along a hinge's axis (or any direction the data leave open)
+        dc[k] = basis[k] @ (basis[k].T @ dc[k])
+    joints = joints + dc
+    rot, tr = constrain(rot, tr, joints, parents)
+    return joints, rot, tr
+
+
+def fit_rest(traj: Trajectories, weights, rot, tr, anchor: np.ndarray, reg: float = 1e-6) -> np.ndarray:
+    """Rest positions that the skinned motion fits best, weights and bone motions fixed: per vertex
+    min_u sum_t |A_t u + b_t - q_t|^2 + reg * F |u - anchor|^2, with A_t = sum_j w_j R_tj and
+    b_t = sum_j w_j t_tj (a 3x3 system). A posed frame used as the rest shape is not exactly an LBS rest
+    shape where bones blend; this removes that error (Dem Bones keeps the given rest shape)."""
+    a = np.einsum("vj,fjab->vfab", weights, rot, optimize=True)            # (V, F, 3, 3)
+    b = np.einsum("vj,fja->vfa", weights, tr, optimize=True)                # (V, F, 3)
+    q = traj.frames.transpose(1, 0, 2)                                      # (V, F, 3)
+    f = traj.count
+    lhs = np.einsum("vfab,vfac->vbc", a, a) + reg * f * np.eye(3)
+    rhs = np.einsum("vfab,vfa->vb", a, q - b) + reg * f * anchor
+    return np.linalg.solve(lhs, rhs[..., None])[..., 0]
+
+
+# ---------------------------------------------------------------- bone motions: free (SSDR)
+def fit_poses_free(traj, weights, rot, tr):
+    """SSDR's bone update: each bone a weighted Procrustes fit to what the other bones leave unexplained."""
+    rot, tr = rot.copy(), tr.copy()
+    rest, q = traj.rest, traj.frames
+    pred = lbs(rest, weights, rot, tr)                                   # (F, V, 3)
+    for j in range(weights.shape[1]):
+        idx = np.flatnonzero(weights[:, j] > 1e-8)
+        if len(idx) < 3:
+            continue
+        wj = weights[idx, j]
+        mine = np.einsum("fab,vb->fva", rot[:, j], rest[idx]) + tr[:, j, None]
+        others = pred[:, idx] - wj[None, :, None] * mine
+        target = (q[:, idx] - others) / wj[None, :, None]
+        om = wj * wj
+        om = om / om.sum()
+        pbar = om @ rest[idx]
+        qbar = np.einsum("v,fva->fa", om, target)
+        cov = np.einsum("v,va,fvb->fab", om, rest[idx] - pbar, target - qbar[:, None])
+        u, _, vt = np.linalg.svd(cov)
+        d = np.sign(np.linalg.det(u) * np.linalg.det(vt))
+        vt[:, 2] *= d[:, None]
+        r = np.einsum("fba,fcb->fac", vt, u)
+        t = qbar - np.einsum("fab,b->fa", r, pbar)
+        rot[:, j], tr[:, j] = r, t
+        new = np.einsum("fab,vb->fva", r, rest[idx]) + t[:, None]
+        pred[:, idx] = others + wj[None, :, None] * new
+    return rot, tr
+
+
+# ---------------------------------------------------------------- the whole fit
+def fit_skin(traj: Trajectories, faces: np.ndarray, rig: Rig, *, influences: int = 4, iterations: int = 15,
+             smooth: float = 1e-6, fixed_lengths: bool = True, pivots: bool = True, rest: bool = True,
+             tol: float = 1e-4, log=None) -> SkinFit:
+    """Alternate the weights and bone-motion steps (module docstring) from the rig's rigid parts; with
+    fixed lengths, ``pivots`` also moves the rest-pose joints (fit_pivots) after each bone-motion step;
+    ``rest`` refits the rest shape (fit_rest) after it."""
+    from nodes.common.meshops import vertex_neighbours
+
+    joints = np.asarray(rig.joints, np.float64)
+    parents = list(rig.parents)
+    j = len(parents)
+    _, edges = edge_graph(traj.rest, faces)
+    nbr = vertex_neighbours(faces, len(traj.rest))
+    diag = float(np.linalg.norm(np.ptp(traj.rest, axis=0)))
+    cand = candidates(traj.rest, rig.labels, edges, parents, j, 0.03 * diag)
+    weights = np.zeros((len(traj.rest), j))
+    weights[np.arange(len(traj.rest)), rig.labels] = 1.0
+    rot, tr = rig.rotations.copy(), rig.translations.copy()
+    anchor = traj.rest
+    if fixed_lengths:
+        rot, tr = constrain(rot, tr, joints, parents)
+        rot, tr = fit_poses_fixed(traj, weights, rot, tr, joints, parents, influences, steps=4)
+    history = []
+    prev = np.inf
+    for it in range(iterations):
+        weights = fit_weights(traj, rot, tr, cand, weights, nbr, influences=influences, smooth=smooth)
+        if fixed_lengths:
+            rot, tr = fit_poses_fixed(traj, weights, rot, tr, joints, parents, influences)
+            if pivots:
+                joints, rot, tr = fit_pivots(traj, weights, rot, tr, joints, parents, rig.joints)
+        else:
+            rot, tr = fit_poses_free(traj, weights, rot, tr)
+        if rest:
+            traj = traj.with_rest(fit_rest(traj, weights, rot, tr, anchor))
+        rmse, _ = errors(traj, weights, rot, tr)
+        total = float(np.sqrt((rmse ** 2).mean()))
+        history.append(total)
+        if log:
+            log(f"skin iteration {it + 1}: rmse {total:.6g}")
+        if prev - total < tol * total:
+            break
+        prev = total
+    rmse, mx = errors(traj, weights, rot, tr)
+    return SkinFit(traj.rest, weights, rot, tr, joints, parents, rmse, mx, history)

@@ -1,0 +1,1 @@
+"""Texturing: per-face view selection, seam levelling, atlas, baking (kernels/texture.cl)."""

@@ -1,0 +1,141 @@
+"""Texture nodes: ``texture`` paints a mesh from the camera images (atlas + PNG, or vertex colours);
+``texture.atlas`` makes one UV atlas for a constant-connectivity sequence, to be given back to ``texture``
+on every frame (only baking then runs per frame)."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from nodegraph import DataType, Input, Node, NodeError, Output, Param
+from nodes.common import raster
+from nodes.common.types import CameraSet, Images, Masks, Mesh, TexturedMesh
+
+from . import views
+from .atlas import Atlas, make_atlas
+from .texturing import Settings, coloured_trimesh, texture_mesh, textured_trimesh
+
+
+class AtlasType(DataType):
+    """A UV layout for one mesh connectivity (nodes.texture.atlas.Atlas), stored as atlas.npz."""
+
+    name = "Atlas"
+
+    @classmethod
+    def check(cls, v):
+        if not isinstance(v, Atlas):
+            return f"expected an Atlas, got {type(v).__name__}"
+        if v.face_uv.shape != (len(v.faces), 3, 2) or v.face_chart.shape != (len(v.faces),):
+            return "atlas arrays disagree with its face count"
+        return None
+
+    @classmethod
+    def save(cls, v: Atlas, folder: Path):
+        np.savez_compressed(folder / "atlas.npz", face_uv=v.face_uv, face_chart=v.face_chart, faces=v.faces,
+                            size=np.int64(v.size))
+
+    @classmethod
+    def load(cls, folder: Path) -> Atlas:
+        with np.load(folder / "atlas.npz") as z:
+            return Atlas(z["face_uv"], z["face_chart"], int(z["size"]), z["faces"])
+
+    @classmethod
+    def preview(cls, value, size, companions):
+        import cv2
+
+        s = value.size
+        scale = size / s
+        img = np.full((size, size, 3), 24, np.uint8)
+        rng = np.random.default_rng(0)
+        colours = rng.integers(60, 255, (max(value.n_charts, 1), 3))
+        pts = np.round(value.face_uv * scale * 16).astype(np.int32)
+        for f in range(len(pts)):
+            cv2.fillPoly(img, [pts[f]], tuple(int(c) for c in colours[value.face_chart[f]]), shift=4)
+        return img
+
+
+COMMON_PARAMS = {
+    "size": Param(int, 2048, range=(16, 16384), doc="atlas texels per side"),
+    "directions": Param(int, 6, choices=(6, 14), doc="chart projection directions (6 axes, or axes + diagonals)"),
+}
+
+
+class Texture(Node):
+    """Paints a mesh from calibrated images: per-face view selection (frontal, high resolution, unoccluded,
+    sharp, colour-consistent; Potts smoothness), per-camera exposure/white-balance gains, global seam
+    levelling and a cross-fade across view seams, a UV atlas (or the one given), baked into a PNG texture.
+    Pixels within ``margin`` of a mask border or ``edge_px`` of a depth edge are never sampled, so
+    background cannot bleed in. mode=vertex gives vertex colours instead."""
+
+    type_name = "texture"
+    version = 1
+    inputs = {
+        "mesh": Mesh, "images": Images, "cameras": CameraSet,
+        "masks": Input(Masks, optional=True, doc="silhouettes: only pixels inside them (minus margin) are sampled"),
+        "atlas": Input(AtlasType, optional=True, doc="a layout made for this connectivity (texture.atlas): reused"),
+    }
+    outputs = {
+        "mesh": Output(TexturedMesh, "the mesh with UVs and its texture (GLB), or with vertex colours"),
+        "atlas": Output(AtlasType, "the layout used (atlas mode)", optional=True),
+    }
+    params = {
+        "mode": Param(str, "atlas", choices=("atlas", "vertex"), doc="texture atlas or vertex colours"),
+        **COMMON_PARAMS,
+        "margin": Param(int, 2, range=(0, 64), doc="mask erosion before sampling, pixels"),
+        "edge_px": Param(int, 2, range=(0, 64), doc="distance kept from depth edges and outlines, pixels"),
+        "smoothness": Param(float, 0.5, range=(0.0, 100.0), doc="Potts weight between neighbouring faces' views"),
+        "feather": Param(int, 2, range=(0, 64), doc="vertex rings of cross-fade on each side of a view seam"),
+        "balance": Param(bool, True, doc="estimate per-camera exposure / white-balance gains"),
+        "level": Param(bool, True, doc="global seam levelling"),
+    }
+    kernels = [views.KERNELS, raster.KERNELS]
+
+    def run(self, mesh, images, cameras, masks, atlas, *, mode, size, directions, margin, edge_px, smoothness,
+            feather, balance, level):
+        if len(mesh.faces) == 0:
+            raise NodeError("the mesh has no faces: nothing to texture")
+        if atlas is not None and mode == "vertex":
+            raise NodeError("an atlas was given but mode is 'vertex' (vertex colours use no atlas)")
+        if atlas is not None and not atlas.matches(mesh.faces):
+            raise NodeError(f"input 'atlas' was made for another connectivity ({len(atlas.faces)} faces); the mesh "
+                            f"has {len(mesh.faces)} faces: an atlas is reused only for meshes with the same faces")
+        s = Settings(size=size, margin=margin, edge_px=edge_px, smoothness=smoothness, feather=feather,
+                     balance=balance, level=level, directions=directions)
+        r = texture_mesh(mesh.vertices, mesh.faces, images.images, None if masks is None else masks.masks, cameras,
+                         s, atlas=atlas, mode=mode)
+        self.log.info("texture: %s; %s", json.dumps({k: round(v, 3) for k, v in r.timings.items()}), json.dumps(r.stats))
+        if r.stats["faces_without_view"] > 0.25 * r.stats["faces"]:
+            self.log.warning("%d of %d faces are seen by no camera; they are filled from their neighbours",
+                             r.stats["faces_without_view"], r.stats["faces"])
+        if mode == "vertex":
+            return {"mesh": coloured_trimesh(mesh.vertices, mesh.faces, r.vertex_colours), "atlas": None}
+        return {"mesh": textured_trimesh(mesh.vertices, mesh.faces, r.atlas, r.texture), "atlas": r.atlas}
+
+
+class TextureAtlas(Node):
+    """One UV atlas for a mesh sequence with constant connectivity (a tracked segment): made from the
+    reference frame's mesh and given to ``texture`` on every frame, so only baking runs per frame and the
+    texture stays in place over time."""
+
+    type_name = "texture.atlas"
+    version = 1
+    per = "sequence"
+    inputs = {"mesh": Mesh}
+    outputs = {"atlas": AtlasType}
+    params = {**COMMON_PARAMS,
+              "reference": Param(int, 0, range=(0, None), doc="index (within the run's frames) of the mesh to chart")}
+
+    def run(self, mesh, *, size, directions, reference):
+        meshes = mesh if isinstance(mesh, list) else [mesh]
+        if reference >= len(meshes):
+            raise NodeError(f"reference {reference} is beyond the {len(meshes)} frames of this run")
+        ref = meshes[reference]
+        frames = getattr(self, "frames", list(range(len(meshes))))
+        for fr, m in zip(frames, meshes):
+            if m.faces.shape != ref.faces.shape or not np.array_equal(m.faces, ref.faces):
+                raise NodeError(f"frame {fr}: its mesh has another connectivity ({len(m.faces)} faces) than the "
+                                f"reference ({len(ref.faces)}); one atlas needs constant connectivity (track the sequence first)")
+        if len(ref.faces) == 0:
+            raise NodeError("the reference mesh has no faces")
+        return {"atlas": make_atlas(ref.vertices, ref.faces, views.face_neighbours(ref.faces), size, directions=directions)}

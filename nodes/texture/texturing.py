@@ -1,0 +1,181 @@
+"""The texturing pipeline for one frame: visibility -> view selection -> levelling -> atlas -> baking.
+
+    result = texture_mesh(vertices, faces, images, masks, cameras, Settings(size=2048))
+    result.texture (S, S, 3) uint8, result.atlas, result.timings (seconds per step), result.stats
+
+``atlas=`` reuses a layout made earlier for the same connectivity (a tracked sequence): only the
+per-frame steps run. ``mode="vertex"`` gives per-vertex colours instead of an atlas.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from nodegraph import NodeError
+
+from . import views as V
+from .atlas import Atlas, make_atlas
+from .bake import Blend, add_gutter, bake_samples, push_pull, texel_bary, uv_raster
+
+
+@dataclass
+class Settings:
+    size: int = 2048                # atlas texels per side
+    margin: int = 1                 # mask erosion, pixels
+    edge_px: int = 1                # distance kept from depth edges, pixels
+    depth_tol: float = 0.01         # z-buffer test tolerance, fraction of the mesh diagonal
+    edge_tol: float = 0.02          # depth jump that counts as an edge, fraction of the mesh diagonal
+    smoothness: float = 0.5         # Potts weight of the view selection
+    consistency: float = 40.0       # colour distance (0..255) beyond which a view disagrees with a face's others
+    feather: int = 2                # vertex rings of cross-fade on each side of a view seam
+    adaptive: bool = True           # blend towards a weighted average where the views disagree
+    spread_range: tuple = (12.0, 32.0)  # view disagreement (0..255) where that starts / is complete
+    blend_views: int = 8            # most views blended per face
+    average_power: float = 0.0      # quality exponent of the average (0: plain mean of the views)
+    blur_px: float = 3.0            # radius of the blurred sample used where views disagree (0: never)
+    balance: bool = True            # per-camera exposure / white-balance gains
+    level: bool = True              # global seam levelling (offsets per vertex and view)
+    gutter: int = 2                 # texels around each chart
+    directions: int = 6             # chart directions (6 or 14)
+
+
+@dataclass
+class Result:
+    atlas: Atlas | None
+    texture: np.ndarray | None                 # (S, S, 3) uint8 (atlas mode)
+    vertex_colours: np.ndarray | None          # (V, 3) uint8 (vertex mode)
+    labels: np.ndarray
+    blend: Blend
+    texel_face: np.ndarray | None = None
+    texel_weight: np.ndarray | None = None
+    texel_inner: np.ndarray | None = None      # (S, S) bool: texel centre inside a face (not the gutter)
+    timings: dict = field(default_factory=dict)
+    stats: dict = field(default_factory=dict)
+
+
+def prepare(vertices, faces, images, masks, cameras, s: Settings, timings: dict):
+    if len(images) != len(cameras):
+        raise NodeError(f"{len(images)} images for {len(cameras)} cameras")
+    if masks is not None and len(masks) != len(cameras):
+        raise NodeError(f"{len(masks)} masks for {len(cameras)} cameras")
+    for i, (im, cam) in enumerate(zip(images, cameras)):
+        if im.shape[:2] != (cam.height, cam.width):
+            raise NodeError(f"image {i} is {im.shape[1]}x{im.shape[0]} but camera '{cam.name}' is {cam.width}x{cam.height}")
+        if masks is not None and masks[i].shape[:2] != im.shape[:2]:
+            raise NodeError(f"mask {i} is {masks[i].shape[1]}x{masks[i].shape[0]} but image {i} is {im.shape[1]}x{im.shape[0]}")
+    t = time.perf_counter()
+    frame = V.FrameImages.build(images, masks, s.margin)
+    stats = V.face_view_stats(vertices, faces, cameras, frame, depth_tol=s.depth_tol, edge_tol=s.edge_tol, edge_px=s.edge_px)
+    timings["visibility"] = time.perf_counter() - t
+    return frame, stats
+
+
+def choose(vertices, faces, cameras, frame, stats, s: Settings, nbr, timings: dict):
+    t = time.perf_counter()
+    gains = V.camera_gains(stats.quality, stats.colour) if s.balance else np.ones((len(cameras), 3), np.float32)
+    sharp = V.view_sharpness(frame.images, frame.valid)
+    q = stats.effective() * sharp[:, None].astype(np.float32)
+    cost, spread = V.data_cost(q, stats.colour, gains, consistency=s.consistency, return_spread=True)
+    labels = V.select_views(cost, nbr, smoothness=s.smoothness)
+    face_view, weight = V.blend_weights(labels, q, faces, len(vertices), feather=s.feather,
+                                        spread=spread if s.adaptive else None, spread_range=s.spread_range,
+                                        K=s.blend_views, power=s.average_power)
+    timings["selection"] = time.perf_counter() - t
+    t = time.perf_counter()
+    if s.level:
+        offset = V.level_seams(vertices, faces, face_view, weight, cameras, frame, gains)
+    else:
+        offset = np.zeros(face_view.shape[:1] + (3,) + face_view.shape[1:] + (3,), np.float32)
+    timings["levelling"] = time.perf_counter() - t
+    blur = None
+    if s.adaptive and s.blur_px > 0:
+        lo, hi = s.spread_range
+        blur = np.clip((spread - lo) / max(hi - lo, 1e-6), 0, 1).astype(np.float32)
+    return labels, Blend(face_view, weight, offset, gains, blur, s.blur_px)
+
+
+def texture_mesh(vertices, faces, images, masks, cameras, s: Settings = Settings(), *, atlas: Atlas | None = None,
+                 mode: str = "atlas") -> Result:
+    vertices = np.asarray(vertices, np.float64)
+    faces = np.asarray(faces, np.int32)
+    timings: dict = {}
+    frame, stats = prepare(vertices, faces, images, masks, cameras, s, timings)
+    nbr = V.face_neighbours(faces)
+    labels, blend = choose(vertices, faces, cameras, frame, stats, s, nbr, timings)
+    fallback = V.fallback_vertex_colours(labels, stats.colour, blend.gains, faces, len(vertices))
+    info = {"faces": int(len(faces)), "faces_without_view": int(np.sum(labels < 0)),
+            "views_used": int(len(np.unique(labels[labels >= 0])))}
+    if mode == "vertex":
+        t = time.perf_counter()
+        first_face = np.full(len(vertices), -1, np.int64)
+        corner = np.zeros(len(vertices), np.int64)
+        for k in (2, 1, 0):
+            first_face[faces[:, k]] = np.arange(len(faces))
+            corner[faces[:, k]] = k
+        used = first_face >= 0
+        bary = np.zeros((len(vertices), 3), np.float32)
+        bary[np.arange(len(vertices)), corner] = 1.0
+        rgbw = bake_samples(np.where(used, first_face, -1), bary, vertices, faces, cameras, frame, blend)
+        col = np.where(rgbw[:, 3:4] > 0, rgbw[:, :3], fallback)
+        timings["baking"] = time.perf_counter() - t
+        info["vertices_from_fallback"] = int(np.sum(rgbw[:, 3] <= 0))
+        return Result(None, None, np.clip(col + 0.5, 0, 255).astype(np.uint8), labels, blend, timings=timings, stats=info)
+
+    t = time.perf_counter()
+    if atlas is None:
+        atlas = make_atlas(vertices, faces, nbr, s.size, directions=s.directions, gutter=s.gutter)
+        timings["atlas"] = time.perf_counter() - t
+    else:
+        if not atlas.matches(faces):
+            raise NodeError(f"the atlas was made for {len(atlas.faces)} faces of another connectivity; this mesh has "
+                            f"{len(faces)} faces (an atlas can be reused only for meshes with the same faces)")
+        timings["atlas"] = 0.0
+    t = time.perf_counter()
+    size = atlas.size
+    inner = uv_raster(atlas.face_uv, size)
+    texel_face = add_gutter(inner, max(1, s.gutter))
+    bary = texel_bary(texel_face, atlas.face_uv)
+    flat_face = texel_face.reshape(-1)
+    rgbw = bake_samples(flat_face, bary.reshape(-1, 3), vertices, faces, cameras, frame, blend)
+    col = rgbw[:, :3]
+    w = rgbw[:, 3]
+    need = (flat_face >= 0) & (w <= 0)
+    if np.any(need):                                          # no view may paint it: the vertex-colour fallback
+        idx = np.flatnonzero(need)
+        col[idx] = np.einsum("nc,ncd->nd", bary.reshape(-1, 3)[idx], fallback[faces[flat_face[idx]]])
+    known = (flat_face >= 0).reshape(size, size)
+    img = push_pull(col.reshape(size, size, 3), known)
+    texture = np.clip(img + 0.5, 0, 255).astype(np.uint8)
+    timings["baking"] = time.perf_counter() - t
+    info.update({"charts": atlas.n_charts, "texels_covered": int(np.sum(inner >= 0)),
+                 "texels_from_fallback": int(np.sum(need & (inner.reshape(-1) >= 0)))})
+    return Result(atlas, texture, None, labels, blend, texel_face=texel_face, texel_weight=w.reshape(size, size),
+                  texel_inner=inner >= 0, timings=timings, stats=info)
+
+
+# ---------------------------------------------------------------- trimesh output
+def textured_trimesh(vertices, faces, atlas: Atlas, texture: np.ndarray):
+    """A trimesh.Trimesh with one vertex per (vertex, chart) pair, per-vertex UVs and the texture as the PBR
+    base colour (what GLB/OBJ/USD exports read)."""
+    import trimesh
+    from PIL import Image
+
+    faces = np.asarray(faces, np.int64)
+    key = faces * (atlas.n_charts or 1) + atlas.face_chart[:, None].astype(np.int64)
+    uniq, inverse = np.unique(key.ravel(), return_inverse=True)
+    src = uniq // (atlas.n_charts or 1)
+    uv = np.zeros((len(uniq), 2), np.float64)
+    uv[inverse] = atlas.uv01().reshape(-1, 2)
+    mat = trimesh.visual.material.PBRMaterial(baseColorTexture=Image.fromarray(texture), metallicFactor=0.0,
+                                              roughnessFactor=1.0, doubleSided=False)
+    return trimesh.Trimesh(np.asarray(vertices, np.float64)[src], inverse.reshape(-1, 3),
+                           visual=trimesh.visual.TextureVisuals(uv=uv, material=mat), process=False)
+
+
+def coloured_trimesh(vertices, faces, colours):
+    import trimesh
+
+    rgba = np.hstack([colours, np.full((len(colours), 1), 255, np.uint8)])
+    return trimesh.Trimesh(np.asarray(vertices, np.float64), np.asarray(faces, np.int64), vertex_colors=rgba, process=False)

@@ -1,0 +1,575 @@
+"""Which camera paints which face: per-view visibility and quality, MRF view selection, per-camera colour
+gains, blend weights that cross-fade across view seams, and global seam levelling.
+
+    frame = FrameImages.build(images, masks, margin=1)                         # images + valid (eroded) masks
+    stats = face_view_stats(vertices, faces, cameras, frame)                   # quality (V, F), colour (V, F, 3)
+    gains = camera_gains(stats.quality, stats.colour)                          # (V, 3), exposure / white balance
+    cost, spread = data_cost(stats.effective(), stats.colour, gains, return_spread=True)
+    labels = select_views(cost, face_neighbours(faces))
+    face_view, weight = blend_weights(labels, stats.effective(), faces, len(vertices), feather=2, spread=spread)
+    offset = level_seams(vertices, faces, face_view, weight, cameras, frame, gains)
+
+Visibility (Waechter et al. 2014, with margins against background bleeding): a face is usable in a view
+when it faces the camera and its centroid and three inner points pass the z-buffer test, fall on valid
+pixels (the mask eroded by ``margin`` pixels) and lie ``edge_px`` pixels away from any depth edge or the
+mesh's outline. Quality = projected area in pixels x cosine (resolution and frontality), times a per-view
+sharpness factor; a weaker test (centroid only) backs up faces no view passes. Selection minimises
+sum_f D(f, l_f) + smoothness * #{neighbour faces with another label} (Potts) with D = 1 - q / max_q, plus a
+penalty for colours inconsistent with the face's other views (occluders and registration errors), by iterated
+conditional modes over random halves of the faces.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from kernels import source
+from nodegraph import clrt
+from nodes.common.cameras import Cameras
+from nodes.common.meshops import unique_edges, vertex_neighbours
+
+KERNELS = source("texture.cl")
+INVISIBLE = 1e6
+
+
+class TextureCL(clrt.Runner):
+    source = KERNELS
+
+
+@dataclass
+class FrameImages:
+    """A frame's images (and valid masks) laid out once for the kernels: RGB bytes view after view."""
+
+    images: list[np.ndarray]          # (H, W, 3) uint8 per view
+    valid: list[np.ndarray]           # (H, W) uint8 1 = may be sampled
+    packed: np.ndarray                # all images, concatenated bytes
+    packed_valid: np.ndarray          # all valid masks, concatenated bytes
+    offsets: np.ndarray               # (V,) int64 byte offset of each image in ``packed``
+
+    @classmethod
+    def build(cls, images, masks=None, margin: int = 2) -> "FrameImages":
+        valid = [valid_mask(im.shape[:2], None if masks is None else masks[i], margin) for i, im in enumerate(images)]
+        sizes = np.array([im.size for im in images], np.int64)
+        offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+        packed = np.concatenate([np.ascontiguousarray(im).reshape(-1) for im in images])
+        packed_valid = np.concatenate([v.reshape(-1) for v in valid])
+        return cls(list(images), valid, packed, packed_valid, offsets)
+
+
+def valid_mask(shape, mask, margin: int) -> np.ndarray:
+    """uint8 1 where a pixel may be sampled: inside the mask eroded by ``margin`` pixels (all pixels without a
+    mask)."""
+    import cv2
+
+    if mask is None:
+        return np.ones(shape, np.uint8)
+    m = (np.asarray(mask) > 127).astype(np.uint8)
+    if margin > 0:
+        m = cv2.erode(m, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin + 1, 2 * margin + 1)),
+                      borderValue=0)
+    return m
+
+
+@dataclass
+class FaceViews:
+    quality: np.ndarray   # (V, F) float32, 0 = not usable
+    colour: np.ndarray    # (V, F, 3) float32 mean colour (0..255) where usable (the centroid's where relaxed)
+    relaxed: np.ndarray   # (V, F) float32 quality under the weaker test (centroid only, no edge margin)
+
+    def effective(self, weak=0.01) -> np.ndarray:
+        """Quality with views that pass only the relaxed test kept at ``weak`` times theirs: used only where
+        a face has no better view."""
+        return np.where(self.quality > 0, self.quality, weak * self.relaxed).astype(np.float32)
+
+
+def _tolerances(vertices, depth_tol, edge_tol):
+    diag = float(np.linalg.norm(np.ptp(vertices, axis=0))) if len(vertices) else 1.0
+    return depth_tol * diag, edge_tol * diag
+
+
+def face_view_stats(vertices, faces, cameras: Cameras, frame: FrameImages, *, depth_tol=0.01, edge_tol=0.02,
+                    edge_px=2) -> FaceViews:
+    """Per view and face: quality and mean colour (kernel ``face_views`` over the z-buffer of kernels/raster.cl).
+    ``depth_tol`` and ``edge_tol`` are fractions of the mesh's bounding-box diagonal."""
+    import pyopencl as cl
+
+    from nodes.common.raster import MeshRaster
+
+    v = np.ascontiguousarray(vertices, np.float32)
+    f = np.ascontiguousarray(faces, np.int32)
+    nv, nf = len(cameras), len(f)
+    quality = np.zeros((nv, nf), np.float32)
+    relaxed = np.zeros((nv, nf), np.float32)
+    colour = np.zeros((nv, nf, 3), np.float32)
+    if nf == 0:
+        return FaceViews(quality, colour, relaxed)
+    dt, et = _tolerances(v, depth_tol, edge_tol)
+    r = MeshRaster(v, f, cameras)
+    tcl = TextureCL.get()
+    d_img = tcl.host(frame.packed)
+    d_valid = tcl.host(frame.packed_valid)
+    d_q = tcl.buffer("fv_quality", 4 * nf)
+    d_r = tcl.buffer("fv_relaxed", 4 * nf)
+    d_c = tcl.buffer("fv_colour", 12 * nf)
+    centres = cameras.centers
+    for view in range(nv):
+        zbuf = r.zbuffer(view)
+        off = int(frame.offsets[view])
+        tcl.launch("face_views", (nf,), (64,), r.d_verts, r.d_faces, np.int32(nf), r.d_cams, np.int32(view),
+                   cl.cltypes.make_float4(*centres[view], 0), zbuf, d_valid, d_img, np.int64(off), np.float32(dt), np.float32(et),
+                   np.int32(edge_px), d_q, d_r, d_c)
+        tcl.read(d_q, (nf,), np.float32, out=quality[view])
+        tcl.read(d_r, (nf,), np.float32, out=relaxed[view])
+        tcl.read(d_c, (nf, 3), np.float32, out=colour[view])
+    return FaceViews(quality, colour, relaxed)
+
+
+def _sample_rgb_reference(img, p):
+    h, w = img.shape[:2]
+    x = np.clip(p[:, 0], 0, w - 1).astype(np.float32)
+    y = np.clip(p[:, 1], 0, h - 1).astype(np.float32)
+    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    f32 = np.float32
+    return ((1 - fy) * ((1 - fx) * img[y0, x0].astype(f32) + fx * img[y0, x1].astype(f32))
+            + fy * ((1 - fx) * img[y1, x0].astype(f32) + fx * img[y1, x1].astype(f32)))
+
+
+def face_view_stats_reference(vertices, faces, cameras: Cameras, frame: FrameImages, *, depth_tol=0.01,
+                              edge_tol=0.02, edge_px=2) -> FaceViews:
+    """NumPy version of ``face_view_stats`` (z-buffer from raster.rasterize_reference)."""
+    from nodes.common.raster import rasterize_reference
+
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    nv, nf = len(cameras), len(f)
+    quality = np.zeros((nv, nf), np.float32)
+    relaxed = np.zeros((nv, nf), np.float32)
+    colour = np.zeros((nv, nf, 3), np.float32)
+    dt, et = _tolerances(v, depth_tol, edge_tol)
+    A, B, C = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    G = (A + B + C) / 3
+    n = np.cross(B - A, C - A)
+    pts = [G, G + 0.8 * (A - G), G + 0.8 * (B - G), G + 0.8 * (C - G)]
+    for view in range(nv):
+        cam = cameras[view]
+        w, h = cam.width, cam.height
+        depth = rasterize_reference(v, f, cameras, view)[1]
+        to_cam = cameras.centers[view] - G
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cosine = np.einsum("ij,ij->i", n, to_cam) / (np.linalg.norm(n, axis=1) * np.linalg.norm(to_cam, axis=1))
+        front = np.nan_to_num(cosine) > 0
+        corners = [cameras.project(X, view) for X in (A, B, C)]
+        for _, z in corners:
+            front &= z > 1e-6
+        (pa, _), (pb, _), (pc, _) = corners
+        area = 0.5 * np.abs((pb[:, 0] - pa[:, 0]) * (pc[:, 1] - pa[:, 1]) - (pb[:, 1] - pa[:, 1]) * (pc[:, 0] - pa[:, 0]))
+        acc = np.zeros((nf, 3), np.float32)
+        strict = front.copy()
+        valid = frame.valid[view]
+        for s, X in enumerate(pts):
+            p, z = cameras.project(X, view)
+            inside = (p[:, 0] > -0.5) & (p[:, 1] > -0.5) & (p[:, 0] < w - 0.5) & (p[:, 1] < h - 0.5) & (z > 1e-6)
+            x = np.where(inside, np.floor(p[:, 0] + 0.5), 0).astype(np.int64)
+            y = np.where(inside, np.floor(p[:, 1] + 0.5), 0).astype(np.int64)
+            seen = inside & (valid[y, x] != 0) & (z <= depth[y, x] + dt)
+            c = _sample_rgb_reference(frame.images[view], p)
+            if s == 0:
+                centre_ok = front & seen
+                first = c
+            ok = seen.copy()
+            for dx, dy in ((edge_px, 0), (-edge_px, 0), (0, edge_px), (0, -edge_px)):
+                xx, yy = x + dx, y + dy
+                inb = (xx >= 0) & (yy >= 0) & (xx < w) & (yy < h)
+                d = depth[np.clip(yy, 0, h - 1), np.clip(xx, 0, w - 1)]
+                with np.errstate(invalid="ignore"):
+                    ok &= inb & (np.abs(d - z) <= et)
+            strict &= ok
+            acc += c
+        q = area * cosine
+        quality[view] = np.where(strict, q, 0)
+        relaxed[view] = np.where(centre_ok, q, 0)
+        colour[view] = np.where(strict[:, None], acc * 0.25, np.where(centre_ok[:, None], first, 0))
+    return FaceViews(quality, colour, relaxed)
+
+
+# ---------------------------------------------------------------- selection
+def face_neighbours(faces) -> np.ndarray:
+    """(F, 3): the face across side k of each face (side k runs from corner k to corner k+1), -1 on a
+    border or a non-manifold edge."""
+    faces = np.asarray(faces, np.int64).reshape(-1, 3)
+    nbr = np.full((len(faces), 3), -1, np.int64)
+    if len(faces) == 0:
+        return nbr
+    _, fe = unique_edges(faces)
+    flat = fe.ravel()
+    order = np.argsort(flat, kind="stable")
+    e = flat[order]
+    counts = np.bincount(e, minlength=int(e.max()) + 1)
+    pair = counts[e] == 2
+    starts = np.flatnonzero(np.r_[True, e[1:] != e[:-1]])
+    first = np.repeat(starts, counts[e[starts]])
+    other = np.where(np.arange(len(e)) == first, first + 1, first)
+    slot = order                                     # flat slot (face * 3 + side) of each sorted entry
+    ok = pair
+    nbr.ravel()[slot[ok]] = (slot[other[ok]] // 3)
+    return nbr
+
+
+def view_sharpness(images, valid) -> np.ndarray:
+    """(V,) relative sharpness of each view: median gradient energy inside the valid region, divided by the
+    median over views (1 = typical; a blurred or defocused view scores lower)."""
+    import cv2
+
+    s = []
+    for im, m in zip(images, valid):
+        g = cv2.cvtColor(im, cv2.COLOR_RGB2GRAY)
+        k = max(1, g.shape[1] // 512)                     # judged at about 512 pixels across
+        small = g if k == 1 else cv2.resize(g, (g.shape[1] // k, g.shape[0] // k), interpolation=cv2.INTER_AREA)
+        ms = m if m.shape == small.shape else cv2.resize(m, small.shape[::-1], interpolation=cv2.INTER_NEAREST)
+        lap = np.abs(cv2.Laplacian(small, cv2.CV_32F))
+        vals = lap[ms > 0]
+        s.append(float(np.mean(vals)) if vals.size else 0.0)
+    s = np.asarray(s)
+    med = np.median(s[s > 0]) if np.any(s > 0) else 1.0
+    return np.clip(s / med, 0.25, 2.0) if med > 0 else np.ones(len(s))
+
+
+def data_cost(quality, colour, gains=None, *, consistency=40.0, return_spread=False):
+    """(F, V) cost of painting face f from view v: 1 - q / max_q in [0, 1], +1 where the view's colour is
+    further than ``consistency`` (0..255 units) from the face's mean colour over its views (the mean taken
+    again without views beyond twice that; when it has at least three), INVISIBLE where the face is not
+    usable. With ``return_spread`` also (F,) the mean distance of a face's view colours from that mean: how
+    much its views disagree (0 with one view)."""
+    q = np.asarray(quality, np.float32).T                    # (F, V)
+    qmax = q.max(axis=1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cost = np.where(q > 0, 1 - q / np.where(qmax > 0, qmax, 1), INVISIBLE).astype(np.float32)
+    c = np.transpose(colour, (1, 0, 2)).astype(np.float32)   # (F, V, 3)
+    if gains is not None:
+        c = c * np.asarray(gains, np.float32)[None]
+    vis = q > 0
+    nvis = vis.sum(axis=1)
+    many = nvis >= 2
+    spread = np.zeros(len(q), np.float32)
+    if np.any(many):
+        cs = c[many]
+        vm = vis[many][..., None].astype(np.float32)
+        n = nvis[many][:, None].astype(np.float32)
+        centre = (cs * vm).sum(axis=1) / n                                   # mean colour of the views ...
+        dist = np.linalg.norm(cs - centre[:, None], axis=2)
+        if consistency > 0:                                                   # ... again without far outliers
+            keep = vm[..., 0] * (dist <= 2 * consistency)
+            kn = keep.sum(axis=1, keepdims=True)
+            centre = np.where(kn > 0, (cs * keep[..., None]).sum(axis=1) / np.maximum(kn, 1), centre)
+            dist = np.linalg.norm(cs - centre[:, None], axis=2)
+        spread[many] = (dist * vm[..., 0]).sum(axis=1) / n[:, 0]
+        if consistency > 0:
+            bad = (vm[..., 0] > 0) & (dist > consistency) & (nvis[many] >= 3)[:, None]
+            sub = cost[many]
+            sub[bad] += 1.0
+            cost[many] = sub
+    return (cost, spread) if return_spread else cost
+
+
+def select_views(cost, nbr, *, smoothness=0.5, iterations=12, seed=0) -> np.ndarray:
+    """Labels (F,) minimising sum D(f, l_f) + smoothness * #{neighbours with another label} (Potts), by
+    iterated conditional modes: each round updates a random half of the faces to their best label given
+    their neighbours' labels. Faces with no usable view get -1."""
+    cost = np.asarray(cost, np.float32)
+    nf, nv = cost.shape
+    labels = np.argmin(cost, axis=1)
+    none = cost[np.arange(nf), labels] >= INVISIBLE
+    if smoothness > 0 and nf:
+        rng = np.random.default_rng(seed)
+        rows = np.arange(nf)
+        valid_nbr = nbr >= 0
+        for _ in range(iterations):
+            agree = np.zeros((nf, nv), np.float32)
+            for k in range(3):
+                has = valid_nbr[:, k] & ~none[np.maximum(nbr[:, k], 0)]
+                agree[rows[has], labels[nbr[has, k]]] += 1.0
+            total = agree.sum(axis=1, keepdims=True)
+            energy = cost + smoothness * (total - agree)
+            best = np.argmin(energy, axis=1)
+            move = (rng.random(nf) < 0.5) & (best != labels)
+            if not np.any(move):
+                break
+            labels = np.where(move, best, labels)
+    labels = np.where(none, -1, labels)
+    return labels
+
+
+def camera_gains(quality, colour, *, iterations=6, min_level=8.0, max_faces=8000) -> np.ndarray:
+    """(V, 3) per-camera, per-channel gains that make the views agree (exposure and white balance): the
+    model colour[v, f] = a_v * t_f is fitted in log space over every face seen by at least two views
+    (alternating robust means, residuals beyond 0.3 ignored), normalised so the gains' geometric mean is 1.
+    Returns 1 / a_v."""
+    q = np.asarray(quality)
+    nv = q.shape[0]
+    vis = q > 0
+    both = np.flatnonzero(vis.sum(axis=0) >= 2)
+    if len(both) > max_faces:                               # an even subsample is plenty for V x 3 unknowns
+        both = both[np.linspace(0, len(both) - 1, max_faces).astype(np.int64)]
+    c = np.asarray(colour)[:, both].astype(np.float32)      # (V, F', 3)
+    m = vis[:, both][..., None] & (c > min_level)           # (V, F', 3)
+    if not np.any(m):
+        return np.ones((nv, 3), np.float32)
+    L = np.log(np.maximum(c, 1e-3))
+    a = np.zeros((nv, 1, 3), np.float32)
+    w = m.astype(np.float32)
+    for _ in range(iterations):
+        t = (w * (L - a)).sum(axis=0) / np.maximum(w.sum(axis=0), 1e-9)               # (F', 3)
+        r = L - a - t[None]
+        wr = w * (np.abs(r) < 0.3)
+        a = a + ((wr * r).sum(axis=1, keepdims=True) / np.maximum(wr.sum(axis=1, keepdims=True), 1e-9))
+        seen = w.sum(axis=1, keepdims=True) > 0
+        a = np.where(seen, a, 0.0)
+        a -= a[seen[:, 0, 0]].mean(axis=0, keepdims=True) if np.any(seen) else 0
+        w = wr if wr.sum() > 0.5 * m.sum() else w
+    return np.exp(-a[:, 0, :]).astype(np.float32)
+
+
+# ---------------------------------------------------------------- blending and levelling
+def vertex_adjacency(faces, n_vertices):
+    """Row-normalised sparse (V, V) averaging over each vertex and its umbrella neighbours."""
+    from scipy.sparse import csr_matrix
+
+    off, nb = vertex_neighbours(faces, n_vertices)
+    rows = np.repeat(np.arange(n_vertices), np.diff(off))
+    data = np.ones(len(nb) + n_vertices)
+    A = csr_matrix((data, (np.r_[rows, np.arange(n_vertices)], np.r_[nb, np.arange(n_vertices)])),
+                   shape=(n_vertices, n_vertices))
+    deg = np.asarray(A.sum(axis=1)).ravel()
+    return csr_matrix(A.multiply(1.0 / deg[:, None]))
+
+
+def blend_weights(labels, quality, faces, n_vertices, *, feather=2, K=4, spread=None, spread_range=(8.0, 24.0),
+                  power=2.0):
+    """Soft labels that cross-fade between views over ``feather`` vertex rings on each side of a view seam.
+
+    Per vertex, the share of its faces painted by each view is averaged ``feather`` times over the vertex
+    neighbourhoods; per face the (at most K) views with the largest weight at its corners among those
+    that see it are kept. Returns (face_view (F, K) int32, -1 = unused slot; weight (F, 3, K) float32,
+    per corner). Inside a patch one view has weight 1: the texture stays as sharp as its best view.
+
+    Where the views disagree (``spread``, the faces' colour disagreement, beyond ``spread_range[0]``; fully at
+    ``spread_range[1]``) the geometry or calibration is off and no single view is right from elsewhere: there
+    the weights move towards a quality^power weighted average of the views that see the surface, which is
+    the least-squares guess for a view in between."""
+    faces = np.asarray(faces, np.int64)
+    nf = len(faces)
+    nviews = quality.shape[0]
+    K = min(K, nviews)
+    face_view = np.full((nf, K), -1, np.int32)
+    weight = np.zeros((nf, 3, K), np.float32)
+    has = labels >= 0
+    if not np.any(has):
+        return face_view, weight
+    from scipy.sparse import csr_matrix
+
+    rows = faces[has].ravel()
+    cols = np.repeat(labels[has], 3)
+    W = csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n_vertices, nviews)).toarray()
+    s = W.sum(axis=1, keepdims=True)
+    W = np.divide(W, s, out=np.zeros_like(W), where=s > 0)
+    if feather > 0:
+        A = vertex_adjacency(faces, n_vertices)
+        for _ in range(feather):
+            W = A @ W
+    if spread is not None and len(faces):
+        q = np.asarray(quality, np.float32).T                 # (F, V)
+        qmax = q.max(axis=1, keepdims=True)
+        qn = np.divide(q, qmax, out=np.zeros_like(q), where=qmax > 0) ** power
+        inc = csr_matrix((np.ones(3 * nf), (faces.ravel(), np.repeat(np.arange(nf), 3))), shape=(n_vertices, nf))
+        W_avg = np.asarray(inc @ qn)
+        sw = W_avg.sum(axis=1, keepdims=True)
+        W_avg = np.divide(W_avg, sw, out=np.zeros_like(W_avg), where=sw > 0)
+        lo, hi = spread_range
+        a_f = np.clip((np.asarray(spread, np.float32) - lo) / max(hi - lo, 1e-6), 0, 1)
+        cnt = np.asarray(inc.sum(axis=1)).ravel()
+        a_v = np.divide(inc @ a_f, cnt, out=np.zeros(n_vertices), where=cnt > 0)
+        W = (1 - a_v[:, None]) * W + a_v[:, None] * W_avg
+    W = W.astype(np.float32)
+    visible = (np.asarray(quality).T > 0)                    # (F, V)
+    score = (W[faces[:, 0]] + W[faces[:, 1]] + W[faces[:, 2]]) * visible
+    score[np.flatnonzero(has), labels[has]] += 1e-3          # the face's own label always stays
+    order = np.argpartition(-score, K - 1, axis=1)[:, :K] if nviews > K else np.tile(np.arange(nviews), (nf, 1))
+    top = np.take_along_axis(score, order, axis=1)
+    srt = np.argsort(-top, axis=1, kind="stable")          # the K best, best first
+    order, top = np.take_along_axis(order, srt, axis=1), np.take_along_axis(top, srt, axis=1)
+    keep = top > 0
+    face_view[:] = np.where(keep, order, -1)
+    cw = np.stack([np.take_along_axis(W[faces[:, c]], order, axis=1) for c in range(3)], axis=1)   # (F, 3, K)
+    cw = np.where(keep[:, None, :], cw, 0)
+    own = (order == labels[:, None]) & has[:, None]           # corners where every kept weight is 0: own view
+    dead = cw.sum(axis=2) <= 0
+    cw = np.where(dead[:, :, None] & own[:, None, :], 1.0, cw)
+    weight[:] = cw
+    return face_view, weight
+
+
+def vertex_view_samples(vertices, index, views, cameras: Cameras, frame: FrameImages, radius=1.5):
+    """Colour (N, 3) of vertex index[i] seen in view views[i] (mean of five bilinear samples within ``radius``
+    pixels) and whether all five fell on valid pixels."""
+    vertices = np.asarray(vertices, np.float64)
+    out = np.zeros((len(views), 3), np.float32)
+    ok = np.zeros(len(views), bool)
+    for v in np.unique(views):
+        sel = np.flatnonzero(views == v)
+        p, z = cameras.project(vertices[index[sel]], int(v))
+        img, val = frame.images[v], frame.valid[v]
+        h, w = val.shape
+        good = z > 1e-6
+        acc = np.zeros((len(sel), 3), np.float32)
+        for dx, dy in ((0, 0), (radius, 0), (-radius, 0), (0, radius), (0, -radius)):
+            q = p + (dx, dy)
+            inside = (q[:, 0] > -0.5) & (q[:, 1] > -0.5) & (q[:, 0] < w - 0.5) & (q[:, 1] < h - 0.5)
+            x = np.where(inside, np.floor(q[:, 0] + 0.5), 0).astype(np.int64)
+            y = np.where(inside, np.floor(q[:, 1] + 0.5), 0).astype(np.int64)
+            good &= inside & (val[y, x] != 0)
+            acc += _sample_rgb_reference(img, np.nan_to_num(q))
+        out[sel] = acc / 5
+        ok[sel] = good
+    return out, ok
+
+
+def level_seams(vertices, faces, face_view, weight, cameras: Cameras, frame: FrameImages, gains, *,
+                smoothness=0.3, regular=0.1, band=3, tol=1e-3, maxiter=100, min_weight=0.1):
+    """Seam levelling (after Waechter et al. 2014, sec. 5), within a band of ``band`` vertex rings around the
+    view seams: an additive colour offset g per (vertex, view) pair used by the blend, such that at every
+    vertex the views agree (f_va + g_va = f_vb + g_vb, f = the gain-corrected colour of the vertex in the
+    view), offsets vary smoothly along the surface (smoothness * (g_va - g_wa) = 0 on mesh edges) and fade to
+    0 at the band's edge (the per-camera gains already did the global part), and stay small (regular * g = 0).
+    One sparse least-squares problem (normal equations by conjugate gradients, Jacobi preconditioner), three
+    right-hand sides. Only slots weighing at least ``min_weight`` at their corner take part (the rest keep 0).
+    Returns offsets (F, 3, K, 3) for the face slots (0..255 units)."""
+    from scipy.sparse import coo_matrix, csr_matrix, diags
+
+    faces = np.asarray(faces, np.int64)
+    nf, K = face_view.shape
+    offset = np.zeros((nf, 3, K, 3), np.float32)
+    nviews = len(cameras)
+    nvert = len(vertices)
+    slot_v = np.repeat(faces[:, :, None], K, axis=2)                     # (F, 3, K) vertex of each slot
+    slot_view = np.repeat(face_view[:, None, :], 3, axis=1).astype(np.int64)
+    used = (slot_view >= 0) & (weight >= min_weight)        # slots that matter at their corner
+    keys = np.unique(slot_v[used] * nviews + slot_view[used])
+    kv = keys // nviews
+    seam = np.zeros(nvert, bool)
+    seam[kv[1:][kv[1:] == kv[:-1]]] = True                               # vertices with two or more views
+    if not np.any(seam):
+        return offset
+    A_adj = vertex_adjacency(faces, nvert)
+    inband = seam.astype(np.float64)
+    for _ in range(band):
+        inband = np.maximum(inband, (A_adj @ inband > 0).astype(np.float64))
+    inband = inband > 0
+    nodes = keys[inband[kv]]
+    n = len(nodes)
+    node_vertex, node_view = nodes // nviews, nodes % nviews
+    colour, ok = vertex_view_samples(vertices, node_vertex, node_view, cameras, frame)
+    colour = colour * np.asarray(gains, np.float32)[node_view]
+    same = (node_vertex[1:] == node_vertex[:-1]) & ok[1:] & ok[:-1]      # nodes are sorted by vertex, then view
+    i0 = np.flatnonzero(same)
+    i1 = i0 + 1
+    edges, _ = unique_edges(faces)
+    edges = edges[inband[edges[:, 0]] | inband[edges[:, 1]]]
+    rows, cols, vals = [np.arange(len(i0))] * 2, [i0, i1], [np.ones(len(i0)), -np.ones(len(i0))]
+    m = len(i0)
+    if len(edges):
+        table = np.full((nvert, nviews), -1, np.int64)                    # node id per (vertex, view)
+        table[node_vertex, node_view] = np.arange(n)
+        ta, tb = table[edges[:, 0]], table[edges[:, 1]]                  # (E, views)
+        # an edge whose other end is outside the band (offset 0 there) pins the offset towards 0
+        a_out = ~inband[edges[:, 0]][:, None]
+        b_out = ~inband[edges[:, 1]][:, None]
+        both = (ta >= 0) & (tb >= 0)
+        one_a = (ta >= 0) & b_out
+        one_b = (tb >= 0) & a_out
+        for sel, r_cols, signed in ((both, (ta, tb), True), (one_a, (ta,), False), (one_b, (tb,), False)):
+            k = int(sel.sum())
+            if k == 0:
+                continue
+            rr = m + np.arange(k)
+            rows.append(rr)
+            cols.append(r_cols[0][sel])
+            vals.append(np.full(k, smoothness))
+            if signed:
+                rows.append(rr)
+                cols.append(r_cols[1][sel])
+                vals.append(np.full(k, -smoothness))
+            m += k
+    A = csr_matrix(coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(m, n)))
+    b = np.zeros((m, 3))
+    b[:len(i0)] = colour[i1] - colour[i0]
+    M = (A.T @ A + diags(np.full(n, regular ** 2))).tocsr()
+    rhs = np.asarray(A.T @ b)
+    g = block_pcg(M, rhs, tol=tol, maxiter=maxiter)
+    # offsets of every slot: the node's value inside the band, 0 outside
+    slot_keys = slot_v * nviews + np.maximum(slot_view, 0)
+    idx = np.searchsorted(nodes, slot_keys)
+    hit = used & (idx < n) & (nodes[np.minimum(idx, n - 1)] == slot_keys)
+    offset[hit] = g[idx[hit]].astype(np.float32)
+    return offset
+
+
+def block_pcg(M, B, *, tol=1e-4, maxiter=200):
+    """Solve M X = B (M symmetric positive definite, sparse; B (n, k)) by conjugate gradients with a Jacobi
+    preconditioner, all k columns at once. Stops when every column's residual is below tol * |b|."""
+    d = M.diagonal()
+    inv = np.where(d > 0, 1.0 / np.where(d > 0, d, 1), 1.0)[:, None]
+    X = np.zeros_like(B, dtype=np.float64)
+    R = np.asarray(B, np.float64).copy()
+    Z = inv * R
+    P = Z.copy()
+    rz = np.einsum("ij,ij->j", R, Z)
+    bnorm = np.maximum(np.linalg.norm(B, axis=0), 1e-30)
+    for _ in range(maxiter):
+        if np.all(np.linalg.norm(R, axis=0) <= tol * bnorm):
+            break
+        Q = M @ P
+        pq = np.einsum("ij,ij->j", P, Q)
+        alpha = np.divide(rz, pq, out=np.zeros_like(rz), where=pq != 0)
+        X += alpha * P
+        R -= alpha * Q
+        Z = inv * R
+        rz_new = np.einsum("ij,ij->j", R, Z)
+        beta = np.divide(rz_new, rz, out=np.zeros_like(rz), where=rz != 0)
+        P = Z + beta * P
+        rz = rz_new
+    return X
+
+
+def fallback_vertex_colours(labels, colour, gains, faces, n_vertices, rounds=50) -> np.ndarray:
+    """(V, 3) colours for places no view may paint: each vertex averages the selected-view colours of its
+    faces; vertices without any are filled by repeated neighbourhood averaging (a harmonic fill)."""
+    faces = np.asarray(faces, np.int64)
+    col = np.zeros((n_vertices, 3))
+    cnt = np.zeros(n_vertices)
+    has = labels >= 0
+    if np.any(has):
+        fc = colour[labels[has], np.flatnonzero(has)] * np.asarray(gains)[labels[has]]
+        for k in range(3):
+            np.add.at(col, faces[has, k], fc)
+            np.add.at(cnt, faces[has, k], 1)
+    known = cnt > 0
+    col[known] /= cnt[known, None]
+    if not np.all(known) and np.any(known) and len(faces):
+        A = vertex_adjacency(faces, n_vertices)
+        filled = known.astype(np.float64)
+        unknown = np.flatnonzero(~known)
+        Au = A[unknown]
+        for _ in range(rounds):                    # masked averaging: grows inwards from the known vertices
+            w = Au @ filled
+            x = np.divide(Au @ (col * filled[:, None]), w[:, None], out=np.zeros((len(unknown), 3)), where=w[:, None] > 0)
+            col[unknown] = x
+            before = filled[unknown].sum()
+            filled[unknown] = (w > 0).astype(np.float64)
+            if filled[unknown].sum() == before == len(unknown):
+                break
+    if not np.any(known):
+        col[:] = 128
+    return col.astype(np.float32)

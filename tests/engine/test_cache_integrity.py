@@ -1,0 +1,164 @@
+"""Cache integrity (issue 12, item 5) and inputs that are not regular files (item 8): a damaged entry is never
+published or read as a success, a garbage meta.json is not a hit, `cache verify` finds damage, and input
+folders holding a FIFO or a link to /dev/zero are hashed without hanging."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+
+import enginenodes  # registers the t.* nodes
+from nodegraph.cache import Cache
+from nodegraph.cli import main as cli
+from nodegraph.executors import LocalExecutor
+from nodegraph.graphfile import load_graph
+from nodegraph.run import explain, run_graph
+
+assert enginenodes.Source.type_name == "t.source"
+HERE = Path(__file__).resolve().parent
+
+CHAIN = """\
+frames: 0:3
+nodes:
+  src:   {type: t.source, params: {value: 1.0, size: 64}}
+  scale: {type: t.scale, in: {x: src.out}, params: {factor: 3}}
+  plus:  {type: t.add, in: {a: scale.out}}
+  total: {type: t.total, in: {x: plus.out}}
+  write: {type: t.write, in: {x: plus.out}}
+"""
+
+
+def graph(tmp_path, text=CHAIN) -> Path:
+    p = tmp_path / "g.yaml"
+    p.write_text(textwrap.dedent(text))
+    return p
+
+
+def run(tmp_path, p, **kw):
+    return run_graph(load_graph(p, **kw), Cache(tmp_path / "cache"), tmp_path / "out", LocalExecutor(1), progress=False)
+
+
+def record(res, node, frame):
+    return next(r for r in res.records if r["node"] == node and r["frame"] == frame)
+
+
+def flip_bytes(path: Path, n=3):
+    """Damage a file without changing its size (what bit rot or a bad copy does)."""
+    data = bytearray(path.read_bytes())
+    for i in range(n):
+        k = len(data) - 1 - 7 * i
+        data[k] ^= 0x5A
+    path.write_bytes(bytes(data))
+
+
+def test_flipped_bytes_in_a_cached_export_are_recomputed_not_published(tmp_path, capsys):
+    p = graph(tmp_path)
+    first = run(tmp_path, p)
+    good = (tmp_path / "out" / "sum_000.txt").read_bytes()
+    w0 = record(first, "write", 0)
+    flip_bytes(Path(w0["cache_dir"]) / "files" / "files" / "sum_000.txt", 2)
+    (tmp_path / "out" / "sum_000.txt").unlink()
+    cache = Cache(tmp_path / "cache")
+    rows = {(r["node"], r["frame"]): r for r in explain(load_graph(p), cache)}
+    assert not rows[("write", 0)]["cached"] and "damaged" in " ".join(rows[("write", 0)]["changed"]), rows[("write", 0)]
+    res = run(tmp_path, p)
+    assert res.ok, res.failures
+    r = record(res, "write", 0)
+    assert r["status"] == "done" and any("damaged" in w for w in r["warnings"]), r
+    assert (tmp_path / "out" / "sum_000.txt").read_bytes() == good
+    assert record(res, "write", 1)["status"] == "cached"
+    again = run(tmp_path, p)
+    assert again.ok and again.counts() == {"cached": 13}
+
+
+def test_flipped_bytes_in_a_cached_input_are_recomputed_before_use(tmp_path):
+    p = graph(tmp_path)
+    first = run(tmp_path, p)
+    s0 = record(first, "src", 0)
+    flip_bytes(Path(s0["cache_dir"]) / "out" / "array.npy")  # np.load still reads it: the data is wrong
+    res = run(tmp_path, p, overrides=["scale.factor=4"])
+    assert res.ok, res.failures
+    assert record(res, "src", 0)["status"] == "done" and record(res, "src", 1)["status"] == "cached"
+    from conftest import output
+
+    np.testing.assert_array_equal(output(res, "scale", "out", 0), np.full(64, 4.0))
+
+
+def test_damage_found_while_loading_is_reported_and_evicted(tmp_path):
+    """Damage that appears after the run checked the entry (or in a worker) is caught by the loader."""
+    p = graph(tmp_path)
+    first = run(tmp_path, p)
+    s0 = record(first, "src", 0)
+    cache = Cache(tmp_path / "cache")
+    flip_bytes(Path(s0["cache_dir"]) / "out" / "array.npy")
+    from nodegraph import DataError
+    from nodegraph.types import Array
+
+    try:
+        cache.load(s0["key"], "out", Array)
+        raise AssertionError("damaged content was loaded")
+    except DataError as exc:
+        assert "damaged" in str(exc) and "out/array.npy" in str(exc), exc
+
+
+def test_garbage_meta_json_is_not_a_hit(tmp_path):
+    p = graph(tmp_path)
+    first = run(tmp_path, p)
+    for node, text in (("src", "{not json"), ("plus", "[1, 2]"), ("write", '{"files": 7}')):
+        (Path(record(first, node, 1)["cache_dir"]) / "meta.json").write_text(text)
+    cache = Cache(tmp_path / "cache")
+    assert not cache.has(record(first, "src", 1)["key"])
+    res = run(tmp_path, p)
+    assert res.ok, res.failures
+    for node in ("src", "plus", "write"):
+        assert record(res, node, 1)["status"] == "done", node
+    assert run(tmp_path, p).counts() == {"cached": 13}
+
+
+def test_cache_verify_command(tmp_path, capsys):
+    p = graph(tmp_path)
+    first = run(tmp_path, p)
+    c = ["--cache", str(tmp_path / "cache")]
+    assert cli([*c, "cache", "verify"]) == 0
+    assert "13 entries checked, 0 damaged" in capsys.readouterr().out
+    flip_bytes(Path(record(first, "plus", 2)["cache_dir"]) / "out" / "array.npy")
+    (Path(record(first, "total", None)["cache_dir"]) / "meta.json").write_text("garbage")
+    assert cli([*c, "cache", "verify"]) == 1
+    out = capsys.readouterr().out
+    assert f"damaged {record(first, 'plus', 2)['key']}" in out and "plus@2" in out and "out/array.npy" in out, out
+    assert f"damaged {record(first, 'total', None)['key']}" in out and "meta.json" in out, out
+    assert "13 entries checked, 2 damaged (removed)" in out
+    assert cli([*c, "cache", "verify"]) == 0
+    assert "11 entries checked, 0 damaged" in capsys.readouterr().out
+
+
+def test_meta_records_a_content_hash_per_file(tmp_path):
+    first = run(tmp_path, graph(tmp_path))
+    meta = json.loads((Path(record(first, "write", 0)["cache_dir"]) / "meta.json").read_text())
+    assert set(meta["hashes"]) == {"files/files/sum_000.txt"} and len(meta["hashes"]["files/files/sum_000.txt"]) == 32
+
+
+# ---------------------------------------------------------------- item 8: FIFOs and devices in input folders
+def test_fifo_and_dev_zero_in_an_input_folder_do_not_hang(tmp_path):
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "a.bin").write_bytes(b"abc")
+    os.mkfifo(data / "pipe")
+    os.symlink("/dev/zero", data / "zeros")
+    p = graph(tmp_path, "nodes:\n  d: {type: t.readdir, params: {path: data}}\n")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path))
+    args = ["--cache", str(tmp_path / "cache"), "run", str(p), "--out", str(tmp_path / "out"), "-q", "-j", "1"]
+    code = f"import sys, enginenodes; from nodegraph.cli import main; sys.exit(main({args!r}))"
+    try:
+        proc = subprocess.run([sys.executable, "-c", code], env=env, cwd=HERE, capture_output=True, text=True, timeout=60)
+    except subprocess.TimeoutExpired:
+        raise AssertionError("run hung on a FIFO or /dev/zero in an input folder") from None
+    assert proc.returncode == 0, proc.stderr
+    assert "Traceback" not in proc.stderr
+    warned = [ln for ln in proc.stderr.splitlines() if ln.startswith("warning:") and "not regular files" in ln]
+    assert warned and "pipe" in warned[0] and "zeros" in warned[0], proc.stderr

@@ -1,0 +1,323 @@
+"""Skeleton stage: voxelization, the curve skeleton (per frame), rigid parts and joints from motion, LBS
+skinning with fixed bone lengths, UsdSkel / glTF round trips, node errors, golden files."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from nodegraph import NodeError, Table
+from nodegraph.testing import run_node
+from nodes.common.types import Skeleton, SkeletonData, VoxelGrid
+from nodes.skeleton import curve, formats, motion, skinning
+
+from skelcases import TUBE_JOINTS, tube, tube_meshes, tube_sequence
+
+
+@pytest.fixture(scope="module")
+def figure_frame6():
+    from nodes.synth import scenes
+
+    return scenes.build("figure", 6)
+
+
+@pytest.fixture(scope="module")
+def tube_rig():
+    pts, f, w, rs, ts = tube_sequence(12)
+    parts = motion.rigid_parts(pts[0], pts, f, bones=3)
+    rig = motion.build_rig(pts[0], f, parts)
+    return pts, f, w, rig
+
+
+@pytest.fixture(scope="module")
+def tube_fit(tube_rig):
+    pts, f, w, rig = tube_rig
+    return skinning.fit_skin(motion.Trajectories(pts[0], pts), f, rig)
+
+
+# ---------------------------------------------------------------- per frame
+def test_voxelize_is_the_solid():
+    v, f, _ = tube()
+    occ, origin, voxel = curve.voxelize(v, f, 48)
+    c = origin + (np.argwhere(np.ones(occ.shape, bool)) + 0.5) * voxel
+    r = np.linalg.norm(c[:, :2], axis=1)
+    inside_for_sure = (r < 0.08 * np.cos(np.pi / 16) - voxel) & (c[:, 2] > voxel) & (c[:, 2] < 1.2 - voxel)
+    outside_for_sure = (r > 0.08 + voxel) | (c[:, 2] < -voxel) | (c[:, 2] > 1.2 + voxel)
+    flat = occ.ravel()
+    assert flat[inside_for_sure].all()
+    assert not flat[outside_for_sure].any()
+    assert occ[:, :, 0].sum() == 0 and occ[0].sum() == 0  # padding stays empty
+
+
+def test_curve_skeleton_of_a_tube_is_its_axis():
+    v, f, _ = tube()
+    occ, origin, voxel = curve.voxelize(v, f, 64)
+    sk = curve.curve_skeleton(occ, origin, voxel)
+    assert len(sk.leaves) == 2
+    assert np.linalg.norm(sk.joints[:, :2], axis=1).max() < 2 * voxel       # on the axis
+    ends = sorted(sk.joints[sk.leaves, 2])
+    # a flat-capped tube's medial axis ends one radius inside each cap
+    assert abs(ends[0] - 0.08) < 3 * voxel and abs(ends[1] - 1.12) < 3 * voxel
+
+
+def test_skeletonize_figure_finds_head_hands_feet(figure_frame6, golden):
+    from nodes.synth.scenes import figure_keypoints
+
+    out = run_node("skeletonize", {"mesh": figure_frame6.mesh}, {"resolution": 64}, roundtrip=True)
+    sk, rep = out["skeleton"], out["report"]
+    assert sorted(rep["names"]) == ["foot_0", "foot_1", "hand_0", "hand_1", "head"]
+    keys = figure_keypoints(6)
+    voxel = rep["voxel"]
+    at = {n: sk.joints[sk.names.index(n)] for n in rep["names"]}
+    assert np.linalg.norm(at["head"] - keys["head_top"]) < 2 * voxel
+    hands = sorted([at["hand_0"], at["hand_1"]], key=lambda p: p[0])
+    feet = sorted([at["foot_0"], at["foot_1"]], key=lambda p: p[0])
+    assert np.linalg.norm(hands[0] - keys["r_wrist"]) < 2 * voxel and np.linalg.norm(hands[1] - keys["l_wrist"]) < 2 * voxel
+    assert np.linalg.norm(feet[0] - keys["r_toe"]) < 2 * voxel and np.linalg.norm(feet[1] - keys["l_toe"]) < 2 * voxel
+    # a bent limb gets a bend joint: the left knee (bent 0.6 rad at frame 6; the elbows' 20 degrees are
+    # under the 2-voxel Douglas-Peucker tolerance at this coarse 64^3 grid)
+    assert np.linalg.norm(sk.joints - keys["l_knee"], axis=1).min() < 2 * voxel
+    golden.check("skeletonize_figure_64", sk, Skeleton, atol=1e-6)
+
+
+def test_skeletonize_volume_matches_mesh_route():
+    v, f, _ = tube()
+    occ, origin, voxel = curve.voxelize(v, f, 48)
+    vol = VoxelGrid(occ.astype(np.uint8), origin, origin + np.array(occ.shape) * voxel)
+    a = run_node("skeletonize", {"volume": vol})["skeleton"]
+    b = run_node("skeletonize", {"mesh": __import__("trimesh").Trimesh(v, f, process=False)}, {"resolution": 48})["skeleton"]
+    np.testing.assert_allclose(a.joints, b.joints, atol=1e-9)
+
+
+def test_skeletonize_errors():
+    import trimesh
+
+    v, f, _ = tube()
+    m = trimesh.Trimesh(v, f, process=False)
+    vol = VoxelGrid(np.zeros((4, 4, 4), np.uint8), np.zeros(3), np.ones(3))
+    with pytest.raises(NodeError, match="exactly one"):
+        run_node("skeletonize", {"mesh": m, "volume": vol})
+    with pytest.raises(NodeError, match="exactly one"):
+        run_node("skeletonize", {})
+    with pytest.raises(NodeError, match="empty"):
+        run_node("skeletonize", {"volume": vol})
+
+
+# ---------------------------------------------------------------- from motion
+def test_rigid_parts_and_joints_of_the_tube(tube_rig):
+    pts, f, w, rig = tube_rig
+    assert len(rig.parents) == 3 and sorted(rig.parents) == [-1, 0, 1]
+    truth = np.argmax(w, axis=1)
+    # parts are the true bones (up to numbering), except in the blend bands around the joints
+    agree = max(np.mean(truth == np.array(perm)[rig.labels]) for perm in
+                [(0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)])
+    assert agree > 0.9
+    # the two child joints sit at the true pivots (rest = frame 0 = the straight tube); hinges: the
+    # position along the hinge axis is free, so compare across it (joint 1 bends about x, joint 2 about y)
+    j1 = rig.joints[[i for i, p in enumerate(rig.parents) if p >= 0]]
+    found = sorted(j1, key=lambda p: p[2])
+    assert np.hypot(found[0][1], found[0][2] - TUBE_JOINTS[1, 2]) < 0.01
+    assert np.hypot(found[1][0], found[1][2] - TUBE_JOINTS[2, 2]) < 0.01
+
+
+def test_skin_reproduces_the_tube_with_fixed_bone_lengths(tube_rig, tube_fit):
+    pts, f, w, rig = tube_rig
+    fit = tube_fit
+    diag = np.linalg.norm(np.ptp(pts[0], axis=0))
+    assert np.sqrt((fit.rmse ** 2).mean()) < 1e-4 * diag
+    assert fit.max_error.max() < 1e-3 * diag
+    assert (fit.weights >= 0).all() and np.allclose(fit.weights.sum(1), 1)
+    assert ((fit.weights > 0).sum(1) <= 4).all()
+    lengths = np.stack([np.linalg.norm(
+        (np.einsum("fab,b->fa", fit.rotations[:, j], fit.joints[j]) + fit.translations[:, j])
+        - (np.einsum("fab,b->fa", fit.rotations[:, p], fit.joints[p]) + fit.translations[:, p]), axis=1)
+        for j, p in enumerate(fit.parents) if p >= 0])
+    assert np.ptp(lengths, axis=1).max() < 1e-9
+    # rotation-only: each joint's pivot is where its parent's motion takes it
+    for j, p in enumerate(fit.parents):
+        if p >= 0:
+            a = np.einsum("fab,b->fa", fit.rotations[:, j], fit.joints[j]) + fit.translations[:, j]
+            b = np.einsum("fab,b->fa", fit.rotations[:, p], fit.joints[j]) + fit.translations[:, p]
+            assert np.abs(a - b).max() < 1e-9
+    # the weights are the true blend (where the motion determines them: away from the rest-pose axis)
+    assert np.abs(np.sort(fit.weights, 1)[:, ::-1][:, :2] - np.sort(w, 1)[:, ::-1][:, :2]).mean() < 0.05
+
+
+def test_skin_free_bones_and_fixed_agree_on_an_exact_rig(tube_rig, tube_fit):
+    pts, f, w, rig = tube_rig
+    free = skinning.fit_skin(motion.Trajectories(pts[0], pts), f, rig, fixed_lengths=False)
+    assert np.sqrt((free.rmse ** 2).mean()) < 2e-4
+    assert np.sqrt((tube_fit.rmse ** 2).mean()) < 2e-4
+
+
+def test_pose_step_gauss_newton_matches_numeric_jacobian():
+    """The fixed-length pose step lowers the error from a perturbed pose back to the truth's level."""
+    pts, f, w, rs, ts = tube_sequence(6)
+    traj = motion.Trajectories(pts[0], pts)
+    rng = np.random.default_rng(1)
+    noisy = np.einsum("fjab,fjbc->fjac", skinning._rodrigues(rng.normal(0, 0.05, (6, 3, 3))), rs)
+    rot, tr = skinning.constrain(noisy, ts, TUBE_JOINTS, [-1, 0, 1])
+    before = skinning.errors(traj, w, rot, tr)[0].max()
+    rot, tr = skinning.fit_poses_fixed(traj, w, rot, tr, TUBE_JOINTS, [-1, 0, 1], 4, steps=8)
+    after = skinning.errors(traj, w, rot, tr)[0].max()
+    assert before > 5e-3 and after < 1e-6
+
+
+def test_simplex_projection_and_qp():
+    x = np.array([[0.5, 0.8, -0.2, 3.0], [0.1, 0.1, 0.1, 0.1]])
+    allowed = np.array([[True, True, True, False], [True, True, True, True]])
+    p = skinning.project_simplex(x, allowed)
+    assert np.allclose(p.sum(1), 1) and (p >= 0).all() and p[0, 3] == 0
+    np.testing.assert_allclose(p[0], [0.35, 0.65, 0, 0], atol=1e-12)
+    h = np.array([[[2.0, 0.0], [0.0, 1.0]]])
+    w = skinning.solve_simplex_qp(h, np.zeros((1, 2)), np.ones((1, 2), bool), np.array([[1.0, 0.0]]), 400)
+    np.testing.assert_allclose(w, [[1 / 3, 2 / 3]], atol=1e-6)  # min 2a^2 + b^2 on a + b = 1
+
+
+def test_active_set_qp_matches_projected_gradient_reference():
+    """The weights step's active-set solver reaches the optimum the (slow) projected-gradient reference
+    converges to, on random ill-conditioned problems with some bones not allowed."""
+    rng = np.random.default_rng(0)
+    n, k = 400, 7
+    a = rng.normal(size=(n, 20, k)) * np.array([1, 1, 0.1, 0.01, 1, 3, 0.5])
+    q = rng.normal(size=(n, 20))
+    h = np.einsum("nta,ntb->nab", a - q[:, :, None], a - q[:, :, None])
+    g = rng.normal(size=(n, k)) * 0.1
+    allowed = rng.random((n, k)) > 0.25
+    allowed[:, 0] = True
+    obj = lambda w: np.einsum("na,nab,nb->n", w, h, w) - 2 * (g * w).sum(1)  # noqa: E731
+    wa = skinning.solve_simplex_active(h, g, allowed)
+    wf = skinning.solve_simplex_qp(h, g, allowed, allowed / allowed.sum(1, keepdims=True), 4000)
+    assert (wa >= 0).all() and np.allclose(wa.sum(1), 1) and (wa[~allowed] == 0).all()
+    assert (obj(wa) <= obj(wf) + 1e-7 * np.abs(obj(wf)) + 1e-12).all()
+
+
+# ---------------------------------------------------------------- nodes, golden, exports
+@pytest.fixture(scope="module")
+def tube_nodes():
+    ms = tube_meshes(12)
+    a = run_node("skeletonize.sequence", {"sequence": ms}, {"bones": 3}, roundtrip=True)
+    b = run_node("skin", {"sequence": ms, "skeleton": a["skeleton"]}, {}, roundtrip=True)
+    return ms, a, b
+
+
+def test_skin_node_table_and_golden(tube_nodes, golden):
+    ms, a, b = tube_nodes
+    err = b["error"]
+    assert err["bones"] == 3 and err["frames"] == 12 and err["lengths"] == "fixed"
+    assert err["rmse_percent"] < 0.01 and err["bone_length_spread"] < 1e-9 and err["influences_max"] <= 4
+    assert len(err["timeline"]["rmse"]) == 12 and err["timeline"]["frame"] == list(range(12))
+    stable = {k: v for k, v in err.items() if k not in ("seconds", "history", "iterations")}
+    golden.check("skin_tube", stable, Table, rtol=0.2, atol=2e-5)
+    assert a["report"]["bones"] == 3 and a["report"]["segment"] == {"start": 0, "stop": 12, "count": 1}
+
+
+def test_exports_round_trip(tube_nodes, tmp_path):
+    ms, a, b = tube_nodes
+    sk, rest = b["skeleton"], b["rest"]
+    ours = skinning.lbs(np.asarray(rest.vertices), sk.weights, sk.rotations, sk.translations)
+    files = run_node("skeleton.export", {"skeleton": sk, "rest": rest}, {"name": "tube"})["files"]
+    assert set(files) == {"tube.usd", "tube.glb"}
+    (tmp_path / "tube.usd").write_bytes(files["tube.usd"])
+    usd = formats.read_usd(tmp_path / "tube.usd")
+    assert usd["times"] == [float(x) for x in range(12)] and len(usd["joints"]) == 3 and usd["up"] == "Z"
+    np.testing.assert_array_equal(usd["faces"], rest.faces)
+    assert np.abs(usd["skinned"] - ours).max() < 1e-5              # UsdSkel's own skinning at frame k
+    gl = formats.read_gltf(files["tube.glb"])
+    assert len(gl["joints"]) == 3 and len(gl["times"]) == 12
+    np.testing.assert_allclose(gl["times"], np.arange(12) / 24.0, atol=1e-6)
+    assert np.abs(gl["skinned"] - ours).max() < 1e-5               # skin matrices x inverse bind at keyframe k
+    assert np.allclose(gl["weights"].sum(1), 1, atol=1e-6)
+
+
+def test_sequence_nodes_pick_the_longest_segment_and_explain_errors(tube_nodes):
+    import trimesh
+
+    ms, a, b = tube_nodes
+    other = trimesh.Trimesh(np.asarray(ms[0].vertices)[:-1], np.asarray(ms[0].faces)[:-20], process=False)
+    seq = [other] + list(ms[:8]) + [other, other]
+    rep = run_node("skeletonize.sequence", {"sequence": seq}, {"bones": 3})["report"]
+    assert rep["segment"] == {"start": 1, "stop": 9, "count": 3}
+    with pytest.raises(NodeError, match="at least 2 frames"):
+        run_node("skeletonize.sequence", {"sequence": [ms[0]]})
+    with pytest.raises(NodeError, match="exactly one"):
+        run_node("skin", {"skeleton": a["skeleton"]})
+    with pytest.raises(NodeError, match="no parts or motion"):
+        run_node("skin", {"sequence": ms, "skeleton": SkeletonData(np.zeros((1, 3)), [-1], ["root"])})
+    with pytest.raises(NodeError, match="same sequence"):
+        run_node("skin", {"sequence": ms[:8], "skeleton": a["skeleton"]})
+    with pytest.raises(NodeError, match="rest mesh"):
+        run_node("skeleton.export", {"skeleton": b["skeleton"], "rest": other})
+
+
+def test_skeleton_type_checks_shapes():
+    bad = SkeletonData(np.zeros((2, 3)), [-1, 5], ["a", "b"])
+    assert "tree" in Skeleton.check(bad)
+    assert "root" in Skeleton.check(SkeletonData(np.zeros((2, 3)), [-1, -1], ["a", "b"]))
+    ok = SkeletonData(np.zeros((2, 3)), [-1, 0], ["a", "b"], np.ones((5, 2)) / 2, np.tile(np.eye(3), (4, 2, 1, 1)),
+                      np.zeros((4, 2, 3)), [0, 1, 2, 3])
+    assert Skeleton.check(ok) is None
+    ok.frames = [0, 1]
+    assert "frame numbers" in Skeleton.check(ok)
+
+
+def test_figure_sequence_joints_and_error():
+    """The walking figure's true meshes over a full step (every 2nd frame of 24): 10 bones, LBS error far
+    under 1 % of the diagonal with fixed bone lengths, joints at the true rotating joints."""
+    from nodes.synth import scenes
+
+    rest, w, _ = scenes.figure_rest()
+    pts = np.array([scenes.skin(rest.vertices, w, *scenes.figure_pose(f)) for f in range(0, 24, 3)])
+    parts = motion.rigid_parts(pts[0], pts, rest.faces, bones=10, patch_count=100)
+    rig = motion.build_rig(pts[0], rest.faces, parts)
+    fit = skinning.fit_skin(motion.Trajectories(pts[0], pts), rest.faces, rig, iterations=2)
+    diag = np.linalg.norm(np.ptp(pts[0], axis=0))
+    assert np.sqrt((fit.rmse ** 2).mean()) < 0.001 * diag
+    voxel = np.ptp(pts[0], axis=0).max() / 128
+    true = scenes.figure_pose(0)[1]
+    owners = {scenes.NAMES[int(np.argmax(w[rig.labels == j].sum(0)))] for j in range(10)}
+    assert owners == {"pelvis", "chest", "l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_hip", "r_hip", "l_knee", "r_knee"}
+    owner = [int(np.argmax(w[rig.labels == j].sum(0))) for j in range(10)]
+    for j, p in enumerate(fit.parents):
+        if p >= 0:  # the true joint between the two parts' bones (whichever is the other's parent there)
+            a, b = owner[j], owner[p]
+            joint = a if scenes.PARENTS[a] == b else b
+            assert scenes.PARENTS[a] == b or scenes.PARENTS[b] == a
+            assert np.linalg.norm(fit.joints[j] - true[joint]) < 2 * voxel, scenes.NAMES[joint]
+
+
+# ---------------------------------------------------------------- real data
+@pytest.mark.realdata
+@pytest.mark.parametrize("name", ["thu_wd_human", "inria_dancer"])
+def test_real_person_has_head_hands_feet_where_the_images_show_them(dataset_run, name):
+    """graphs/skeleton/NAME.yaml on frame 0: five extremities; each projects onto the silhouette (within
+    6 pixels) in every camera that sees it; along the graph's world up, the feet are in the lowest 15 % of
+    the person's height and the head in the top 25 % (named by reach, not height: a raised hand may be
+    higher). The pictures: docs/skeleton_NAME.png."""
+    from pathlib import Path
+
+    from nodegraph.graphfile import load_graph
+    from scipy import ndimage
+
+    graph = Path(__file__).resolve().parents[3] / "graphs" / "skeleton" / f"{name}.yaml"
+    res = dataset_run(graph)
+    sk = dataset_run.output(res, "skeleton", "skeleton")
+    rep = dataset_run.output(res, "skeleton", "report")
+    mesh = dataset_run.output(res, "relax", "mesh")
+    masks = dataset_run.output(res, "capture", "masks")
+    cams = dataset_run.output(res, "capture", "cameras")
+    assert sorted(rep["names"]) == ["foot_0", "foot_1", "hand_0", "hand_1", "head"]
+    ends = {n: sk.joints[sk.names.index(n)] for n in rep["names"]}
+    up = np.array(load_graph(graph).nodes["skeleton"].params["up"], float)
+    up /= np.linalg.norm(up)
+    h = np.asarray(mesh.vertices) @ up
+    rel = {n: (p @ up - h.min()) / np.ptp(h) for n, p in ends.items()}
+    assert rel["head"] > 0.75 and rel["foot_0"] < 0.15 and rel["foot_1"] < 0.15, rel
+    seen = 0
+    for v, m in enumerate(masks.masks):
+        near = ndimage.binary_dilation(m > 127, iterations=6)
+        uv, depth = cams.project(np.array(list(ends.values())), v)
+        px = np.round(uv).astype(int)
+        ok = (px[:, 0] >= 0) & (px[:, 1] >= 0) & (px[:, 0] < m.shape[1]) & (px[:, 1] < m.shape[0]) & (depth > 0)
+        assert near[px[ok, 1], px[ok, 0]].all(), f"view {v}: an extremity off the silhouette"
+        seen += int(ok.sum())
+    assert seen >= 5 * len(masks.masks) - 5
