@@ -26,8 +26,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
-import resource
 import sys
 import time
 from pathlib import Path
@@ -40,6 +38,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from legacy_surface import legacy_refine, legacy_relax  # noqa: E402
+from machine import cpu_model, cpu_seconds  # noqa: E402
 
 from nodegraph import clrt  # noqa: E402
 from nodegraph.testing import run_node  # noqa: E402
@@ -52,21 +51,6 @@ from nodes.mesh.hullfit import SilhouetteField  # noqa: E402
 from nodes.mesh.mc import marching_cubes  # noqa: E402
 from nodes.mesh.refine import refine_vertices  # noqa: E402
 from nodes.mesh.relax import relax_vertices  # noqa: E402
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
-
-
-def cpu_seconds() -> float:
-    r = resource.getrusage(resource.RUSAGE_SELF)
-    return r.ru_utime + r.ru_stime
 
 
 def cube_around(bounds: np.ndarray) -> np.ndarray:

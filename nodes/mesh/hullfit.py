@@ -31,7 +31,7 @@ from kernels import source
 from nodegraph import NodeError
 from nodegraph.clrt import Runner, round_up
 from nodes.common.cameras import Cameras, project_packed_f32
-from nodes.common.silhouettes import POLICIES, SilhouetteBits, check_masks, check_sizes, vote
+from nodes.common.silhouettes import POLICIES, SilhouetteBits, check_masks, check_sizes, check_vote_inputs, vote
 
 IN, BACKGROUND, UNSEEN = 1, 2, 3
 RELAX_OUTSIDE_PX = 0.4  # relax's default outside_px (refine searches that level ahead for it)
@@ -73,12 +73,7 @@ class SilhouetteField:
     def from_inputs(cls, masks, cameras: Cameras, origin, min_views: int = 0, outside: str = "carve",
                     use_alpha: bool = True, node: str = "refine") -> "SilhouetteField":
         """Check a MaskSet against the cameras (NodeError naming the camera) and pack both."""
-        if masks is None or cameras is None:
-            raise NodeError(f"{node}: needs both 'masks' and 'cameras' inputs")
-        if min_views > len(cameras):
-            raise NodeError(f"{node}: min_views {min_views} is more than the {len(cameras)} cameras")
-        if outside not in POLICIES:
-            raise NodeError(f"{node}: outside must be one of {', '.join(POLICIES)}, got {outside!r}")
+        check_vote_inputs(masks, cameras, min_views, outside, node)
         origin = np.asarray(origin, np.float64).reshape(3)
         device = getattr(masks, "device", None)
         if device is not None and not use_alpha:  # the producer's device silhouettes: no host masks needed

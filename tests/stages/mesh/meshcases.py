@@ -8,7 +8,8 @@ import math
 import numpy as np
 import trimesh
 
-from nodes.common.cameras import Cameras, look_at
+from nodes.common.cameras import Cameras
+from rig import sphere_rig
 from nodes.common.types import MaskSet
 from nodes.eval.silhouette import silhouette_report
 from nodes.hull.hull import visual_hull
@@ -19,15 +20,8 @@ FIGURE_BOX = [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.1]]
 
 
 def rig(count: int, size: int, center=(0, 0, 0), distance: float = 4.0, fov: float = 40.0) -> Cameras:
-    """``count`` cameras spread evenly over a sphere (Fibonacci), all looking at ``center``."""
-    cams = []
-    for i in range(count):
-        z = 1 - 2 * (i + 0.5) / count
-        phi = i * math.pi * (3 - math.sqrt(5))
-        d = np.array([math.sqrt(1 - z * z) * math.cos(phi), math.sqrt(1 - z * z) * math.sin(phi), z])
-        up = (0, 0, 1) if abs(d[2]) < 0.95 else (0, 1, 0)
-        cams.append(look_at(np.asarray(center) + distance * d, center, up, fov, size, size, name=f"cam{i:03d}"))
-    return Cameras(cams)
+    """``count`` cameras spread evenly over a sphere (Fibonacci), all looking at ``center`` (tests/rig.py)."""
+    return sphere_rig(count, size, center=center, distance=distance, fov=fov)
 
 
 def ball_masks(balls, cameras: Cameras, ramp: float = 4.0) -> MaskSet:
