@@ -8,8 +8,6 @@ the same run. Goals (issue 15): <= 2 s per frame with atlas reuse, <= 5 s with a
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -20,21 +18,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from nodegraph import clrt  # noqa: E402
+from machine import describe, load_average  # noqa: E402
 from nodegraph.testing import run_node  # noqa: E402
 from nodes.texture.texturing import Settings, texture_mesh  # noqa: E402
 
 STEPS = ("visibility", "selection", "levelling", "atlas", "baking")
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def scene(faces_wanted=100_000, cameras=24, width=1920, height=1080):
@@ -52,7 +40,7 @@ def main():
     ap.add_argument("--no-meshlab", action="store_true")
     ap.add_argument("--no-xatlas", action="store_true")
     args = ap.parse_args()
-    print(f"OpenCL device: {clrt.device_name()}\nCPU: {cpu_model()} ({os.cpu_count()} cores)\nload average: {os.getloadavg()}")
+    print(describe())
     mesh, images, masks, cams = scene()
     V, F = np.asarray(mesh.vertices), np.asarray(mesh.faces)
     print(f"mesh: {len(V)} vertices, {len(F)} faces; {len(cams)} views {cams[0].width}x{cams[0].height}; atlas {args.size}^2")
@@ -78,7 +66,7 @@ def main():
         steps = " | ".join(f"{best[1].get(k, 0.0):.2f}" for k in STEPS)
         print(f"| {label} | {steps} | **{best[0]:.2f}** | {np.median([x[0] for x in runs]):.2f} |")
 
-    print(f"\nload average after: {os.getloadavg()}")
+    print(f"\nload average after: {load_average()}")
     print("| per frame, wall s | " + " | ".join(STEPS) + " | total (best) | total (median) |")
     print("|---|" + "---|" * (len(STEPS) + 2))
     row("ours, new atlas", new)
@@ -110,7 +98,7 @@ def main():
             print(f"| MeshLab texture from registered rasters (filter time) | | | | | | {sec:.2f} | |")
         except Exception as exc:
             print(f"MeshLab failed: {exc}")
-    print(f"load average at the end: {os.getloadavg()}")
+    print(f"load average at the end: {load_average()}")
 
 
 if __name__ == "__main__":
