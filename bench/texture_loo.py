@@ -47,7 +47,7 @@ def load_dataset(name: str, cache: Path):
     out = Path(f"/tmp/volcap_texture_loo/{name}")
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     r = subprocess.run([sys.executable, str(ROOT / "app.py"), "run", str(ROOT / graph), "--out", str(out), "--cache",
-                        str(cache), "--frames", "0:1", "--jobs", "1"], env=env, capture_output=True, text=True)
+                        str(cache), "--frames", "0:1", "--jobs", "1", "--keep-all"], env=env, capture_output=True, text=True)
     if r.returncode != 0:
         raise RuntimeError(f"{graph}: {r.stdout[-500:]} {r.stderr[-500:]}")
     recs = {rec["node"]: Path(rec["cache_dir"]) for rec in json.loads((out / "run.json").read_text())["items"]
