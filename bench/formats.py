@@ -8,7 +8,6 @@ Prints the machine (CPU, load average, OpenCL device unused here) and the table.
 from __future__ import annotations
 
 import argparse
-import io
 import os
 import sys
 import tempfile

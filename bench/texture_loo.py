@@ -47,7 +47,7 @@ def load_dataset(name: str, cache: Path):
     out = Path(f"/tmp/volcap_texture_loo/{name}")
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     r = subprocess.run([sys.executable, str(ROOT / "app.py"), "run", str(ROOT / graph), "--out", str(out), "--cache",
-                        str(cache), "--frames", "0:1", "--jobs", "1"], env=env, capture_output=True, text=True)
+                        str(cache), "--frames", "0:1", "--jobs", "1", "--keep-all"], env=env, capture_output=True, text=True)
     if r.returncode != 0:
         raise RuntimeError(f"{graph}: {r.stdout[-500:]} {r.stderr[-500:]}")
     recs = {rec["node"]: Path(rec["cache_dir"]) for rec in json.loads((out / "run.json").read_text())["items"]
@@ -176,18 +176,15 @@ def main():
     ap.add_argument("--cache", default="/tmp/volcap_texture_loo/cache")
     ap.add_argument("--pictures", default=None, help="folder for held-out comparison pictures")
     args = ap.parse_args()
-    from nodegraph import clrt
+    from machine import describe, load_average
 
-    import platform
-
-    print(f"OpenCL device: {clrt.device_name()}; CPU: {platform.processor() or platform.machine()}; "
-          f"load average: {os.getloadavg()}")
+    print(describe())
     table = []
     for name in args.datasets.split(","):
         pic = None if args.pictures is None else Path(args.pictures) / f"texture_loo_{name}.png"
         rows, extra = evaluate(name, Path(args.cache), args.held, not args.no_meshlab, args.size, pic)
         table.append((name, rows, extra))
-    print(f"\nleave-one-camera-out PSNR (dB) inside mask and render, median over held-out cameras; load {os.getloadavg()}")
+    print(f"\nleave-one-camera-out PSNR (dB) inside mask and render, median over held-out cameras; load {load_average()}")
     print("| dataset | faces | views | vertex colours | MeshLab | ours (vertex mode) | **ours** | bg texels (painted) | ours s/frame | MeshLab s/frame |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     for name, rows, ex in table:

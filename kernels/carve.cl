@@ -1,39 +1,69 @@
-// Photo-consistency carving: voxel colouring (Seitz & Dyer 1999) and space carving (Kutulakos & Seitz 2000).
+// Photo-consistency carving: voxel colouring (Seitz & Dyer 1999) and space carving (Kutulakos & Seitz 2000),
+// with exact visibility from item buffers (Culbertson et al. 1999) and a strict silhouette guard.
 // NumPy reference: nodes/carve/reference.py (same float32 operations in the same order, so the two give the
 // same voxels; nodes/carve/carving.py drives both through the same steps).
 //
-// Grid: occ[(i * ny + j) * nz + k], bit 0 = occupied, bit 1 = protected (see carve_commit). Voxel centres are in local coordinates
-// ((i, j, k) + 0.5) * vs; the cameras are packed for that origin (Cameras.pack(origin=bbox_min)).
-// Views: one camera (camera.h layout), its centre, its gain and its pixel offset into the shared buffers:
-//   images  uchar4 per pixel: r g b and the mask (> 127 = silhouette) in w
-//   marks   uchar per pixel: 1 = occupied by a voxel already kept in this sweep (or background)
-//   items   ulong per pixel: (depth bits << 32) | voxel index of the nearest surface voxel (item buffer)
+// Grid: occ[(i * ny + j) * nz + k], bit 0 = occupied, bit 1 = protected (a candidate the guard kept: never tested
+// again). Voxel centres are in local coordinates ((i, j, k) + 0.5) * vs; the cameras are packed for that origin.
+// Silhouettes: kernels/silhouette.h's bits (nodes.common.silhouettes.SilhouetteBits), per view at bit_off[c].
+// Pixel buffers cover a window per view (win[c] = x0, y0, width, height: the silhouette's bounding box; no
+// mask pixel lies outside it), pixel (x, y) of view c at pix_off[c] + (y - y0) * width + (x - x0):
+//   images  uchar4: r g b -
+//   marks   uchar: 1 = occupied by a voxel already kept in this sweep / layer (one buffer per sweep)
+//   items   ulong: (depth bits << 32) | voxel index of the nearest surface voxel (item buffer)
+//   cover   int: how many counted voxels cover the pixel (their cube's inner outline holds its centre)
+//   keeper  uint: the nearest depth (float bits) of the candidates covering the pixel in a guard step (else ~0)
 //
-// One step (a sweep plane, a voxel-colouring layer, or an item-buffer pass) is two launches over the step's
-// voxels (a segment of a voxel list):
-//   carve_test    surface voxels only: mean colour per view over the footprint pixels the voxel is seen
-//                 in; views are the cameras behind the sweep plane (all cameras for layers and item
-//                 passes); a voxel seen in >= min_views views whose colour deviation over the views exceeds
-//                 thr + adaptive * (RMS spread of the pixels within a view) is stamped with the step number
-//                 (a candidate; the adaptive threshold of Slabaugh et al. 2004);
-//   carve_commit  a candidate is removed unless it is the last occupied voxel along its centre's ray in
-//                 some view whose silhouette holds that centre (never carve through a silhouette); kept
-//                 surface voxels then mark their footprints in the views of the step (sweeps and layers).
-// Candidates of the same step never count as cover for each other, so the result does not depend on the
-// order in which work items run. An item pass may be incremental: a voxel removed by an item pass gives back its
-// pixels in the item buffers and flags its neighbours; carve_compact lists the flagged surface voxels, and the
-// next pass splats and tests only those (a full pass, rebuilding the buffers, confirms convergence).
+// The photo-consistency test (photo): a surface voxel's mean colour per view over the footprint pixels it is
+// seen in, in the views that take part (in a sweep: cameras behind the plane and within the cone; facing the
+// voxel within max_angle); inconsistent when seen in >= min_views views and the colour deviation over the views
+// exceeds thr + adaptive * (RMS spread of the pixels within a view) and, when contrast > 0, the views' colours
+// differ by more than `contrast` times what their own texture explains (see carve_params).
+//
+// The silhouette guard (strict): a voxel is never removed when that would leave a silhouette pixel of any view
+// that some voxel covered (its centre inside the projected cube) without a voxel covering it. Per pixel `cover`
+// counts the surface voxels whose cube covers it for sure (the projected cube's outline eroded by its error
+// bound); a step's candidates take themselves out of the count and bid for the pixels they cover (keeper =
+// nearest depth); a candidate stays (and is protected for good) when a silhouette pixel its cube may cover (the
+// outline dilated by the bound) is left with cover 0 and it is that pixel's keeper or the pixel has none.
+// Before deciding, the candidates' face neighbours that stay join the count (they will be surface voxels). Every
+// decision reads counts no other decision of the step changes, so the result does not depend on the order in
+// which work items run.
+//
+// Steps (kernels): a space-carving round sweeps +x -x +y -y +z -z, plane by plane: carve_sweep_test, the
+// guard's kernels, carve_sweep_mark. An item pass: carve_compact lists the surface voxels, carve_splat writes
+// the item buffers, carve_test tests them, carve_expose, carve_decide and carve_apply carry out the guard. Voxel
+// colouring: per layer carve_test (marks), the guard's three, carve_mark.
 #pragma OPENCL FP_CONTRACT OFF
 #pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable
 #pragma OPENCL EXTENSION cl_khr_int64_extended_atomics : enable
-#include "camera.h"
+#include "silhouette.h"
 
-#define SAMPLES 8      // at most SAMPLES x SAMPLES pixels sampled per voxel and view (strided when larger)
-#define PROTECTED 2     // occ bit 1: a silhouette needs this voxel (it is never tested again)
-#define BACK_FACING -0.5f   // item buffers skip views more than 120 degrees from a voxel's normal
-#define GUARD_OFFSET 0.4f  // the silhouette guard's rays pass the voxel centre and points this far off it (voxels)
+#define SAMPLES 8             // at most SAMPLES x SAMPLES pixels sampled per voxel and view (strided when larger)
+#define PROTECTED 2           // occ bit 1: the guard kept this candidate (it is never tested again)
+#define BACK_FACING -0.5f     // item buffers skip views more than 120 degrees from a voxel's normal
+#define COVER_EPS 0.01f       // pixels: added to the outline's error bound (rounding, other rasterizers)
+#define NO_KEEPER 0xFFFFFFFFu
+#define EMPTY_ITEM 0xFFFFFFFFFFFFFFFFUL
+#define ST_CAND 1             // stamp[v] = (step << 2) | state
+#define ST_KEEP 2
+#define ST_GO 3
 #define SPACE_RGB 0
 #define SPACE_LAB 1
+
+#define VIEW_ARGS __global const float* cams, __global const float4* centres, __global const int4* win, \
+    __global const int* pix_off, __global const uchar* bits, __global const int* bit_off, int nviews
+#define VIEW_PASS cams, centres, win, pix_off, bits, bit_off, nviews
+#define GRID_ARGS int nx, int ny, int nz, float4 vs
+// voxels flagged for the next incremental pass: a bit per voxel and the list of the flagged ones
+#define FRESH_ARGS __global uint* fresh, __global uint* flist, __global int* nflist
+#define FRESH_PASS fresh, flist, nflist
+#define GRID_PASS nx, ny, nz, vs
+// the photo-consistency parameters: footprint scale, cos(cone), cos(max_angle), min_views, threshold,
+// adaptive, colour space, contrast
+#define TEST_ARGS __global const float4* gains, __global const uchar4* images, float scale, float cos_cone, \
+    float cos_min, int min_views, float thr, float adaptive, int space, float contrast
+#define TEST_PASS gains, images, scale, cos_cone, cos_min, min_views, thr, adaptive, space, contrast
 
 inline float dot3(float3 a)
 {
@@ -45,9 +75,14 @@ inline float3 voxel_centre(int i, int j, int k, float4 vs)
     return (float3)(((float)i + 0.5f) * vs.x, ((float)j + 0.5f) * vs.y, ((float)k + 0.5f) * vs.z);
 }
 
+inline int inside_grid(int i, int j, int k, int nx, int ny, int nz)
+{
+    return i >= 0 && j >= 0 && k >= 0 && i < nx && j < ny && k < nz;
+}
+
 inline int occupied(__global const uchar* occ, int i, int j, int k, int nx, int ny, int nz)
 {
-    if (i < 0 || j < 0 || k < 0 || i >= nx || j >= ny || k >= nz) return 0;
+    if (!inside_grid(i, j, k, nx, ny, nz)) return 0;
     return occ[((size_t)i * ny + j) * nz + k] & 1;
 }
 
@@ -57,23 +92,6 @@ inline int surface(__global const uchar* occ, int i, int j, int k, int nx, int n
     return !(occupied(occ, i - 1, j, k, nx, ny, nz) && occupied(occ, i + 1, j, k, nx, ny, nz) &&
              occupied(occ, i, j - 1, k, nx, ny, nz) && occupied(occ, i, j + 1, k, nx, ny, nz) &&
              occupied(occ, i, j, k - 1, nx, ny, nz) && occupied(occ, i, j, k + 1, nx, ny, nz));
-}
-
-// Occupied and not a candidate of this step (candidates may be leaving while the commit runs).
-inline int staying(__global const uchar* occ, __global const int* stamp, int step, int i, int j, int k, int nx,
-                   int ny, int nz)
-{
-    if (i < 0 || j < 0 || k < 0 || i >= nx || j >= ny || k >= nz) return 0;
-    size_t w = ((size_t)i * ny + j) * nz + k;
-    return stamp[w] != step && (occ[w] & 1);
-}
-
-inline int surface_staying(__global const uchar* occ, __global const int* stamp, int step, int i, int j, int k,
-                           int nx, int ny, int nz)
-{
-    return !(staying(occ, stamp, step, i - 1, j, k, nx, ny, nz) && staying(occ, stamp, step, i + 1, j, k, nx, ny, nz) &&
-             staying(occ, stamp, step, i, j - 1, k, nx, ny, nz) && staying(occ, stamp, step, i, j + 1, k, nx, ny, nz) &&
-             staying(occ, stamp, step, i, j, k - 1, nx, ny, nz) && staying(occ, stamp, step, i, j, k + 1, nx, ny, nz));
 }
 
 // Outward normal direction (not normalised) of a surface voxel: minus the sum of the offsets of its occupied
@@ -118,13 +136,42 @@ inline int in_cone(float4 C, float3 X, int axis, float sign, float cos_cone)
     return along > 0.0f && along >= cos_cone * sqrt(dot3(d));
 }
 
-// Footprint of the voxel at X in a view: its cube projected through the local affine approximation of the
-// camera, i.e. the hexagon {p + a e0 + b e1 + c e2 : |a|, |b|, |c| <= 1} spanned by the projected half-edges
-// e0 e1 e2 (times `scale`) around the projected centre p. Pixels inside are those whose centre q satisfies
-// |e_k x (q - p)| <= lim_k for k = 0, 1, 2 (x: 2-D cross product, lim_k = sum_j |e_k x e_j|); the
-// rectangle r = (x0, x1, y0, y1) bounds it, clipped to the image. When no pixel centre lies inside the
-// rectangle, the footprint is the pixel nearest to p (single). Returns 0 when a projected point is behind the
-// camera or not finite.
+inline float cross2(float2 a, float2 b)
+{
+    return a.x * b.y - a.y * b.x;
+}
+
+// The pixel loops of view c (after `cam` and `w`): its silhouette (silhouette.h) and the offset of its window in
+// the pixel buffers.
+#define VIEW_ROWS(c) \
+    __global const uchar* mrow = bits + bit_off[c]; \
+    int mwidth = (int)cam[22]; \
+    int pbase = pix_off[c] - w.y * w.z - w.x
+#define MASK(x, y) silhouette_bit(mrow, mwidth, x, y)
+#define PIX(x, y) (pbase + (y) * w.z + (x))
+
+// ---------------------------------------------------------------- footprints
+// Pixel of a point given in camera coordinates xc (camera.h's projection after camera_point); writes its depth.
+inline float2 project_camera(__global const float* cam, float3 xc, float* depth)
+{
+    *depth = xc.z * cam[24];
+    return pixel_point(cam, distort_point(cam, xc.xy / xc.z));
+}
+
+// Half an edge of the voxel along axis a (0, 1, 2) in camera coordinates: R[:, a] * vs[a] / 2.
+inline float3 half_edge(__global const float* cam, int a, float4 vs)
+{
+    float h = 0.5f * (a == 0 ? vs.x : (a == 1 ? vs.y : vs.z));
+    return (float3)(cam[a] * h, cam[4 + a] * h, cam[8 + a] * h);
+}
+
+// Footprint of the voxel at X in a view (photo test, item buffers, marks): its cube projected through the local
+// affine approximation of the camera, i.e. the hexagon {p + a e0 + b e1 + c e2 : |a|, |b|, |c| <= 1} spanned by
+// the projected half-edges e0 e1 e2 (times `scale`) around the projected centre p. Pixels inside are those whose
+// centre q satisfies |e_k x (q - p)| <= lim_k for k = 0, 1, 2 (x: 2-D cross product, lim_k = sum_j |e_k x e_j|);
+// the rectangle r = (x0, x1, y0, y1) bounds it, clipped to the view's window. When no pixel centre lies inside
+// the rectangle, the footprint is the pixel nearest to p (single). Returns 0 when a projected point is behind
+// the camera or not finite.
 typedef struct {
     float2 p, e0, e1, e2;
     float l0, l1, l2;
@@ -133,33 +180,30 @@ typedef struct {
     float depth;
 } footprint_t;
 
-inline float cross2(float2 a, float2 b)
-{
-    return a.x * b.y - a.y * b.x;
-}
-
-inline int footprint(__global const float* cam, float3 X, float4 vs, float scale, footprint_t* f)
+inline int footprint(__global const float* cam, int4 w, float3 X, float4 vs, float scale, footprint_t* f)
 {
     float d0, d1, d2, d3;
-    float2 p = project_point(cam, X, &d0);
-    float2 px = project_point(cam, (float3)(X.x + 0.5f * vs.x, X.y, X.z), &d1);
-    float2 py = project_point(cam, (float3)(X.x, X.y + 0.5f * vs.y, X.z), &d2);
-    float2 pz = project_point(cam, (float3)(X.x, X.y, X.z + 0.5f * vs.z), &d3);
+    float3 xc = camera_point(cam, X);
+    float2 p = project_camera(cam, xc, &d0);
+    float2 px = project_camera(cam, xc + half_edge(cam, 0, vs), &d1);
+    float2 py = project_camera(cam, xc + half_edge(cam, 1, vs), &d2);
+    float2 pz = project_camera(cam, xc + half_edge(cam, 2, vs), &d3);
     if (!(d0 > 0.0f && d1 > 0.0f && d2 > 0.0f && d3 > 0.0f)) return 0;
     float2 e0 = scale * (px - p), e1 = scale * (py - p), e2 = scale * (pz - p);
     float hu = (fabs(e0.x) + fabs(e1.x)) + fabs(e2.x);
     float hv = (fabs(e0.y) + fabs(e1.y)) + fabs(e2.y);
     if (!(isfinite(hu) && isfinite(hv) && isfinite(p.x) && isfinite(p.y))) return 0;
-    float W = cam[22], H = cam[23];
     float fx0 = ceil(p.x - hu), fx1 = floor(p.x + hu), fy0 = ceil(p.y - hv), fy1 = floor(p.y + hv);
     f->single = fx0 > fx1 || fy0 > fy1;
     if (f->single) {
         fx0 = fx1 = floor(p.x + 0.5f);
         fy0 = fy1 = floor(p.y + 0.5f);
     }
-    fx0 = fmax(fx0, 0.0f); fy0 = fmax(fy0, 0.0f);
-    fx1 = fmin(fx1, W - 1.0f); fy1 = fmin(fy1, H - 1.0f);
-    f->r = (int4)((int)fmin(fx0, W), (int)fmax(fx1, -1.0f), (int)fmin(fy0, H), (int)fmax(fy1, -1.0f));
+    float wx0 = (float)w.x, wy0 = (float)w.y, wx1 = (float)(w.x + w.z - 1), wy1 = (float)(w.y + w.w - 1);
+    fx0 = fmax(fx0, wx0); fy0 = fmax(fy0, wy0);
+    fx1 = fmin(fx1, wx1); fy1 = fmin(fy1, wy1);
+    f->r = (int4)((int)fmin(fx0, wx1 + 1.0f), (int)fmax(fx1, wx0 - 1.0f), (int)fmin(fy0, wy1 + 1.0f),
+                  (int)fmax(fy1, wy0 - 1.0f));
     f->p = p; f->e0 = e0; f->e1 = e1; f->e2 = e2;
     f->l0 = fabs(cross2(e0, e1)) + fabs(cross2(e0, e2));
     f->l1 = fabs(cross2(e1, e0)) + fabs(cross2(e1, e2));
@@ -175,6 +219,76 @@ inline int in_footprint(const footprint_t* f, int x, int y)
     return fabs(cross2(f->e0, q)) <= f->l0 && fabs(cross2(f->e1, q)) <= f->l1 && fabs(cross2(f->e2, q)) <= f->l2;
 }
 
+// The silhouette guard's outline of the voxel's cube in a view, with an error bound. The eight corners are
+// projected exactly (camera.h, lens distortion included; their camera coordinates from the centre's and the
+// half edges); the hexagon Z = {c + a e0 + b e1 + d e2 : |a|, |b|,
+// |d| <= 1} is their affine fit (c their mean, e_k half the mean edge along axis k), and delta the largest
+// distance of a projected corner from its corner of Z. The true outline (the convex hull of the projected
+// corners) then contains Z eroded by delta and lies inside Z dilated by delta. With d = delta + COVER_EPS:
+//   inner (covers for sure)  |e_k x q| <= lim_k - d |e_k|   for k = 0, 1, 2
+//   outer (may cover)        |e_k x q| <= lim_k + d |e_k|
+// (q = pixel centre - c). The rectangle r bounds the projected corners grown by COVER_EPS, clipped to the
+// window. Returns 0 when a corner (or the centre) is behind the camera or not finite.
+typedef struct {
+    float2 c, e0, e1, e2;
+    float l0, l1, l2, m0, m1, m2;   // lim_k and d |e_k|
+    int4 r;
+    uint key;                        // the guard's bid: the bits of the voxel centre's depth (> 0)
+} outline_t;
+
+inline int cube_outline(__global const float* cam, int4 w, float3 X, float4 vs, outline_t* o)
+{
+    float2 P[8];
+    float3 xc = camera_point(cam, X);
+    float3 hx = half_edge(cam, 0, vs), hy = half_edge(cam, 1, vs), hz = half_edge(cam, 2, vs);
+    for (int s = 0; s < 8; s++) {
+        float d;
+        float3 Y = (((s & 1) ? xc + hx : xc - hx) + ((s & 2) ? hy : -hy)) + ((s & 4) ? hz : -hz);
+        P[s] = project_camera(cam, Y, &d);
+        if (!(d > 0.0f && isfinite(P[s].x) && isfinite(P[s].y))) return 0;
+    }
+    float2 c = (((((((P[0] + P[1]) + P[2]) + P[3]) + P[4]) + P[5]) + P[6]) + P[7]) * 0.125f;
+    float2 e0 = (((P[1] - P[0]) + (P[3] - P[2])) + ((P[5] - P[4]) + (P[7] - P[6]))) * 0.125f;
+    float2 e1 = (((P[2] - P[0]) + (P[3] - P[1])) + ((P[6] - P[4]) + (P[7] - P[5]))) * 0.125f;
+    float2 e2 = (((P[4] - P[0]) + (P[5] - P[1])) + ((P[6] - P[2]) + (P[7] - P[3]))) * 0.125f;
+    float dd = 0.0f;
+    float2 lo = P[0], hi = P[0];
+    for (int s = 0; s < 8; s++) {
+        float2 m = (((s & 1) ? c + e0 : c - e0) + ((s & 2) ? e1 : -e1)) + ((s & 4) ? e2 : -e2);
+        float2 q = P[s] - m;
+        dd = fmax(dd, q.x * q.x + q.y * q.y);
+        lo = fmin(lo, P[s]);
+        hi = fmax(hi, P[s]);
+    }
+    float d = sqrt(dd) + COVER_EPS;
+    float depth = xc.z * cam[24];
+    if (!(depth > 0.0f)) return 0;
+    o->key = as_uint(depth);
+    o->c = c; o->e0 = e0; o->e1 = e1; o->e2 = e2;
+    o->l0 = fabs(cross2(e0, e1)) + fabs(cross2(e0, e2));
+    o->l1 = fabs(cross2(e1, e0)) + fabs(cross2(e1, e2));
+    o->l2 = fabs(cross2(e2, e0)) + fabs(cross2(e2, e1));
+    o->m0 = d * sqrt(e0.x * e0.x + e0.y * e0.y);
+    o->m1 = d * sqrt(e1.x * e1.x + e1.y * e1.y);
+    o->m2 = d * sqrt(e2.x * e2.x + e2.y * e2.y);
+    float wx0 = (float)w.x, wy0 = (float)w.y, wx1 = (float)(w.x + w.z - 1), wy1 = (float)(w.y + w.w - 1);
+    float x0 = fmax(ceil(lo.x - COVER_EPS), wx0), x1 = fmin(floor(hi.x + COVER_EPS), wx1);
+    float y0 = fmax(ceil(lo.y - COVER_EPS), wy0), y1 = fmin(floor(hi.y + COVER_EPS), wy1);
+    o->r = (int4)((int)fmin(x0, wx1 + 1.0f), (int)fmax(x1, wx0 - 1.0f), (int)fmin(y0, wy1 + 1.0f),
+                  (int)fmax(y1, wy0 - 1.0f));
+    return 1;
+}
+
+// outer = 1: the dilated outline (may cover); 0: the eroded one (covers for sure).
+inline int in_outline(const outline_t* o, int x, int y, int outer)
+{
+    float2 q = (float2)((float)x - o->c.x, (float)y - o->c.y);
+    float a = fabs(cross2(o->e0, q)), b = fabs(cross2(o->e1, q)), d = fabs(cross2(o->e2, q));
+    if (outer) return a <= o->l0 + o->m0 && b <= o->l1 + o->m1 && d <= o->l2 + o->m2;
+    return a <= o->l0 - o->m0 && b <= o->l1 - o->m1 && d <= o->l2 - o->m2;
+}
+
+// ---------------------------------------------------------------- colour
 inline float lab_f(float t)
 {
     return t > 0.008856452f ? cbrt(t) : t / 0.12841855f + 0.13793103f;
@@ -209,64 +323,13 @@ inline float spread(float3 m, float3 sd, float3 q, int space)
     return (dot3(a) + dot3(b)) + dot3(c);
 }
 
-// Reset the marks of every view: background pixels are marked (never sampled), silhouette pixels free.
-__kernel void carve_reset_marks(__global const uchar4* images, int npixels, __global uchar* marks)
+// The photo-consistency test of the surface voxel v at X (normal direction g). Visibility: use_items: a pixel
+// is seen when the item buffer holds v; else when it is not marked. Writes the mean colour over views (r g b),
+// the colour variance over views (-1 when seen in < 2 views); returns 1 when v is inconsistent.
+inline int photo(uint v, float3 X, float3 g, int axis, float plane, float sign, __global const uchar* marks,
+                 int use_items, __global const ulong* items, VIEW_ARGS, GRID_ARGS, TEST_ARGS, float3* rgb_out, float* var_out,
+                 int* views_out)
 {
-    int p = get_global_id(0);
-    if (p >= npixels) return;
-    marks[p] = images[p].w > 127 ? 0 : 1;
-}
-
-// Item buffers: every surface voxel of the list writes (depth, index) into the pixels of its whole footprint
-// in every view it does not clearly turn away from; the nearest wins (exact depth ties: the lower index).
-__kernel void carve_splat(__global const uint* list, int first, int count, __global const uchar* occ, int nx, int ny,
-                          int nz, float4 vs, __global const float* cams, __global const float4* centres, int nviews,
-                          __global const int* pix_off,
-                          __global const uchar4* images, __global ulong* items)
-{
-    int t = get_global_id(0);
-    if (t >= count) return;
-    uint v = list[first + t];
-    if (!(occ[v] & 1)) return;
-    int k = v % nz, j = (v / nz) % ny, i = v / (nz * ny);
-    if (!surface(occ, i, j, k, nx, ny, nz)) return;
-    float3 X = voxel_centre(i, j, k, vs);
-    float3 g = voxel_normal(occ, i, j, k, nx, ny, nz);
-    for (int c = 0; c < nviews; c++) {
-        if (!facing(g, X, centres[c], BACK_FACING)) continue;   // clearly turned away: hidden anyway
-        __global const float* cam = cams + CAM_FLOATS * c;
-        footprint_t f;
-        if (!footprint(cam, X, vs, 1.0f, &f)) continue;
-        int W = (int)cam[22];
-        ulong key = ((ulong)as_uint(f.depth) << 32) | (ulong)v;
-        for (int y = f.r.z; y <= f.r.w; y++)
-            for (int x = f.r.x; x <= f.r.y; x++) {
-                int p = pix_off[c] + y * W + x;
-                if (in_footprint(&f, x, y) && images[p].w > 127) atom_min(&items[p], key);
-            }
-    }
-}
-
-// The photo-consistency test of the surface voxels of one step. use_items: a pixel is seen when the item
-// buffer holds this voxel; else when it is not marked. write_colors: instead of stamping candidates, write the
-// mean colour (r g b, number of views) and the colour variance over views (-1 when seen in < 2 views) of each
-// list entry (indexed by its position in the list).
-__kernel void carve_test(__global const uint* list, int first, int count, int axis, float plane, float sign,
-                         int use_items, __global const uchar* occ, __global int* stamp, int step, int nx, int ny,
-                         int nz, float4 vs, __global const float* cams, __global const float4* centres,
-                         __global const float4* gains, int nviews, __global const int* pix_off,
-                         __global const uchar4* images, __global const uchar* marks, __global const ulong* items,
-                         float scale, float cos_cone, float cos_min, int min_views, float thr, float adaptive, int space, int write_colors,
-                         __global uchar4* colors, __global float* variance)
-{
-    int t = get_global_id(0);
-    if (t >= count) return;
-    uint v = list[first + t];
-    if (!(occ[v] & 1) || ((occ[v] & PROTECTED) && !write_colors)) return;
-    int k = v % nz, j = (v / nz) % ny, i = v / (nz * ny);
-    if (!surface(occ, i, j, k, nx, ny, nz)) return;
-    float3 X = voxel_centre(i, j, k, vs);
-    float3 g = voxel_normal(occ, i, j, k, nx, ny, nz);
     float3 s1 = (float3)(0.0f), rgb = (float3)(0.0f);
     float s2 = 0.0f, w2 = 0.0f;
     int views = 0;
@@ -275,23 +338,24 @@ __kernel void carve_test(__global const uint* list, int first, int count, int ax
             !facing(g, X, centres[c], cos_min))
             continue;
         __global const float* cam = cams + CAM_FLOATS * c;
+        int4 w = win[c];
+        VIEW_ROWS(c);
         footprint_t f;
-        if (!footprint(cam, X, vs, scale, &f)) continue;
+        if (!footprint(cam, w, X, vs, scale, &f)) continue;
         int4 r = f.r;
-        int W = (int)cam[22];
         int stride = max(1, (max(r.y - r.x + 1, r.w - r.z + 1) + SAMPLES - 1) / SAMPLES);
         float3 sum = (float3)(0.0f), sq = (float3)(0.0f);
         int n = 0, total = 0;
         for (int y = r.z; y <= r.w; y += stride)
             for (int x = r.x; x <= r.y; x += stride) {
-                int p = pix_off[c] + y * W + x;
-                uchar4 px = images[p];
-                if (px.w <= 127 || !in_footprint(&f, x, y)) continue;
+                if (!MASK(x, y) || !in_footprint(&f, x, y)) continue;
                 total++;
+                int p = PIX(x, y);
                 if (use_items ? (uint)(items[p] & 0xFFFFFFFFUL) != v : marks[p] != 0) continue;
-                float3 f = (float3)((float)px.x, (float)px.y, (float)px.z);
-                sum += f;
-                sq += f * f;
+                uchar4 px = images[p];
+                float3 col = (float3)((float)px.x, (float)px.y, (float)px.z);
+                sum += col;
+                sq += col * col;
                 n++;
             }
         if (n == 0 || 2 * n < total) continue;     // seen: at least half of the sampled silhouette pixels
@@ -307,135 +371,388 @@ __kernel void carve_test(__global const uint* list, int first, int count, int ax
         views++;
     }
     float var = -1.0f;
-    float limit = 0.0f;
+    int bad = 0;
     if (views >= 2) {
         float3 mean = s1 / (float)views;
         var = s2 / (float)views - dot3(mean);
-        limit = thr + adaptive * sqrt(w2 / (float)views);
+        float within = w2 / (float)views;
+        float limit = thr + adaptive * sqrt(within);
+        // contrast: the spread between views must also exceed `contrast` times the spread within them (a voxel
+        // over fine texture, whose footprints differ between views by a fraction of the pattern, is not carved)
+        bad = views >= min_views && var > limit * limit && var > (contrast * contrast) * within;
     }
-    if (write_colors) {
-        float3 c = views ? rgb / (float)views : (float3)(0.0f);
-        colors[first + t] = (uchar4)(convert_uchar3_sat_rte(c), (uchar)min(views, 255));
-        variance[first + t] = var;
-    } else if (views >= min_views && views >= 2 && var > limit * limit) {
-        stamp[v] = step;
+    *rgb_out = views ? rgb / (float)views : (float3)(0.0f);
+    *var_out = var;
+    *views_out = views;
+    return bad;
+}
+
+// ---------------------------------------------------------------- the guard
+inline void cover_add(uint v, float3 X, int delta, VIEW_ARGS, float4 vs, __global int* cover)
+{
+    for (int c = 0; c < nviews; c++) {
+        __global const float* cam = cams + CAM_FLOATS * c;
+        int4 w = win[c];
+        VIEW_ROWS(c);
+        outline_t o;
+        if (!cube_outline(cam, w, X, vs, &o)) continue;
+        for (int y = o.r.z; y <= o.r.w; y++)
+            for (int x = o.r.x; x <= o.r.y; x++)
+                if (MASK(x, y) && in_outline(&o, x, y, 0))
+                    atomic_add(&cover[PIX(x, y)], delta);
     }
 }
 
-// The flagged voxels of the list that are occupied surface voxels, appended to `out` (in no particular order:
-// what follows does not depend on it); flags cleared.
-__kernel void carve_compact(__global const uint* list, int count, __global const uchar* occ, __global uchar* fresh,
-                            int nx, int ny, int nz, __global uint* out, __global int* counter)
+inline int is_counted(__global const uint* counted, uint v)
+{
+    return (counted[v >> 5] >> (v & 31)) & 1;
+}
+
+// A new candidate: out of the cover counts (when counted), bidding for the pixels it covers for sure (the nearest
+// candidate wins a pixel: on a ray that only candidates cover, the one in front stays).
+inline void claim(uint v, float3 X, VIEW_ARGS, float4 vs, __global const uint* counted, __global int* cover,
+                  __global uint* keeper)
+{
+    int was = is_counted(counted, v);
+    for (int c = 0; c < nviews; c++) {
+        __global const float* cam = cams + CAM_FLOATS * c;
+        int4 w = win[c];
+        VIEW_ROWS(c);
+        outline_t o;
+        if (!cube_outline(cam, w, X, vs, &o)) continue;
+        for (int y = o.r.z; y <= o.r.w; y++)
+            for (int x = o.r.x; x <= o.r.y; x++)
+                if (MASK(x, y) && in_outline(&o, x, y, 0)) {
+                    int p = PIX(x, y);
+                    if (was) atomic_dec(&cover[p]);
+                    atomic_min(&keeper[p], o.key);
+                }
+    }
+}
+
+inline void candidate(uint v, float3 X, int step, __global int* stamp, __global uint* cands, __global int* ncands,
+                      VIEW_ARGS, float4 vs, __global const uint* counted, __global int* cover, __global uint* keeper)
+{
+    stamp[v] = (step << 2) | ST_CAND;
+    cands[atomic_inc(ncands)] = v;
+    claim(v, X, VIEW_PASS, vs, counted, cover, keeper);
+}
+
+// Initial cover counts: every listed (surface) voxel counted once.
+__kernel void carve_count(__global const uint* list, int count, VIEW_ARGS, GRID_ARGS, __global uint* counted,
+                          __global int* cover)
 {
     int t = get_global_id(0);
     if (t >= count) return;
     uint v = list[t];
-    if (!fresh[v]) return;
-    fresh[v] = 0;
+    int k = v % nz, j = (v / nz) % ny, i = v / (nz * ny);
+    atomic_or(&counted[v >> 5], 1u << (v & 31));
+    cover_add(v, voxel_centre(i, j, k, vs), 1, VIEW_PASS, vs, cover);
+}
+
+// Before the decisions: a candidate's face neighbours that stay (occupied, not candidates of the step) join the
+// cover counts when they are not counted yet (they cover the rays that pass the candidate; counting any voxel that
+// stays is safe, and these are surface voxels once the candidate goes).
+inline void expose(uint v, int step, __global const int* stamp, VIEW_ARGS, GRID_ARGS, __global const uchar* occ,
+                   __global uint* counted, __global int* cover)
+{
+    int k = v % nz, j = (v / nz) % ny, i = v / (nz * ny);
+    for (int q = 0; q < 6; q++) {
+        int a = i + (q == 0) - (q == 1), b = j + (q == 2) - (q == 3), e = k + (q == 4) - (q == 5);
+        if (!inside_grid(a, b, e, nx, ny, nz)) continue;
+        uint u = ((uint)a * ny + b) * nz + e;
+        if (!(occ[u] & 1) || (stamp[u] >> 2) == step || is_counted(counted, u)) continue;
+        uint old = atomic_or(&counted[u >> 5], 1u << (u & 31));
+        if (!((old >> (u & 31)) & 1)) cover_add(u, voxel_centre(a, b, e, vs), 1, VIEW_PASS, vs, cover);
+    }
+}
+
+// Per candidate: stays when a silhouette pixel its cube may cover is left with cover 0 and it is that pixel's
+// keeper (its depth won the bids; equal depths all stay) or the pixel has none.
+inline void decide(uint v, int step, __global int* stamp, VIEW_ARGS, GRID_ARGS, __global const int* cover,
+                   __global const uint* keeper)
+{
+    int k = v % nz, j = (v / nz) % ny, i = v / (nz * ny);
+    float3 X = voxel_centre(i, j, k, vs);
+    int needed = 0;
+    for (int c = 0; c < nviews && !needed; c++) {
+        __global const float* cam = cams + CAM_FLOATS * c;
+        int4 w = win[c];
+        VIEW_ROWS(c);
+        outline_t o;
+        if (!cube_outline(cam, w, X, vs, &o)) continue;
+        for (int y = o.r.z; y <= o.r.w && !needed; y++)
+            for (int x = o.r.x; x <= o.r.y; x++) {
+                if (!MASK(x, y) || !in_outline(&o, x, y, 1)) continue;
+                int p = PIX(x, y);
+                if (cover[p] == 0 && (keeper[p] == o.key || keeper[p] == NO_KEEPER)) {
+                    needed = 1;
+                    break;
+                }
+            }
+    }
+    stamp[v] = (step << 2) | (needed ? ST_KEEP : ST_GO);
+}
+
+// Flag the occupied voxels of the 3x3x3 block around (i, j, k) for the next incremental pass (once each).
+inline void flag_around(uint v, int i, int j, int k, GRID_ARGS, __global const uchar* occ, FRESH_ARGS)
+{
+    for (int a = max(i - 1, 0); a <= min(i + 1, nx - 1); a++)
+        for (int b = max(j - 1, 0); b <= min(j + 1, ny - 1); b++)
+            for (int e = max(k - 1, 0); e <= min(k + 1, nz - 1); e++) {
+                uint u = ((uint)a * ny + b) * nz + e;
+                if (!(occ[u] & 1)) continue;
+                uint old = atomic_or(&fresh[u >> 5], 1u << (u & 31));
+                if (!((old >> (u & 31)) & 1)) flist[atomic_inc(nflist)] = u;
+            }
+}
+
+// A removed voxel gave back pixels of a view: the voxel that now shows there is found along the ray from the
+// camera through the removed voxel's centre (steps of half a voxel beyond it, until a voxel that stays this step),
+// and it and its neighbours are flagged, so the next incremental pass splats and tests them.
+inline void reveal(uint v, int i, int j, int k, float3 X, float4 C, int step, __global const int* stamp, GRID_ARGS,
+                   __global const uchar* occ, FRESH_ARGS)
+{
+    float3 d = X - C.xyz;
+    float dt = (0.5f * fmin(fmin(vs.x, vs.y), vs.z)) / fmax(fmax(fabs(d.x), fabs(d.y)), fabs(d.z));
+    if (!isfinite(dt)) return;
+    int limit = 2 * (nx + ny + nz) + 4;
+    for (int n = 1; n <= limit; n++) {
+        float tn = (float)n * dt;
+        float3 P = X + tn * d;
+        int a = (int)floor(P.x / vs.x), b = (int)floor(P.y / vs.y), e = (int)floor(P.z / vs.z);
+        if (!inside_grid(a, b, e, nx, ny, nz)) return;
+        uint u = ((uint)a * ny + b) * nz + e;
+        if (u == v || !(occ[u] & 1) || stamp[u] == ((step << 2) | ST_GO)) continue;
+        flag_around(u, a, b, e, GRID_PASS, occ, FRESH_PASS);
+        return;
+    }
+}
+
+// Carry out a decision: bids withdrawn; a kept candidate counts again and is protected; a removed one leaves the
+// volume, flags its occupied 26 neighbours for the next incremental pass and, in an item pass, gives back its
+// pixels in the item buffers, flagging in each view where it held pixels the voxels that now show there.
+inline void apply(uint v, int step, __global const int* stamp, VIEW_ARGS, GRID_ARGS, __global uchar* occ,
+                  __global int* cover, __global uint* keeper, __global uint* counted, int use_items,
+                  __global ulong* items, FRESH_ARGS, __global int* removed)
+{
+    int k = v % nz, j = (v / nz) % ny, i = v / (nz * ny);
+    float3 X = voxel_centre(i, j, k, vs);
+    int keep = (stamp[v] & 3) == ST_KEEP;
+    for (int c = 0; c < nviews; c++) {
+        __global const float* cam = cams + CAM_FLOATS * c;
+        int4 w = win[c];
+        VIEW_ROWS(c);
+        outline_t o;
+        if (!cube_outline(cam, w, X, vs, &o)) continue;
+        for (int y = o.r.z; y <= o.r.w; y++)
+            for (int x = o.r.x; x <= o.r.y; x++)
+                if (MASK(x, y) && in_outline(&o, x, y, 0)) {
+                    int p = PIX(x, y);
+                    keeper[p] = NO_KEEPER;
+                    if (keep) atomic_inc(&cover[p]);
+                }
+    }
+    if (keep) {
+        occ[v] = 1 | PROTECTED;
+        atomic_or(&counted[v >> 5], 1u << (v & 31));
+        return;
+    }
+    occ[v] = 0;
+    atomic_inc(removed);
+    flag_around(v, i, j, k, GRID_PASS, occ, FRESH_PASS);
+    if (!use_items) return;
+    for (int c = 0; c < nviews; c++) {
+        __global const float* cam = cams + CAM_FLOATS * c;
+        int4 w = win[c];
+        VIEW_ROWS(c);
+        footprint_t f;
+        if (!footprint(cam, w, X, vs, 1.0f, &f)) continue;
+        int given = 0;
+        for (int y = f.r.z; y <= f.r.w; y++)
+            for (int x = f.r.x; x <= f.r.y; x++) {
+                int p = PIX(x, y);
+                if ((uint)(items[p] & 0xFFFFFFFFUL) == v) {
+                    items[p] = EMPTY_ITEM;
+                    given = 1;
+                }
+            }
+        if (given) reveal(v, i, j, k, X, centres[c], step, stamp, GRID_PASS, occ, FRESH_PASS);
+    }
+}
+
+__kernel void carve_expose(__global const uint* cands, __global const int* ncands, __global const int* stamp, int step, VIEW_ARGS,
+                           GRID_ARGS, __global const uchar* occ, __global uint* counted, __global int* cover)
+{
+    int t = get_global_id(0);
+    if (t >= *ncands) return;
+    expose(cands[t], step, stamp, VIEW_PASS, GRID_PASS, occ, counted, cover);
+}
+
+__kernel void carve_decide(__global const uint* cands, __global const int* ncands, __global int* stamp, int step, VIEW_ARGS,
+                           GRID_ARGS, __global const int* cover, __global const uint* keeper)
+{
+    int t = get_global_id(0);
+    if (t >= *ncands) return;
+    decide(cands[t], step, stamp, VIEW_PASS, GRID_PASS, cover, keeper);
+}
+
+__kernel void carve_apply(__global const uint* cands, __global const int* ncands, __global const int* stamp, int step, VIEW_ARGS,
+                          GRID_ARGS, __global uchar* occ, __global int* cover, __global uint* keeper,
+                          __global uint* counted, int use_items, __global ulong* items, FRESH_ARGS,
+                          __global int* removed)
+{
+    int t = get_global_id(0);
+    if (t >= *ncands) return;
+    apply(cands[t], step, stamp, VIEW_PASS, GRID_PASS, occ, cover, keeper, counted, use_items, items, FRESH_PASS,
+          removed);
+}
+
+// ---------------------------------------------------------------- item passes
+// List the occupied surface voxels of `list` (all of them, or the flagged ones: flags cleared). Appended to `out`
+// in no particular order (what follows does not depend on it).
+__kernel void carve_compact(__global const uint* list, int count, int flagged, __global const uchar* occ,
+                            __global uint* fresh, int nx, int ny, int nz, __global uint* out, __global int* counter)
+{
+    int t = get_global_id(0);
+    if (t >= count) return;
+    uint v = list[t];
+    if (flagged) atomic_and(&fresh[v >> 5], ~(1u << (v & 31)));
     if (!(occ[v] & 1)) return;
     int k = v % nz, j = (v / nz) % ny, i = v / (nz * ny);
     if (surface(occ, i, j, k, nx, ny, nz)) out[atomic_inc(counter)] = v;
 }
 
-// Whether removing voxel (i, j, k) would leave a viewing ray without an occupied voxel while that view's
-// silhouette holds the ray's pixel: the rays through the centre and through the six points GUARD_OFFSET of a
-// voxel from it along the axes (so rim voxels whose outer part alone covers the silhouette's edge stay). A ray
-// is walked both ways from its point in steps of half a voxel along its major axis until it leaves the grid.
-inline int ray_needs(__global const uchar* occ, __global const int* stamp, int step, int i, int j, int k, int nx,
-                     int ny, int nz, float4 vs, float3 X, __global const float* cam, float4 C, int pix_off,
-                     __global const uchar4* images, int limit)
+// Item buffers: every listed surface voxel writes (depth, index) into the silhouette pixels of its whole
+// footprint in every view it does not clearly turn away from; the nearest wins (exact depth ties: lower index).
+__kernel void carve_splat(__global const uint* list, int count, __global const uchar* occ, VIEW_ARGS, GRID_ARGS,
+                          __global ulong* items)
 {
-    float depth;
-    float2 p = project_point(cam, X, &depth);
-    float fu = p.x + 0.5f, fv = p.y + 0.5f;
-    if (!(depth > 0.0f && fu >= 0.0f && fu < cam[22] && fv >= 0.0f && fv < cam[23])) return 0;
-    if (images[pix_off + (int)fv * (int)cam[22] + (int)fu].w <= 127) return 0;   // the vote's "inside" test
-    float3 d = X - C.xyz;
-    float dt = (0.5f * fmin(fmin(vs.x, vs.y), vs.z)) / fmax(fmax(fabs(d.x), fabs(d.y)), fabs(d.z));
-    if (!isfinite(dt)) return 0;
-    for (int dir = 1; dir >= -1; dir -= 2) {   // away from the camera first
-        for (int n = 1; n <= limit; n++) {
-            float tn = (float)(dir * n) * dt;
-            float3 P = X + tn * d;
-            int a = (int)floor(P.x / vs.x), b = (int)floor(P.y / vs.y), e = (int)floor(P.z / vs.z);
-            if (a < 0 || b < 0 || e < 0 || a >= nx || b >= ny || e >= nz) break;
-            if (a == i && b == j && e == k) continue;
-            if (staying(occ, stamp, step, a, b, e, nx, ny, nz)) return 0;
-        }
-    }
-    return 1;
-}
-
-inline int last_on_a_ray(__global const uchar* occ, __global const int* stamp, int step, int i, int j, int k, int nx,
-                         int ny, int nz, float4 vs, float3 X, __global const float* cams, __global const float4* centres,
-                         int nviews, __global const int* pix_off, __global const uchar4* images)
-{
-    int limit = 2 * (nx + ny + nz) + 4;
+    int t = get_global_id(0);
+    if (t >= count) return;
+    uint v = list[t];
+    int k = v % nz, j = (v / nz) % ny, i = v / (nz * ny);
+    float3 X = voxel_centre(i, j, k, vs);
+    float3 g = voxel_normal(occ, i, j, k, nx, ny, nz);
     for (int c = 0; c < nviews; c++) {
+        if (!facing(g, X, centres[c], BACK_FACING)) continue;   // clearly turned away: hidden anyway
         __global const float* cam = cams + CAM_FLOATS * c;
-        for (int q = 0; q < 7; q++) {
-            float3 P = X;
-            float o = (q & 1) ? -GUARD_OFFSET : GUARD_OFFSET;
-            if (q == 1 || q == 2) P.x = X.x + o * vs.x;
-            if (q == 3 || q == 4) P.y = X.y + o * vs.y;
-            if (q == 5 || q == 6) P.z = X.z + o * vs.z;
-            if (ray_needs(occ, stamp, step, i, j, k, nx, ny, nz, vs, P, cam, centres[c], pix_off[c], images, limit))
-                return 1;
-        }
+        int4 w = win[c];
+        VIEW_ROWS(c);
+        footprint_t f;
+        if (!footprint(cam, w, X, vs, 1.0f, &f)) continue;
+        ulong key = ((ulong)as_uint(f.depth) << 32) | (ulong)v;
+        for (int y = f.r.z; y <= f.r.w; y++)
+            for (int x = f.r.x; x <= f.r.y; x++)
+                if (in_footprint(&f, x, y) && MASK(x, y))
+                    atom_min(&items[PIX(x, y)], key);
     }
-    return 0;
 }
 
-// Remove the candidates of this step that no silhouette needs; with do_marks, kept surface voxels (candidates
-// of this step count as empty neighbours) mark their whole footprint in the views of the step.
-__kernel void carve_commit(__global const uint* list, int first, int count, int axis, float plane, float sign,
-                           int do_marks, __global uchar* occ, __global const int* stamp, int step, int nx, int ny,
-                           int nz, float4 vs, __global const float* cams, __global const float4* centres, int nviews,
-                           __global const int* pix_off, __global const uchar4* images, __global uchar* marks,
-                           __global int* removed, __global ulong* items, __global uchar* fresh)
+// The photo-consistency test of listed surface voxels (item passes: use_items; voxel colouring's layers: marks),
+// every camera. Inconsistent ones become candidates of the step (stamp, list, claim). write_colors: instead,
+// write the mean colour (r g b, number of views) and the colour variance over views (-1 when seen in < 2 views)
+// of each list entry, protected voxels included (indexed by position in the list).
+__kernel void carve_test(__global const uint* list, int first, int count, __global const uchar* occ, __global int* stamp,
+                         int step, __global const uchar* marks, int use_items, __global const ulong* items, VIEW_ARGS,
+                         GRID_ARGS, TEST_ARGS, __global uint* cands, __global int* ncands, __global const uint* counted,
+                         __global int* cover, __global uint* keeper, int write_colors, __global uchar4* colors,
+                         __global float* variance)
+{
+    int t = get_global_id(0);
+    if (t >= count) return;
+    uint v = list[first + t];
+    if (!(occ[v] & 1) || ((occ[v] & PROTECTED) && !write_colors)) return;
+    int k = v % nz, j = (v / nz) % ny, i = v / (nz * ny);
+    if (!surface(occ, i, j, k, nx, ny, nz)) return;
+    float3 X = voxel_centre(i, j, k, vs);
+    float3 g = voxel_normal(occ, i, j, k, nx, ny, nz);
+    float3 rgb;
+    float var;
+    int views;
+    int bad = photo(v, X, g, -1, 0.0f, 0.0f, marks, use_items, items, VIEW_PASS, GRID_PASS, TEST_PASS, &rgb, &var, &views);
+    if (write_colors) {
+        colors[t] = (uchar4)(convert_uchar3_sat_rte(rgb), (uchar)min(views, 255));
+        variance[t] = var;
+    } else if (bad) {
+        candidate(v, X, step, stamp, cands, ncands, VIEW_PASS, vs, counted, cover, keeper);
+    }
+}
+
+// Voxel colouring, after a layer's decisions: its kept surface voxels mark their footprints in every view.
+__kernel void carve_mark(__global const uint* list, int first, int count, __global const uchar* occ, VIEW_ARGS,
+                         GRID_ARGS, __global uchar* marks)
 {
     int t = get_global_id(0);
     if (t >= count) return;
     uint v = list[first + t];
     if (!(occ[v] & 1)) return;
     int k = v % nz, j = (v / nz) % ny, i = v / (nz * ny);
+    if (!surface(occ, i, j, k, nx, ny, nz)) return;
     float3 X = voxel_centre(i, j, k, vs);
-    if (stamp[v] == step) {
-        if (last_on_a_ray(occ, stamp, step, i, j, k, nx, ny, nz, vs, X, cams, centres, nviews, pix_off, images)) {
-            occ[v] = 1 | PROTECTED;     // removing voxels never uncovers a ray: protected for good
-        } else {
-            occ[v] = 0;
-            atomic_inc(removed);
-            if (axis < 0 && !do_marks) {
-                // item pass: give back the pixels this voxel held in the item buffers, and flag its neighbours
-                // (now possibly surface) for the next incremental pass
-                for (int c = 0; c < nviews; c++) {
-                    __global const float* cam = cams + CAM_FLOATS * c;
-                    footprint_t f;
-                    if (!footprint(cam, X, vs, 1.0f, &f)) continue;
-                    int W = (int)cam[22];
-                    for (int y = f.r.z; y <= f.r.w; y++)
-                        for (int x = f.r.x; x <= f.r.y; x++) {
-                            int p = pix_off[c] + y * W + x;
-                            if ((uint)(items[p] & 0xFFFFFFFFUL) == v) items[p] = 0xFFFFFFFFFFFFFFFFUL;
-                        }
-                }
-                for (int a = max(i - 1, 0); a <= min(i + 1, nx - 1); a++)
-                    for (int b = max(j - 1, 0); b <= min(j + 1, ny - 1); b++)
-                        for (int e = max(k - 1, 0); e <= min(k + 1, nz - 1); e++) fresh[((size_t)a * ny + b) * nz + e] = 1;
-            }
-            return;
-        }
+    for (int c = 0; c < nviews; c++) {
+        __global const float* cam = cams + CAM_FLOATS * c;
+        int4 w = win[c];
+        VIEW_ROWS(c);
+        footprint_t f;
+        if (!footprint(cam, w, X, vs, 1.0f, &f)) continue;
+        for (int y = f.r.z; y <= f.r.w; y++)
+            for (int x = f.r.x; x <= f.r.y; x++)
+                if (in_footprint(&f, x, y)) marks[PIX(x, y)] = 1;
     }
-    if (!do_marks || !surface_staying(occ, stamp, step, i, j, k, nx, ny, nz)) return;
+}
+
+// ---------------------------------------------------------------- plane sweeps
+inline void mark_footprint(float3 X, int axis, float plane, float sign, VIEW_ARGS, float4 vs, __global uchar* marks)
+{
     for (int c = 0; c < nviews; c++) {
         if (!active(centres[c], axis, plane, sign)) continue;
         __global const float* cam = cams + CAM_FLOATS * c;
+        int4 w = win[c];
+        VIEW_ROWS(c);
         footprint_t f;
-        if (!footprint(cam, X, vs, 1.0f, &f)) continue;
-        int W = (int)cam[22];
+        if (!footprint(cam, w, X, vs, 1.0f, &f)) continue;
         for (int y = f.r.z; y <= f.r.w; y++)
             for (int x = f.r.x; x <= f.r.y; x++)
-                if (in_footprint(&f, x, y)) marks[pix_off[c] + y * W + x] = 1;
+                if (in_footprint(&f, x, y)) marks[PIX(x, y)] = 1;
     }
+}
+
+// A plane of a sweep (axis, plane position, sign: +1 towards +axis), one step: its surface voxels (list[first ..
+// first + count) holds the plane's occupied voxels) are tested in the cameras behind the plane (visibility: marks
+// of the voxels kept in earlier planes of the sweep); inconsistent ones become candidates (then the guard's three
+// kernels); carve_sweep_mark: the plane's surface voxels that stay mark their footprints, and the candidate count
+// goes back to 0 for the next plane.
+__kernel void carve_sweep_test(__global const uint* list, int first, int count, int axis, float plane, float sign,
+                               int step, __global int* stamp, __global const uchar* marks, __global const uchar* occ,
+                               VIEW_ARGS, GRID_ARGS, TEST_ARGS, __global uint* cands, __global int* ncands,
+                               __global const uint* counted, __global int* cover, __global uint* keeper)
+{
+    int t = get_global_id(0);
+    if (t >= count) return;
+    uint v = list[first + t];
+    if ((occ[v] & (1 | PROTECTED)) != 1) return;
+    int k = v % nz, j = (v / nz) % ny, i = v / (nz * ny);
+    if (!surface(occ, i, j, k, nx, ny, nz)) return;
+    float3 X = voxel_centre(i, j, k, vs);
+    float3 g = voxel_normal(occ, i, j, k, nx, ny, nz);
+    float3 rgb;
+    float var;
+    int views;
+    if (photo(v, X, g, axis, plane, sign, marks, 0, 0, VIEW_PASS, GRID_PASS, TEST_PASS, &rgb, &var, &views))
+        candidate(v, X, step, stamp, cands, ncands, VIEW_PASS, vs, counted, cover, keeper);
+}
+
+__kernel void carve_sweep_mark(__global const uint* list, int first, int count, int axis, float plane, float sign,
+                               __global const uchar* occ, VIEW_ARGS, GRID_ARGS, __global uchar* marks,
+                               __global int* ncands)
+{
+    int t = get_global_id(0);
+    if (t == 0) *ncands = 0;
+    if (t >= count) return;
+    uint v = list[first + t];
+    if (!(occ[v] & 1)) return;
+    int k = v % nz, j = (v / nz) % ny, i = v / (nz * ny);
+    if (surface(occ, i, j, k, nx, ny, nz))
+        mark_footprint(voxel_centre(i, j, k, vs), axis, plane, sign, VIEW_PASS, vs, marks);
 }

@@ -1,7 +1,10 @@
-// Texturing kernels (NumPy references: nodes/texture/kernels_ref.py).
+// Texturing kernels (NumPy references beside their callers in nodes/texture/views.py and bake.py).
 //
 //   face_views   per face, one view: visible? (depth test at 4 points, mask margin, depth-edge margin),
-//                quality (projected area x cosine) and mean colour
+//                quality (projected area x cosine) and mean colour, into row ``view`` of (V, F) arrays
+//   face_cost    per face: data cost of each view (1 - q / q_max, +1 where its colour disagrees with the
+//                face's other views), the colour spread, the best view (NumPy: views.data_cost)
+//   icm_step     per face: one round of iterated conditional modes on the Potts energy (views.select_views)
 //   uv_raster    per face: the atlas texels whose centre lies in the face's UV triangle get its id (max id wins)
 //   texel_bary   per texel: barycentrics of the texel centre in its face's UV triangle (clamped onto the
 //                triangle: gutter texels borrow a neighbour face and extrapolate no further than its edge)
@@ -58,6 +61,7 @@ inline int pixel_ok(__global const uchar *valid, int w, int h, float2 p, int *id
 // differs from its depth by more than edge_tol (depth edges and the mesh's own outline: where registration
 // errors show the wrong surface). ``relaxed`` is the quality under the weaker test used when no view passes
 // the strict one: the centroid alone on a valid pixel and unoccluded (its colour is then the centroid's).
+// quality, relaxed (V, F) and colour (V, F, 3) hold all views; this launch writes row ``view``.
 __kernel void face_views(__global const float *verts, __global const int *faces, int nfaces,
                          __global const float *cams, int view, float4 centre,
                          __global const ulong *zbuf, __global const uchar *valid_all, __global const uchar *img_all,
@@ -68,6 +72,9 @@ __kernel void face_views(__global const float *verts, __global const int *faces,
     if (f >= nfaces) return;
     __global const float *cam = cams + CAM_FLOATS * view;
     __global const uchar *img = img_all + img_off, *valid = valid_all + img_off / 3;
+    quality += (long)view * nfaces;                 // row ``view`` of the (V, F) outputs
+    relaxed += (long)view * nfaces;
+    colour += (long)view * nfaces * 3;
     int w = (int)cam[22], h = (int)cam[23];
     float3 A = vertex3(verts, faces[3 * f]), B = vertex3(verts, faces[3 * f + 1]), C = vertex3(verts, faces[3 * f + 2]);
     float3 G = (A + B + C) / 3.0f;
@@ -217,4 +224,108 @@ __kernel void bake(int nsamples, __global const int *sample_face, __global const
         wsum += wt;
     }
     out[i] = wsum > 0.0f ? (float4)(acc / wsum, wsum) : (float4)(0.0f);
+}
+
+#define INVISIBLE 1e6f
+
+// Per face f, over its views v (quality row-major (V, F), colour (V, F, 3)): q_v = sharp[v] * (quality > 0 ?
+// quality : weak * relaxed) (views passing only the weaker test count little); cost (F, V) = 1 - q_v / max q
+// where q_v > 0, else INVISIBLE; with two or more views: the mean of their gain-corrected colours, again
+// without views further than 2 * consistency from it (when any stays), each view's distance d_v from it,
+// spread[f] = mean d_v, and +1 on the cost of views with d_v > consistency when three or more see the face.
+// best[f] = the cheapest view (lowest index on ties), -1 when none sees the face.
+__kernel void face_cost(int nfaces, int nviews, __global const float *quality, __global const float *relaxed,
+                        __global const float *colour, __global const float *sharp, __global const float *gain,
+                        float weak, float consistency, __global float *cost, __global float *spread,
+                        __global int *best)
+{
+    int f = get_global_id(0);
+    if (f >= nfaces) return;
+    __global float *c = cost + (long)f * nviews;
+    float qmax = 0.0f;
+    int n = 0;
+    float3 centre = (float3)(0.0f);
+    for (int v = 0; v < nviews; v++) {
+        long i = (long)v * nfaces + f;
+        float q = quality[i] > 0.0f ? quality[i] : weak * relaxed[i];
+        q *= sharp[v];
+        c[v] = q;
+        if (q > 0.0f) {
+            qmax = fmax(qmax, q);
+            centre += vload3(i, colour) * vload3(v, gain);
+            n++;
+        }
+    }
+    float spr = 0.0f;
+    if (n >= 2) {
+        centre /= (float)n;
+        if (consistency > 0.0f) {                  // the mean again without far outliers
+            float3 kept = (float3)(0.0f);
+            int kn = 0;
+            for (int v = 0; v < nviews; v++) {
+                if (c[v] <= 0.0f) continue;
+                long i = (long)v * nfaces + f;
+                float3 col = vload3(i, colour) * vload3(v, gain);
+                if (length(col - centre) <= 2.0f * consistency) { kept += col; kn++; }
+            }
+            if (kn > 0) centre = kept / (float)kn;
+        }
+        for (int v = 0; v < nviews; v++) {
+            if (c[v] <= 0.0f) continue;
+            long i = (long)v * nfaces + f;
+            float d = length(vload3(i, colour) * vload3(v, gain) - centre);
+            spr += d;
+            if (consistency > 0.0f && n >= 3 && d > consistency) c[v] = -c[v];     // marked: disagrees
+        }
+        spr /= (float)n;
+    }
+    spread[f] = spr;
+    int b = -1;
+    float bc = INVISIBLE;
+    for (int v = 0; v < nviews; v++) {
+        float q = c[v];
+        float cv = q > 0.0f ? 1.0f - q / qmax : (q < 0.0f ? 2.0f + q / qmax : INVISIBLE);
+        c[v] = cv;
+        if (cv < bc) { bc = cv; b = v; }
+    }
+    best[f] = b;
+}
+
+// Integer hash (lowbias32), mirrored in views.hash32: which half of the faces moves in an ICM round.
+inline uint hash32(uint x)
+{
+    x ^= x >> 16; x *= 0x7feb352dU; x ^= x >> 15; x *= 0x846ca68bU; x ^= x >> 16;
+    return x;
+}
+
+// One round of iterated conditional modes on sum_f cost[f, l_f] + smoothness * #{neighbours with another
+// label}: each face finds its best label given its neighbours' current labels (neighbours without a view,
+// label -1, do not count); it moves when it is in this round's half (hash of face and round) and its best
+// differs. ``moved`` counts the moves.
+__kernel void icm_step(int nfaces, int nviews, __global const float *cost, __global const int *nbr,
+                       __global const int *labels, __global int *out, float smoothness, uint round_key,
+                       __global int *moved)
+{
+    int f = get_global_id(0);
+    if (f >= nfaces) return;
+    int own = labels[f];
+    out[f] = own;
+    if (own < 0) return;
+    int l0 = -1, l1 = -1, l2 = -1;
+    int g = nbr[3 * f];     if (g >= 0) l0 = labels[g];
+    g = nbr[3 * f + 1];     if (g >= 0) l1 = labels[g];
+    g = nbr[3 * f + 2];     if (g >= 0) l2 = labels[g];
+    float total = (float)((l0 >= 0) + (l1 >= 0) + (l2 >= 0));
+    __global const float *c = cost + (long)f * nviews;
+    int b = 0;
+    float be = INFINITY;
+    for (int v = 0; v < nviews; v++) {
+        float agree = (float)((l0 == v) + (l1 == v) + (l2 == v));
+        float e = c[v] + smoothness * (total - agree);
+        if (e < be) { be = e; b = v; }
+    }
+    if (b != own && (hash32((uint)f ^ round_key) & 1u)) {
+        out[f] = b;
+        atomic_inc(moved);
+    }
 }

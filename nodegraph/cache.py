@@ -19,6 +19,12 @@ Content verification: ``write`` records a BLAKE2b-128 hash of every stored file 
 the files it reads against them (DataError "damaged"), ``verify`` checks a whole entry, and an entry whose
 meta.json is not a readable record is not a hit. A damaged entry is evicted and recomputed (run.py checks
 what a run will read before it starts; `cache verify` checks everything).
+
+A file whose hash matched is remembered in its entry's ``checked.json`` by (inode, size, mtime, ctime): later
+reads trust it without reading it again while all four are unchanged (any write to the file, and any copy of
+it, changes its ctime, which nobody can set back). A file is remembered only once its ctime is a few seconds
+old (coarse timestamps: a write in the same tick would keep it). Damage that no write made (bit rot under an
+unchanged inode) is the file system's to catch; `cache verify` hashes every file whatever is remembered.
 """
 from __future__ import annotations
 
@@ -26,6 +32,7 @@ import hashlib
 import json
 import os
 import shutil
+import stat
 import tempfile
 import time
 import uuid
@@ -52,6 +59,16 @@ def atomic_write_text(path: Path, text: str):
 
 
 HASH_NAME = "blake2b-128"
+CHECKED = "checked.json"        # per entry: file -> [inode, size, mtime_ns, ctime_ns] when its hash last matched
+SETTLED_NS = 2_000_000_000      # files younger than this are not remembered (coarse timestamps)
+
+
+def _read_checked(entry: Path) -> dict:
+    try:
+        checked = json.loads((entry / CHECKED).read_text())
+    except (OSError, ValueError):
+        return {}
+    return checked if isinstance(checked, dict) else {}
 
 
 def file_hash(path: Path) -> str:
@@ -128,32 +145,54 @@ class Cache:
             raise DataError(f"cache entry {key} is unreadable ({exc}); run `cache gc` or delete it") from None
         raise DataError(f"cache entry {key} is damaged: meta.json is not a cache record")
 
-    def _check_files(self, key: str, meta: dict, files: list[str]) -> str | None:
-        """What is wrong with ``files`` of the entry (missing, or content not matching meta.json), or None."""
+    def _check_files(self, key: str, meta: dict, files: list[str], full: bool = False) -> str | None:
+        """What is wrong with ``files`` of the entry (missing, or content not matching meta.json), or None.
+        Files remembered in checked.json as unchanged since their hash last matched are not read (``full``:
+        hash every file)."""
         d = self.object_dir(key)
         hashes = meta.get("hashes")
+        checked = {} if full else _read_checked(d)
+        learned = {}
         for f in files:
             p = d / f
-            if not p.is_file():
+            try:
+                st = p.stat()
+            except OSError:
+                st = None
+            if st is None or not stat.S_ISREG(st.st_mode):
                 return f"{f} is missing"
-            if hashes is not None:   # entries written before content hashes can only be checked for presence
-                want = hashes.get(f)
-                try:
-                    got = file_hash(p)
-                except OSError as exc:
-                    return f"{f} cannot be read ({exc.strerror or exc})"
-                if want != got:
-                    return f"{f} does not match the content hash recorded when it was written"
+            if hashes is None:   # entries written before content hashes can only be checked for presence
+                continue
+            sig = [st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns]
+            if checked.get(f) == sig:
+                continue
+            try:
+                got = file_hash(p)
+            except OSError as exc:
+                return f"{f} cannot be read ({exc.strerror or exc})"
+            if hashes.get(f) != got:
+                return f"{f} does not match the content hash recorded when it was written"
+            if time.time_ns() - st.st_ctime_ns > SETTLED_NS:
+                learned[f] = sig
+        if learned:
+            checked = _read_checked(d) if full else checked
+            checked.update(learned)
+            try:
+                if d.is_dir():   # not re-created after an eviction
+                    atomic_write_text(d / CHECKED, json.dumps(checked))
+            except OSError:   # a read-only cache is still usable: its files are hashed on every read
+                pass
         return None
 
-    def verify(self, key: str) -> str | None:
+    def verify(self, key: str, full: bool = False) -> str | None:
         """Check a whole entry: None when meta.json is a record and every file it lists is there with the
-        content it was written with, else what is wrong (the caller evicts it)."""
+        content it was written with, else what is wrong (the caller evicts it). ``full``: read every file, also
+        those remembered as unchanged since they were last checked."""
         try:
             meta = self.meta(key)
         except DataError:
             return "meta.json is missing or not a cache record"
-        problem = self._check_files(key, meta, [f for files in meta["files"].values() for f in files or []])
+        problem = self._check_files(key, meta, [f for files in meta["files"].values() for f in files or []], full)
         if problem is None:
             self.verified.add(key)
         return problem
@@ -287,7 +326,7 @@ class Cache:
             if not d.is_dir():
                 continue
             key = d.name
-            problem = self.verify(key)
+            problem = self.verify(key, full=True)
             try:
                 meta = self.meta(key)
             except DataError:

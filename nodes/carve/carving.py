@@ -1,20 +1,23 @@
 """Photo-consistency carving of a voxel volume (the visual hull) with images, masks and cameras.
 
-    space_carving   Kutulakos & Seitz (IJCV 2000), multi-sweep: planes swept along +x -x +y -y +z -z; each
-                    plane's surface voxels are tested in the cameras behind the plane, with visibility from
-                    per-camera mark buffers that kept voxels of earlier planes fill; after the six sweeps one
-                    pass over all surface voxels with exact visibility from per-camera item buffers (Culbertson
-                    et al. 1999) tests each voxel in every camera that sees it; repeated until a pass removes
-                    nothing (or max_passes).
+    space_carving   Kutulakos & Seitz (IJCV 2000): rounds of six plane sweeps (+x -x +y -y +z -z), each plane's
+                    surface voxels tested in the cameras behind the plane, visibility from per-camera mark
+                    buffers that the kept voxels of earlier planes fill (the six sweeps of a round run side by
+                    side, each on the volume as the round found it); then passes over all surface voxels with
+                    exact visibility from per-camera item buffers (Culbertson et al. 1999), each voxel tested in
+                    every camera that sees it: full passes, and incremental ones that test only what the last
+                    removals exposed; until a full pass removes nothing (or max_passes).
     voxel_coloring  Seitz & Dyer (IJCV 1999): one pass over layers of increasing distance from the convex
                     hull of the camera centres (valid only when no voxel lies inside that hull: the ordinal
                     visibility constraint), every camera in every layer, marks as above.
 
 Only surface voxels (an empty face neighbour) are tested; a voxel seen in fewer than ``min_views`` views is
-kept. A voxel whose removal would leave the ray through its centre empty in a view whose silhouette holds
-that centre is kept, so the result stays inside the input volume and keeps covering the masks. The
-photo-consistency arithmetic is in photo.py; the kernels are kernels/carve.cl; reference.py is the NumPy
-version of every kernel, run through the very same driver (``carve(..., method="numpy")``).
+kept. The silhouette guard is strict: a voxel is never removed when that would leave a silhouette pixel of any
+view that the volume's voxel cubes covered uncovered (per-pixel cover counts, kernels/carve.cl), so the result
+stays inside the input volume and covers every mask pixel it covered. Silhouettes are read as
+nodes.common.silhouettes.SilhouetteBits through kernels/silhouette.h. The photo-consistency arithmetic is in
+photo.py; the kernels are kernels/carve.cl; reference.py is the NumPy version of every kernel, run through the
+very same driver (``carve(..., method="numpy")``).
 
 Colours: at the end one item-buffer pass gives every surface voxel the mean colour over the views that see
 it (VoxelGrid.colors); surface voxels no view sees take the mean of coloured neighbours.
@@ -30,18 +33,21 @@ from kernels import source
 from nodegraph import NodeError
 from nodegraph.clrt import Runner
 from nodes.common.cameras import Cameras
-from nodes.common.silhouettes import check_masks, check_sizes
+from nodes.common.silhouettes import (SilhouetteBits, check_masks, check_silhouettes, check_sizes, mask_window,
+                                      silhouette_windows)
 from nodes.common.types import VoxelGrid
 
 from .photo import SPACES, camera_gains
 
 AXES = "xyz"
+SWEEPS = 6
 
 
 @dataclass
 class CarveParams:
     threshold: float = 30.0      # colour deviation limit, in units of `space`
     adaptive: float = 0.0        # ... plus this times the RMS spread of the pixels within a view
+    contrast: float = 0.0        # ... and the deviation must exceed this times the RMS spread within the views
     space: str = "rgb"
     gain: bool = False           # per-camera gain normalisation
     min_views: int = 2           # a voxel seen in fewer views is kept untested
@@ -49,8 +55,8 @@ class CarveParams:
     max_angle: float = 70.0      # views seeing a voxel at more than this from its normal are not used (degrees)
     max_passes: int = 500        # space carving: passes of (6 sweeps +) 1 item pass; 0 = colour only
     cone: float = 65.0           # sweeps: a camera tests a voxel when its ray is within this of the sweep axis
-    sweep_fraction: float = 0.25  # sweep again while a pass removes more than this fraction of the surface voxels
-    largest: bool = True         # keep only the largest 6-connected part (carving can cut off fragments)
+    sweep_fraction: float = 0.1  # sweep again while the last round removed more than this fraction of the voxels
+    largest: bool = True         # carve only the largest 6-connected part of the input (its specks go)
 
     @property
     def cos_cone(self) -> float:
@@ -63,24 +69,29 @@ class CarveParams:
 
 @dataclass
 class Views:
-    """What the kernels read of the cameras and images, for voxel centres relative to ``origin``."""
+    """What the kernels read of the cameras, images and silhouettes, for voxel centres relative to ``origin``.
+    Pixel buffers cover a window per view (the 8x8 blocks from the silhouette's first to its last row and
+    column of blocks): pixel (x, y) of view c is at offsets[c] + (y - y0) * w + (x - x0)."""
 
     cams: np.ndarray             # (V, 32) float32, Cameras.pack(origin)
     centres: np.ndarray          # (V, 4) float32, camera centres relative to origin
     gains: np.ndarray            # (V, 4) float32
-    images: list[np.ndarray]     # (H, W, 4) uint8: r g b mask
-    offsets: np.ndarray          # (V,) int64 first pixel of each view in the shared buffers
+    wins: np.ndarray             # (V, 4) int32 x0 y0 w h
+    offsets: np.ndarray          # (V,) int64 first pixel of each view's window in the shared buffers
+    images: list[np.ndarray]     # (h, w, 4) uint8 per window: r g b 0
+    masks: list[np.ndarray] | None = None      # host (H, W) uint8 masks (the NumPy reference reads these)
+    bits: SilhouetteBits | None = None         # the device silhouettes (the kernels read these)
 
     @property
     def npixels(self) -> int:
-        return int(self.offsets[-1] + self.images[-1].shape[0] * self.images[-1].shape[1])
+        return int(self.offsets[-1] + self.wins[-1, 2] * self.wins[-1, 3]) if len(self.wins) else 0
 
 
 @dataclass
 class Grid:
     occ: np.ndarray              # (nx, ny, nz) uint8 0/1
     vs: np.ndarray               # (3,) float32 voxel size
-    lists: dict = field(default_factory=dict)   # name -> (flat voxel indices uint32, plane offsets int64)
+    lists: dict = field(default_factory=dict)   # name -> (flat voxel indices uint32, offsets int64)
 
     @property
     def dims(self) -> tuple[int, int, int]:
@@ -91,7 +102,9 @@ class Grid:
         return np.array([*self.vs, 0], np.float32)
 
 
-def make_views(images, masks, cameras: Cameras, origin, gain: bool) -> Views:
+def make_views(images, masks, bits, cameras: Cameras, origin, gain: bool) -> Views:
+    """``masks``: host masks (or None when only device silhouettes ``bits`` are given); ``bits``: device
+    silhouettes (or None: made from the masks on demand by the OpenCL backend)."""
     f = np.float32
     cams = cameras.pack(origin=origin)
     centres = np.zeros((len(cameras), 4), f)
@@ -99,32 +112,54 @@ def make_views(images, masks, cameras: Cameras, origin, gain: bool) -> Views:
     gains = np.ones((len(cameras), 4), f)
     if gain:
         gains[:, :3] = camera_gains(images, masks)
-    rgbm = [np.ascontiguousarray(np.concatenate([im, m[:, :, None]], axis=2)) for im, m in zip(images, masks)]
-    sizes = np.array([im.shape[0] * im.shape[1] for im in rgbm], np.int64)
-    offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]])
-    if offsets[-1] + sizes[-1] >= 2**31:
-        raise NodeError(f"carve: {len(images)} images are too large for 32-bit pixel offsets")
-    return Views(cams, centres, gains, rgbm, offsets)
+    if masks is not None:
+        wins = np.array([mask_window(m) for m in masks], np.int32).reshape(-1, 4)
+    else:
+        wins = silhouette_windows(bits)
+    crops = []
+    for im, (x0, y0, w, h) in zip(images, wins):
+        crop = np.zeros((h, w, 4), np.uint8)
+        crop[:, :, :3] = im[y0:y0 + h, x0:x0 + w]
+        crops.append(crop)
+    sizes = wins[:, 2].astype(np.int64) * wins[:, 3]
+    offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+    if offsets[-1] + sizes[-1] >= 2**31 // 8:
+        raise NodeError(f"carve: the silhouettes of {len(images)} images are too large for the pixel buffers")
+    return Views(cams, centres, gains, wins, offsets, crops, masks, bits)
 
 
-def axis_lists(occ: np.ndarray) -> dict:
-    """Occupied voxels (flat indices into ``occ``) grouped by plane along each axis: name -> (indices,
-    offsets (n + 1,)); the voxels of plane p along that axis are indices[offsets[p]:offsets[p + 1]]."""
+def surface_mask(occ: np.ndarray) -> np.ndarray:
+    """Occupied voxels with an empty face neighbour (outside the grid counts as empty)."""
+    o = np.pad(occ.astype(bool), 1)
+    inner = o[1:-1, 1:-1, 1:-1]
+    full = inner.copy()
+    for a in range(3):
+        for s in (0, 2):
+            sl = [slice(1, -1)] * 3
+            sl[a] = slice(s, s + inner.shape[a])
+            full &= o[tuple(sl)]
+    return inner & ~full
+
+
+def sweep_lists(occ: np.ndarray) -> dict:
+    """The sweeps' lists: the occupied voxels (flat indices) grouped by plane along x, then y, then z
+    (``lists``); ``offs`` the plane offsets into it, axis a's n_a + 1 of them from ``base[a]``."""
     nx, ny, nz = occ.shape
-    out = {}
-    i, j, k = np.nonzero(occ)                                   # sorted by i
-    out["x"] = _grouped(i, j, k, i, nx, occ.shape)
-    jt, it, kt = np.nonzero(np.ascontiguousarray(occ.transpose(1, 0, 2)))   # sorted by j
-    out["y"] = _grouped(it, jt, kt, jt, ny, occ.shape)
-    kt, it, jt = np.nonzero(np.ascontiguousarray(occ.transpose(2, 0, 1)))   # sorted by k
-    out["z"] = _grouped(it, jt, kt, kt, nz, occ.shape)
-    return out
-
-
-def _grouped(i, j, k, plane, n, shape) -> tuple[np.ndarray, np.ndarray]:
-    flat = ((i.astype(np.int64) * shape[1] + j) * shape[2] + k).astype(np.uint32)
-    offsets = np.concatenate([[0], np.cumsum(np.bincount(plane, minlength=n))]).astype(np.int64)
-    return flat, offsets
+    lists, offs, base = [], [], []
+    total = 0
+    for a in range(3):
+        # nonzero of the grid with axis a first is sorted by the plane along a
+        moved = np.ascontiguousarray(np.moveaxis(occ, a, 0))
+        idx = np.nonzero(moved)
+        ijk = [None] * 3
+        for k, axis in enumerate([a] + [b for b in range(3) if b != a]):
+            ijk[axis] = idx[k].astype(np.int64)
+        lists.append((ijk[0] * ny + ijk[1]) * nz + ijk[2])
+        base.append(sum(len(o) for o in offs))
+        offs.append(total + np.concatenate([[0], np.cumsum(np.count_nonzero(moved.reshape(moved.shape[0], -1), axis=1))]))
+        total += len(idx[0])
+    return {"lists": np.concatenate(lists).astype(np.uint32), "offs": np.concatenate(offs).astype(np.int32),
+            "base": np.array([*base, 0], np.int32)}
 
 
 def hull_distance(X: np.ndarray, centres: np.ndarray, vs, shape, node: str = "carve.voxel_coloring") -> np.ndarray:
@@ -169,7 +204,7 @@ def layer_list(occ: np.ndarray, vs: np.ndarray, centres: np.ndarray, node: str =
 
 # ---------------------------------------------------------------- OpenCL backend
 class CarveCL(Runner):
-    """kernels/carve.cl on the device: occupancy, stamps, marks, item buffers, views; one step per call."""
+    """kernels/carve.cl on the device: occupancy, stamps, cover counts, marks, item buffers, views."""
 
     source = source("carve.cl")
     GROUP = 64
@@ -178,117 +213,211 @@ class CarveCL(Runner):
         import pyopencl as cl
 
         self.grid, self.views, self.params = grid, views, params
-        self.nviews = np.int32(len(views.cams))
+        q = self.queue
         nvox = grid.occ.size
-        self.occ = self.buffer("occ", nvox)
-        cl.enqueue_copy(self.queue, self.occ, np.ascontiguousarray(grid.occ).ravel(), is_blocking=False)
-        self.stamp = self.buffer("stamp", 4 * nvox)
-        cl.enqueue_fill_buffer(self.queue, self.stamp, np.int32(-1), 0, 4 * nvox)
-        self.cams = self.upload("cams", views.cams)
-        self.centres = self.upload("centres", views.centres)
-        self.gains = self.upload("gains", views.gains)
-        self.pix_off = self.upload("pix_off", views.offsets.astype(np.int32))
-        npix = views.npixels
+        self.nviews = np.int32(len(views.cams))
+        self.occ = self.upload("occ", np.ascontiguousarray(grid.occ).ravel())
+        self.stamp = self._filled("stamp", 4 * nvox, np.int32(0))
+        self.counted = self._filled("counted", 4 * (nvox // 32 + 1), np.uint32(0))
+        self.fresh = self._filled("fresh", 4 * (nvox // 32 + 1), np.uint32(0))
+        self.nfresh = self._filled("nfresh", 4, np.int32(0))
+        self.list_x = self.upload("list_x", grid.lists["x"][0])
+        self.nlist = len(grid.lists["x"][0])
+        self.surf = self.buffer("surf", 4 * max(1, self.nlist))
+        self.flist = self.buffer("flist", 4 * max(1, self.nlist))
+        self.fresh_args = (self.fresh, self.flist, self.nfresh)
+        self.cands = self.buffer("cands", 4 * max(1, self.nlist))
+        self.counter = self.buffer("counter", 4)
+        self.ncands = self.buffer("ncands", 4)
+        self.nremoved = self._filled("removed", 4, np.int32(0))
+        if views.bits is None:
+            views.bits = SilhouetteBits.from_masks(views.masks)
+        npix = max(1, views.npixels)
+        self.npix = np.int32(npix)
         self.images = self.buffer("images", 4 * npix)
         for off, im in zip(views.offsets, views.images):
-            cl.enqueue_copy(self.queue, self.images, im, dst_offset=int(4 * off), is_blocking=False)
-        self.marks = self.buffer("marks", npix)
+            if im.size:
+                cl.enqueue_copy(q, self.images, im, dst_offset=int(4 * off), is_blocking=False)
         self.items = self.buffer("items", 8 * npix)
-        self.npix = npix
-        self.counter = self.buffer("removed", 4)
-        cl.enqueue_fill_buffer(self.queue, self.counter, np.int32(0), 0, 4)
-        self.fresh = self.buffer("fresh", nvox)
-        cl.enqueue_fill_buffer(self.queue, self.fresh, np.uint8(0), 0, nvox)
-        self.fresh_counter = self.buffer("fresh_counter", 4)
-        self.nlist = len(grid.lists["x"][0])
-        self.lists = {name: self.upload(f"list_{name}", idx) for name, (idx, _) in grid.lists.items()}
-        self.lists["fresh"] = self.buffer("list_fresh", 4 * max(1, len(grid.lists["x"][0])))
-        self.dims = tuple(np.int32(d) for d in grid.dims)
-
-        self.colors = self.buffer("colors", 4)
-        self.variance = self.buffer("variance", 4)
+        self.cover = self._filled("cover", 4 * npix, np.int32(0))
+        self.keeper = self._filled("keeper", 4 * npix, np.uint32(0xFFFFFFFF))
+        self.marks = self.buffer("marks", npix)
+        self.view_args = (self.upload("cams", views.cams), self.upload("centres", views.centres),
+                          self.upload("win", views.wins), self.upload("pix_off", views.offsets.astype(np.int32)),
+                          views.bits.bits, views.bits.bit_off_buf, self.nviews)
+        self.grid_args = (*(np.int32(d) for d in grid.dims), grid.vs4)
         p = params
-        # static arguments are set once; a step sets only the first seven (list .. sign, use_items/do_marks) and step
-        self.k_test = self.kernel("carve_test")
-        self.k_test.set_args(self.lists["x"], np.int32(0), np.int32(0), np.int32(-1), np.float32(0), np.float32(0),
-                             np.int32(0), self.occ, self.stamp, np.int32(0), *self.dims, grid.vs4, self.cams,
-                             self.centres, self.gains, self.nviews, self.pix_off, self.images, self.marks, self.items,
-                             np.float32(p.footprint), np.float32(p.cos_cone), np.float32(p.cos_min),
-                             np.int32(p.min_views), np.float32(p.threshold), np.float32(p.adaptive),
-                             np.int32(SPACES.index(p.space)), np.int32(0), self.colors, self.variance)
-        self.k_commit = self.kernel("carve_commit")
-        self.k_commit.set_args(self.lists["x"], np.int32(0), np.int32(0), np.int32(-1), np.float32(0), np.float32(0),
-                               np.int32(0), self.occ, self.stamp, np.int32(0), *self.dims, grid.vs4, self.cams,
-                               self.centres, self.nviews, self.pix_off, self.images, self.marks, self.counter,
-                               self.items, self.fresh)
+        self.test_args = (self.upload("gains", views.gains), self.images, np.float32(p.footprint),
+                          np.float32(p.cos_cone), np.float32(p.cos_min), np.int32(p.min_views),
+                          np.float32(p.threshold), np.float32(p.adaptive), np.int32(SPACES.index(p.space)),
+                          np.float32(p.contrast))
+        if "layers" in grid.lists:
+            self.layers = self.upload("layers", grid.lists["layers"][0])
+        if "surface" in grid.lists:      # initial cover counts
+            surf = grid.lists["surface"][0]
+            if len(surf):
+                self.launch("carve_count", len(surf), self.GROUP, self.upload("count_list", surf), np.int32(len(surf)),
+                            *self.view_args, *self.grid_args, self.counted, self.cover)
 
-    def _step(self, k, name, first, count, axis, plane, sign, flag, step):
+    def _filled(self, role, nbytes, value):
         import pyopencl as cl
 
-        for i, a in enumerate((self.lists[name], np.int32(first), np.int32(count), np.int32(axis), np.float32(plane),
-                               np.float32(sign), np.int32(flag))):
-            k.set_arg(i, a)
-        k.set_arg(9, np.int32(step))
-        cl.enqueue_nd_range_kernel(self.queue, k, (max(self.GROUP, -(-count // self.GROUP) * self.GROUP),),
-                                   (self.GROUP,))
+        buf = self.buffer(role, nbytes)
+        cl.enqueue_fill_buffer(self.queue, buf, value, 0, nbytes)
+        return buf
 
-    def reset_marks(self):
-        self.launch("carve_reset_marks", self.npix, self.GROUP, self.images, np.int32(self.npix), self.marks)
+    def _zero(self, buf):
+        import pyopencl as cl
+
+        cl.enqueue_fill_buffer(self.queue, buf, np.int32(0), 0, 4)
+
+    def _count(self, buf) -> int:
+        return int(self.read(buf, 1, np.int32)[0])
+
+    # ---- steps
+    def _prepared(self, name: str, args: tuple):
+        """Kernel ``name`` with all its arguments set (a step then sets only what changes)."""
+        k = self.kernel(name)
+        k.set_args(*args)
+        return k
+
+    def _enqueue(self, k, n: int):
+        import pyopencl as cl
+
+        cl.enqueue_nd_range_kernel(self.queue, k, (max(self.GROUP, -(-n // self.GROUP) * self.GROUP),), (self.GROUP,))
+
+    def sweeps(self, step0: int):
+        """One round of six sweeps, in order, plane by plane (step step0 + 1024 * sweep + plane index). The
+        counts stay on the device: no waiting between planes."""
+        import pyopencl as cl
+
+        lists = self.grid.lists["sweep"]
+        d_list = self.upload("sweep_lists", lists["lists"])
+        plane_args = (d_list, np.int32(0), np.int32(0), np.int32(0), np.float32(0), np.float32(0))
+        kt = self._prepared("carve_sweep_test", (*plane_args, np.int32(0), self.stamp, self.marks, self.occ,
+                                                 *self.view_args, *self.grid_args, *self.test_args, self.cands,
+                                                 self.ncands, self.counted, self.cover, self.keeper))
+        km = self._prepared("carve_sweep_mark", (*plane_args, self.occ, *self.view_args, *self.grid_args, self.marks,
+                                                 self.ncands))
+        guard = self._guard_kernels(False)
+        self._zero(self.ncands)
+        offs, base = lists["offs"], lists["base"]
+        for s in range(SWEEPS):
+            axis, sign = s >> 1, (-1 if s & 1 else 1)
+            n = self.grid.dims[axis]
+            cl.enqueue_fill_buffer(self.queue, self.marks, np.uint8(0), 0, int(self.npix))
+            for t in range(n):
+                p = t if sign > 0 else n - 1 - t
+                first, count = int(offs[base[axis] + p]), int(offs[base[axis] + p + 1] - offs[base[axis] + p])
+                if not count:
+                    continue
+                plane = np.float32(p if sign > 0 else p + 1) * self.grid.vs[axis]
+                step = np.int32(step0 + 1024 * s + t)
+                for k in (kt, km):
+                    for a, value in enumerate((np.int32(first), np.int32(count), np.int32(axis), np.float32(plane),
+                                               np.float32(sign)), start=1):
+                        k.set_arg(a, value)
+                kt.set_arg(6, step)
+                self._enqueue(kt, count)
+                for k in guard:
+                    k.set_arg(3, step)
+                    self._enqueue(k, count)
+                self._enqueue(km, count)
+
+    def _guard_kernels(self, use_items: bool) -> tuple:
+        """carve_expose, carve_decide, carve_apply over list "cands" (count on the device), step at argument 3."""
+        head = (self.cands, self.ncands, self.stamp, np.int32(0))
+        return (self._prepared("carve_expose", (*head, *self.view_args, *self.grid_args, self.occ, self.counted,
+                                                self.cover)),
+                self._prepared("carve_decide", (*head, *self.view_args, *self.grid_args, self.cover, self.keeper)),
+                self._prepared("carve_apply", (*head, *self.view_args, *self.grid_args, self.occ, self.cover, self.keeper,
+                                               self.counted, np.int32(use_items), self.items, *self.fresh_args,
+                                               self.nremoved)))
 
     def reset_items(self):
         import pyopencl as cl
 
-        cl.enqueue_fill_buffer(self.queue, self.items, np.uint64(0xFFFFFFFFFFFFFFFF), 0, 8 * self.npix)
+        cl.enqueue_fill_buffer(self.queue, self.items, np.uint64(0xFFFFFFFFFFFFFFFF), 0, 8 * int(self.npix))
 
-    def splat(self, name, first, count):
-        self.launch("carve_splat", count, self.GROUP, self.lists[name], np.int32(first), np.int32(count), self.occ,
-                    *self.dims, self.grid.vs4, self.cams, self.centres, self.nviews, self.pix_off, self.images,
+    def reset_marks(self):
+        import pyopencl as cl
+
+        cl.enqueue_fill_buffer(self.queue, self.marks, np.uint8(0), 0, int(self.npix))
+
+    def compact(self, fresh_only: bool) -> int:
+        """The surface voxels (fresh_only: those flagged since the last compaction, else all) into list "surf";
+        returns how many. Clears the flags."""
+        import pyopencl as cl
+
+        self._zero(self.counter)
+        if fresh_only:
+            n = self._count(self.nfresh)
+            if n:
+                self.launch("carve_compact", n, self.GROUP, self.flist, np.int32(n), np.int32(1), self.occ, self.fresh,
+                            *self.grid_args[:3], self.surf, self.counter)
+        else:
+            cl.enqueue_fill_buffer(self.queue, self.fresh, np.uint32(0), 0, 4 * (self.grid.occ.size // 32 + 1))
+            self.launch("carve_compact", self.nlist, self.GROUP, self.list_x, np.int32(self.nlist), np.int32(0), self.occ,
+                        self.fresh, *self.grid_args[:3], self.surf, self.counter)
+        self._zero(self.nfresh)
+        self.nsurf = self._count(self.counter)
+        return self.nsurf
+
+    def splat(self, n: int):
+        self.launch("carve_splat", n, self.GROUP, self.surf, np.int32(n), self.occ, *self.view_args, *self.grid_args,
                     self.items)
 
-    def test(self, name, first, count, axis, plane, sign, use_items, step, write_colors=False):
-        if write_colors:
-            import pyopencl as cl
+    def _test(self, lst, first, count, step, use_items, write_colors=False, colors=None, variance=None):
+        dummy = self.buffer("dummy", 16)
+        self.launch("carve_test", count, self.GROUP, lst, np.int32(first), np.int32(count), self.occ, self.stamp,
+                    np.int32(step), self.marks, np.int32(use_items), self.items, *self.view_args, *self.grid_args,
+                    *self.test_args, self.cands, self.ncands, self.counted, self.cover, self.keeper,
+                    np.int32(write_colors), dummy if colors is None else colors,
+                    dummy if variance is None else variance)
 
-            self.colors = self.buffer("colors", 4 * max(count, 1))
-            self.variance = self.buffer("variance", 4 * max(count, 1))
-            cl.enqueue_fill_buffer(self.queue, self.colors, np.uint8(0), 0, 4 * count)
-            cl.enqueue_fill_buffer(self.queue, self.variance, np.float32(-1), 0, 4 * count)
-            self.k_test.set_arg(29, np.int32(1))
-            self.k_test.set_arg(30, self.colors)
-            self.k_test.set_arg(31, self.variance)
-        self._step(self.k_test, name, first, count, axis, plane, sign, use_items, step)
-        if write_colors:
-            self.k_test.set_arg(29, np.int32(0))
+    def test(self, n: int, step: int) -> int:
+        """Item-buffer test of list "surf"; returns the number of candidates."""
+        self._zero(self.ncands)
+        self._test(self.surf, 0, n, step, True)
+        return self._count(self.ncands)
 
-    def commit(self, name, first, count, axis, plane, sign, do_marks, step):
-        self._step(self.k_commit, name, first, count, axis, plane, sign, do_marks, step)
+    def test_layer(self, first: int, count: int, step: int) -> int:
+        self._zero(self.ncands)
+        self._test(self.layers, first, count, step, False)
+        return self._count(self.ncands)
 
-    def compact(self) -> int:
-        """List the flagged surface voxels (list "fresh"); returns their number."""
-        import pyopencl as cl
+    def mark_layer(self, first: int, count: int):
+        self.launch("carve_mark", count, self.GROUP, self.layers, np.int32(first), np.int32(count), self.occ,
+                    *self.view_args, *self.grid_args, self.marks)
 
-        cl.enqueue_fill_buffer(self.queue, self.fresh_counter, np.int32(0), 0, 4)
-        self.launch("carve_compact", self.nlist, self.GROUP, self.lists["x"], np.int32(self.nlist), self.occ, self.fresh,
-                    *self.dims, self.lists["fresh"], self.fresh_counter)
-        return int(self.read(self.fresh_counter, 1, np.int32)[0])
+    def guard(self, step: int, n: int, use_items: bool):
+        """The guard's decisions for the step's n candidates, then carried out."""
+        for k in self._guard_kernels(use_items):
+            k.set_arg(3, np.int32(step))
+            self._enqueue(k, n)
 
     def removed(self) -> int:
-        import pyopencl as cl
-
-        n = self.read(self.counter, 1, np.int32)
-        cl.enqueue_fill_buffer(self.queue, self.counter, np.int32(0), 0, 4)
-        return int(n[0])
+        n = self._count(self.nremoved)
+        self._zero(self.nremoved)
+        return n
 
     def occupancy(self) -> np.ndarray:
         return self.read(self.occ, self.grid.dims, np.uint8) & np.uint8(1)
 
-    def set_occupancy(self, occ: np.ndarray):
-        import pyopencl as cl
-
-        cl.enqueue_copy(self.queue, self.occ, np.ascontiguousarray(occ, np.uint8).ravel(), is_blocking=True)
-
-    def colours(self, count) -> tuple[np.ndarray, np.ndarray]:
-        return self.read(self.colors, (count, 4), np.uint8), self.read(self.variance, count, np.float32)
+    def colours(self, reuse: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(surface voxels, (n, 4) uint8 mean colour and views, (n,) float32 variance) from one item pass (reuse:
+        the item buffers and list of the last full pass)."""
+        if reuse:
+            n = self.nsurf
+        else:
+            self.reset_items()
+            n = self.compact(False)
+            self.splat(n)
+        colors = self.buffer("colors", 4 * max(n, 1))
+        variance = self.buffer("variance", 4 * max(n, 1))
+        self._test(self.surf, 0, n, 0, True, True, colors, variance)
+        return (self.read(self.surf, n, np.uint32), self.read(colors, (n, 4), np.uint8),
+                self.read(variance, n, np.float32))
 
 
 # ---------------------------------------------------------------- the driver
@@ -300,55 +429,43 @@ class Carver:
         self.step = 0
         self.log: list[dict] = []
 
-    def sweep(self, axis: int, sign: int) -> None:
-        """One plane sweep along +axis (sign 1) or -axis (sign -1): each plane tested in the cameras behind it."""
-        name = AXES[axis]
-        _, offsets = self.grid.lists[name]
-        planes = range(len(offsets) - 1)
-        self.b.reset_marks()
-        for p in (planes if sign > 0 else reversed(planes)):
-            first, count = int(offsets[p]), int(offsets[p + 1] - offsets[p])
-            if count == 0:
-                continue
-            plane = float(np.float32(p if sign > 0 else p + 1) * self.grid.vs[axis])
-            self.step += 1
-            self.b.test(name, first, count, axis, plane, sign, 0, self.step)
-            self.b.commit(name, first, count, axis, plane, sign, 1, self.step)
+    def sweep_round(self) -> None:
+        """Six plane sweeps, one after the other (each plane a step of its own)."""
+        self.b.sweeps(self.step + 1)
+        self.step += SWEEPS * 1024
 
     def item_pass(self, incremental: bool = False) -> str:
         """Surface voxels tested in every camera, visibility from item buffers. Full: the buffers are rebuilt
         from every surface voxel and all are tested. Incremental: only the surface voxels flagged by the last
-        item pass's removals are splatted into the buffers (which gave back the removed voxels' pixels) and
-        tested; none flagged means a full pass. Returns "full" or "incremental"."""
-        n = self.b.compact() if incremental else 0
+        removals are splatted into the buffers (which got back the removed voxels' pixels) and tested; none
+        flagged means a full pass. Returns "full" or "incremental"."""
+        n = self.b.compact(True) if incremental else 0
+        kind = "incremental"
+        if not n:
+            kind = "full"
+            self.b.reset_items()
+            n = self.b.compact(False)
         self.step += 1
-        if n:
-            self.b.splat("fresh", 0, n)
-            self.b.test("fresh", 0, n, -1, 0.0, 0, 1, self.step)
-            self.b.commit("fresh", 0, n, -1, 0.0, 0, 0, self.step)
-            return "incremental"
-        n = len(self.grid.lists["x"][0])
-        self.b.reset_items()
-        self.b.splat("x", 0, n)
-        self.b.test("x", 0, n, -1, 0.0, 0, 1, self.step)
-        self.b.commit("x", 0, n, -1, 0.0, 0, 0, self.step)
-        return "full"
+        self.b.splat(n)
+        c = self.b.test(n, self.step)
+        if c:
+            self.b.guard(self.step, c, True)
+        return kind
 
     def space_carving(self) -> int:
-        """Passes until a full item pass removes nothing. A pass: 6 sweeps (the first pass, and again while a
-        pass removes more than ``sweep_fraction`` of the surface voxels: they carve deep at once), then one item
-        pass (exact visibility, every view): full after sweeps, else incremental (only what the last removals
-        exposed), full again when nothing is left to test. At the end every surface voxel is photo-consistent
-        in all the views that see it, or protected, or seen in fewer than min_views."""
-        total, sweeps, full = 0, True, True
-        surface = max(1, surface_count(self.grid.occ))
+        """Passes until a full item pass removes nothing. A pass: a round of sweeps (the first pass, and the next
+        ones while the last round removed more than ``sweep_fraction`` of the voxels it began with: sweeps carve
+        deep at once), then one item pass (exact visibility, every view): full after sweeps, else incremental (only
+        what the last removals exposed), full again when nothing is left to test. At the end every surface voxel
+        is photo-consistent in all the views that see it, or protected, or seen in fewer than min_views."""
+        total, full, sweeps = 0, True, True
+        voxels = int(self.grid.occ.sum())
+        self.converged = False
         for k in range(self.p.max_passes):
             t = time.perf_counter()
             by_sweeps = 0
             if sweeps:
-                for axis in range(3):
-                    for sign in (1, -1):
-                        self.sweep(axis, sign)
+                self.sweep_round()
                 by_sweeps = self.b.removed()
             kind = self.item_pass(incremental=not (sweeps or full))
             by_items = self.b.removed()
@@ -356,9 +473,11 @@ class Carver:
             self.log.append({"pass": k + 1, "sweeps": sweeps, "items": kind, "removed": by_sweeps + by_items,
                              "seconds": round(time.perf_counter() - t, 4)})
             if kind == "full" and by_items == 0 and by_sweeps == 0:
+                self.converged = True      # the item buffers hold the volume as it is
                 break
             full = False
-            sweeps = by_sweeps + by_items > self.p.sweep_fraction * surface
+            sweeps = sweeps and by_sweeps > self.p.sweep_fraction * voxels
+            voxels -= by_sweeps + by_items
         return total
 
     def voxel_coloring(self) -> int:
@@ -368,21 +487,19 @@ class Carver:
             first, count = int(offsets[layer]), int(offsets[layer + 1] - offsets[layer])
             if count:
                 self.step += 1
-                self.b.test("layers", first, count, -1, 0.0, 0, 0, self.step)
-                self.b.commit("layers", first, count, -1, 0.0, 0, 1, self.step)
+                c = self.b.test_layer(first, count, self.step)
+                if c:
+                    self.b.guard(self.step, c, False)
+                self.b.mark_layer(first, count)
         removed = self.b.removed()
         self.log.append({"pass": 1, "removed": removed})
         return removed
 
-    def colours(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def colours(self, reuse: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(colors (nx, ny, nz, 3) uint8, views (nx, ny, nz) uint8, variance per surface voxel seen in >= 2 views)
-        of the current volume, from one item-buffer pass."""
-        idx = self.grid.lists["x"][0]
-        n = len(idx)
-        self.b.reset_items()
-        self.b.splat("x", 0, n)
-        self.b.test("x", 0, n, -1, 0.0, 0, 1, 0, write_colors=True)
-        col, var = self.b.colours(n)
+        of the current volume, from one item-buffer pass (``reuse``: the last full pass's, when it removed
+        nothing)."""
+        idx, col, var = self.b.colours(reuse)
         colors = np.zeros((*self.grid.dims, 3), np.uint8)
         views = np.zeros(self.grid.dims, np.uint8)
         colors.reshape(-1, 3)[idx] = col[:, :3]
@@ -401,17 +518,16 @@ def largest_part(occ: np.ndarray) -> tuple[np.ndarray, int]:
     return (labels == keep).astype(np.uint8), n - 1
 
 
+def count_parts(occ: np.ndarray) -> int:
+    """Number of 6-connected parts."""
+    from scipy import ndimage
+
+    return int(ndimage.label(occ)[1])
+
+
 def surface_count(occ: np.ndarray) -> int:
     """Number of occupied voxels with an empty face neighbour (outside the grid counts as empty)."""
-    o = np.pad(occ.astype(bool), 1)
-    inner = o[1:-1, 1:-1, 1:-1]
-    full = inner.copy()
-    for a in range(3):
-        for s in (0, 2):
-            sl = [slice(1, -1)] * 3
-            sl[a] = slice(s, s + inner.shape[a])
-            full &= o[tuple(sl)]
-    return int((inner & ~full).sum())
+    return int(surface_mask(occ).sum())
 
 
 def fill_colours(occ: np.ndarray, colors: np.ndarray, views: np.ndarray, rounds: int = 8) -> np.ndarray:
@@ -455,8 +571,9 @@ def fill_colours(occ: np.ndarray, colors: np.ndarray, views: np.ndarray, rounds:
 
 
 # ---------------------------------------------------------------- entry point
-def check_inputs(volume: VoxelGrid, images, masks, cameras: Cameras, params: CarveParams, node: str):
-    """Host arrays (occupancy uint8 0/1, images, masks) or a NodeError naming the problem."""
+def check_inputs(volume: VoxelGrid, images, masks, cameras: Cameras, params: CarveParams, node: str, method: str):
+    """Host arrays (occupancy uint8 0/1, images), host masks (None when the masks are on the device only and no
+    host copy is needed) and device silhouettes (or None), or a NodeError naming the problem."""
     occ = np.asarray(volume.occupancy)
     if occ.ndim != 3 or min(occ.shape) < 1:
         raise NodeError(f"{node}: volume occupancy must be a non-empty 3-D array, got shape {occ.shape}")
@@ -473,12 +590,20 @@ def check_inputs(volume: VoxelGrid, images, masks, cameras: Cameras, params: Car
         if im.dtype != np.uint8 or im.ndim != 3 or im.shape[2] != 3:
             raise NodeError(f"{node}: image of camera '{cam.name}' must be an (H, W, 3) uint8 array, got {im.dtype} {im.shape}")
     check_sizes(ims, cameras, node, "image")
-    mks = check_masks(masks, cameras, node)
+    bits = getattr(masks, "device", None)
+    if isinstance(masks, SilhouetteBits):
+        bits = masks
+    if bits is not None and method == "opencl" and not params.gain:
+        check_silhouettes(bits, cameras, node)
+        mks = None
+    else:
+        mks = check_masks(masks.masks() if isinstance(masks, SilhouetteBits) else masks, cameras, node)
+        bits = None
     if params.space not in SPACES:
         raise NodeError(f"{node}: space must be one of {', '.join(SPACES)}, got {params.space!r}")
     if params.min_views > len(cameras):
         raise NodeError(f"{node}: min_views {params.min_views} is more than the {len(cameras)} cameras")
-    return occ, ims, mks
+    return occ, ims, mks, bits
 
 
 @dataclass
@@ -491,18 +616,26 @@ def carve(volume: VoxelGrid, images, masks, cameras: Cameras, params: CarveParam
           algorithm: str = "space_carving", method: str = "opencl", node: str | None = None,
           measure_input: bool = False) -> CarveResult:
     """Carve ``volume`` (the visual hull) to its photo hull: algorithm "space_carving" or "voxel_coloring";
-    method "opencl" or "numpy" (the reference; small grids only). Returns the coloured volume and stats
-    (voxels before/after, passes, colour variance over views of the surface voxels after, and before when
-    ``measure_input``: one more item-buffer pass)."""
+    method "opencl" or "numpy" (the reference; small grids only). ``masks``: a MaskSet (its device silhouettes
+    are used when it has them) or SilhouetteBits. Returns the coloured volume and stats (voxels before/after,
+    passes, colour variance over views of the surface voxels after, and before when ``measure_input``: one more
+    item-buffer pass)."""
     params = params or CarveParams()
     node = node or f"carve.{algorithm}"
-    occ, ims, mks = check_inputs(volume, images, masks, cameras, params, node)
+    occ, ims, mks, bits = check_inputs(volume, images, masks, cameras, params, node, method)
     t0 = time.perf_counter()
+    specks = 0
+    if params.largest and occ.any():
+        occ, specks = largest_part(occ)        # the input's own specks first
     vs = volume.voxel_size.astype(np.float32)
-    views = make_views(ims, mks, cameras, volume.bbox_min, params.gain)
-    grid = Grid(occ, vs, axis_lists(occ))
+    views = make_views(ims, mks, bits, cameras, volume.bbox_min, params.gain)
+    flat = np.flatnonzero(occ).astype(np.uint32)
+    surf = np.flatnonzero(surface_mask(occ)).astype(np.uint32)
+    grid = Grid(occ, vs, {"x": (flat, np.array([0, len(flat)])), "surface": (surf, np.array([0, len(surf)]))})
     if algorithm == "voxel_coloring":
         grid.lists["layers"] = layer_list(occ, vs, views.centres, node)
+    else:
+        grid.lists["sweep"] = sweep_lists(occ)
     if method == "opencl":
         backend = CarveCL.get()
     else:
@@ -517,16 +650,12 @@ def carve(volume: VoxelGrid, images, masks, cameras: Cameras, params: CarveParam
     else:
         removed = carver.space_carving()
     out = backend.occupancy()
-    parts = 0
-    if params.largest and out.any():
-        out, parts = largest_part(out)
-        backend.set_occupancy(out)
     t2 = time.perf_counter()
-    colors, seen, var_after = carver.colours()
+    colors, seen, var_after = carver.colours(reuse=getattr(carver, "converged", False))
     colors = fill_colours(out, colors, seen)
     stats = {
         "algorithm": algorithm, "voxels_in": int(occ.sum()), "voxels_out": int(out.sum()), "removed": removed,
-        "fragments_dropped": parts,
+        "input_specks_dropped": specks, "parts_out": count_parts(out),
         "passes": carver.log, "space": params.space, "threshold": params.threshold,
         "surface_voxels_seen_out": int(len(var_after)),
         "variance_out": float(var_after.mean()) if len(var_after) else 0.0,

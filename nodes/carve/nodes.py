@@ -13,14 +13,18 @@ CONSISTENCY = {
                        "mean colours from their mean, in units of `space` (rgb 0..255; lab: delta E)"),
     "adaptive": Param(float, 0.0, range=(0.0, 10.0), doc="add this times the RMS colour spread within a view's "
                       "footprint to the limit (Slabaugh et al. 2004: more tolerance over texture)"),
+    "contrast": Param(float, 0.0, range=(0.0, 100.0), doc="carve only when the colour deviation between views also "
+                      "exceeds this times the RMS colour spread within the views: refuses to carve on weak evidence "
+                      "(texture about as fine as the voxels, whose footprints differ from view to view); 1.2 keeps a "
+                      "tight hull over fine texture (the synth figure) as it is"),
     "space": Param(str, "rgb", choices=SPACES, doc="colour space of the test: sRGB values, or CIE L*a*b* (D65)"),
     "gain": Param(bool, False, doc="per-camera, per-channel gains matching each view's mean colour inside its mask"),
     "min_views": Param(int, 2, range=(2, 256), doc="a voxel seen in fewer views is kept untested"),
     "footprint": Param(float, 0.7, range=(0.1, 1.0), doc="sampled part of the voxel's projected cube (1 = all of it)"),
     "max_angle": Param(float, 70.0, range=(10.0, 90.0), doc="views seeing a voxel more than this many degrees off its "
                        "normal are not used (grazing views)"),
-    "largest": Param(bool, True, doc="keep only the largest 6-connected part of the result (carving can cut off "
-                     "fragments; the hull's own specks go too)"),
+    "largest": Param(bool, True, doc="carve only the largest 6-connected part of the input (its specks go); nothing "
+                     "is dropped after carving: a part the carving cut off stays when silhouettes need it"),
     "method": Param(str, "opencl", choices=("opencl", "numpy"), doc="OpenCL kernels or the NumPy reference (small grids)"),
 }
 INPUTS = {"volume": Volume, "images": Images, "masks": Masks, "cameras": CameraSet}
@@ -50,8 +54,8 @@ class SpaceCarving(Node):
         "cone": Param(float, 65.0, range=(10.0, 89.0), doc="sweeps: a camera tests a voxel when its ray is within "
                       "this many degrees of the sweep axis"),
         "max_passes": Param(int, 500, range=(0, 10000), doc="at most this many passes (0: colour the input only)"),
-        "sweep_fraction": Param(float, 0.25, range=(0.0, 1.0), doc="sweep again while a pass removes more than this "
-                                "fraction of the surface voxels (then item passes only)"),
+        "sweep_fraction": Param(float, 0.1, range=(0.0, 1.0), doc="sweep again while the last round of sweeps removed "
+                                "more than this fraction of the voxels it began with (then item-buffer passes only)"),
     }
     kernels = [source("carve.cl")]
 

@@ -6,33 +6,78 @@ from __future__ import annotations
 
 import numpy as np
 
-from nodes.common.cameras import project_packed_f32
-
 from .photo import colour_space, dot3, spread
 
 f32 = np.float32
 SAMPLES = 8
 EMPTY = np.uint64(0xFFFFFFFFFFFFFFFF)
+NO_KEEPER = np.uint32(0xFFFFFFFF)
 PROTECTED = 2
 BACK_FACING = -0.5
-GUARD_OFFSET = f32(0.4)
+COVER_EPS = f32(0.01)
+ST_CAND, ST_KEEP, ST_GO = 1, 2, 3
+FACES = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]])
+CUBE26 = np.argwhere(np.ones((3, 3, 3), bool)) - 1
+
+
+def cross2(ax, ay, bx, by):
+    return ax * by - ay * bx
+
+
+def camera_point(cam, X):
+    """kernels/camera.h camera_point (float32, its order): (x, y, z) in camera coordinates."""
+    x, y, z = X[:, 0], X[:, 1], X[:, 2]
+    return (((cam[0] * x + cam[1] * y) + cam[2] * z) + cam[3], ((cam[4] * x + cam[5] * y) + cam[6] * z) + cam[7],
+            ((cam[8] * x + cam[9] * y) + cam[10] * z) + cam[11])
+
+
+def project_camera(cam, xc):
+    """Kernel ``project_camera``: (u, v, depth) of points in camera coordinates (the tail of project_packed_f32)."""
+    f = f32
+    xr, yr, zr = xc
+    with np.errstate(all="ignore"):
+        xn, yn = xr / zr, yr / zr
+        if np.any(cam[17:22] != 0):
+            k1, k2, p1, p2, k3 = cam[17:22]
+            r2 = xn * xn + yn * yn
+            radial = f(1) + r2 * (k1 + r2 * (k2 + r2 * k3))
+            xd = (xn * radial + ((f(2) * p1) * xn) * yn) + p2 * (r2 + (f(2) * xn) * xn)
+            yd = (yn * radial + p1 * (r2 + (f(2) * yn) * yn)) + ((f(2) * p2) * xn) * yn
+            xn, yn = xd, yd
+        u = (cam[12] * xn + cam[13] * yn) + cam[14]
+        v = cam[15] * yn + cam[16]
+    return u, v, zr * cam[24]
+
+
+def half_edge(cam, a, vs):
+    """Kernel ``half_edge``: R[:, a] * vs[a] / 2 (float32)."""
+    h = f32(0.5) * vs[a]
+    return cam[a] * h, cam[4 + a] * h, cam[8 + a] * h
 
 
 class CarveNumPy:
     def setup(self, grid, views, params):
         self.grid, self.views, self.p = grid, views, params
         self.occ = np.ascontiguousarray(grid.occ).ravel().copy()
-        self.stamp = np.full(self.occ.size, -1, np.int64)
+        n = self.occ.size
+        self.stamp = np.zeros(n, np.int64)
+        self.counted = np.zeros(n, bool)
+        self.fresh = np.zeros(n, bool)
         self.dims = grid.dims
         self.vs = grid.vs.astype(f32)
         self.px = [im.reshape(-1, 4) for im in views.images]
-        self.inside = [p[:, 3] > 127 for p in self.px]
-        self.marks = [np.zeros(len(p), np.uint8) for p in self.px]
+        self.inside = [(m[y0:y0 + h, x0:x0 + w] > 127).ravel() for m, (x0, y0, w, h) in zip(views.masks, views.wins)]
         self.items = [np.full(len(p), EMPTY, np.uint64) for p in self.px]
+        self.cover = [np.zeros(len(p), np.int64) for p in self.px]
+        self.keeper = [np.full(len(p), NO_KEEPER, np.uint32) for p in self.px]
+        self.marks = [np.zeros(len(p), np.uint8) for p in self.px]
+        self.cands = np.zeros(0, np.int64)
+        self.surf = np.zeros(0, np.int64)
         self.count = 0
-        self.out = None
-        self.fresh = np.zeros(self.occ.size, bool)
         self.lists = dict(grid.lists)
+        surf = grid.lists["surface"][0].astype(np.int64)
+        self.counted[surf] = True
+        self.cover_add(surf, 1)
 
     # ---------------------------------------------------------------- geometry
     def ijk(self, v: np.ndarray) -> np.ndarray:
@@ -40,44 +85,34 @@ class CarveNumPy:
         v = v.astype(np.int64)
         return np.stack([v // (ny * nz), (v // nz) % ny, v % nz], axis=1)
 
+    def flat(self, ijk: np.ndarray) -> np.ndarray:
+        nx, ny, nz = self.dims
+        return (ijk[:, 0] * ny + ijk[:, 1]) * nz + ijk[:, 2]
+
+    def in_grid(self, ijk: np.ndarray) -> np.ndarray:
+        return np.all((ijk >= 0) & (ijk < np.array(self.dims)), axis=1)
+
     def centre(self, ijk: np.ndarray) -> np.ndarray:
         return ((ijk.astype(f32) + f32(0.5)) * self.vs).astype(f32)
 
     def occupied(self, ijk: np.ndarray, occ=None) -> np.ndarray:
         occ = self.occ if occ is None else occ
-        nx, ny, nz = self.dims
-        ok = np.all((ijk >= 0) & (ijk < np.array(self.dims)), axis=1)
+        ok = self.in_grid(ijk)
         out = np.zeros(len(ijk), bool)
-        q = ijk[ok]
-        out[ok] = (occ[(q[:, 0] * ny + q[:, 1]) * nz + q[:, 2]] & 1) > 0
+        out[ok] = (occ[self.flat(ijk[ok])] & 1) > 0
         return out
 
-    def staying(self, ijk: np.ndarray, step: int) -> np.ndarray:
-        nx, ny, nz = self.dims
-        ok = np.all((ijk >= 0) & (ijk < np.array(self.dims)), axis=1)
-        out = np.zeros(len(ijk), bool)
-        q = ijk[ok]
-        w = (q[:, 0] * ny + q[:, 1]) * nz + q[:, 2]
-        out[ok] = (self.stamp[w] != step) & ((self.occ[w] & 1) > 0)
-        return out
-
-    def surface(self, ijk: np.ndarray, test) -> np.ndarray:
+    def surface(self, ijk: np.ndarray) -> np.ndarray:
         full = np.ones(len(ijk), bool)
-        for a in range(3):
-            for s in (-1, 1):
-                q = ijk.copy()
-                q[:, a] += s
-                full &= test(q)
+        for d in FACES:
+            full &= self.occupied(ijk + d)
         return ~full
 
     def normal(self, ijk: np.ndarray) -> np.ndarray:
         """Kernel ``voxel_normal``: minus the sum of the offsets of the occupied 26-neighbours (float32)."""
         g = np.zeros((len(ijk), 3), f32)
-        for a in (-1, 0, 1):
-            for b in (-1, 0, 1):
-                for c in (-1, 0, 1):
-                    hit = self.occupied(ijk + np.array([a, b, c]))
-                    g[hit] -= np.array([a, b, c], f32)
+        for d in CUBE26:
+            g[self.occupied(ijk + d)] -= d.astype(f32)
         return g
 
     def facing(self, g: np.ndarray, X: np.ndarray, c: int, cos_min=None) -> np.ndarray:
@@ -88,7 +123,7 @@ class CarveNumPy:
         lhs = (g[:, 0] * d[:, 0] + g[:, 1] * d[:, 1]) + g[:, 2] * d[:, 2]
         return (gg == 0) | (lhs >= cos_min * np.sqrt(gg * dot3(d)))
 
-    def in_cone(self, X: np.ndarray, c: int, axis: int, sign: float) -> np.ndarray:
+    def in_cone(self, X: np.ndarray, c: int, axis: int, sign) -> np.ndarray:
         """Kernel ``in_cone``."""
         if axis < 0:
             return np.ones(len(X), bool)
@@ -96,34 +131,35 @@ class CarveNumPy:
         along = f32(sign) * d[:, axis]
         return (along > 0) & (along >= f32(self.p.cos_cone) * np.sqrt(dot3(d)))
 
-    def active(self, axis: int, plane: float, sign: float) -> np.ndarray:
+    def active(self, axis: int, plane, sign) -> np.ndarray:
         if axis < 0:
             return np.ones(len(self.px), bool)
         return f32(sign) * (self.views.centres[:, axis] - f32(plane)) < f32(0)
 
+    def window(self, c: int):
+        x0, y0, w, h = (int(a) for a in self.views.wins[c])
+        return x0, y0, w, h, f32(x0), f32(y0), f32(x0 + w - 1), f32(y0 + h - 1)
+
     def footprint(self, c: int, X: np.ndarray, scale: float) -> dict:
-        """Kernel ``footprint`` per voxel centre: rectangle x0 x1 y0 y1 (int64), ok, single, depth, and the
-        hexagon (centre u v, half-edges e[k] = (eu, ev), limits lim[k])."""
-        cam = self.views.cams[c]
-        vs = self.vs
-        u0, v0, _ = project_packed_f32(cam, X)
+        """Kernel ``footprint`` per voxel centre: rectangle x0 x1 y0 y1 (int64, clipped to the window), ok,
+        single, depth, and the hexagon (centre u v, half-edges e[k] = (eu, ev), limits lim[k])."""
+        cam = self.views.cams[c].astype(f32)
+        xc = camera_point(cam, X)
         d, pts = [], []
         for a in range(-1, 3):
-            Y = X.copy()
-            if a >= 0:
-                Y[:, a] = Y[:, a] + f32(0.5) * vs[a]
-            u, v, _ = project_packed_f32(cam, Y)
-            zc = ((cam[8] * Y[:, 0] + cam[9] * Y[:, 1]) + cam[10] * Y[:, 2]) + cam[11]
-            d.append(zc * cam[24])
+            Y = xc if a < 0 else tuple(x + h for x, h in zip(xc, half_edge(cam, a, self.vs)))
+            u, v, depth = project_camera(cam, Y)
+            d.append(depth)
             pts.append((u, v))
+        u0, v0 = pts[0]
         ok = (d[0] > 0) & (d[1] > 0) & (d[2] > 0) & (d[3] > 0)
         s = f32(scale)
+        _, _, _, _, wx0, wy0, wx1, wy1 = self.window(c)
         with np.errstate(invalid="ignore", over="ignore"):
             e = [(s * (pts[k][0] - u0), s * (pts[k][1] - v0)) for k in (1, 2, 3)]
             hu = (np.abs(e[0][0]) + np.abs(e[1][0])) + np.abs(e[2][0])
             hv = (np.abs(e[0][1]) + np.abs(e[1][1])) + np.abs(e[2][1])
             ok &= np.isfinite(hu) & np.isfinite(hv) & np.isfinite(u0) & np.isfinite(v0)
-            W, H = cam[22], cam[23]
             fx0, fx1 = np.ceil(u0 - hu), np.floor(u0 + hu)
             fy0, fy1 = np.ceil(v0 - hv), np.floor(v0 + hv)
             single = (fx0 > fx1) | (fy0 > fy1)
@@ -131,13 +167,13 @@ class CarveNumPy:
             fx1 = np.where(single, fx0, fx1)
             fy0 = np.where(single, np.floor(v0 + f32(0.5)), fy0)
             fy1 = np.where(single, fy0, fy1)
-            fx0, fy0 = np.maximum(fx0, f32(0)), np.maximum(fy0, f32(0))
-            fx1, fy1 = np.minimum(fx1, W - f32(1)), np.minimum(fy1, H - f32(1))
-            fx0, fy0 = np.minimum(fx0, W), np.minimum(fy0, H)
-            fx1, fy1 = np.maximum(fx1, f32(-1)), np.maximum(fy1, f32(-1))
-            cr = lambda a, b: a[0] * b[1] - a[1] * b[0]  # noqa: E731
-            lim = [np.abs(cr(e[0], e[1])) + np.abs(cr(e[0], e[2])), np.abs(cr(e[1], e[0])) + np.abs(cr(e[1], e[2])),
-                   np.abs(cr(e[2], e[0])) + np.abs(cr(e[2], e[1]))]
+            fx0, fy0 = np.maximum(fx0, wx0), np.maximum(fy0, wy0)
+            fx1, fy1 = np.minimum(fx1, wx1), np.minimum(fy1, wy1)
+            fx0, fy0 = np.minimum(fx0, wx1 + f32(1)), np.minimum(fy0, wy1 + f32(1))
+            fx1, fy1 = np.maximum(fx1, wx0 - f32(1)), np.maximum(fy1, wy0 - f32(1))
+            lim = [np.abs(cross2(*e[0], *e[1])) + np.abs(cross2(*e[0], *e[2])),
+                   np.abs(cross2(*e[1], *e[0])) + np.abs(cross2(*e[1], *e[2])),
+                   np.abs(cross2(*e[2], *e[0])) + np.abs(cross2(*e[2], *e[1]))]
         conv = lambda a: np.where(ok, a, 0).astype(np.int64)  # noqa: E731
         return {"x0": conv(fx0), "x1": conv(fx1), "y0": conv(fy0), "y1": conv(fy1), "ok": ok, "depth": d[0],
                 "single": single, "u": u0, "v": v0, "e": e, "lim": lim}
@@ -154,18 +190,24 @@ class CarveNumPy:
                 hexa &= np.abs(eu[owner] * qy - ev[owner] * qx) <= lim[owner]
         return inside | hexa
 
-    def pixels(self, c: int, X: np.ndarray, scale: float, strided: bool = False):
-        """(owner, pixel index, footprint) of every pixel of each voxel's footprint in view c (every
-        stride-th row and column when ``strided``, as kernel ``carve_test`` samples)."""
+    def index(self, c: int, xs, ys) -> np.ndarray:
+        x0, y0, w, _, *_ = self.window(c)
+        return (ys - y0) * w + (xs - x0)
+
+    def pixels(self, c: int, X: np.ndarray, scale: float, strided: bool = False, rect_only: bool = False):
+        """(owner, window pixel index, footprint) of every pixel of each voxel's footprint in view c (every
+        stride-th row and column when ``strided``, as kernel ``photo`` samples; the whole rectangle when
+        ``rect_only``)."""
         fp = self.footprint(c, X, scale)
         x0, x1, y0, y1, ok = fp["x0"], fp["x1"], fp["y0"], fp["y1"], fp["ok"]
         stride = None
         if strided:
             stride = np.maximum((np.maximum(x1 - x0 + 1, y1 - y0 + 1) + SAMPLES - 1) // SAMPLES, 1)
         owner, xs, ys = self.rect_pixels(x0, x1, y0, y1, ok, stride)
-        keep = self.in_footprint(fp, owner, xs, ys)
-        owner, xs, ys = owner[keep], xs[keep], ys[keep]
-        return owner, ys * int(self.views.cams[c][22]) + xs, fp
+        if not rect_only:
+            keep = self.in_footprint(fp, owner, xs, ys)
+            owner, xs, ys = owner[keep], xs[keep], ys[keep]
+        return owner, self.index(c, xs, ys), fp
 
     @staticmethod
     def rect_pixels(x0, x1, y0, y1, ok, stride=None):
@@ -186,40 +228,89 @@ class CarveNumPy:
         ys = y0[owner] + (local // np.maximum(w, 1)) * stride[owner]
         return owner, xs, ys
 
-    # ---------------------------------------------------------------- steps
-    def reset_marks(self):
-        for c in range(len(self.px)):
-            self.marks[c] = np.where(self.inside[c], 0, 1).astype(np.uint8)
+    def outline(self, c: int, X: np.ndarray) -> dict:
+        """Kernel ``cube_outline`` per voxel centre."""
+        cam = self.views.cams[c].astype(f32)
+        xc = camera_point(cam, X)
+        hs = [half_edge(cam, a, self.vs) for a in range(3)]
+        P, ok = [], np.ones(len(X), bool)
+        for s in range(8):
+            Y = []
+            for i in range(3):
+                a = xc[i] + hs[0][i] if s & 1 else xc[i] - hs[0][i]
+                a = a + (hs[1][i] if s & 2 else -hs[1][i])
+                Y.append(a + (hs[2][i] if s & 4 else -hs[2][i]))
+            u, v, depth = project_camera(cam, Y)
+            with np.errstate(invalid="ignore"):
+                ok &= (depth > 0) & np.isfinite(u) & np.isfinite(v)
+            P.append((u, v))
+        _, _, _, _, wx0, wy0, wx1, wy1 = self.window(c)
+        eighth = f32(0.125)
+        with np.errstate(invalid="ignore", over="ignore"):
+            cx, cy = (sum_left([p[i] for p in P]) * eighth for i in (0, 1))
+            pairs = [((1, 0), (3, 2), (5, 4), (7, 6)), ((2, 0), (3, 1), (6, 4), (7, 5)), ((4, 0), (5, 1), (6, 2), (7, 3))]
+            e = []
+            for pr in pairs:
+                comp = []
+                for i in (0, 1):
+                    d = [P[a][i] - P[b][i] for a, b in pr]
+                    comp.append(((d[0] + d[1]) + (d[2] + d[3])) * eighth)
+                e.append(tuple(comp))
+            dd = np.zeros(len(X), f32)
+            lo = [P[0][0].copy(), P[0][1].copy()]
+            hi = [P[0][0].copy(), P[0][1].copy()]
+            for s in range(8):
+                m = []
+                for i in (0, 1):
+                    c0 = (cx, cy)[i]
+                    a = c0 + e[0][i] if s & 1 else c0 - e[0][i]
+                    a = a + (e[1][i] if s & 2 else -e[1][i])
+                    a = a + (e[2][i] if s & 4 else -e[2][i])
+                    m.append(a)
+                qx, qy = P[s][0] - m[0], P[s][1] - m[1]
+                dd = np.maximum(dd, qx * qx + qy * qy)
+                for i in (0, 1):
+                    lo[i] = np.minimum(lo[i], P[s][i])
+                    hi[i] = np.maximum(hi[i], P[s][i])
+            d = np.sqrt(dd) + COVER_EPS
+            lim = [np.abs(cross2(*e[0], *e[1])) + np.abs(cross2(*e[0], *e[2])),
+                   np.abs(cross2(*e[1], *e[0])) + np.abs(cross2(*e[1], *e[2])),
+                   np.abs(cross2(*e[2], *e[0])) + np.abs(cross2(*e[2], *e[1]))]
+            mar = [d * np.sqrt(ex * ex + ey * ey) for ex, ey in e]
+            x0 = np.maximum(np.ceil(lo[0] - COVER_EPS), wx0)
+            x1 = np.minimum(np.floor(hi[0] + COVER_EPS), wx1)
+            y0 = np.maximum(np.ceil(lo[1] - COVER_EPS), wy0)
+            y1 = np.minimum(np.floor(hi[1] + COVER_EPS), wy1)
+            x0, x1 = np.minimum(x0, wx1 + f32(1)), np.maximum(x1, wx0 - f32(1))
+            y0, y1 = np.minimum(y0, wy1 + f32(1)), np.maximum(y1, wy0 - f32(1))
+        depth = (xc[2] * cam[24]).astype(f32)
+        ok &= depth > 0
+        conv = lambda a: np.where(ok, a, 0).astype(np.int64)  # noqa: E731
+        return {"x0": conv(x0), "x1": conv(x1), "y0": conv(y0), "y1": conv(y1), "ok": ok, "c": (cx, cy), "e": e,
+                "lim": lim, "mar": mar, "key": depth.view(np.uint32)}
 
-    def reset_items(self):
-        for c in range(len(self.px)):
-            self.items[c][:] = EMPTY
+    def outline_pixels(self, c: int, X: np.ndarray, outer: bool, keys: bool = False):
+        """(owner, window pixel index) of the silhouette pixels in each voxel's outer or inner outline in view c
+        (and the voxels' bids, when ``keys``)."""
+        o = self.outline(c, X)
+        owner, xs, ys = self.rect_pixels(o["x0"], o["x1"], o["y0"], o["y1"], o["ok"])
+        p = self.index(c, xs, ys)
+        keep = self.inside[c][p]
+        owner, xs, ys, p = owner[keep], xs[keep], ys[keep], p[keep]
+        qx = xs.astype(f32) - o["c"][0][owner]
+        qy = ys.astype(f32) - o["c"][1][owner]
+        sel = np.ones(len(owner), bool)
+        with np.errstate(invalid="ignore", over="ignore"):
+            for (ex, ey), lim, mar in zip(o["e"], o["lim"], o["mar"]):
+                a = np.abs(cross2(ex[owner], ey[owner], qx, qy))
+                sel &= a <= (lim[owner] + mar[owner] if outer else lim[owner] - mar[owner])
+        if keys:
+            return owner[sel], p[sel], o["key"]
+        return owner[sel], p[sel]
 
-    def _surface_voxels(self, name, first, count):
-        v = self.lists[name][0][first:first + count].astype(np.int64)
-        v = v[(self.occ[v] & 1) > 0]
-        ijk = self.ijk(v)
-        s = self.surface(ijk, self.occupied)
-        return v[s], ijk[s]
-
-    def splat(self, name, first, count):
-        v, ijk = self._surface_voxels(name, first, count)
-        X = self.centre(ijk)
-        g = self.normal(ijk)
-        for c in range(len(self.px)):
-            owner, p, fp = self.pixels(c, X, 1.0)
-            keep = self.inside[c][p] & self.facing(g, X, c, BACK_FACING)[owner]
-            key = (fp["depth"].astype(f32).view(np.uint32).astype(np.uint64) << np.uint64(32)) | v.astype(np.uint64)
-            np.minimum.at(self.items[c], p[keep], key[owner[keep]])
-
-    def test(self, name, first, count, axis, plane, sign, use_items, step, write_colors=False):
-        lst = self.lists[name][0][first:first + count].astype(np.int64)
-        v, ijk = self._surface_voxels(name, first, count)
-        if not write_colors:
-            fresh = (self.occ[v] & PROTECTED) == 0
-            v, ijk = v[fresh], ijk[fresh]
-        X = self.centre(ijk)
-        g = self.normal(ijk)
+    # ---------------------------------------------------------------- the photo test
+    def photo(self, v, X, g, axis, plane, sign, use_items: bool, marks=None):
+        """Kernel ``photo`` for voxels v (centres X, normals g): (bad, mean colour, variance, views)."""
         n_vox = len(v)
         s1 = np.zeros((n_vox, 3), f32)
         rgb = np.zeros((n_vox, 3), f32)
@@ -238,7 +329,7 @@ class CarveNumPy:
             if use_items:
                 seen = (self.items[c][p] & np.uint64(0xFFFFFFFF)) == v[owner].astype(np.uint64)
             else:
-                seen = self.marks[c][p] == 0
+                seen = marks[c][p] == 0
             seen &= inside
             total = np.bincount(owner[inside], minlength=n_vox)
             n = np.bincount(owner[seen], minlength=n_vox)
@@ -257,122 +348,213 @@ class CarveNumPy:
             w2[use] += spread(m, sd, q, self.p.space)
             views[use] += 1
         var = np.full(n_vox, f32(-1), f32)
-        limit = np.zeros(n_vox, f32)
+        bad = np.zeros(n_vox, bool)
         two = views >= 2
         vf = views[two].astype(f32)
         mean = s1[two] / vf[:, None]
         var[two] = s2[two] / vf - dot3(mean)
-        limit[two] = f32(self.p.threshold) + f32(self.p.adaptive) * np.sqrt(w2[two] / vf)
-        if write_colors:
-            with np.errstate(invalid="ignore", divide="ignore"):
-                c = np.where(views[:, None] > 0, rgb / np.maximum(views, 1).astype(f32)[:, None], f32(0))
-            colors = np.zeros((len(lst), 4), np.uint8)
-            variance = np.full(len(lst), f32(-1), f32)
-            order = np.argsort(lst)
-            rows = order[np.searchsorted(lst[order], v)]      # positions of the voxels in the step's list
-            colors[rows, :3] = np.clip(np.rint(c), 0, 255).astype(np.uint8)
-            colors[rows, 3] = np.minimum(views, 255).astype(np.uint8)
-            variance[rows] = var
-            self.out = (colors, variance)
+        within = w2[two] / vf
+        limit = f32(self.p.threshold) + f32(self.p.adaptive) * np.sqrt(within)
+        contrast = f32(self.p.contrast)
+        bad[two] = (views[two] >= self.p.min_views) & (var[two] > limit * limit) & (var[two] > (contrast * contrast) * within)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean_rgb = np.where(views[:, None] > 0, rgb / np.maximum(views, 1).astype(f32)[:, None], f32(0))
+        return bad, mean_rgb, var, views
+
+    # ---------------------------------------------------------------- the guard
+    def cover_add(self, vox: np.ndarray, delta: int):
+        if len(vox) == 0:
             return
-        bad = (views >= self.p.min_views) & (views >= 2) & (var > limit * limit)
-        self.stamp[v[bad]] = step
+        X = self.centre(self.ijk(vox))
+        for c in range(len(self.px)):
+            _, p = self.outline_pixels(c, X, False)
+            np.add.at(self.cover[c], p, delta)
 
-    def ray_needs(self, ijk, X, c, step, limit) -> np.ndarray:
-        """Kernel ``ray_needs`` for the rays from view c through the points X of voxels ijk."""
-        cam = self.views.cams[c]
-        vs = self.vs
-        u, w, _ = project_packed_f32(cam, X)
-        zc = ((cam[8] * X[:, 0] + cam[9] * X[:, 1]) + cam[10] * X[:, 2]) + cam[11]
-        with np.errstate(invalid="ignore"):
-            fu, fv = u + f32(0.5), w + f32(0.5)
-            seen = (zc * cam[24] > 0) & (fu >= 0) & (fu < cam[22]) & (fv >= 0) & (fv < cam[23])
-        pix = np.zeros(len(X), np.int64)
-        pix[seen] = fv[seen].astype(np.int64) * int(cam[22]) + fu[seen].astype(np.int64)
-        seen[seen] = self.inside[c][pix[seen]]
-        d = (X - self.views.centres[c, :3]).astype(f32)
-        vmin = f32(0.5) * min(vs[0], vs[1], vs[2])
-        with np.errstate(divide="ignore", invalid="ignore"):
-            dt = vmin / np.maximum(np.maximum(np.abs(d[:, 0]), np.abs(d[:, 1])), np.abs(d[:, 2]))
-        seen &= np.isfinite(dt)
-        covered = np.zeros(len(X), bool)
-        for direction in (1, -1):
-            walking = seen & ~covered
-            for n in range(1, limit + 1):
-                if not walking.any():
-                    break
-                idx = np.flatnonzero(walking)
-                tn = f32(direction * n) * dt[idx]
-                P = X[idx] + tn[:, None] * d[idx]
-                q = np.floor(P / vs).astype(np.int64)
-                out = np.any((q < 0) | (q >= np.array(self.dims)), axis=1)
-                walking[idx[out]] = False
-                idx, q = idx[~out], q[~out]
-                same = np.all(q == ijk[idx], axis=1)
-                idx, q = idx[~same], q[~same]
-                hit = self.staying(q, step)
-                covered[idx[hit]] = True
-                walking[idx[hit]] = False
-        return seen & ~covered
+    def candidates(self, v: np.ndarray, step: int):
+        """Kernel ``candidate``: stamp, list, claim (out of the counts when counted; bids for the pixels)."""
+        v = np.asarray(v, np.int64)
+        self.stamp[v] = (step << 2) | ST_CAND
+        self.cands = np.concatenate([self.cands, v])
+        X = self.centre(self.ijk(v))
+        was = self.counted[v]
+        for c in range(len(self.px)):
+            owner, p, key = self.outline_pixels(c, X, False, keys=True)
+            np.subtract.at(self.cover[c], p[was[owner]], 1)
+            np.minimum.at(self.keeper[c], p, key[owner])
 
-    def last_on_a_ray(self, v, ijk, X, step) -> np.ndarray:
-        """Per candidate: True when some view needs it (kernel ``last_on_a_ray``)."""
-        nx, ny, nz = self.dims
-        limit = 2 * (nx + ny + nz) + 4
+    def guard(self, step: int, n: int, use_items: bool):
+        """Kernels ``carve_expose``, ``carve_decide`` and ``carve_apply`` over the step's candidates."""
+        v = self.cands
+        assert len(v) == n
+        nb = (self.ijk(v)[:, None, :] + FACES[None]).reshape(-1, 3)
+        u = np.unique(self.flat(nb[self.in_grid(nb)]))
+        u = u[((self.occ[u] & 1) > 0) & ((self.stamp[u] >> 2) != step) & ~self.counted[u]]
+        self.counted[u] = True
+        self.cover_add(u, 1)
+        X = self.centre(self.ijk(v))
         needed = np.zeros(len(v), bool)
         for c in range(len(self.px)):
-            for q in range(7):
-                P = X.copy()
-                if q:
-                    a = (q - 1) // 2
-                    o = -GUARD_OFFSET if q & 1 else GUARD_OFFSET
-                    P[:, a] = X[:, a] + o * self.vs[a]
-                needed |= self.ray_needs(ijk, P, c, step, limit)
-        return needed
+            owner, p, key = self.outline_pixels(c, X, True, keys=True)
+            k = self.keeper[c][p]
+            bad = (self.cover[c][p] == 0) & ((k == key[owner]) | (k == NO_KEEPER))
+            needed[owner[bad]] = True
+        self.stamp[v] = (step << 2) | np.where(needed, ST_KEEP, ST_GO)
+        keep = needed
+        for c in range(len(self.px)):
+            owner, p = self.outline_pixels(c, X, False)
+            self.keeper[c][p] = NO_KEEPER
+            np.add.at(self.cover[c], p[keep[owner]], 1)
+        self.occ[v[keep]] = 1 | PROTECTED
+        self.counted[v[keep]] = True
+        gone = v[~keep]
+        self.occ[gone] = 0
+        self.count += len(gone)
+        if len(gone) == 0:
+            return
+        gX = X[~keep]
+        gijk = self.ijk(gone)
+        self.flag_around(gijk)
+        if not use_items:
+            return
+        limit = 2 * sum(self.dims) + 4
+        for c in range(len(self.px)):
+            owner, p, _ = self.pixels(c, gX, 1.0, rect_only=True)
+            mine = (self.items[c][p] & np.uint64(0xFFFFFFFF)) == gone[owner].astype(np.uint64)
+            self.items[c][p[mine]] = EMPTY
+            given = np.zeros(len(gone), bool)
+            given[owner[mine]] = True
+            if given.any():
+                self.reveal(gone[given], gX[given], c, step, limit)
 
-    def commit(self, name, first, count, axis, plane, sign, do_marks, step):
-        v = self.lists[name][0][first:first + count].astype(np.int64)
-        v = v[(self.occ[v] & 1) > 0]
-        ijk = self.ijk(v)
-        X = self.centre(ijk)
-        cand = self.stamp[v] == step
-        gone = np.zeros(len(v), bool)
-        if cand.any():
-            ci = np.flatnonzero(cand)
-            gone[ci] = ~self.last_on_a_ray(v[ci], ijk[ci], X[ci], step)
-        if do_marks:
-            stay = self.surface(ijk, lambda q: self.staying(q, step)) & ~gone
-            act = self.active(axis, plane, sign)
-            Xs = X[stay]
-            for c in range(len(self.px)):
-                if not act[c]:
-                    continue
-                _, p, _ = self.pixels(c, Xs, 1.0)
-                self.marks[c][p] = 1
-        if axis < 0 and not do_marks and gone.any():
-            # item pass: give back the removed voxels' pixels, flag their neighbours
-            rv, rX = v[gone], X[gone]
-            for c in range(len(self.px)):
-                owner, p, _ = self.pixels(c, rX, 1.0)
-                mine = (self.items[c][p] & np.uint64(0xFFFFFFFF)) == rv[owner].astype(np.uint64)
-                self.items[c][p[mine]] = EMPTY
-            nb = (ijk[gone][:, None, :] + (np.argwhere(np.ones((3, 3, 3), bool)) - 1)[None]).reshape(-1, 3)
-            nb = nb[np.all((nb >= 0) & (nb < np.array(self.dims)), axis=1)]
-            self.fresh[np.ravel_multi_index(nb.T, self.dims)] = True
-        self.occ[v[gone]] = 0
-        self.occ[v[cand & ~gone]] = 1 | PROTECTED
-        self.count += int(gone.sum())
+    def flag_around(self, ijk: np.ndarray):
+        """Kernel ``flag_around``: the 3x3x3 blocks around ``ijk`` flagged (occupied ones count)."""
+        nb = (ijk[:, None, :] + CUBE26[None]).reshape(-1, 3)
+        self.fresh[self.flat(nb[self.in_grid(nb)])] = True
 
-    def compact(self) -> int:
+    def reveal(self, v, X, c, step, limit):
+        """Kernel ``reveal`` for removed voxels v (centres X) in view c."""
+        d = (X - self.views.centres[c, :3]).astype(f32)
+        vmin = f32(0.5) * min(self.vs[0], self.vs[1], self.vs[2])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            dt = (vmin / np.maximum(np.maximum(np.abs(d[:, 0]), np.abs(d[:, 1])), np.abs(d[:, 2]))).astype(f32)
+        walking = np.isfinite(dt)
+        go = (step << 2) | ST_GO
+        found = []
+        for n in range(1, limit + 1):
+            if not walking.any():
+                break
+            idx = np.flatnonzero(walking)
+            tn = f32(n) * dt[idx]
+            P = X[idx] + tn[:, None] * d[idx]
+            q = np.floor(P / self.vs).astype(np.int64)
+            out = ~self.in_grid(q)
+            walking[idx[out]] = False
+            idx, q = idx[~out], q[~out]
+            u = self.flat(q)
+            hit = (u != v[idx]) & ((self.occ[u] & 1) > 0) & (self.stamp[u] != go)
+            walking[idx[hit]] = False
+            found.append(q[hit])
+        if found:
+            self.flag_around(np.concatenate(found))
+
+    # ---------------------------------------------------------------- steps
+    def sweeps(self, step0: int):
+        """Kernel ``carve_sweeps``: six sweeps in order, per plane test, guard, marks."""
+        sw = self.lists["sweep"]
+        lists, offs, base = sw["lists"].astype(np.int64), sw["offs"].astype(np.int64), sw["base"]
+        for s in range(6):
+            axis, direction = s >> 1, (-1 if s & 1 else 1)
+            sign = f32(direction)
+            n = self.dims[axis]
+            self.reset_marks()
+            for t in range(n):
+                p = t if direction > 0 else n - 1 - t
+                plane = f32(p if direction > 0 else p + 1) * self.vs[axis]
+                step = step0 + 1024 * s + t
+                work = lists[offs[base[axis] + p]:offs[base[axis] + p + 1]]
+                tv = work[(self.occ[work] & (1 | PROTECTED)) == 1]
+                tv = tv[self.surface(self.ijk(tv))]
+                self.cands = np.zeros(0, np.int64)
+                if len(tv):
+                    ijk = self.ijk(tv)
+                    bad = self.photo(tv, self.centre(ijk), self.normal(ijk), axis, plane, sign, False, self.marks)[0]
+                    if bad.any():
+                        self.candidates(tv[bad], step)
+                        self.guard(step, len(self.cands), False)
+                kept = work[(self.occ[work] & 1) > 0]
+                self.mark(kept[self.surface(self.ijk(kept))], axis, plane, sign, self.marks)
+
+    def mark(self, vox, axis, plane, sign, marks):
+        """Kernel ``mark_footprint`` for voxels ``vox`` (cameras behind the plane; every camera for axis < 0)."""
+        if len(vox) == 0:
+            return
+        X = self.centre(self.ijk(vox))
+        act = self.active(axis, plane, sign)
+        for c in range(len(self.px)):
+            if act[c]:
+                _, p, _ = self.pixels(c, X, 1.0)
+                marks[c][p] = 1
+
+    def reset_marks(self):
+        for m in self.marks:
+            m[:] = 0
+
+    def reset_items(self):
+        for it in self.items:
+            it[:] = EMPTY
+
+    def compact(self, fresh_only: bool) -> int:
         """Kernel ``carve_compact`` over list "x" (in list order: the order does not matter)."""
         lst = self.lists["x"][0].astype(np.int64)
-        flagged = lst[self.fresh[lst]]
-        self.fresh[flagged] = False
-        flagged = flagged[(self.occ[flagged] & 1) > 0]
-        keep = self.surface(self.ijk(flagged), self.occupied)
-        out = flagged[keep].astype(np.uint32)
-        self.lists["fresh"] = (out, np.array([0, len(out)]))
-        return len(out)
+        flagged = self.fresh[lst]
+        self.fresh[lst] = False
+        sel = lst[flagged] if fresh_only else lst
+        sel = sel[(self.occ[sel] & 1) > 0]
+        self.surf = sel[self.surface(self.ijk(sel))]
+        return len(self.surf)
+
+    def splat(self, n: int):
+        v = self.surf[:n]
+        ijk = self.ijk(v)
+        X = self.centre(ijk)
+        g = self.normal(ijk)
+        for c in range(len(self.px)):
+            owner, p, fp = self.pixels(c, X, 1.0)
+            keep = self.inside[c][p] & self.facing(g, X, c, BACK_FACING)[owner]
+            key = (fp["depth"].astype(f32).view(np.uint32).astype(np.uint64) << np.uint64(32)) | v.astype(np.uint64)
+            np.minimum.at(self.items[c], p[keep], key[owner[keep]])
+
+    def _tested(self, lst, write_colors=False):
+        """The list entries kernel ``carve_test`` tests: (positions, voxels, ijk)."""
+        lst = np.asarray(lst, np.int64)
+        pos = np.arange(len(lst))
+        ok = (self.occ[lst] & 1) > 0
+        if not write_colors:
+            ok &= (self.occ[lst] & PROTECTED) == 0
+        pos, v = pos[ok], lst[ok]
+        ijk = self.ijk(v)
+        s = self.surface(ijk)
+        return pos[s], v[s], ijk[s]
+
+    def _test(self, lst, step, use_items):
+        _, v, ijk = self._tested(lst)
+        self.cands = np.zeros(0, np.int64)
+        if len(v):
+            bad = self.photo(v, self.centre(ijk), self.normal(ijk), -1, 0.0, 0.0, use_items, self.marks)[0]
+            if bad.any():
+                self.candidates(v[bad], step)
+        return len(self.cands)
+
+    def test(self, n: int, step: int) -> int:
+        return self._test(self.surf[:n], step, True)
+
+    def test_layer(self, first: int, count: int, step: int) -> int:
+        return self._test(self.lists["layers"][0][first:first + count], step, False)
+
+    def mark_layer(self, first: int, count: int):
+        v = self.lists["layers"][0][first:first + count].astype(np.int64)
+        v = v[(self.occ[v] & 1) > 0]
+        self.mark(v[self.surface(self.ijk(v))], -1, 0.0, 0.0, self.marks)
 
     def removed(self) -> int:
         n, self.count = self.count, 0
@@ -381,9 +563,27 @@ class CarveNumPy:
     def occupancy(self) -> np.ndarray:
         return (self.occ & 1).reshape(self.dims)
 
-    def set_occupancy(self, occ: np.ndarray):
-        self.occ = np.ascontiguousarray(occ, np.uint8).ravel().copy()
+    def colours(self, reuse: bool = False):
+        if not reuse:
+            self.reset_items()
+            self.compact(False)
+            self.splat(len(self.surf))
+        lst = self.surf
+        n = len(lst)
+        pos, v, ijk = self._tested(lst, write_colors=True)
+        colors = np.zeros((n, 4), np.uint8)
+        variance = np.full(n, f32(-1), f32)
+        if len(v):
+            _, rgb, var, views = self.photo(v, self.centre(ijk), self.normal(ijk), -1, 0.0, 0.0, True)
+            colors[pos, :3] = np.clip(np.rint(rgb), 0, 255).astype(np.uint8)
+            colors[pos, 3] = np.minimum(views, 255).astype(np.uint8)
+            variance[pos] = var
+        return lst.astype(np.uint32), colors, variance
 
-    def colours(self, count):
-        return self.out
 
+def sum_left(xs):
+    """x0 + x1 + ... summed left to right (the kernel's order)."""
+    out = xs[0]
+    for x in xs[1:]:
+        out = out + x
+    return out

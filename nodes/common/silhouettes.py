@@ -179,14 +179,42 @@ def block_table_reference(mask: np.ndarray) -> np.ndarray:
     return np.pad(counts.cumsum(0).cumsum(1), ((1, 0), (1, 0))).astype(np.int32)
 
 
-def check_silhouettes(sil: SilhouetteBits, cameras: Cameras):
+def check_silhouettes(sil: SilhouetteBits, cameras: Cameras, node: str = "hull"):
     """A NodeError naming the camera when the device silhouettes do not fit the cameras."""
     if len(sil) != len(cameras):
-        raise NodeError(f"hull: {len(sil)} silhouettes for {len(cameras)} cameras")
+        raise NodeError(f"{node}: {len(sil)} silhouettes for {len(cameras)} cameras")
     for (w, h), cam in zip(sil.sizes, cameras):
         if (w, h) != (cam.width, cam.height):
-            raise NodeError(f"hull: silhouette of camera '{cam.name}' is {w}x{h} but the camera is "
+            raise NodeError(f"{node}: silhouette of camera '{cam.name}' is {w}x{h} but the camera is "
                             f"{cam.width}x{cam.height}")
+
+
+def block_window(counts: np.ndarray, width: int, height: int) -> tuple[int, int, int, int]:
+    """(x0, y0, w, h): the pixels of the 8x8 blocks from the first to the last row and column of blocks with a
+    silhouette pixel (``counts``: (Hb, Wb) pixel counts per block), clipped to the image; (0, 0, 0, 0) when
+    the silhouette is empty. Every silhouette pixel lies inside it."""
+    rows, cols = np.flatnonzero(counts.any(axis=1)), np.flatnonzero(counts.any(axis=0))
+    if len(rows) == 0:
+        return 0, 0, 0, 0
+    x0, y0 = 8 * int(cols[0]), 8 * int(rows[0])
+    return x0, y0, min(width, 8 * (int(cols[-1]) + 1)) - x0, min(height, 8 * (int(rows[-1]) + 1)) - y0
+
+
+def mask_window(mask: np.ndarray) -> tuple[int, int, int, int]:
+    """``block_window`` of a host mask (inside when > 127)."""
+    inside = mask > 127
+    rows, cols = np.flatnonzero(inside.any(axis=1)), np.flatnonzero(inside.any(axis=0))
+    if len(rows) == 0:
+        return 0, 0, 0, 0
+    h, w = mask.shape
+    x0, y0 = 8 * (int(cols[0]) // 8), 8 * (int(rows[0]) // 8)
+    return x0, y0, min(w, 8 * (int(cols[-1]) // 8 + 1)) - x0, min(h, 8 * (int(rows[-1]) // 8 + 1)) - y0
+
+
+def silhouette_windows(sil: SilhouetteBits) -> np.ndarray:
+    """(V, 4) int32 ``block_window`` per view of device silhouettes, from their block tables."""
+    return np.array([block_window(np.diff(np.diff(t, axis=0), axis=1), w, h)
+                     for t, (w, h) in zip(sil.block_tables(), sil.sizes)], np.int32).reshape(-1, 4)
 
 
 # ---------------------------------------------------------------- silhouettes

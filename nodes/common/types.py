@@ -195,9 +195,11 @@ def _save_array(path: Path, arr: np.ndarray):
 
 
 def _load_array(path: Path) -> np.ndarray:
-    """A stored array, memory-mapped copy-on-write (no read until used; writable without touching the file)."""
+    """A stored array, memory-mapped read-only: no read until used, and half the page-fault cost of a private
+    (copy-on-write) map (24 HD images: 17 vs 36-44 ms). A node must not edit its inputs in place anyway (a
+    frame unit hands the same value to every consumer); one that tries gets numpy's read-only error."""
     try:
-        return np.load(path, mmap_mode="c", allow_pickle=False)
+        return np.load(path, mmap_mode="r", allow_pickle=False)
     except (OSError, ValueError) as exc:
         raise DataError(f"{path}: unreadable array ({exc})") from None
 

@@ -107,6 +107,8 @@ class EvalMesh(Node):
 
     type_name = "eval.mesh"
     version = 1
+    publishes = True     # the report goes to OUT/tables/ (JSON per frame, CSV per node)
+    summary = ("folded_edges", "min_angle_below_5", "roughness_deg")
     inputs = {"mesh": Mesh,
               "reference": Input(Mesh, optional=True, doc="true surface (synthetic scenes): enables the normal error"),
               "volume": Input(Volume, optional=True, doc="its voxel size is the default band of the normal error")}

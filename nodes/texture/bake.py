@@ -117,19 +117,23 @@ def texel_bary_reference(texel_face, face_uv) -> np.ndarray:
 
 
 # ---------------------------------------------------------------- sample baking
-def bake_samples(sample_face, sample_bary, vertices, faces, cameras, frame: FrameImages, blend: Blend) -> np.ndarray:
-    """(N, 4) float32: colour (0..255) and summed blend weight of each sample (kernel ``bake``)."""
+def bake_samples(sample_face, sample_bary, vertices, faces, cameras, frame: FrameImages, blend: Blend, *,
+                 device_samples=None) -> np.ndarray:
+    """(N, 4) float32: colour (0..255) and summed blend weight of each sample (kernel ``bake``).
+    ``device_samples``: (face, bary) already on the device (a BakeLayout's), used instead of uploading."""
     import pyopencl as cl
 
     tcl = TextureCL.get()
     n = len(sample_face)
     K = blend.face_view.shape[1]
-    args = [tcl.upload("s_face", np.ascontiguousarray(sample_face, np.int32)),
-            tcl.upload("s_bary", np.ascontiguousarray(sample_bary, np.float32).reshape(-1)),
+    if device_samples is None:
+        device_samples = (tcl.upload("s_face", np.ascontiguousarray(sample_face, np.int32)),
+                          tcl.upload("s_bary", np.ascontiguousarray(sample_bary, np.float32).reshape(-1)))
+    args = [*device_samples,
             tcl.upload("verts", np.ascontiguousarray(vertices, np.float32)),
             tcl.upload("faces", np.ascontiguousarray(faces, np.int32)),
             tcl.upload("cams", cameras.pack()),
-            tcl.host(frame.packed), tcl.host(frame.packed_valid),
+            frame.device_images(tcl), frame.device_valid(tcl),
             tcl.upload("img_off", frame.offsets.astype(np.int64)),
             np.int32(K),
             tcl.upload("face_view", np.ascontiguousarray(blend.face_view, np.int32)),
@@ -190,18 +194,11 @@ def bake_samples_reference(sample_face, sample_bary, vertices, faces, cameras, f
 
 
 # ---------------------------------------------------------------- filling
-def push_pull(rgb: np.ndarray, known: np.ndarray, coarse: int = 16) -> np.ndarray:
-    """Fill unknown texels (outside the charts and their gutter) with a smooth extension of the known ones:
-    a pyramid of weighted averages down to 1/``coarse`` resolution (holes there filled from coarser levels),
-    upsampled once. Known texels are unchanged. Keeps mipmaps and PNG compression clean."""
+def _pyramid_fill(c, wt):
+    """Coarse colour sums ``c`` (h, w, 3) and known fractions ``wt`` (h, w), both area-averaged: every cell
+    gets its own mean where it has known texels, the coarser levels' fill where it has few or none."""
     import cv2
 
-    h, w = known.shape
-    wt = known.astype(np.float32)
-    c = rgb.astype(np.float32) * wt[..., None]
-    ch, cw = max(1, -(-h // coarse)), max(1, -(-w // coarse))
-    c = cv2.resize(c, (cw, ch), interpolation=cv2.INTER_AREA)
-    wt = cv2.resize(wt, (cw, ch), interpolation=cv2.INTER_AREA)
     levels = []
     while True:
         levels.append((c, wt))
@@ -213,8 +210,50 @@ def push_pull(rgb: np.ndarray, known: np.ndarray, coarse: int = 16) -> np.ndarra
     filled = np.divide(c, wt[..., None], out=np.full_like(c, 128.0), where=wt[..., None] > 0)
     for c, wt in reversed(levels[:-1]):
         up = cv2.resize(filled, (wt.shape[1], wt.shape[0]), interpolation=cv2.INTER_LINEAR)
+        if up.ndim == 2:
+            up = up[..., None]
         mine = np.divide(c, wt[..., None], out=np.zeros_like(c), where=wt[..., None] > 0)
         a = np.clip(wt * 4, 0, 1)[..., None]
         filled = a * mine + (1 - a) * up
+    return filled
+
+
+def push_pull(rgb: np.ndarray, known: np.ndarray, coarse: int = 16) -> np.ndarray:
+    """Fill unknown texels (outside the charts and their gutter) with a smooth extension of the known ones:
+    a pyramid of weighted averages down to 1/``coarse`` resolution (holes there filled from coarser levels),
+    upsampled once. Known texels are unchanged. Keeps mipmaps and PNG compression clean. (Full-image version of
+    ``fill_texture``, which works on a BakeLayout's compact texels.)"""
+    import cv2
+
+    h, w = known.shape
+    wt = known.astype(np.float32)
+    c = rgb.astype(np.float32) * wt[..., None]
+    ch, cw = max(1, -(-h // coarse)), max(1, -(-w // coarse))
+    c = cv2.resize(c, (cw, ch), interpolation=cv2.INTER_AREA)
+    wt = cv2.resize(wt, (cw, ch), interpolation=cv2.INTER_AREA)
+    filled = _pyramid_fill(c, wt)
     up = cv2.resize(filled, (w, h), interpolation=cv2.INTER_LINEAR)
     return np.where(known[..., None], rgb, up)
+
+
+def fill_texture(colour: np.ndarray, layout) -> np.ndarray:
+    """The (S, S, 3) uint8 texture: the baked colours (N, 3) of a BakeLayout's texels, every other texel
+    filled as ``push_pull`` does (block means at 1/16 resolution by bincount over the layout's cells, a
+    pyramid there, one bilinear upsampling)."""
+    import cv2
+
+    s = layout.size
+    ch, cw = layout.coarse_shape
+    n = ch * cw
+    col = np.asarray(colour, np.float64)
+    area = layout.cell_area.reshape(-1)
+    wt = (np.bincount(layout.cell, minlength=n) / area).reshape(ch, cw).astype(np.float32)
+    c = np.stack([np.bincount(layout.cell, col[:, k], minlength=n) / area for k in range(3)], axis=1)
+    filled = _pyramid_fill(c.reshape(ch, cw, 3).astype(np.float32), wt)
+    c16 = layout.COARSE                                       # cells of c16 texels (the last ones partial)
+    up = cv2.resize(np.clip(filled + 0.5, 0, 255).astype(np.uint8), (cw * c16, ch * c16),
+                    interpolation=cv2.INTER_LINEAR)[:s, :s]
+    up = np.ascontiguousarray(up)
+    flat = up.reshape(-1, 3)
+    flat[layout.texel] = np.clip(col + 0.5, 0, 255).astype(np.uint8)
+    return up

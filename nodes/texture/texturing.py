@@ -17,7 +17,8 @@ from nodegraph import NodeError
 
 from . import views as V
 from .atlas import Atlas, make_atlas
-from .bake import Blend, add_gutter, bake_samples, push_pull, texel_bary, uv_raster
+from .bake import Blend, bake_samples, fill_texture
+from .reuse import BakeLayout, Topology
 
 
 @dataclass
@@ -48,11 +49,33 @@ class Result:
     vertex_colours: np.ndarray | None          # (V, 3) uint8 (vertex mode)
     labels: np.ndarray
     blend: Blend
-    texel_face: np.ndarray | None = None
-    texel_weight: np.ndarray | None = None
-    texel_inner: np.ndarray | None = None      # (S, S) bool: texel centre inside a face (not the gutter)
+    layout: BakeLayout | None = None           # the atlas's texels (compact)
+    weight: np.ndarray | None = None           # (N,) summed blend weight of each layout texel (0: not painted)
     timings: dict = field(default_factory=dict)
     stats: dict = field(default_factory=dict)
+
+    @property
+    def texel_face(self) -> np.ndarray | None:
+        """(S, S) face per texel, -1 = empty (the gutter borrows a neighbouring face)."""
+        return None if self.layout is None else self.layout.texel_face
+
+    @property
+    def texel_weight(self) -> np.ndarray | None:
+        """(S, S) summed blend weight (0: no view painted the texel)."""
+        if self.layout is None:
+            return None
+        out = np.zeros(self.layout.size ** 2, np.float32)
+        out[self.layout.texel] = self.weight
+        return out.reshape(self.layout.size, self.layout.size)
+
+    @property
+    def texel_inner(self) -> np.ndarray | None:
+        """(S, S) bool: texel centre inside a face (not the gutter)."""
+        if self.layout is None:
+            return None
+        out = np.zeros(self.layout.size ** 2, bool)
+        out[self.layout.texel[self.layout.inner]] = True
+        return out.reshape(self.layout.size, self.layout.size)
 
 
 def prepare(vertices, faces, images, masks, cameras, s: Settings, timings: dict):
@@ -72,20 +95,20 @@ def prepare(vertices, faces, images, masks, cameras, s: Settings, timings: dict)
     return frame, stats
 
 
-def choose(vertices, faces, cameras, frame, stats, s: Settings, nbr, timings: dict):
+def choose(vertices, faces, cameras, frame, stats, s: Settings, topo: Topology, timings: dict):
     t = time.perf_counter()
     gains = V.camera_gains(stats.quality, stats.colour) if s.balance else np.ones((len(cameras), 3), np.float32)
     sharp = V.view_sharpness(frame.images, frame.valid)
     q = stats.effective() * sharp[:, None].astype(np.float32)
-    cost, spread = V.data_cost(q, stats.colour, gains, consistency=s.consistency, return_spread=True)
-    labels = V.select_views(cost, nbr, smoothness=s.smoothness)
+    d_cost, spread, d_best = V.data_cost_cl(stats, sharp, gains, consistency=s.consistency)   # = V.data_cost(q, ...)
+    labels = V.select_views_cl(d_cost, d_best, topo.nbr, len(cameras), smoothness=s.smoothness)   # = V.select_views
     face_view, weight = V.blend_weights(labels, q, faces, len(vertices), feather=s.feather,
                                         spread=spread if s.adaptive else None, spread_range=s.spread_range,
-                                        K=s.blend_views, power=s.average_power)
+                                        K=s.blend_views, power=s.average_power, topo=topo)
     timings["selection"] = time.perf_counter() - t
     t = time.perf_counter()
     if s.level:
-        offset = V.level_seams(vertices, faces, face_view, weight, cameras, frame, gains)
+        offset = V.level_seams(vertices, faces, face_view, weight, cameras, frame, gains, topo=topo)
     else:
         offset = np.zeros(face_view.shape[:1] + (3,) + face_view.shape[1:] + (3,), np.float32)
     timings["levelling"] = time.perf_counter() - t
@@ -102,9 +125,12 @@ def texture_mesh(vertices, faces, images, masks, cameras, s: Settings = Settings
     faces = np.asarray(faces, np.int32)
     timings: dict = {}
     frame, stats = prepare(vertices, faces, images, masks, cameras, s, timings)
-    nbr = V.face_neighbours(faces)
-    labels, blend = choose(vertices, faces, cameras, frame, stats, s, nbr, timings)
-    fallback = V.fallback_vertex_colours(labels, stats.colour, blend.gains, faces, len(vertices))
+    topo = Topology.of(faces, len(vertices))
+    labels, blend = choose(vertices, faces, cameras, frame, stats, s, topo, timings)
+
+    def fallback():
+        return V.fallback_vertex_colours(labels, stats.colour, blend.gains, faces, len(vertices), topo=topo)
+
     info = {"faces": int(len(faces)), "faces_without_view": int(np.sum(labels < 0)),
             "views_used": int(len(np.unique(labels[labels >= 0])))}
     if mode == "vertex":
@@ -118,14 +144,14 @@ def texture_mesh(vertices, faces, images, masks, cameras, s: Settings = Settings
         bary = np.zeros((len(vertices), 3), np.float32)
         bary[np.arange(len(vertices)), corner] = 1.0
         rgbw = bake_samples(np.where(used, first_face, -1), bary, vertices, faces, cameras, frame, blend)
-        col = np.where(rgbw[:, 3:4] > 0, rgbw[:, :3], fallback)
+        col = np.where(rgbw[:, 3:4] > 0, rgbw[:, :3], fallback())
         timings["baking"] = time.perf_counter() - t
         info["vertices_from_fallback"] = int(np.sum(rgbw[:, 3] <= 0))
         return Result(None, None, np.clip(col + 0.5, 0, 255).astype(np.uint8), labels, blend, timings=timings, stats=info)
 
     t = time.perf_counter()
     if atlas is None:
-        atlas = make_atlas(vertices, faces, nbr, s.size, directions=s.directions, gutter=s.gutter)
+        atlas = make_atlas(vertices, faces, topo.nbr, s.size, directions=s.directions, gutter=s.gutter)
         timings["atlas"] = time.perf_counter() - t
     else:
         if not atlas.matches(faces):
@@ -133,26 +159,19 @@ def texture_mesh(vertices, faces, images, masks, cameras, s: Settings = Settings
                             f"{len(faces)} faces (an atlas can be reused only for meshes with the same faces)")
         timings["atlas"] = 0.0
     t = time.perf_counter()
-    size = atlas.size
-    inner = uv_raster(atlas.face_uv, size)
-    texel_face = add_gutter(inner, max(1, s.gutter))
-    bary = texel_bary(texel_face, atlas.face_uv)
-    flat_face = texel_face.reshape(-1)
-    rgbw = bake_samples(flat_face, bary.reshape(-1, 3), vertices, faces, cameras, frame, blend)
+    layout = BakeLayout.of(atlas, max(1, s.gutter))
+    rgbw = bake_samples(layout.face, layout.bary, vertices, faces, cameras, frame, blend,
+                        device_samples=layout.device())
     col = rgbw[:, :3]
     w = rgbw[:, 3]
-    need = (flat_face >= 0) & (w <= 0)
-    if np.any(need):                                          # no view may paint it: the vertex-colour fallback
-        idx = np.flatnonzero(need)
-        col[idx] = np.einsum("nc,ncd->nd", bary.reshape(-1, 3)[idx], fallback[faces[flat_face[idx]]])
-    known = (flat_face >= 0).reshape(size, size)
-    img = push_pull(col.reshape(size, size, 3), known)
-    texture = np.clip(img + 0.5, 0, 255).astype(np.uint8)
+    need = np.flatnonzero(w <= 0)
+    if len(need):                                             # no view may paint it: the vertex-colour fallback
+        col[need] = np.einsum("nc,ncd->nd", layout.bary[need], fallback()[faces[layout.face[need]]])
+    texture = fill_texture(col, layout)
     timings["baking"] = time.perf_counter() - t
-    info.update({"charts": atlas.n_charts, "texels_covered": int(np.sum(inner >= 0)),
-                 "texels_from_fallback": int(np.sum(need & (inner.reshape(-1) >= 0)))})
-    return Result(atlas, texture, None, labels, blend, texel_face=texel_face, texel_weight=w.reshape(size, size),
-                  texel_inner=inner >= 0, timings=timings, stats=info)
+    info.update({"charts": atlas.n_charts, "texels_covered": int(np.sum(layout.inner)),
+                 "texels_from_fallback": int(np.sum(layout.inner[need]))})
+    return Result(atlas, texture, None, labels, blend, layout=layout, weight=w, timings=timings, stats=info)
 
 
 # ---------------------------------------------------------------- trimesh output

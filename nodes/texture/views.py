@@ -16,10 +16,12 @@ mesh's outline. Quality = projected area in pixels x cosine (resolution and fron
 sharpness factor; a weaker test (centroid only) backs up faces no view passes. Selection minimises
 sum_f D(f, l_f) + smoothness * #{neighbour faces with another label} (Potts) with D = 1 - q / max_q, plus a
 penalty for colours inconsistent with the face's other views (occluders and registration errors), by iterated
-conditional modes over random halves of the faces.
+conditional modes over pseudo-random halves of the faces (kernels ``face_cost`` and ``icm_step``;
+``data_cost`` and ``select_views`` are their NumPy references).
 """
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -56,6 +58,17 @@ class FrameImages:
         packed_valid = np.concatenate([v.reshape(-1) for v in valid])
         return cls(list(images), valid, packed, packed_valid, offsets)
 
+    def device_images(self, tcl):
+        """``packed`` as a device buffer (made once per frame; on a CPU device it is the host memory itself)."""
+        if getattr(self, "_d_img", None) is None:
+            self._d_img = tcl.host(self.packed)
+        return self._d_img
+
+    def device_valid(self, tcl):
+        if getattr(self, "_d_valid", None) is None:
+            self._d_valid = tcl.host(self.packed_valid)
+        return self._d_valid
+
 
 def valid_mask(shape, mask, margin: int) -> np.ndarray:
     """uint8 1 where a pixel may be sampled: inside the mask eroded by ``margin`` pixels (all pixels without a
@@ -76,6 +89,8 @@ class FaceViews:
     quality: np.ndarray   # (V, F) float32, 0 = not usable
     colour: np.ndarray    # (V, F, 3) float32 mean colour (0..255) where usable (the centroid's where relaxed)
     relaxed: np.ndarray   # (V, F) float32 quality under the weaker test (centroid only, no edge margin)
+
+    device = None         # (quality, relaxed, colour) device buffers, as written by face_view_stats
 
     def effective(self, weak=0.01) -> np.ndarray:
         """Quality with views that pass only the relaxed test kept at ``weak`` times theirs: used only where
@@ -107,11 +122,11 @@ def face_view_stats(vertices, faces, cameras: Cameras, frame: FrameImages, *, de
     dt, et = _tolerances(v, depth_tol, edge_tol)
     r = MeshRaster(v, f, cameras)
     tcl = TextureCL.get()
-    d_img = tcl.host(frame.packed)
-    d_valid = tcl.host(frame.packed_valid)
-    d_q = tcl.buffer("fv_quality", 4 * nf)
-    d_r = tcl.buffer("fv_relaxed", 4 * nf)
-    d_c = tcl.buffer("fv_colour", 12 * nf)
+    d_img = frame.device_images(tcl)
+    d_valid = frame.device_valid(tcl)
+    d_q = tcl.buffer("fv_quality", 4 * nf * nv)
+    d_r = tcl.buffer("fv_relaxed", 4 * nf * nv)
+    d_c = tcl.buffer("fv_colour", 12 * nf * nv)
     centres = cameras.centers
     for view in range(nv):
         zbuf = r.zbuffer(view)
@@ -119,10 +134,13 @@ def face_view_stats(vertices, faces, cameras: Cameras, frame: FrameImages, *, de
         tcl.launch("face_views", (nf,), (64,), r.d_verts, r.d_faces, np.int32(nf), r.d_cams, np.int32(view),
                    cl.cltypes.make_float4(*centres[view], 0), zbuf, d_valid, d_img, np.int64(off), np.float32(dt), np.float32(et),
                    np.int32(edge_px), d_q, d_r, d_c)
-        tcl.read(d_q, (nf,), np.float32, out=quality[view])
-        tcl.read(d_r, (nf,), np.float32, out=relaxed[view])
-        tcl.read(d_c, (nf, 3), np.float32, out=colour[view])
-    return FaceViews(quality, colour, relaxed)
+    cl.enqueue_copy(tcl.queue, quality, d_q, is_blocking=False)
+    cl.enqueue_copy(tcl.queue, relaxed, d_r, is_blocking=False)
+    cl.enqueue_copy(tcl.queue, colour, d_c, is_blocking=True)
+    out = FaceViews(quality, colour, relaxed)
+    out.device = (d_q, d_r, d_c)
+    tcl.face_views_latest = weakref.ref(out)       # the buffers are shared: only the latest stats own them
+    return out
 
 
 def _sample_rgb_reference(img, p):
@@ -274,19 +292,34 @@ def data_cost(quality, colour, gains=None, *, consistency=40.0, return_spread=Fa
     return (cost, spread) if return_spread else cost
 
 
+def hash32(x) -> np.ndarray:
+    """lowbias32 integer hash on uint32 (kernel ``hash32``)."""
+    x = np.asarray(x, np.uint32)
+    with np.errstate(over="ignore"):
+        x = x ^ (x >> np.uint32(16))
+        x = x * np.uint32(0x7FEB352D)
+        x = x ^ (x >> np.uint32(15))
+        x = x * np.uint32(0x846CA68B)
+        return x ^ (x >> np.uint32(16))
+
+
+def round_key(seed: int, it: int) -> np.uint32:
+    return hash32(np.uint32((0x9E3779B9 * (it + 1) + seed) & 0xFFFFFFFF))[()]
+
+
 def select_views(cost, nbr, *, smoothness=0.5, iterations=12, seed=0) -> np.ndarray:
     """Labels (F,) minimising sum D(f, l_f) + smoothness * #{neighbours with another label} (Potts), by
-    iterated conditional modes: each round updates a random half of the faces to their best label given
-    their neighbours' labels. Faces with no usable view get -1."""
+    iterated conditional modes: each round updates a pseudo-random half of the faces (a hash of face and
+    round) to their best label given their neighbours' labels. Faces with no usable view get -1. NumPy
+    reference of ``select_views_cl``."""
     cost = np.asarray(cost, np.float32)
     nf, nv = cost.shape
     labels = np.argmin(cost, axis=1)
     none = cost[np.arange(nf), labels] >= INVISIBLE
     if smoothness > 0 and nf:
-        rng = np.random.default_rng(seed)
         rows = np.arange(nf)
         valid_nbr = nbr >= 0
-        for _ in range(iterations):
+        for it in range(iterations):
             agree = np.zeros((nf, nv), np.float32)
             for k in range(3):
                 has = valid_nbr[:, k] & ~none[np.maximum(nbr[:, k], 0)]
@@ -294,11 +327,64 @@ def select_views(cost, nbr, *, smoothness=0.5, iterations=12, seed=0) -> np.ndar
             total = agree.sum(axis=1, keepdims=True)
             energy = cost + smoothness * (total - agree)
             best = np.argmin(energy, axis=1)
-            move = (rng.random(nf) < 0.5) & (best != labels)
+            move = ((hash32(rows.astype(np.uint32) ^ round_key(seed, it)) & 1) == 1) & (best != labels)
             if not np.any(move):
                 break
             labels = np.where(move, best, labels)
     labels = np.where(none, -1, labels)
+    return labels
+
+
+def data_cost_cl(stats: "FaceViews", sharp, gains, *, weak=0.01, consistency=40.0):
+    """Kernel ``face_cost`` over the visibility left on the device by ``face_view_stats``: (cost (F, V) device
+    buffer, spread (F,), best view (F,) device buffer). Same numbers as ``data_cost(stats.effective(weak) *
+    sharp, stats.colour, gains, consistency=...)``."""
+    import pyopencl as cl
+
+    tcl = TextureCL.get()
+    nv, nf = stats.quality.shape
+    latest = getattr(tcl, "face_views_latest", None)
+    if stats.device is None or latest is None or latest() is not stats:    # not (or no longer) on the device
+        d_q, d_r, d_c = (tcl.upload(n, np.ascontiguousarray(a, np.float32)) for n, a in
+                         (("fv_quality", stats.quality), ("fv_relaxed", stats.relaxed), ("fv_colour", stats.colour)))
+    else:
+        d_q, d_r, d_c = stats.device
+    d_cost = tcl.buffer("cost", 4 * max(nf * nv, 1))
+    d_spread = tcl.buffer("spread", 4 * max(nf, 1))
+    d_best = tcl.buffer("labels_a", 4 * max(nf, 1))
+    spread = np.zeros(nf, np.float32)
+    if nf:
+        tcl.launch("face_cost", (nf,), (64,), np.int32(nf), np.int32(nv), d_q, d_r, d_c,
+                   tcl.upload("sharp", np.asarray(sharp, np.float32)), tcl.upload("gain", np.asarray(gains, np.float32)),
+                   np.float32(weak), np.float32(consistency), d_cost, d_spread, d_best)
+        cl.enqueue_copy(tcl.queue, spread, d_spread, is_blocking=True)
+    return d_cost, spread, d_best
+
+
+def select_views_cl(d_cost, d_best, nbr, nviews, *, smoothness=0.5, iterations=12, seed=0) -> np.ndarray:
+    """``select_views`` on the device (kernel ``icm_step``) from ``data_cost_cl``'s buffers: labels (F,)."""
+    import pyopencl as cl
+
+    tcl = TextureCL.get()
+    nf = len(nbr)
+    labels = np.empty(nf, np.int32)
+    if nf == 0:
+        return labels
+    cur = d_best
+    if smoothness > 0:
+        d_nbr = tcl.upload("nbr", np.ascontiguousarray(nbr, np.int32))
+        other = tcl.buffer("labels_b", 4 * nf)
+        d_moved = tcl.buffer("moved", 4)
+        moved = np.zeros(1, np.int32)
+        for it in range(iterations):
+            cl.enqueue_fill_buffer(tcl.queue, d_moved, np.int32(0), 0, 4)
+            tcl.launch("icm_step", (nf,), (64,), np.int32(nf), np.int32(nviews), d_cost, d_nbr, cur, other,
+                       np.float32(smoothness), np.uint32(round_key(seed, it)), d_moved)
+            cur, other = other, cur
+            cl.enqueue_copy(tcl.queue, moved, d_moved, is_blocking=True)
+            if moved[0] == 0:
+                break
+    cl.enqueue_copy(tcl.queue, labels, cur, is_blocking=True)
     return labels
 
 
@@ -347,7 +433,7 @@ def vertex_adjacency(faces, n_vertices):
 
 
 def blend_weights(labels, quality, faces, n_vertices, *, feather=2, K=4, spread=None, spread_range=(8.0, 24.0),
-                  power=2.0):
+                  power=2.0, topo=None):
     """Soft labels that cross-fade between views over ``feather`` vertex rings on each side of a view seam.
 
     Per vertex, the share of its faces painted by each view is averaged ``feather`` times over the vertex
@@ -376,14 +462,15 @@ def blend_weights(labels, quality, faces, n_vertices, *, feather=2, K=4, spread=
     s = W.sum(axis=1, keepdims=True)
     W = np.divide(W, s, out=np.zeros_like(W), where=s > 0)
     if feather > 0:
-        A = vertex_adjacency(faces, n_vertices)
+        A = topo.adjacency if topo is not None else vertex_adjacency(faces, n_vertices)
         for _ in range(feather):
             W = A @ W
     if spread is not None and len(faces):
         q = np.asarray(quality, np.float32).T                 # (F, V)
         qmax = q.max(axis=1, keepdims=True)
         qn = np.divide(q, qmax, out=np.zeros_like(q), where=qmax > 0) ** power
-        inc = csr_matrix((np.ones(3 * nf), (faces.ravel(), np.repeat(np.arange(nf), 3))), shape=(n_vertices, nf))
+        inc = topo.incidence if topo is not None else csr_matrix(
+            (np.ones(3 * nf), (faces.ravel(), np.repeat(np.arange(nf), 3))), shape=(n_vertices, nf))
         W_avg = np.asarray(inc @ qn)
         sw = W_avg.sum(axis=1, keepdims=True)
         W_avg = np.divide(W_avg, sw, out=np.zeros_like(W_avg), where=sw > 0)
@@ -437,7 +524,7 @@ def vertex_view_samples(vertices, index, views, cameras: Cameras, frame: FrameIm
 
 
 def level_seams(vertices, faces, face_view, weight, cameras: Cameras, frame: FrameImages, gains, *,
-                smoothness=0.3, regular=0.1, band=3, tol=1e-3, maxiter=100, min_weight=0.1):
+                smoothness=0.3, regular=0.1, band=3, tol=1e-3, maxiter=100, min_weight=0.1, topo=None):
     """Seam levelling (after Waechter et al. 2014, sec. 5), within a band of ``band`` vertex rings around the
     view seams: an additive colour offset g per (vertex, view) pair used by the blend, such that at every
     vertex the views agree (f_va + g_va = f_vb + g_vb, f = the gain-corrected colour of the vertex in the
@@ -462,7 +549,7 @@ def level_seams(vertices, faces, face_view, weight, cameras: Cameras, frame: Fra
     seam[kv[1:][kv[1:] == kv[:-1]]] = True                               # vertices with two or more views
     if not np.any(seam):
         return offset
-    A_adj = vertex_adjacency(faces, nvert)
+    A_adj = topo.adjacency if topo is not None else vertex_adjacency(faces, nvert)
     inband = seam.astype(np.float64)
     for _ in range(band):
         inband = np.maximum(inband, (A_adj @ inband > 0).astype(np.float64))
@@ -475,7 +562,7 @@ def level_seams(vertices, faces, face_view, weight, cameras: Cameras, frame: Fra
     same = (node_vertex[1:] == node_vertex[:-1]) & ok[1:] & ok[:-1]      # nodes are sorted by vertex, then view
     i0 = np.flatnonzero(same)
     i1 = i0 + 1
-    edges, _ = unique_edges(faces)
+    edges = topo.edges if topo is not None else unique_edges(faces)[0]
     edges = edges[inband[edges[:, 0]] | inband[edges[:, 1]]]
     rows, cols, vals = [np.arange(len(i0))] * 2, [i0, i1], [np.ones(len(i0)), -np.ones(len(i0))]
     m = len(i0)
@@ -543,7 +630,7 @@ def block_pcg(M, B, *, tol=1e-4, maxiter=200):
     return X
 
 
-def fallback_vertex_colours(labels, colour, gains, faces, n_vertices, rounds=50) -> np.ndarray:
+def fallback_vertex_colours(labels, colour, gains, faces, n_vertices, rounds=50, topo=None) -> np.ndarray:
     """(V, 3) colours for places no view may paint: each vertex averages the selected-view colours of its
     faces; vertices without any are filled by repeated neighbourhood averaging (a harmonic fill)."""
     faces = np.asarray(faces, np.int64)
@@ -551,14 +638,15 @@ def fallback_vertex_colours(labels, colour, gains, faces, n_vertices, rounds=50)
     cnt = np.zeros(n_vertices)
     has = labels >= 0
     if np.any(has):
-        fc = colour[labels[has], np.flatnonzero(has)] * np.asarray(gains)[labels[has]]
-        for k in range(3):
-            np.add.at(col, faces[has, k], fc)
-            np.add.at(cnt, faces[has, k], 1)
+        fc = np.repeat(colour[labels[has], np.flatnonzero(has)] * np.asarray(gains)[labels[has]], 3, axis=0)
+        corners = faces[has].ravel()
+        cnt = np.bincount(corners, minlength=n_vertices).astype(np.float64)
+        for c in range(3):
+            col[:, c] = np.bincount(corners, fc[:, c], minlength=n_vertices)
     known = cnt > 0
     col[known] /= cnt[known, None]
     if not np.all(known) and np.any(known) and len(faces):
-        A = vertex_adjacency(faces, n_vertices)
+        A = topo.adjacency if topo is not None else vertex_adjacency(faces, n_vertices)
         filled = known.astype(np.float64)
         unknown = np.flatnonzero(~known)
         Au = A[unknown]

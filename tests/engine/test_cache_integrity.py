@@ -162,3 +162,39 @@ def test_fifo_and_dev_zero_in_an_input_folder_do_not_hang(tmp_path):
     assert "Traceback" not in proc.stderr
     warned = [ln for ln in proc.stderr.splitlines() if ln.startswith("warning:") and "not regular files" in ln]
     assert warned and "pipe" in warned[0] and "zeros" in warned[0], proc.stderr
+
+
+def test_checked_files_are_not_read_again_until_they_change(tmp_path, monkeypatch):
+    """A file whose hash matched is trusted by (inode, size, mtime, ctime) until it changes: a re-run does not
+    hash 150 MB of camera images per frame again, yet a rewrite that restores the old mtime is still caught."""
+    import nodegraph.cache as C
+
+    monkeypatch.setattr(C, "SETTLED_NS", 0)  # the test's files are seconds old
+    p = graph(tmp_path)
+    first = run(tmp_path, p)
+    s0 = record(first, "src", 0)
+    npy = Path(s0["cache_dir"]) / "out" / "array.npy"
+    hashed = []
+    real = C.file_hash
+    monkeypatch.setattr(C, "file_hash", lambda f: hashed.append(Path(f).name) or real(f))
+    from nodegraph.types import Array
+
+    assert Cache(tmp_path / "cache").verify(s0["key"]) is None and hashed == ["array.npy"]
+    hashed.clear()
+    Cache(tmp_path / "cache").load(s0["key"], "out", Array)
+    assert hashed == [], "an unchanged, checked file is not read again"
+    st = npy.stat()
+    flip_bytes(npy)
+    os.utime(npy, ns=(st.st_atime_ns, st.st_mtime_ns))   # same size, same mtime: only the ctime moved
+    assert "does not match" in Cache(tmp_path / "cache").verify(s0["key"])
+
+    # damage no write made (a forged record standing in for bit rot under the same inode): reads trust the
+    # record, `cache verify` reads every file
+    s1 = record(first, "src", 1)
+    npy = Path(s1["cache_dir"]) / "out" / "array.npy"
+    flip_bytes(npy)
+    st = npy.stat()
+    (npy.parent.parent / C.CHECKED).write_text(json.dumps({"out/array.npy": [st.st_ino, st.st_size, st.st_mtime_ns,
+                                                                            st.st_ctime_ns]}))
+    assert Cache(tmp_path / "cache").verify(s1["key"]) is None
+    assert "does not match" in Cache(tmp_path / "cache").verify(s1["key"], full=True)

@@ -1,4 +1,5 @@
-"""End to end: the demo graph (synth -> key -> cleanup -> hull -> mc -> export + eval), shrunk."""
+"""End to end: the demo graph (synth -> key -> cleanup -> hull -> mc -> refine -> relax -> texture, skeleton; the
+hull carved beside it; exports and evaluations), shrunk."""
 from __future__ import annotations
 
 import json
@@ -13,11 +14,11 @@ ROOT = Path(__file__).resolve().parents[2]
 
 def test_demo_graph_end_to_end(tmp_path):
     small = ["--set", "stage.width=240", "--set", "stage.height=180", "--set", "stage.cameras=8",
-             "--set", "hull.resolution=64", "--set", "texture.size=256", "--frames", "0:2"]
+             "--set", "hull.resolution=64", "--set", "skeleton.resolution=64", "--set", "texture.size=256", "--frames", "0:2"]
     args = ["--cache", str(tmp_path / "cache"), "run", str(ROOT / "graphs/demo.yaml"), "--out", str(tmp_path / "out"), "-q", "-j", "1"]
     assert cli(args + small) == 0
     doc = json.loads((tmp_path / "out/run.json").read_text())
-    assert doc["counts"] == {"done": 22}
+    assert doc["counts"] == {"done": 36}
     items = {(r["node"], r["frame"]): r for r in doc["items"]}
     for f in (0, 1):
         mesh = trimesh.load(tmp_path / f"out/demo_{f:04d}.ply", process=False)
@@ -29,9 +30,16 @@ def test_demo_graph_end_to_end(tmp_path):
         assert len(list((tmp_path / "out/masks").glob(f"*/{f:04d}.png"))) == 8
         glb = trimesh.load(tmp_path / f"out/demo_{f:04d}.glb", force="mesh")     # the textured mesh, texture embedded
         assert glb.visual.kind == "texture" and glb.visual.material.baseColorTexture.size == (256, 256)
+        health = json.loads((tmp_path / f"out/tables/health/{f}.json").read_text())
+        assert health["folded_edges"] == 0 and health["watertight"], health
+        assert health["normal_error_mean_deg"] < 15, health["normal_error_mean_deg"]
+        skel = json.loads((Path(items[("skeleton", f)]["cache_dir"]) / "report/table.json").read_text())
+        assert sorted(skel["names"]) == ["foot_0", "foot_1", "hand_0", "hand_1", "head"], skel
+        carved = trimesh.load(tmp_path / f"out/demo_carved_{f:04d}.ply", process=False)
+        assert carved.visual.kind == "vertex" and carved.volume < mesh.volume * 1.05
     # a second run is all cache hits and rewrites identical files
     before = (tmp_path / "out/demo_0000.ply").read_bytes()
     assert cli(args + small) == 0
     doc = json.loads((tmp_path / "out/run.json").read_text())
-    assert doc["counts"] == {"cached": 22}
+    assert doc["counts"] == {"cached": 36}
     assert (tmp_path / "out/demo_0000.ply").read_bytes() == before
