@@ -41,6 +41,7 @@ class TrackParams:
     fail_p95: float = 3.0         # ... or this 95th percentile of either distance
     max_iou_drop: float = 0.01    # ... or a silhouette IoU this far below the reconstruction's (with views)
     extrapolate: float = 0.7      # each frame starts from the last state plus this share of the last motion
+    tries: int = 3                # keyframe candidates grown per round; the longest segment is kept
     fit: FitParams = field(default_factory=FitParams)
 
 
@@ -86,15 +87,22 @@ def keyframe_key(stats: dict) -> tuple:
 def surface_residuals(x: np.ndarray, faces: np.ndarray, target: Target, vf=None, samples: int = 4000, seed: int = 0) -> dict:
     """Distances (voxels) from tracked vertices to the reconstruction's surface (accuracy) and from the
     reconstruction's vertices to the tracked surface (completeness): mean and 95th percentile over ``samples``
-    vertices drawn at random each way (0 = all)."""
+    vertices drawn at random each way (0 = all); ``outside_*``: the accuracy distances counting only tracked
+    vertices outside the reconstruction (inside: 0), what the failure test reads (limbs that touch are one
+    blob in a visual hull, the tracked mesh keeps them apart: its surfaces between them lie inside)."""
     rng = np.random.default_rng(seed)
     pick = lambda n: np.arange(n) if not samples or n <= samples else rng.choice(n, samples, replace=False)  # noqa: E731
-    _, d_acc = target.query.closest(x[pick(len(x))])
+    xs = x[pick(len(x))]
+    c, d_acc, f = target.query.closest(xs, with_faces=True)
+    tri = target.vertices[target.faces[f]]
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    d_out = np.where(np.einsum("ij,ij->i", xs - c, fn) > 0, d_acc, 0.0)   # inside the reconstruction: 0
     tracked = SurfaceQuery(x, faces, vf=vf, with_normals=False)
     rec = target.vertices[target.query.used]
     _, d_comp = tracked.closest(rec[pick(len(rec))])
     return {"accuracy_mean": float(d_acc.mean()), "accuracy_p95": float(np.percentile(d_acc, 95)),
-            "completeness_mean": float(d_comp.mean()), "completeness_p95": float(np.percentile(d_comp, 95))}
+            "completeness_mean": float(d_comp.mean()), "completeness_p95": float(np.percentile(d_comp, 95)),
+            "outside_mean": float(d_out.mean()), "outside_p95": float(np.percentile(d_out, 95))}
 
 
 def silhouette_iou(vertices, faces, cameras, masks) -> float:
@@ -177,95 +185,166 @@ def predict(before: deform.GraphState, now: deform.GraphState, factor: float) ->
 
 
 def _failure(res: dict, iou: float | None, iou_rec: float | None, p: TrackParams) -> str:
-    if max(res["accuracy_mean"], res["completeness_mean"]) > p.fail_mean:
-        return (f"mean surface distance {max(res['accuracy_mean'], res['completeness_mean']):.2f} voxels "
+    if max(res["outside_mean"], res["completeness_mean"]) > p.fail_mean:
+        return (f"mean surface distance {max(res['outside_mean'], res['completeness_mean']):.2f} voxels "
                 f"> {p.fail_mean}")
     if res["completeness_p95"] > p.fail_p95:
         return f"95th percentile reconstruction -> tracked {res['completeness_p95']:.2f} voxels > {p.fail_p95}"
-    if res["accuracy_p95"] > p.fail_p95:
-        return f"95th percentile tracked -> reconstruction {res['accuracy_p95']:.2f} voxels > {p.fail_p95}"
+    if res["outside_p95"] > p.fail_p95:
+        return f"95th percentile tracked -> reconstruction (outside it) {res['outside_p95']:.2f} voxels > {p.fail_p95}"
     if iou is not None and iou_rec is not None and iou_rec - iou > p.max_iou_drop:
         return f"silhouette IoU {iou:.4f} is {iou_rec - iou:.4f} below the reconstruction's {iou_rec:.4f}"
     return ""
 
 
+@dataclass
+class _Trial:
+    """One keyframe's segment as far as it grew: its results per frame (index -> FrameResult)."""
+    seg: Segment
+    results: dict
+
+    def truncate(self, done: np.ndarray) -> bool:
+        """Cut the segment at the first frame on either side that another segment has taken since (the growth
+        is sequential outwards from the keyframe, so the part before that frame is exactly what a new trial
+        would give); False when the keyframe itself is taken."""
+        seg = self.seg
+        if done[seg.keyframe]:
+            return False
+        taken = [i for i in range(seg.keyframe + 1, seg.stop + 1) if done[i]]
+        if taken:
+            seg.stop = taken[0] - 1
+            seg.reason_stop = f"frame {taken[0]}: already tracked"
+        taken = [i for i in range(seg.keyframe - 1, seg.start - 1, -1) if done[i]]
+        if taken:
+            seg.start = taken[0] + 1
+            seg.reason_start = f"frame {taken[0]}: already tracked"
+        self.results = {i: r for i, r in self.results.items() if seg.start <= i <= seg.stop}
+        return True
+
+    @property
+    def length(self) -> int:
+        return self.seg.stop - self.seg.start + 1
+
+
+def grow_segment(frames: Frames, params: TrackParams, k: int, done: np.ndarray, progress=None) -> _Trial:
+    """Deform keyframe ``k``'s reconstruction forwards, then backwards, frame by frame, until a fit fails, a
+    frame another segment holds (``done``) or the sequence ends (see the module docstring)."""
+    n = len(frames)
+    fit_p = params.fit
+    key_mesh = frames.meshes[k]
+    faces = np.asarray(key_mesh.faces, np.int64)
+    if len(faces) == 0:  # nothing reconstructed: a segment of its own, empty
+        log.warning("frame %d: empty reconstruction, a segment of its own", k)
+        res = FrameResult(np.asarray(key_mesh.vertices, np.float64), -1, k, 0.0, 0.0, 0.0, 0.0,
+                          frames.iou_reconstruction(k), frames.iou_reconstruction(k))
+        return _Trial(Segment(-1, k, k, k, faces, 0, "empty reconstruction", "empty reconstruction"), {k: res})
+    t0 = time.perf_counter()
+    target_k = frames.target(k)
+    graph = deform.build_graph(target_k.vertices, faces, params.spacing, seed=fit_p.seed)
+    reg = deform.Registration(graph, faces, fit_p)
+    rings = deform.ring_operator(faces, len(graph.rest))
+    vf = deform.vertex_faces(faces, len(graph.rest))
+    iou_k = frames.iou_reconstruction(k)
+    results = {k: FrameResult(np.asarray(key_mesh.vertices, np.float64), -1, k, 0.0, 0.0, 0.0, 0.0, iou_k, iou_k,
+                              time.perf_counter() - t0)}
+    seg = Segment(-1, k, k, k, faces, len(graph.nodes), "keyframe")
+    for direction in (1, -1):
+        state = deform.GraphState.identity(graph)
+        before = state                       # the state one frame earlier, for the motion prediction
+        i = k + direction
+        reason = "end of sequence"
+        while 0 <= i < n and not done[i]:
+            t0 = time.perf_counter()
+            if len(frames.meshes[i].faces) == 0:
+                reason = f"frame {i}: empty reconstruction"
+                break
+            target = frames.target(i)
+            new_state, info = reg.fit(predict(before, state, params.extrapolate), target)
+            offsets = deform.laplacian_offsets(graph, new_state, rings)
+            x = deform.detail(graph.deform(new_state), faces, target, fit_p, rings, offsets=offsets)
+            x = deform.snap(x, faces, target, fit_p, rings, offsets=offsets)
+            res = surface_residuals(x, faces, target, vf)
+            world = target.world(x)
+            iou = silhouette_iou(world, faces, frames.cameras[i], frames.masks[i].masks) if frames.has_views else None
+            iou_rec = frames.iou_reconstruction(i)
+            why = _failure(res, iou, iou_rec, params)
+            if why:
+                reason = f"frame {i}: {why}"
+                break
+            res = {key: v for key, v in res.items() if not key.startswith("outside")}
+            results[i] = FrameResult(world, -1, k, **res, iou=iou, iou_reconstruction=iou_rec,
+                                     seconds=time.perf_counter() - t0)
+            before, state = state, new_state
+            if direction > 0:
+                seg.stop = i
+            else:
+                seg.start = i
+            if progress:
+                progress(1)
+            i += direction
+        else:
+            if 0 <= i < n:
+                reason = f"frame {i}: already tracked"
+        if direction > 0:
+            seg.reason_stop = reason
+        else:
+            seg.reason_start = reason
+    return _Trial(seg, results)
+
+
 def track_sequence(frames: Frames, params: TrackParams, progress=None, keyframe: int | None = None
                    ) -> tuple[list[FrameResult | None], list[Segment]]:
     """Segments of tracked meshes covering every frame (see the module docstring). ``keyframe``: the first
-    segment's keyframe (index) instead of the automatic choice."""
+    segment's keyframe (index) instead of the automatic choice.
+
+    Keyframes are chosen by trial: each round grows segments from up to ``params.tries`` new candidates (the
+    untracked frames best by ``keyframe_key``, none inside a segment already tried) and keeps the longest of
+    these and of the earlier rounds' trials (cut where a kept segment took their frames; a trial is never
+    grown twice). A segment that fills its whole stretch of untracked frames is kept at once, so a sequence
+    one keyframe explains costs one trial."""
     n = len(frames)
     results: list[FrameResult | None] = [None] * n
     segments: list[Segment] = []
     done = np.zeros(n, bool)
-    fit_p = params.fit
+    trials: dict[int, _Trial] = {}
     while not done.all():
-        todo = np.flatnonzero(~done)
-        k = int(min(todo, key=lambda i: keyframe_key(frames.stats[i]))) if keyframe is None or segments else keyframe
-        seg_index = len(segments)
-        key_mesh = frames.meshes[k]
-        faces = np.asarray(key_mesh.faces, np.int64)
-        if len(faces) == 0:  # nothing reconstructed: a segment of its own, empty
-            results[k] = FrameResult(np.asarray(key_mesh.vertices, np.float64), seg_index, k, 0.0, 0.0, 0.0, 0.0,
-                                     frames.iou_reconstruction(k), frames.iou_reconstruction(k))
-            segments.append(Segment(seg_index, k, k, k, faces, 0, "empty reconstruction", "empty reconstruction"))
-            done[k] = True
-            log.warning("frame %d: empty reconstruction, a segment of its own", k)
-            continue
-        t0 = time.perf_counter()
-        target_k = frames.target(k)
-        graph = deform.build_graph(target_k.vertices, faces, params.spacing, seed=fit_p.seed)
-        reg = deform.Registration(graph, faces, fit_p)
-        rings = deform.ring_operator(faces, len(graph.rest))
-        vf = deform.vertex_faces(faces, len(graph.rest))
-        iou_k = frames.iou_reconstruction(k)
-        results[k] = FrameResult(np.asarray(key_mesh.vertices, np.float64), seg_index, k, 0.0, 0.0, 0.0, 0.0, iou_k,
-                                 iou_k, time.perf_counter() - t0)
-        done[k] = True
-        seg = Segment(seg_index, k, k, k, faces, len(graph.nodes), "keyframe")
-        for direction in (1, -1):
-            state = deform.GraphState.identity(graph)
-            before = state                       # the state one frame earlier, for the motion prediction
-            i = k + direction
-            reason = "end of sequence"
-            while 0 <= i < n and not done[i]:
-                t0 = time.perf_counter()
-                if len(frames.meshes[i].faces) == 0:
-                    reason = f"frame {i}: empty reconstruction"
-                    break
-                target = frames.target(i)
-                new_state, info = reg.fit(predict(before, state, params.extrapolate), target)
-                x = deform.detail(graph.deform(new_state), faces, target, fit_p, rings,
-                                  offsets=deform.laplacian_offsets(graph, new_state, rings))
-                res = surface_residuals(x, faces, target, vf)
-                world = target.world(x)
-                iou = silhouette_iou(world, faces, frames.cameras[i], frames.masks[i].masks) if frames.has_views else None
-                iou_rec = frames.iou_reconstruction(i)
-                why = _failure(res, iou, iou_rec, params)
-                if why:
-                    reason = f"frame {i}: {why}"
-                    break
-                results[i] = FrameResult(world, seg_index, k, **res, iou=iou, iou_reconstruction=iou_rec,
-                                         seconds=time.perf_counter() - t0)
-                done[i] = True
-                before, state = state, new_state
-                if direction > 0:
-                    seg.stop = i
-                else:
-                    seg.start = i
-                if progress:
-                    progress(1)
-                i += direction
-            else:
-                if 0 <= i < n:
-                    reason = f"frame {i}: already tracked"
-            if direction > 0:
-                seg.reason_stop = reason
-            else:
-                seg.reason_start = reason
-        log.info("segment %d: keyframe %d, frames %d..%d (%d nodes); before: %s; after: %s", seg_index, k, seg.start,
-                 seg.stop, seg.nodes, seg.reason_start, seg.reason_stop)
+        trials = {k: t for k, t in trials.items() if t.truncate(done)}
+        if keyframe is not None and not segments:
+            order = [int(keyframe)]
+        else:
+            order = sorted(np.flatnonzero(~done).tolist(), key=lambda i: keyframe_key(frames.stats[i]))
+        fresh = 0
+        best = None
+        for k in order:
+            if fresh >= max(1, params.tries) or (keyframe is not None and not segments and fresh):
+                break
+            if any(t.seg.start <= k <= t.seg.stop for t in trials.values()):
+                continue
+            t = grow_segment(frames, params, k, done)
+            trials[k] = t
+            fresh += 1
+            lo, hi = k, k                                  # the stretch of untracked frames around k
+            while lo > 0 and not done[lo - 1]:
+                lo -= 1
+            while hi < n - 1 and not done[hi + 1]:
+                hi += 1
+            if t.seg.start == lo and t.seg.stop == hi:
+                best = t
+                break
+        if best is None:
+            pool = [trials[int(keyframe)]] if keyframe is not None and not segments else list(trials.values())
+            best = max(pool, key=lambda t: (t.length, tuple(-np.asarray(keyframe_key(frames.stats[t.seg.keyframe])))))
+        seg = best.seg
+        seg.index = len(segments)
+        for i, r in best.results.items():
+            r.segment = seg.index
+            results[i] = r
+            done[i] = True
+        del trials[seg.keyframe]
+        log.info("segment %d: keyframe %d, frames %d..%d (%d nodes); before: %s; after: %s", seg.index, seg.keyframe,
+                 seg.start, seg.stop, seg.nodes, seg.reason_start, seg.reason_stop)
         if progress:
-            progress(1)
+            progress(best.length)
         segments.append(seg)
     segments.sort(key=lambda s: s.start)
     renumber = {s.index: i for i, s in enumerate(segments)}
