@@ -308,7 +308,7 @@ class FitParams:
     arap: float = 1.0             # ARAP weight at the last iteration (relative to the data terms)
     arap_start: float = 4.0       # ... at the first (the stiffness is relaxed geometrically)
     point: float = 0.1            # point-to-point share of the source -> target term
-    coverage: float = 1.0         # weight of the target -> source term (every part of the target reached)
+    coverage: float = 6.0         # weight of the target -> source term (every part of the target reached)
     silhouette: float = 4.0       # silhouette term weight (0: off)
     silhouette_reach: float = 2.0  # only points at most this far (voxels) outside a silhouette are pulled in
     reject: float = 15.0          # correspondences farther than this (voxels) at the first iteration ...

@@ -113,6 +113,7 @@ class Track(Node):
         "spacing": Param(float, 4.0, range=(1.0, 100.0), doc="deformation graph node spacing, voxels"),
         "iterations": Param(int, 10, range=(1, 100), doc="ICP iterations per frame"),
         "arap": Param(float, 1.0, range=(0.0, None), doc="ARAP stiffness at the last iteration (starts 4x higher)"),
+        "coverage": Param(float, 6.0, range=(0.0, None), doc="weight of the reconstruction -> tracked term (limbs that moved are reached)"),
         "silhouette": Param(float, 4.0, range=(0.0, None), doc="silhouette term weight (with masks and cameras)"),
         "samples": Param(int, 6000, range=(100, None), doc="vertices sampled per surface for the fit"),
         "fail_mean": Param(float, 1.0, range=(0.0, None), doc="a fit fails beyond this mean surface distance, voxels"),
@@ -120,10 +121,11 @@ class Track(Node):
         "max_iou_drop": Param(float, 0.01, range=(0.0, 1.0), doc="... or this silhouette IoU below the reconstruction's"),
         "min_views": Param(int, 0, range=(0, None), doc="silhouette vote: 0 = all views; k = inside at least k"),
         "extrapolate": Param(float, 0.7, range=(0.0, 1.0), doc="each frame starts from the last state plus this share of the last motion"),
+        "tries": Param(int, 3, range=(1, 100), doc="keyframe candidates tracked per round; the longest segment is kept"),
     }
 
-    def run(self, meshes, masks=None, cameras=None, *, voxel, spacing, iterations, arap, silhouette, samples,
-            fail_mean, fail_p95, max_iou_drop, min_views, extrapolate):
+    def run(self, meshes, masks=None, cameras=None, *, voxel, spacing, iterations, arap, coverage, silhouette, samples,
+            fail_mean, fail_p95, max_iou_drop, min_views, extrapolate, tries):
         if (masks is None) != (cameras is None):
             raise NodeError("track: connect both 'masks' and 'cameras', or neither")
         if not meshes:
@@ -135,8 +137,8 @@ class Track(Node):
         t0 = time.perf_counter()
         data = Frames(meshes, masks, cameras, voxel, min_views)
         params = TrackParams(spacing, data.voxel, fail_mean, fail_p95, max_iou_drop, extrapolate,
-                             FitParams(iterations=iterations, arap=arap, arap_start=4.0 * arap, silhouette=silhouette,
-                                       samples=samples))
+                             FitParams(iterations=iterations, arap=arap, arap_start=4.0 * arap, coverage=coverage, silhouette=silhouette,
+                                       samples=samples), tries)
         results, segments = track_sequence(data, params)
         seconds = time.perf_counter() - t0
         import trimesh
