@@ -17,6 +17,8 @@ disagree), then with the rotations fixed every term is linear in the translation
     E(t) = w_data sum_s rho (n_c . (x_s - c_s))^2 + w_point sum_s |x_s - c_s|^2           source -> target
          + w_data sum_q rho (n_q . (x_i(q) - q))^2                                       target -> source
          + w_sil  sum_(i, view) (g^ . (x_i - x_i0) - d_i)^2   (vertices outside a silhouette, pushed back in)
+                                  (only within silhouette_reach of the outline: a limb far outside has moved,
+                                   and pulling it to the nearest outline crushes it onto the body)
          + w_arap sum_(j, k) |(g_k + t_k) - (g_j + t_j) - R_j (g_k - g_j)|^2
 
 solved with a sparse Cholesky-like factorisation (scipy SuperLU) of the 3N x 3N normal equations; the
@@ -29,6 +31,7 @@ voxel units (coordinates divided by ``voxel``), so the weights are dimensionless
     target = Target(t_vertices, t_faces, origin, voxel)
     state, info = reg.fit(state, target)
     x = detail(graph.deform(state), faces, target, reg.params)
+    x = snap(x, faces, target, reg.params)                      # onto the target surface
 """
 from __future__ import annotations
 

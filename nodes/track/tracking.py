@@ -1,17 +1,24 @@
 """Keyframe tracking of a mesh sequence into a dynamic mesh (after Collet et al. 2015, "High-quality streamable
 free-viewpoint video", section 7: tracked keyframe subsequences).
 
-    1. Keyframe: among the frames not tracked yet, the one whose reconstruction is the easiest to deform onto
-       its neighbours: fewest connected components, then lowest genus (a mesh of lower genus can close a
-       handle by contact, one of higher genus cannot open it), then the largest surface area (limbs apart,
-       the most surface seen).
+    1. Keyframe, by trial: each round the untracked frames best by ``keyframe_key`` (fewest connected
+       components, then lowest genus, then the largest surface area) are candidates, up to ``tries`` new ones
+       (none inside a segment already tried); each grows its segment (2.-3.) and the longest of these and of the
+       earlier rounds' trials (cut where a kept segment took their frames) is kept. On child_rope the static
+       ranking alone picks frames whose arms lie against the body (one blob in the hull): tracking from there
+       cannot grow arms, tracking from arms apart can press them on (section "Temporal structuring" of the
+       README). A segment that fills its whole stretch of untracked frames is kept at once.
     2. Its reconstruction is deformed forwards, frame by frame, onto each following reconstruction (deform.fit:
-       embedded deformation graph + ARAP, point-to-plane both ways, silhouettes), then its surface detail is
-       brought onto that frame (deform.detail); then backwards from the keyframe the same way.
+       embedded deformation graph + ARAP, point-to-plane both ways, silhouettes near their outline), then its
+       surface detail is brought onto that frame (deform.detail) and its vertices put on that frame's surface
+       (deform.snap); then backwards from the keyframe the same way.
     3. A frame whose fit fails ends the segment (the topology changed, or the motion was too large): mean
-       surface distance beyond ``fail_mean`` voxels either way, 95th percentile of either distance beyond
-       ``fail_p95`` voxels (a part the tracked mesh does not reach, or a membrane across a new hole), or the
-       tracked mesh's silhouette IoU more than ``max_iou_drop`` below the reconstruction's own.
+       surface distance beyond ``fail_mean`` voxels either way (tracked -> reconstruction counting only
+       tracked vertices outside the reconstruction: limbs pressed together are one blob in a visual hull,
+       the tracked surfaces between them lie inside it), 95th percentile of reconstruction -> tracked or 99th
+       of tracked (outside) -> reconstruction beyond ``fail_p95`` voxels (a part the tracked mesh does not
+       reach, or a membrane across a new hole), or the tracked mesh's silhouette IoU more than
+       ``max_iou_drop`` below the reconstruction's own.
     4. Repeat from 1 until every frame belongs to a segment. Within a segment every frame has the keyframe's
        faces: one connectivity, per-vertex trajectories; a texture atlas per segment serves all its frames.
 

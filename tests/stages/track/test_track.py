@@ -334,3 +334,41 @@ def test_child_rope_graph_tracks_a_few_frames(tmp_path, data_dir, monkeypatch):
     assert multi and sorted(r["frames"] for r in after["ranges"] if r["class"] == DYNAMIC) == sorted(multi)
     usd = (tmp_path / "out" / "child_rope_dynamic.usdc").read_bytes()
     assert np.array_equal(formats.usd_points(usd, 3), np.asarray(seq[3].vertices, np.float32))
+
+
+def test_snap_puts_the_tracked_surface_on_the_target():
+    """deform.snap: vertices within snap_reach of the target end on its surface (same faces), farther ones stay."""
+    src = trimesh.creation.icosphere(3, radius=1.0)
+    dst = trimesh.creation.icosphere(4, radius=1.02)
+    target = deform.Target(dst.vertices, dst.faces, np.zeros(3), 0.05)          # 0.4 voxel apart
+    x = np.asarray(src.vertices) / 0.05
+    far = np.argmax(x[:, 2])
+    x[far] *= 1.2                                                               # ~4 voxels out: beyond the reach
+    S = deform.ring_operator(src.faces, len(x))
+    degree = np.asarray(S.sum(axis=1)).ravel() - 1.0
+    offsets = x - (S @ x - x) / degree[:, None]                                  # the layout's umbrella offsets
+    out = deform.snap(x, np.asarray(src.faces), target, deform.FitParams(), S, offsets=offsets)
+    _, d = target.query.closest(out)
+    near = np.ones(len(x), bool)
+    near[np.asarray(src.faces)[np.any(np.asarray(src.faces) == far, axis=1)].ravel()] = False
+    assert target.query.closest(x)[1][near].min() > 0.3                          # they started ~0.4 voxel off
+    assert d[near].max() < 1e-9 and d[far] > 3.0
+    # the tangential steps keep the layout: vertices slide little along the surface (angles; 0.05 = 1 voxel)
+    slide = np.linalg.norm(out[near] / np.linalg.norm(out[near], axis=1, keepdims=True)
+                           - x[near] / np.linalg.norm(x[near], axis=1, keepdims=True), axis=1)
+    assert np.median(slide) < 0.002 and slide.max() < 0.05
+
+
+def test_trial_truncates_where_another_segment_took_frames():
+    """A keyframe trial kept for a later round is cut at the first frame another segment took, each side."""
+    from nodes.track.tracking import FrameResult, Segment, _Trial
+
+    res = {i: FrameResult(np.zeros((1, 3)), -1, 5, 0, 0, 0, 0) for i in range(2, 10)}
+    t = _Trial(Segment(-1, 5, 2, 9, np.zeros((0, 3), np.int64), 1, "a", "b"), res)
+    done = np.zeros(12, bool)
+    done[[3, 8]] = True
+    assert t.truncate(done)
+    assert (t.seg.start, t.seg.stop, t.length) == (4, 7, 4) and sorted(t.results) == [4, 5, 6, 7]
+    assert t.seg.reason_start == "frame 3: already tracked" and t.seg.reason_stop == "frame 8: already tracked"
+    done[5] = True
+    assert not t.truncate(done)
