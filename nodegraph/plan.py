@@ -126,9 +126,16 @@ def _assign_units(graph: Graph, items: dict[str, WorkItem], slot: dict) -> None:
     uses: dict[str, int] = {}
     for key in slot.values():
         uses[key] = uses.get(key, 0) + 1
+    # A frame's nodes after a sequence node (which reads every frame) cannot share a unit with the nodes before
+    # it: the unit would wait on itself. Level = sequence nodes on the longest path from a source.
+    level: dict[str, int] = {}
+    for name in graph.order():
+        level[name] = max((level[src] + (graph.nodes[src].cls.per == "sequence") for src in graph.upstream[name]),
+                          default=0)
     for it in items.values():
         own = graph.nodes[it.node].cls.per == "frame" and uses[it.key] == 1
-        it.unit = f"frame:{it.frame}" if own else f"item:{it.key}"
+        lv = level[it.node]
+        it.unit = (f"frame:{it.frame}" + (f"/{lv}" if lv else "")) if own else f"item:{it.key}"
     readers: dict[tuple[str, str], list[WorkItem]] = {}
     for it in items.values():
         for ref in it.inputs.values():

@@ -61,6 +61,18 @@ class Total(Node):
         return {"out": np.array([float(a.sum()) for a in x])}
 
 
+class Pick(Node):
+    """A frame's element of a sequence node's array (a per-frame node after a sequence node)."""
+
+    type_name = "t.pick"
+    uses_frame = True
+    inputs = {"x": Array}
+    outputs = {"out": Array}
+
+    def run(self, x, *, frame):
+        return {"out": np.array([x[frame]])}
+
+
 class Fail(Node):
     """Fails on chosen frames."""
 

@@ -14,6 +14,7 @@ from nodes.common.types import CameraSet, Images, Masks, Mesh, TexturedMesh
 
 from . import views
 from .atlas import Atlas, make_atlas
+from .reuse import reference_atlas
 from .texturing import Settings, coloured_trimesh, texture_mesh, textured_trimesh
 
 
@@ -74,6 +75,8 @@ class Texture(Node):
         "mesh": Mesh, "images": Images, "cameras": CameraSet,
         "masks": Input(Masks, optional=True, doc="silhouettes: only pixels inside them (minus margin) are sampled"),
         "atlas": Input(AtlasType, optional=True, doc="a layout made for this connectivity (texture.atlas): reused"),
+        "reference": Input(Mesh, optional=True, doc="a mesh with the same faces to chart the atlas on (track.frame's "
+                           "keyframe): every frame of a tracked segment gets the same layout"),
     }
     outputs = {
         "mesh": Output(TexturedMesh, "the mesh with UVs and its texture (GLB), or with vertex colours"),
@@ -91,12 +94,19 @@ class Texture(Node):
     }
     kernels = [views.KERNELS, raster.KERNELS]
 
-    def run(self, mesh, images, cameras, masks, atlas, *, mode, size, directions, margin, edge_px, smoothness,
-            feather, balance, level):
+    def run(self, mesh, images, cameras, masks, atlas, reference, *, mode, size, directions, margin, edge_px,
+            smoothness, feather, balance, level):
         if len(mesh.faces) == 0:
             raise NodeError("the mesh has no faces: nothing to texture")
-        if atlas is not None and mode == "vertex":
-            raise NodeError("an atlas was given but mode is 'vertex' (vertex colours use no atlas)")
+        if (atlas is not None or reference is not None) and mode == "vertex":
+            raise NodeError("an atlas or a reference was given but mode is 'vertex' (vertex colours use no atlas)")
+        if atlas is not None and reference is not None:
+            raise NodeError("connect 'atlas' or 'reference', not both")
+        if reference is not None:
+            if len(reference.faces) != len(mesh.faces) or not np.array_equal(reference.faces, mesh.faces):
+                raise NodeError(f"input 'reference' has other faces ({len(reference.faces)}) than the mesh "
+                                f"({len(mesh.faces)}): it must be the same connectivity (track.frame's keyframe)")
+            atlas = reference_atlas(reference.vertices, reference.faces, size, directions)
         if atlas is not None and not atlas.matches(mesh.faces):
             raise NodeError(f"input 'atlas' was made for another connectivity ({len(atlas.faces)} faces); the mesh "
                             f"has {len(mesh.faces)} faces: an atlas is reused only for meshes with the same faces")

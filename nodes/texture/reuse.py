@@ -144,3 +144,14 @@ class BakeLayout:
 def clear():
     """Forget every memoised topology and layout (tests)."""
     _MEMO.clear()
+
+
+def reference_atlas(vertices, faces, size: int, directions: int):
+    """The atlas charted on a segment's reference (keyframe) mesh, made once per segment and found again by
+    content on its other frames."""
+    from .atlas import make_atlas
+
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    return _memo(("atlas", _digest(v, f), int(size), int(directions)),
+                 lambda: make_atlas(v, f, Topology.of(f, len(v)).nbr, size, directions=directions))

@@ -87,6 +87,33 @@ class CropViews(Node):
                 "cameras": Cameras(out_c)}
 
 
+class Frame(Node):
+    """One frame of a tracked sequence, for the per-frame stages after tracking: the frame's tracked mesh and
+    its segment's keyframe mesh (same faces, fixed shape: give it to ``texture`` as ``reference`` and every
+    frame of a segment gets the same atlas, so the texture stays in place over time)."""
+
+    type_name = "track.frame"
+    version = 1
+    uses_frame = True
+    inputs = {"sequence": Input(MeshSequence, doc="a tracked sequence (track)")}
+    outputs = {"mesh": Output(Mesh, "this frame's tracked mesh"),
+               "keyframe": Output(Mesh, "its segment's keyframe mesh (the segment's first when none is recorded)")}
+
+    def run(self, sequence, *, frame):
+        from nodes.common.types import sequence_segments
+
+        at = [i for i, m in enumerate(sequence) if m.metadata.get("frame") == frame]
+        if not at:
+            known = [m.metadata.get("frame") for m in sequence]
+            raise NodeError(f"track.frame: frame {frame} is not in the sequence (frames "
+                            f"{known[0]}..{known[-1]}): run it over the frames the sequence was tracked on")
+        i = at[0]
+        start, stop = next((a, b) for a, b in sequence_segments(sequence) if a <= i < b)
+        key = sequence[i].metadata.get("keyframe")
+        k = next((j for j in range(start, stop) if sequence[j].metadata.get("frame") == key), start)
+        return {"mesh": sequence[i], "keyframe": sequence[k]}
+
+
 class Track(Node):
     """Per-frame reconstructions (an unconstrained mesh sequence) -> a dynamic mesh per segment: keyframes
     chosen automatically (fewest components, lowest genus, largest area among the frames left), each

@@ -43,6 +43,17 @@ def test_dask_matches_local(tmp_path):
     assert _published(tmp_path / "local") == _published(tmp_path / "dask") and len(_published(tmp_path / "dask")) == 6
 
 
+def test_dask_runs_frame_nodes_after_a_sequence_node(tmp_path):
+    """A frame's nodes after a sequence node are a unit of their own (they would otherwise wait on themselves)."""
+    from conftest import output
+
+    text = GRAPH + "  pick:  {type: t.pick, in: {x: total.out}}\n"
+    res = _run(tmp_path, text, DaskExecutor(workers=2))
+    assert res.ok and res.counts() == {"done": 25}, res.failures
+    for f in range(6):   # 4 elements x (2 + f) x 3
+        assert output(res, "pick", "out", f).tolist() == [12.0 * (2 + f)]
+
+
 def test_dask_survives_a_killed_worker(tmp_path):
     marker = tmp_path / "crashed"
     text = GRAPH.replace("  total:", f"  crash: {{type: t.crash, in: {{x: scale.out}}, params: {{on_frame: 2, marker: '{marker}'}}}}\n  total:")

@@ -532,3 +532,48 @@ def test_node_warnings_reach_the_summary_and_run_record(tmp_path, capsys):
     assert "warning: node 'scale' (t.scale) frame 2: factor 0 gives zeros" in capsys.readouterr().err
     doc = json.loads((tmp_path / "out" / "run.json").read_text())
     assert [r["warnings"] for r in doc["items"] if r["node"] == "scale"] == [["factor 0 gives zeros"]] * 3
+
+
+SEQ_THEN_FRAMES = """\
+frames: 0:3
+nodes:
+  src:   {type: t.source, params: {value: 1.0, size: 4}}
+  scale: {type: t.scale, in: {x: src.out}, params: {factor: 3}}
+  total: {type: t.total, in: {x: scale.out}}
+  pick:  {type: t.pick, in: {x: total.out}}
+  more:  {type: t.add, in: {a: pick.out}}
+"""
+
+
+def test_frame_nodes_after_a_sequence_node_run_in_their_own_units(tmp_path):
+    """src -> scale (per frame) -> total (sequence) -> pick -> more (per frame): a frame's nodes after the
+    sequence node cannot share its frame unit with the nodes before it (the unit would wait on itself)."""
+    from conftest import output
+
+    for jobs in (1, 2):
+        folder = tmp_path / f"j{jobs}"
+        folder.mkdir()
+        res = run(folder, write(folder, SEQ_THEN_FRAMES), jobs=jobs)
+        assert res.ok and res.counts() == {"done": 13}, res.failures
+        for f in range(3):   # frame f sums to 4 x 3 x (1 + f), plus one
+            np.testing.assert_array_equal(output(res, "more", "out", f), [12.0 * (1 + f) + 1])
+        assert run(folder, folder / "g.yaml").counts() == {"cached": 13}
+
+
+def test_an_item_the_scheduler_never_starts_is_a_failure_not_a_silent_skip(tmp_path, monkeypatch):
+    """Were units ever to wait on each other, the run fails and says so (it used to exit 0 with every item
+    'skipped')."""
+    import nodegraph.plan as plan
+
+    real = plan._assign_units
+
+    def one_unit_per_frame(graph, items, slot):   # the old grouping, which ignored sequence nodes in between
+        real(graph, items, slot)
+        for it in items.values():
+            if it.unit.startswith("frame:"):
+                it.unit = it.unit.split("/")[0]
+
+    monkeypatch.setattr(plan, "_assign_units", one_unit_per_frame)
+    res = run(tmp_path, write(tmp_path, SEQ_THEN_FRAMES))
+    assert not res.ok
+    assert any("never started" in (r.get("error") or "") for r in res.records), res.records

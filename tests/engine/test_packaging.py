@@ -45,7 +45,7 @@ def test_wheel_installs_and_runs_the_demo_from_another_folder(tmp_path):
     for f in json.loads(where.stdout):
         assert str(venv) in f, f"{f} is not the installed copy"
     small = ["--set", "stage.width=160", "--set", "stage.height=120", "--set", "stage.cameras=6",
-             "--set", "hull.resolution=32", "--frames", "0:1"]
+             "--set", "hull.resolution=32", "--frames", "0:2"]
     volcap = venv / "bin" / "volcap"
     run([str(volcap), "--cache", str(elsewhere / "cache"), "run", str(ROOT / "graphs" / "demo.yaml"), "--out", "out", "-q", "-j", "1", *small],
         cwd=elsewhere, env=env)

@@ -1,10 +1,12 @@
-"""End to end: the demo graph (synth -> key -> cleanup -> hull -> mc -> refine -> relax -> texture, skeleton; the
-hull carved beside it; exports and evaluations), shrunk."""
+"""End to end: the demo graph (synth -> key -> cleanup -> hull -> mc -> refine -> relax -> skeleton; track -> one
+atlas per segment -> texture, rig: skeleton from the motion + skin; the hull carved beside it; exports and
+evaluations), shrunk."""
 from __future__ import annotations
 
 import json
 from pathlib import Path
 
+import numpy as np
 import trimesh
 
 from nodegraph.cli import main as cli
@@ -18,7 +20,7 @@ def test_demo_graph_end_to_end(tmp_path):
     args = ["--cache", str(tmp_path / "cache"), "run", str(ROOT / "graphs/demo.yaml"), "--out", str(tmp_path / "out"), "-q", "-j", "1"]
     assert cli(args + small) == 0
     doc = json.loads((tmp_path / "out/run.json").read_text())
-    assert doc["counts"] == {"done": 36}
+    assert doc["counts"] == {"done": 43}
     items = {(r["node"], r["frame"]): r for r in doc["items"]}
     for f in (0, 1):
         mesh = trimesh.load(tmp_path / f"out/demo_{f:04d}.ply", process=False)
@@ -37,9 +39,15 @@ def test_demo_graph_end_to_end(tmp_path):
         assert sorted(skel["names"]) == ["foot_0", "foot_1", "hand_0", "hand_1", "head"], skel
         carved = trimesh.load(tmp_path / f"out/demo_carved_{f:04d}.ply", process=False)
         assert carved.visual.kind == "vertex" and carved.volume < mesh.volume * 1.05
+    # the tracked frames: one segment, one connectivity, one atlas (the texture stays in place)
+    glbs = [trimesh.load(tmp_path / f"out/demo_{f:04d}.glb", force="mesh") for f in (0, 1)]
+    assert np.array_equal(glbs[0].faces, glbs[1].faces) and np.array_equal(glbs[0].visual.uv, glbs[1].visual.uv)
+    assert not np.allclose(glbs[0].vertices, glbs[1].vertices)
+    for name in ("demo_dynamic.usdc", "demo_dynamic.glb", "demo_rig.usd", "demo_rig.glb"):
+        assert (tmp_path / "out" / name).stat().st_size > 1000, name
     # a second run is all cache hits and rewrites identical files
     before = (tmp_path / "out/demo_0000.ply").read_bytes()
     assert cli(args + small) == 0
     doc = json.loads((tmp_path / "out/run.json").read_text())
-    assert doc["counts"] == {"cached": 36}
+    assert doc["counts"] == {"cached": 43}
     assert (tmp_path / "out/demo_0000.ply").read_bytes() == before

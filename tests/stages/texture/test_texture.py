@@ -467,3 +467,20 @@ def test_atlas_charts_do_not_overlap_and_use_the_square():
         stats = atlas_stats(atlas, B.uv_raster(uv, size), m.vertices, m.faces)
         assert stats["texel_use"] > 0.3, stats       # measured: cup 0.53, figure 0.36 (bounding boxes alone: 0.22)
         assert stats["stretch_p05"] > 0.5, stats     # orthographic charts: faces keep at least half their area
+
+
+def test_reference_mesh_gives_every_frame_of_a_segment_the_same_atlas():
+    """texture's `reference` (track.frame's keyframe): the atlas is charted on the reference, so frames of one
+    connectivity whose shapes differ get the same layout (made once, found again by content)."""
+    frames = [scene("figure", 6, 160, 120, frame=f) for f in (0, 3)]
+    ref = frames[0]["mesh"]
+    outs = [run_node("texture", {"mesh": f["mesh"], "images": f["images"], "cameras": f["cameras"], "masks": f["masks"],
+                                 "reference": ref}, {"size": 256}) for f in frames]
+    assert np.array_equal(outs[0]["atlas"].face_uv, outs[1]["atlas"].face_uv)
+    assert not np.allclose(frames[0]["mesh"].vertices, frames[1]["mesh"].vertices)
+    alone = run_node("texture", {"mesh": frames[1]["mesh"], "images": frames[1]["images"], "cameras": frames[1]["cameras"],
+                                 "masks": frames[1]["masks"]}, {"size": 256})
+    assert not np.array_equal(alone["atlas"].face_uv, outs[1]["atlas"].face_uv), "without a reference each frame charts itself"
+    s = scene("sphere", 6, 160, 120)
+    with pytest.raises(NodeError, match="other faces"):
+        run_node("texture", {"mesh": s["mesh"], "images": s["images"], "cameras": s["cameras"], "reference": ref})

@@ -223,6 +223,17 @@ def tracked_pair():
     return seq
 
 
+def test_frame_node_gives_the_frame_and_its_keyframe(tracked_pair):
+    out = run_node("track.frame", {"sequence": tracked_pair}, frame=11)
+    np.testing.assert_array_equal(out["mesh"].vertices, tracked_pair[1].vertices)
+    np.testing.assert_array_equal(out["keyframe"].vertices, tracked_pair[0].vertices)   # keyframe 10, same segment
+    out = run_node("track.frame", {"sequence": tracked_pair}, frame=14)
+    np.testing.assert_array_equal(out["keyframe"].vertices, tracked_pair[3].vertices)   # keyframe 13
+    assert np.array_equal(out["mesh"].faces, out["keyframe"].faces)
+    with pytest.raises(NodeError, match="frame 7 is not in the sequence"):
+        run_node("track.frame", {"sequence": tracked_pair}, frame=7)
+
+
 def test_usd_points_at_frame_k_equal_ours(tracked_pair):
     data = formats.usd_bytes(tracked_pair, fps=25.0)
     for m in tracked_pair:
