@@ -116,11 +116,12 @@ class Frame(Node):
 
 class Track(Node):
     """Per-frame reconstructions (an unconstrained mesh sequence) -> a dynamic mesh per segment: keyframes
-    chosen automatically (fewest components, lowest genus, largest area among the frames left), each
-    keyframe's mesh deformed forwards and backwards onto every frame's reconstruction (embedded deformation
-    graph with an ARAP regulariser; point-to-plane terms both ways and a silhouette term when masks and cameras
-    are connected; then per-vertex detail along the normals), a new segment where the fit fails (topology
-    change, too fast a motion). Output: the tracked sequence (one face array per segment) and per-frame
+    chosen automatically by trial (up to ``tries`` candidates per round, ranked by fewest components, lowest
+    genus, largest area; the longest segment is kept), each keyframe's mesh deformed forwards and backwards
+    onto every frame's reconstruction (embedded deformation graph with an ARAP regulariser; point-to-plane
+    terms both ways and a silhouette term near the outlines when masks and cameras are connected; then
+    per-vertex detail along the normals and the vertices put on the reconstruction), a new segment where the
+    fit fails (topology change, too fast a motion). Output: the tracked sequence (one face array per segment) and per-frame
     residuals in voxels (surface distance both ways, silhouette IoU against the reconstruction's own)."""
 
     type_name = "track"
