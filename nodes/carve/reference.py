@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from nodes.common.cameras import camera_point_f32, project_camera_f32
+
 from .photo import colour_space, dot3, spread
 
 f32 = np.float32
@@ -24,29 +26,6 @@ def cross2(ax, ay, bx, by):
     return ax * by - ay * bx
 
 
-def camera_point(cam, X):
-    """kernels/camera.h camera_point (float32, its order): (x, y, z) in camera coordinates."""
-    x, y, z = X[:, 0], X[:, 1], X[:, 2]
-    return (((cam[0] * x + cam[1] * y) + cam[2] * z) + cam[3], ((cam[4] * x + cam[5] * y) + cam[6] * z) + cam[7],
-            ((cam[8] * x + cam[9] * y) + cam[10] * z) + cam[11])
-
-
-def project_camera(cam, xc):
-    """Kernel ``project_camera``: (u, v, depth) of points in camera coordinates (the tail of project_packed_f32)."""
-    f = f32
-    xr, yr, zr = xc
-    with np.errstate(all="ignore"):
-        xn, yn = xr / zr, yr / zr
-        if np.any(cam[17:22] != 0):
-            k1, k2, p1, p2, k3 = cam[17:22]
-            r2 = xn * xn + yn * yn
-            radial = f(1) + r2 * (k1 + r2 * (k2 + r2 * k3))
-            xd = (xn * radial + ((f(2) * p1) * xn) * yn) + p2 * (r2 + (f(2) * xn) * xn)
-            yd = (yn * radial + p1 * (r2 + (f(2) * yn) * yn)) + ((f(2) * p2) * xn) * yn
-            xn, yn = xd, yd
-        u = (cam[12] * xn + cam[13] * yn) + cam[14]
-        v = cam[15] * yn + cam[16]
-    return u, v, zr * cam[24]
 
 
 def half_edge(cam, a, vs):
@@ -144,11 +123,11 @@ class CarveNumPy:
         """Kernel ``footprint`` per voxel centre: rectangle x0 x1 y0 y1 (int64, clipped to the window), ok,
         single, depth, and the hexagon (centre u v, half-edges e[k] = (eu, ev), limits lim[k])."""
         cam = self.views.cams[c].astype(f32)
-        xc = camera_point(cam, X)
+        xc = camera_point_f32(cam, X)
         d, pts = [], []
         for a in range(-1, 3):
             Y = xc if a < 0 else tuple(x + h for x, h in zip(xc, half_edge(cam, a, self.vs)))
-            u, v, depth = project_camera(cam, Y)
+            u, v, depth = project_camera_f32(cam, Y)
             d.append(depth)
             pts.append((u, v))
         u0, v0 = pts[0]
@@ -231,7 +210,7 @@ class CarveNumPy:
     def outline(self, c: int, X: np.ndarray) -> dict:
         """Kernel ``cube_outline`` per voxel centre."""
         cam = self.views.cams[c].astype(f32)
-        xc = camera_point(cam, X)
+        xc = camera_point_f32(cam, X)
         hs = [half_edge(cam, a, self.vs) for a in range(3)]
         P, ok = [], np.ones(len(X), bool)
         for s in range(8):
@@ -240,7 +219,7 @@ class CarveNumPy:
                 a = xc[i] + hs[0][i] if s & 1 else xc[i] - hs[0][i]
                 a = a + (hs[1][i] if s & 2 else -hs[1][i])
                 Y.append(a + (hs[2][i] if s & 4 else -hs[2][i]))
-            u, v, depth = project_camera(cam, Y)
+            u, v, depth = project_camera_f32(cam, Y)
             with np.errstate(invalid="ignore"):
                 ok &= (depth > 0) & np.isfinite(u) & np.isfinite(v)
             P.append((u, v))

@@ -114,20 +114,21 @@ def distort(xn: np.ndarray, dist: np.ndarray) -> np.ndarray:
     return np.stack([xd, yd], axis=-1)
 
 
-def project_packed_f32(cam_row: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """NumPy mirror of kernels/camera.h, bit for bit: points ``X`` (N, 3 float32) into the camera ``cam_row``
-    (one row of ``Cameras.pack()``), float32 operations in camera.h's order (kernels compiled without FP
-    contraction). Returns (u, v, front): pixel coordinates (non-finite behind the camera plane) and the
-    in-front test z * cam[24] > 0."""
-    c = np.asarray(cam_row).astype(np.float32)
-    f = np.float32
+def camera_point_f32(c: np.ndarray, X: np.ndarray):
+    """kernels/camera.h ``camera_point``, bit for bit: (x, y, z) of points ``X`` (N, 3 float32) in the camera
+    coordinates of the packed camera ``c`` (float32, camera.h's order of operations)."""
     x, y, z = X[:, 0], X[:, 1], X[:, 2]
-    xc = ((c[0] * x + c[1] * y) + c[2] * z) + c[3]
-    yc = ((c[4] * x + c[5] * y) + c[6] * z) + c[7]
-    zc = ((c[8] * x + c[9] * y) + c[10] * z) + c[11]
-    front = zc * c[24] > 0
+    return (((c[0] * x + c[1] * y) + c[2] * z) + c[3], ((c[4] * x + c[5] * y) + c[6] * z) + c[7],
+            ((c[8] * x + c[9] * y) + c[10] * z) + c[11])
+
+
+def project_camera_f32(c: np.ndarray, xc) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """kernels/camera.h ``project_camera``, bit for bit: (u, v, depth) of points in camera coordinates ``xc``;
+    depth = z * c[24] (> 0 in front of the camera)."""
+    f = np.float32
+    xr, yr, zr = xc
     with np.errstate(all="ignore"):
-        xn, yn = xc / zc, yc / zc
+        xn, yn = xr / zr, yr / zr
         if np.any(c[17:22] != 0):
             k1, k2, p1, p2, k3 = c[17:22]
             r2 = xn * xn + yn * yn
@@ -137,7 +138,17 @@ def project_packed_f32(cam_row: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, 
             xn, yn = xd, yd
         u = (c[12] * xn + c[13] * yn) + c[14]
         v = c[15] * yn + c[16]
-    return u, v, front
+    return u, v, zr * c[24]
+
+
+def project_packed_f32(cam_row: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """NumPy mirror of kernels/camera.h, bit for bit: points ``X`` (N, 3 float32) into the camera ``cam_row``
+    (one row of ``Cameras.pack()``), float32 operations in camera.h's order (kernels compiled without FP
+    contraction). Returns (u, v, front): pixel coordinates (non-finite behind the camera plane) and the
+    in-front test z * cam[24] > 0."""
+    c = np.asarray(cam_row).astype(np.float32)
+    u, v, depth = project_camera_f32(c, camera_point_f32(c, X))
+    return u, v, depth > 0
 
 
 class Cameras:

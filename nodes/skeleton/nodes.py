@@ -8,7 +8,7 @@ import time
 import numpy as np
 
 from nodegraph import Files, Input, Node, NodeError, Output, Param, Table
-from nodes.common.types import Mesh, MeshSequence, Skeleton, SkeletonData, Volume
+from nodes.common.types import Mesh, MeshSequence, Skeleton, SkeletonData, Volume, sequence_segments
 
 
 # ---------------------------------------------------------------- per frame
@@ -68,24 +68,6 @@ class Skeletonize(Node):
 
 
 # ---------------------------------------------------------------- sequences
-def _segments(meshes) -> list[tuple[int, int]]:
-    """Half-open runs of consecutive meshes with one connectivity: the same metadata["segment"] where the
-    meshes carry one (a tracked sequence), else the same vertex count and faces."""
-    out: list[tuple[int, int]] = []
-    for i, m in enumerate(meshes):
-        if out:
-            prev = meshes[i - 1]
-            a, b = prev.metadata.get("segment"), m.metadata.get("segment")
-            same = (a == b) if (a is not None and b is not None) else (
-                len(prev.vertices) == len(m.vertices) and prev.faces.shape == m.faces.shape
-                and bool(np.array_equal(prev.faces, m.faces)))
-            if same:
-                out[-1] = (out[-1][0], i + 1)
-                continue
-        out.append((i, i + 1))
-    return out
-
-
 def dynamic_mesh(node: Node, meshes, sequence, segment: int):
     """(frames (F, V, 3), faces, frame numbers, segment range, segment count) of the chosen constant-
     connectivity run of the connected input (per-frame meshes or a mesh sequence)."""
@@ -96,7 +78,7 @@ def dynamic_mesh(node: Node, meshes, sequence, segment: int):
         raise NodeError(f"{node.type_name}: no meshes")
     numbers = list(node.frames) if meshes is not None and len(node.frames) == len(seq) else [
         int(m.metadata.get("frame", i)) for i, m in enumerate(seq)]
-    runs = _segments(seq)
+    runs = sequence_segments(seq)
     if segment >= len(runs):
         raise NodeError(f"{node.type_name}: param 'segment' is {segment} but the input has {len(runs)} segment(s)")
     start, stop = runs[segment] if segment >= 0 else max(runs, key=lambda r: r[1] - r[0])
