@@ -275,10 +275,11 @@ def run_graph(graph: Graph, cache: Cache, out_dir: Path, executor, progress: boo
         executor.run(units, str(cache.root), on_result)
     if bar is not None:
         bar.close()
-    for key in must:   # never a silent "skipped": an item nothing ran and nothing failed before is an engine fault
-        if key not in results and not any(r.get("status") == "failed" for r in results.values()):
-            results[key] = {"status": "failed", "seconds": 0.0,
-                            "error": "the scheduler never started it (its work unit waits on itself: an engine bug)"}
+    if not any(r.get("status") == "failed" for r in results.values()):
+        for key in must:   # never a silent "skipped": an item nothing ran, with no failure upstream, is an engine fault
+            if key not in results:
+                results[key] = {"status": "failed", "seconds": 0.0,
+                                "error": "the scheduler never started it (its work unit waits on itself: an engine bug)"}
     for key, problem in damaged.items():  # say so: a recomputed result that was cached is worth a line
         if key in results:
             results[key]["warnings"] = [f"its cached result was damaged ({problem}): recomputed"] + list(results[key].get("warnings") or [])
