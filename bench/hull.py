@@ -67,6 +67,10 @@ def main():
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--repeats", type=int, default=7)
     args = ap.parse_args()
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from machine import describe
+
+    print(describe())
     cases = [(128, 24)] if args.quick else [(r, n) for n in (24, 16, 8) for r in (128, 256, 512)]
     h = HullCL.get()
     print(f"{'grid':>14} {'cams':>4} {'voxels in':>10} {'numpy ms':>9} {'dense ms':>9} {'sparse ms':>9} {'prep ms':>8} {'equal':>6}")

@@ -33,4 +33,4 @@ def describe() -> str:
         device = clrt.device_name()
     except Exception as exc:  # noqa: BLE001 - a benchmark without OpenCL still says why
         device = f"none ({exc})"
-    return f"OpenCL device: {device}\nCPU: {cpu}, {os.cpu_count()} cores; load average {load_average()}"
+    return f"OpenCL platform/device: {device}\nCPU: {cpu}, {os.cpu_count()} cores; load average {load_average()}"

@@ -164,6 +164,10 @@ def figure_picture(frames: int = 100):
 
 
 if __name__ == "__main__":
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from machine import describe
+
+    print(describe())
     names = sys.argv[1:] or ["thu_wd_human", "inria_dancer", "figure"]
     for n in names:
         figure_picture() if n == "figure" else dataset_picture(n)

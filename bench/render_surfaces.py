@@ -77,4 +77,7 @@ def main(names):
 
 
 if __name__ == "__main__":
+    from machine import describe
+
+    print(describe())
     main(sys.argv[1:] or ["synth_figure", "crease_robot", "thu_wd_human", "inria_dancer"])

@@ -7,7 +7,6 @@ seam levelling).
 """
 from __future__ import annotations
 
-import os
 import sys
 from pathlib import Path
 
@@ -38,7 +37,9 @@ def uneven_figure():
 def main():
     from texture_loo import load_dataset
 
-    print(f"load average: {os.getloadavg()}")
+    from machine import describe
+
+    print(describe())
     cases = [("synthetic figure, uneven cameras", uneven_figure())]
     mesh, images, masks, cams = load_dataset("thu_wd_human", Path("/tmp/volcap_texture_loo/cache"))
     cases.append(("thu_wd_human", (mesh, images.images, masks.masks, cams)))

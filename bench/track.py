@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -29,6 +28,7 @@ import trimesh
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
 os.environ.setdefault("VOLCAP_DATA", str(ROOT.parent / "shared" / "data"))
 
 from nodegraph import Table  # noqa: E402
@@ -44,11 +44,9 @@ DOCS = ROOT / "docs"
 
 
 def header():
-    from nodegraph import clrt
+    from machine import describe
 
-    cpu = next((ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name")), platform.processor())
-    print(f"OpenCL device: {clrt.device_name()}")
-    print(f"CPU: {cpu}, {os.cpu_count()} cores; load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    print(describe())
 
 
 def run(graph_file: Path, cache: Path, frames: str | None, upto: str | None = None, overrides=(), keep_all=False):
