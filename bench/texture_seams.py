@@ -18,20 +18,13 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from nodegraph.testing import run_node  # noqa: E402
 from nodes.texture import views as V  # noqa: E402
-from nodes.texture.quality import seam_jumps, view_seam_disagreement  # noqa: E402
+from nodes.texture.quality import seam_jumps, uneven_shading, view_seam_disagreement  # noqa: E402
 from nodes.texture.texturing import Settings, texture_mesh  # noqa: E402
 
 
 def uneven_figure():
     s = run_node("synth", {}, {"scene": "figure", "cameras": 12, "width": 640, "height": 480, "shadow": False})
-    images = []
-    for i, im in enumerate(s["images"].images):
-        h, w = im.shape[:2]
-        yy, xx = np.mgrid[:h, :w]
-        r2 = ((xx - w / 2) ** 2 + (yy - h / 2) ** 2) / (w / 2) ** 2
-        fall = 1 - 0.5 * r2 if i % 2 else 1 + 0.2 * (yy / h)
-        images.append(np.clip(im * fall[..., None], 0, 255).astype(np.uint8))
-    return s["mesh"], images, s["masks"].masks, s["cameras"]
+    return s["mesh"], uneven_shading(s["images"].images), s["masks"].masks, s["cameras"]
 
 
 def main():

@@ -133,3 +133,16 @@ def view_seam_disagreement(result, vertices, faces, cameras, frame, *, corrected
     d = np.abs(ca - cb).mean(axis=1)
     d = d[np.isfinite(d)]
     return {"view_seam_disagreement": float(d.mean()) if len(d) else float("nan"), "edges": int(len(d))}
+
+
+def uneven_shading(images) -> list:
+    """Camera-dependent shading for seam tests: vignetting on odd cameras, a vertical brightness ramp on even
+    ones (what per-camera gains alone cannot undo)."""
+    out = []
+    for i, im in enumerate(images):
+        h, w = im.shape[:2]
+        yy, xx = np.mgrid[:h, :w]
+        r2 = ((xx - w / 2) ** 2 + (yy - h / 2) ** 2) / (w / 2) ** 2
+        fall = 1 - 0.5 * r2 if i % 2 else 1 + 0.2 * (yy / h)
+        out.append(np.clip(im * fall[..., None], 0, 255).astype(np.uint8))
+    return out

@@ -16,7 +16,7 @@ from nodes.common.types import Images, ImageSet
 from nodes.texture import bake as B
 from nodes.texture import views as V
 from nodes.texture.atlas import Atlas, make_atlas
-from nodes.texture.quality import background_texels, seam_jumps, view_seam_disagreement
+from nodes.texture.quality import background_texels, seam_jumps, uneven_shading, view_seam_disagreement
 from nodes.texture.texturing import Settings, texture_mesh
 
 
@@ -227,14 +227,7 @@ def _uneven_scene():
     """The figure with camera-dependent shading: vignetting on odd cameras, a vertical brightness ramp on even
     ones (what per-camera gains alone cannot undo)."""
     s = scene("figure", 8, 240, 180)
-    images = []
-    for i, im in enumerate(s["images"].images):
-        h, w = im.shape[:2]
-        yy, xx = np.mgrid[:h, :w]
-        r2 = ((xx - w / 2) ** 2 + (yy - h / 2) ** 2) / (w / 2) ** 2
-        fall = 1 - 0.5 * r2 if i % 2 else 1 + 0.2 * (yy / h)
-        images.append(np.clip(im * fall[..., None], 0, 255).astype(np.uint8))
-    return s, images
+    return s, uneven_shading(s["images"].images)
 
 
 def test_gains_and_levelling_reduce_view_seam_disagreement():
