@@ -345,6 +345,17 @@ def test_child_rope_graph_tracks_a_few_frames(tmp_path, data_dir, monkeypatch):
     assert multi and sorted(r["frames"] for r in after["ranges"] if r["class"] == DYNAMIC) == sorted(multi)
     usd = (tmp_path / "out" / "child_rope_dynamic.usdc").read_bytes()
     assert np.array_equal(formats.usd_points(usd, 3), np.asarray(seq[3].vertices, np.float32))
+    # per frame again through track.frame: the tracked mesh is published and scores like the reconstruction
+    for a, b in sequence_segments(seq):
+        for i in range(a, b):
+            ply = trimesh.load(tmp_path / "out" / f"child_rope_tracked_{i:04d}.ply", process=False)
+            assert np.array_equal(ply.faces, seq[a].faces) and np.allclose(ply.vertices, seq[i].vertices, atol=1e-6)
+    own = [r for r in res.records if r["node"] == "score"]
+    ours = {r["frame"]: r for r in res.records if r["node"] == "tracked_score"}
+    for r in own:
+        iou = Table.load(Path(r["cache_dir"]) / "report")["mean_iou"]
+        tracked = Table.load(Path(ours[r["frame"]]["cache_dir"]) / "report")["mean_iou"]
+        assert tracked >= iou - 0.01, (r["frame"], iou, tracked)
 
 
 def test_snap_puts_the_tracked_surface_on_the_target():
