@@ -6,7 +6,7 @@ meshes to out/: that data may not be published with the project).
     python bench/track.py synth [--nricp-frames 3]    # graphs/track_synth.yaml, 100 frames at 128^3
     python bench/track.py speed [--resolution 164]    # ~20k vertices (hull 164^3), ours per frame vs nricp_amberg
     python bench/track.py child_rope                  # graphs/track_child_rope.yaml, 200 frames
-    options: --cache DIR (default ./.volcap-cache), --frames A:B, --no-pictures, --set NODE.PARAM=VALUE (child_rope)
+    options: --cache DIR (default ./.volcap-cache), --frames A:B, --no-pictures, --set NODE.PARAM=VALUE (synth, child_rope)
 
 The per-frame reconstructions come from the graphs through the engine and its cache (the first run computes
 them: ~5 s per frame), so a second run only re-measures. The correspondence error of the synthetic run: each
@@ -120,7 +120,7 @@ def bench_synth(args):
     from nodes.synth import scenes
 
     graph = ROOT / "graphs/track_synth.yaml"
-    records = run(graph, args.cache, args.frames)
+    records = run(graph, args.cache, args.frames, overrides=args.set)
     recon, recs = outputs(records, "relax", "mesh", T.Mesh)
     first = recs[0]["frame"]
     vols, _ = outputs(run(graph, args.cache, f"{first}:{first + 1}", upto="hull", keep_all=True), "hull", "volume", T.Volume)
@@ -248,7 +248,7 @@ def bench_child_rope(args):
           f"({len(before['ranges'])} ranges, genus {min(before['topology']['genus'])}..{max(before['topology']['genus'])}, "
           f"{min(before['topology']['vertices'])}..{max(before['topology']['vertices'])} vertices)")
     print(f"tracked: {len(lengths)} segments, lengths {lengths}; median {np.median(lengths):.0f} (goal >= 60), "
-          f"classes after: {after['frames_per_class']}")
+          f"classes after: {after['frames_per_class']}; frames bridged: {table.get('bridged_frames', 0)}")
     print(f"silhouette IoU of the tracked mesh vs the frame's own refined reconstruction: drop mean {drop.mean():.4f}, "
           f"max {drop.max():.4f} (frames above 0.01: {int((drop > 0.01).sum())}); reconstruction IoU mean "
           f"{np.mean([s['mean_iou'] for s in scores]):.4f}")
@@ -322,6 +322,11 @@ def plot_residuals(table, path: Path, title: str, extra=None):
     ax[0].set_ylabel("voxels")
     ax[0].legend(fontsize=7)
     ax[1].step(f, table["timeline"]["segment"], where="mid", color="k")
+    bridged = [x for x, b in zip(f, table["timeline"].get("bridged", [])) if b]
+    if bridged:
+        seg = dict(zip(f, table["timeline"]["segment"]))
+        ax[1].plot(bridged, [seg[x] for x in bridged], "o", color="tab:orange", ms=3, label="bridged frames")
+        ax[1].legend(fontsize=7, loc="lower right")
     ax[1].set_ylabel("segment")
     for s in table["segments"]:
         for a in ax:
@@ -350,7 +355,7 @@ def main():
     ap.add_argument("--nricp-frames", type=int, default=3)
     ap.add_argument("--resolution", type=int, default=164, help="speed: hull resolution (164^3: ~20k vertices after relax)")
     ap.add_argument("--no-pictures", action="store_true")
-    ap.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", help="child_rope: graph overrides")
+    ap.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", help="synth, child_rope: graph overrides")
     args = ap.parse_args()
     header()
     {"synth": bench_synth, "speed": bench_speed, "child_rope": bench_child_rope}[args.what](args)

@@ -150,10 +150,14 @@ class Track(Node):
         "min_views": Param(int, 0, range=(0, None), doc="silhouette vote: 0 = all views; k = inside at least k"),
         "extrapolate": Param(float, 0.7, range=(0.0, 1.0), doc="each frame starts from the last state plus this share of the last motion"),
         "tries": Param(int, 3, range=(1, 100), doc="keyframe candidates tracked per round; the longest segment is kept"),
+        "retry": Param(int, 2, range=(0, 100), doc="a failed fit is tried again from the previous frame's state (no motion "
+                       "prediction) with this many times the iterations (0, 1: no second try)"),
+        "bridge": Param(int, 8, range=(0, 1000), doc="after a failed fit, frames tracked on to one that fits, then filled "
+                        "backwards from it (0: a failed fit ends the segment)"),
     }
 
     def run(self, meshes, masks=None, cameras=None, *, voxel, spacing, iterations, arap, coverage, silhouette, samples,
-            fail_mean, fail_p95, max_iou_drop, min_views, extrapolate, tries):
+            fail_mean, fail_p95, max_iou_drop, min_views, extrapolate, tries, retry, bridge):
         if (masks is None) != (cameras is None):
             raise NodeError("track: connect both 'masks' and 'cameras', or neither")
         if not meshes:
@@ -166,7 +170,7 @@ class Track(Node):
         data = Frames(meshes, masks, cameras, voxel, min_views)
         params = TrackParams(spacing, data.voxel, fail_mean, fail_p95, max_iou_drop, extrapolate,
                              FitParams(iterations=iterations, arap=arap, arap_start=4.0 * arap, coverage=coverage, silhouette=silhouette,
-                                       samples=samples), tries)
+                                       samples=samples), tries, bridge, retry)
         results, segments = track_sequence(data, params)
         seconds = time.perf_counter() - t0
         import trimesh
@@ -193,6 +197,7 @@ def residual_table(results, segments, frames, data, seconds) -> dict:
         "segment_length_median": float(np.median(lengths)), "segment_length_min": int(min(lengths)),
         "distance_mean": float(np.mean(dist)), "distance_max": float(np.max(dist)),
         "seconds": seconds, "seconds_per_frame": seconds / len(results),
+        "bridged_frames": int(sum(r.bridged for r in results)),
         "residual": {"distance": dist, "distance_p95": [max(r.accuracy_p95, r.completeness_p95) for r in results]},
         "timeline": {
             "frame": frames, "segment": [r.segment for r in results],
@@ -201,6 +206,7 @@ def residual_table(results, segments, frames, data, seconds) -> dict:
             "completeness_mean": [r.completeness_mean for r in results],
             "completeness_p95": [r.completeness_p95 for r in results],
             "seconds": [r.seconds for r in results],
+            "bridged": [r.bridged for r in results],
         },
         "segments": [{
             "start": frames[s.start], "stop": frames[s.stop], "frames": s.stop - s.start + 1,

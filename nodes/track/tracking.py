@@ -12,13 +12,20 @@ free-viewpoint video", section 7: tracked keyframe subsequences).
        embedded deformation graph + ARAP, point-to-plane both ways, silhouettes near their outline), then its
        surface detail is brought onto that frame (deform.detail) and its vertices put on that frame's surface
        (deform.snap); then backwards from the keyframe the same way.
-    3. A frame whose fit fails ends the segment (the topology changed, or the motion was too large): mean
+    3. A frame whose fit fails (after a second try from the previous frame's state, without the motion
+       prediction, with ``retry`` times the iterations) ends the segment (the topology changed, or the motion
+       was too large): mean
        surface distance beyond ``fail_mean`` voxels either way (tracked -> reconstruction counting only
        tracked vertices outside the reconstruction: limbs pressed together are one blob in a visual hull,
        the tracked surfaces between them lie inside it), 95th percentile of reconstruction -> tracked or 99th
        of tracked (outside) -> reconstruction beyond ``fail_p95`` voxels (a part the tracked mesh does not
        reach, or a membrane across a new hole), or the tracked mesh's silhouette IoU more than
-       ``max_iou_drop`` below the reconstruction's own.
+       ``max_iou_drop`` below the reconstruction's own. Unless the segment is *bridged*: tracking carries on
+       through failed fits for up to ``bridge`` frames, and at the first frame that fits the frames between
+       are fitted again backwards from it (each from its neighbour's state); the bridge holds when every one
+       of them fits. On child_rope the arms lie against the body in some frames (one blob in the visual hull,
+       nothing holds the tracked arm in place) and leave it a few frames later: the frames where they come
+       out fail from the side where they were hidden and fit from the side where they are out.
     4. Repeat from 1 until every frame belongs to a segment. Within a segment every frame has the keyframe's
        faces: one connectivity, per-vertex trajectories; a texture atlas per segment serves all its frames.
 
@@ -27,6 +34,8 @@ refined and relaxed marching-cubes meshes have about two edges per voxel, plain 
 """
 from __future__ import annotations
 
+import copy
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
@@ -50,6 +59,9 @@ class TrackParams:
     extrapolate: float = 0.7      # each frame starts from the last state plus this share of the last motion
     fit: FitParams = field(default_factory=FitParams)
     tries: int = 3                # keyframe candidates grown per round; the longest segment is kept
+    bridge: int = 8               # after a failed fit, frames tracked on through failures to one that fits
+    retry: int = 2                # a failed fit is tried again from the previous state (no motion prediction)
+                                  # with this many times the iterations (0, 1: not)
 
 
 @dataclass
@@ -64,6 +76,7 @@ class FrameResult:
     iou: float | None = None      # mean silhouette IoU of the tracked mesh
     iou_reconstruction: float | None = None
     seconds: float = 0.0
+    bridged: bool = False         # fitted again backwards from a later frame after a failed fit (see ``bridge``)
 
 
 @dataclass
@@ -256,40 +269,93 @@ def grow_segment(frames: Frames, params: TrackParams, k: int, done: np.ndarray, 
     results = {k: FrameResult(np.asarray(key_mesh.vertices, np.float64), -1, k, 0.0, 0.0, 0.0, 0.0, iou_k, iou_k,
                               time.perf_counter() - t0)}
     seg = Segment(-1, k, k, k, faces, len(graph.nodes), "keyframe")
+
+    slow = None
+    if params.retry > 1:                     # the same fit with ``retry`` times the iterations
+        slow = copy.copy(reg)
+        slow.params = dataclasses.replace(fit_p, iterations=params.retry * fit_p.iterations)
+
+    def fit_frame(init, i, start=None):
+        """(state, FrameResult, failure reason) of frame i's fit from the graph state ``init``; when it fails and
+        ``start`` is given, once more from ``start`` (the previous frame's state) with more iterations."""
+        new_state, r, why = fit_once(reg, init, i)
+        if why and start is not None and slow is not None:
+            again = fit_once(slow, start, i)
+            if not again[2]:
+                log.debug("keyframe %d: frame %d fitted on the second try (first: %s)", k, i, why)
+                return again
+        return new_state, r, why
+
+    def fit_once(reg, init, i):
+        t0 = time.perf_counter()
+        target = frames.target(i)
+        new_state, _ = reg.fit(init, target)
+        offsets = deform.laplacian_offsets(graph, new_state, rings)
+        x = deform.detail(graph.deform(new_state), faces, target, fit_p, rings, offsets=offsets)
+        x = deform.snap(x, faces, target, fit_p, rings, offsets=offsets)
+        res = surface_residuals(x, faces, target, vf)
+        world = target.world(x)
+        iou = silhouette_iou(world, faces, frames.cameras[i], frames.masks[i].masks) if frames.has_views else None
+        iou_rec = frames.iou_reconstruction(i)
+        why = _failure(res, iou, iou_rec, params)
+        res = {key: v for key, v in res.items() if not key.startswith("outside")}
+        return new_state, FrameResult(world, -1, k, **res, iou=iou, iou_reconstruction=iou_rec,
+                                      seconds=time.perf_counter() - t0), why
+
+    def bridge(state, failed, i, direction):
+        """After the fit of frame i (from ``state``, giving ``failed``) failed: carry on through failed fits up
+        to ``params.bridge`` frames; at the first frame j that fits, fill j - 1 .. i backwards from j's state
+        (each from its neighbour's). Returns (the states at j - 1 and j, {frame: result}) when every frame of
+        i .. j fits, else None."""
+        tb, ts = state, failed
+        for g in range(1, params.bridge + 1):
+            j = i + g * direction
+            if not (0 <= j < n) or done[j] or len(frames.meshes[j].faces) == 0:
+                return None
+            tb, (ts, r, why) = ts, fit_frame(predict(tb, ts, params.extrapolate), j)
+            if why:
+                continue
+            got, st, first = {j: r}, ts, None
+            for m in range(j - direction, i - direction, -direction):
+                st, got[m], why = fit_frame(st, m, start=st)
+                if why:
+                    log.debug("keyframe %d: frame %d bridged from %d but %s", k, m, j, why)
+                    return None
+                first = st if first is None else first
+            return first, ts, got
+        return None
+
     for direction in (1, -1):
         state = deform.GraphState.identity(graph)
         before = state                       # the state one frame earlier, for the motion prediction
         i = k + direction
         reason = "end of sequence"
         while 0 <= i < n and not done[i]:
-            t0 = time.perf_counter()
             if len(frames.meshes[i].faces) == 0:
                 reason = f"frame {i}: empty reconstruction"
                 break
-            target = frames.target(i)
-            new_state, info = reg.fit(predict(before, state, params.extrapolate), target)
-            offsets = deform.laplacian_offsets(graph, new_state, rings)
-            x = deform.detail(graph.deform(new_state), faces, target, fit_p, rings, offsets=offsets)
-            x = deform.snap(x, faces, target, fit_p, rings, offsets=offsets)
-            res = surface_residuals(x, faces, target, vf)
-            world = target.world(x)
-            iou = silhouette_iou(world, faces, frames.cameras[i], frames.masks[i].masks) if frames.has_views else None
-            iou_rec = frames.iou_reconstruction(i)
-            why = _failure(res, iou, iou_rec, params)
+            new_state, r, why = fit_frame(predict(before, state, params.extrapolate), i, start=state)
+            got = {i: r}
             if why:
-                reason = f"frame {i}: {why}"
-                break
-            res = {key: v for key, v in res.items() if not key.startswith("outside")}
-            results[i] = FrameResult(world, -1, k, **res, iou=iou, iou_reconstruction=iou_rec,
-                                     seconds=time.perf_counter() - t0)
-            before, state = state, new_state
+                bridged = bridge(state, new_state, i, direction) if params.bridge > 0 else None
+                if bridged is None:
+                    reason = f"frame {i}: {why}"
+                    break
+                state, new_state, got = bridged
+                for r in got.values():
+                    r.bridged = True
+                log.debug("keyframe %d: frame %d (%s) bridged from frame %d", k, i, why, max(got, key=lambda f: f * direction))
+            for f, r in got.items():
+                results[f] = r
+            last = max(got, key=lambda f: f * direction)
+            before, state = (state, new_state)
             if direction > 0:
-                seg.stop = i
+                seg.stop = last
             else:
-                seg.start = i
+                seg.start = last
             if progress:
-                progress(1)
-            i += direction
+                progress(len(got))
+            i = last + direction
         else:
             if 0 <= i < n:
                 reason = f"frame {i}: already tracked"

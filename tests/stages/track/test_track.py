@@ -394,3 +394,40 @@ def test_trial_truncates_where_another_segment_took_frames():
     assert t.seg.reason_start == "frame 3: already tracked" and t.seg.reason_stop == "frame 8: already tracked"
     done[5] = True
     assert not t.truncate(done)
+
+
+@pytest.mark.parametrize("mode", ["retry", "bridge", "fails"])
+def test_a_failed_fit_is_tried_again_then_bridged_and_kept_only_if_it_fits(monkeypatch, mode):
+    """A fit that fails going forwards (here: frame 3's first fit, forced) is tried again from frame 2's state
+    (``retry``); without that second try it is tracked through: the next frame that fits (4) is the bridge's
+    far end and frame 3 is fitted again from it, kept when that fit holds (one segment, frames 3-4 marked
+    bridged), else the segment ends before frame 3 (no frame kept that failed)."""
+    from nodes.track import tracking
+
+    sphere = trimesh.creation.icosphere(3, radius=1.0)
+    seq = [trimesh.Trimesh(sphere.vertices * [1 + 0.02 * k, 1, 1], sphere.faces, process=False) for k in range(6)]
+    frames = tracking.Frames(seq, voxel=0.05)
+    fitted = []                                      # frame of each fit, in order (Frames.target is asked first)
+    target = frames.target
+    monkeypatch.setattr(frames, "target", lambda i: fitted.append(i) or target(i))
+    real = tracking._failure
+
+    def failure(res, iou, iou_rec, p):
+        i = fitted[-1]
+        if i == 3 and (fitted.count(3) == 1 or mode == "fails"):
+            return "forced failure"
+        return real(res, iou, iou_rec, p)
+
+    monkeypatch.setattr(tracking, "_failure", failure)
+    params = tracking.TrackParams(voxel=0.05, bridge=2, retry=2 if mode == "retry" else 0)
+    results, segments = tracking.track_sequence(frames, params, keyframe=0)
+    spans = [(s.start, s.stop) for s in segments]
+    bridged = [i for i, r in enumerate(results) if r.bridged]
+    if mode == "fails":
+        assert spans[0] == (0, 2) and segments[0].reason_stop == "frame 3: forced failure" and bridged == []
+        return
+    assert spans == [(0, 5)] and max(r.completeness_mean for r in results) < 0.2
+    if mode == "retry":
+        assert bridged == [] and fitted[:7] == [0, 1, 2, 3, 3, 4, 5]          # frame 3 twice, then on
+    else:
+        assert bridged == [3, 4] and fitted[:6] == [0, 1, 2, 3, 4, 3]        # on to 4 (fits), back to 3
