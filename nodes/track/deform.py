@@ -32,6 +32,7 @@ voxel units (coordinates divided by ``voxel``), so the weights are dimensionless
     state, info = reg.fit(state, target)
     x = detail(graph.deform(state), faces, target, reg.params)
     x = snap(x, faces, target, reg.params)                      # onto the target surface
+    x = unfold(x, faces, edge_face_pairs(faces), ring_operator(faces, len(x)), 8, target)   # folds opened
 """
 from __future__ import annotations
 
@@ -154,16 +155,20 @@ class SurfaceQuery:
         """(closest points (P, 3), distances (P,)) on the surface, and their faces (P,) when ``with_faces``."""
         points = np.asarray(points, np.float64)
         _, j = self.nearest_vertex(points)
-        cand = self.vf[j]                                   # (P, M)
-        tri = self.vertices[self.faces[np.maximum(cand, 0)]]  # (P, M, 3, 3)
-        q = closest_on_triangles(points[:, None, :], tri[:, :, 0], tri[:, :, 1], tri[:, :, 2])
-        d = np.linalg.norm(q - points[:, None, :], axis=2)
-        d[cand < 0] = np.inf
-        best = np.argmin(d, axis=1)
-        rows = np.arange(len(points))
+        cand = self.vf[j]                                   # (P, M), -1 padded: only the real faces are tried
+        pi, mi = np.nonzero(cand >= 0)
+        f = cand[pi, mi]
+        tri = self.vertices[self.faces[f]]                  # (pairs, 3, 3)
+        q = closest_on_triangles(points[pi], tri[:, 0], tri[:, 1], tri[:, 2])
+        d = np.linalg.norm(q - points[pi], axis=1)
+        table = np.full(cand.shape, np.inf)
+        table[pi, mi] = d
+        slot = np.full(cand.shape, -1, np.int64)
+        slot[pi, mi] = np.arange(len(pi))
+        best = slot[np.arange(len(points)), np.argmin(table, axis=1)]
         if with_faces:
-            return q[rows, best], d[rows, best], cand[rows, best]
-        return q[rows, best], d[rows, best]
+            return q[best], d[best], f[best]
+        return q[best], d[best]
 
 
 # ---------------------------------------------------------------- deformation graph
@@ -323,6 +328,7 @@ class FitParams:
     detail: float = 2.0           # rings of neighbours the normal displacement is smoothed over (0: no detail step)
     detail_reach: float = 4.0     # largest normal displacement (voxels)
     snap: int = 3                 # rounds of closest-point projection onto the target after the detail step (0: none)
+    unfold: int = 8               # rounds of smoothing around folded edges after the snap, then back on the target (0: none)
     snap_reach: float = 1.5       # ... for vertices within this distance (voxels) whose normals agree
     tangential: int = 5           # tangential smoothing steps after each detail pass (0: none)
     seed: int = 0
@@ -656,3 +662,81 @@ def ring_operator(faces: np.ndarray, count: int):
     e = unique_edges(faces, count)
     A = coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(count, count))
     return (A + identity(count)).tocsr()
+
+
+def edge_face_pairs(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(edges (E, 2), the two faces of each (E, 2)) for the edges that two faces share."""
+    from nodes.common.meshops import unique_edges as edges_of
+
+    edges, fe = edges_of(faces)
+    flat = fe.ravel()
+    order = np.argsort(flat, kind="stable")
+    counts = np.bincount(flat, minlength=len(edges))
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    two = np.flatnonzero(counts == 2)
+    pair = np.stack([order[start[two]] // 3, order[start[two] + 1] // 3], axis=1)
+    return edges[two], pair
+
+
+def folded_edges(x: np.ndarray, faces: np.ndarray, pairs, which: np.ndarray | None = None) -> np.ndarray:
+    """Indices (into ``pairs``' edges) of the edges whose two faces' normals are more than 150 degrees apart;
+    only among ``which`` (edge indices) when given."""
+    f = np.asarray(faces, np.int64)
+    _, pair = pairs
+    if which is None:
+        which, need = np.arange(len(pair)), slice(None)
+    else:
+        need = np.unique(pair[which].ravel())
+    n = np.zeros((len(f), 3))
+    t = f[need]
+    c = np.cross(x[t[:, 1]] - x[t[:, 0]], x[t[:, 2]] - x[t[:, 0]])
+    n[need] = c / np.maximum(np.linalg.norm(c, axis=1, keepdims=True), 1e-12)
+    return which[np.einsum("ij,ij->i", n[pair[which, 0]], n[pair[which, 1]]) < -0.866]
+
+
+def unfold(x: np.ndarray, faces: np.ndarray, pairs, S, rounds: int, target: "Target | None" = None,
+           reach: float = 1.5, steps: int = 3) -> np.ndarray:
+    """Open the folds the snap leaves (neighbouring vertices projected onto different sides of a thin part of
+    the reconstruction, or onto different facets): up to ``rounds`` times, the vertices of folded edges and
+    their one-ring take ``steps`` uniform Laplacian steps (half way to the mean of their neighbours), then go
+    back onto the ``target`` surface (closest point within ``reach`` voxels, normals agreeing) unless that
+    folds an edge again; the other vertices stay. Same faces; the surface moves only where it folded (so
+    only the edges next to moved vertices are tested again)."""
+    edges, pair = pairs
+    f = np.asarray(faces, np.int64)
+    degree = np.maximum(np.asarray(S.sum(axis=1)).ravel() - 1.0, 1.0)
+    x = x.copy()
+    folded = np.zeros(len(edges), bool)
+    folded[folded_edges(x, f, pairs)] = True
+    for _ in range(rounds):
+        bad = np.flatnonzero(folded)
+        if len(bad) == 0:
+            break
+        mark = np.zeros(len(x))
+        mark[edges[bad].ravel()] = 1.0
+        move = np.flatnonzero((S @ mark) > 0)                  # the fold's vertices and their one-ring
+        moved = np.zeros(len(x), bool)
+        moved[move] = True
+        face_moved = moved[f].any(axis=1)
+        touched = np.flatnonzero(face_moved[pair[:, 0]] | face_moved[pair[:, 1]])
+        for _ in range(steps):
+            mean = (S @ x - x) / degree[:, None]
+            x[move] += 0.5 * (mean[move] - x[move])
+        if target is not None:
+            n = vertex_normals(x, f)[move]
+            q, d, fq = target.query.closest(x[move], with_faces=True)
+            tri = target.vertices[target.faces[fq]]
+            fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+            fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-12)
+            ok = (d <= reach) & (np.einsum("ij,ij->i", n, fn) > 0.5)
+            back = x.copy()
+            back[move[ok]] = q[ok]
+            again = folded_edges(back, f, pairs, touched)
+            if len(again):                                      # those ends keep the smoothed place
+                keep = np.zeros(len(x), bool)
+                keep[edges[again].ravel()] = True
+                back[keep] = x[keep]
+            x = back
+        folded[touched] = False
+        folded[folded_edges(x, f, pairs, touched)] = True
+    return x

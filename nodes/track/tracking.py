@@ -11,7 +11,8 @@ free-viewpoint video", section 7: tracked keyframe subsequences).
     2. Its reconstruction is deformed forwards, frame by frame, onto each following reconstruction (deform.fit:
        embedded deformation graph + ARAP, point-to-plane both ways, silhouettes near their outline), then its
        surface detail is brought onto that frame (deform.detail) and its vertices put on that frame's surface
-       (deform.snap); then backwards from the keyframe the same way.
+       (deform.snap; folds that leaves are smoothed open, deform.unfold); then backwards from the keyframe the
+       same way.
     3. A frame whose fit fails (after a second try from the previous frame's state, without the motion
        prediction, with ``retry`` times the iterations) ends the segment (the topology changed, or the motion
        was too large): mean
@@ -265,6 +266,7 @@ def grow_segment(frames: Frames, params: TrackParams, k: int, done: np.ndarray, 
     reg = deform.Registration(graph, faces, fit_p)
     rings = deform.ring_operator(faces, len(graph.rest))
     vf = deform.vertex_faces(faces, len(graph.rest))
+    pairs = deform.edge_face_pairs(faces)
     iou_k = frames.iou_reconstruction(k)
     results = {k: FrameResult(np.asarray(key_mesh.vertices, np.float64), -1, k, 0.0, 0.0, 0.0, 0.0, iou_k, iou_k,
                               time.perf_counter() - t0)}
@@ -293,6 +295,7 @@ def grow_segment(frames: Frames, params: TrackParams, k: int, done: np.ndarray, 
         offsets = deform.laplacian_offsets(graph, new_state, rings)
         x = deform.detail(graph.deform(new_state), faces, target, fit_p, rings, offsets=offsets)
         x = deform.snap(x, faces, target, fit_p, rings, offsets=offsets)
+        x = deform.unfold(x, faces, pairs, rings, fit_p.unfold, target, fit_p.snap_reach)
         res = surface_residuals(x, faces, target, vf)
         world = target.world(x)
         iou = silhouette_iou(world, faces, frames.cameras[i], frames.masks[i].masks) if frames.has_views else None

@@ -381,6 +381,29 @@ def test_snap_puts_the_tracked_surface_on_the_target():
     assert np.median(slide) < 0.002 and slide.max() < 0.05
 
 
+def test_unfold_opens_folds_and_puts_the_vertices_back_on_the_target():
+    """deform.unfold: a vertex pushed across its neighbour folds four edges; the fold's vertices are smoothed
+    open and put back on the target surface; vertices away from the fold do not move."""
+    src = trimesh.creation.icosphere(4, radius=1.0)
+    target = deform.Target(src.vertices, src.faces, np.zeros(3), 0.05)
+    faces = np.asarray(src.faces)
+    x = np.asarray(src.vertices) / 0.05
+    nb = src.vertex_neighbors[5]
+    x[5] += 1.5 * (x[nb[0]] - x[5])                                          # across its neighbour: a fold
+    pairs = deform.edge_face_pairs(faces)
+    assert len(pairs[0]) == len(src.edges_unique)
+    assert len(deform.folded_edges(x, faces, pairs)) == 4
+    S = deform.ring_operator(faces, len(x))
+    out = deform.unfold(x, faces, pairs, S, rounds=8, target=target)
+    assert len(deform.folded_edges(out, faces, pairs)) == 0
+    assert target.query.closest(out)[1].max() < 0.05                       # voxels: back on the surface
+    seed = np.zeros(len(x))
+    seed[5] = 1.0
+    ring = np.flatnonzero(S @ (S @ seed) > 0)                               # two rings around the fold
+    still = np.setdiff1d(np.arange(len(x)), ring)
+    assert np.array_equal(out[still], x[still])
+
+
 def test_trial_truncates_where_another_segment_took_frames():
     """A keyframe trial kept for a later round is cut at the first frame another segment took, each side."""
     from nodes.track.tracking import FrameResult, Segment, _Trial
