@@ -328,7 +328,7 @@ class FitParams:
     detail: float = 2.0           # rings of neighbours the normal displacement is smoothed over (0: no detail step)
     detail_reach: float = 4.0     # largest normal displacement (voxels)
     snap: int = 3                 # rounds of closest-point projection onto the target after the detail step (0: none)
-    unfold: int = 8               # rounds of smoothing around folded edges after the snap, then back on the target (0: none)
+    unfold: int = 8               # rounds of opening folds after the snap, back on the target (0: none)
     snap_reach: float = 1.5       # ... for vertices within this distance (voxels) whose normals agree
     tangential: int = 5           # tangential smoothing steps after each detail pass (0: none)
     seed: int = 0

@@ -15,10 +15,9 @@ free-viewpoint video", section 7: tracked keyframe subsequences).
        same way.
     3. A frame whose fit fails (after a second try from the previous frame's state, without the motion
        prediction, with ``retry`` times the iterations) ends the segment (the topology changed, or the motion
-       was too large): mean
-       surface distance beyond ``fail_mean`` voxels either way (tracked -> reconstruction counting only
-       tracked vertices outside the reconstruction: limbs pressed together are one blob in a visual hull,
-       the tracked surfaces between them lie inside it), 95th percentile of reconstruction -> tracked or 99th
+       was too large): mean surface distance beyond ``fail_mean`` voxels either way (tracked ->
+       reconstruction counting only tracked vertices outside the reconstruction: limbs pressed together are
+       one blob in a visual hull, the tracked surfaces between them lie inside it), 95th percentile of reconstruction -> tracked or 99th
        of tracked (outside) -> reconstruction beyond ``fail_p95`` voxels (a part the tracked mesh does not
        reach, or a membrane across a new hole), or the tracked mesh's silhouette IoU more than
        ``max_iou_drop`` below the reconstruction's own. Unless the segment is *bridged*: tracking carries on
@@ -318,14 +317,14 @@ def grow_segment(frames: Frames, params: TrackParams, k: int, done: np.ndarray, 
             tb, (ts, r, why) = ts, fit_frame(predict(tb, ts, params.extrapolate), j)
             if why:
                 continue
-            got, st, first = {j: r}, ts, None
+            got, st, states = {j: r}, ts, []
             for m in range(j - direction, i - direction, -direction):
                 st, got[m], why = fit_frame(st, m, start=st)
                 if why:
                     log.debug("keyframe %d: frame %d bridged from %d but %s", k, m, j, why)
                     return None
-                first = st if first is None else first
-            return first, ts, got
+                states.append(st)
+            return states[0], ts, got
         return None
 
     for direction in (1, -1):
