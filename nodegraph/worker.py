@@ -184,6 +184,7 @@ def execute(spec: dict, cache_root: str, memory: Values | None = None) -> dict:
                 problem = decl.type.check(value)
                 if problem:
                     raise NodeError(f"output '{port}': {problem}")
+                value = decl.type.canonical(value)
             outputs[port] = (decl.type, value)
             if memory is not None:
                 memory.put(spec["key"], port, value)
