@@ -13,7 +13,6 @@ seconds from the first frame (glTF).
 from __future__ import annotations
 
 import re
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -75,64 +74,33 @@ def sparse_influences(weights: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarr
 def write_usd(path: Path, vertices, faces, joints, parents, names, weights, rotations, translations, frames,
               fps: float = 24.0, influences: int = 4):
     """Write a UsdSkel rig: /Rig (SkelRoot) with Skeleton, its Animation and the bound Mesh."""
-    from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
+    Path(path).write_bytes(usd_bytes(vertices=vertices, faces=faces, joints=joints, parents=parents, names=names,
+                                     weights=weights, rotations=rotations, translations=translations, frames=frames,
+                                     fps=fps, influences=influences))
+
+
+def usd_bytes(vertices, faces, joints, parents, names, weights, rotations, translations, frames, fps: float = 24.0,
+              influences: int = 4) -> bytes:
+    """The UsdSkel rig of ``write_usd`` as the bytes of a binary .usd layer."""
+    from nodes.common.usd import UsdStage
 
     names = _names(names, len(parents))
     paths = []
     for j, p in enumerate(parents):
         paths.append(names[j] if p < 0 else f"{paths[p]}/{names[j]}")
-    stage = Usd.Stage.CreateNew(str(path))
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
-    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-    stage.SetStartTimeCode(float(frames[0]))
-    stage.SetEndTimeCode(float(frames[-1]))
-    stage.SetTimeCodesPerSecond(fps)
-    root = UsdSkel.Root.Define(stage, "/Rig")
-    stage.SetDefaultPrim(root.GetPrim())
-    skel = UsdSkel.Skeleton.Define(stage, "/Rig/Skeleton")
-    skel.CreateJointsAttr(Vt.TokenArray(paths))
-    skel.CreateJointNamesAttr(Vt.TokenArray(names))
     joints = np.asarray(joints, np.float64)
     bind = np.tile(np.eye(4), (len(parents), 1, 1))
     bind[:, :3, 3] = joints
-    rest_local = local_transforms(bind[None], parents)[0]
-    m4 = lambda a: Gf.Matrix4d(*np.asarray(a, np.float64).T.ravel().tolist())  # noqa: E731  column -> row convention
-    skel.CreateBindTransformsAttr(Vt.Matrix4dArray([m4(b) for b in bind]))
-    skel.CreateRestTransformsAttr(Vt.Matrix4dArray([m4(b) for b in rest_local]))
-    anim = UsdSkel.Animation.Define(stage, "/Rig/Skeleton/Animation")
-    anim.CreateJointsAttr(Vt.TokenArray(paths))
     local = local_transforms(world_transforms(joints, rotations, translations), parents)
-    quats = quaternions(local[..., :3, :3])
-    t_attr, r_attr, s_attr = anim.CreateTranslationsAttr(), anim.CreateRotationsAttr(), anim.CreateScalesAttr()
-    s_attr.Set(Vt.Vec3hArray([Gf.Vec3h(1, 1, 1)] * len(parents)))
-    for k, fr in enumerate(frames):
-        code = Usd.TimeCode(float(fr))
-        t_attr.Set(Vt.Vec3fArray.FromNumpy(local[k, :, :3, 3].astype(np.float32)), code)
-        r_attr.Set(Vt.QuatfArray([Gf.Quatf(float(q[3]), float(q[0]), float(q[1]), float(q[2])) for q in quats[k]]), code)
-    UsdSkel.BindingAPI.Apply(skel.GetPrim()).CreateAnimationSourceRel().SetTargets([anim.GetPath()])
-    mesh = UsdGeom.Mesh.Define(stage, "/Rig/Mesh")
-    mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(np.asarray(vertices, np.float32)))
-    faces = np.asarray(faces, np.int32)
-    mesh.CreateFaceVertexCountsAttr(Vt.IntArray([3] * len(faces)))
-    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(faces.ravel()))
-    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
-    mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
-    binding = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
-    binding.CreateSkeletonRel().SetTargets([skel.GetPath()])
     k = max(1, min(influences, len(parents)))
     idx, w = sparse_influences(np.asarray(weights, np.float64), k)
-    binding.CreateJointIndicesPrimvar(False, k).Set(Vt.IntArray.FromNumpy(idx.astype(np.int32).ravel()))
-    binding.CreateJointWeightsPrimvar(False, k).Set(Vt.FloatArray.FromNumpy(w.astype(np.float32).ravel()))
-    binding.CreateGeomBindTransformAttr(Gf.Matrix4d(1.0))
-    del Sdf
-    stage.GetRootLayer().Save()
 
-
-def usd_bytes(**rig) -> bytes:
-    with tempfile.TemporaryDirectory() as d:
-        p = Path(d) / "rig.usd"
-        write_usd(p, **rig)
-        return p.read_bytes()
+    stage = UsdStage(fps=fps, frames=(frames[0], frames[-1]))
+    stage.group("/Rig", skel_root=True)
+    skel = stage.skeleton("/Rig/Skeleton", paths, names, bind, local_transforms(bind[None], parents)[0])
+    stage.skeleton_animation(skel, "/Rig/Skeleton/Animation", frames, local[..., :3, 3], quaternions(local[..., :3, :3]))
+    stage.bind_skin(stage.mesh("/Rig/Mesh", faces, vertices), skel, idx, w)
+    return stage.save("rig.usd")
 
 
 def read_usd(path: Path) -> dict:

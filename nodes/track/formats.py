@@ -14,9 +14,6 @@
 """
 from __future__ import annotations
 
-import tempfile
-from pathlib import Path
-
 import numpy as np
 
 from nodes.common.types import sequence_segments
@@ -30,53 +27,31 @@ def frame_numbers(meshes) -> list[int]:
 # ---------------------------------------------------------------- USD
 def usd_bytes(meshes, fps: float = 25.0) -> bytes:
     """The sequence as a binary USD layer (see the module docstring)."""
-    from pxr import Gf, Usd, UsdGeom, Vt
+    from nodes.common.usd import UsdStage
 
     frames = frame_numbers(meshes)
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "dynamic_mesh.usdc"
-        stage = Usd.Stage.CreateNew(str(path))
-        UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
-        UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-        stage.SetTimeCodesPerSecond(fps)
-        stage.SetFramesPerSecond(fps)
-        if frames:
-            stage.SetStartTimeCode(frames[0])
-            stage.SetEndTimeCode(frames[-1])
-        root = UsdGeom.Xform.Define(stage, "/DynamicMesh")
-        stage.SetDefaultPrim(root.GetPrim())
-        for s, (a, b) in enumerate(sequence_segments(meshes)):
-            faces = np.asarray(meshes[a].faces, np.int32)
-            prim = UsdGeom.Mesh.Define(stage, f"/DynamicMesh/segment_{s:04d}")
-            prim.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(faces), 3, np.int32)))
-            prim.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(faces.ravel()))
-            prim.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
-            prim.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
-            prim.GetPrim().SetCustomDataByKey("keyframe", int(meshes[a].metadata.get("keyframe", frames[a])))
-            points, extent, vis = prim.CreatePointsAttr(), prim.CreateExtentAttr(), prim.CreateVisibilityAttr()
-            for k in range(a, b):
-                p = np.ascontiguousarray(meshes[k].vertices, np.float32)
-                t = Usd.TimeCode(frames[k])
-                points.Set(Vt.Vec3fArray.FromNumpy(p), t)
-                lo, hi = (p.min(axis=0), p.max(axis=0)) if len(p) else (np.zeros(3), np.zeros(3))
-                extent.Set(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]), t)
-            if a > 0:
-                vis.Set(UsdGeom.Tokens.invisible, Usd.TimeCode(frames[0]))
-            vis.Set(UsdGeom.Tokens.inherited, Usd.TimeCode(frames[a]))
-            if b < len(meshes):
-                vis.Set(UsdGeom.Tokens.invisible, Usd.TimeCode(frames[b]))
-        stage.GetRootLayer().Save()
-        return path.read_bytes()
+    stage = UsdStage(fps=fps, frames=(frames[0], frames[-1]) if frames else None)
+    stage.group("/DynamicMesh")
+    for s, (a, b) in enumerate(sequence_segments(meshes)):
+        prim = stage.mesh(f"/DynamicMesh/segment_{s:04d}", meshes[a].faces)
+        prim.GetPrim().SetCustomDataByKey("keyframe", int(meshes[a].metadata.get("keyframe", frames[a])))
+        for k in range(a, b):
+            stage.points_at(prim, meshes[k].vertices, frames[k])
+        keys = {frames[0]: False} if a > 0 else {}
+        keys[frames[a]] = True
+        if b < len(meshes):
+            keys[frames[b]] = False
+        stage.visibility(prim, keys)
+    return stage.save("dynamic_mesh.usdc")
 
 
 def usd_points(data: bytes, frame: int) -> np.ndarray:
     """Points of the segment visible at ``frame`` in a layer written by ``usd_bytes`` (as a reader sees it)."""
     from pxr import Usd, UsdGeom
 
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "read.usdc"
-        path.write_bytes(data)
-        stage = Usd.Stage.Open(str(path))
+    from nodes.common.usd import opened
+
+    with opened(data) as stage:
         for prim in stage.GetPrimAtPath("/DynamicMesh").GetChildren():
             mesh = UsdGeom.Mesh(prim)
             if mesh.ComputeVisibility(Usd.TimeCode(frame)) != UsdGeom.Tokens.invisible:
