@@ -5,8 +5,8 @@
     accessor     a typed view of a NumPy array: componentType from the dtype, type from the trailing shape
                  ((): SCALAR, (2,): VEC2, (3,): VEC3, (4,): VEC4, (4, 4): MAT4), every view 4-byte aligned,
                  min/max where the specification requires them (POSITION, morph-target POSITION, animation input)
-    mesh         one triangle primitive: POSITION, indices, and any of NORMAL, TEXCOORD_0, JOINTS_0/WEIGHTS_0,
-                 morph targets; ``material`` may be given now or set later (``set_material``)
+    mesh         one triangle primitive: POSITION, indices, and any of NORMAL, TEXCOORD_0, COLOR_0,
+                 JOINTS_0/WEIGHTS_0, morph targets; ``material`` may be given now or set later (``set_material``)
     material     metallic-roughness with a base-colour texture embedded as PNG
     node / skin  scene nodes (roots listed in the scene), joint hierarchies, inverse bind matrices
     animate      channels of named animations; identical key times share one input accessor
@@ -63,12 +63,13 @@ class GltfBuilder:
         self._blob.extend(data)
         return len(self.gltf.bufferViews) - 1
 
-    def accessor(self, array, target: int | None = None, minmax: bool = False) -> int:
-        """An accessor over ``array`` (N, *element shape), in its own buffer view; its index."""
+    def accessor(self, array, target: int | None = None, minmax: bool = False, normalized: bool = False) -> int:
+        """An accessor over ``array`` (N, *element shape), in its own buffer view; its index. ``normalized``:
+        integers read as 0..1 (colours)."""
         data = np.ascontiguousarray(array)
         kind = _TYPES[data.shape[1:]]
         acc = self._G.Accessor(bufferView=self.view(data.tobytes(), target), componentType=_COMPONENTS[data.dtype],
-                               count=len(data), type=kind)
+                               count=len(data), type=kind, normalized=normalized)
         if minmax and len(data):
             flat = data.reshape(len(data), -1)
             acc.min, acc.max = flat.min(0).tolist(), flat.max(0).tolist()
@@ -76,7 +77,7 @@ class GltfBuilder:
         return len(self.gltf.accessors) - 1
 
     # ------------------------------------------------------------ meshes and materials
-    def mesh(self, vertices, faces, *, normals=None, uv=None, joints=None, weights=None, targets=(),
+    def mesh(self, vertices, faces, *, normals=None, uv=None, colours=None, joints=None, weights=None, targets=(),
              material: int | None = None, name: str | None = None) -> int:
         """A mesh of one triangle primitive; its index.
 
@@ -85,6 +86,7 @@ class GltfBuilder:
         vertices, faces : (V, 3) positions, (F, 3) vertex indices.
         normals : (V, 3) unit vertex normals (NORMAL), optional.
         uv : (V, 2) glTF texture coordinates (TEXCOORD_0; see ``texture_uv``), optional.
+        colours : (V, 3 or 4) uint8 vertex colours (COLOR_0, normalised), optional.
         joints, weights : (V, 4) joint indices (into the skin's joints) and weights (JOINTS_0, WEIGHTS_0).
         targets : morph targets, each (V, 3) position displacements (or a dict of attribute -> (V, 3)).
         material : a material index (or set later with ``set_material``).
@@ -96,6 +98,8 @@ class GltfBuilder:
             attrs.NORMAL = self.accessor(np.asarray(normals, np.float32), ARRAY_BUFFER)
         if uv is not None:
             attrs.TEXCOORD_0 = self.accessor(np.asarray(uv, np.float32), ARRAY_BUFFER)
+        if colours is not None:
+            attrs.COLOR_0 = self.accessor(np.asarray(colours, np.uint8), ARRAY_BUFFER, normalized=True)
         if joints is not None:
             attrs.JOINTS_0 = self.accessor(np.asarray(joints, np.uint16), ARRAY_BUFFER)
             attrs.WEIGHTS_0 = self.accessor(np.asarray(weights, np.float32), ARRAY_BUFFER)
