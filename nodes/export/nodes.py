@@ -37,6 +37,10 @@ class ExportMesh(Node):
         ext = Path(rel).suffix.lstrip(".").lower()
         if ext not in MESH_FORMATS:
             raise NodeError(f"path {path!r}: unknown mesh format '.{ext}' (use one of {', '.join(MESH_FORMATS)})")
+        if ext == "glb":
+            from .textured import glb_bytes
+
+            return {"files": {rel: glb_bytes(mesh, "volcap export.mesh")}}
         return {"files": {rel: mesh.export(file_type=ext)}}
 
 

@@ -94,7 +94,7 @@ def textured_files(mesh, rel: str, ext: str) -> dict[str, bytes]:
 
     stem = Path(rel).with_suffix("")
     if ext == "glb":
-        return {rel: glb_bytes(mesh, texture_image(mesh))}
+        return {rel: glb_bytes(mesh, "volcap export.textured")}
     if ext == "ply":
         cols = vertex_colours(mesh)
         m = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
@@ -116,19 +116,20 @@ def textured_files(mesh, rel: str, ext: str) -> dict[str, bytes]:
     return usd_files(mesh, tex, rel, ext)
 
 
-def glb_bytes(mesh, tex) -> bytes:
-    """One mesh node: POSITION and indices, and TEXCOORD_0 with the texture embedded as PNG in a
-    metallic-roughness material (metallic 0, roughness 1, as trimesh writes it), else the vertex colours."""
+def glb_bytes(mesh, generator: str = "volcap export") -> bytes:
+    """A trimesh mesh as one glTF mesh node: POSITION and indices, and TEXCOORD_0 with the texture embedded as
+    PNG in a metallic-roughness material (metallic 0, roughness 1, as trimesh writes it), else the vertex
+    colours (COLOR_0) if it has any."""
     from nodes.common.gltf import GltfBuilder, texture_uv
 
-    b = GltfBuilder("volcap export.textured")
+    tex = texture_image(mesh)
+    b = GltfBuilder(generator)
     if tex is not None:
         m = b.mesh(mesh.vertices, mesh.faces, uv=texture_uv(mesh.visual.uv))
-    else:
-        cols = np.asarray(mesh.visual.vertex_colors) if getattr(mesh.visual, "kind", None) == "vertex" else None
-        m = b.mesh(mesh.vertices, mesh.faces, colours=cols)
-    if tex is not None:
         b.set_material(m, b.texture_material(_png(tex)))
+    else:
+        coloured = getattr(mesh.visual, "kind", None) in ("vertex", "face")
+        m = b.mesh(mesh.vertices, mesh.faces, colours=np.asarray(mesh.visual.vertex_colors) if coloured else None)
     b.node("geometry_0", mesh=m)
     return b.glb()
 
