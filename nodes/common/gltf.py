@@ -12,6 +12,8 @@
     animate      channels of named animations; identical key times share one input accessor
     glb          the file, with optional ``extras``
 
+``mesh_glb`` writes a trimesh mesh (its texture or vertex colours) with it, for the mesh exports.
+
 So a textured, morphing or skinned mesh is built by the same calls in any combination, e.g.::
 
     b = GltfBuilder("volcap")
@@ -40,6 +42,42 @@ def texture_uv(uv) -> np.ndarray:
     """(V, 2) float32 glTF texture coordinates (origin top-left) of trimesh UVs (origin bottom-left)."""
     uv = np.asarray(uv, np.float32)
     return np.column_stack([uv[:, 0], 1.0 - uv[:, 1]]).astype(np.float32)
+
+
+def texture_image(mesh) -> np.ndarray | None:
+    """The base-colour texture of a trimesh mesh as (H, W, 3) uint8, or None."""
+    visual = mesh.visual
+    if getattr(visual, "kind", None) != "texture" or visual.uv is None:
+        return None
+    mat = visual.material
+    image = getattr(mat, "baseColorTexture", None) or getattr(mat, "image", None)
+    return None if image is None else np.asarray(image.convert("RGB"))
+
+
+def png_bytes(img: np.ndarray) -> bytes:
+    """An (H, W, 3) RGB uint8 image as PNG file bytes."""
+    import cv2
+
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(img[:, :, ::-1]))
+    if not ok:
+        raise ValueError("could not encode the texture as PNG")
+    return buf.tobytes()
+
+
+def mesh_glb(mesh, generator: str = "volcap") -> bytes:
+    """A trimesh mesh as a .glb of one mesh node: POSITION and indices, and TEXCOORD_0 with the texture embedded
+    as PNG in a metallic-roughness material (metallic 0, roughness 1, as trimesh writes it), else the vertex
+    colours (COLOR_0) if it has any."""
+    tex = texture_image(mesh)
+    b = GltfBuilder(generator)
+    if tex is not None:
+        m = b.mesh(mesh.vertices, mesh.faces, uv=texture_uv(mesh.visual.uv))
+        b.set_material(m, b.texture_material(png_bytes(tex)))
+    else:
+        coloured = getattr(mesh.visual, "kind", None) in ("vertex", "face")
+        m = b.mesh(mesh.vertices, mesh.faces, colours=np.asarray(mesh.visual.vertex_colors) if coloured else None)
+    b.node("geometry_0", mesh=m)
+    return b.glb()
 
 
 class GltfBuilder:

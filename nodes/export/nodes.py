@@ -38,9 +38,9 @@ class ExportMesh(Node):
         if ext not in MESH_FORMATS:
             raise NodeError(f"path {path!r}: unknown mesh format '.{ext}' (use one of {', '.join(MESH_FORMATS)})")
         if ext == "glb":
-            from .textured import glb_bytes
+            from nodes.common.gltf import mesh_glb
 
-            return {"files": {rel: glb_bytes(mesh, "volcap export.mesh")}}
+            return {"files": {rel: mesh_glb(mesh, "volcap export.mesh")}}
         return {"files": {rel: mesh.export(file_type=ext)}}
 
 

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from nodegraph import Files, Node, NodeError, OutPath, Param
+from nodes.common.gltf import mesh_glb, png_bytes, texture_image
 from nodes.common.types import TexturedMesh
 
 from .nodes import _format
@@ -57,16 +58,6 @@ def linear_exr_bytes(tex: np.ndarray) -> bytes:
         return p.read_bytes()
 
 
-def texture_image(mesh) -> np.ndarray | None:
-    """The base-colour texture of a trimesh mesh as (H, W, 3) uint8, or None."""
-    visual = mesh.visual
-    if getattr(visual, "kind", None) != "texture" or visual.uv is None:
-        return None
-    mat = visual.material
-    image = getattr(mat, "baseColorTexture", None) or getattr(mat, "image", None)
-    return None if image is None else np.asarray(image.convert("RGB"))
-
-
 def vertex_colours(mesh) -> np.ndarray | None:
     """(V, 3) uint8 colours: the texture sampled at each vertex's UV, or the mesh's vertex colours."""
     from nodes.common.raster import sample_texture
@@ -79,22 +70,13 @@ def vertex_colours(mesh) -> np.ndarray | None:
     return None
 
 
-def _png(img: np.ndarray) -> bytes:
-    import cv2
-
-    ok, buf = cv2.imencode(".png", np.ascontiguousarray(img[:, :, ::-1]))
-    if not ok:
-        raise NodeError("could not encode the texture as PNG")
-    return buf.tobytes()
-
-
 def textured_files(mesh, rel: str, ext: str) -> dict[str, bytes]:
     """File name -> bytes for one textured mesh in format ``ext``."""
     import trimesh
 
     stem = Path(rel).with_suffix("")
     if ext == "glb":
-        return {rel: glb_bytes(mesh, "volcap export.textured")}
+        return {rel: mesh_glb(mesh, "volcap export.textured")}
     if ext == "ply":
         cols = vertex_colours(mesh)
         m = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
@@ -116,24 +98,6 @@ def textured_files(mesh, rel: str, ext: str) -> dict[str, bytes]:
     return usd_files(mesh, tex, rel, ext)
 
 
-def glb_bytes(mesh, generator: str = "volcap export") -> bytes:
-    """A trimesh mesh as one glTF mesh node: POSITION and indices, and TEXCOORD_0 with the texture embedded as
-    PNG in a metallic-roughness material (metallic 0, roughness 1, as trimesh writes it), else the vertex
-    colours (COLOR_0) if it has any."""
-    from nodes.common.gltf import GltfBuilder, texture_uv
-
-    tex = texture_image(mesh)
-    b = GltfBuilder(generator)
-    if tex is not None:
-        m = b.mesh(mesh.vertices, mesh.faces, uv=texture_uv(mesh.visual.uv))
-        b.set_material(m, b.texture_material(_png(tex)))
-    else:
-        coloured = getattr(mesh.visual, "kind", None) in ("vertex", "face")
-        m = b.mesh(mesh.vertices, mesh.faces, colours=np.asarray(mesh.visual.vertex_colors) if coloured else None)
-    b.node("geometry_0", mesh=m)
-    return b.glb()
-
-
 def usd_files(mesh, tex, rel: str, ext: str) -> dict[str, bytes]:
     """A UsdGeom.Mesh with a UsdPreviewSurface material whose diffuseColor reads the texture (UsdUVTexture
     through the ``st`` primvar), or displayColor from vertex colours."""
@@ -148,7 +112,7 @@ def usd_files(mesh, tex, rel: str, ext: str) -> dict[str, bytes]:
                       colours=None if cols is None else cols / 255.0)
     stage.material(geom, "/Capture/Material", texture=png_name if tex is not None else None,
                    display_colour=cols is not None)
-    assets = {png_name: _png(tex)} if tex is not None else {}
+    assets = {png_name: png_bytes(tex)} if tex is not None else {}
     try:
         data = stage.save(f"{stem.name}.{ext}", assets)
     except OSError as exc:
