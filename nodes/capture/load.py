@@ -183,6 +183,14 @@ def _list(items, n: int = 6) -> str:
     return ", ".join(map(str, items[:n])) + (f" and {len(items) - n} more" if len(items) > n else "")
 
 
+def _relative_name(f: Path, folder: Path) -> str:
+    """The file's path below ``folder`` without its extension ("cam0/0001"), as a COLMAP camera is named."""
+    try:
+        return f.relative_to(folder).with_suffix("").as_posix()
+    except ValueError:
+        return f.stem
+
+
 def pair_files(names: list[str], files: list[Path], folder: Path, what: str = "image", partner: str = "camera",
                log=None) -> tuple[list[int], list[Path]]:
     """Pair ``files`` with ``names`` (cameras): by name (file stem), else by the number in the names (see
@@ -191,7 +199,7 @@ def pair_files(names: list[str], files: list[Path], folder: Path, what: str = "i
     log = log or LOG
     stems = [f.stem for f in files]
     index = {n: i for i, n in enumerate(names)}
-    by_name = [index.get(s) for s in stems]
+    by_name = [index.get(_relative_name(f, folder), index.get(s)) for f, s in zip(files, stems)]
     if any(b is not None for b in by_name):
         stray = [f.name for f, b in zip(files, by_name) if b is None]
         if stray:
@@ -238,6 +246,8 @@ def _generic(root: Path, frame: int, masks: str, background: str, log) -> tuple:
     with the cameras (pair_files); masks from masks/ or mask/ beside them, or the masks pattern."""
     img_dir = next((d for d in (root / "images", root / "image") if d.is_dir()), root)
     files = _regular(p for p in img_dir.iterdir() if p.suffix.lower() in IMAGE_EXTS)
+    if not files:  # one folder per camera (COLMAP names them by the relative path: cam0/0001)
+        files = _regular(sorted(p for p in img_dir.glob("*/*") if p.suffix.lower() in IMAGE_EXTS))
     if not files:
         raise DataError(f"{root}: unknown dataset layout and no images found (give the images= pattern)")
     if frame != 0:
@@ -261,9 +271,11 @@ def _generic(root: Path, frame: int, masks: str, background: str, log) -> tuple:
     elif not masks:
         mask_dir = next((d for d in (img_dir.parent / "masks", img_dir.parent / "mask") if d.is_dir() and d != img_dir), None)
         if mask_dir is not None:
-            found = _regular(p for p in mask_dir.iterdir() if p.suffix.lower() in IMAGE_EXTS + (".pbm", ".pgm"))
+            exts = IMAGE_EXTS + (".pbm", ".pgm")
+            found = _regular(p for p in mask_dir.iterdir() if p.suffix.lower() in exts) or \
+                _regular(p for p in mask_dir.glob("*/*") if p.suffix.lower() in exts)
             if found:
-                stems = [f.stem for f in files]
+                stems = [_relative_name(f, img_dir) for f in files]
                 mk, mf = pair_files(stems, found, mask_dir, what="mask", partner="image", log=log)
                 if len(mk) != len(stems):
                     raise DataError(f"{mask_dir}: masks for {len(mk)} of the {len(stems)} images (missing: "

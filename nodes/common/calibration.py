@@ -32,7 +32,7 @@ from __future__ import annotations
 import json
 import re
 import xml.etree.ElementTree as ET
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 import numpy as np
 
@@ -146,6 +146,13 @@ def camera_from_P(name: str, P, width: int, height: int, metric: str = "auto") -
 
 
 # ------------------------------------------------------------------ importers
+def image_name(path: str) -> str:
+    """A camera's name from its image's path relative to the image folder, without the image extension
+    ("cam0/0001.png" -> "cam0/0001"): the stem alone would give cam0/0001.png and cam1/0001.png one name."""
+    p = PurePosixPath(path.replace("\\", "/"))
+    return str(p.with_suffix("")) if p.suffix.lower() in IMAGE_EXTS else str(p)
+
+
 def read_colmap(folder: Path, image_sizes=None) -> Cameras:
     """COLMAP text model: cameras.txt + images.txt (cameras sorted by image name)."""
     cams_txt, imgs_txt = folder / "cameras.txt", folder / "images.txt"
@@ -199,7 +206,7 @@ def read_colmap(folder: Path, image_sizes=None) -> Cameras:
             raise DataError(f"{imgs_txt}: image '{name}' uses camera {cid}, which cameras.txt does not define")
         R = Rotation.from_quat([q[1], q[2], q[3], q[0]]).as_matrix()
         w, h, K, dist = intr[cid]
-        cams.append(Camera(Path(name).stem, w, h, K, np.hstack([R, t[:, None]]), dist))
+        cams.append(Camera(image_name(name), w, h, K, np.hstack([R, t[:, None]]), dist))
     if not cams:
         raise DataError(f"{imgs_txt}: no images")
     return Cameras(sorted(cams, key=lambda c: c.name))

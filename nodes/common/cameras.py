@@ -151,6 +151,19 @@ def project_packed_f32(cam_row: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, 
     return u, v, depth > 0
 
 
+def unique_names(names: list[str], what: str) -> None:
+    """DataError naming the repeated names: per-camera data are stored and matched by name, so two cameras of one
+    name would lose one's data in silence."""
+    seen, repeated = set(), []
+    for n in names:
+        if n in seen and n not in repeated:
+            repeated.append(n)
+        seen.add(n)
+    if repeated:
+        shown = ", ".join(f"'{n}' ({names.count(n)}x)" for n in repeated[:5])
+        raise DataError(f"{what} names must be unique: {shown} of {len(names)}")
+
+
 class Cameras:
     """An ordered set of cameras (one per view). Indexable and iterable."""
 
@@ -158,6 +171,7 @@ class Cameras:
         if not cameras:
             raise DataError("a camera set needs at least one camera")
         self.cameras = list(cameras)
+        unique_names([c.name for c in self.cameras], "camera")
 
     def __len__(self):
         return len(self.cameras)

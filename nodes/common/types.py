@@ -17,7 +17,7 @@ import numpy as np
 from nodegraph import DataError, DataType
 
 from . import previews
-from .cameras import Cameras
+from .cameras import Cameras, unique_names
 
 
 def write_exr(path: Path, arr: np.ndarray, channel: str = "A"):
@@ -47,6 +47,7 @@ class _Lazy:
     def __init__(self, produce, names):
         self._produce = produce
         self.names = list(names)
+        unique_names(self.names, "camera")
 
     @property
     def ready(self) -> bool:
@@ -226,14 +227,14 @@ class Images(DataType):
 
     @classmethod
     def save(cls, v: ImageSet, folder: Path):
-        for name, im in zip(v.names, v.images):
-            _save_array(folder / f"{name}.npy", im)
+        for i, im in enumerate(v.images):   # files by position: any camera name (a path, a dot) is a name
+            _save_array(folder / f"{i:04d}.npy", im)
         (folder / "names.json").write_text(json.dumps(v.names))
 
     @classmethod
     def load(cls, folder: Path) -> ImageSet:
         names = json.loads((folder / "names.json").read_text())
-        return ImageSet([_load_array(folder / f"{n}.npy") for n in names], names)
+        return ImageSet([_load_array(folder / f"{i:04d}.npy") for i in range(len(names))], names)
 
     @classmethod
     def preview(cls, value, size, companions):
@@ -263,18 +264,18 @@ class Masks(DataType):
 
     @classmethod
     def save(cls, v: MaskSet, folder: Path):
-        for i, (name, m) in enumerate(zip(v.names, v.masks)):
-            _save_array(folder / f"{name}.npy", m)
+        for i, m in enumerate(v.masks):
+            _save_array(folder / f"{i:04d}.npy", m)
             if v.alpha is not None:
-                _save_array(folder / f"{name}.alpha.npy", np.asarray(v.alpha[i], np.float32))
+                _save_array(folder / f"{i:04d}.alpha.npy", np.asarray(v.alpha[i], np.float32))
         (folder / "names.json").write_text(json.dumps({"names": v.names, "alpha": v.alpha is not None}))
 
     @classmethod
     def load(cls, folder: Path) -> MaskSet:
         meta = json.loads((folder / "names.json").read_text())
         names = meta["names"]
-        masks = [_load_array(folder / f"{n}.npy") for n in names]
-        alpha = [_load_array(folder / f"{n}.alpha.npy") for n in names] if meta["alpha"] else None
+        masks = [_load_array(folder / f"{i:04d}.npy") for i in range(len(names))]
+        alpha = [_load_array(folder / f"{i:04d}.alpha.npy") for i in range(len(names))] if meta["alpha"] else None
         return MaskSet(masks, alpha, names)
 
     @classmethod

@@ -175,3 +175,34 @@ def test_utrecht_video_matches_extracted_frames(data_dir):
         assert np.array_equal(cap["images"].images[v], png)
         plate = cv2.imread(str(data_dir / "uu_infomcv_seated" / name / "frames" / "background_0000.png"))[:, :, ::-1]
         assert np.array_equal(cap["background"].images[v], plate)
+
+
+def test_cameras_named_by_relative_path_keep_their_own_images(tmp_path):
+    """COLMAP names images by their path below the image folder: cam0/0001.png and cam1/0001.png are two cameras.
+    Named by file stem they were both '0001': the set accepted it, the cached images came back as two copies of
+    the second image and export.masks wrote one file for two cameras."""
+    from nodes.common.cameras import Camera
+    from nodes.common.types import ImageSet, MaskSet
+
+    base = sphere_rig(3)
+    cams = Cameras([Camera(f"cam{v}/0001", c.width, c.height, c.K, c.Rt, c.dist) for v, c in enumerate(base)])
+    save_colmap(cams, tmp_path)
+    for v in range(3):
+        (tmp_path / "images" / f"cam{v}").mkdir(parents=True)
+        cv2.imwrite(str(tmp_path / "images" / f"cam{v}" / "0001.png"), np.full((H, W, 3), 50 + v, np.uint8))
+        (tmp_path / "masks" / f"cam{v}").mkdir(parents=True)
+        cv2.imwrite(str(tmp_path / "masks" / f"cam{v}" / "0001.png"), np.full((H, W), 255 * (v % 2), np.uint8))
+    out = run_node("capture", params={"path": str(tmp_path)}, roundtrip=True)
+    assert out["cameras"].names == ["cam0/0001", "cam1/0001", "cam2/0001"]
+    assert out["images"].names == out["cameras"].names
+    assert [int(im[0, 0, 0]) for im in out["images"].images] == [50, 51, 52]
+    assert [int(m[0, 0]) for m in out["masks"].masks] == [0, 255, 0]
+    files = run_node("export.masks", {"masks": out["masks"]}, {"path": "m/{camera}.png"})["files"]
+    assert sorted(files) == ["m/cam0/0001.png", "m/cam1/0001.png", "m/cam2/0001.png"]
+    one = np.zeros((H, W), np.uint8)
+    with pytest.raises(DataError, match=r"camera names must be unique: '0001' \(2x\) of 3"):
+        Cameras([Camera("0001", c.width, c.height, c.K, c.Rt, c.dist) for c in base[:2]] + [base[2]])
+    with pytest.raises(DataError, match="camera names must be unique: 'a' \\(2x\\)"):
+        ImageSet([np.zeros((H, W, 3), np.uint8)] * 2, ["a", "a"])
+    with pytest.raises(DataError, match="camera names must be unique: 'a' \\(2x\\)"):
+        MaskSet([one, one], names=["a", "a"])
