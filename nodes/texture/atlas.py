@@ -18,6 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from nodes.common.meshops import face_normals
+
 DIRECTIONS = {
     6: np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float),
 }
@@ -46,14 +48,6 @@ class Atlas:
     def matches(self, faces) -> bool:
         faces = np.asarray(faces)
         return faces.shape == self.faces.shape and np.array_equal(faces, self.faces)
-
-
-def face_normals(vertices, faces) -> np.ndarray:
-    v = np.asarray(vertices, np.float64)
-    f = np.asarray(faces, np.int64)
-    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    ln = np.linalg.norm(n, axis=1, keepdims=True)
-    return np.divide(n, ln, out=np.zeros_like(n), where=ln > 0)
 
 
 def _components(faces_sel: np.ndarray, nbr: np.ndarray, group: np.ndarray) -> np.ndarray:

@@ -49,6 +49,11 @@ def test_face_neighbours():
         assert sorted(nbr[i].tolist()) == sorted(set(range(4)) - {i})
     assert nbr[0].tolist() == [2, 3, 1]                  # face 0 = (0, 2, 1): 0-2 face 2, 2-1 face 3, 1-0 face 1
     assert face_neighbours(TRI_F).tolist() == [[-1, -1, -1]]
+    m = trimesh.creation.icosphere(2)                    # the same pairs as trimesh's face adjacency
+    nbr = face_neighbours(m.faces)
+    assert np.all(nbr >= 0)
+    pairs = {tuple(sorted((f, int(g)))) for f in range(len(nbr)) for g in nbr[f]}
+    assert pairs == {tuple(sorted(p)) for p in m.face_adjacency.tolist()}
 
 
 def test_vertex_faces_csr_and_padded():
