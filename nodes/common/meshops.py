@@ -3,7 +3,7 @@
     topology     unique_edges, edge_faces / edge_face_pairs (edge -> faces), face_neighbours, vertex_faces (CSR)
                  and padded_rows, vertex_neighbours (CSR), component_sizes / drop_small_components /
                  largest_component
-    geometry     face_normals, vertex_normals (area-weighted), edge_length_graph
+    geometry     face_normals, face_areas, vertex_normals (area-weighted), edge_length_graph
     folds        FOLD_DEG / FOLD_COS (faces turned more than 150 degrees), folded_edges
     averaging    ring_operator (I + A), ring_average (row-normalised I + A), neighbour_mean (uniform Laplacian)
     refinement   split_edges (conforming edge splits)
@@ -107,6 +107,13 @@ def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
     length = np.linalg.norm(n, axis=1, keepdims=True)
     return np.divide(n, length, out=np.zeros_like(n), where=length > 0)
+
+
+def face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Triangle areas (F,) float64 (half the cross product's length)."""
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64).reshape(-1, 3)
+    return 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

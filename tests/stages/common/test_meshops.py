@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from nodes.common.meshops import (FOLD_COS, FOLD_DEG, edge_face_pairs, edge_faces, edge_length_graph, face_neighbours,
-                                  face_normals, folded_edges, neighbour_mean, padded_rows, ring_average, ring_operator,
-                                  unique_edges, vertex_faces, vertex_neighbours, vertex_normals)
+from nodes.common.meshops import (FOLD_COS, FOLD_DEG, edge_face_pairs, edge_faces, edge_length_graph, face_areas,
+                                  face_neighbours, face_normals, folded_edges, neighbour_mean, padded_rows, ring_average,
+                                  ring_operator, unique_edges, vertex_faces, vertex_neighbours, vertex_normals)
 
 TET_V = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
 TET_F = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])      # outward
@@ -76,6 +76,7 @@ def test_face_and_vertex_normals():
     np.testing.assert_allclose(n[:3], [[0, 0, -1], [0, -1, 0], [-1, 0, 0]], atol=1e-15)
     np.testing.assert_allclose(n[3], np.ones(3) / np.sqrt(3), rtol=1e-15)
     assert face_normals(np.zeros((3, 3)), TRI_F).tolist() == [[0, 0, 0]]       # degenerate: zero
+    np.testing.assert_allclose(face_areas(TET_V, TET_F), [0.5, 0.5, 0.5, np.sqrt(3) / 2], rtol=1e-15)
     cube = trimesh.creation.box()
     np.testing.assert_allclose(face_normals(cube.vertices, cube.faces), cube.face_normals, atol=1e-15)
     vn = vertex_normals(cube.vertices, cube.faces)      # area-weighted: a corner with two triangles on one side
