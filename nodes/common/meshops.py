@@ -228,11 +228,8 @@ def split_edges(vertices, faces, edges, face_edges, split, points) -> tuple[np.n
 def vertex_neighbours(faces: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
     """Umbrella neighbourhoods in CSR form: (offsets (count + 1,) int32, neighbours int32), each edge once
     per direction, neighbours of a vertex in increasing order."""
-    faces = np.asarray(faces, np.int64).reshape(-1, 3)
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    e = np.sort(e, axis=1)
+    e, _ = unique_edges(faces)
     keys = np.sort(np.concatenate([e[:, 0] * count + e[:, 1], e[:, 1] * count + e[:, 0]]))  # (from, to) in order
-    keys = keys[np.r_[True, keys[1:] != keys[:-1]][: len(keys)]]      # (no faces: no keys)
     both = np.stack([keys // count, keys % count], axis=1)
     offsets = np.zeros(count + 1, np.int64)
     np.add.at(offsets, both[:, 0] + 1, 1)
