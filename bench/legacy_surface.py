@@ -1,5 +1,5 @@
 """The seed's refine and relax (volcap before issue 13), frozen here as the benchmark's "today" baseline:
-Liang & Wong bisection against every silhouette through the signed-distance outline (nodes.common.silhouettes,
+Liang & Wong bisection against every silhouette through the signed-distance outline (bench/legacy_hulltest.py,
 kernels/refine.cl), two rounds of conforming edge splits where chords stray more than 0.25 px (host NumPy
 projection), then Taubin lambda|mu smoothing (trimesh.smoothing.filter_taubin: the seed's OpenCL kernel gave the
 same vertices within 1e-5) fitted back to the hull. Not part of the product; run by bench/refine_relax.py.
@@ -11,7 +11,9 @@ import trimesh
 
 from nodes.common.cameras import Cameras
 from nodes.common.meshops import split_edges, unique_edges
-from nodes.common.silhouettes import Silhouettes, hull_test
+from nodes.common.silhouettes import Silhouettes
+
+from legacy_hulltest import hull_test
 
 LAMBDA, MU = 0.6307, -0.6732
 

@@ -123,8 +123,8 @@ __kernel void shell_clamp(__global const float* v, __global const float* centre,
 }
 
 // Fold repair: a vertex two of whose faces that share an edge have unit normals more than 150 degrees apart
-// (cos < -0.866: the fold of eval.mesh) takes half an umbrella step (towards the mean of its neighbours); the
-// others stay.
+// (cos < -0.8660254: FOLD_COS of nodes.common.meshops, the fold of eval.mesh) takes half an umbrella step
+// (towards the mean of its neighbours); the others stay.
 inline int other_shared(int4 a, int4 b, int i)
 {
     // whether faces a and b (corners xyz), both holding vertex i, share another corner: an edge

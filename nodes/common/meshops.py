@@ -1,5 +1,14 @@
-"""Mesh operations shared by stages: unique edges, conforming edge splits, vertex neighbourhoods (CSR),
-connected components (the largest, or all but the small ones).
+"""Mesh operations shared by stages (the one mesh core: every stage calls these, none keeps a copy).
+
+    topology     unique_edges, edge_faces / edge_face_pairs (edge -> faces), face_neighbours, vertex_faces (CSR)
+                 and padded_rows, vertex_neighbours (CSR), component_sizes / drop_small_components /
+                 largest_component
+    geometry     face_normals, face_areas, vertex_normals (area-weighted), edge_length_graph
+    folds        FOLD_DEG / FOLD_COS (faces turned more than 150 degrees), folded_edges
+    averaging    ring_operator (I + A), ring_average (row-normalised I + A), neighbour_mean (uniform Laplacian)
+    refinement   split_edges (conforming edge splits)
+
+Arrays in, arrays out (NumPy; float64 geometry, int64 indices unless a kernel needs int32: the CSR tables).
 
 Conforming edge splits: chosen edges get a new vertex, and every face adapts so the mesh stays crack-free
 (no T-junctions) and keeps its orientation ("red-green" refinement). A face with one split edge becomes two
@@ -7,10 +16,15 @@ triangles, with two split edges three, with all three the four of a 1-to-4 split
 
     edges, face_edges = unique_edges(faces)                    # (E, 2) vertex pairs, (F, 3) edge per face side
     v2, f2 = split_edges(vertices, faces, edges, face_edges, split, points)
+    pairs = edge_face_pairs(faces)                             # interior edges and their two faces
+    bad = folded_edges(vertices, faces, pairs)                 # indices into pairs[0]
 """
 from __future__ import annotations
 
 import numpy as np
+
+FOLD_DEG = 150.0                                   # an edge is folded when its faces turn more than this
+FOLD_COS = float(np.cos(np.radians(FOLD_DEG)))     # -0.8660254037844387: unit normals' dot product below it
 
 
 def unique_edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -28,6 +42,151 @@ def unique_edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     inverse[order] = np.cumsum(first) - 1
     keys = keys[order][first]
     return np.stack([keys // n, keys % n], axis=1), inverse.reshape(-1, 3)
+
+
+def edge_faces(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Edge -> face adjacency.
+
+    Returns
+    -------
+    edges (E, 2), face_edges (F, 3) as ``unique_edges``; faces (E, 2): the first two faces of each edge in
+    increasing order, -1 where it has fewer; count (E,): faces per edge (1 border, 2 interior, > 2 non-manifold).
+    """
+    edges, fe = unique_edges(faces)
+    flat = fe.ravel()
+    count = np.bincount(flat, minlength=len(edges))
+    order = np.argsort(flat, kind="stable")
+    start = np.cumsum(count) - count
+    pair = np.full((len(edges), 2), -1, np.int64)
+    pair[:, 0] = order[start] // 3
+    two = count >= 2
+    pair[two, 1] = order[start[two] + 1] // 3
+    return edges, fe, pair, count
+
+
+def edge_face_pairs(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(edges (M, 2), their two faces (M, 2)) of the interior edges: those exactly two faces share."""
+    edges, _, pair, count = edge_faces(faces)
+    two = count == 2
+    return edges[two], pair[two]
+
+
+def face_neighbours(faces: np.ndarray) -> np.ndarray:
+    """(F, 3): the face across side k of each face (side k runs from corner k to corner k + 1), -1 on a border
+    or a non-manifold edge."""
+    faces = np.asarray(faces, np.int64).reshape(-1, 3)
+    _, fe, pair, count = edge_faces(faces)
+    own = np.arange(len(faces))[:, None]
+    a, b = pair[fe, 0], pair[fe, 1]
+    return np.where(count[fe] == 2, np.where(a == own, b, a), -1)
+
+
+def vertex_faces(faces: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """Vertex -> faces in CSR form: (off (count + 1,) int32, idx int32), each vertex's faces in increasing order
+    (a face twice where it uses the vertex twice)."""
+    flat = np.asarray(faces, np.int64).reshape(-1)
+    order = np.argsort(flat, kind="stable")
+    off = np.zeros(count + 1, np.int64)
+    off[1:] = np.cumsum(np.bincount(flat, minlength=count))
+    return off.astype(np.int32), (order // 3).astype(np.int32)
+
+
+def padded_rows(off: np.ndarray, idx: np.ndarray, fill: int = -1) -> np.ndarray:
+    """A CSR table as a (rows, M) int64 array, M the longest row (at least 1), short rows padded with ``fill``."""
+    counts = np.diff(np.asarray(off, np.int64))
+    out = np.full((len(counts), max(int(counts.max(initial=0)), 1)), fill, np.int64)
+    row = np.repeat(np.arange(len(counts)), counts)
+    out[row, np.arange(len(row)) - np.asarray(off, np.int64)[row]] = idx
+    return out
+
+
+def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Unit face normals (F, 3) float64, right-handed in the corner order; zero for a degenerate face."""
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64).reshape(-1, 3)
+    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    return np.divide(n, length, out=np.zeros_like(n), where=length > 0)
+
+
+def face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Triangle areas (F,) float64 (half the cross product's length)."""
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64).reshape(-1, 3)
+    return 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals (V, 3) float64 (the sum of the faces' cross products); zero for an
+    unused vertex."""
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64).reshape(-1, 3)
+    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    n = np.zeros_like(v)
+    for a in range(3):
+        for c in range(3):
+            n[:, a] += np.bincount(f[:, c], fn[:, a], minlength=len(v))
+    norm = np.linalg.norm(n, axis=1, keepdims=True)
+    return np.divide(n, norm, out=np.zeros_like(n), where=norm > 0)
+
+
+def folded_edges(vertices: np.ndarray, faces: np.ndarray, pairs=None, which: np.ndarray | None = None) -> np.ndarray:
+    """The fold test: edges whose two faces' unit normals are more than FOLD_DEG (150) degrees apart.
+
+    Parameters
+    ----------
+    pairs : (edges, faces of each edge) as ``edge_face_pairs(faces)`` (made when None)
+    which : edge indices into ``pairs`` to test (all when None)
+
+    Returns
+    -------
+    Indices into ``pairs``' edges of the folded ones, increasing (in ``which``'s order when given).
+    """
+    f = np.asarray(faces, np.int64).reshape(-1, 3)
+    _, pair = edge_face_pairs(f) if pairs is None else pairs
+    if which is None:
+        which, need = np.arange(len(pair)), slice(None)
+    else:
+        which = np.asarray(which, np.int64)
+        need = np.unique(pair[which].ravel())
+    n = np.zeros((len(f), 3))
+    n[need] = face_normals(vertices, f[need])
+    return which[np.einsum("ij,ij->i", n[pair[which, 0]], n[pair[which, 1]]) < FOLD_COS]
+
+
+def edge_length_graph(vertices: np.ndarray, faces: np.ndarray):
+    """(symmetric sparse (V, V) CSR of the mesh edges weighted by length (+ 1e-12: no edge drops out), edges)."""
+    from scipy.sparse import coo_matrix
+
+    e, _ = unique_edges(faces)
+    v = np.asarray(vertices, np.float64)
+    w = np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1) + 1e-12
+    n = len(v)
+    return coo_matrix((np.r_[w, w], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr(), e
+
+
+def ring_operator(faces: np.ndarray, count: int):
+    """Sparse (count, count) CSR I + A: each vertex and its one-ring (the edges' neighbours), all ones."""
+    from scipy.sparse import coo_matrix, identity
+
+    e, _ = unique_edges(faces)
+    A = coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(count, count))
+    return (A + identity(count)).tocsr()
+
+
+def ring_average(faces: np.ndarray, count: int):
+    """Row-normalised ``ring_operator``: (S @ x)[i] is the mean of x over vertex i and its neighbours."""
+    from scipy.sparse import csr_matrix
+
+    S = ring_operator(faces, count)
+    return csr_matrix(S.multiply(1.0 / np.asarray(S.sum(axis=1)).ravel()[:, None]))
+
+
+def neighbour_mean(S, x: np.ndarray) -> np.ndarray:
+    """Umbrella (uniform Laplacian) mean: per vertex the mean of x over its neighbours, given S = ``ring_operator``;
+    an isolated vertex gets 0. ``neighbour_mean(S, x) - x`` is the umbrella step."""
+    degree = np.maximum(np.asarray(S.sum(axis=1)).ravel() - 1.0, 1.0)
+    return (S @ x - x) / degree[:, None]
 
 
 def split_edges(vertices, faces, edges, face_edges, split, points) -> tuple[np.ndarray, np.ndarray]:
@@ -69,11 +228,8 @@ def split_edges(vertices, faces, edges, face_edges, split, points) -> tuple[np.n
 def vertex_neighbours(faces: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
     """Umbrella neighbourhoods in CSR form: (offsets (count + 1,) int32, neighbours int32), each edge once
     per direction, neighbours of a vertex in increasing order."""
-    faces = np.asarray(faces, np.int64).reshape(-1, 3)
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    e = np.sort(e, axis=1)
+    e, _ = unique_edges(faces)
     keys = np.sort(np.concatenate([e[:, 0] * count + e[:, 1], e[:, 1] * count + e[:, 0]]))  # (from, to) in order
-    keys = keys[np.r_[True, keys[1:] != keys[:-1]][: len(keys)]]      # (no faces: no keys)
     both = np.stack([keys // count, keys % count], axis=1)
     offsets = np.zeros(count + 1, np.int64)
     np.add.at(offsets, both[:, 0] + 1, 1)

@@ -17,9 +17,9 @@ from __future__ import annotations
 import numpy as np
 
 from nodegraph import Input, Node, NodeError, Param, Table
+from nodes.common.meshops import FOLD_DEG
 from nodes.common.types import Mesh, Volume
 
-FOLD_DEG = 150.0
 SLIVER_DEG = 5.0
 
 

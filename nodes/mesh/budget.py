@@ -16,40 +16,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from nodes.common.meshops import split_edges, unique_edges
-
-FOLD_COS = -0.8660254  # cos 150 degrees
+from nodes.common.meshops import edge_faces, face_normals, folded_edges, split_edges, unique_edges, vertex_normals
 
 
-def face_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
-    """Unit face normals (F, 3) (zero for a degenerate face)."""
-    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    length = np.linalg.norm(n, axis=1, keepdims=True)
-    return np.divide(n, length, out=np.zeros_like(n), where=length > 0)
-
-
-def edge_faces(f: np.ndarray):
-    """(edges (E, 2), face_edges (F, 3), faces of each edge (E, 2) with -1 where an edge has fewer than two, count of
-    faces per edge (E,))."""
-    edges, fe = unique_edges(f)
-    flat = fe.ravel()
-    count = np.bincount(flat, minlength=len(edges))
-    order = np.argsort(flat, kind="stable")
-    start = np.concatenate([[0], np.cumsum(count)[:-1]])
-    pair = np.full((len(edges), 2), -1, np.int64)
-    pair[:, 0] = order[start] // 3
-    two = count >= 2
-    pair[two, 1] = order[start[two] + 1] // 3
-    return edges, fe, pair, count
-
-
-def folded(v: np.ndarray, f: np.ndarray) -> np.ndarray:
-    """Indices of the edges whose two faces' normals are more than 150 degrees apart (and the edge table)."""
-    edges, fe, pair, count = edge_faces(f)
-    n = face_normals(v, f)
-    ok = count == 2
-    cos = np.einsum("ij,ij->i", n[pair[ok, 0]], n[pair[ok, 1]])
-    return np.flatnonzero(ok)[cos < FOLD_COS], (edges, fe, pair, count)
+def folded(v: np.ndarray, f: np.ndarray):
+    """Indices of the folded edges (nodes.common.meshops.folded_edges) into the whole edge table, and that table
+    (edges, face_edges, faces of each edge, faces per edge: nodes.common.meshops.edge_faces)."""
+    table = edge_faces(f)
+    two = np.flatnonzero(table[3] == 2)
+    return two[folded_edges(v, f, (table[0][two], table[2][two]))], table
 
 
 def repair_folds(vertices, faces, rounds: int = 6) -> tuple[np.ndarray, np.ndarray, int]:
@@ -118,11 +93,7 @@ def drop_duplicate_faces(faces: np.ndarray) -> np.ndarray:
 
 def split_scores(v: np.ndarray, f: np.ndarray, edges: np.ndarray) -> np.ndarray:
     """Chord error estimate per edge: length x (angle between its ends' normals + 0.15 rad)."""
-    n = np.zeros_like(v)
-    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    for k in range(3):
-        np.add.at(n, f[:, k], fn)
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+    n = vertex_normals(v, f)
     cos = np.clip(np.einsum("ij,ij->i", n[edges[:, 0]], n[edges[:, 1]]), -1, 1)
     return np.linalg.norm(v[edges[:, 0]] - v[edges[:, 1]], axis=1) * (np.arccos(cos) + 0.15)
 

@@ -9,7 +9,7 @@ towards the mean of its neighbours (``lam_t``), which evens out the triangles (n
 face turned against its filtered normal (a fold) takes half an umbrella step instead, which opens the fold. Positions are then
 clamped to the shell of the silhouettes along fixed lines (``shell_clamp``).
 
-Vertex -> face incidence is a CSR table (``vertex_faces``) built once per mesh.
+Vertex -> face incidence is a CSR table (nodes.common.meshops.vertex_faces) built once per mesh.
 """
 from __future__ import annotations
 
@@ -17,15 +17,7 @@ import numpy as np
 
 from kernels import source
 from nodegraph.clrt import Runner, round_up
-
-
-def vertex_faces(faces: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
-    """CSR of each vertex's faces: (off (count + 1,) int32, idx int32), faces in increasing order."""
-    flat = np.asarray(faces, np.int64).reshape(-1)
-    order = np.argsort(flat, kind="stable")
-    off = np.zeros(count + 1, np.int64)
-    off[1:] = np.cumsum(np.bincount(flat, minlength=count))
-    return off.astype(np.int32), (order // 3).astype(np.int32)
+from nodes.common.meshops import FOLD_COS, vertex_faces
 
 
 # ---------------------------------------------------------------- NumPy references (float32, kernel order)
@@ -138,7 +130,7 @@ def unfold_step_reference(v, f, off, idx) -> tuple[np.ndarray, int]:
         corner = f[faces]
         others = [set(c.tolist()) - {i} for c in corner]
         share = np.array([[bool(a & b) for b in others] for a in others])
-        if ((cos < np.float32(-0.8660254)) & share).any():
+        if ((cos < np.float32(FOLD_COS)) & share).any():
             ring = np.zeros(3, np.float32)
             for k in faces:
                 ring = ring + corners[k]

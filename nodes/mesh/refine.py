@@ -26,7 +26,7 @@ import numpy as np
 
 from kernels import source
 from nodegraph import Node, Param
-from nodes.common.meshops import carried_vertex_colors
+from nodes.common.meshops import carried_vertex_colors, face_areas
 from nodes.common.silhouettes import POLICIES
 from nodes.common.types import CameraSet, Masks, Mesh, Volume
 
@@ -76,9 +76,7 @@ def target_face_count(vertices, faces, faces_param: int, edge_length: float) -> 
     if faces_param > 0:
         return int(faces_param)
     if edge_length > 0 and len(faces):
-        v = np.asarray(vertices, np.float64)
-        f = np.asarray(faces, np.int64)
-        area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1).sum()
+        area = face_areas(vertices, faces).sum()
         return max(4, int(round(area / (np.sqrt(3) / 4 * edge_length ** 2))))
     return 0
 

@@ -27,6 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from nodes.common.meshops import edge_length_graph
+
 
 # ---------------------------------------------------------------- the data, in the layouts the products need
 class Trajectories:
@@ -122,25 +124,13 @@ def fit_rigid(rest: np.ndarray, frames: np.ndarray, idx: np.ndarray):
 
 
 # ---------------------------------------------------------------- mesh graph helpers
-def edge_graph(vertices: np.ndarray, faces: np.ndarray):
-    """Sparse symmetric vertex graph of the mesh edges, weighted by length."""
-    from scipy.sparse import coo_matrix
-
-    from nodes.common.meshops import unique_edges
-
-    e, _ = unique_edges(faces)
-    w = np.linalg.norm(vertices[e[:, 0]] - vertices[e[:, 1]], axis=1) + 1e-12
-    n = len(vertices)
-    return coo_matrix((np.r_[w, w], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr(), e
-
-
 def patches(vertices: np.ndarray, faces: np.ndarray, count: int) -> np.ndarray:
     """Label (V,) of ``count`` surface patches: farthest-point seeds over geodesic (edge-graph) distance,
     each vertex to its geodesically nearest seed. Vertices no seed reaches (other components) get seeds of
     their own."""
     from scipy.sparse.csgraph import dijkstra
 
-    g, _ = edge_graph(vertices, faces)
+    g, _ = edge_length_graph(vertices, faces)
     n = len(vertices)
     count = max(1, min(count, n))
     seeds = [int(np.argmax(np.linalg.norm(vertices - vertices.mean(0), axis=1)))]
@@ -209,7 +199,7 @@ def rigid_parts(rest: np.ndarray, frames: np.ndarray, faces: np.ndarray, *, bone
     traj = Trajectories(rest, frames)
     rest, frames = traj.rest, traj.frames
     diag = float(np.linalg.norm(np.ptp(rest, axis=0)))
-    _, edges = edge_graph(rest, faces)
+    _, edges = edge_length_graph(rest, faces)
     label = patches(rest, faces, patch_count)
     k = int(label.max()) + 1
     mom: dict[int, Moments] = dict(enumerate(part_moments(traj, label, k)))
@@ -409,7 +399,7 @@ def build_rig(rest: np.ndarray, faces: np.ndarray, parts: RigidParts) -> Rig:
     b = parts.adjacency.shape[0]
     sizes = np.bincount(parts.labels, minlength=b)
     root = int(np.argmax(sizes))
-    _, edges = edge_graph(rest, faces)
+    _, edges = edge_length_graph(rest, faces)
     if b == 1:
         order, parent = [root], {root: -1}
     else:

@@ -30,7 +30,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .motion import Rig, Trajectories, edge_graph, label_adjacency
+from nodes.common.meshops import edge_length_graph
+
+from .motion import Rig, Trajectories, label_adjacency
 
 
 @dataclass
@@ -244,19 +246,10 @@ def subtree_matrix(parents: list[int]) -> np.ndarray:
 
 
 def topological(parents: list[int]) -> list[int]:
-    order, seen = [], set()
+    """Joint indices, each after its parent (graphlib.TopologicalSorter over the parent links)."""
+    from graphlib import TopologicalSorter
 
-    def visit(i):
-        if i in seen:
-            return
-        if parents[i] >= 0:
-            visit(parents[i])
-        seen.add(i)
-        order.append(i)
-
-    for i in range(len(parents)):
-        visit(i)
-    return order
+    return list(TopologicalSorter({j: [p] if p >= 0 else [] for j, p in enumerate(parents)}).static_order())
 
 
 def constrain(rot, tr, joints, parents):
@@ -475,7 +468,7 @@ def fit_skin(traj: Trajectories, faces: np.ndarray, rig: Rig, *, influences: int
     joints = np.asarray(rig.joints, np.float64)
     parents = list(rig.parents)
     j = len(parents)
-    _, edges = edge_graph(traj.rest, faces)
+    _, edges = edge_length_graph(traj.rest, faces)
     nbr = vertex_neighbours(faces, len(traj.rest))
     diag = float(np.linalg.norm(np.ptp(traj.rest, axis=0)))
     cand = candidates(traj.rest, rig.labels, edges, parents, j, 0.03 * diag)

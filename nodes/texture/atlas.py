@@ -18,6 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from nodes.common.meshops import face_areas, face_normals
+
 DIRECTIONS = {
     6: np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float),
 }
@@ -46,14 +48,6 @@ class Atlas:
     def matches(self, faces) -> bool:
         faces = np.asarray(faces)
         return faces.shape == self.faces.shape and np.array_equal(faces, self.faces)
-
-
-def face_normals(vertices, faces) -> np.ndarray:
-    v = np.asarray(vertices, np.float64)
-    f = np.asarray(faces, np.int64)
-    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    ln = np.linalg.norm(n, axis=1, keepdims=True)
-    return np.divide(n, ln, out=np.zeros_like(n), where=ln > 0)
 
 
 def _components(faces_sel: np.ndarray, nbr: np.ndarray, group: np.ndarray) -> np.ndarray:
@@ -273,9 +267,7 @@ def make_atlas(vertices, faces, nbr, size=2048, *, directions=6, min_faces=24, g
 def atlas_stats(atlas: Atlas, texel_face: np.ndarray, vertices, faces) -> dict:
     """Charts, texel use (share of atlas texels covered by a face), and stretch (texel area / world area,
     relative to the median; its 95th percentile)."""
-    v = np.asarray(vertices, np.float64)
-    f = np.asarray(faces, np.int64)
-    a3 = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+    a3 = face_areas(vertices, faces)
     uv = atlas.face_uv.astype(np.float64)
     a2 = 0.5 * np.abs((uv[:, 1, 0] - uv[:, 0, 0]) * (uv[:, 2, 1] - uv[:, 0, 1]) - (uv[:, 1, 1] - uv[:, 0, 1]) * (uv[:, 2, 0] - uv[:, 0, 0]))
     ok = a3 > 0

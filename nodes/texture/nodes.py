@@ -10,6 +10,7 @@ import numpy as np
 
 from nodegraph import DataType, Input, Node, NodeError, Output, Param
 from nodes.common import raster
+from nodes.common.meshops import face_neighbours
 from nodes.common.types import CameraSet, Images, Masks, Mesh, TexturedMesh
 
 from . import views
@@ -148,4 +149,4 @@ class TextureAtlas(Node):
                                 f"reference ({len(ref.faces)}); one atlas needs constant connectivity (track the sequence first)")
         if len(ref.faces) == 0:
             raise NodeError("the reference mesh has no faces")
-        return {"atlas": make_atlas(ref.vertices, ref.faces, views.face_neighbours(ref.faces), size, directions=directions)}
+        return {"atlas": make_atlas(ref.vertices, ref.faces, face_neighbours(ref.faces), size, directions=directions)}

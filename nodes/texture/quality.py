@@ -10,7 +10,7 @@ import numpy as np
 from nodes.common.raster import sample_texture
 
 from .bake import texel_bary_reference
-from .views import face_neighbours
+from nodes.common.meshops import face_neighbours
 
 
 def _inside_edge_uv(face_uv, f, side, texels=1.5):

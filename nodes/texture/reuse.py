@@ -53,7 +53,7 @@ class Topology:
 
     @cached_property
     def nbr(self) -> np.ndarray:
-        from .views import face_neighbours
+        from nodes.common.meshops import face_neighbours
 
         return face_neighbours(self.faces)
 
@@ -66,9 +66,9 @@ class Topology:
     @cached_property
     def adjacency(self):
         """Row-normalised sparse (V, V) averaging over each vertex and its umbrella neighbours."""
-        from .views import vertex_adjacency
+        from nodes.common.meshops import ring_average
 
-        return vertex_adjacency(self.faces, self.n_vertices)
+        return ring_average(self.faces, self.n_vertices)
 
     @cached_property
     def incidence(self):

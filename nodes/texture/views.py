@@ -5,7 +5,7 @@ gains, blend weights that cross-fade across view seams, and global seam levellin
     stats = face_view_stats(vertices, faces, cameras, frame)                   # quality (V, F), colour (V, F, 3)
     gains = camera_gains(stats.quality, stats.colour)                          # (V, 3), exposure / white balance
     cost, spread = data_cost(stats.effective(), stats.colour, gains, return_spread=True)
-    labels = select_views(cost, face_neighbours(faces))
+    labels = select_views(cost, face_neighbours(faces))                        # nodes.common.meshops
     face_view, weight = blend_weights(labels, stats.effective(), faces, len(vertices), feather=2, spread=spread)
     offset = level_seams(vertices, faces, face_view, weight, cameras, frame, gains)
 
@@ -29,7 +29,7 @@ import numpy as np
 from kernels import source
 from nodegraph import clrt
 from nodes.common.cameras import Cameras
-from nodes.common.meshops import unique_edges, vertex_neighbours
+from nodes.common.meshops import ring_average, unique_edges
 
 KERNELS = source("texture.cl")
 INVISIBLE = 1e6
@@ -214,28 +214,6 @@ def face_view_stats_reference(vertices, faces, cameras: Cameras, frame: FrameIma
 
 
 # ---------------------------------------------------------------- selection
-def face_neighbours(faces) -> np.ndarray:
-    """(F, 3): the face across side k of each face (side k runs from corner k to corner k+1), -1 on a
-    border or a non-manifold edge."""
-    faces = np.asarray(faces, np.int64).reshape(-1, 3)
-    nbr = np.full((len(faces), 3), -1, np.int64)
-    if len(faces) == 0:
-        return nbr
-    _, fe = unique_edges(faces)
-    flat = fe.ravel()
-    order = np.argsort(flat, kind="stable")
-    e = flat[order]
-    counts = np.bincount(e, minlength=int(e.max()) + 1)
-    pair = counts[e] == 2
-    starts = np.flatnonzero(np.r_[True, e[1:] != e[:-1]])
-    first = np.repeat(starts, counts[e[starts]])
-    other = np.where(np.arange(len(e)) == first, first + 1, first)
-    slot = order                                     # flat slot (face * 3 + side) of each sorted entry
-    ok = pair
-    nbr.ravel()[slot[ok]] = (slot[other[ok]] // 3)
-    return nbr
-
-
 def view_sharpness(images, valid) -> np.ndarray:
     """(V,) relative sharpness of each view: median gradient energy inside the valid region, divided by the
     median over views (1 = typical; a blurred or defocused view scores lower)."""
@@ -419,19 +397,6 @@ def camera_gains(quality, colour, *, iterations=6, min_level=8.0, max_faces=8000
 
 
 # ---------------------------------------------------------------- blending and levelling
-def vertex_adjacency(faces, n_vertices):
-    """Row-normalised sparse (V, V) averaging over each vertex and its umbrella neighbours."""
-    from scipy.sparse import csr_matrix
-
-    off, nb = vertex_neighbours(faces, n_vertices)
-    rows = np.repeat(np.arange(n_vertices), np.diff(off))
-    data = np.ones(len(nb) + n_vertices)
-    A = csr_matrix((data, (np.r_[rows, np.arange(n_vertices)], np.r_[nb, np.arange(n_vertices)])),
-                   shape=(n_vertices, n_vertices))
-    deg = np.asarray(A.sum(axis=1)).ravel()
-    return csr_matrix(A.multiply(1.0 / deg[:, None]))
-
-
 def blend_weights(labels, quality, faces, n_vertices, *, feather=2, K=4, spread=None, spread_range=(8.0, 24.0),
                   power=2.0, topo=None):
     """Soft labels that cross-fade between views over ``feather`` vertex rings on each side of a view seam.
@@ -462,7 +427,7 @@ def blend_weights(labels, quality, faces, n_vertices, *, feather=2, K=4, spread=
     s = W.sum(axis=1, keepdims=True)
     W = np.divide(W, s, out=np.zeros_like(W), where=s > 0)
     if feather > 0:
-        A = topo.adjacency if topo is not None else vertex_adjacency(faces, n_vertices)
+        A = topo.adjacency if topo is not None else ring_average(faces, n_vertices)
         for _ in range(feather):
             W = A @ W
     if spread is not None and len(faces):
@@ -549,7 +514,7 @@ def level_seams(vertices, faces, face_view, weight, cameras: Cameras, frame: Fra
     seam[kv[1:][kv[1:] == kv[:-1]]] = True                               # vertices with two or more views
     if not np.any(seam):
         return offset
-    A_adj = topo.adjacency if topo is not None else vertex_adjacency(faces, nvert)
+    A_adj = topo.adjacency if topo is not None else ring_average(faces, nvert)
     inband = seam.astype(np.float64)
     for _ in range(band):
         inband = np.maximum(inband, (A_adj @ inband > 0).astype(np.float64))
@@ -646,7 +611,7 @@ def fallback_vertex_colours(labels, colour, gains, faces, n_vertices, rounds=50,
     known = cnt > 0
     col[known] /= cnt[known, None]
     if not np.all(known) and np.any(known) and len(faces):
-        A = topo.adjacency if topo is not None else vertex_adjacency(faces, n_vertices)
+        A = topo.adjacency if topo is not None else ring_average(faces, n_vertices)
         filled = known.astype(np.float64)
         unknown = np.flatnonzero(~known)
         Au = A[unknown]

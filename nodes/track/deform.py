@@ -40,57 +40,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from nodes.common.meshops import (edge_length_graph, face_normals, folded_edges, neighbour_mean, padded_rows,
+                                  ring_operator, vertex_faces, vertex_normals)
+
 
 # ---------------------------------------------------------------- geometry helpers
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals (zero for unused vertices)."""
-    v = np.asarray(vertices, np.float64)
-    f = np.asarray(faces, np.int64)
-    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    n = np.zeros_like(v)
-    for a in range(3):
-        for c in range(3):
-            n[:, a] += np.bincount(f[:, c], fn[:, a], minlength=len(v))
-    norm = np.linalg.norm(n, axis=1, keepdims=True)
-    return np.divide(n, norm, out=np.zeros_like(n), where=norm > 0)
-
-
 def used_vertices(faces: np.ndarray, count: int) -> np.ndarray:
     """Indices of the vertices some face uses, in increasing order."""
     return np.flatnonzero(np.bincount(np.asarray(faces, np.int64).ravel(), minlength=count) > 0)
-
-
-def unique_edges(faces: np.ndarray, count: int) -> np.ndarray:
-    """(E, 2) sorted vertex pairs of the mesh edges (integer keys, one sort)."""
-    f = np.asarray(faces, np.int64)
-    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    keys = np.unique(e[:, 0] * count + e[:, 1])
-    return np.stack([keys // count, keys % count], axis=1)
-
-
-def edge_graph(vertices: np.ndarray, faces: np.ndarray):
-    """Symmetric sparse (V, V) matrix of mesh edge lengths."""
-    from scipy.sparse import coo_matrix
-
-    e = unique_edges(faces, len(vertices))
-    length = np.linalg.norm(vertices[e[:, 0]] - vertices[e[:, 1]], axis=1) + 1e-12
-    n = len(vertices)
-    return coo_matrix((np.r_[length, length], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr()
-
-
-def vertex_faces(faces: np.ndarray, count: int) -> np.ndarray:
-    """(V, M) faces around each vertex, padded with -1 (M = the largest valence)."""
-    f = np.asarray(faces, np.int64).ravel()
-    fid = np.repeat(np.arange(len(faces)), 3)
-    order = np.argsort(f, kind="stable")
-    f, fid = f[order], fid[order]
-    counts = np.bincount(f, minlength=count)
-    width = max(int(counts.max(initial=0)), 1)
-    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    slot = np.arange(len(f)) - start[f]
-    out = np.full((count, width), -1, np.int64)
-    out[f, slot] = fid
-    return out
 
 
 def closest_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
@@ -141,7 +98,7 @@ class SurfaceQuery:
         self.normals = normals if normals is not None or not with_normals else vertex_normals(self.vertices, self.faces)
         self.used = used_vertices(self.faces, len(self.vertices)) if used is None else used
         self.tree = cKDTree(self.vertices[self.used])
-        self.vf = vertex_faces(self.faces, len(self.vertices)) if vf is None else vf
+        self.vf = padded_rows(*vertex_faces(self.faces, len(self.vertices))) if vf is None else vf
 
     def nearest_vertex(self, points: np.ndarray, upper: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
         """(distance, vertex index) of the nearest used vertex (index -1 beyond ``upper``)."""
@@ -223,7 +180,7 @@ def sample_nodes(vertices: np.ndarray, faces: np.ndarray, spacing: float, seed: 
     fixed random order); every used vertex lies within ``spacing`` of one."""
     from scipy.sparse.csgraph import dijkstra
 
-    graph = edge_graph(vertices, faces)
+    graph, _ = edge_length_graph(vertices, faces)
     used = np.zeros(len(vertices), bool)
     used[np.asarray(faces).ravel()] = True
     covered = ~used
@@ -247,7 +204,7 @@ def build_graph(vertices, faces, spacing: float, k: int = 4, seed: int = 0) -> D
     vertices = np.asarray(vertices, np.float64)
     faces = np.asarray(faces, np.int64)
     nodes = sample_nodes(vertices, faces, spacing, seed)
-    graph = edge_graph(vertices, faces)
+    graph, _ = edge_length_graph(vertices, faces)
     _, _, source = dijkstra(graph, directed=False, indices=nodes, min_only=True, return_predecessors=True)
     node_of = np.full(len(nodes) and int(nodes.max()) + 1, -1, np.int64)
     node_of[nodes] = np.arange(len(nodes))
@@ -622,9 +579,7 @@ def snap(x: np.ndarray, faces: np.ndarray, target: Target, params: FitParams, ad
             x = tangential_smooth(x, faces, S, params.tangential, offsets=offsets)
         n = vertex_normals(x, faces)
         q, d, f = target.query.closest(x, with_faces=True)
-        tri = target.vertices[target.faces[f]]
-        fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-12)
+        fn = face_normals(target.vertices, target.faces[f])
         ok = (d <= params.snap_reach) & (np.einsum("ij,ij->i", n, fn) > 0.5)
         x[ok] = q[ok]
     return x
@@ -635,10 +590,9 @@ def tangential_smooth(x: np.ndarray, faces: np.ndarray, S, steps: int, lam: floa
     """``steps`` of x_i += lam * P_i (mean of the neighbours + offsets_i - x_i), P_i the projection onto the
     tangent plane (S = I + A). With ``offsets`` the keyframe's umbrella offsets (``laplacian_offsets``) the
     keyframe layout is the fixed point, so an undeformed mesh does not slide; without, uniform smoothing."""
-    degree = np.maximum(np.asarray(S.sum(axis=1)).ravel() - 1.0, 1.0)
     n = vertex_normals(x, faces)                  # tangential steps barely turn the normals: computed once
     for _ in range(steps):
-        move = (S @ x - x) / degree[:, None] - x
+        move = neighbour_mean(S, x) - x
         if offsets is not None:
             move += offsets
         move -= np.einsum("ij,ij->i", move, n)[:, None] * n
@@ -649,49 +603,9 @@ def tangential_smooth(x: np.ndarray, faces: np.ndarray, S, steps: int, lam: floa
 def laplacian_offsets(graph: DeformationGraph, state: GraphState, S) -> np.ndarray:
     """Per vertex the keyframe's umbrella offset v_i - mean of its neighbours, turned by the vertex's blend of
     its nodes' rotations (sum_j w_ij R_j)."""
-    degree = np.maximum(np.asarray(S.sum(axis=1)).ravel() - 1.0, 1.0)
-    delta = graph.rest - (S @ graph.rest - graph.rest) / degree[:, None]
+    delta = graph.rest - neighbour_mean(S, graph.rest)
     R = np.einsum("vk,vkab->vab", graph.vertex_weights, state.R[graph.vertex_nodes])
     return np.einsum("vab,vb->va", R, delta)
-
-
-def ring_operator(faces: np.ndarray, count: int):
-    """Sparse (V, V) I + A (a vertex and its one-ring), the averaging step of ``detail``."""
-    from scipy.sparse import coo_matrix, identity
-
-    e = unique_edges(faces, count)
-    A = coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(count, count))
-    return (A + identity(count)).tocsr()
-
-
-def edge_face_pairs(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(edges (E, 2), the two faces of each (E, 2)) for the edges that two faces share."""
-    from nodes.common.meshops import unique_edges as edges_of
-
-    edges, fe = edges_of(faces)
-    flat = fe.ravel()
-    order = np.argsort(flat, kind="stable")
-    counts = np.bincount(flat, minlength=len(edges))
-    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    two = np.flatnonzero(counts == 2)
-    pair = np.stack([order[start[two]] // 3, order[start[two] + 1] // 3], axis=1)
-    return edges[two], pair
-
-
-def folded_edges(x: np.ndarray, faces: np.ndarray, pairs, which: np.ndarray | None = None) -> np.ndarray:
-    """Indices (into ``pairs``' edges) of the edges whose two faces' normals are more than 150 degrees apart;
-    only among ``which`` (edge indices) when given."""
-    f = np.asarray(faces, np.int64)
-    _, pair = pairs
-    if which is None:
-        which, need = np.arange(len(pair)), slice(None)
-    else:
-        need = np.unique(pair[which].ravel())
-    n = np.zeros((len(f), 3))
-    t = f[need]
-    c = np.cross(x[t[:, 1]] - x[t[:, 0]], x[t[:, 2]] - x[t[:, 0]])
-    n[need] = c / np.maximum(np.linalg.norm(c, axis=1, keepdims=True), 1e-12)
-    return which[np.einsum("ij,ij->i", n[pair[which, 0]], n[pair[which, 1]]) < -0.866]
 
 
 def unfold(x: np.ndarray, faces: np.ndarray, pairs, S, rounds: int, target: "Target | None" = None,
@@ -704,7 +618,6 @@ def unfold(x: np.ndarray, faces: np.ndarray, pairs, S, rounds: int, target: "Tar
     only the edges next to moved vertices are tested again)."""
     edges, pair = pairs
     f = np.asarray(faces, np.int64)
-    degree = np.maximum(np.asarray(S.sum(axis=1)).ravel() - 1.0, 1.0)
     x = x.copy()
     folded = np.zeros(len(edges), bool)
     folded[folded_edges(x, f, pairs)] = True
@@ -720,14 +633,12 @@ def unfold(x: np.ndarray, faces: np.ndarray, pairs, S, rounds: int, target: "Tar
         face_moved = moved[f].any(axis=1)
         touched = np.flatnonzero(face_moved[pair[:, 0]] | face_moved[pair[:, 1]])
         for _ in range(steps):
-            mean = (S @ x - x) / degree[:, None]
+            mean = neighbour_mean(S, x)
             x[move] += 0.5 * (mean[move] - x[move])
         if target is not None:
             n = vertex_normals(x, f)[move]
             q, d, fq = target.query.closest(x[move], with_faces=True)
-            tri = target.vertices[target.faces[fq]]
-            fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-            fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-12)
+            fn = face_normals(target.vertices, target.faces[fq])
             ok = (d <= reach) & (np.einsum("ij,ij->i", n, fn) > 0.5)
             back = x.copy()
             back[move[ok]] = q[ok]

@@ -15,40 +15,24 @@ from __future__ import annotations
 
 import numpy as np
 
+from nodes.common.meshops import component_sizes, edge_faces
+
 DYNAMIC, STABLE, UNCONSTRAINED = "dynamic mesh", "stable mesh sequence", "unconstrained mesh sequence"
 CLASSES = (DYNAMIC, STABLE, UNCONSTRAINED)
 
 
-def _components(n: int, faces: np.ndarray) -> int:
+def _boundary_loops(border: np.ndarray) -> int:
+    """Boundary loops: the cycles the border edges (B, 2) form (components of their graph)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    used = np.bincount(faces.ravel(), minlength=n) > 0
-    rows = np.concatenate([faces[:, 0], faces[:, 1]])
-    cols = np.concatenate([faces[:, 1], faces[:, 2]])
-    k, label = connected_components(coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)), directed=False)
-    return int(len(np.unique(label[used])))
-
-
-def _edge_keys(faces: np.ndarray, n: int) -> np.ndarray:
-    """One integer key per face side (sorted vertex pair a * n + b)."""
-    e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
-    return e[:, 0] * n + e[:, 1]
-
-
-def _boundary_loops(uniq: np.ndarray, counts: np.ndarray, n: int) -> tuple[int, int]:
-    """(boundary edges, boundary loops): edges used by one face side, and the cycles they form."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    border = uniq[counts == 1]
     if len(border) == 0:
-        return 0, 0
-    verts, inv = np.unique(np.stack([border // n, border % n], axis=1).ravel(), return_inverse=True)
+        return 0
+    verts, inv = np.unique(border.ravel(), return_inverse=True)
     inv = inv.reshape(-1, 2)
     m = len(verts)
     k, _ = connected_components(coo_matrix((np.ones(len(inv)), (inv[:, 0], inv[:, 1])), shape=(m, m)), directed=False)
-    return int(len(border)), int(k)
+    return int(k)
 
 
 def mesh_topology(vertices, faces) -> dict:
@@ -59,15 +43,15 @@ def mesh_topology(vertices, faces) -> dict:
     if len(faces) == 0:
         return {"vertices": n, "faces": 0, "edges": 0, "components": 0, "boundary_loops": 0, "euler": 0, "genus": 0,
                 "closed": False}
-    uniq, counts = np.unique(_edge_keys(faces, n), return_counts=True)
-    edges = len(uniq)
+    edges, _, _, count = edge_faces(faces)
     used = int(np.count_nonzero(np.bincount(faces.ravel(), minlength=n)))
-    c = _components(n, faces)
-    border_edges, b = _boundary_loops(uniq, counts, n)
-    chi = used - edges + len(faces)
+    c = int(np.count_nonzero(component_sizes(np.asarray(vertices).reshape(-1, 3), faces)[1]))
+    border = edges[count == 1]
+    b = _boundary_loops(border)
+    chi = used - len(edges) + len(faces)
     genus = max(0, (2 * c - b - chi) // 2)
-    return {"vertices": n, "faces": int(len(faces)), "edges": int(edges), "components": c, "boundary_loops": b,
-            "euler": int(chi), "genus": int(genus), "closed": border_edges == 0}
+    return {"vertices": n, "faces": int(len(faces)), "edges": int(len(edges)), "components": c, "boundary_loops": b,
+            "euler": int(chi), "genus": int(genus), "closed": len(border) == 0}
 
 
 def same_connectivity(a_vertices, a_faces, b_vertices, b_faces) -> bool:

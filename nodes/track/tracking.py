@@ -42,6 +42,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from nodes.common.meshops import edge_face_pairs, face_normals, padded_rows, ring_operator, vertex_faces
+
 from . import deform
 from .deform import FitParams, SurfaceQuery, Target
 from .topology import mesh_topology
@@ -115,8 +117,7 @@ def surface_residuals(x: np.ndarray, faces: np.ndarray, target: Target, vf=None,
     pick = lambda n: np.arange(n) if not samples or n <= samples else rng.choice(n, samples, replace=False)  # noqa: E731
     xs = x[pick(len(x))]
     c, d_acc, f = target.query.closest(xs, with_faces=True)
-    tri = target.vertices[target.faces[f]]
-    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    fn = face_normals(target.vertices, target.faces[f])
     d_out = np.where(np.einsum("ij,ij->i", xs - c, fn) > 0, d_acc, 0.0)   # inside the reconstruction: 0
     tracked = SurfaceQuery(x, faces, vf=vf, with_normals=False)
     rec = target.vertices[target.query.used]
@@ -263,9 +264,9 @@ def grow_segment(frames: Frames, params: TrackParams, k: int, done: np.ndarray, 
     target_k = frames.target(k)
     graph = deform.build_graph(target_k.vertices, faces, params.spacing, seed=fit_p.seed)
     reg = deform.Registration(graph, faces, fit_p)
-    rings = deform.ring_operator(faces, len(graph.rest))
-    vf = deform.vertex_faces(faces, len(graph.rest))
-    pairs = deform.edge_face_pairs(faces)
+    rings = ring_operator(faces, len(graph.rest))
+    vf = padded_rows(*vertex_faces(faces, len(graph.rest)))
+    pairs = edge_face_pairs(faces)
     iou_k = frames.iou_reconstruction(k)
     results = {k: FrameResult(np.asarray(key_mesh.vertices, np.float64), -1, k, 0.0, 0.0, 0.0, 0.0, iou_k, iou_k,
                               time.perf_counter() - t0)}

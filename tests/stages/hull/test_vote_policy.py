@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from nodes.common.cameras import Camera, Cameras
-from nodes.common.silhouettes import HullTestCL, Silhouettes, inside_hull, vote
+from bench.legacy_hulltest import HullTestCL
+from nodes.common.silhouettes import Silhouettes, inside_hull, vote
 from nodes.common.types import MaskSet
 from nodes.hull.hull import hull_grid, visual_hull
 from rig import ring_rig

@@ -11,6 +11,7 @@ import trimesh
 from nodegraph import NodeError
 from nodegraph.testing import run_node
 from nodes.common.cameras import Cameras
+from nodes.common.meshops import face_neighbours
 from nodes.common.raster import render_texture
 from nodes.common.types import Images, ImageSet
 from nodes.texture import bake as B
@@ -60,7 +61,7 @@ def test_face_views_kernel_matches_reference():
 def test_uv_raster_bary_and_bake_kernels_match_references():
     s = scene("sphere", 4, 160, 120)
     m = s["mesh"]
-    nbr = V.face_neighbours(m.faces)
+    nbr = face_neighbours(m.faces)
     atlas = make_atlas(m.vertices, m.faces, nbr, 96)
     tf = B.uv_raster(atlas.face_uv, 96)
     tf_ref = B.uv_raster_reference(atlas.face_uv, 96)
@@ -88,7 +89,7 @@ def test_bake_layout_and_compact_fill_match_the_full_image_path():
     from nodes.texture.reuse import BakeLayout, Topology
 
     m = scene("sphere", 4, 160, 120)["mesh"]
-    nbr = V.face_neighbours(m.faces)
+    nbr = face_neighbours(m.faces)
     atlas = make_atlas(m.vertices, m.faces, nbr, 192)
     lay = BakeLayout.of(atlas, 2)
     tf = B.add_gutter(B.uv_raster(atlas.face_uv, 192), 2)
@@ -153,7 +154,7 @@ def test_face_cost_and_icm_kernels_match_references():
     assert np.mean(best == ref_best) > 0.999                                 # float ties only
     # ICM from the same costs: the same labels (a 1e-6 cost difference may flip one face, and ICM then
     # follows another path: fed the kernel's costs, 97 % of the labels agree at smoothness 2)
-    nbr = V.face_neighbours(s["mesh"].faces)
+    nbr = face_neighbours(s["mesh"].faces)
     for smooth in (0.0, 0.5, 2.0):
         ref = V.select_views(cost, nbr, smoothness=smooth)
         d_cost = tcl.upload("cost", cost)
@@ -172,7 +173,7 @@ def test_face_cost_and_icm_kernels_match_references():
 
 def test_icm_kernel_islands_and_unseen_faces():
     m = trimesh.creation.icosphere(3)
-    nbr = V.face_neighbours(m.faces)
+    nbr = face_neighbours(m.faces)
     nf = len(m.faces)
     cost = np.zeros((nf, 3), np.float32)
     cost[:, 1:] = [0.2, 0.3]
@@ -187,17 +188,9 @@ def test_icm_kernel_islands_and_unseen_faces():
     np.testing.assert_array_equal(got, V.select_views(cost, nbr, smoothness=0.5))
 
 
-def test_face_neighbours_are_the_edge_adjacency():
-    m = trimesh.creation.icosphere(2)
-    nbr = V.face_neighbours(m.faces)
-    assert np.all(nbr >= 0)
-    pairs = {tuple(sorted((f, int(g)))) for f in range(len(nbr)) for g in nbr[f]}
-    assert pairs == {tuple(sorted(p)) for p in m.face_adjacency.tolist()}
-
-
 def test_potts_smoothness_removes_single_face_islands():
     m = trimesh.creation.icosphere(3)
-    nbr = V.face_neighbours(m.faces)
+    nbr = face_neighbours(m.faces)
     nf = len(m.faces)
     cost = np.zeros((nf, 2), np.float32)
     cost[:, 1] = 0.2                                # view 0 slightly better everywhere ...
@@ -451,7 +444,7 @@ def test_atlas_charts_do_not_overlap_and_use_the_square():
 
     for name, size in (("cup", 512), ("figure", 1024)):
         m = scenes.build(name).mesh
-        atlas = make_atlas(m.vertices, m.faces, V.face_neighbours(m.faces), size)
+        atlas = make_atlas(m.vertices, m.faces, face_neighbours(m.faces), size)
         uv = atlas.face_uv
         assert uv.min() >= 0 and uv.max() <= size
         # every texel centre strictly inside two faces (not on a shared edge) would be an overlap

@@ -12,7 +12,7 @@ from rig import ring_rig
 from nodegraph import NodeError, Table
 from nodegraph.graphfile import load_graph
 from nodegraph.testing import run_node
-from nodes.common.meshops import split_edges, unique_edges
+from nodes.common.meshops import edge_face_pairs, folded_edges, ring_operator, split_edges, unique_edges
 from nodes.common.types import Mesh, MeshSequence, MaskSet, sequence_segments
 from nodes.synth import scenes
 from nodes.track import deform, formats
@@ -123,7 +123,7 @@ def test_graph_is_geodesic_and_fit_recovers_a_bend():
     assert np.allclose(graph.vertex_weights.sum(axis=1), 1)
     reg = deform.Registration(graph, cap.faces, deform.FitParams())
     state, info = reg.fit(deform.GraphState.identity(graph), tgt)
-    S = deform.ring_operator(cap.faces, len(rest))
+    S = ring_operator(cap.faces, len(rest))
     x = deform.detail(graph.deform(state), cap.faces, tgt, reg.params, S, offsets=deform.laplacian_offsets(graph, state, S))
     err = np.linalg.norm(x - tgt.vertices, axis=1)
     before = np.linalg.norm(src.vertices - tgt.vertices, axis=1)
@@ -369,7 +369,7 @@ def test_snap_puts_the_tracked_surface_on_the_target():
     x = np.asarray(src.vertices) / 0.05
     far = np.argmax(x[:, 2])
     x[far] *= 1.2                                                               # ~4 voxels out: beyond the reach
-    S = deform.ring_operator(src.faces, len(x))
+    S = ring_operator(src.faces, len(x))
     degree = np.asarray(S.sum(axis=1)).ravel() - 1.0
     offsets = x - (S @ x - x) / degree[:, None]                                  # the layout's umbrella offsets
     out = deform.snap(x, np.asarray(src.faces), target, deform.FitParams(), S, offsets=offsets)
@@ -393,12 +393,12 @@ def test_unfold_opens_folds_and_puts_the_vertices_back_on_the_target():
     x = np.asarray(src.vertices) / 0.05
     nb = src.vertex_neighbors[5]
     x[5] += 1.5 * (x[nb[0]] - x[5])                                          # across its neighbour: a fold
-    pairs = deform.edge_face_pairs(faces)
+    pairs = edge_face_pairs(faces)
     assert len(pairs[0]) == len(src.edges_unique)
-    assert len(deform.folded_edges(x, faces, pairs)) == 4
-    S = deform.ring_operator(faces, len(x))
+    assert len(folded_edges(x, faces, pairs)) == 4
+    S = ring_operator(faces, len(x))
     out = deform.unfold(x, faces, pairs, S, rounds=8, target=target)
-    assert len(deform.folded_edges(out, faces, pairs)) == 0
+    assert len(folded_edges(out, faces, pairs)) == 0
     assert target.query.closest(out)[1].max() < 0.05                       # voxels: back on the surface
     seed = np.zeros(len(x))
     seed[5] = 1.0
