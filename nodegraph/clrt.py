@@ -289,6 +289,8 @@ class _Fd2Capture:
         self._file.seek(0)
         self.text = self._file.read().decode(errors="replace")
         self._file.close()
+        if exc[0] is not None and self.text:  # an unexpected exception (Ctrl-C, ...): show what was held back
+            sys.stderr.write(self.text)
         return False
 
 
@@ -323,7 +325,7 @@ def program(source: Path, options: tuple[str, ...] = ()):
         warnings.simplefilter("ignore", cl.CompilerWarning)
         try:
             prg = cl.Program(ctx, src).build(options=[*options, f"-I{source.parent}"])
-        except cl.RuntimeError as exc:
+        except cl.Error as exc:  # a build failure (RuntimeError, with the log) or e.g. invalid options (LogicError)
             failure = exc
     other = "".join(line for line in said.text.splitlines(keepends=True) if not _CLANG_SUMMARY.match(line.strip()))
     if failure is not None:
