@@ -1,13 +1,14 @@
 #!/usr/bin/env bash
-# Install volcap (editable, with test extras), the fastest OpenCL CPU runtime the registries offer here, and
-# headless Chromium for the report test; then rank the OpenCL devices once (cached per machine).
+# Install volcap (editable, with test extras) at the locked versions of constraints.txt (every dependency,
+# transitive ones included, pinned; ./lock.sh refreshes it), the fastest OpenCL CPU runtime the registries offer
+# here, and headless Chromium for the report test; then rank the OpenCL devices once (cached per machine).
 # - Measured on a 2-core EPYC (README, Benchmarks): Debian's PoCL 3.1 runs every kernel, fastest; Intel's CPU
 #   runtime (pip intel-opencl-rt) works but is 2-12x slower on most kernels; the pip PoCL 3.0 (LLVM 14) hangs in
 #   its compiler or crashes on the key kernels. So the distribution's PoCL is installed whenever apt is there.
 # - tests/engine/test_report.py opens the HTML report in Debian's `chromium`.
 set -euo pipefail
 cd "$(dirname "$0")"
-python3 -m pip install --quiet --disable-pip-version-check -e ".[test]"
+python3 -m pip install --quiet --disable-pip-version-check -c constraints.txt -e ".[test]"
 SUDO=""
 [ "$(id -u)" = 0 ] || SUDO="sudo"
 apt_install() {

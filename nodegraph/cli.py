@@ -29,6 +29,8 @@ def cmd_run(args) -> int:
     if args.device:
         _check_device(args.device)
         os.environ["VOLCAP_CL_DEVICE"] = args.device  # inherited by worker processes
+    if args.verbose:
+        os.environ["VOLCAP_CL_VERBOSE"] = "1"  # OpenCL compiler output (nodegraph/clrt.py), in workers too
     if args.keep_all or args.report:  # a report draws the values: keep them all
         graph.keep_all()
     out = Path(args.out or Path("out") / Path(args.graph).stem)
@@ -223,6 +225,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--report", action="store_true", help="write report.html into the output folder (keeps every output)")
     r.add_argument("--keep-all", action="store_true", help="store every output in the cache, not only the kept ones")
     r.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
+    r.add_argument("--verbose", "-v", action="store_true", help="show the OpenCL compiler's output (= VOLCAP_CL_VERBOSE=1)")
     graph_cmd("validate", "check a graph file without running it", cmd_validate)
     graph_cmd("explain", "dry run: which work items are cached, which run and why", cmd_explain)
     graph_cmd("dot", "print the graph as Graphviz text", cmd_dot)

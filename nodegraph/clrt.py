@@ -4,6 +4,10 @@ OpenCL code. Sources are given by path (the stage packages know where theirs are
 is searched beside the source.
 
 ``VOLCAP_CL_PROFILE=1`` creates the queue with profiling enabled (events then carry kernel times).
+Compiler output (the build log's warnings, pyopencl's ``CompilerWarning``, and the "N warnings generated."
+line PoCL's clang writes straight to file descriptor 2) is held back while a program builds and shown only
+with ``VOLCAP_CL_VERBOSE=1`` (or ``volcap run --verbose``); a failed build always carries the whole log in its
+error. Anything else written to stderr during a build is passed on.
 Device choice: ``VOLCAP_CL_DEVICE`` (or ``volcap run --device``) is either ``cpu``, ``gpu``, or
 ``PLATFORM:DEVICE`` indices (as printed by ``volcap devices``). Default: the fastest device that builds
 kernels correctly, by the stages' probes measured once per machine in child processes (``ranking``; kept in
@@ -15,6 +19,11 @@ Never fork after this module has created a context (PoCL hangs); the process poo
 from __future__ import annotations
 
 import os
+import re
+import sys
+import tempfile
+import threading
+import warnings
 from functools import lru_cache
 from pathlib import Path
 
@@ -237,9 +246,72 @@ def queue():
     return context()[1]
 
 
+# ---------------------------------------------------------------- building programs, quietly
+# A build's diagnostics reach the user three ways: the build log (clang's warnings, kept by the OpenCL runtime),
+# pyopencl's CompilerWarning (raised whenever that log is not empty), and PoCL's clang printing its summary
+# ("58 warnings generated.") from C straight to file descriptor 2, on every run (PoCL preprocesses each source
+# again to look up its own kernel cache). ``program`` builds with the warning filtered and fd 2 redirected to a
+# file, then: verbose -> prints the log and everything captured; otherwise passes on what was captured except
+# clang's summary lines (so POCL_DEBUG output or another thread's progress bar is not lost); on failure -> the
+# error carries pyopencl's message (which holds the full build log) and the captured lines.
+_BUILD_LOCK = threading.Lock()  # fd 2 is the process's: one build at a time redirects it
+_CLANG_SUMMARY = re.compile(r"^\d+ (warnings?|errors?)( and \d+ errors?)? generated\.$")
+
+
+def verbose() -> bool:
+    """Whether compiler output is shown (``VOLCAP_CL_VERBOSE=1``; ``volcap run --verbose`` sets it)."""
+    return os.environ.get("VOLCAP_CL_VERBOSE", "").strip().lower() not in ("", "0", "false", "no")
+
+
+class _Fd2Capture:
+    """Everything written to file descriptor 2 inside the block (by Python or by C code), as ``.text``."""
+
+    def __enter__(self):
+        self.text, self._saved = "", None
+        sys.stderr.flush()
+        try:
+            self._saved = os.dup(2)
+        except OSError:  # no fd 2 at all: nothing to capture
+            return self
+        self._file = tempfile.TemporaryFile()
+        os.dup2(self._file.fileno(), 2)
+        return self
+
+    def __exit__(self, *exc):
+        if self._saved is None:
+            return False
+        try:
+            sys.stderr.flush()
+        except (OSError, ValueError):
+            pass
+        os.dup2(self._saved, 2)
+        os.close(self._saved)
+        self._file.seek(0)
+        self.text = self._file.read().decode(errors="replace")
+        self._file.close()
+        if exc[0] is not None and self.text:  # an unexpected exception (Ctrl-C, ...): show what was held back
+            sys.stderr.write(self.text)
+        return False
+
+
+def _build_log(prg) -> str:
+    import pyopencl as cl
+
+    logs = []
+    for dev in prg.get_info(cl.program_info.DEVICES):
+        try:
+            log = prg.get_build_info(dev, cl.program_build_info.LOG)
+        except cl.Error:
+            continue
+        if log and log.strip():
+            logs.append(f"{dev.name}:\n{log.strip()}")
+    return "\n".join(logs)
+
+
 @lru_cache(maxsize=None)
 def program(source: Path, options: tuple[str, ...] = ()):
-    """Compiled program of the OpenCL file ``source`` (built once per process and option set)."""
+    """Compiled program of the OpenCL file ``source`` (built once per process and option set). Compiler output is
+    printed only when ``verbose()``; a failed build raises VolcapError with the whole build log."""
     import pyopencl as cl
 
     source = Path(source)
@@ -248,10 +320,24 @@ def program(source: Path, options: tuple[str, ...] = ()):
         src = source.read_text()
     except OSError as exc:
         raise VolcapError(f"OpenCL source {source} cannot be read: {exc}") from None
-    try:
-        return cl.Program(ctx, src).build(options=[*options, f"-I{source.parent}"])
-    except cl.RuntimeError as exc:
-        raise VolcapError(f"OpenCL build of {source.name} failed:\n{exc}") from None
+    prg = failure = None
+    with _BUILD_LOCK, warnings.catch_warnings(), _Fd2Capture() as said:
+        warnings.simplefilter("ignore", cl.CompilerWarning)
+        try:
+            prg = cl.Program(ctx, src).build(options=[*options, f"-I{source.parent}"])
+        except cl.Error as exc:  # a build failure (RuntimeError, with the log) or e.g. invalid options (LogicError)
+            failure = exc
+    other = "".join(line for line in said.text.splitlines(keepends=True) if not _CLANG_SUMMARY.match(line.strip()))
+    if failure is not None:
+        extra = f"\n(compiler's stderr:)\n{said.text.strip()}" if said.text.strip() else ""
+        raise VolcapError(f"OpenCL build of {source.name} failed:\n{failure}{extra}") from None
+    if verbose():
+        log = _build_log(prg)
+        head = f"OpenCL build of {source}" + (f" ({' '.join(options)})" if options else "")
+        sys.stderr.write(f"{head}: {'log:' if log else 'empty log'}\n" + (f"{log}\n" if log else "") + said.text)
+    elif other:
+        sys.stderr.write(other)
+    return prg
 
 
 @lru_cache(maxsize=None)

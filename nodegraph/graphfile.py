@@ -194,6 +194,9 @@ def parse_yaml(text: str, where: str, limit: int = MAX_FILE_BYTES):
             data = loader.construct_document(node)
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
+        if "nesting depth" in str(exc.problem):  # libyaml's own limit (PyYAML >= 6.0.4), met scanning ahead of _check_depth
+            raise GraphError([f"{where}:{mark.line + 1 if mark else '?'}: lists and mappings nested more than "
+                              f"{MAX_DEPTH} deep"]) from None
         line = f"{mark.line + 1}:{mark.column + 1}" if mark else "?"
         raise GraphError([f"{where}:{line}: YAML syntax error: {clean(exc.problem or exc, 300)}"]) from None
     except yaml.YAMLError as exc:

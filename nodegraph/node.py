@@ -10,7 +10,7 @@ A node is a class: its ports, parameters and kernels are declared once, and vali
         inputs = {"masks": Masks, "cameras": CameraSet}
         outputs = {"volume": Volume}
         params = {"resolution": Param(int, 128, range=(8, 1024), doc="voxels along the longest side")}
-        kernels = ["hull.cl"]
+        kernels = [source("hull.cl")]     # paths: kernels.source names a file in kernels/
 
         def run(self, masks, cameras, *, resolution):
             return {"volume": ...}

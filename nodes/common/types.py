@@ -2,8 +2,9 @@
 
 Values are plain classes (ImageSet, MaskSet, VoxelGrid, SkeletonData; cameras: nodes.common.cameras;
 meshes: trimesh.Trimesh; boxes: (2, 3) arrays). Port types (nodegraph.DataType) give each its on-disk form
-in the cache and its preview in the report: images/masks as PNG (soft alpha as EXR), cameras as JSON,
-volumes as .npz, meshes as PLY, textured meshes as GLB, skeletons as JSON (+ .npy weights), boxes as JSON.
+in the cache and its preview in the report: images/masks as raw .npy per camera (soft alpha as .alpha.npy),
+cameras as JSON, volumes as .npz, meshes as PLY, textured meshes as GLB, skeletons as JSON (+ .npy weights),
+boxes as JSON.
 """
 from __future__ import annotations
 

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import textwrap
 
+import pytest
+
 import enginenodes  # noqa: F401
 from nodegraph.cache import Cache
 from nodegraph.dask_executor import DaskExecutor
@@ -32,6 +34,7 @@ def _published(tmp):
     return {p.name: p.read_bytes() for p in sorted((tmp / "out").glob("sum_*.txt"))}
 
 
+@pytest.mark.slow
 def test_dask_matches_local(tmp_path):
     (tmp_path / "local").mkdir()
     (tmp_path / "dask").mkdir()
@@ -43,6 +46,7 @@ def test_dask_matches_local(tmp_path):
     assert _published(tmp_path / "local") == _published(tmp_path / "dask") and len(_published(tmp_path / "dask")) == 6
 
 
+@pytest.mark.slow
 def test_dask_runs_frame_nodes_after_a_sequence_node(tmp_path):
     """A frame's nodes after a sequence node are a unit of their own (they would otherwise wait on themselves)."""
     from conftest import output
@@ -54,6 +58,7 @@ def test_dask_runs_frame_nodes_after_a_sequence_node(tmp_path):
         assert output(res, "pick", "out", f).tolist() == [12.0 * (2 + f)]
 
 
+@pytest.mark.slow
 def test_dask_survives_a_killed_worker(tmp_path):
     marker = tmp_path / "crashed"
     text = GRAPH.replace("  total:", f"  crash: {{type: t.crash, in: {{x: scale.out}}, params: {{on_frame: 2, marker: '{marker}'}}}}\n  total:")
@@ -66,6 +71,7 @@ def test_dask_survives_a_killed_worker(tmp_path):
     assert all(cache.has(r["key"]) for r in res.records)
 
 
+@pytest.mark.slow
 def test_local_pool_killed_worker_then_rerun_computes_only_missing(tmp_path):
     marker = tmp_path / "crashed"
     text = GRAPH.replace("  total:", f"  crash: {{type: t.crash, in: {{x: scale.out}}, params: {{on_frame: 2, marker: '{marker}'}}}}\n  total:")
@@ -80,6 +86,7 @@ def test_local_pool_killed_worker_then_rerun_computes_only_missing(tmp_path):
     assert ("crash", 2) in rerun and rerun <= {k for k, v in st.items() if v != "done"}
 
 
+@pytest.mark.slow
 def test_dask_worker_that_keeps_dying_fails_its_item_and_skips_downstream(tmp_path):
     import dask
 
@@ -102,6 +109,7 @@ def test_dask_worker_that_keeps_dying_fails_its_item_and_skips_downstream(tmp_pa
     assert any(st[("write", f)]["status"] == "done" for f in (0, 2, 3, 4, 5))
 
 
+@pytest.mark.slow
 def test_dask_joins_an_existing_scheduler(tmp_path, capsys):
     from distributed import LocalCluster
 

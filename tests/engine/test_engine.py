@@ -384,6 +384,7 @@ def test_killed_writer_leaves_no_artifact(tmp_path):
     assert not explain(g, cache)[0]["cached"]
 
 
+@pytest.mark.slow
 def test_ctrl_c_with_a_process_pool_is_one_line_and_stops_the_workers(tmp_path):
     p = write(tmp_path, "frames: 0:3\nnodes:\n  s: {type: t.slowwrite}\n  src: {type: t.source}\n")
     signal_file = tmp_path / "signal"

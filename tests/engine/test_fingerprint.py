@@ -44,6 +44,7 @@ def changed(before: dict, after: dict) -> set:
     return {t for t in before if before[t] != after[t]}
 
 
+@pytest.mark.slow
 def test_fingerprints_follow_imports_kernels_and_data(tree):
     root, fingerprints = tree
     base = fingerprints()

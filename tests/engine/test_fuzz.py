@@ -10,6 +10,7 @@ import sys
 from datetime import timedelta
 from pathlib import Path
 
+import pytest
 from hypothesis import HealthCheck, given, settings
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "fuzz"))
@@ -24,6 +25,7 @@ LIMIT_S = 5      # a case slower than this fails the test
 
 @settings(max_examples=200, deadline=timedelta(seconds=LIMIT_S), derandomize=True, database=None,
           suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@pytest.mark.slow
 @given(text=GRAPHS, sets=SETS)
 def test_hostile_graph_files_and_set_values(tmp_path_factory, text, sets):
     folder = tmp_path_factory.mktemp("fuzz", numbered=True)

@@ -156,6 +156,7 @@ def test_output_path_must_stay_in_the_output_folder(tmp_path):
         assert any(x.startswith(f"{p}:6: node 'w': parameter 'path'") and needle in x for x in found), (bad, found)
 
 
+@pytest.mark.slow
 def test_frames_list_is_capped_and_huge_files_are_refused_fast(tmp_path):
     p = tmp_path / "g.yaml"
     p.write_text("frames: [" + ", ".join(str(i) for i in range(3_000_000)) + "]\n" + OK_GRAPH)

@@ -1,18 +1,39 @@
-"""`pip install .` (not editable) works: the wheel carries the engine, the stages, their data files and the
-OpenCL sources, and `volcap run` of the demo graph succeeds from another folder with that install alone.
+"""`pip install .` (not editable) works: the wheel carries exactly the engine's and the stages' tracked modules,
+their data files and the OpenCL sources, and `volcap run` of the demo graph succeeds from another folder with
+that install alone.
 
-The wheel is built without build isolation and installed with --no-deps into a virtual environment that sees
-this interpreter's site-packages (numpy, pyopencl, ... are not downloaded again); the test checks that the
-modules the run imports are the installed ones, not this checkout."""
+The wheel is built from a clean copy of the git-tracked files, not in the checkout: setuptools reuses a stale
+build/ folder there and would ship modules deleted since (pypa/setuptools#1871), or untracked ones. It is built
+without build isolation and installed with --no-deps into a virtual environment that sees this interpreter's
+site-packages (numpy, pyopencl, ... are not downloaded again); the test checks that the modules the run imports
+are the installed ones, not this checkout."""
 from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[2]
+PACKAGES = ("nodegraph", "nodes", "kernels")  # pyproject.toml: [tool.setuptools.packages.find], and py-modules app
+
+
+def tracked_copy(dest: Path) -> set[str]:
+    """Copy the checkout's git-tracked files (as they are in the working tree, uncommitted edits included; files
+    deleted there left out) to ``dest``; return their relative paths."""
+    try:
+        res = subprocess.run(["git", "-C", str(ROOT), "ls-files", "-z"], capture_output=True, check=True)
+    except (OSError, subprocess.CalledProcessError):
+        pytest.skip("not a git checkout: which files are tracked is unknown")
+    files = {f for f in res.stdout.decode().split("\0") if f and (ROOT / f).is_file()}
+    for f in files:
+        (dest / f).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(ROOT / f, dest / f)
+    return files
 
 
 def run(cmd, **kw):
@@ -21,15 +42,22 @@ def run(cmd, **kw):
     return res
 
 
+@pytest.mark.slow
 def test_wheel_installs_and_runs_the_demo_from_another_folder(tmp_path):
+    src = tmp_path / "src"
+    tracked = tracked_copy(src)
     dist = tmp_path / "dist"
-    run([sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps", "--no-build-isolation", "-w", str(dist), str(ROOT)],
+    run([sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps", "--no-build-isolation", "-w", str(dist), str(src)],
         cwd=tmp_path)
     wheels = list(dist.glob("volcap-*.whl"))
     assert len(wheels) == 1
     import zipfile
 
-    names = set(zipfile.ZipFile(wheels[0]).namelist())
+    names = {n for n in zipfile.ZipFile(wheels[0]).namelist() if ".dist-info/" not in n}
+    modules = {n for n in names if n.endswith(".py")}
+    want = {f for f in tracked if f == "app.py" or (f.endswith(".py") and f.split("/")[0] in PACKAGES)}
+    assert modules == want, f"shipped but not tracked: {sorted(modules - want)}; tracked but not shipped: {sorted(want - modules)}"
+    assert names <= tracked, f"shipped but not tracked: {sorted(names - tracked)}"
     assert {"kernels/camera.h", "kernels/hull.cl", "kernels/silhouette.h", "nodes/capture/layouts.yaml"} <= names
     assert not any(n.startswith("tests/") for n in names)
 

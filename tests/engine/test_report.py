@@ -211,6 +211,7 @@ def browser_check(report: Path) -> tuple[list, str]:
 
 
 # ---------------------------------------------------------------- the report
+@pytest.mark.slow
 def test_report_opens_in_chromium_with_every_node_and_image(tmp_path):
     out = run_to(tmp_path, GRAPH)
     report = write_report(out)
@@ -244,6 +245,7 @@ def test_report_opens_in_chromium_with_every_node_and_image(tmp_path):
     assert img.std() > 20  # a drawn page, not a blank one
 
 
+@pytest.mark.slow
 def test_report_samples_long_sequences_and_plots_metrics(tmp_path):
     out = run_to(tmp_path, """\
         frames: 0:20

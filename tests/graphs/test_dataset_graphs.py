@@ -25,6 +25,7 @@ def test_synthetic_graphs_validate(path):
     assert g.nodes
 
 
+@pytest.mark.slow
 @pytest.mark.realdata
 @pytest.mark.parametrize("path", DATASET_GRAPHS, ids=lambda p: p.stem)
 def test_dataset_graph_runs(path, dataset_run, data_dir, monkeypatch):

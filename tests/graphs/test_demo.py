@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 import trimesh
 
 from nodegraph.cli import main as cli
@@ -14,6 +15,7 @@ from nodegraph.cli import main as cli
 ROOT = Path(__file__).resolve().parents[2]
 
 
+@pytest.mark.slow
 def test_demo_graph_end_to_end(tmp_path):
     small = ["--set", "stage.width=240", "--set", "stage.height=180", "--set", "stage.cameras=8",
              "--set", "hull.resolution=64", "--set", "skeleton.resolution=64", "--set", "texture.size=256", "--frames", "0:2"]

@@ -102,6 +102,7 @@ def test_star_pattern_frames_follow_natural_order(tmp_path):
         assert values(out) == [20 * f] * 2, f
 
 
+@pytest.mark.slow
 @pytest.mark.realdata
 def test_oxford_dino_relaid_out_pairs_every_view(tmp_path, data_dir, log):
     """The issue's case: images/image_0 .. image_35 + an OpenCV FileStorage of viff000_matrix .. viff035_matrix."""

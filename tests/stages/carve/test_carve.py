@@ -38,7 +38,8 @@ def inputs(s, volume=None):
 
 
 @pytest.mark.parametrize("algorithm", ["space_carving", "voxel_coloring"])
-@pytest.mark.parametrize("space, threshold, contrast", [("rgb", 30.0, 1.0), ("lab", 10.0, 0.0), ("rgb", 0.0, 0.0)])
+@pytest.mark.parametrize("space, threshold, contrast", [("rgb", 30.0, 1.0), pytest.param("lab", 10.0, 0.0, marks=pytest.mark.slow),
+                                                      pytest.param("rgb", 0.0, 0.0, marks=pytest.mark.slow)])
 def test_kernels_match_numpy_reference(small_cup, algorithm, space, threshold, contrast):
     """Every step (sweeps, item passes, the guard's counts and bids, layers) in OpenCL and in NumPy: the same
     voxels and colours; threshold 0 makes nearly every surface voxel a candidate, so the guard decides."""
@@ -53,6 +54,7 @@ def test_kernels_match_numpy_reference(small_cup, algorithm, space, threshold, c
     assert removed > 0.05 * small_cup["hull"].occupancy.sum(), f"only {removed} voxels carved: the test is vacuous"
 
 
+@pytest.mark.slow
 def test_cup_photo_hull(cup):
     """The cup's inside, filled by the hull, is carved: volume error at most half the hull's; nothing leaves the
     hull; the carved mesh keeps the hull's silhouettes (IoU >= 0.99 per view); colours agree better over views."""
@@ -99,6 +101,7 @@ def cube_silhouettes(vol, cameras):
     return [m > 0 for m in raster.silhouette(V, F, cameras)]
 
 
+@pytest.mark.slow
 def test_guard_is_strict_with_zero_threshold(cup):
     """Threshold 0 calls almost every surface voxel inconsistent: the guard alone decides what stays. The carved
     voxels' cubes still cover every mask pixel the hull's cubes covered, in every view (the count of uncovered
@@ -221,6 +224,7 @@ def test_golden_voxel_coloring(small_cup, golden):
     golden.check("carve_vc_cup_16", out["volume"], Volume)
 
 
+@pytest.mark.slow
 @pytest.mark.realdata
 def test_temple_photo_hull(data_dir):
     """Middlebury templeSR at 64^3: the carved temple stays one piece, covers the masks as the hull does (no

@@ -352,6 +352,7 @@ DATASETS = {  # name: (silhouettes, max azimuth gap, occupied voxel range at 64^
 }
 
 
+@pytest.mark.slow
 @pytest.mark.realdata
 @pytest.mark.parametrize("name", list(DATASETS))
 def test_real_dataset_calibration(name, data_dir):

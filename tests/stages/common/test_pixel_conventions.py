@@ -183,6 +183,7 @@ def test_eval_silhouette_agrees_with_an_independent_evaluator():
     assert np.mean(fill) < rep["mean_iou"] - 0.003, (np.mean(fill), rep["mean_iou"])
 
 
+@pytest.mark.slow
 @pytest.mark.realdata
 def test_eval_silhouette_agrees_on_real_data(dataset_run, real_capture):
     res = dataset_run("inria_dancer")

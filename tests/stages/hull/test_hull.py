@@ -185,6 +185,7 @@ def test_sparse_equals_dense_over_three_or_more_levels(res):
         assert np.array_equal(visual_hull(masks, cams, BOX, res, method="sparse").occupancy, dense)
 
 
+@pytest.mark.slow
 @pytest.mark.realdata
 @pytest.mark.parametrize("name, min_iou", [("thu_wd_human", 0.954), ("inria_dancer", 0.912)])
 def test_real_human_hull_mesh(real_capture, name, min_iou):

@@ -41,6 +41,7 @@ def exported_masks(res, node: str, frame: int = 0) -> list[np.ndarray]:
     return [read_image(p) for p in by_cam]
 
 
+@pytest.mark.slow
 @pytest.mark.realdata
 def test_thu_chroma_key_matches_shipped_masks(dataset_run, real_capture):
     res = dataset_run("thu_wd_human_key", ("hull.resolution=64",))
@@ -62,6 +63,7 @@ def hand_blue_threshold(rgb: np.ndarray) -> np.ndarray:
     return np.where(labels == 1 + np.argmax(stats[1:, cv2.CC_STAT_AREA]), 255, 0).astype(np.uint8)
 
 
+@pytest.mark.slow
 @pytest.mark.realdata
 def test_oxford_dino_blue_key_matches_hand_threshold(tmp_path, data_dir, monkeypatch):
     res = run_dataset_graph("oxford_dino", tmp_path, data_dir, monkeypatch,

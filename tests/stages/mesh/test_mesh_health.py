@@ -18,6 +18,7 @@ def test_min_angles_of_known_triangles():
     np.testing.assert_allclose(triangle_min_angles(v, f), [60, 45, np.degrees(np.arctan2(0.5, 9) - np.arctan2(0.5, 10)), 0], atol=0.05)
 
 
+@pytest.mark.slow
 def test_folds_roughness_and_normal_error():
     cube = trimesh.creation.box()
     h = run_node("eval.mesh", {"mesh": cube})["report"]

@@ -117,6 +117,7 @@ def test_empty_hull_gives_empty_meshes_down_the_chain():
 
 
 # ---------------------------------------------------------------- real data
+@pytest.mark.slow
 @pytest.mark.realdata
 @pytest.mark.parametrize("name, iou", [("thu_wd_human", 0.964), ("inria_dancer", 0.95)])
 def test_real_refine_128(data_dir, name, iou):

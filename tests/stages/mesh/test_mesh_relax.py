@@ -92,6 +92,7 @@ def test_relax_errors():
         run_node("relax", {"mesh": m, "masks": masks, "cameras": cams}, {"inside_px": -0.5, "outside_px": 0.2})
 
 
+@pytest.mark.slow
 @pytest.mark.realdata
 @pytest.mark.parametrize("name, iou", [("thu_wd_human", 0.966), ("inria_dancer", 0.945)])
 def test_real_relax_after_refine(data_dir, name, iou):

@@ -260,6 +260,7 @@ def test_skeleton_type_checks_shapes():
     assert "frame numbers" in Skeleton.check(ok)
 
 
+@pytest.mark.slow
 def test_figure_sequence_joints_and_error():
     """The walking figure's true meshes over a full step (every 2nd frame of 24): 10 bones, LBS error far
     under 1 % of the diagonal with fixed bone lengths, joints at the true rotating joints."""

@@ -242,6 +242,7 @@ def test_gains_and_levelling_reduce_view_seam_disagreement():
 
 
 # ---------------------------------------------------------------- quality and background
+@pytest.mark.slow
 def test_leave_one_out_beats_vertex_colours_and_never_paints_background():
     s = scene("figure", 10, 320, 240)
     m = s["mesh"]
@@ -414,6 +415,7 @@ def test_textured_preview_shows_photos_over_renders(tmp_path):
 
 
 # ---------------------------------------------------------------- real data
+@pytest.mark.slow
 @pytest.mark.realdata
 def test_real_thu_wd_human_leave_one_out(data_dir):
     cap = run_node("capture", {}, {"path": str(data_dir / "thu_wd_human")})
@@ -438,6 +440,7 @@ def test_real_thu_wd_human_leave_one_out(data_dir):
     assert background_texels(r, mesh.vertices, mesh.faces, msk, sub)[1] == 0
 
 
+@pytest.mark.slow
 def test_atlas_charts_do_not_overlap_and_use_the_square():
     from nodes.synth import scenes
     from nodes.texture.atlas import atlas_stats

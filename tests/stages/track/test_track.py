@@ -147,6 +147,7 @@ def correspondence_error(seq, data, frames) -> np.ndarray:
     return np.array(out)
 
 
+@pytest.mark.slow
 def test_track_figure_constant_connectivity_and_true_correspondences(walk):
     frames, data = walk
     out = run_node("track", {"meshes": [m for m, _ in data]}, {"voxel": VOXEL}, frames=frames, roundtrip=True)
@@ -163,6 +164,7 @@ def test_track_figure_constant_connectivity_and_true_correspondences(walk):
     assert err.max() < 0.6 and max(still) > 2.0, (err, still)
 
 
+@pytest.mark.slow
 def test_track_starts_a_segment_at_a_topology_change():
     sphere = trimesh.creation.icosphere(3, radius=1.0)
     torus = trimesh.creation.torus(0.9, 0.35, major_sections=48, minor_sections=16)
@@ -177,6 +179,7 @@ def test_track_starts_a_segment_at_a_topology_change():
     assert [(r["start"], r["stop"], r["class"]) for r in classes] == [(0, 2, DYNAMIC), (3, 5, DYNAMIC)]
 
 
+@pytest.mark.slow
 def test_track_with_silhouettes_keeps_iou(golden):
     cams = ring_rig(6, 200, 150, radius=3.0, z=0.9, target=(0, 0, 0.9), fov=55)
     frames = [0, 3, 6]
@@ -323,6 +326,7 @@ def test_track_graphs_validate(name):
 
 
 # ---------------------------------------------------------------- real data
+@pytest.mark.slow
 @pytest.mark.realdata
 def test_child_rope_graph_tracks_a_few_frames(tmp_path, data_dir, monkeypatch):
     from nodegraph.cache import Cache
@@ -422,6 +426,7 @@ def test_trial_truncates_where_another_segment_took_frames():
     assert not t.truncate(done)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["retry", "bridge", "fails"])
 def test_a_failed_fit_is_tried_again_then_bridged_and_kept_only_if_it_fits(monkeypatch, mode):
     """A fit that fails going forwards (here: frame 3's first fit, forced) is tried again from frame 2's state
