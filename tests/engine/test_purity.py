@@ -5,13 +5,14 @@ and relax read it: all 8066 vertices of a 64^3 figure differed by up to 0.23 vox
 from __future__ import annotations
 
 import textwrap
+from pathlib import Path
 
+import pytest
 import trimesh
 
 import enginenodes  # noqa: F401  (registers the t.* nodes)
 from nodegraph.graphfile import load_graph
 from nodegraph.testing import unit_purity
-from pathlib import Path
 
 GRAPHS = Path(__file__).resolve().parents[2] / "graphs"
 
@@ -30,6 +31,7 @@ def test_purity_check_catches_a_value_handed_over_in_memory(tmp_path):
                         for f in (0, 1)]
 
 
+@pytest.mark.slow
 def test_demo_graph_is_pure(tmp_path):
     """Every node type of the demo graph that shares a frame unit (synth, the keys, hull, mc, refine, relax,
     exports, evals, skeletonize, track.frame, texture, carve) computes the same alone as in its unit."""
@@ -38,6 +40,7 @@ def test_demo_graph_is_pure(tmp_path):
     assert unit_purity(graph, tmp_path) == []
 
 
+@pytest.mark.slow
 def test_other_frame_node_types_are_pure(tmp_path):
     """The per-frame node types the demo does not use: plate difference key, grey threshold, GrabCut, consensus,
     automatic bounds, voxel colouring, volume export, crop, a mesh read from a file."""
