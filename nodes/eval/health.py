@@ -65,7 +65,7 @@ def normal_error(mesh, reference, band: float, samples: int = 2_000_000, seed: i
     cos = np.einsum("ij,ij->i", mesh.face_normals[near], true_n)
     err = np.degrees(np.arccos(np.clip(cos, -1, 1)))
     w = area[near]
-    order = np.argsort(err)
+    order = np.argsort(err, kind="stable")
     cum = np.cumsum(w[order])
     median = float(err[order][np.searchsorted(cum, 0.5 * cum[-1])])
     return {"normal_error_mean_deg": float(np.sum(err * w) / np.sum(w)), "normal_error_median_deg": median,

@@ -177,7 +177,7 @@ def teasar(occ: np.ndarray, origin, voxel, *, scale: float = 1.5, const: float =
     axes = [np.arange(-k, k + 1) for k in reach]
     off = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     norm = np.linalg.norm(off * spacing, axis=1)
-    order = np.argsort(norm)
+    order = np.argsort(norm, kind="stable")
     norm = norm[order]
     shape = np.array(occ.shape) + 2 * reach
     strides = np.array([shape[1] * shape[2], shape[2], 1])
@@ -412,7 +412,7 @@ def name_joints(sk: CurveSkeleton, up=(0.0, 0.0, 1.0)) -> list[str]:
         u = np.asarray(up, np.float64)
         u = u / (np.linalg.norm(u) or 1.0)
         h = sk.joints[leaves] @ u
-        order = [leaves[i] for i in np.argsort(h)]
+        order = [leaves[i] for i in np.argsort(h, kind="stable")]
         feet, rest = order[:2], order[2:]
 
         def reach(j):

@@ -145,7 +145,7 @@ def patches(vertices: np.ndarray, faces: np.ndarray, count: int) -> np.ndarray:
     _, _, src = dijkstra(g, indices=seeds, min_only=True, return_predecessors=True)
     label = np.full(n, -1, np.int64)
     ok = src >= 0
-    order = np.argsort(seeds)
+    order = np.argsort(seeds, kind="stable")
     label[ok] = order[np.searchsorted(np.asarray(seeds)[order], src[ok])]
     if not ok.all():  # pieces no seed reaches: one patch each
         from scipy.sparse.csgraph import connected_components

@@ -222,7 +222,7 @@ def fit_weights(traj: Trajectories, rot, tr, cand_of_vertex: np.ndarray, w_prev:
     h = 0.5 * (h + h.transpose(0, 2, 1))
     w = solve_simplex_active(h, g, valid)
     if influences < c.shape[1]:
-        order = np.argsort(-w, axis=1)
+        order = np.argsort(-w, axis=1, kind="stable")
         keep = np.zeros_like(valid)
         np.put_along_axis(keep, order[:, :influences], True, axis=1)
         keep &= valid & (w > 0)
@@ -357,7 +357,7 @@ def fit_poses_fixed(traj, weights, rot, tr, joints, parents, influences, steps: 
     sel = np.unique(np.linspace(0, len(weights) - 1, min(samples, len(weights))).astype(np.int64))
     weights = weights[sel]
     rest, frames = traj.rest[sel], traj.frames[:, sel]
-    idx = np.argsort(-weights, axis=1)[:, :influences]
+    idx = np.argsort(-weights, axis=1, kind="stable")[:, :influences]
     wv = np.take_along_axis(weights, idx, axis=1)
     wk = wv[:, :, None] * subtree_matrix(parents)[idx]                  # (V, K, J)
     wk_t, wk_sum = np.ascontiguousarray(wk.transpose(0, 2, 1)), wk.sum(1)

@@ -231,7 +231,7 @@ def build_graph(vertices, faces, spacing: float, k: int = 4, seed: int = 0) -> D
     cand = table[cell]                                                          # (V, width)
     d = np.linalg.norm(vertices[:, None, :] - vertices[nodes][np.maximum(cand, 0)], axis=2)
     d[cand < 0] = np.inf
-    order = np.argsort(d, axis=1)[:, : k + 1]
+    order = np.argsort(d, axis=1, kind="stable")[:, : k + 1]
     rows = np.arange(len(vertices))[:, None]
     dk = d[rows, order]
     idx = cand[rows, order]
