@@ -88,11 +88,11 @@ def dynamic_mesh(node: Node, meshes, sequence, segment: int):
     faces = np.asarray(seq[start].faces, np.int64)
     for i in range(start, stop):
         if len(seq[i].vertices) != len(seq[start].vertices):
-            raise NodeError(f"{node.type_name}: mesh {i} has {len(seq[i].vertices)} vertices, mesh {start} of its "
+            raise NodeError(f"{node.type_name}: frame {numbers[i]} has {len(seq[i].vertices)} vertices, frame {numbers[start]} of its "
                             f"segment {len(seq[start].vertices)}")
     frames = np.stack([np.asarray(m.vertices, np.float64) for m in seq[start:stop]])
     if not np.all(np.isfinite(frames)):
-        raise NodeError(f"{node.type_name}: non-finite vertex positions in meshes {start}..{stop - 1}")
+        raise NodeError(f"{node.type_name}: non-finite vertex positions in frames {numbers[start]}..{numbers[stop - 1]}")
     return frames, faces, numbers[start:stop], (start, stop), len(runs)
 
 
@@ -142,7 +142,7 @@ class SkeletonizeSequence(Node):
         diag = float(np.linalg.norm(np.ptp(frames[0], axis=0)))
         report = {
             "bones": len(rig.parents), "frames": len(numbers), "vertices": int(frames.shape[1]),
-            "segment": {"start": int(start), "stop": int(stop), "count": nseg},
+            "segment": {"first_frame": int(numbers[0]), "last_frame": int(numbers[-1]), "count": nseg},
             "vertices_per_bone": np.bincount(rig.labels, minlength=len(rig.parents)).tolist(),
             "rigid_residual_rms": rig.residual.tolist(), "joint_mismatch_rms": rig.joint_error.tolist(),
             "diagonal": diag, "seconds": seconds,

@@ -167,7 +167,7 @@ class Track(Node):
                 raise NodeError(f"track: {len(lst)} {name} for {len(meshes)} meshes")
         frames = list(self.frames) if len(self.frames) == len(meshes) else list(range(len(meshes)))
         t0 = time.perf_counter()
-        data = Frames(meshes, masks, cameras, voxel, min_views)
+        data = Frames(meshes, masks, cameras, voxel, min_views, numbers=frames)
         params = TrackParams(spacing, data.voxel, fail_mean, fail_p95, max_iou_drop, extrapolate,
                              FitParams(iterations=iterations, arap=arap, arap_start=4.0 * arap, coverage=coverage, silhouette=silhouette,
                                        samples=samples), tries, bridge, retry)

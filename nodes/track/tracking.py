@@ -143,8 +143,9 @@ class Frames:
     """The input sequence: reconstructions (trimesh) and optional masks + cameras per frame, with the targets
     and silhouette IoUs computed on demand (a few kept)."""
 
-    def __init__(self, meshes, masks=None, cameras=None, voxel: float = 0.0, min_views: int = 0):
+    def __init__(self, meshes, masks=None, cameras=None, voxel: float = 0.0, min_views: int = 0, numbers=None):
         self.meshes = meshes
+        self.numbers = list(numbers) if numbers is not None else list(range(len(meshes)))  # frame numbers: what a user reads
         self.masks = masks
         self.cameras = cameras
         self.min_views = min_views
@@ -225,7 +226,7 @@ class _Trial:
     seg: Segment
     results: dict
 
-    def truncate(self, done: np.ndarray) -> bool:
+    def truncate(self, done: np.ndarray, numbers=None) -> bool:
         """Cut the segment at the first frame on either side that another segment has taken since (the growth
         is sequential outwards from the keyframe, so the part before that frame is exactly what a new trial
         would give); False when the keyframe itself is taken."""
@@ -235,11 +236,11 @@ class _Trial:
         taken = [i for i in range(seg.keyframe + 1, seg.stop + 1) if done[i]]
         if taken:
             seg.stop = taken[0] - 1
-            seg.reason_stop = f"frame {taken[0]}: already tracked"
+            seg.reason_stop = f"frame {taken[0] if numbers is None else numbers[taken[0]]}: already tracked"
         taken = [i for i in range(seg.keyframe - 1, seg.start - 1, -1) if done[i]]
         if taken:
             seg.start = taken[0] + 1
-            seg.reason_start = f"frame {taken[0]}: already tracked"
+            seg.reason_start = f"frame {taken[0] if numbers is None else numbers[taken[0]]}: already tracked"
         self.results = {i: r for i, r in self.results.items() if seg.start <= i <= seg.stop}
         return True
 
@@ -335,14 +336,14 @@ def grow_segment(frames: Frames, params: TrackParams, k: int, done: np.ndarray, 
         reason = "end of sequence"
         while 0 <= i < n and not done[i]:
             if len(frames.meshes[i].faces) == 0:
-                reason = f"frame {i}: empty reconstruction"
+                reason = f"frame {frames.numbers[i]}: empty reconstruction"
                 break
             new_state, r, why = fit_frame(predict(before, state, params.extrapolate), i, start=state)
             got = {i: r}
             if why:
                 bridged = bridge(state, new_state, i, direction) if params.bridge > 0 else None
                 if bridged is None:
-                    reason = f"frame {i}: {why}"
+                    reason = f"frame {frames.numbers[i]}: {why}"
                     break
                 state, new_state, got = bridged
                 for r in got.values():
@@ -361,7 +362,7 @@ def grow_segment(frames: Frames, params: TrackParams, k: int, done: np.ndarray, 
             i = last + direction
         else:
             if 0 <= i < n:
-                reason = f"frame {i}: already tracked"
+                reason = f"frame {frames.numbers[i]}: already tracked"
         if direction > 0:
             seg.reason_stop = reason
         else:
@@ -385,7 +386,7 @@ def track_sequence(frames: Frames, params: TrackParams, progress=None, keyframe:
     done = np.zeros(n, bool)
     trials: dict[int, _Trial] = {}
     while not done.all():
-        trials = {k: t for k, t in trials.items() if t.truncate(done)}
+        trials = {k: t for k, t in trials.items() if t.truncate(done, frames.numbers)}
         if keyframe is not None and not segments:
             order = [int(keyframe)]
         else:
@@ -418,8 +419,9 @@ def track_sequence(frames: Frames, params: TrackParams, progress=None, keyframe:
             results[i] = r
             done[i] = True
         del trials[seg.keyframe]
-        log.info("segment %d: keyframe %d, frames %d..%d (%d nodes); before: %s; after: %s", seg.index, seg.keyframe,
-                 seg.start, seg.stop, seg.nodes, seg.reason_start, seg.reason_stop)
+        num = frames.numbers
+        log.info("segment %d: keyframe %d, frames %d..%d (%d nodes); before: %s; after: %s", seg.index, num[seg.keyframe],
+                 num[seg.start], num[seg.stop], seg.nodes, seg.reason_start, seg.reason_stop)
         if progress:
             progress(best.length)
         segments.append(seg)

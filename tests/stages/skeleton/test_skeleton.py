@@ -208,7 +208,7 @@ def test_skin_node_table_and_golden(tube_nodes, golden):
     assert len(err["timeline"]["rmse"]) == 12 and err["timeline"]["frame"] == list(range(12))
     stable = {k: v for k, v in err.items() if k not in ("seconds", "history", "iterations")}
     golden.check("skin_tube", stable, Table, rtol=0.2, atol=2e-5)
-    assert a["report"]["bones"] == 3 and a["report"]["segment"] == {"start": 0, "stop": 12, "count": 1}
+    assert a["report"]["bones"] == 3 and a["report"]["segment"] == {"first_frame": 0, "last_frame": 11, "count": 1}
 
 
 def test_exports_round_trip(tube_nodes, tmp_path):
@@ -236,7 +236,12 @@ def test_sequence_nodes_pick_the_longest_segment_and_explain_errors(tube_nodes):
     other = trimesh.Trimesh(np.asarray(ms[0].vertices)[:-1], np.asarray(ms[0].faces)[:-20], process=False)
     seq = [other] + list(ms[:8]) + [other, other]
     rep = run_node("skeletonize.sequence", {"sequence": seq}, {"bones": 3})["report"]
-    assert rep["segment"] == {"start": 1, "stop": 9, "count": 3}
+    assert rep["segment"] == {"first_frame": 0, "last_frame": 7, "count": 3}   # meshes 1..8 are frames 0..7
+    later = [m.copy() for m in seq]
+    for i, m in enumerate(later):   # a run that starts at frame 200: the report says frame numbers, not indices
+        m.metadata["frame"] = 200 + i
+    rep = run_node("skeletonize.sequence", {"sequence": later}, {"bones": 3})["report"]
+    assert rep["segment"] == {"first_frame": 201, "last_frame": 208, "count": 3}
     with pytest.raises(NodeError, match="at least 2 frames"):
         run_node("skeletonize.sequence", {"sequence": [ms[0]]})
     with pytest.raises(NodeError, match="exactly one"):
