@@ -10,6 +10,7 @@ unit it depends on has finished; an item whose input failed is skipped, never ru
 from __future__ import annotations
 
 import contextlib
+import graphlib
 import multiprocessing
 import os
 import signal
@@ -19,18 +20,27 @@ from concurrent.futures.process import BrokenProcessPool
 from .worker import execute_unit, start_worker
 
 
+_NEVER = "(never done)"   # what a unit on a dependency cycle waits for
+
+
 class _DependencyTracker:
-    """The ready set of a dependency graph of units: a unit is ready once every unit it reads from finished
-    (successfully or not: which of its items then run is decided inside the unit, item by item)."""
+    """The ready set of a dependency graph of units (graphlib.TopologicalSorter): a unit is ready once every unit
+    it reads from finished (successfully or not: which of its items then run is decided inside the unit, item by
+    item). ``ready`` keeps the units' order among those ready."""
 
     def __init__(self, units):
         self.units = {u.key: u for u in units}
-        self.waiting = {u.key: {d for d in u.deps if d in self.units} for u in units}
-        self.children: dict[str, list[str]] = {k: [] for k in self.units}
-        for k, deps in self.waiting.items():
-            for d in deps:
-                self.children[d].append(k)
-        self.ready = [u.key for u in units if not self.waiting[u.key]]
+        self.index = {u.key: i for i, u in enumerate(units)}
+        deps = {u.key: [d for d in u.deps if d in self.units] for u in units}
+        while True:
+            self.sorter = graphlib.TopologicalSorter(deps)
+            try:
+                self.sorter.prepare()
+                break
+            except graphlib.CycleError as exc:  # an engine bug: units on a cycle (and their readers) never start,
+                for k in exc.args[1]:            # run.py reports them as failures
+                    deps[k] = [_NEVER]
+        self.ready = self._ready()
         self.failed_items: dict[str, str] = {}   # key -> node of the items that did not produce their outputs
 
     def launch(self, key: str) -> dict:
@@ -44,10 +54,11 @@ class _DependencyTracker:
         for item, res in results.items():
             if res.get("status") != "done":
                 self.failed_items[item] = names.get(item, "?")
-        for c in self.children[key]:
-            self.waiting[c].discard(key)
-            if not self.waiting[c]:
-                self.ready.append(c)
+        self.sorter.done(key)
+        self.ready += self._ready()
+
+    def _ready(self) -> list[str]:
+        return sorted((k for k in self.sorter.get_ready() if k in self.units), key=self.index.get)
 
 
 def unit_failed(unit, error: str, cache_root: str) -> dict:
