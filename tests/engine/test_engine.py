@@ -427,6 +427,7 @@ def test_describe_nodes_and_dot(capsys):
     assert cli(["describe", "t.scale"]) == 0
     out = capsys.readouterr().out
     assert "factor: float = 2.0 (range [-100, 100])" in out and "x: Array" in out
+    assert "enginenodes (" in out and "enginenodes.py)" in out   # where the node lives: module and file
     assert cli(["describe", "t.scal"]) == 2
     assert "did you mean 't.scale'" in capsys.readouterr().err
     assert cli(["nodes"]) == 0
