@@ -37,6 +37,7 @@ from . import fingerprint
 from .fingerprint import implementation_fingerprint
 from .hashing import KEY_SCHEMA, FileHasher, digest
 from .node import InPath
+from .records import Inputs, ItemSpec, Ref, refs, type_name
 from .types import Files
 
 
@@ -48,7 +49,7 @@ class WorkItem:
     frame: int | None               # None for sequence items
     frames: list[int]
     params: dict                    # what run() receives
-    inputs: dict                    # port -> ref | [refs] | None; ref = {"key", "port", "type"}
+    inputs: Inputs                  # port -> Ref | [Ref per frame] | None
     key: str
     components: dict                # the parts of the key, for `explain`
     deps: list[str] = field(default_factory=list)  # keys of the items producing the inputs
@@ -59,14 +60,9 @@ class WorkItem:
     def label(self) -> str:
         return f"{self.node}@{'all' if self.frame is None else self.frame}"
 
-    def spec(self, log_path: str | None = None) -> dict:
-        return {"node": self.node, "type": self.type_name, "module": self.module, "frame": self.frame,
-                "frames": self.frames, "params": self.params, "inputs": self.inputs, "key": self.key,
-                "components": self.components, "log": log_path, "kept": list(self.kept)}
-
-
-def _type_ref(t) -> str:
-    return f"{t.__module__}:{t.__qualname__}"
+    def spec(self, log_path: str | None = None) -> ItemSpec:
+        return ItemSpec(self.node, self.type_name, self.module, self.frame, self.frames, self.params, self.inputs,
+                        self.key, self.components, list(self.kept), log_path)
 
 
 def make_plan(graph: Graph, hasher: FileHasher) -> tuple[list[WorkItem], dict[tuple[str, int | None], str]]:
@@ -96,14 +92,14 @@ def make_plan(graph: Graph, hasher: FileHasher) -> tuple[list[WorkItem], dict[tu
                     in_keys[port] = None
                     continue
                 src, sport = spec.inputs[port]
-                stype = _type_ref(graph.nodes[src].cls.outputs[sport].type)
+                stype = type_name(graph.nodes[src].cls.outputs[sport].type)
                 keys = [key_of(src, f) for f in frames]
-                refs = [{"key": k, "port": sport, "type": stype} for k in keys]
+                per_frame = [Ref(k, sport, stype) for k in keys]
                 src_is_seq = graph.nodes[src].cls.per == "sequence"
                 if cls.per == "frame" or src_is_seq:
-                    inputs[port], in_keys[port] = refs[0], f"{keys[0]}/{sport}"
+                    inputs[port], in_keys[port] = per_frame[0], per_frame[0].name
                 else:
-                    inputs[port], in_keys[port] = refs, [f"{k}/{sport}" for k in keys]
+                    inputs[port], in_keys[port] = per_frame, [r.name for r in per_frame]
                 deps.extend(keys)
             components = {"schema": KEY_SCHEMA, "node": spec.type_name, "version": cls.version,
                           "implementation": impl, "params": hashed_params, "inputs": in_keys,
@@ -138,9 +134,8 @@ def _assign_units(graph: Graph, items: dict[str, WorkItem], slot: dict) -> None:
         it.unit = (f"frame:{it.frame}" + (f"/{lv}" if lv else "")) if own else f"item:{it.key}"
     readers: dict[tuple[str, str], list[WorkItem]] = {}
     for it in items.values():
-        for ref in it.inputs.values():
-            for r in (ref if isinstance(ref, list) else [ref] if ref else []):
-                readers.setdefault((r["key"], r["port"]), []).append(it)
+        for r in refs(it.inputs):
+            readers.setdefault((r.key, r.port), []).append(it)
     for it in items.values():
         spec = graph.nodes[it.node]
         cls = spec.cls
