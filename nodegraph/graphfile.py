@@ -316,6 +316,18 @@ class Graph:
         return order
 
 
+def coerce_param(decl, value, base: Path):
+    """A parameter value as run() receives it: coerced to its declared type; an input path expanded and resolved
+    against ``base`` (it must exist), an output path checked to stay in the output folder. ValueError saying
+    what is wrong."""
+    v = decl.coerce(value)
+    if decl.type is InPath and v is not None:
+        v = InPath(str(_input_path(v, base)))
+    elif decl.type is OutPath and v is not None:
+        check_out_path(v)
+    return v
+
+
 def parse_frames(value, where: str) -> list[int]:
     def checked(frames: list[int]) -> list[int]:
         if frames and max(abs(frames[0]), abs(frames[-1])) > MAX_FRAME_NUMBER:
@@ -486,12 +498,7 @@ def _validate(path: Path, where: str, data: _Map, problems: list[str], overrides
                 continue
             spec.lines[f"param:{p}"] = label
             try:
-                v = decl.coerce(value)
-                if decl.type is InPath and v is not None:
-                    v = InPath(str(_input_path(v, path.parent)))
-                elif decl.type is OutPath and v is not None:
-                    check_out_path(v)
-                spec.params[p] = v
+                spec.params[p] = coerce_param(decl, value, path.parent)
             except ValueError as exc:
                 problems.append(f"{label}: node '{name}': parameter '{p}' {exc}")
         # inputs

@@ -578,3 +578,30 @@ def test_an_item_the_scheduler_never_starts_is_a_failure_not_a_silent_skip(tmp_p
     res = run(tmp_path, write(tmp_path, SEQ_THEN_FRAMES))
     assert not res.ok
     assert any("never started" in (r.get("error") or "") for r in res.records), res.records
+
+
+# ---------------------------------------------------------------- run_node runs what the scheduler runs
+def test_run_node_goes_through_the_workers_code(tmp_path, monkeypatch):
+    """testing.run_node coerces params as a graph file does and runs the worker's call_node (run() and the output
+    checks) and, with roundtrip, its keep + Cache.load: a node's test sees what the scheduler does."""
+    import enginenodes
+    import nodegraph.worker as worker
+    from nodegraph import NodeError
+    from nodegraph.testing import run_node
+
+    calls = []
+    real = worker.call_node
+    monkeypatch.setattr(worker, "call_node", lambda cls, *a, **kw: calls.append(cls.type_name) or real(cls, *a, **kw))
+    out = run_node("t.scale", {"x": np.arange(3.0)}, {"factor": 3}, roundtrip=True)
+    np.testing.assert_array_equal(out["out"], [0.0, 3.0, 6.0])
+    assert calls == ["t.scale"]
+    with pytest.raises(ValueError, match="must be in"):   # the graph file's coercion: out of range
+        run_node("t.scale", {"x": np.arange(3.0)}, {"factor": 1000})
+
+    # a node returning something its output type refuses: run_node raises what the scheduler reports
+    monkeypatch.setattr(enginenodes.Scale, "run", lambda self, x, *, factor, mode: {"out": "not an array"})
+    with pytest.raises(NodeError) as exc:
+        run_node("t.scale", {"x": np.arange(3.0)})
+    res = run(tmp_path, write(tmp_path, CHAIN))
+    [failed] = [r for r in res.records if r["node"] == "scale" and r["frame"] == 0]
+    assert failed["status"] == "failed" and failed["error"] == str(exc.value)
