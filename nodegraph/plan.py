@@ -8,7 +8,8 @@ The contract (what the scheduler, the cache and `explain` rely on):
   fingerprint (nodegraph.fingerprint: the node's module, what it imports within the project's packages,
   data files beside them, its OpenCL sources and their headers), the canonical params (input
   paths replaced by their content hash), the keys of its input artifacts, the
-  frame number if the node ``uses_frame``, and the list of frames for a sequence node. Same key = same result, so an item whose key is in the cache is
+  frame number if the node ``uses_frame``, the list of frames for a sequence node, and the environment
+  (nodegraph/environment.py: the versions of the libraries that change numbers, the OpenCL device). Same key = same result, so an item whose key is in the cache is
   never rerun, and two items with the same key (a per-frame node fed only frame-independent data) run once.
 - An item runs when it is not cached and all its inputs exist; when an input failed, it is skipped.
 
@@ -34,6 +35,7 @@ from dataclasses import dataclass, field
 
 from .graphfile import Graph
 from . import fingerprint
+from .environment import environment
 from .fingerprint import implementation_fingerprint
 from .hashing import KEY_SCHEMA, FileHasher, digest
 from .node import InPath
@@ -70,6 +72,7 @@ def make_plan(graph: Graph, hasher: FileHasher) -> tuple[list[WorkItem], dict[tu
     Sequence items are stored under frame None."""
     items: dict[str, WorkItem] = {}
     slot: dict[tuple[str, int | None], str] = {}
+    env = environment()
 
     def key_of(node: str, frame: int) -> str:
         return slot[(node, frame)] if (node, frame) in slot else slot[(node, None)]
@@ -103,7 +106,7 @@ def make_plan(graph: Graph, hasher: FileHasher) -> tuple[list[WorkItem], dict[tu
                 deps.extend(keys)
             components = {"schema": KEY_SCHEMA, "node": spec.type_name, "version": cls.version,
                           "implementation": impl, "params": hashed_params, "inputs": in_keys,
-                          "frame": frame if cls.uses_frame else None}
+                          "frame": frame if cls.uses_frame else None, "environment": env}
             if cls.per == "sequence":  # run() sees self.frames: which frames it covers is part of the work
                 components["frames"] = frames
             key = digest(components)[:32]

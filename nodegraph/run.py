@@ -217,12 +217,15 @@ def explain(graph: Graph, cache: Cache) -> list[dict]:
 
 
 def _diff(old, new, prefix="") -> list[str]:
+    """The key components that differ, as dotted paths; the environment's with old -> new (an upgrade says so)."""
     if isinstance(old, dict) and isinstance(new, dict):
         out = []
         for k in sorted(set(old) | set(new)):
             out += _diff(old.get(k), new.get(k), f"{prefix}.{k}" if prefix else k)
         return out
-    return [] if old == new else [prefix]
+    if old == new:
+        return []
+    return [f"{prefix} ({old} -> {new})" if prefix.startswith("environment") else prefix]
 
 
 def run_graph(graph: Graph, cache: Cache, out_dir: Path, executor, progress: bool = True) -> RunResult:

@@ -200,6 +200,63 @@ def test_every_key_component_moves_the_key(tmp_path, monkeypatch):
     nodemod.implementation_fingerprint.cache_clear()
 
 
+@pytest.fixture
+def environment(monkeypatch):
+    """nodegraph.environment, read afresh before and after the test (it is read once per process)."""
+    from nodegraph import environment as env
+
+    env.forget()
+    yield env
+    monkeypatch.undo()
+    env.forget()
+
+
+def test_the_environment_is_part_of_every_key(tmp_path, monkeypatch, environment, capsys):
+    """A library upgrade or another OpenCL device moves every key (a shared cache never mixes environments), and
+    explain says so; the same environment gives the same keys."""
+    from importlib import metadata
+
+    from nodegraph import clrt
+
+    base = keys(tmp_path, CHAIN)
+    environment.forget()
+    assert keys(tmp_path, CHAIN) == base, "same environment must give the same keys"
+    assert set(environment.environment()) == {"libraries", "opencl"}
+    assert environment.environment()["libraries"]["numpy"] == metadata.version("numpy")
+
+    real = metadata.version
+    monkeypatch.setattr(environment.metadata, "version", lambda name: "0.0.1" if name == "numpy" else real(name))
+    environment.forget()
+    upgraded = keys(tmp_path, CHAIN)
+    assert all(upgraded[s] != base[s] for s in base)
+
+    def on(device: str) -> dict:   # the keys when clrt chooses ``device``
+        monkeypatch.setattr(clrt, "_choose_device", lambda: object())
+        monkeypatch.setattr(clrt, "device_id", lambda dev: device)
+        environment.forget()
+        k = keys(tmp_path, CHAIN)
+        assert environment.opencl_device() == device
+        return k
+
+    on_a, on_b = on("PoCL 3.1 | cpu A | 3.1"), on("NVIDIA CUDA | gpu B | 550")
+    assert all(on_a[s] != on_b[s] != upgraded[s] for s in base)
+    assert on("PoCL 3.1 | cpu A | 3.1") == on_a
+
+    # explain names the component, with the old and the new value
+    monkeypatch.undo()
+    environment.forget()
+    p = write(tmp_path, CHAIN)
+    cache = ["--cache", str(tmp_path / "cache2")]
+    assert cli([*cache, "run", str(p), "--out", str(tmp_path / "out"), "-j", "1", "-q"]) == 0
+    monkeypatch.setattr(environment.metadata, "version", lambda name: "0.0.1" if name == "numpy" else real(name))
+    environment.forget()
+    capsys.readouterr()
+    assert cli([*cache, "explain", str(p)]) == 0
+    out = capsys.readouterr().out
+    assert f"changed: environment.libraries.numpy ({real('numpy')} -> 0.0.1)" in out
+    assert "13 of 13 work items to run" in out
+
+
 def test_input_files_hash_by_content_not_path(tmp_path):
     a, b = tmp_path / "a", tmp_path / "b"
     a.mkdir(), b.mkdir()
