@@ -1,10 +1,7 @@
 """Running a graph: plan -> decide what is up to date -> execute the rest in units -> publish -> run.json.
 
-What runs (``to_run``): walking the items from the last to the first, an item runs when a port it keeps is
-missing from the cache, or when an item that runs reads a value of it that lives only in memory (a unit
-recomputes its intermediate values from the nearest kept ones). Everything else is up to date.
-The cached entries the run will read (inputs of items that run, files to publish) are verified against
-their content hashes first (``verify_reads``): a damaged one is evicted and recomputed in the same run.
+What runs and why (``to_run``, ``verify_reads``, ``make_units``) is the contract in nodegraph/plan.py's
+docstring, with a worked example.
 
 run.json (in the output folder) records, per node and frame: status (done / cached / failed / skipped),
 cache_hit, wall seconds, key, the cache folder of its kept outputs, which ports were kept and which lived only

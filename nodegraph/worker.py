@@ -1,6 +1,7 @@
 """Executes work units from their specs (in this process, a pool worker or a Dask worker).
 
-A unit is a list of item specs in dependency order (nodegraph/plan.py: a frame's own items, or one item).
+A unit is a list of item specs in dependency order (records.UnitSpec; what a unit is and when an item runs:
+the contract in nodegraph/plan.py's docstring).
 Each item takes its inputs from the values earlier items of the unit produced (in memory: a value may even
 stay on the OpenCL device) or else from the cache, runs its node (``call_node``: run(), then the declared
 outputs and their types checked), and writes the ports it keeps atomically into the cache (``keep``). Never
