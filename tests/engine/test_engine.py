@@ -662,3 +662,18 @@ def test_run_node_goes_through_the_workers_code(tmp_path, monkeypatch):
     res = run(tmp_path, write(tmp_path, CHAIN))
     [failed] = [r for r in res.records if r["node"] == "scale" and r["frame"] == 0]
     assert failed["status"] == "failed" and failed["error"] == str(exc.value)
+
+
+def test_the_records_a_worker_gets_are_plain_data(tmp_path):
+    """What travels to a process pool or a Dask worker (records.UnitSpec of ItemSpecs with Refs) pickles and
+    comes back equal; a Ref names its value 'KEY/PORT' in one place."""
+    import pickle
+
+    from nodegraph.records import Ref, UnitSpec, refs
+
+    items, _ = plan_graph(load_graph(write(tmp_path, CHAIN)), Cache(tmp_path / "cache"))
+    unit = UnitSpec([it.spec(str(tmp_path / "log")) for it in items], {"k/out": 1}, {"k": "src"})
+    assert pickle.loads(pickle.dumps(unit)) == unit
+    plus = next(it for it in items if it.node == "plus")
+    [ref] = list(refs(plus.inputs))
+    assert isinstance(ref, Ref) and ref.name == f"{ref.key}/{ref.port}" == plus.components["inputs"]["a"]
