@@ -40,6 +40,13 @@ class DataType:
         return None
 
     @classmethod
+    def canonical(cls, value):
+        """The value as the cache gives it back: what a reader in the same unit is handed too, so that a result
+        never depends on whether its input came from memory or from the cache (e.g. a mesh's vertices at the
+        precision its file stores). Default: the value itself."""
+        return value
+
+    @classmethod
     def save(cls, value, folder: Path) -> None:
         raise NotImplementedError
 

@@ -118,7 +118,8 @@ def execute_unit(unit: UnitSpec, cache_root: str) -> dict[str, Result]:
 def call_node(cls, inputs: dict, params: dict, *, frame: int | None, frames: list[int], log: logging.Logger) -> dict:
     """Run node class ``cls`` on input values and params (as run() receives them) and check what it returns:
     a dict with exactly the declared outputs, None only where declared optional, each value passing its type's
-    check. Returns port -> (DataType, value); raises NodeError (or what run() raised)."""
+    check. Returns port -> (DataType, value in its type's canonical form: as the cache gives it back); raises
+    NodeError (or what run() raised)."""
     node = cls()
     node.frame = frame
     node.frames = frames
@@ -142,6 +143,7 @@ def call_node(cls, inputs: dict, params: dict, *, frame: int | None, frames: lis
             problem = decl.type.check(value)
             if problem:
                 raise NodeError(f"output '{port}': {problem}")
+            value = decl.type.canonical(value)   # what a reader gets from the cache, also from memory
         outputs[port] = (decl.type, value)
     return outputs
 

@@ -167,3 +167,33 @@ class Crash(Node):
             os.kill(os.getpid(), 9)
         time.sleep(0.2)
         return {"out": x * 10}
+
+
+class HandsOver(Node):
+    """Hangs a by-product on its output object (as refine once handed relax its last search): impure."""
+
+    type_name = "t.handsover"
+    inputs = {"x": Array}
+    outputs = {"out": Array}
+
+    def run(self, x):
+        out = np.array(x, dtype=float)
+        return {"out": _Tagged(out, hint=float(x.sum()))}
+
+
+class _Tagged(np.ndarray):
+    def __new__(cls, a, hint):
+        obj = np.asarray(a).view(cls)
+        obj.hint = hint
+        return obj
+
+
+class UsesHint(Node):
+    """Reads the by-product when it is there (only in memory, in the same unit)."""
+
+    type_name = "t.useshint"
+    inputs = {"x": Array}
+    outputs = {"out": Array}
+
+    def run(self, x):
+        return {"out": np.asarray(x) + getattr(x, "hint", 0.0)}

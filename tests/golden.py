@@ -10,6 +10,7 @@ Tolerances per type (override with keyword arguments):
     Volume  exact occupancy and bbox (or max abs difference <= atol for soft volumes)
     Mesh    vertex and face counts within count_rtol, symmetric Hausdorff <= hausdorff (absolute units)
     Table   numbers within rtol / atol, everything else equal
+    Images  every pixel within atol (max over channels), or all but a fraction frac; mean difference <= mean
     Array   allclose(rtol, atol)
     Skeleton  same parents and names, joints within atol (default 1e-9), weights / motion within atol
 Regenerate deliberately with ``pytest --update-golden``; the run lists every file it rewrote so the diff
@@ -121,9 +122,16 @@ def compare(actual, expected, dtype, name, **tol):
             if e is not None:
                 np.testing.assert_allclose(a, e, rtol=0, atol=atol, err_msg=f"{name}: {what}")
     elif issubclass(dtype, T.Images):
-        for a, e in zip(actual.images, expected.images, strict=True):
-            d = np.abs(a.astype(int) - e.astype(int))
-            assert d.max() <= tol.get("atol", 0), f"{name}: image pixels differ by up to {d.max()}"
+        assert list(actual.names) == list(expected.names), f"{name}: images {actual.names} != {expected.names}"
+        for n, a, e in zip(actual.names, actual.images, expected.images, strict=True):
+            assert a.shape == e.shape, f"{name}/{n}: shape {a.shape} != {e.shape}"
+            d = np.abs(a.astype(int) - e.astype(int)).max(axis=-1)
+            atol, frac = tol.get("atol", 0), tol.get("frac", 0.0)
+            over = float(np.mean(d > atol))
+            assert over <= frac, (f"{name}/{n}: {over:.2%} of pixels differ by more than {atol} (allowed {frac:.2%}; "
+                                  f"up to {d.max()})")
+            if "mean" in tol:
+                assert d.mean() <= tol["mean"], f"{name}/{n}: mean pixel difference {d.mean():.2f} > {tol['mean']}"
     else:
         raise TypeError(f"no golden comparison for {dtype.name}")
 

@@ -29,7 +29,7 @@ CONSISTENCY = {
 }
 INPUTS = {"volume": Volume, "images": Images, "masks": Masks, "cameras": CameraSet}
 OUTPUTS = {"volume": Output(Volume, "the carved volume, voxel colours on its surface"),
-           "report": Output(Table, "voxels in/out, removals per pass, mean colour variance over views, seconds")}
+           "report": Output(Table, "voxels in/out, removals per pass, mean colour variance over views (wall times are in the log)")}
 
 
 def _params(node: str, kw: dict) -> CarveParams:
@@ -64,7 +64,16 @@ class SpaceCarving(Node):
                     self.type_name)
         self.log.info("%s: %d of %d voxels kept after %d passes (%.2f s)", self.type_name, res.stats["voxels_out"],
                       res.stats["voxels_in"], len(res.stats["passes"]), res.stats["seconds_total"])
-        return {"volume": res.volume, "report": res.stats}
+        return {"volume": res.volume, "report": _report(res.stats)}
+
+
+def _report(stats: dict) -> dict:
+    """The carve's outcome without its wall times (they are in the log and run.json): a cached value is what
+    the node computes, the same on every run."""
+    out = {k: v for k, v in stats.items() if not k.startswith("seconds")}
+    if "passes" in out:
+        out["passes"] = [{k: v for k, v in p.items() if k != "seconds"} for p in out["passes"]]
+    return out
 
 
 class VoxelColoring(Node):
@@ -85,4 +94,4 @@ class VoxelColoring(Node):
                     self.type_name)
         self.log.info("%s: %d of %d voxels kept (%.2f s)", self.type_name, res.stats["voxels_out"],
                       res.stats["voxels_in"], res.stats["seconds_total"])
-        return {"volume": res.volume, "report": res.stats}
+        return {"volume": res.volume, "report": _report(res.stats)}

@@ -345,6 +345,18 @@ class Mesh(DataType):
         return None if isinstance(v, trimesh.Trimesh) else f"expected a trimesh.Trimesh, got {type(v).__name__}"
 
     @classmethod
+    def canonical(cls, v):
+        """PLY (trimesh) and GLB store float32 vertices and no metadata: a reader in the same unit gets the mesh
+        so too. A copy when that changes it: the node's object may be part of another value (a sequence's frame)."""
+        points = np.asarray(v.vertices)
+        if points.dtype == np.float64 and np.array_equal(points, points.astype(np.float32)) and not v.metadata:
+            return v
+        out = v.copy()
+        out.vertices = points.astype(np.float32).astype(np.float64)
+        out.metadata.clear()
+        return out
+
+    @classmethod
     def save(cls, v, folder: Path):
         v.export(folder / cls.filename)
 
@@ -352,7 +364,9 @@ class Mesh(DataType):
     def load(cls, folder: Path):
         import trimesh
 
-        return trimesh.load(folder / cls.filename, process=False, force="mesh")
+        mesh = trimesh.load(folder / cls.filename, process=False, force="mesh")
+        mesh.metadata.clear()  # what the loader notes (file name, units, glTF node) is not part of the value
+        return mesh
 
     @classmethod
     def preview(cls, value, size, companions):
@@ -424,8 +438,8 @@ class MeshSequence(DataType):
     """Meshes over frames: a list of trimesh.Trimesh. A dynamic mesh (constant connectivity) is a sequence
     whose meshes all share one face array; a tracked sequence is a run of such segments, each mesh carrying
     ``metadata["segment"]`` (and "keyframe", "frame" when known; see ``sequence_segments``). Stored per
-    segment: one PLY (its first frame, with the faces) and, for a segment of several frames, the vertices of
-    all its frames (segment_NNNN.npy, (frames, V, 3)); sequence.json lists the segments and frames."""
+    segment: one PLY (its first frame, with the faces) and the float64 vertices of all its frames
+    (segment_NNNN.npy, (frames, V, 3)); sequence.json lists the segments and frames."""
 
     name = "MeshSequence"
 
@@ -446,8 +460,8 @@ class MeshSequence(DataType):
         segments = []
         for s, (start, stop) in enumerate(sequence_segments(v)):
             v[start].export(folder / f"segment_{s:04d}.ply")
-            if stop - start > 1:
-                np.save(folder / f"segment_{s:04d}.npy", np.stack([np.asarray(m.vertices) for m in v[start:stop]]))
+            # every segment's vertices exactly (the PLY holds the faces and float32 vertices)
+            np.save(folder / f"segment_{s:04d}.npy", np.stack([np.asarray(m.vertices, np.float64) for m in v[start:stop]]))
             segments.append({"start": start, "stop": stop, "segment": v[start].metadata.get("segment"),
                              "keyframe": v[start].metadata.get("keyframe")})
         frames = [m.metadata.get("frame") for m in v]
@@ -463,7 +477,7 @@ class MeshSequence(DataType):
         for s, seg in enumerate(doc["segments"]):
             first = trimesh.load(folder / f"segment_{s:04d}.ply", process=False, force="mesh")
             n = seg["stop"] - seg["start"]
-            points = np.load(folder / f"segment_{s:04d}.npy") if n > 1 else [np.asarray(first.vertices)]
+            points = np.load(folder / f"segment_{s:04d}.npy")
             for k in range(n):
                 m = trimesh.Trimesh(points[k], first.faces, process=False)
                 for key in ("segment", "keyframe"):

@@ -37,6 +37,10 @@ class ExportMesh(Node):
         ext = Path(rel).suffix.lstrip(".").lower()
         if ext not in MESH_FORMATS:
             raise NodeError(f"path {path!r}: unknown mesh format '.{ext}' (use one of {', '.join(MESH_FORMATS)})")
+        if ext == "glb":
+            from nodes.common.gltf import mesh_glb
+
+            return {"files": {rel: mesh_glb(mesh, "volcap export.mesh")}}
         return {"files": {rel: mesh.export(file_type=ext)}}
 
 

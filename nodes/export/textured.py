@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from nodegraph import Files, Node, NodeError, OutPath, Param
+from nodes.common.gltf import mesh_glb, png_bytes, texture_image
 from nodes.common.types import TexturedMesh
 
 from .nodes import _format
@@ -57,16 +58,6 @@ def linear_exr_bytes(tex: np.ndarray) -> bytes:
         return p.read_bytes()
 
 
-def texture_image(mesh) -> np.ndarray | None:
-    """The base-colour texture of a trimesh mesh as (H, W, 3) uint8, or None."""
-    visual = mesh.visual
-    if getattr(visual, "kind", None) != "texture" or visual.uv is None:
-        return None
-    mat = visual.material
-    image = getattr(mat, "baseColorTexture", None) or getattr(mat, "image", None)
-    return None if image is None else np.asarray(image.convert("RGB"))
-
-
 def vertex_colours(mesh) -> np.ndarray | None:
     """(V, 3) uint8 colours: the texture sampled at each vertex's UV, or the mesh's vertex colours."""
     from nodes.common.raster import sample_texture
@@ -79,22 +70,13 @@ def vertex_colours(mesh) -> np.ndarray | None:
     return None
 
 
-def _png(img: np.ndarray) -> bytes:
-    import cv2
-
-    ok, buf = cv2.imencode(".png", np.ascontiguousarray(img[:, :, ::-1]))
-    if not ok:
-        raise NodeError("could not encode the texture as PNG")
-    return buf.tobytes()
-
-
 def textured_files(mesh, rel: str, ext: str) -> dict[str, bytes]:
     """File name -> bytes for one textured mesh in format ``ext``."""
     import trimesh
 
     stem = Path(rel).with_suffix("")
     if ext == "glb":
-        return {rel: mesh.export(file_type="glb")}
+        return {rel: mesh_glb(mesh, "volcap export.textured")}
     if ext == "ply":
         cols = vertex_colours(mesh)
         m = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
@@ -119,65 +101,22 @@ def textured_files(mesh, rel: str, ext: str) -> dict[str, bytes]:
 def usd_files(mesh, tex, rel: str, ext: str) -> dict[str, bytes]:
     """A UsdGeom.Mesh with a UsdPreviewSurface material whose diffuseColor reads the texture (UsdUVTexture
     through the ``st`` primvar), or displayColor from vertex colours."""
-    import tempfile
-
-    from pxr import Sdf, Usd, UsdGeom, UsdShade, UsdUtils, Vt
+    from nodes.common.usd import UsdStage
 
     stem = Path(rel).with_suffix("")
     png_name = f"{stem.name}.png"
-    with tempfile.TemporaryDirectory() as d:
-        d = Path(d)
-        layer = d / f"{stem.name}.{'usdc' if ext == 'usdz' else ext}"
-        stage = Usd.Stage.CreateNew(str(layer))
-        UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-        root = UsdGeom.Xform.Define(stage, "/Capture")
-        stage.SetDefaultPrim(root.GetPrim())
-        geom = UsdGeom.Mesh.Define(stage, "/Capture/Mesh")
-        geom.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(np.asarray(mesh.vertices, np.float32)))
-        geom.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(mesh.faces), 3, np.int32)))
-        geom.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.asarray(mesh.faces, np.int32).ravel()))
-        geom.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
-        lo, hi = mesh.bounds
-        geom.CreateExtentAttr(Vt.Vec3fArray.FromNumpy(np.array([lo, hi], np.float32)))
-        mat = UsdShade.Material.Define(stage, "/Capture/Material")
-        surf = UsdShade.Shader.Define(stage, "/Capture/Material/PreviewSurface")
-        surf.CreateIdAttr("UsdPreviewSurface")
-        surf.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(1.0)
-        surf.CreateInput("metallic", Sdf.ValueTypeNames.Float).Set(0.0)
-        mat.CreateSurfaceOutput().ConnectToSource(surf.ConnectableAPI(), "surface")
-        files = {}
-        if tex is not None:
-            st = UsdGeom.PrimvarsAPI(geom).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex)
-            st.Set(Vt.Vec2fArray.FromNumpy(np.asarray(mesh.visual.uv, np.float32)))
-            reader = UsdShade.Shader.Define(stage, "/Capture/Material/STReader")
-            reader.CreateIdAttr("UsdPrimvarReader_float2")
-            reader.CreateInput("varname", Sdf.ValueTypeNames.Token).Set("st")
-            image = UsdShade.Shader.Define(stage, "/Capture/Material/Texture")
-            image.CreateIdAttr("UsdUVTexture")
-            image.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(png_name)
-            image.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set("sRGB")
-            image.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(reader.ConnectableAPI(), "result")
-            image.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
-            surf.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(image.ConnectableAPI(), "rgb")
-            png = _png(tex)
-            (d / png_name).write_bytes(png)
-            files[str(stem.parent / png_name)] = png
-        else:
-            cols = vertex_colours(mesh)
-            if cols is not None:
-                dc = geom.CreateDisplayColorPrimvar(UsdGeom.Tokens.vertex)
-                dc.Set(Vt.Vec3fArray.FromNumpy((cols / 255.0).astype(np.float32)))
-                reader = UsdShade.Shader.Define(stage, "/Capture/Material/ColorReader")
-                reader.CreateIdAttr("UsdPrimvarReader_float3")
-                reader.CreateInput("varname", Sdf.ValueTypeNames.Token).Set("displayColor")
-                reader.CreateOutput("result", Sdf.ValueTypeNames.Float3)
-                surf.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(reader.ConnectableAPI(), "result")
-        UsdShade.MaterialBindingAPI.Apply(geom.GetPrim()).Bind(mat)
-        stage.GetRootLayer().Save()
-        if ext == "usdz":
-            pkg = d / f"{stem.name}.usdz"
-            if not UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(layer)), str(pkg)):
-                raise NodeError(f"{rel}: USD could not write the usdz package")
-            return {rel: pkg.read_bytes()}
-        files[rel] = layer.read_bytes()
-        return files
+    cols = vertex_colours(mesh) if tex is None else None
+    stage = UsdStage(up_axis=None)          # upAxis unauthored as before: the world-frame change decides it
+    stage.group("/Capture")
+    geom = stage.mesh("/Capture/Mesh", mesh.faces, mesh.vertices, uv=mesh.visual.uv if tex is not None else None,
+                      colours=None if cols is None else cols / 255.0)
+    stage.material(geom, "/Capture/Material", texture=png_name if tex is not None else None,
+                   display_colour=cols is not None)
+    assets = {png_name: png_bytes(tex)} if tex is not None else {}
+    try:
+        data = stage.save(f"{stem.name}.{ext}", assets)
+    except OSError as exc:
+        raise NodeError(f"{rel}: {exc}") from None
+    if ext == "usdz":
+        return {rel: data}
+    return {rel: data, **{str(stem.parent / name): png for name, png in assets.items()}}

@@ -315,11 +315,10 @@ def smoothed_normals(ops, v, filter_rounds: int, prefix: str = ""):
 
 def fair(ops, *, rounds: int = 2, iterations: int = 5, filter_rounds: int = 2, lam_t: float = 0.5,
          shell=None, reach: float = 0.0, across: float = 0.0, steps: int = 8, clamp_steps: bool = True,
-         unfold: int = 12, final: str = "none", lines=None):
+         unfold: int = 12, final: str = "none"):
     """The fairing loop: ``rounds`` x (lines along the smoothed normals and their shell intervals, then
     ``iterations`` fairing steps each clamped to the shell: along the line to its interval, across it to at
     most ``across``; with ``clamp_steps`` false the steps run free). ``shell`` = (tau_in, tau_out) or None;
-    ``lines`` = (centre, axis, shell intervals) of the first round when already searched (backend handles).
     ``final``: "none", "clamp" (a last clamp along fresh lines through the final positions, nothing across: every
     vertex exactly into the shell) or "onto" (the same onto the deep level tau_in). Then at most ``unfold`` fold
     repair steps move the vertices at a fold (faces more than 150 degrees apart), if any. Returns (vertices,
@@ -337,7 +336,7 @@ def fair(ops, *, rounds: int = 2, iterations: int = 5, filter_rounds: int = 2, l
     last = None
     for r in range(rounds):
         if shell is not None and clamp_steps:
-            centre, axis, sh = lines if (r == 0 and lines is not None) else search(v)
+            centre, axis, sh = search(v)
         for _ in range(iterations):
             _, m, plain = smoothed_normals(ops, v, filter_rounds)
             k += 1

@@ -387,29 +387,6 @@ def split_cull(cull: dict, edges: np.ndarray) -> dict:
     return {"cull": np.vstack([cull["cull"], new]), "act": np.vstack([cull["act"], act])}
 
 
-@dataclass
-class FitLines:
-    """A search of the shell along one line per vertex, handed from refine to relax in memory (as the attribute
-    ``volcap_lines`` of refine's mesh) when they run in one frame unit: refine's last search finds both of relax's
-    levels, so relax's first round needs no search of its own. Relax uses it only for the very vertices, faces
-    and field it was made for."""
-
-    vertices: np.ndarray             # float64 (V, 3): the mesh it belongs to
-    faces: np.ndarray
-    field_key: tuple
-    origin: np.ndarray               # points below are relative to it
-    levels: tuple                    # (tau_in, tau_out)
-    reach: float
-    centre: np.ndarray               # (V, 3) float32: each line is centre +- reach * axis
-    axis: np.ndarray                 # (V, 3) float32, unit
-    shell: np.ndarray                # (V, 4) float32: kernel shell_interval's output
-    cull: dict | None = None         # the cull the searches may use (ball_cull with its active views)
-
-    def fits(self, vertices, faces, field: SilhouetteField, levels) -> bool:
-        return (field.key() == self.field_key and np.allclose(levels, self.levels, rtol=0, atol=1e-7)
-                and np.array_equal(np.asarray(faces), self.faces) and np.array_equal(np.asarray(vertices), self.vertices))
-
-
 # ---------------------------------------------------------------- OpenCL
 class FieldCL(Runner):
     """The field on the device (kernels/hullfit.cl) and the searches over it. ``prepare`` puts the masks there:

@@ -100,9 +100,6 @@ class Refine(Node):
         self.log.info("refine: %d of %d vertices onto the hull along grid edges, %d along normals",
                       stats["on_edges"], stats["vertices"], stats["on_normals"])
         out = trimesh.Trimesh(vertices, faces, vertex_colors=carried_vertex_colors(mesh, vertices), process=False)
-        if stats["lines"] is not None:  # relax, when it runs next in this frame unit, starts from the last search
-            stats["lines"].vertices = np.asarray(out.vertices)
-            out.volcap_lines = stats["lines"]
         return {"mesh": out}
 
 
@@ -142,15 +139,14 @@ class Relax(Node):
         if -inside_px > outside_px:
             raise NodeError(f"relax: the shell is empty (inside_px {inside_px} is beyond outside_px {outside_px})")
         field = None
-        lines = getattr(mesh, "volcap_lines", None)  # refine's last search, when it ran just before in this unit
         if keep_silhouettes:
             if masks is None or cameras is None:
                 raise NodeError("relax: keep_silhouettes needs the 'masks' and 'cameras' inputs connected "
                                 "(or set keep_silhouettes: false)")
             v = np.asarray(mesh.vertices, np.float64)
-            origin = lines.origin if lines is not None else (0.5 * (v.min(axis=0) + v.max(axis=0)) if len(v) else np.zeros(3))
+            origin = 0.5 * (v.min(axis=0) + v.max(axis=0)) if len(v) else np.zeros(3)
             field = SilhouetteField.from_inputs(masks, cameras, origin, min_views, outside, use_alpha, node="relax")
         out, faces = relax_vertices(mesh.vertices, mesh.faces, field, rounds=rounds, iterations=iterations,
                              filter_rounds=filter_rounds, lam_t=tangential, inside_px=inside_px,
-                             outside_px=outside_px, steps=steps, method=method, lines=lines)
+                             outside_px=outside_px, steps=steps, method=method)
         return {"mesh": trimesh.Trimesh(out, faces, vertex_colors=carried_vertex_colors(mesh, out), process=False)}

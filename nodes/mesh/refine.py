@@ -13,9 +13,7 @@ and, where neighbours slid in opposite directions, folds. ``quality`` fairing st
 normals smoothed first, then each vertex towards its faces' planes and the mean of its neighbours) even out
 the triangles and open the folds; then every vertex goes back onto the exact hull along its smoothed normal
 (the fairing's final clamp onto the hull's level), and fold repair steps follow where that left a fold (then
-edge flips or collapses, nodes/mesh/budget.py). That last search also finds relax's outer level on the same
-lines: the mesh carries it (``volcap_lines``, in memory only) and relax, run next in the frame unit, starts
-from it. The searches visit, per vertex, only the views that may cut its neighbourhood (``hullfit.ball_cull``).
+edge flips or collapses, nodes/mesh/budget.py). The searches visit, per vertex, only the views that may cut its neighbourhood (``hullfit.ball_cull``).
 Same faces as the input by default; a triangle budget (``faces`` or ``edge_length``) splits the edges with the
 largest chord error or decimates (quadric error metrics, fast-simplification) before the quality steps.
 
@@ -29,7 +27,7 @@ import numpy as np
 
 from .budget import meet_budget, repair_folds
 from .fairing import CLOps, NumPyOps, fair, smoothed_normals
-from .hullfit import (RELAX_OUTSIDE_PX, FieldCL, FitLines, SilhouetteField, ball_cull, cross_reference, level_of,
+from .hullfit import (RELAX_OUTSIDE_PX, FieldCL, SilhouetteField, ball_cull, cross_reference, level_of,
                       onto_reference)
 
 HULL = 0.5  # the field's level of the visual hull (the pixel-edge outline)
@@ -91,11 +89,11 @@ def refine_vertices(vertices, faces, volume, field: SilhouetteField, steps: int 
     ``quality`` fairing steps and the projection back onto the hull. With ``target_faces`` > 0 the mesh is
     first brought to that many faces (``meet_budget``). Returns (vertices (V, 3) float64, faces, counts): the
     faces change with a budget, and when a fold the fairing could not open had its edge collapsed. The searches visit, per vertex, only the views that may see its
-    neighbourhood cut (``ball_cull``). The last search also finds the shell at ``relax_levels`` (relax's default
-    levels): counts["lines"] is then the FitLines relax can start from."""
+    neighbourhood cut (``ball_cull``). The last fairing clamps to the shell at ``relax_levels`` (relax's default
+    levels)."""
     vertices = np.asarray(vertices, np.float64).reshape(-1, 3)
     faces = np.asarray(faces, np.int64).reshape(-1, 3)
-    stats = {"vertices": len(vertices), "on_edges": 0, "on_normals": 0, "lines": None, "folds_left": 0}
+    stats = {"vertices": len(vertices), "on_edges": 0, "on_normals": 0, "folds_left": 0}
     if len(vertices) == 0:
         return vertices.copy(), faces, stats
     origin = field.origin
@@ -132,16 +130,12 @@ def refine_vertices(vertices, faces, volume, field: SilhouetteField, steps: int 
     if quality > 0 and len(faces):
         ops = CLOps(out, faces, fc, cull) if method == "opencl" else NumPyOps(out, faces, field)
         levels = relax_levels if relax_levels is not None else (HULL, HULL)
-        v, last, folds = fair(ops, rounds=1, iterations=quality, filter_rounds=1, lam_t=lam_t, shell=levels,
+        v, _, folds = fair(ops, rounds=1, iterations=quality, filter_rounds=1, lam_t=lam_t, shell=levels,
                               reach=0.5 * voxel, steps=steps, clamp_steps=False, final="onto")
         out = ops.read(v)
         result = out.astype(np.float64) + origin
-        count = len(result)
         if folds:  # a fold the repair steps could not open (after decimation): flip or collapse its edge
             result, faces, stats["folds_left"] = repair_folds(result, faces)
-        if relax_levels is not None and last is not None and len(result) == count:  # (no vertex gone: they fit)
-            stats["lines"] = FitLines(result, faces, field.key(), origin, tuple(levels), 0.5 * voxel,
-                                      ops.get(last[0]), ops.get(last[1]), ops.get(last[2], 4), cull)
     else:
         result = out.astype(np.float64) + origin
     return result, faces, stats

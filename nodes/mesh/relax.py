@@ -8,9 +8,8 @@ within it (levels of the smooth silhouette field, nodes/mesh/hullfit.py). Inside
 (nodes/mesh/fairing.py): face normals are smoothed first, vertices move towards the planes of their faces
 with the smoothed normals and evenly along the surface. Every ``iterations`` steps make one round: each round
 sets each vertex's line along its smoothed normal and searches the shell on it once on the device; the steps
-then clamp each vertex to its line's shell interval (and at most ``across`` off it). When refine ran just
-before in the same frame unit, its last search (``volcap_lines`` on its mesh: the same lines, both levels) is
-the first round's, and relax searches nothing itself with the default one round.
+then clamp each vertex to its line's shell interval (and at most ``across`` off it). Relax computes from its
+inputs alone (no search handed over from refine in memory: a cached value must equal what the node computes).
 
 With ``keep_silhouettes`` false the fairing runs free (no masks needed). Same topology.
 
@@ -23,7 +22,7 @@ import numpy as np
 
 from .budget import repair_folds
 from .fairing import CLOps, NumPyOps, fair
-from .hullfit import RELAX_OUTSIDE_PX, FieldCL, FitLines, SilhouetteField, level_of
+from .hullfit import RELAX_OUTSIDE_PX, FieldCL, SilhouetteField, level_of
 
 
 def mean_edge_length(vertices: np.ndarray, faces: np.ndarray) -> float:
@@ -37,34 +36,25 @@ def mean_edge_length(vertices: np.ndarray, faces: np.ndarray) -> float:
 
 def relax_vertices(vertices, faces, field: SilhouetteField | None = None, *, rounds: int = 1, iterations: int = 8,
                    filter_rounds: int = 2, lam_t: float = 0.5, inside_px: float = 0.0,
-                   outside_px: float = RELAX_OUTSIDE_PX, steps: int = 8, method: str = "opencl",
-                   lines: FitLines | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   outside_px: float = RELAX_OUTSIDE_PX, steps: int = 8,
+                   method: str = "opencl") -> tuple[np.ndarray, np.ndarray]:
     """(faired vertices (V, 3) float64, faces); with ``field`` kept in the shell between ``inside_px`` pixels
     within the masks' outline and ``outside_px`` beyond it. The vertices and faces are the input's unless a fold
-    the fairing could not open had its edge flipped or collapsed (``budget.repair_folds``). ``lines``: refine's last search (FitLines), used for the
-    first round when it was made for these vertices, faces, field and levels (then ``field`` must have its
-    origin)."""
+    the fairing could not open had its edge flipped or collapsed (``budget.repair_folds``)."""
     vertices = np.asarray(vertices, np.float64).reshape(-1, 3)
     faces = np.asarray(faces, np.int64).reshape(-1, 3)
     if len(vertices) == 0 or len(faces) == 0 or rounds * iterations == 0:
         return vertices.copy(), faces
     shell = None if field is None else (level_of(inside_px), level_of(-outside_px))
-    if lines is not None and (field is None or not lines.fits(vertices, faces, field, shell)):
-        lines = None
     origin = field.origin if field is not None else vertices.mean(axis=0)
     edge = mean_edge_length(vertices, faces)
     p = (vertices - origin).astype(np.float32)
     if method == "opencl":
-        ops = CLOps(p, faces, FieldCL.get().prepare(field) if field is not None else None,
-                    lines.cull if lines is not None else None)
+        ops = CLOps(p, faces, FieldCL.get().prepare(field) if field is not None else None)
     else:
         ops = NumPyOps(p, faces, field)
-    first, reach = None, 0.5 * edge
-    if lines is not None:
-        first = (ops.put(lines.centre, "l_centre"), ops.put(lines.axis, "l_axis"), ops.put(lines.shell, "l_shell", 4))
-        reach = lines.reach
     out, _, folds = fair(ops, rounds=rounds, iterations=iterations, filter_rounds=filter_rounds, lam_t=lam_t,
-                         shell=shell, reach=reach, across=0.5 * edge, steps=steps, lines=first)
+                         shell=shell, reach=0.5 * edge, across=0.5 * edge, steps=steps)
     result = ops.read(out).astype(np.float64) + origin
     if folds:  # a fold the repair steps could not open: flip or collapse its edge
         result, faces, _ = repair_folds(result, faces)

@@ -13,7 +13,6 @@ seconds from the first frame (glTF).
 from __future__ import annotations
 
 import re
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -75,64 +74,33 @@ def sparse_influences(weights: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarr
 def write_usd(path: Path, vertices, faces, joints, parents, names, weights, rotations, translations, frames,
               fps: float = 24.0, influences: int = 4):
     """Write a UsdSkel rig: /Rig (SkelRoot) with Skeleton, its Animation and the bound Mesh."""
-    from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
+    Path(path).write_bytes(usd_bytes(vertices=vertices, faces=faces, joints=joints, parents=parents, names=names,
+                                     weights=weights, rotations=rotations, translations=translations, frames=frames,
+                                     fps=fps, influences=influences))
+
+
+def usd_bytes(vertices, faces, joints, parents, names, weights, rotations, translations, frames, fps: float = 24.0,
+              influences: int = 4) -> bytes:
+    """The UsdSkel rig of ``write_usd`` as the bytes of a binary .usd layer."""
+    from nodes.common.usd import UsdStage
 
     names = _names(names, len(parents))
     paths = []
     for j, p in enumerate(parents):
         paths.append(names[j] if p < 0 else f"{paths[p]}/{names[j]}")
-    stage = Usd.Stage.CreateNew(str(path))
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
-    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-    stage.SetStartTimeCode(float(frames[0]))
-    stage.SetEndTimeCode(float(frames[-1]))
-    stage.SetTimeCodesPerSecond(fps)
-    root = UsdSkel.Root.Define(stage, "/Rig")
-    stage.SetDefaultPrim(root.GetPrim())
-    skel = UsdSkel.Skeleton.Define(stage, "/Rig/Skeleton")
-    skel.CreateJointsAttr(Vt.TokenArray(paths))
-    skel.CreateJointNamesAttr(Vt.TokenArray(names))
     joints = np.asarray(joints, np.float64)
     bind = np.tile(np.eye(4), (len(parents), 1, 1))
     bind[:, :3, 3] = joints
-    rest_local = local_transforms(bind[None], parents)[0]
-    m4 = lambda a: Gf.Matrix4d(*np.asarray(a, np.float64).T.ravel().tolist())  # noqa: E731  column -> row convention
-    skel.CreateBindTransformsAttr(Vt.Matrix4dArray([m4(b) for b in bind]))
-    skel.CreateRestTransformsAttr(Vt.Matrix4dArray([m4(b) for b in rest_local]))
-    anim = UsdSkel.Animation.Define(stage, "/Rig/Skeleton/Animation")
-    anim.CreateJointsAttr(Vt.TokenArray(paths))
     local = local_transforms(world_transforms(joints, rotations, translations), parents)
-    quats = quaternions(local[..., :3, :3])
-    t_attr, r_attr, s_attr = anim.CreateTranslationsAttr(), anim.CreateRotationsAttr(), anim.CreateScalesAttr()
-    s_attr.Set(Vt.Vec3hArray([Gf.Vec3h(1, 1, 1)] * len(parents)))
-    for k, fr in enumerate(frames):
-        code = Usd.TimeCode(float(fr))
-        t_attr.Set(Vt.Vec3fArray.FromNumpy(local[k, :, :3, 3].astype(np.float32)), code)
-        r_attr.Set(Vt.QuatfArray([Gf.Quatf(float(q[3]), float(q[0]), float(q[1]), float(q[2])) for q in quats[k]]), code)
-    UsdSkel.BindingAPI.Apply(skel.GetPrim()).CreateAnimationSourceRel().SetTargets([anim.GetPath()])
-    mesh = UsdGeom.Mesh.Define(stage, "/Rig/Mesh")
-    mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(np.asarray(vertices, np.float32)))
-    faces = np.asarray(faces, np.int32)
-    mesh.CreateFaceVertexCountsAttr(Vt.IntArray([3] * len(faces)))
-    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(faces.ravel()))
-    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
-    mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
-    binding = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
-    binding.CreateSkeletonRel().SetTargets([skel.GetPath()])
     k = max(1, min(influences, len(parents)))
     idx, w = sparse_influences(np.asarray(weights, np.float64), k)
-    binding.CreateJointIndicesPrimvar(False, k).Set(Vt.IntArray.FromNumpy(idx.astype(np.int32).ravel()))
-    binding.CreateJointWeightsPrimvar(False, k).Set(Vt.FloatArray.FromNumpy(w.astype(np.float32).ravel()))
-    binding.CreateGeomBindTransformAttr(Gf.Matrix4d(1.0))
-    del Sdf
-    stage.GetRootLayer().Save()
 
-
-def usd_bytes(**rig) -> bytes:
-    with tempfile.TemporaryDirectory() as d:
-        p = Path(d) / "rig.usd"
-        write_usd(p, **rig)
-        return p.read_bytes()
+    stage = UsdStage(fps=fps, frames=(frames[0], frames[-1]))
+    stage.group("/Rig", skel_root=True)
+    skel = stage.skeleton("/Rig/Skeleton", paths, names, bind, local_transforms(bind[None], parents)[0])
+    stage.skeleton_animation(skel, "/Rig/Skeleton/Animation", frames, local[..., :3, 3], quaternions(local[..., :3, :3]))
+    stage.bind_skin(stage.mesh("/Rig/Mesh", faces, vertices), skel, idx, w)
+    return stage.save("rig.usd")
 
 
 def read_usd(path: Path) -> dict:
@@ -170,11 +138,11 @@ def read_usd(path: Path) -> dict:
 def gltf_bytes(vertices, faces, joints, parents, names, weights, rotations, translations, frames, fps: float = 24.0,
                influences: int = 4) -> bytes:
     """A binary glTF (GLB): one skinned mesh, its joint nodes, one animation (LINEAR)."""
-    import pygltflib as G
+    from nodes.common.gltf import GltfBuilder
+
+    from .skinning import topological
 
     names = _names(names, len(parents))
-    v = np.asarray(vertices, np.float32)
-    f = np.asarray(faces, np.uint32).ravel()
     k = 4
     idx, w = sparse_influences(np.asarray(weights, np.float64), min(k, len(parents)))
     if idx.shape[1] < k:  # glTF's JOINTS_0 / WEIGHTS_0 hold four per vertex
@@ -183,73 +151,25 @@ def gltf_bytes(vertices, faces, joints, parents, names, weights, rotations, tran
     joints = np.asarray(joints, np.float64)
     bind = np.tile(np.eye(4), (len(parents), 1, 1))
     bind[:, :3, 3] = joints
-    ibm = np.linalg.inv(bind).transpose(0, 2, 1).astype(np.float32)     # column-major per matrix
     rest_local = local_transforms(bind[None], parents)[0]
     local = local_transforms(world_transforms(joints, rotations, translations), parents)
     times = ((np.asarray(frames, np.float64) - frames[0]) / fps).astype(np.float32)
-    quats = quaternions(local[..., :3, :3]).astype(np.float32)            # (F, J, 4) xyzw
-    trans = local[..., :3, 3].astype(np.float32)
+    quats = quaternions(local[..., :3, :3])                               # (F, J, 4) xyzw
+    trans = local[..., :3, 3]
 
-    blob = bytearray()
-    views, accessors = [], []
-
-    def add(arr: np.ndarray, comp: int, typ: str, target=None, minmax=False) -> int:
-        while len(blob) % 4:
-            blob.append(0)
-        data = np.ascontiguousarray(arr).tobytes()
-        views.append(G.BufferView(buffer=0, byteOffset=len(blob), byteLength=len(data), target=target))
-        blob.extend(data)
-        count = arr.shape[0]
-        acc = G.Accessor(bufferView=len(views) - 1, componentType=comp, count=count, type=typ)
-        if minmax:
-            flat = arr.reshape(count, -1)
-            acc.min, acc.max = flat.min(0).tolist(), flat.max(0).tolist()
-        accessors.append(acc)
-        return len(accessors) - 1
-
-    a_pos = add(v, G.FLOAT, G.VEC3, G.ARRAY_BUFFER, minmax=True)
-    a_idx = add(f, G.UNSIGNED_INT, G.SCALAR, G.ELEMENT_ARRAY_BUFFER)
-    a_j = add(idx.astype(np.uint16), G.UNSIGNED_SHORT, G.VEC4, G.ARRAY_BUFFER)
-    a_w = add(w.astype(np.float32), G.FLOAT, G.VEC4, G.ARRAY_BUFFER)
-    a_ibm = add(ibm, G.FLOAT, G.MAT4)
-    a_time = add(times, G.FLOAT, G.SCALAR, minmax=True)
-    nodes = [G.Node(name="mesh", mesh=0, skin=0)]
-    first = len(nodes)
-    for j, p in enumerate(parents):
-        nodes.append(G.Node(name=names[j], translation=rest_local[j, :3, 3].tolist(), rotation=[0.0, 0.0, 0.0, 1.0]))
-    for j, p in enumerate(parents):
-        if p >= 0:
-            nodes[first + p].children.append(first + j)
-    samplers, channels = [], []
+    b = GltfBuilder("volcap skeleton")
+    body = b.node("mesh", mesh=b.mesh(vertices, faces, joints=idx, weights=w))
+    nodes = {}
+    for j in topological(parents):                                        # a joint's parent node exists before it
+        nodes[j] = b.node(names[j], parent=nodes[parents[j]] if parents[j] >= 0 else None,
+                          translation=rest_local[j, :3, 3], rotation=[0.0, 0.0, 0.0, 1.0])
+    nodes = [nodes[j] for j in range(len(parents))]
+    roots = [nodes[j] for j, p in enumerate(parents) if p < 0]
+    b.skin(nodes, np.linalg.inv(bind), skeleton=roots[0], node=body)
     for j in range(len(parents)):
-        for path, data, typ in (("translation", trans[:, j], G.VEC3), ("rotation", quats[:, j], G.VEC4)):
-            samplers.append(G.AnimationSampler(input=a_time, output=add(data, G.FLOAT, typ), interpolation="LINEAR"))
-            channels.append(G.AnimationChannel(sampler=len(samplers) - 1,
-                                               target=G.AnimationChannelTarget(node=first + j, path=path)))
-    roots = [first + j for j, p in enumerate(parents) if p < 0]
-    gltf = G.GLTF2(
-        asset=G.Asset(version="2.0", generator="volcap skeleton"),
-        scene=0, scenes=[G.Scene(nodes=[0] + roots)], nodes=nodes,
-        meshes=[G.Mesh(primitives=[G.Primitive(attributes=G.Attributes(POSITION=a_pos, JOINTS_0=a_j, WEIGHTS_0=a_w),
-                                               indices=a_idx)])],
-        skins=[G.Skin(inverseBindMatrices=a_ibm, joints=[first + j for j in range(len(parents))], skeleton=roots[0])],
-        animations=[G.Animation(name="motion", samplers=samplers, channels=channels)],
-        accessors=accessors, bufferViews=views, buffers=[G.Buffer(byteLength=len(blob))],
-    )
-    gltf.set_binary_blob(bytes(blob))
-    return b"".join(gltf.save_to_bytes())
-
-
-def _accessor(gltf, blob: bytes, i: int) -> np.ndarray:
-    import pygltflib as G
-
-    acc = gltf.accessors[i]
-    view = gltf.bufferViews[acc.bufferView]
-    dtype = {G.FLOAT: np.float32, G.UNSIGNED_INT: np.uint32, G.UNSIGNED_SHORT: np.uint16, G.UNSIGNED_BYTE: np.uint8}[acc.componentType]
-    width = {G.SCALAR: 1, G.VEC2: 2, G.VEC3: 3, G.VEC4: 4, G.MAT4: 16}[acc.type]
-    start = (view.byteOffset or 0) + (acc.byteOffset or 0)
-    arr = np.frombuffer(blob, dtype, acc.count * width, start)
-    return arr.reshape(acc.count, width) if width > 1 else arr
+        b.animate(nodes[j], "translation", times, trans[:, j], animation="motion")
+        b.animate(nodes[j], "rotation", times, quats[:, j], animation="motion")
+    return b.glb()
 
 
 def read_gltf(data: bytes) -> dict:
@@ -257,6 +177,8 @@ def read_gltf(data: bytes) -> dict:
     matrices = global joint transform (from the animated node TRS) x inverse bind matrix."""
     import pygltflib as G
     from scipy.spatial.transform import Rotation
+
+    from nodes.common.gltf import read_accessor as _accessor
 
     gltf = G.GLTF2.load_from_bytes(data)
     blob = gltf.binary_blob()

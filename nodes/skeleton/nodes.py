@@ -26,7 +26,7 @@ class Skeletonize(Node):
     }
     outputs = {
         "skeleton": Output(Skeleton, "joint tree (no weights)"),
-        "report": Output(Table, "joints, extremities and their names, voxel size, seconds"),
+        "report": Output(Table, "joints, extremities and their names, voxel size (the wall time is in the log)"),
     }
     params = {
         "resolution": Param(int, 128, range=(16, 1024), doc="voxels along the mesh's longest side (mesh input)"),
@@ -57,12 +57,12 @@ class Skeletonize(Node):
         if not occ.any():
             raise NodeError(f"skeletonize: the {'mesh encloses no voxel' if mesh is not None else 'volume is empty'}")
         sk = curve_skeleton(occ, origin, spacing, scale=scale, const=const, prune=prune, bend=bend, smooth=smooth, up=up)
-        seconds = time.perf_counter() - t0
+        self.log.info("skeletonize: %d joints in %.2f s", len(sk.parents), time.perf_counter() - t0)
         leaves = sk.leaves
         report = {
             "joints": len(sk.parents), "extremities": len(leaves), "names": [sk.names[j] for j in leaves],
             "kinds": {k: sk.kind.count(k) for k in ("root", "branch", "bend", "end")},
-            "voxel": float(np.min(spacing)), "voxels_inside": int(occ.sum()), "seconds": seconds,
+            "voxel": float(np.min(spacing)), "voxels_inside": int(occ.sum()),
         }
         return {"skeleton": SkeletonData(sk.joints, list(sk.parents), list(sk.names)), "report": report}
 

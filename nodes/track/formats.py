@@ -14,10 +14,6 @@
 """
 from __future__ import annotations
 
-import io
-import tempfile
-from pathlib import Path
-
 import numpy as np
 
 from nodes.common.types import sequence_segments
@@ -31,53 +27,31 @@ def frame_numbers(meshes) -> list[int]:
 # ---------------------------------------------------------------- USD
 def usd_bytes(meshes, fps: float = 25.0) -> bytes:
     """The sequence as a binary USD layer (see the module docstring)."""
-    from pxr import Gf, Usd, UsdGeom, Vt
+    from nodes.common.usd import UsdStage
 
     frames = frame_numbers(meshes)
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "dynamic_mesh.usdc"
-        stage = Usd.Stage.CreateNew(str(path))
-        UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
-        UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-        stage.SetTimeCodesPerSecond(fps)
-        stage.SetFramesPerSecond(fps)
-        if frames:
-            stage.SetStartTimeCode(frames[0])
-            stage.SetEndTimeCode(frames[-1])
-        root = UsdGeom.Xform.Define(stage, "/DynamicMesh")
-        stage.SetDefaultPrim(root.GetPrim())
-        for s, (a, b) in enumerate(sequence_segments(meshes)):
-            faces = np.asarray(meshes[a].faces, np.int32)
-            prim = UsdGeom.Mesh.Define(stage, f"/DynamicMesh/segment_{s:04d}")
-            prim.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(faces), 3, np.int32)))
-            prim.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(faces.ravel()))
-            prim.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
-            prim.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
-            prim.GetPrim().SetCustomDataByKey("keyframe", int(meshes[a].metadata.get("keyframe", frames[a])))
-            points, extent, vis = prim.CreatePointsAttr(), prim.CreateExtentAttr(), prim.CreateVisibilityAttr()
-            for k in range(a, b):
-                p = np.ascontiguousarray(meshes[k].vertices, np.float32)
-                t = Usd.TimeCode(frames[k])
-                points.Set(Vt.Vec3fArray.FromNumpy(p), t)
-                lo, hi = (p.min(axis=0), p.max(axis=0)) if len(p) else (np.zeros(3), np.zeros(3))
-                extent.Set(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]), t)
-            if a > 0:
-                vis.Set(UsdGeom.Tokens.invisible, Usd.TimeCode(frames[0]))
-            vis.Set(UsdGeom.Tokens.inherited, Usd.TimeCode(frames[a]))
-            if b < len(meshes):
-                vis.Set(UsdGeom.Tokens.invisible, Usd.TimeCode(frames[b]))
-        stage.GetRootLayer().Save()
-        return path.read_bytes()
+    stage = UsdStage(fps=fps, frames=(frames[0], frames[-1]) if frames else None)
+    stage.group("/DynamicMesh")
+    for s, (a, b) in enumerate(sequence_segments(meshes)):
+        prim = stage.mesh(f"/DynamicMesh/segment_{s:04d}", meshes[a].faces)
+        prim.GetPrim().SetCustomDataByKey("keyframe", int(meshes[a].metadata.get("keyframe", frames[a])))
+        for k in range(a, b):
+            stage.points_at(prim, meshes[k].vertices, frames[k])
+        keys = {frames[0]: False} if a > 0 else {}
+        keys[frames[a]] = True
+        if b < len(meshes):
+            keys[frames[b]] = False
+        stage.visibility(prim, keys)
+    return stage.save("dynamic_mesh.usdc")
 
 
 def usd_points(data: bytes, frame: int) -> np.ndarray:
     """Points of the segment visible at ``frame`` in a layer written by ``usd_bytes`` (as a reader sees it)."""
     from pxr import Usd, UsdGeom
 
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "read.usdc"
-        path.write_bytes(data)
-        stage = Usd.Stage.Open(str(path))
+    from nodes.common.usd import opened
+
+    with opened(data) as stage:
         for prim in stage.GetPrimAtPath("/DynamicMesh").GetChildren():
             mesh = UsdGeom.Mesh(prim)
             if mesh.ComputeVisibility(Usd.TimeCode(frame)) != UsdGeom.Tokens.invisible:
@@ -88,73 +62,31 @@ def usd_points(data: bytes, frame: int) -> np.ndarray:
 # ---------------------------------------------------------------- glTF
 def gltf_bytes(meshes, fps: float = 25.0) -> bytes:
     """The sequence as a binary glTF (.glb) with morph-target animation (see the module docstring)."""
-    import pygltflib as G
+    from nodes.common.gltf import GltfBuilder
 
     frames = frame_numbers(meshes)
-    blob = io.BytesIO()
-    gltf = G.GLTF2(asset=G.Asset(generator="volcap track.export"), scene=0)
-    gltf.scenes.append(G.Scene(nodes=[]))
-    animation = G.Animation(name="dynamic_mesh", channels=[], samplers=[])
-
-    def add(array: np.ndarray, target: int | None, minmax: bool = False, component=G.FLOAT, kind=G.VEC3) -> int:
-        data = np.ascontiguousarray(array)
-        pad = (-blob.tell()) % 4
-        blob.write(b"\0" * pad)
-        offset = blob.tell()
-        blob.write(data.tobytes())
-        gltf.bufferViews.append(G.BufferView(buffer=0, byteOffset=offset, byteLength=data.nbytes, target=target))
-        acc = G.Accessor(bufferView=len(gltf.bufferViews) - 1, componentType=component, count=len(data), type=kind)
-        if minmax:
-            flat = data.reshape(len(data), -1)
-            acc.min = flat.min(axis=0).tolist() if len(flat) else None
-            acc.max = flat.max(axis=0).tolist() if len(flat) else None
-        gltf.accessors.append(acc)
-        return len(gltf.accessors) - 1
-
+    b = GltfBuilder("volcap track.export")
     t0 = frames[0] if frames else 0
     end = (frames[-1] - t0) / fps if frames else 0.0
-    for s, (a, b) in enumerate(sequence_segments(meshes)):
+    for s, (a, c) in enumerate(sequence_segments(meshes)):
         base = np.asarray(meshes[a].vertices, np.float32)
-        faces = np.asarray(meshes[a].faces, np.uint32).ravel()
-        pos = add(base, G.ARRAY_BUFFER, minmax=True)
-        ind = add(faces, G.ELEMENT_ARRAY_BUFFER, component=G.UNSIGNED_INT, kind=G.SCALAR)
-        targets = [{"POSITION": add(np.asarray(meshes[k].vertices, np.float32) - base, G.ARRAY_BUFFER, minmax=True)}
-                   for k in range(a + 1, b)]
-        prim = G.Primitive(attributes=G.Attributes(POSITION=pos), indices=ind, mode=G.TRIANGLES, targets=targets or None)
-        gltf.meshes.append(G.Mesh(name=f"segment_{s:04d}", primitives=[prim], weights=[0.0] * len(targets) or None))
-        gltf.nodes.append(G.Node(name=f"segment_{s:04d}", mesh=len(gltf.meshes) - 1))
-        node = len(gltf.nodes) - 1
-        gltf.scenes[0].nodes.append(node)
-        times = np.array([(frames[k] - t0) / fps for k in range(a, b)], np.float32)
+        targets = [np.asarray(meshes[k].vertices, np.float32) - base for k in range(a + 1, c)]
+        name = f"segment_{s:04d}"
+        node = b.node(name, mesh=b.mesh(base, meshes[a].faces, targets=targets, name=name),
+                      scale=[0.0, 0.0, 0.0] if a > 0 else None)
+        times = np.array([(frames[k] - t0) / fps for k in range(a, c)], np.float32)
         if targets:
-            weights = np.zeros((b - a, len(targets)), np.float32)
-            weights[np.arange(1, b - a), np.arange(len(targets))] = 1.0
-            t_in = add(times, None, minmax=True, kind=G.SCALAR)
-            w_out = add(weights.ravel(), None, kind=G.SCALAR)
-            animation.samplers.append(G.AnimationSampler(input=t_in, output=w_out, interpolation=G.ANIM_STEP))
-            animation.channels.append(G.AnimationChannel(sampler=len(animation.samplers) - 1,
-                                                         target=G.AnimationChannelTarget(node=node, path="weights")))
+            weights = np.zeros((c - a, len(targets)), np.float32)
+            weights[np.arange(1, c - a), np.arange(len(targets))] = 1.0
+            b.animate(node, "weights", times, weights, "STEP", animation="dynamic_mesh")
         # shown only during its frames: STEP scale 0 -> 1 -> 0
         keys = [(0.0, 0.0)] if a > 0 else []
         keys.append((float(times[0]), 1.0))
-        if b < len(meshes):
-            keys.append(((frames[b] - t0) / fps, 0.0))
-        if len(keys) > 1 or a > 0:
-            s_in = add(np.array([k[0] for k in keys], np.float32), None, minmax=True, kind=G.SCALAR)
-            s_out = add(np.array([[k[1]] * 3 for k in keys], np.float32), None)
-            animation.samplers.append(G.AnimationSampler(input=s_in, output=s_out, interpolation=G.ANIM_STEP))
-            animation.channels.append(G.AnimationChannel(sampler=len(animation.samplers) - 1,
-                                                         target=G.AnimationChannelTarget(node=node, path="scale")))
-            if a > 0:
-                gltf.nodes[node].scale = [0.0, 0.0, 0.0]
-    if animation.channels:
-        gltf.animations.append(animation)
-    data = blob.getvalue()
-    gltf.buffers.append(G.Buffer(byteLength=len(data)))
-    gltf.set_binary_blob(data)
-    gltf.extras = {"fps": fps, "duration": end, "frames": frames}
-    out = gltf.save_to_bytes()
-    return b"".join(out) if isinstance(out, list) else bytes(out)
+        if c < len(meshes):
+            keys.append(((frames[c] - t0) / fps, 0.0))
+        if len(keys) > 1:
+            b.animate(node, "scale", [k[0] for k in keys], [[k[1]] * 3 for k in keys], "STEP", animation="dynamic_mesh")
+    return b.glb(extras={"fps": fps, "duration": end, "frames": frames})
 
 
 def gltf_frame(data: bytes, index: int) -> np.ndarray:
@@ -163,16 +95,11 @@ def gltf_frame(data: bytes, index: int) -> np.ndarray:
     targets weighted by the STEP weights."""
     import pygltflib as G
 
+    from nodes.common.gltf import read_accessor
+
     g = G.GLTF2.load_from_bytes(data)
     blob = g.binary_blob()
-
-    def read(acc_index: int) -> np.ndarray:
-        acc = g.accessors[acc_index]
-        view = g.bufferViews[acc.bufferView]
-        width = {G.SCALAR: 1, G.VEC3: 3}[acc.type]
-        dtype = {G.FLOAT: np.float32, G.UNSIGNED_INT: np.uint32}[acc.componentType]
-        arr = np.frombuffer(blob, dtype, acc.count * width, view.byteOffset + (acc.byteOffset or 0))
-        return arr.reshape(acc.count, width) if width > 1 else arr
+    read = lambda i: read_accessor(g, blob, i)  # noqa: E731
 
     frames = g.extras["frames"]
     fps = g.extras["fps"]

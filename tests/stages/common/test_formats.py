@@ -1,0 +1,103 @@
+"""The format layers compose: one glTF mesh with NORMAL, TEXCOORD_0, morph targets, a skin and a texture
+material together; one USD stage holding a time-sampled, textured and skinned mesh. Read back with
+pygltflib / trimesh and usd-core."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from nodes.common.gltf import GltfBuilder, read_accessor, texture_uv
+
+PNG = bytes.fromhex("89504e470d0a1a0a0000000d49484452000000010000000108020000009077"
+                    "53de0000000c4944415408d763f8cfc000000301010018dd8db00000000049454e44ae426082")
+
+
+@pytest.fixture
+def box():
+    m = trimesh.creation.box()
+    return np.asarray(m.vertices, np.float32), np.asarray(m.faces), np.asarray(m.vertex_normals, np.float32)
+
+
+def test_gltf_mesh_with_normals_uv_morphs_skin_and_texture(box):
+    import pygltflib as G
+
+    v, f, n = box
+    uv = (v[:, :2] + 0.5).astype(np.float32)
+    targets = [np.full_like(v, 0.1), np.full_like(v, -0.2)]
+    b = GltfBuilder("test")
+    m = b.mesh(v, f, normals=n, uv=texture_uv(uv), targets=targets, joints=np.zeros((len(v), 4), np.uint16),
+               weights=np.tile([1.0, 0, 0, 0], (len(v), 1)))
+    b.set_material(m, b.texture_material(PNG))
+    body = b.node("body", mesh=m)
+    root = b.node("root", translation=[0, 0, 1])
+    b.node("tip", parent=root, translation=[0, 0, 0.5])
+    b.skin([root], np.linalg.inv(np.diag([1.0, 1, 1, 1])[None]), skeleton=root, node=body)
+    times = np.array([0.0, 0.5], np.float32)
+    b.animate(body, "weights", times, [[0, 0], [1, 0]], "STEP")
+    b.animate(root, "translation", times, [[0, 0, 1], [0, 0, 2]])
+    data = b.glb(extras={"fps": 2})
+
+    g = G.GLTF2.load_from_bytes(data)
+    blob = g.binary_blob()
+    assert all(view.byteOffset % 4 == 0 for view in g.bufferViews)
+    prim = g.meshes[0].primitives[0]
+    np.testing.assert_array_equal(read_accessor(g, blob, prim.attributes.POSITION), v)
+    np.testing.assert_array_equal(read_accessor(g, blob, prim.attributes.NORMAL), n)
+    np.testing.assert_allclose(read_accessor(g, blob, prim.attributes.TEXCOORD_0)[:, 1], 1 - uv[:, 1])
+    np.testing.assert_array_equal(read_accessor(g, blob, prim.indices).reshape(-1, 3), f)
+    for t, tg in zip(targets, prim.targets):
+        acc = g.accessors[tg["POSITION"]]
+        assert acc.min == t.min(0).tolist() and acc.max == t.max(0).tolist()     # required by the specification
+    pos = g.accessors[prim.attributes.POSITION]
+    assert pos.min == v.min(0).tolist() and pos.max == v.max(0).tolist()
+    assert g.nodes[body].skin == 0 and g.nodes[root].children == [2] and g.scenes[0].nodes == [body, root]
+    anim = g.animations[0]
+    assert anim.samplers[0].input == anim.samplers[1].input                   # the same key times, one accessor
+    assert g.images[0].mimeType == "image/png" and prim.material == 0 and g.extras == {"fps": 2}
+    tm = trimesh.load(trimesh.util.wrap_as_stream(data), file_type="glb", force="mesh", process=False)
+    np.testing.assert_allclose(tm.visual.uv, uv, atol=1e-6)                  # another reader: trimesh's UVs again
+
+
+def test_one_usd_stage_holds_a_tracked_textured_skinned_mesh(box, tmp_path):
+    from pxr import Usd, UsdGeom, UsdShade, UsdSkel
+
+    from nodes.common.usd import UsdStage, opened
+
+    v, f, n = box
+    frames = [10, 11, 12]
+    s = UsdStage(up_axis="Z", fps=25.0, frames=(10, 12))
+    s.group("/Capture", skel_root=True)
+    m = s.mesh("/Capture/Body", f, v, normals=n, uv=v[:, :2] + 0.5)
+    for k in frames:
+        s.points_at(m, v + (k - 10) * 0.1, k)
+    s.visibility(m, {10: True, 12: False})
+    s.material(m, "/Capture/Material", texture="body.png")
+    bind = np.eye(4)[None]
+    skel = s.skeleton("/Capture/Skeleton", ["root"], ["root"], bind, bind)
+    s.skeleton_animation(skel, "/Capture/Skeleton/Animation", frames, np.zeros((3, 1, 3)), np.tile([0, 0, 0, 1.0], (3, 1, 1)))
+    s.bind_skin(m, skel, np.zeros((len(v), 1), int), np.ones((len(v), 1)))
+    for name in ("body.usda", "body.usdc"):
+        with opened(s.save(name), "." + name.split(".")[1]) as st:
+            assert UsdGeom.GetStageUpAxis(st) == "Z" and UsdGeom.GetStageMetersPerUnit(st) == 1.0
+            assert st.GetTimeCodesPerSecond() == 25.0 and (st.GetStartTimeCode(), st.GetEndTimeCode()) == (10, 12)
+            assert st.GetDefaultPrim().GetPath() == "/Capture"
+            mesh = UsdGeom.Mesh(st.GetPrimAtPath("/Capture/Body"))
+            np.testing.assert_allclose(np.array(mesh.GetPointsAttr().Get(Usd.TimeCode(12))), v + 0.2, atol=1e-6)
+            assert mesh.ComputeVisibility(Usd.TimeCode(12)) == UsdGeom.Tokens.invisible
+            assert len(UsdGeom.PrimvarsAPI(mesh).GetPrimvar("st").Get()) == len(v)
+            surf = UsdShade.MaterialBindingAPI(mesh.GetPrim()).ComputeBoundMaterial()[0].ComputeSurfaceSource()[0]
+            tex = UsdShade.Shader(surf.GetInput("diffuseColor").GetConnectedSource()[0].GetPrim())
+            assert tex.GetInput("file").Get().path == "body.png"
+            cache = UsdSkel.Cache()
+            cache.Populate(UsdSkel.Root(st.GetPrimAtPath("/Capture")), Usd.TraverseInstanceProxies())
+            skin = cache.GetSkinningQuery(mesh.GetPrim())
+            xf = cache.GetSkelQuery(UsdSkel.Skeleton(st.GetPrimAtPath("/Capture/Skeleton"))).ComputeSkinningTransforms(Usd.TimeCode(11))
+            pts = mesh.GetPointsAttr().Get(Usd.TimeCode(11))
+            assert skin.ComputeSkinnedPoints(xf, pts, Usd.TimeCode(11))
+            np.testing.assert_allclose(np.array(pts), v + 0.1, atol=1e-6)        # identity skin: the tracked points
+    (tmp_path / "b.usdz").write_bytes(s.save("b.usdz", {"body.png": PNG}))
+    import zipfile
+
+    names = zipfile.ZipFile(tmp_path / "b.usdz").namelist()                 # the packer files the PNG as 0/body.png
+    assert names[0] == "b.usdc" and len(names) == 2 and names[1].endswith("body.png")
