@@ -87,7 +87,11 @@ def cmd_explain(args) -> int:
     from .cache import Cache
     from .run import explain
 
-    rows = explain(_load(args), Cache(_cache_dir(args)))
+    graph = _load(args)
+    if args.device:   # the device is part of every key (nodegraph/environment.py): explain the run that uses it
+        _check_device(args.device)
+        os.environ["VOLCAP_CL_DEVICE"] = args.device
+    rows = explain(graph, Cache(_cache_dir(args)))
     for r in rows:
         frame = "all" if r["frame"] is None else r["frame"]
         state = "cached" if r["cached"] else "run   "
@@ -227,7 +231,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     r.add_argument("--verbose", "-v", action="store_true", help="show the OpenCL compiler's output (= VOLCAP_CL_VERBOSE=1)")
     graph_cmd("validate", "check a graph file without running it", cmd_validate)
-    graph_cmd("explain", "dry run: which work items are cached, which run and why", cmd_explain)
+    e = graph_cmd("explain", "dry run: which work items are cached, which run and why", cmd_explain)
+    e.add_argument("--device", help="OpenCL device the run would use (part of the cache key; as for run)")
     graph_cmd("dot", "print the graph as Graphviz text", cmd_dot)
     sub.add_parser("nodes", help="list node types").set_defaults(fn=cmd_nodes)
     d = sub.add_parser("describe", help="ports, parameters and docs of a node type")

@@ -488,7 +488,6 @@ def device_name() -> str:
 
 if __name__ == "__main__":  # python -m nodegraph.clrt [--rank | --probe]
     import json
-    import sys
 
     if "--probe" in sys.argv:  # the child of probe_ms: run the probes on the device VOLCAP_CL_DEVICE names
         try:

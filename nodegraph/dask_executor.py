@@ -12,23 +12,22 @@
 """
 from __future__ import annotations
 
+import dataclasses
+
 from .errors import VolcapError
 from .executors import unit_failed
+from .records import Result, UnitSpec
 from .worker import execute_unit, start_worker
 
 
-def _run_unit(spec: dict, cache_root: str, *upstream: dict) -> dict:
+def _run_unit(spec: UnitSpec, cache_root: str, *upstream: dict[str, Result]) -> dict[str, Result]:
     """Run a unit after the units it reads from; items of theirs that failed make their readers skip."""
-    failed = dict(spec.get("failed") or {})
+    failed = dict(spec.failed)
     for results in upstream:
         for key, res in results.items():
-            if res.get("status") != "done":
-                failed[key] = res.get("node", "?")
-    results = execute_unit(dict(spec, failed=failed), cache_root)
-    names = {s["key"]: s["node"] for s in spec["items"]}
-    for key, res in results.items():
-        res["node"] = names[key]
-    return results
+            if res.status != "done":
+                failed[key] = res.node or "?"
+    return execute_unit(dataclasses.replace(spec, failed=failed), cache_root)
 
 
 class _StartPlugin:
@@ -89,16 +88,15 @@ class DaskExecutor:
                 try:
                     results = fut.result()
                 except Exception as exc:  # KilledWorker after repeated worker deaths, lost scheduler...
-                    ups = [s for d in unit.deps if d in by_key for s in by_key[d].spec["items"]]
-                    bad = [s for s in ups if done_items.get(s["key"], "failed") != "done"]
+                    ups = [s for d in unit.deps if d in by_key for s in by_key[d].spec.items]
+                    bad = [s for s in ups if done_items.get(s.key, "failed") != "done"]
                     if bad:  # Dask passes an upstream exception on to its dependents: they never ran
-                        results = {s["key"]: {"status": "skipped", "seconds": 0.0, "error": f"upstream '{bad[0]['node']}' failed"}
-                                   for s in unit.spec["items"]}
+                        results = {s.key: Result("skipped", error=f"upstream '{bad[0].node}' failed", node=s.node)
+                                   for s in unit.spec.items}
                     else:
                         results = unit_failed(unit, f"{type(exc).__name__}: {exc}", cache_root)
                 for item, res in results.items():
-                    done_items[item] = res["status"]
-                    res.pop("node", None)
+                    done_items[item] = res.status
                     on_result(item, res)
         finally:
             client.close()

@@ -3,72 +3,81 @@
     executor.run(units, cache_root, on_result)
 
 ``units`` are in dependency order; each has ``key``, ``deps`` (keys of the units it reads from), ``label`` and
-``spec`` (plain data: what ``worker.execute_unit`` takes). ``on_result(item_key, result)`` is called in the
-calling thread once per item, with result["status"] one of done / failed / skipped. A unit runs once every
+``spec`` (a records.UnitSpec: what ``worker.execute_unit`` takes). ``on_result(item_key, result)`` is called in
+the calling thread once per item, with a records.Result whose status is one of done / failed / skipped. A unit runs once every
 unit it depends on has finished; an item whose input failed is skipped, never run; independent items go on.
 """
 from __future__ import annotations
 
 import contextlib
+import dataclasses
+import graphlib
 import multiprocessing
 import os
 import signal
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 
+from .records import Result, UnitSpec
 from .worker import execute_unit, start_worker
 
 
+_NEVER = "(never done)"   # what a unit on a dependency cycle waits for
+
+
 class _DependencyTracker:
-    """The ready set of a dependency graph of units: a unit is ready once every unit it reads from finished
-    (successfully or not: which of its items then run is decided inside the unit, item by item)."""
+    """The ready set of a dependency graph of units (graphlib.TopologicalSorter): a unit is ready once every unit
+    it reads from finished (successfully or not: which of its items then run is decided inside the unit, item by
+    item). ``ready`` keeps the units' order among those ready."""
 
     def __init__(self, units):
         self.units = {u.key: u for u in units}
-        self.waiting = {u.key: {d for d in u.deps if d in self.units} for u in units}
-        self.children: dict[str, list[str]] = {k: [] for k in self.units}
-        for k, deps in self.waiting.items():
-            for d in deps:
-                self.children[d].append(k)
-        self.ready = [u.key for u in units if not self.waiting[u.key]]
+        self.index = {u.key: i for i, u in enumerate(units)}
+        deps = {u.key: [d for d in u.deps if d in self.units] for u in units}
+        while True:
+            self.sorter = graphlib.TopologicalSorter(deps)
+            try:
+                self.sorter.prepare()
+                break
+            except graphlib.CycleError as exc:  # an engine bug: units on a cycle (and their readers) never start,
+                for k in exc.args[1]:            # run.py reports them as failures
+                    deps[k] = [_NEVER]
+        self.ready = self._ready()
         self.failed_items: dict[str, str] = {}   # key -> node of the items that did not produce their outputs
 
-    def launch(self, key: str) -> dict:
+    def launch(self, key: str) -> UnitSpec:
         """The unit's spec, told which items of other units failed."""
-        spec = dict(self.units[key].spec)
-        spec["failed"] = dict(self.failed_items)
-        return spec
+        return dataclasses.replace(self.units[key].spec, failed=dict(self.failed_items))
 
-    def finished(self, key: str, results: dict):
-        names = {s["key"]: s["node"] for s in self.units[key].spec["items"]}
+    def finished(self, key: str, results: dict[str, Result]):
         for item, res in results.items():
-            if res.get("status") != "done":
-                self.failed_items[item] = names.get(item, "?")
-        for c in self.children[key]:
-            self.waiting[c].discard(key)
-            if not self.waiting[c]:
-                self.ready.append(c)
+            if res.status != "done":
+                self.failed_items[item] = res.node or "?"
+        self.sorter.done(key)
+        self.ready += self._ready()
+
+    def _ready(self) -> list[str]:
+        return sorted((k for k in self.sorter.get_ready() if k in self.units), key=self.index.get)
 
 
-def unit_failed(unit, error: str, cache_root: str) -> dict:
+def unit_failed(unit, error: str, cache_root: str) -> dict[str, Result]:
     """Results of a unit whose worker never reported (killed, out of memory): the items whose kept outputs
     reached the cache before it died are done; an item reading one that did not finish is skipped; the others
     failed with ``error``."""
     from .cache import Cache
-    from .worker import _input_keys
 
     cache = Cache(cache_root)
     out, bad = {}, {}
-    for s in unit.spec["items"]:
-        down = [k for k in _input_keys(s) if k in bad]
-        if s.get("kept") and set(s["kept"]) <= (cache.stored(s["key"]) or set()):
-            out[s["key"]] = {"status": "done", "seconds": 0.0}
+    for s in unit.spec.items:
+        down = [k for k in s.input_keys() if k in bad]
+        if s.kept and set(s.kept) <= (cache.stored(s.key) or set()):
+            out[s.key] = Result("done", node=s.node)
         elif down:
-            out[s["key"]] = {"status": "skipped", "seconds": 0.0, "error": f"upstream '{bad[down[0]]}' failed"}
-            bad[s["key"]] = bad[down[0]]
+            out[s.key] = Result("skipped", error=f"upstream '{bad[down[0]]}' failed", node=s.node)
+            bad[s.key] = bad[down[0]]
         else:
-            out[s["key"]] = {"status": "failed", "seconds": 0.0, "error": error}
-            bad[s["key"]] = s["node"]
+            out[s.key] = Result("failed", error=error, node=s.node)
+            bad[s.key] = s.node
     return out
 
 

@@ -13,6 +13,7 @@ Path parameters (InPath) expand ${VAR} / ${VAR:-default} and are resolved agains
 from __future__ import annotations
 
 import difflib
+import graphlib
 import os
 import re
 from dataclasses import dataclass, field
@@ -318,6 +319,18 @@ class Graph:
         return order
 
 
+def coerce_param(decl, value, base: Path):
+    """A parameter value as run() receives it: coerced to its declared type; an input path expanded and resolved
+    against ``base`` (it must exist), an output path checked to stay in the output folder. ValueError saying
+    what is wrong."""
+    v = decl.coerce(value)
+    if decl.type is InPath and v is not None:
+        v = InPath(str(_input_path(v, base)))
+    elif decl.type is OutPath and v is not None:
+        check_out_path(v)
+    return v
+
+
 def parse_frames(value, where: str) -> list[int]:
     def checked(frames: list[int]) -> list[int]:
         if frames and max(abs(frames[0]), abs(frames[-1])) > MAX_FRAME_NUMBER:
@@ -488,12 +501,7 @@ def _validate(path: Path, where: str, data: _Map, problems: list[str], overrides
                 continue
             spec.lines[f"param:{p}"] = label
             try:
-                v = decl.coerce(value)
-                if decl.type is InPath and v is not None:
-                    v = InPath(str(_input_path(v, path.parent)))
-                elif decl.type is OutPath and v is not None:
-                    check_out_path(v)
-                spec.params[p] = v
+                spec.params[p] = coerce_param(decl, value, path.parent)
             except ValueError as exc:
                 problems.append(f"{label}: node '{name}': parameter '{p}' {exc}")
         # inputs
@@ -550,50 +558,35 @@ def _validate(path: Path, where: str, data: _Map, problems: list[str], overrides
 
 
 def topological_order(upstream: dict[str, list[str]], pos: dict[str, int]) -> list[str] | None:
-    """Nodes in dependency order, the earliest in ``pos`` first among those ready (None when there is a cycle)."""
+    """Nodes in dependency order, the earliest in ``pos`` first among those ready (None when there is a cycle).
+    ``upstream`` maps each node to the nodes it reads from (graphlib.TopologicalSorter's predecessors)."""
     import heapq
 
-    waiting = {n: len(set(u)) for n, u in upstream.items()}
-    down: dict[str, list[str]] = {n: [] for n in upstream}
-    for n, ups in upstream.items():
-        for u in set(ups):
-            down[u].append(n)
-    ready = [(pos[n], n) for n, k in waiting.items() if k == 0]
+    sorter = graphlib.TopologicalSorter(upstream)
+    try:
+        sorter.prepare()
+    except graphlib.CycleError:
+        return None
+    ready = [(pos[n], n) for n in sorter.get_ready()]
     heapq.heapify(ready)
     order = []
     while ready:
         _, n = heapq.heappop(ready)
         order.append(n)
-        for d in down[n]:
-            waiting[d] -= 1
-            if waiting[d] == 0:
-                heapq.heappush(ready, (pos[d], d))
-    return order if len(order) == len(upstream) else None
+        sorter.done(n)
+        for d in sorter.get_ready():
+            heapq.heappush(ready, (pos[d], d))
+    return order
 
 
 def find_cycle(upstream: dict[str, list[str]]) -> list[str]:
-    """One cycle as a list of nodes, each feeding the next (and the last the first), or [] when there is none."""
-    state: dict[str, int] = {}  # 1 on the current path, 2 done
-    for start in upstream:
-        if state.get(start):
-            continue
-        path, stack = [], [(start, iter(upstream[start]))]
-        state[start] = 1
-        path.append(start)
-        while stack:
-            node, it = stack[-1]
-            nxt = next(it, None)
-            if nxt is None:
-                state[node] = 2
-                stack.pop()
-                path.pop()
-            elif state.get(nxt) == 1:
-                cyc = path[path.index(nxt):][::-1]  # the path runs downstream -> upstream; a cycle reads along the flow
-                order = list(upstream)
-                first = min(range(len(cyc)), key=lambda i: order.index(cyc[i]))  # start at the earliest in the file
-                return cyc[first:] + cyc[:first]
-            elif not state.get(nxt):
-                state[nxt] = 1
-                path.append(nxt)
-                stack.append((nxt, iter(upstream[nxt])))
+    """One cycle as a list of nodes, each feeding the next (and the last the first), starting at the earliest in
+    the file, or [] when there is none."""
+    try:
+        graphlib.TopologicalSorter(upstream).prepare()
+    except graphlib.CycleError as exc:
+        cyc = list(exc.args[1][:-1])  # graphlib lists each node before the one it feeds, the first repeated last
+        order = list(upstream)
+        first = min(range(len(cyc)), key=lambda i: order.index(cyc[i]) if cyc[i] in upstream else len(order))
+        return cyc[first:] + cyc[:first]
     return []

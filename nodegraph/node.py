@@ -202,9 +202,26 @@ class Node:
         raise NotImplementedError
 
     @classmethod
+    def source_file(cls) -> str:
+        """The file declaring the node, relative to the folder holding its top-level package (the project:
+        ``nodes/hull/nodes.py``), or absolute when that cannot be told."""
+        import sys
+
+        try:
+            path = Path(inspect.getsourcefile(cls)).resolve()
+            top = sys.modules[cls.__module__.split(".")[0]]
+            root = Path(top.__file__).resolve().parent
+            if hasattr(top, "__path__"):   # a package: the project is the folder above it
+                root = root.parent
+            return path.relative_to(root).as_posix()
+        except (TypeError, ValueError, KeyError, AttributeError):
+            return str(inspect.getsourcefile(cls) or "?")
+
+    @classmethod
     def describe(cls) -> str:
         """Human-readable description generated from the declaration (used by ``describe NODE``)."""
-        lines = [f"{cls.type_name} (version {cls.version}, per {cls.per})", ""]
+        lines = [f"{cls.type_name} (version {cls.version}, per {cls.per})",
+                 f"  module {cls.__module__} ({cls.source_file()})", ""]
         lines += ["  " + ln for ln in cls.doc().splitlines()] + [""]
         lines.append("inputs:" if cls.inputs else "inputs: none")
         for name, inp in cls.inputs.items():

@@ -19,6 +19,7 @@ import networkx as nx
 import numpy as np
 
 from .errors import DataError, VolcapError
+from .graphfile import topological_order
 from .preview import MAX_WIDTH, numeric_series, preview
 
 MAX_PREVIEW_FRAMES = 8
@@ -48,8 +49,8 @@ def write_report(out_dir: Path) -> Path:
     for recs in by_node.values():
         recs.sort(key=lambda r: -1 if r["frame"] is None else r["frame"])
     dag = graph_of(run, by_node)
-    order = [n for n in nx.lexicographical_topological_sort(dag, key=list(by_node).index) if n in by_node] \
-        if nx.is_directed_acyclic_graph(dag) else list(by_node)
+    order = topological_order({n: list(dag.predecessors(n)) for n in dag}, {n: i for i, n in enumerate(by_node)}) \
+        or list(by_node)
     status = {n: node_status(by_node[n]) for n in by_node}
     draw_graph(dag, status, pics / "graph.png")
 

@@ -1,10 +1,7 @@
 """Running a graph: plan -> decide what is up to date -> execute the rest in units -> publish -> run.json.
 
-What runs (``to_run``): walking the items from the last to the first, an item runs when a port it keeps is
-missing from the cache, or when an item that runs reads a value of it that lives only in memory (a unit
-recomputes its intermediate values from the nearest kept ones). Everything else is up to date.
-The cached entries the run will read (inputs of items that run, files to publish) are verified against
-their content hashes first (``verify_reads``): a damaged one is evicted and recomputed in the same run.
+What runs and why (``to_run``, ``verify_reads``, ``make_units``) is the contract in nodegraph/plan.py's
+docstring, with a worked example.
 
 run.json (in the output folder) records, per node and frame: status (done / cached / failed / skipped),
 cache_hit, wall seconds, key, the cache folder of its kept outputs, which ports were kept and which lived only
@@ -23,6 +20,7 @@ from .errors import DataError
 from .graphfile import Graph
 from .hashing import FileHasher, digest
 from .plan import WorkItem, make_plan
+from .records import Result, UnitSpec, refs
 
 
 @dataclass
@@ -69,13 +67,7 @@ class Unit:
     label: str
     items: list
     deps: list[str]
-    spec: dict
-
-
-def _refs(it: WorkItem):
-    for ref in it.inputs.values():
-        for r in (ref if isinstance(ref, list) else [ref] if ref else []):
-            yield r
+    spec: UnitSpec
 
 
 def to_run(items: list[WorkItem], cache: Cache, gone=()) -> tuple[dict[str, str], dict[str, set | None]]:
@@ -91,17 +83,17 @@ def to_run(items: list[WorkItem], cache: Cache, gone=()) -> tuple[dict[str, str]
             must[it.key] = "not in the cache" if stored[it.key] is None else \
                 f"kept output {', '.join(sorted(kept[it.key] - have))} not in the cache"
         if it.key in must:
-            for r in _refs(it):
-                if r["key"] in must:
+            for r in refs(it.inputs):
+                if r.key in must:
                     continue
-                if r["port"] not in kept.get(r["key"], ()):
-                    must[r["key"]] = f"its {r['port']} lives in memory and {label[it.key]} runs"
-                elif r["port"] not in (stored.get(r["key"]) or set()):
-                    must[r["key"]] = f"kept output {r['port']} not in the cache"
+                if r.port not in kept.get(r.key, ()):
+                    must[r.key] = f"its {r.port} lives in memory and {label[it.key]} runs"
+                elif r.port not in (stored.get(r.key) or set()):
+                    must[r.key] = f"kept output {r.port} not in the cache"
     return must, stored
 
 
-def make_units(items: list[WorkItem], must: set[str], specs: dict[str, dict]) -> list[Unit]:
+def make_units(items: list[WorkItem], must: set[str], specs: dict) -> list[Unit]:
     """Group the items that must run into units (their ``unit`` from planning), with the units they read from."""
     by_unit: dict[str, list[WorkItem]] = {}
     for it in items:
@@ -114,13 +106,13 @@ def make_units(items: list[WorkItem], must: set[str], specs: dict[str, dict]) ->
         readers: dict[str, int] = {}
         deps = []
         for it in its:
-            for r in _refs(it):
-                if r["key"] in keys:
-                    readers[f"{r['key']}/{r['port']}"] = readers.get(f"{r['key']}/{r['port']}", 0) + 1
-                elif r["key"] in unit_of and unit_of[r["key"]] not in deps:
-                    deps.append(unit_of[r["key"]])
+            for r in refs(it.inputs):
+                if r.key in keys:
+                    readers[r.name] = readers.get(r.name, 0) + 1
+                elif r.key in unit_of and unit_of[r.key] not in deps:
+                    deps.append(unit_of[r.key])
         label = name if name.startswith("frame:") else its[0].label
-        units.append(Unit(name, label, its, deps, {"items": [specs[it.key] for it in its], "readers": readers}))
+        units.append(Unit(name, label, its, deps, UnitSpec([specs[it.key] for it in its], readers)))
     return units
 
 
@@ -152,7 +144,7 @@ def verify_reads(graph: Graph, items: list[WorkItem], cache: Cache, out_dir: Pat
     published = _Published(out_dir) if out_dir is not None else None
     while True:
         must, stored = to_run(items, cache, gone=() if evict else set(damaged))
-        reads = {r["key"] for it in items if it.key in must for r in _refs(it) if r["key"] not in must}
+        reads = {r.key for it in items if it.key in must for r in refs(it.inputs) if r.key not in must}
         for it in items:
             if it.key not in must and stored[it.key] is not None and graph.nodes[it.node].cls.publishes:
                 if published is None or not _all_current(graph, cache, it, out_dir, published):
@@ -222,12 +214,15 @@ def explain(graph: Graph, cache: Cache) -> list[dict]:
 
 
 def _diff(old, new, prefix="") -> list[str]:
+    """The key components that differ, as dotted paths; the environment's with old -> new (an upgrade says so)."""
     if isinstance(old, dict) and isinstance(new, dict):
         out = []
         for k in sorted(set(old) | set(new)):
             out += _diff(old.get(k), new.get(k), f"{prefix}.{k}" if prefix else k)
         return out
-    return [] if old == new else [prefix]
+    if old == new:
+        return []
+    return [f"{prefix} ({old} -> {new})" if prefix.startswith("environment") else prefix]
 
 
 def run_graph(graph: Graph, cache: Cache, out_dir: Path, executor, progress: bool = True) -> RunResult:
@@ -244,10 +239,10 @@ def run_graph(graph: Graph, cache: Cache, out_dir: Path, executor, progress: boo
     items, slot = plan_graph(graph, cache, notes)
     by_key = {it.key: it for it in items}
     must, stored, damaged = verify_reads(graph, items, cache, out_dir)
-    results: dict[str, dict] = {}
+    results: dict[str, Result] = {}
     for it in items:
         if it.key not in must:
-            results[it.key] = {"status": "cached", "seconds": 0.0}
+            results[it.key] = Result("cached", node=it.node)
             if stored[it.key] is not None:
                 cache.touch(it.key)
     log_dir = out_dir / "logs"
@@ -262,27 +257,27 @@ def run_graph(graph: Graph, cache: Cache, out_dir: Path, executor, progress: boo
         bar = tqdm(total=len(must), unit="item", file=sys.stderr, dynamic_ncols=True, disable=None,
                    desc=f"{graph.path.name}")
 
-    def on_result(key, res):
+    def on_result(key: str, res: Result):
         results[key] = res
-        if res.get("corrupt"):  # an unreadable cached input: drop it so the next run recomputes it
-            cache.evict(res["corrupt"])
+        if res.corrupt:  # an unreadable cached input: drop it so the next run recomputes it
+            cache.evict(res.corrupt)
         if bar is not None:
             it = by_key[key]
-            bar.set_postfix_str(f"{it.label} {res['status']}", refresh=False)
+            bar.set_postfix_str(f"{it.label} {res.status}", refresh=False)
             bar.update(1)
 
     if units:
         executor.run(units, str(cache.root), on_result)
     if bar is not None:
         bar.close()
-    if not any(r.get("status") == "failed" for r in results.values()):
+    if not any(r.status == "failed" for r in results.values()):
         for key in must:   # never a silent "skipped": an item nothing ran, with no failure upstream, is an engine fault
             if key not in results:
-                results[key] = {"status": "failed", "seconds": 0.0,
-                                "error": "the scheduler never started it (its work unit waits on itself: an engine bug)"}
+                results[key] = Result("failed", error="the scheduler never started it (its work unit waits on itself: "
+                                                      "an engine bug)", node=by_key[key].node)
     for key, problem in damaged.items():  # say so: a recomputed result that was cached is worth a line
         if key in results:
-            results[key]["warnings"] = [f"its cached result was damaged ({problem}): recomputed"] + list(results[key].get("warnings") or [])
+            results[key].warnings = [f"its cached result was damaged ({problem}): recomputed"] + list(results[key].warnings)
 
     records, failures = [], []
     index = _read_index(cache, graph) or {}
@@ -290,17 +285,17 @@ def run_graph(graph: Graph, cache: Cache, out_dir: Path, executor, progress: boo
     tables: dict[tuple[str, str], dict] = {}
     for (node, frame), key in slot.items():
         it = by_key[key]
-        res = results.get(key, {"status": "skipped", "error": "not run", "seconds": 0.0})
-        rec = {"node": node, "type": it.type_name, "frame": frame, "status": res["status"],
-               "cache_hit": res["status"] == "cached", "seconds": round(res.get("seconds", 0.0), 4), "key": key,
-               "cache_dir": str(cache.object_dir(key)) if stored.get(key) is not None or (res["status"] == "done" and it.kept) else None,
-               "log": specs[key]["log"] if key in specs else None, "published": [], "kept": list(it.kept),
+        res = results.get(key, Result("skipped", error="not run"))
+        rec = {"node": node, "type": it.type_name, "frame": frame, "status": res.status,
+               "cache_hit": res.status == "cached", "seconds": round(res.seconds, 4), "key": key,
+               "cache_dir": str(cache.object_dir(key)) if stored.get(key) is not None or (res.status == "done" and it.kept) else None,
+               "log": specs[key].log if key in specs else None, "published": [], "kept": list(it.kept),
                "in_memory": [p for p in graph.nodes[node].cls.outputs if p not in it.kept]}
-        if res.get("error"):
-            rec["error"] = res["error"]
-        if res.get("warnings"):
-            rec["warnings"] = res["warnings"]
-        if res["status"] in ("done", "cached"):
+        if res.error:
+            rec["error"] = res.error
+        if res.warnings:
+            rec["warnings"] = list(res.warnings)
+        if res.status in ("done", "cached"):
             try:
                 rec["published"] = _publish(graph, cache, it, out_dir, published, node, frame, tables)
             except DataError as exc:  # a damaged cache entry: report it, drop it, the rerun recomputes it
@@ -310,7 +305,7 @@ def run_graph(graph: Graph, cache: Cache, out_dir: Path, executor, progress: boo
                 records.append(rec)
                 continue
             index[f"{node}@{'all' if frame is None else frame}"] = {"key": key, "components": it.components}
-        if res["status"] == "failed":
+        if res.status == "failed":
             failures.append(rec)
         records.append(rec)
     atomic_write_text(_index_path(cache, graph), json.dumps(index))

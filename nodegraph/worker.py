@@ -1,15 +1,16 @@
 """Executes work units from their specs (in this process, a pool worker or a Dask worker).
 
-A unit is a list of item specs in dependency order (nodegraph/plan.py: a frame's own items, or one item).
+A unit is a list of item specs in dependency order (records.UnitSpec; what a unit is and when an item runs:
+the contract in nodegraph/plan.py's docstring).
 Each item takes its inputs from the values earlier items of the unit produced (in memory: a value may even
-stay on the OpenCL device) or else from the cache, runs its node, checks the declared output types, and
-writes the ports it keeps atomically into the cache. Never raises for a node's own failure: returns a result
-dict per item instead, so one failing item cannot take a pool down (its dependents in the unit are skipped);
-the traceback goes to the item's log file.
+stay on the OpenCL device) or else from the cache, runs its node (``call_node``: run(), then the declared
+outputs and their types checked), and writes the ports it keeps atomically into the cache (``keep``). Never
+raises for a node's own failure: returns a Result per item instead, so one failing item cannot take a pool
+down (its dependents in the unit are skipped); the traceback goes to the item's log file.
+``nodegraph.testing.run_node`` runs a node through the same ``call_node`` and ``keep``.
 """
 from __future__ import annotations
 
-import importlib
 import logging
 import time
 import traceback
@@ -18,6 +19,7 @@ from pathlib import Path
 from .cache import Cache
 from .errors import DataError, NodeError, VolcapError
 from .node import node_class
+from .records import ItemSpec, Ref, Result, UnitSpec, resolve_type, type_name
 
 
 _STARTUP: list = []
@@ -55,14 +57,6 @@ class _Collector(logging.Handler):
             self.out.append(record.getMessage())
 
 
-def _resolve_type(ref: str):
-    module, qual = ref.split(":")
-    obj = importlib.import_module(module)
-    for part in qual.split("."):
-        obj = getattr(obj, part)
-    return obj
-
-
 class CorruptInput(VolcapError):
     def __init__(self, key: str, message: str):
         self.key = key
@@ -74,137 +68,147 @@ class Values:
 
     def __init__(self, readers: dict | None = None):
         self.values: dict[str, object] = {}
-        self.left = dict(readers or {})   # "key/port" -> readers still to come
+        self.left = dict(readers or {})   # Ref.name -> readers still to come
 
-    def put(self, key: str, port: str, value):
-        if self.left.get(f"{key}/{port}", 0) > 0:
-            self.values[f"{key}/{port}"] = value
+    def put(self, ref: Ref, value):
+        if self.left.get(ref.name, 0) > 0:
+            self.values[ref.name] = value
 
-    def take(self, key: str, port: str):
+    def take(self, ref: Ref):
         """(True, value) when the unit holds it, else (False, None)."""
-        ref = f"{key}/{port}"
-        if ref not in self.values:
+        if ref.name not in self.values:
             return False, None
-        value = self.values[ref]
-        self.left[ref] -= 1
-        if self.left[ref] <= 0:
-            del self.values[ref]
+        value = self.values[ref.name]
+        self.left[ref.name] -= 1
+        if self.left[ref.name] <= 0:
+            del self.values[ref.name]
         return True, value
 
 
-def _load_input(cache: Cache, spec: dict, port: str, ref: dict, memory: Values | None):
+def _load_input(cache: Cache, port: str, ref: Ref, memory: Values | None):
     if memory is not None:
-        found, value = memory.take(ref["key"], ref["port"])
+        found, value = memory.take(ref)
         if found:
             return value
     try:
-        return cache.load(ref["key"], ref["port"], _resolve_type(ref["type"]))
+        return cache.load(ref.key, ref.port, resolve_type(ref.type))
     except DataError as exc:
-        raise CorruptInput(ref["key"], f"input '{port}': {exc}; the entry was removed, rerun to recompute it") from None
+        raise CorruptInput(ref.key, f"input '{port}': {exc}; the entry was removed, rerun to recompute it") from None
 
 
-def _input_keys(spec: dict) -> list[str]:
-    keys = []
-    for ref in spec["inputs"].values():
-        for r in (ref if isinstance(ref, list) else [ref] if ref else []):
-            keys.append(r["key"])
-    return keys
-
-
-def execute_unit(unit: dict, cache_root: str) -> dict:
-    """Run a unit: {"items": [item spec, ...] in dependency order, "readers": {"key/port": n} (how many items of
-    the unit read each in-memory value), "failed": {key: node} of items of other units that did not produce
-    their outputs}. Returns {item key: result}; an item whose input failed is skipped, and so are its
-    dependents, with the name of the node that failed first."""
-    memory = Values(unit.get("readers"))
-    bad = {k: f"upstream '{node}' failed" for k, node in (unit.get("failed") or {}).items()}
+def execute_unit(unit: UnitSpec, cache_root: str) -> dict[str, Result]:
+    """Run a unit (its items in dependency order; see records.UnitSpec). Returns {item key: Result}; an item
+    whose input failed is skipped, and so are its dependents, with the name of the node that failed first."""
+    memory = Values(unit.readers)
+    bad = {k: f"upstream '{node}' failed" for k, node in unit.failed.items()}
     results = {}
-    for spec in unit["items"]:
-        down = [k for k in _input_keys(spec) if k in bad]
+    for spec in unit.items:
+        down = [k for k in spec.input_keys() if k in bad]
         if down:
-            results[spec["key"]] = {"status": "skipped", "error": bad[down[0]], "seconds": 0.0}
-            bad[spec["key"]] = bad[down[0]]
+            results[spec.key] = Result("skipped", error=bad[down[0]], node=spec.node)
+            bad[spec.key] = bad[down[0]]
             continue
         res = execute(spec, cache_root, memory)
-        results[spec["key"]] = res
-        if res["status"] != "done":
-            bad[spec["key"]] = f"upstream '{spec['node']}' failed"
+        results[spec.key] = res
+        if res.status != "done":
+            bad[spec.key] = f"upstream '{spec.node}' failed"
     return results
 
 
-def execute(spec: dict, cache_root: str, memory: Values | None = None) -> dict:
+def call_node(cls, inputs: dict, params: dict, *, frame: int | None, frames: list[int], log: logging.Logger) -> dict:
+    """Run node class ``cls`` on input values and params (as run() receives them) and check what it returns:
+    a dict with exactly the declared outputs, None only where declared optional, each value passing its type's
+    check. Returns port -> (DataType, value in its type's canonical form: as the cache gives it back); raises
+    NodeError (or what run() raised)."""
+    node = cls()
+    node.frame = frame
+    node.frames = frames
+    node.log = log
+    kwargs = {**params, **inputs}
+    if cls.uses_frame:
+        kwargs["frame"] = frame
+    out = node.run(**kwargs)
+    if not isinstance(out, dict):
+        raise NodeError(f"run() must return a dict of outputs, got {type(out).__name__}")
+    missing = [p for p in cls.outputs if p not in out]
+    extra = [p for p in out if p not in cls.outputs]
+    if missing or extra:
+        raise NodeError(f"run() returned outputs {sorted(out)}, declared {sorted(cls.outputs)}")
+    outputs = {}
+    for port, decl in cls.outputs.items():
+        value = out[port]
+        if value is None and not decl.optional:
+            raise NodeError(f"output '{port}' is None but not declared optional")
+        if value is not None:
+            problem = decl.type.check(value)
+            if problem:
+                raise NodeError(f"output '{port}': {problem}")
+            value = decl.type.canonical(value)   # what a reader gets from the cache, also from memory
+        outputs[port] = (decl.type, value)
+    return outputs
+
+
+def keep(cache: Cache, spec: ItemSpec, outputs: dict, seconds: float) -> set[str]:
+    """Write the ports ``spec`` keeps (and those an earlier entry of its key held) into the cache, atomically.
+    Returns the ports written."""
+    kept = set(spec.kept) | (cache.stored(spec.key) or set())
+    if kept:
+        cache.write(spec.key, {p: v for p, v in outputs.items() if p in kept},
+                    {"node": spec.node, "type": spec.type, "frame": spec.frame, "components": spec.components,
+                     "seconds": seconds, "in_memory": sorted(set(outputs) - kept)})
+    return kept
+
+
+def execute(spec: ItemSpec, cache_root: str, memory: Values | None = None) -> Result:
     t0 = time.perf_counter()
-    log = logging.getLogger(f"volcap.item.{spec['node']}")
+    log = logging.getLogger(f"volcap.item.{spec.node}")
     log.propagate = False
     log.setLevel(logging.INFO)
     handler = None
-    if spec.get("log"):
-        Path(spec["log"]).parent.mkdir(parents=True, exist_ok=True)
-        handler = logging.FileHandler(spec["log"], mode="w")
+    if spec.log:
+        Path(spec.log).parent.mkdir(parents=True, exist_ok=True)
+        handler = logging.FileHandler(spec.log, mode="w")
         handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
         log.addHandler(handler)
     warnings: list[str] = []
     collector = _Collector(warnings)
     log.addHandler(collector)
     logging.getLogger("volcap").addHandler(collector)  # module loggers (volcap.raster, ...) propagate here
-    where = f"node '{spec['node']}' ({spec['type']})" + ("" if spec["frame"] is None else f" frame {spec['frame']}")
+    where = spec.where
+
+    def failed(error: str, corrupt: str | None = None) -> Result:
+        return Result("failed", time.perf_counter() - t0, error, corrupt=corrupt, node=spec.node)
+
     try:
         cache = Cache(cache_root)
-        cls = node_class(spec["type"], spec["module"])
-        kwargs = dict(spec["params"])
-        for port, ref in spec["inputs"].items():
+        cls = node_class(spec.type, spec.module)
+        inputs = {}
+        for port, ref in spec.inputs.items():
             if ref is None:
-                kwargs[port] = None
+                inputs[port] = None
             elif isinstance(ref, list):
-                kwargs[port] = [_load_input(cache, spec, port, r, memory) for r in ref]
+                inputs[port] = [_load_input(cache, port, r, memory) for r in ref]
             else:
-                kwargs[port] = _load_input(cache, spec, port, ref, memory)
-            if kwargs[port] is None and ref is not None and not cls.inputs[port].optional:
+                inputs[port] = _load_input(cache, port, ref, memory)
+            if inputs[port] is None and ref is not None and not cls.inputs[port].optional:
                 raise NodeError(f"input '{port}' received nothing: its source produced no value for this frame")
-        node = cls()
-        node.frame = spec["frame"]
-        node.frames = spec["frames"]
-        node.log = log
-        if cls.uses_frame:
-            kwargs["frame"] = spec["frame"]
-        log.info("running %s with params %s", where, spec["params"])
-        out = node.run(**kwargs)
-        if not isinstance(out, dict):
-            raise NodeError(f"run() must return a dict of outputs, got {type(out).__name__}")
-        missing = [p for p in cls.outputs if p not in out]
-        extra = [p for p in out if p not in cls.outputs]
-        if missing or extra:
-            raise NodeError(f"run() returned outputs {sorted(out)}, declared {sorted(cls.outputs)}")
-        outputs = {}
-        for port, decl in cls.outputs.items():
-            value = out[port]
-            if value is None and not decl.optional:
-                raise NodeError(f"output '{port}' is None but not declared optional")
-            if value is not None:
-                problem = decl.type.check(value)
-                if problem:
-                    raise NodeError(f"output '{port}': {problem}")
-                value = decl.type.canonical(value)
-            outputs[port] = (decl.type, value)
-            if memory is not None:
-                memory.put(spec["key"], port, value)
-        seconds = time.perf_counter() - t0
-        keep = set(spec.get("kept", cls.outputs)) | (cache.stored(spec["key"]) or set())
-        if keep:  # the ports that must be kept (and those an earlier entry of this key held)
-            cache.write(spec["key"], {p: v for p, v in outputs.items() if p in keep},
-                        {"node": spec["node"], "type": spec["type"], "frame": spec["frame"],
-                         "components": spec["components"], "seconds": seconds, "in_memory": sorted(set(outputs) - keep)})
-        log.info("done in %.3f s (kept: %s)", seconds, ", ".join(sorted(keep)) or "nothing")
-        return {"status": "done", "seconds": time.perf_counter() - t0, "warnings": warnings}
+        log.info("running %s with params %s", where, spec.params)
+        outputs = call_node(cls, inputs, spec.params, frame=spec.frame, frames=spec.frames, log=log)
+        if memory is not None:
+            for port, (dtype, value) in outputs.items():
+                memory.put(Ref(spec.key, port, type_name(dtype)), value)
+        kept = keep(cache, spec, outputs, time.perf_counter() - t0)
+        log.info("done in %.3f s (kept: %s)", time.perf_counter() - t0, ", ".join(sorted(kept)) or "nothing")
+        return Result("done", time.perf_counter() - t0, warnings=warnings, node=spec.node)
     except CorruptInput as exc:
         log.error("%s failed: %s", where, exc)
-        return {"status": "failed", "error": str(exc), "corrupt": exc.key, "seconds": time.perf_counter() - t0}
+        return failed(str(exc), exc.key)
     except VolcapError as exc:
         log.error("%s failed: %s", where, exc)
-        return {"status": "failed", "error": str(exc), "seconds": time.perf_counter() - t0}
+        return failed(str(exc))
     except Exception as exc:
         log.error("%s crashed:\n%s", where, traceback.format_exc())
-        return {"status": "failed", "error": f"{type(exc).__name__}: {exc}", "seconds": time.perf_counter() - t0}
+        return failed(f"{type(exc).__name__}: {exc}")
     finally:
         log.removeHandler(collector)
         logging.getLogger("volcap").removeHandler(collector)

@@ -16,9 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from nodegraph import Input, Node, NodeError, Param, Table
 from nodes.common.meshops import FOLD_DEG
-from nodes.common.types import Mesh, Volume
 
 SLIVER_DEG = 5.0
 
@@ -96,35 +94,3 @@ def mesh_health(mesh, reference=None, band: float = 0.0, fold_deg: float = FOLD_
     if reference is not None and band > 0 and len(faces):
         out.update(normal_error(mesh, reference, band))
     return out
-
-
-# ---------------------------------------------------------------- node
-class EvalMesh(Node):
-    """Mesh health: folded edges (adjacent face normals more than fold_deg apart), the distribution of the
-    triangles' minimum angles, roughness (mean dihedral angle); with a reference surface (synthetic scenes) the
-    area-weighted mean angle between the mesh's face normals and the reference's, over the faces within
-    `band` of it (default: one voxel of the volume input)."""
-
-    type_name = "eval.mesh"
-    version = 1
-    publishes = True     # the report goes to OUT/tables/ (JSON per frame, CSV per node)
-    summary = ("folded_edges", "min_angle_below_5", "roughness_deg")
-    inputs = {"mesh": Mesh,
-              "reference": Input(Mesh, optional=True, doc="true surface (synthetic scenes): enables the normal error"),
-              "volume": Input(Volume, optional=True, doc="its voxel size is the default band of the normal error")}
-    outputs = {"report": Table}
-    params = {
-        "band": Param(float, 0.0, range=(0.0, None), doc="normal error over faces within this distance of the reference; "
-                      "0 = one voxel of the volume input"),
-        "fold_deg": Param(float, FOLD_DEG, range=(90.0, 180.0), doc="an edge is folded when its faces' normals are "
-                          "more than this many degrees apart"),
-        "sliver_deg": Param(float, SLIVER_DEG, range=(0.0, 60.0), doc="report the share of triangles whose minimum "
-                            "angle is below this"),
-    }
-
-    def run(self, mesh, reference=None, volume=None, *, band, fold_deg, sliver_deg):
-        if reference is not None and band <= 0:
-            if volume is None:
-                raise NodeError("eval.mesh: the normal error needs a band: connect 'volume' (one voxel) or set band > 0")
-            band = float(max(volume.voxel_size))
-        return {"report": mesh_health(mesh, reference, band, fold_deg, sliver_deg)}

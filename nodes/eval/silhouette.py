@@ -9,12 +9,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from kernels import source
-from nodegraph import Node, Table
 from nodes.common import raster
 from nodes.common.cameras import Cameras
 from nodes.common.silhouettes import check_sizes
-from nodes.common.types import CameraSet, Masks, MaskSet, Mesh
+from nodes.common.types import MaskSet
 
 
 def silhouette_report(vertices, faces, cameras: Cameras, masks: MaskSet) -> dict:
@@ -40,19 +38,3 @@ def silhouette_report(vertices, faces, cameras: Cameras, masks: MaskSet) -> dict
         "mean_mesh_outside_mask": float(np.mean([v["mesh_outside_mask"] for v in views])),
         "mean_mask_not_covered": float(np.mean([v["mask_not_covered"] for v in views])),
     }
-
-
-class EvalSilhouette(Node):
-    """Silhouette agreement of a mesh with masks, per view: IoU, mesh pixels outside the mask, mask pixels
-    not covered; means and sums over views."""
-
-    type_name = "eval.silhouette"
-    version = 1
-    publishes = True     # the report goes to OUT/tables/ (JSON per frame, CSV per node)
-    summary = ("mean_iou", "min_iou")
-    inputs = {"mesh": Mesh, "cameras": CameraSet, "masks": Masks}
-    outputs = {"report": Table}
-    kernels = [source("raster.cl")]
-
-    def run(self, mesh, cameras, masks):
-        return {"report": silhouette_report(mesh.vertices, mesh.faces, cameras, masks)}

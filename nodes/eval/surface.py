@@ -3,8 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from nodegraph import Node, NodeError, Param, Table
-from nodes.common.types import Mesh
+from nodegraph import NodeError
 
 
 def surface_report(mesh, reference, samples: int = 100_000, seed: int = 0) -> dict:
@@ -32,22 +31,3 @@ def surface_report(mesh, reference, samples: int = 100_000, seed: int = 0) -> di
     out.update({f"{k}_rel": v / diag for k, v in list(out.items())})
     out.update({"reference_bbox_diagonal": diag, "samples": samples})
     return out
-
-
-class EvalSurface(Node):
-    """Surface distance of a mesh to a reference mesh: Chamfer and Hausdorff, both directions, absolute
-    and relative to the reference's bounding-box diagonal."""
-
-    type_name = "eval.surface"
-    version = 1
-    publishes = True     # the report goes to OUT/tables/ (JSON per frame, CSV per node)
-    summary = ("chamfer", "hausdorff", "hausdorff_rel")
-    inputs = {"mesh": Mesh, "reference": Mesh}
-    outputs = {"report": Table}
-    params = {
-        "samples": Param(int, 100_000, range=(100, 10_000_000), doc="points sampled on each surface"),
-        "seed": Param(int, 0, range=(0, None), doc="sampling seed"),
-    }
-
-    def run(self, mesh, reference, *, samples, seed):
-        return {"report": surface_report(mesh, reference, samples, seed)}

@@ -8,10 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from nodegraph import Input, Node, NodeError, Output, Param
+from nodegraph import NodeError
 from nodes.common.cameras import Cameras
 from nodes.common.silhouettes import BACKGROUND, IN, centre_states, check_masks, vote
-from nodes.common.types import Bounds as BoundsType, CameraSet, Masks
 
 
 def coarse_hull(masks: list[np.ndarray], cameras: Cameras, box: np.ndarray, resolution: int,
@@ -98,29 +97,3 @@ def auto_bounds(masks: list[np.ndarray], cameras: Cameras, resolution: int = 64,
     vs = (box[1] - box[0]) / np.array(occ.shape)
     extent = (occ_box[1] - occ_box[0]).max()
     return occ_box + np.array([-1, 1])[:, None] * (vs + margin * extent)
-
-
-# ---------------------------------------------------------------- node
-class Bounds(Node):
-    """Axis-aligned box around the captured object: automatic from silhouettes and cameras (coarse hull),
-    or the explicit bbox param."""
-
-    type_name = "bounds"
-    version = 1
-    inputs = {"masks": Input(Masks, optional=True), "cameras": Input(CameraSet, optional=True)}
-    outputs = {"bounds": Output(BoundsType, "box [[xmin ymin zmin], [xmax ymax zmax]]")}
-    params = {
-        "bbox": Param(list, None, item=float, length=6, doc="explicit box [xmin ymin zmin xmax ymax zmax]"),
-        "margin": Param(float, 0.05, range=(0.0, 1.0), doc="added on each side, as a fraction of the largest extent"),
-        "resolution": Param(int, 64, range=(16, 256), doc="coarse hull voxels along the longest side"),
-    }
-
-    def run(self, masks, cameras, *, bbox, margin, resolution):
-        if bbox is not None:
-            box = np.array(bbox, dtype=np.float64).reshape(2, 3)
-            if not np.all(box[1] > box[0]):
-                raise NodeError(f"bounds: bbox {bbox} needs xmax > xmin, ymax > ymin, zmax > zmin")
-            return {"bounds": box}
-        if masks is None or cameras is None:
-            raise NodeError("bounds: connect masks and cameras, or give the bbox param")
-        return {"bounds": auto_bounds(masks.masks, cameras, resolution, margin)}

@@ -18,10 +18,10 @@ import math
 import numpy as np
 
 from kernels import source
-from nodegraph import Input, Node, NodeError, Param, clrt
+from nodegraph import NodeError, clrt
 from nodes.common.cameras import PACK_FLOATS, Cameras
 from nodes.common.silhouettes import POLICIES, SilhouetteBits, centre_states, check_masks, check_silhouettes, vote
-from nodes.common.types import Bounds, CameraSet, Masks, Volume, VoxelGrid
+from nodes.common.types import VoxelGrid
 
 COARSE_CELLS = 16  # the first sparse level has at most this many cells along the longest side
 
@@ -157,37 +157,3 @@ def visual_hull(masks, cameras: Cameras, box, resolution=128, min_views=0, polic
     else:
         occ = HullCL.get().hull(arrays, cameras, bmin, vs, dims, min_views, policy, method)
     return VoxelGrid(occ, bmin, bmax)
-
-
-# ---------------------------------------------------------------- node
-class Hull(Node):
-    """Volumetric visual hull: voxels whose centre falls inside the silhouettes (OpenCL, coarse-to-fine)."""
-
-    type_name = "hull"
-    version = 1
-    inputs = {"masks": Masks, "cameras": CameraSet,
-              "bounds": Input(Bounds, optional=True, doc="box to carve when the bbox param is not given")}
-    outputs = {"volume": Volume}
-    params = {
-        "resolution": Param(int, 128, range=(8, 1024), doc="voxels along the longest bbox side; others proportional"),
-        "bbox": Param(list, None, item=float, length=6, doc="xmin ymin zmin xmax ymax zmax; default: the bounds input"),
-        "min_views": Param(int, 0, range=(0, None), doc="0 = all views; k = inside at least k silhouettes"),
-        "outside": Param(str, "carve", choices=POLICIES, doc="voxels projecting outside an image: carve, or ignore that view"),
-        "method": Param(str, "sparse", choices=("sparse", "dense", "numpy"), doc="coarse-to-fine, every voxel, or NumPy"),
-    }
-    kernels = [source("hull.cl")]
-
-    def run(self, masks, cameras, bounds=None, *, resolution, bbox, min_views, outside, method):
-        if bbox is not None:
-            box = np.array(bbox, dtype=np.float64).reshape(2, 3)
-            if not np.all(box[1] > box[0]):
-                raise NodeError(f"hull: param 'bbox' {bbox} needs max > min on every axis (xmin ymin zmin xmax ymax zmax)")
-        elif bounds is not None:
-            box = np.asarray(bounds, dtype=np.float64)
-        else:
-            raise NodeError("hull: no box to carve: set param 'bbox' or connect the 'bounds' input")
-        volume = visual_hull(masks, cameras, box, resolution, min_views, outside, method)
-        if not volume.occupancy.any():
-            self.log.warning("hull: no voxel is inside the silhouettes: the box %s misses the object, or the masks "
-                             "and cameras disagree (the mesh will be empty)", np.round(box, 6).ravel().tolist())
-        return {"volume": volume}

@@ -8,8 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nodegraph import DataError, InPath, Node, Param
-from nodes.common.types import Mesh
+from nodegraph import DataError
 
 FORMATS = ("ply", "obj", "stl", "off", "glb", "gltf")
 
@@ -43,17 +42,3 @@ def load_mesh(path):
     if f.min() < 0 or f.max() >= len(v):
         raise DataError(f"{p}: faces index vertices outside 0..{len(v) - 1}")
     return mesh
-
-
-class LoadMesh(Node):
-    """A triangle mesh from a file (PLY, OBJ, STL, OFF, GLB/GLTF), e.g. a reference for eval.surface."""
-
-    type_name = "load.mesh"
-    version = 1
-    outputs = {"mesh": Mesh}
-    params = {"path": Param(InPath, doc="mesh file (.ply .obj .stl .off .glb .gltf)")}
-
-    def run(self, *, path):
-        mesh = load_mesh(path)
-        self.log.info("%s: %d vertices, %d faces", path, len(mesh.vertices), len(mesh.faces))
-        return {"mesh": mesh}

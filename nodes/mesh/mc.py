@@ -23,9 +23,7 @@ from functools import lru_cache
 import numpy as np
 
 from kernels import source
-from nodegraph import Node, NodeError, Param, clrt
-from nodes.common.meshops import drop_small_components
-from nodes.common.types import Mesh, Volume
+from nodegraph import clrt
 
 # corner c of a cell sits at offset (c & 1, c >> 1 & 1, c >> 2 & 1); edge e runs from EDGES[e][0] along axis
 # EDGES[e][1] (to the corner with that bit set)
@@ -267,50 +265,3 @@ def vertex_colors(volume, vertices: np.ndarray, level: float = 0.5) -> np.ndarra
         best[better], pick[better] = d[better], q[better]
     rgb = np.asarray(volume.colors)[pick[:, 0], pick[:, 1], pick[:, 2]]
     return np.concatenate([rgb, np.full((len(g), 1), 255, np.uint8)], axis=1).astype(np.uint8)
-
-
-# ---------------------------------------------------------------- node
-class MarchingCubes(Node):
-    """Marching cubes: the volume's iso-surface at `level` as a watertight mesh with outward normals; a
-    coloured volume (e.g. from carve) gives vertex colours."""
-
-    type_name = "mc"
-    version = 2
-    inputs = {"volume": Volume}
-    outputs = {"mesh": Mesh}
-    params = {
-        "level": Param(float, 0.5, doc="iso-value; a float (soft) volume places vertices between voxels"),
-        "largest": Param(bool, False, doc="drop small disconnected parts (noise): keep the components with at least "
-                                          "min_part of the largest one's faces; what is dropped is logged"),
-        "min_part": Param(float, 0.01, range=(0.0, 1.0), doc="with largest: the smallest part kept, as a fraction of "
-                                                             "the largest part's faces (1.0 = the largest only)"),
-        "method": Param(str, "opencl", choices=("opencl", "numpy"), doc="OpenCL kernels or the NumPy reference"),
-    }
-    kernels = [source("mc.cl")]
-
-    def run(self, volume, *, level, largest, method, min_part=0.01):
-        occ = volume.occupancy
-        if occ.ndim != 3 or min(occ.shape) < 1:
-            raise NodeError(f"mc: volume occupancy must be a non-empty 3-D array, got shape {occ.shape}")
-        if max(occ.shape) + 2 > 1 << 15:
-            raise NodeError(f"mc: volume {occ.shape} is too large")
-        import trimesh
-
-        fn = marching_cubes if method == "opencl" else marching_cubes_reference
-        verts, faces = fn(volume, level)
-        if largest:
-            verts, faces, kept, dropped = drop_small_components(verts, faces, min_part)
-            if len(dropped):
-                total = int(kept.sum() + dropped.sum())
-                msg = (f"mc: dropped {len(dropped)} of {len(kept) + len(dropped)} parts smaller than {min_part:g} of the "
-                       f"largest: {int(dropped.sum())} faces ({100 * dropped.sum() / total:.2g} % of the mesh; the biggest "
-                       f"dropped part had {int(dropped[0])} faces, the largest kept {int(kept[0])}); kept {len(kept)}")
-                # noise is a few specks; a visible share of the surface going away deserves a warning
-                (self.log.warning if dropped.sum() > 0.01 * total else self.log.info)(msg)
-        colors = None
-        if getattr(volume, "colors", None) is not None and len(verts):
-            if volume.colors.shape != (*occ.shape[:3], 3):
-                raise NodeError(f"mc: volume colors have shape {volume.colors.shape}, expected {(*occ.shape[:3], 3)}")
-            colors = vertex_colors(volume, verts, level)
-        return {"mesh": trimesh.Trimesh(verts.astype(np.float64), faces.astype(np.int64), vertex_colors=colors,
-                                        process=False)}

@@ -24,11 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kernels import source
-from nodegraph import Node, Param
-from nodes.common.meshops import carried_vertex_colors, face_areas
-from nodes.common.silhouettes import POLICIES
-from nodes.common.types import CameraSet, Masks, Mesh, Volume
+from nodes.common.meshops import face_areas
 
 from .budget import meet_budget, repair_folds
 from .fairing import CLOps, NumPyOps, fair, smoothed_normals
@@ -142,46 +138,3 @@ def refine_vertices(vertices, faces, volume, field: SilhouetteField, steps: int 
     else:
         result = out.astype(np.float64) + origin
     return result, faces, stats
-
-
-# ---------------------------------------------------------------- node
-class Refine(Node):
-    """Exact visual-hull surface (Liang & Wong 2008): every marching-cubes vertex moves along its grid edge to
-    where the edge leaves the hull of the silhouettes (read as a smooth B-spline field, sub-pixel), then fairing
-    steps even out the triangles and every vertex goes back onto the hull. Same faces as the input, or a
-    triangle budget (faces or edge_length: edge splits by chord error, or quadric decimation; fold-free)."""
-
-    type_name = "refine"
-    version = 4
-    inputs = {"mesh": Mesh, "volume": Volume, "masks": Masks, "cameras": CameraSet}
-    outputs = {"mesh": Mesh}
-    params = {
-        "steps": Param(int, 8, range=(1, 40), doc="regula falsi iterations per crossing (each view)"),
-        "quality": Param(int, 6, range=(0, 50), doc="fairing steps before the projection onto the hull; 0 = Liang & Wong alone"),
-        "faces": Param(int, 0, range=(0, None), doc="triangle budget: about this many faces (0 = mc's faces)"),
-        "edge_length": Param(float, 0.0, range=(0.0, None), doc="triangle budget as a mean edge length, scene units "
-                             "(used when faces is 0; 0 = mc's faces)"),
-        "min_views": Param(int, 0, range=(0, None), doc="0 = all views; k = inside at least k silhouettes (as the hull)"),
-        "outside": Param(str, "carve", choices=POLICIES, doc="points projecting outside an image: carve, or ignore that view"),
-        "use_alpha": Param(bool, True, doc="read soft alpha (8-bit) when the masks carry it, else the binary masks"),
-        "method": Param(str, "opencl", choices=("opencl", "numpy"), doc="OpenCL kernels or the NumPy reference"),
-    }
-    kernels = [source("hullfit.cl"), source("fairing.cl")]
-
-    def run(self, mesh, volume, masks, cameras, *, steps, quality, faces, edge_length, min_views, outside, use_alpha,
-            method):
-        import trimesh
-
-        origin = 0.5 * (np.asarray(volume.bbox_min, np.float64) + np.asarray(volume.bbox_max, np.float64))
-        field = SilhouetteField.from_inputs(masks, cameras, origin, min_views, outside, use_alpha, node="refine")
-        target = target_face_count(mesh.vertices, mesh.faces, faces, edge_length)
-        faces = np.asarray(mesh.faces)
-        if target > 0:
-            vertices, faces, stats = refine_vertices(mesh.vertices, faces, volume, field, steps, quality, method=method,
-                                                     target_faces=target)
-        else:
-            vertices, faces, stats = refine_vertices(mesh.vertices, faces, volume, field, steps, quality, method=method)
-        self.log.info("refine: %d of %d vertices onto the hull along grid edges, %d along normals",
-                      stats["on_edges"], stats["vertices"], stats["on_normals"])
-        out = trimesh.Trimesh(vertices, faces, vertex_colors=carried_vertex_colors(mesh, vertices), process=False)
-        return {"mesh": out}

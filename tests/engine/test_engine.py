@@ -200,6 +200,63 @@ def test_every_key_component_moves_the_key(tmp_path, monkeypatch):
     nodemod.implementation_fingerprint.cache_clear()
 
 
+@pytest.fixture
+def environment(monkeypatch):
+    """nodegraph.environment, read afresh before and after the test (it is read once per process)."""
+    from nodegraph import environment as env
+
+    env.forget()
+    yield env
+    monkeypatch.undo()
+    env.forget()
+
+
+def test_the_environment_is_part_of_every_key(tmp_path, monkeypatch, environment, capsys):
+    """A library upgrade or another OpenCL device moves every key (a shared cache never mixes environments), and
+    explain says so; the same environment gives the same keys."""
+    from importlib import metadata
+
+    from nodegraph import clrt
+
+    base = keys(tmp_path, CHAIN)
+    environment.forget()
+    assert keys(tmp_path, CHAIN) == base, "same environment must give the same keys"
+    assert set(environment.environment()) == {"libraries", "opencl"}
+    assert environment.environment()["libraries"]["numpy"] == metadata.version("numpy")
+
+    real = metadata.version
+    monkeypatch.setattr(environment.metadata, "version", lambda name: "0.0.1" if name == "numpy" else real(name))
+    environment.forget()
+    upgraded = keys(tmp_path, CHAIN)
+    assert all(upgraded[s] != base[s] for s in base)
+
+    def on(device: str) -> dict:   # the keys when clrt chooses ``device``
+        monkeypatch.setattr(clrt, "_choose_device", lambda: object())
+        monkeypatch.setattr(clrt, "device_id", lambda dev: device)
+        environment.forget()
+        k = keys(tmp_path, CHAIN)
+        assert environment.opencl_device() == device
+        return k
+
+    on_a, on_b = on("PoCL 3.1 | cpu A | 3.1"), on("NVIDIA CUDA | gpu B | 550")
+    assert all(on_a[s] != on_b[s] != upgraded[s] for s in base)
+    assert on("PoCL 3.1 | cpu A | 3.1") == on_a
+
+    # explain names the component, with the old and the new value
+    monkeypatch.undo()
+    environment.forget()
+    p = write(tmp_path, CHAIN)
+    cache = ["--cache", str(tmp_path / "cache2")]
+    assert cli([*cache, "run", str(p), "--out", str(tmp_path / "out"), "-j", "1", "-q"]) == 0
+    monkeypatch.setattr(environment.metadata, "version", lambda name: "0.0.1" if name == "numpy" else real(name))
+    environment.forget()
+    capsys.readouterr()
+    assert cli([*cache, "explain", str(p)]) == 0
+    out = capsys.readouterr().out
+    assert f"changed: environment.libraries.numpy ({real('numpy')} -> 0.0.1)" in out
+    assert "13 of 13 work items to run" in out
+
+
 def test_input_files_hash_by_content_not_path(tmp_path):
     a, b = tmp_path / "a", tmp_path / "b"
     a.mkdir(), b.mkdir()
@@ -428,6 +485,7 @@ def test_describe_nodes_and_dot(capsys):
     assert cli(["describe", "t.scale"]) == 0
     out = capsys.readouterr().out
     assert "factor: float = 2.0 (range [-100, 100])" in out and "x: Array" in out
+    assert "enginenodes (" in out and "enginenodes.py)" in out   # where the node lives: module and file
     assert cli(["describe", "t.scal"]) == 2
     assert "did you mean 't.scale'" in capsys.readouterr().err
     assert cli(["nodes"]) == 0
@@ -578,3 +636,45 @@ def test_an_item_the_scheduler_never_starts_is_a_failure_not_a_silent_skip(tmp_p
     res = run(tmp_path, write(tmp_path, SEQ_THEN_FRAMES))
     assert not res.ok
     assert any("never started" in (r.get("error") or "") for r in res.records), res.records
+
+
+# ---------------------------------------------------------------- run_node runs what the scheduler runs
+def test_run_node_goes_through_the_workers_code(tmp_path, monkeypatch):
+    """testing.run_node coerces params as a graph file does and runs the worker's call_node (run() and the output
+    checks) and, with roundtrip, its keep + Cache.load: a node's test sees what the scheduler does."""
+    import enginenodes
+    import nodegraph.worker as worker
+    from nodegraph import NodeError
+    from nodegraph.testing import run_node
+
+    calls = []
+    real = worker.call_node
+    monkeypatch.setattr(worker, "call_node", lambda cls, *a, **kw: calls.append(cls.type_name) or real(cls, *a, **kw))
+    out = run_node("t.scale", {"x": np.arange(3.0)}, {"factor": 3}, roundtrip=True)
+    np.testing.assert_array_equal(out["out"], [0.0, 3.0, 6.0])
+    assert calls == ["t.scale"]
+    with pytest.raises(ValueError, match="must be in"):   # the graph file's coercion: out of range
+        run_node("t.scale", {"x": np.arange(3.0)}, {"factor": 1000})
+
+    # a node returning something its output type refuses: run_node raises what the scheduler reports
+    monkeypatch.setattr(enginenodes.Scale, "run", lambda self, x, *, factor, mode: {"out": "not an array"})
+    with pytest.raises(NodeError) as exc:
+        run_node("t.scale", {"x": np.arange(3.0)})
+    res = run(tmp_path, write(tmp_path, CHAIN))
+    [failed] = [r for r in res.records if r["node"] == "scale" and r["frame"] == 0]
+    assert failed["status"] == "failed" and failed["error"] == str(exc.value)
+
+
+def test_the_records_a_worker_gets_are_plain_data(tmp_path):
+    """What travels to a process pool or a Dask worker (records.UnitSpec of ItemSpecs with Refs) pickles and
+    comes back equal; a Ref names its value 'KEY/PORT' in one place."""
+    import pickle
+
+    from nodegraph.records import Ref, UnitSpec, refs
+
+    items, _ = plan_graph(load_graph(write(tmp_path, CHAIN)), Cache(tmp_path / "cache"))
+    unit = UnitSpec([it.spec(str(tmp_path / "log")) for it in items], {"k/out": 1}, {"k": "src"})
+    assert pickle.loads(pickle.dumps(unit)) == unit
+    plus = next(it for it in items if it.node == "plus")
+    [ref] = list(refs(plus.inputs))
+    assert isinstance(ref, Ref) and ref.name == f"{ref.key}/{ref.port}" == plus.components["inputs"]["a"]

@@ -45,3 +45,27 @@ def test_stages_import_only_common(name, path, is_pkg):
 def test_every_stage_is_a_package_below_nodes():
     loose = [p.name for p in (ROOT / "nodes").glob("*.py") if p.name != "__init__.py"]
     assert not loose, f"modules directly in nodes/ (put them in a stage package or nodes/common): {loose}"
+
+
+# Node classes outside their stage's nodes.py, each with its reason. A node's fingerprint covers its module's
+# whole import closure, so a class beside another stage's nodes makes them rerun for each other's edits.
+NODES_ELSEWHERE = {
+    "nodes.export.textured": "export/nodes.py would then import the rasterizer and USD code: export.mesh and "
+                             "export.masks would rerun on every edit of them",
+    "nodes.track.export": "track/nodes.py would then import the glTF/USD writers: the tracker would rerun on "
+                          "every edit of an export format",
+}
+
+
+def test_node_classes_live_in_their_stage_nodes_module():
+    """One place for a node: every Node class of a stage is declared in nodes/<stage>/nodes.py."""
+    import ast
+
+    stray = []
+    for name, path, _ in STAGES:
+        if name.endswith(".nodes") or name in NODES_ELSEWHERE:
+            continue
+        for node in ast.parse(path.read_text()).body:
+            if isinstance(node, ast.ClassDef) and any(getattr(b, "id", None) == "Node" for b in node.bases):
+                stray.append(f"{path.relative_to(ROOT)}: class {node.name}")
+    assert not stray, f"node classes outside their stage's nodes.py: {stray}"

@@ -14,6 +14,7 @@ import trimesh
 from nodegraph.cli import main as cli
 from nodegraph.errors import DataError
 from nodegraph.testing import run_node
+from nodes.io.mesh import load_mesh
 
 
 def write_meshes(tmp_path):
@@ -49,8 +50,10 @@ def test_load_mesh_refuses_what_is_not_a_mesh(tmp_path, content, needle):
     with pytest.raises(DataError, match=needle):
         run_node("load.mesh", params={"path": str(p)})
     os.mkfifo(tmp_path / "pipe.ply")
-    with pytest.raises(DataError, match="not a regular file"):
+    with pytest.raises(ValueError, match="not a regular file"):   # as a graph's parameter: refused before the node
         run_node("load.mesh", params={"path": str(tmp_path / "pipe.ply")})
+    with pytest.raises(DataError, match="not a regular file"):    # and by the reader itself
+        load_mesh(tmp_path / "pipe.ply")
 
 
 def test_eval_tables_are_published_with_a_summary_line(tmp_path, capsys):

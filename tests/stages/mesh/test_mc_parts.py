@@ -9,7 +9,7 @@ import numpy as np
 
 from nodegraph.testing import run_node
 from nodes.common.types import VoxelGrid
-from nodes.mesh.mc import MarchingCubes
+from nodes.mesh.nodes import MarchingCubes
 
 
 def parts_volume():

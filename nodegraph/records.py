@@ -1,0 +1,104 @@
+"""The records the scheduler hands around (nodegraph/plan.py explains what they mean): plain dataclasses of
+strings, numbers, lists and dicts, so they pickle to a process pool or a Dask worker unchanged.
+
+    Ref         one output port of one work item, as an input of another: (key, port, type)
+    ItemSpec    what a worker needs to run one work item (never a live object)
+    UnitSpec    a unit's items in dependency order, with how many of its items read each in-memory value
+    Result      what running (or skipping) one item came to
+"""
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass, field
+from typing import Iterator, Union
+
+
+@dataclass(frozen=True)
+class Ref:
+    """Output ``port`` of the work item with key ``key``; ``type`` names the port's DataType ("module:qualname")."""
+
+    key: str
+    port: str
+    type: str
+
+    @property
+    def name(self) -> str:
+        """"KEY/PORT": how a key's components and a unit's in-memory values name this output."""
+        return f"{self.key}/{self.port}"
+
+
+def type_name(t: type) -> str:
+    """How a Ref names a port's DataType: "module:qualname" (a worker imports it to load the value)."""
+    return f"{t.__module__}:{t.__qualname__}"
+
+
+def resolve_type(name: str) -> type:
+    """The DataType a ``type_name`` names (its module imported)."""
+    module, qual = name.split(":")
+    obj = importlib.import_module(module)
+    for part in qual.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+Inputs = dict[str, Union[Ref, list[Ref], None]]   # port -> one ref, a ref per frame (a sequence reader), or None
+
+
+def refs(inputs: Inputs) -> Iterator[Ref]:
+    """Every Ref of an item's inputs, in port order."""
+    for ref in inputs.values():
+        if isinstance(ref, list):
+            yield from ref
+        elif ref is not None:
+            yield ref
+
+
+@dataclass
+class ItemSpec:
+    """One work item as a worker runs it: its node (type and module, so a worker imports a plugin), frame(s),
+    params as run() receives them, inputs, key and key components (written into the cache entry), the output
+    ports to keep in the cache and its log file."""
+
+    node: str
+    type: str
+    module: str
+    frame: int | None                 # None for a sequence item
+    frames: list[int]
+    params: dict
+    inputs: Inputs
+    key: str
+    components: dict
+    kept: list[str] = field(default_factory=list)
+    log: str | None = None
+
+    @property
+    def where(self) -> str:
+        return f"node '{self.node}' ({self.type})" + ("" if self.frame is None else f" frame {self.frame}")
+
+    def input_keys(self) -> list[str]:
+        return [r.key for r in refs(self.inputs)]
+
+
+@dataclass
+class UnitSpec:
+    """What one worker call runs: ``items`` in dependency order; ``readers``: Ref.name -> how many items of the
+    unit read that value (it stays in memory until the last one has); ``failed``: key -> node of the items of
+    other units that did not produce their outputs (their readers are skipped)."""
+
+    items: list[ItemSpec]
+    readers: dict[str, int] = field(default_factory=dict)
+    failed: dict[str, str] = field(default_factory=dict)
+
+
+@dataclass
+class Result:
+    """How one work item ended: status done / failed / skipped (run.py adds cached), wall seconds, the error of
+    a failed or skipped item, the warnings its node logged, and ``corrupt``: the key of a cached input found
+    unreadable (run.py evicts it)."""
+
+    status: str
+    seconds: float = 0.0
+    error: str | None = None
+    warnings: list[str] = field(default_factory=list)
+    corrupt: str | None = None
+    node: str = ""                    # the item's node name (what a skipped reader names as the failure)
