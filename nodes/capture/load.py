@@ -7,7 +7,9 @@ A pattern may contain '*': the matching files, sorted, are the frames (frame N =
 file (.avi, .mp4, .mov, .mkv) holds the frames itself: frame N is its N-th frame. Without '*', {frame} or a
 video, the data is static and only frame 0 exists. The background (clean plate) is always frame 0 of its
 pattern. Masks: "alpha" takes the images' alpha channel; else grey images thresholded at mask_threshold
-(the maximum over colour channels).
+(the maximum over colour channels). With several cameras every images, masks and background pattern needs a
+camera field ({cam}, {cam1}, {name}; {image} and {nerf_path} where they apply): one without would give every
+camera the same file, and is refused ('*' means frames, never cameras).
 
 Known dataset layouts are detected automatically: layouts.yaml beside this file lists them (a marker file
 pattern that identifies the folder, then the patterns); an unknown folder is read with ``load_cameras`` and
@@ -265,6 +267,7 @@ def _generic(root: Path, frame: int, masks: str, background: str, log) -> tuple:
     if len(keep) < len(cams):
         cams = Cameras([cams[i] for i in keep])
     extra = {c.name: {"image": f.stem} for c, f in zip(cams, files)}
+    _check_camera_fields(root, {"masks": masks, "background": background}, len(cams))
     mask_files = None
     if masks and masks != "alpha":
         mask_files = [_expand(root, masks, i, c.name, frame, extra) for i, c in zip(keep, cams)]
@@ -331,15 +334,18 @@ def load_capture(path, frame: int = 0, images: str = "", masks: str = "", backgr
     # cameras first (their names expand the patterns); sizes from the images when the calibration has none
     try:
         if isinstance(calib, list):
+            _check_camera_fields(root, pat, len(calib))
             cams, raw, img_files = _per_folder_cameras(root, calib, pat["images"], frame, extra)
         else:
             cams = load_cameras(calib)
             raw = None
     except MissingImageSize:  # names first (they expand the patterns), then the sizes from those images
         names = camera_names(calib)
+        _check_camera_fields(root, pat, len(names))
         img_files = [_expand(root, pat["images"], i, n, frame, extra) for i, n in enumerate(names)]
         raw = [read_image(p, f) for p, f in img_files]
         cams = load_cameras(calib, image_sizes=[(im.shape[1], im.shape[0]) for im in raw])
+    _check_camera_fields(root, pat, len(cams))
     _check_camera_count(root, pat["images"], cams)
     for kind in ("images", "masks", "background"):
         if pat.get(kind) and pat[kind] != "alpha" and not extra:
@@ -376,6 +382,57 @@ def _per_folder_cameras(root: Path, files: list[Path], images: str, frame: int, 
             raise DataError(f"{f}: {len(one)} cameras in a per-camera calibration file (expected one)")
         cams.append(replace(one[0], name=name))
     return Cameras(cams), raw, img_files
+
+
+CAMERA_FIELDS = ("cam", "cam1", "name", "image", "nerf_path")  # the fields that differ from camera to camera
+
+
+def _fields(pattern: str) -> set[str] | None:
+    """The field names of a pattern ({cam:03d} -> cam), None when it does not parse (``_expand`` says why)."""
+    import string
+
+    try:
+        return {re.split(r"[.\[]", f)[0] for _, f, _, _ in string.Formatter().parse(pattern) if f is not None}
+    except ValueError:
+        return None
+
+
+def _camera_field_example(root: Path, pattern: str) -> str:
+    """``pattern`` with a camera field where the file names it matches hold their number: images/*.jpg
+    matching image_0.jpg, image_1.jpg, ... -> images/image_{cam}.jpg ({cam1} when they count from 1)."""
+    anywhere = re.sub(r"\{[^}]*\}", "*", pattern)
+    files = _regular(glob.glob(str(root / anywhere)))[:10_000]
+    if files:
+        rel = Path(files[0].relative_to(root).as_posix())
+        runs = list(re.finditer(r"\d+", rel.name))
+        if runs:
+            nums = _digits([f.stem for f in files])
+            d = runs[-1].group()
+            field = "{cam1}" if nums and min(nums) == 1 else f"{{cam:0{len(d)}d}}" if len(d) > 1 and d[0] == "0" else "{cam}"
+            name = rel.name[:runs[-1].start()] + field + rel.name[runs[-1].end():]
+            return (rel.parent / name).as_posix()
+    if "*" in pattern:
+        return pattern.replace("*", "{cam}", 1)
+    stem, dot, ext = pattern.rpartition(".")
+    return f"{stem}_{{cam}}.{ext}" if dot else pattern + "_{cam}"
+
+
+def _check_camera_fields(root: Path, pat: dict, n: int):
+    """A NodeError for an images, masks or background pattern without a camera field when there are several
+    cameras: every camera would read the same file(s), and nothing downstream could tell."""
+    if n < 2:
+        return
+    for kind in ("images", "masks", "background"):
+        pattern = pat.get(kind)
+        if not pattern or pattern == "alpha":
+            continue
+        fields = _fields(pattern)
+        if fields is None or fields & set(CAMERA_FIELDS):
+            continue
+        star = " ('*' in a pattern means frames, not cameras)" if "*" in pattern else ""
+        raise NodeError(f"param '{kind}': the pattern '{pattern}' has no camera field, so all {n} cameras would read "
+                        "the same file; add {cam} (camera index from 0, e.g. {cam:03d}), {cam1} (from 1) or {name} "
+                        f"(camera name){star}; e.g. '{_camera_field_example(root, pattern)}'")
 
 
 def _check_camera_count(root: Path, pattern: str, cams: Cameras):
