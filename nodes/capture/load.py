@@ -22,7 +22,9 @@ an image folder (images/, image/ or the folder itself) whose files are paired wi
   - anything else (duplicate numbers, several varying numbers, no numbers) is refused: give patterns.
 The pairing is logged (the item log), and a warning says when it was made from numbers. Masks come from
 a masks/ or mask/ folder beside the images (same names), or the masks pattern; patterns there may also use
-{image}, the stem of the camera's image file.
+{image}, the stem of the camera's image file. One pattern given on such a folder is completed the same way:
+calibration= alone reads that calibration and pairs the images as above; images= alone expands the pattern
+per camera of the calibration found in the folder, masks from masks/ or mask/ beside the images.
 
 With patterns, files that match a pattern but belong to no camera of the calibration (a calibration file
 missing) are an error, not a camera fewer. Only regular files are read (a FIFO or a device never is).
@@ -243,9 +245,17 @@ def pair_files(names: list[str], files: list[Path], folder: Path, what: str = "i
     return keep, paired
 
 
-def _generic(root: Path, frame: int, masks: str, background: str, log) -> tuple:
-    """Unknown folder: calibration found by load_cameras, images in images/ or image/ (or the folder), paired
-    with the cameras (pair_files); masks from masks/ or mask/ beside them, or the masks pattern."""
+def _generic(root: Path, frame: int, masks: str, background: str, log, calibration: str = "") -> tuple:
+    """Unknown folder: calibration found by load_cameras (or the ``calibration`` pattern), images in images/ or
+    image/ (or the folder), paired with the cameras (pair_files); masks from masks/ or mask/ beside them, or
+    the masks pattern."""
+    calib = root
+    if calibration:
+        hits = [Path(h) for h in sorted(glob.glob(str(root / calibration)))] if "*" in calibration else [root / calibration]
+        if len(hits) != 1 or not hits[0].exists():
+            raise DataError(f"{root}: calibration pattern '{calibration}' matches {len(hits) if '*' in calibration else 0} "
+                            "files (one is needed)")
+        calib = hits[0]
     img_dir = next((d for d in (root / "images", root / "image") if d.is_dir()), root)
     files = _regular(p for p in img_dir.iterdir() if p.suffix.lower() in IMAGE_EXTS)
     if not files:  # one folder per camera (COLMAP names them by the relative path: cam0/0001)
@@ -255,13 +265,13 @@ def _generic(root: Path, frame: int, masks: str, background: str, log) -> tuple:
     if frame != 0:
         raise DataError(f"{root}: frame {frame} out of range (a folder of images is a single frame; use patterns for sequences)")
     try:
-        cams = load_cameras(root)
+        cams = load_cameras(calib)
     except MissingImageSize:
-        names = camera_names(root)
+        names = camera_names(calib)
         keep, files = pair_files(names, files, img_dir, log=log)
         sizes = {names[i]: _size(f) for i, f in zip(keep, files)}
         some = next(iter(sizes.values()))
-        cams = load_cameras(root, image_sizes={n: sizes.get(n, some) for n in names})
+        cams = load_cameras(calib, image_sizes={n: sizes.get(n, some) for n in names})
     else:
         keep, files = pair_files(cams.names, files, img_dir, log=log)
     if len(keep) < len(cams):
@@ -272,24 +282,32 @@ def _generic(root: Path, frame: int, masks: str, background: str, log) -> tuple:
     if masks and masks != "alpha":
         mask_files = [_expand(root, masks, i, c.name, frame, extra) for i, c in zip(keep, cams)]
     elif not masks:
-        mask_dir = next((d for d in (img_dir.parent / "masks", img_dir.parent / "mask") if d.is_dir() and d != img_dir), None)
-        if mask_dir is not None:
-            exts = IMAGE_EXTS + (".pbm", ".pgm")
-            found = _regular(p for p in mask_dir.iterdir() if p.suffix.lower() in exts) or \
-                _regular(p for p in mask_dir.glob("*/*") if p.suffix.lower() in exts)
-            if found:
-                stems = [_relative_name(f, img_dir) for f in files]
-                mk, mf = pair_files(stems, found, mask_dir, what="mask", partner="image", log=log)
-                if len(mk) != len(stems):
-                    raise DataError(f"{mask_dir}: masks for {len(mk)} of the {len(stems)} images (missing: "
-                                    f"{_list(s for i, s in enumerate(stems) if i not in set(mk))}); give the masks pattern")
-                mask_files = [(f, None) for f in mf]
+        mask_files = _masks_beside(img_dir, files, log)
     bg = None
     if background:
         bg = ImageSet([_rgb(read_image(*_expand(root, background, i, c.name, 0, extra))) for i, c in zip(keep, cams)],
                       cams.names)
     mask_imgs = [read_image(p, f) for p, f in mask_files] if mask_files else None
     return cams, files, mask_imgs, [p for p, _ in mask_files] if mask_files else None, bg
+
+
+def _masks_beside(img_dir: Path, files: list[Path], log) -> list | None:
+    """(mask file, None) per image file from a masks/ or mask/ folder beside ``img_dir`` (paired by name), None
+    when there is none; a DataError when only some images have their mask."""
+    mask_dir = next((d for d in (img_dir.parent / "masks", img_dir.parent / "mask") if d.is_dir() and d != img_dir), None)
+    if mask_dir is None:
+        return None
+    exts = IMAGE_EXTS + (".pbm", ".pgm")
+    found = _regular(p for p in mask_dir.iterdir() if p.suffix.lower() in exts) or \
+        _regular(p for p in mask_dir.glob("*/*") if p.suffix.lower() in exts)
+    if not found:
+        return None
+    stems = [_relative_name(f, img_dir) for f in files]
+    mk, mf = pair_files(stems, found, mask_dir, what="mask", partner="image", log=log)
+    if len(mk) != len(stems):
+        raise DataError(f"{mask_dir}: masks for {len(mk)} of the {len(stems)} images (missing: "
+                        f"{_list(s for i, s in enumerate(stems) if i not in set(mk))}); give the masks pattern")
+    return [(f, None) for f in mf]
 
 
 def _size(path: Path) -> tuple[int, int]:
@@ -311,12 +329,14 @@ def load_capture(path, frame: int = 0, images: str = "", masks: str = "", backgr
         raise DataError(f"frame {frame} out of range (frames start at 0)")
     layout = detect_layout(root)
     given = {k: v for k, v in dict(images=images, masks=masks, background=background, calibration=calibration).items() if v}
-    if not layout and "images" not in given and "calibration" not in given:
-        cams, files, mask_imgs, mask_files, bg = _generic(root, frame, masks, background, log)
+    if not layout and "images" not in given:  # the images are found and paired with the cameras
+        cams, files, mask_imgs, mask_files, bg = _generic(root, frame, masks, background, log, calibration)
         imgs = [read_image(f) for f in files]
         return _assemble(cams, imgs, files, mask_imgs, bg, mask_threshold, masks or ("files" if mask_imgs else ""),
                          mask_files)
     pat = {**layout, **given}
+    if not layout and "calibration" not in pat:  # images given: the calibration is found as for the folder alone
+        pat["calibration"] = "."
     if "calibration" not in pat or "images" not in pat:
         raise NodeError(f"{root}: unknown dataset layout: give both the calibration and images patterns")
     calib = root / pat["calibration"]
@@ -358,8 +378,13 @@ def load_capture(path, frame: int = 0, images: str = "", masks: str = "", backgr
         bg = ImageSet([_rgb(read_image(*_expand(root, pat["background"], i, c.name, 0, extra))) for i, c in enumerate(cams)],
                       cams.names)
     mask_imgs = mask_files = None
+    found = None
     if pat.get("masks") and pat["masks"] != "alpha":
         found = [_expand(root, pat["masks"], i, c.name, frame, extra) for i, c in enumerate(cams)]
+    elif not layout and "masks" not in pat and len({p.parent for p, f in img_files if f is None}) == 1 \
+            and all(f is None for _, f in img_files):  # images= on an unknown folder: masks/ beside them, as without
+        found = _masks_beside(img_files[0][0].parent, [p for p, _ in img_files], log)
+    if found:
         mask_files = [p for p, _ in found]
         mask_imgs = [read_image(p, f) for p, f in found]
     out = _assemble(cams, raw, [p for p, _ in img_files], mask_imgs, bg, mask_threshold, pat.get("masks", ""), mask_files)
