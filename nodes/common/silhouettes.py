@@ -217,6 +217,21 @@ def silhouette_windows(sil: SilhouetteBits) -> np.ndarray:
                      for t, (w, h) in zip(sil.block_tables(), sil.sizes)], np.int32).reshape(-1, 4)
 
 
+def border_views(masks) -> list[int]:
+    """The views whose silhouette touches the image border: a mask (host uint8, inside when > 127) with an
+    inside pixel in its first or last row or column; device ``SilhouetteBits``: an inside pixel in the 8x8
+    blocks along the border (their block tables; no read-back of the bits)."""
+    if isinstance(masks, SilhouetteBits):
+        return [v for v, ((x0, y0, w, h), (W, H)) in enumerate(zip(silhouette_windows(masks), masks.sizes))
+                if w > 0 and (x0 == 0 or y0 == 0 or x0 + w == W or y0 + h == H)]
+    out = []
+    for v, m in enumerate(masks):
+        m = np.asarray(m)
+        if (m[0] > 127).any() or (m[-1] > 127).any() or (m[:, 0] > 127).any() or (m[:, -1] > 127).any():
+            out.append(v)
+    return out
+
+
 # ---------------------------------------------------------------- silhouettes
 @dataclass
 class Silhouettes:

@@ -20,7 +20,8 @@ import numpy as np
 from kernels import source
 from nodegraph import Input, Node, NodeError, Param, clrt
 from nodes.common.cameras import PACK_FLOATS, Cameras
-from nodes.common.silhouettes import POLICIES, SilhouetteBits, centre_states, check_masks, check_silhouettes, vote
+from nodes.common.silhouettes import (POLICIES, SilhouetteBits, border_views, centre_states, check_masks,
+                                      check_silhouettes, vote)
 from nodes.common.types import Bounds, CameraSet, Masks, Volume, VoxelGrid
 
 COARSE_CELLS = 16  # the first sparse level has at most this many cells along the longest side
@@ -46,6 +47,23 @@ def check_in_front(cameras: Cameras, box: np.ndarray):
     if behind:
         raise NodeError(f"hull: the box {np.round(box, 6).ravel().tolist()} lies entirely behind camera(s) "
                         f"{', '.join(behind)}: check their R|t (world -> camera) or the box, or set outside: ignore")
+
+
+def border_warning(masks, cameras: Cameras, policy: str) -> str | None:
+    """With policy "carve", a warning when the silhouettes touch the image border in most views (more than
+    half): the object is cut there, and carve drops every voxel projecting outside an image, losing what lies
+    beyond the border; "ignore" keeps it. None otherwise. ``masks``: a MaskSet, host arrays or SilhouetteBits."""
+    if policy != "carve" or len(cameras) < 2:
+        return None
+    if getattr(masks, "device", None) is not None:
+        masks = masks.device
+    views = border_views(masks if isinstance(masks, SilhouetteBits) else getattr(masks, "masks", masks))
+    if 2 * len(views) <= len(cameras):
+        return None
+    names = ", ".join(cameras[v].name for v in views[:8]) + (f" and {len(views) - 8} more" if len(views) > 8 else "")
+    return (f"hull: the silhouettes touch the image border in {len(views)} of the {len(cameras)} views ({names}): "
+            "the object is cut by the image border there, and outside: carve removes every voxel that projects "
+            "outside an image, so what lies beyond the border is lost; set outside: ignore to keep it")
 
 
 # ---------------------------------------------------------------- NumPy reference
@@ -187,6 +205,9 @@ class Hull(Node):
         else:
             raise NodeError("hull: no box to carve: set param 'bbox' or connect the 'bounds' input")
         volume = visual_hull(masks, cameras, box, resolution, min_views, outside, method)
+        cut = border_warning(masks, cameras, outside)
+        if cut:
+            self.log.warning("%s", cut)
         if not volume.occupancy.any():
             self.log.warning("hull: no voxel is inside the silhouettes: the box %s misses the object, or the masks "
                              "and cameras disagree (the mesh will be empty)", np.round(box, 6).ravel().tolist())
