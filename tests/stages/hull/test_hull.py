@@ -265,5 +265,10 @@ def test_silhouettes_cut_by_the_border_in_most_views_warn_with_carve():
            "by the image border there, and outside: carve removes every voxel that projects outside an image, so "
            "what lies beyond the border is lost; set outside: ignore to keep it")
     assert msg in hull_warnings(cut([0, 1, 2, 4]), cams)
+    from nodes.common.silhouettes import SilhouetteBits
+
+    host = cut([0, 1, 2, 4])
+    on_device = MaskSet(host.masks, device=SilhouetteBits.from_masks(host.masks))  # read from the block tables
+    assert msg in hull_warnings(on_device, cams)
     assert not any("image border" in w for w in hull_warnings(cut([0, 1, 2, 4]), cams, outside="ignore"))
     assert not any("image border" in w for w in hull_warnings(cut([0, 3, 5]), cams))  # half the views: not most
