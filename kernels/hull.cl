@@ -22,8 +22,10 @@ inline float3 voxel_centre(float3 bmin, float3 vs, int i, int j, int k)
     return (float3)(bmin.x + ((float)i + 0.5f) * vs.x, bmin.y + ((float)j + 0.5f) * vs.y, bmin.z + ((float)k + 0.5f) * vs.z);
 }
 
+// The vote of silhouette.h, and at least min_seen views see X (in front, inside the image): hull_reference's
+// vote(..., min_seen). An early stop of the loop (vote_decided) is a carved voxel either way.
 inline int voxel_test(__global const float* cams, __global const uchar* bits, __global const int* bit_off,
-                      int nviews, int min_views, int policy, float3 X)
+                      int nviews, int min_views, int policy, int min_seen, float3 X)
 {
     int n_in = 0, n_bg = 0;
     for (int v = 0; v < nviews; v++) {
@@ -32,17 +34,17 @@ inline int voxel_test(__global const float* cams, __global const uchar* bits, __
         n_bg += (s == SIL_BACKGROUND);
         if (vote_decided(s, n_in, v, nviews, min_views, policy)) break;
     }
-    return hull_vote(n_in, n_bg, nviews, min_views, policy);
+    return hull_vote(n_in, n_bg, nviews, min_views, policy) && n_in + n_bg >= min_seen;
 }
 
 __kernel void hull_dense(__global const float* cams, int nviews, __global const uchar* bits,
                          __global const int* bit_off, float4 bmin, float4 vs, int nx, int ny, int nz,
-                         int min_views, int policy, __global uchar* vol)
+                         int min_views, int policy, int min_seen, __global uchar* vol)
 {
     int k = get_global_id(0), j = get_global_id(1), i = get_global_id(2);
     if (k >= nz || j >= ny || i >= nx) return;
     float3 X = voxel_centre(bmin.xyz, vs.xyz, i, j, k);
-    vol[((size_t)i * ny + j) * nz + k] = (uchar)voxel_test(cams, bits, bit_off, nviews, min_views, policy, X);
+    vol[((size_t)i * ny + j) * nz + k] = (uchar)voxel_test(cams, bits, bit_off, nviews, min_views, policy, min_seen, X);
 }
 
 // ------------------------------------------------------------------ conservative footprint test
@@ -122,7 +124,7 @@ inline int box_state(__global const float* c, __global const int* sat, float3 lo
 __kernel void hull_cells(__global const float* cams, int nviews, __global const uchar* bits,
                          __global const int* bit_off, __global const int* sat, __global const int* sat_off,
                          float4 bmin, float4 vs, int nx, int ny, int nz, int min_views, int policy,
-                         int level, __global const uint* cells, int ncells, __global uint* next,
+                         int min_seen, int level, __global const uint* cells, int ncells, __global uint* next,
                          volatile __global int* counter, __global uchar* vol)
 {
     int gid = get_global_id(0);
@@ -145,14 +147,15 @@ __kernel void hull_cells(__global const float* cams, int nviews, __global const 
         n_off += (s & BOX_OFF) != 0;
         n_seen += (s & BOX_SEEN) != 0;
         // bounds on every voxel's votes, views not yet asked counted either way: IN <= in_max,
-        // BACKGROUND in [n_out, out_max], and some view unseen for sure when n_off > 0
+        // BACKGROUND in [n_out, out_max], some view unseen for sure when n_off > 0, and the views that see
+        // it in [n_seen, nviews - n_off] (min_seen)
         int in_max = nviews - n_notin, out_max = nviews - n_in - n_off;
         if (policy == 0) {
             inside = n_seen == nviews && n_in >= nviews - tol;
             outside = n_off > 0 || n_out > tol || in_max < nviews - tol;
         } else {
-            inside = out_max <= tol && n_in > 0;
-            outside = n_out > tol || in_max == 0;
+            inside = out_max <= tol && n_in > 0 && n_seen >= min_seen;
+            outside = n_out > tol || in_max == 0 || nviews - n_off < min_seen;
         }
         if (inside || outside) break;
     }
@@ -168,7 +171,8 @@ __kernel void hull_cells(__global const float* cams, int nviews, __global const 
             for (int j = j0; j <= j1; j++)
                 for (int k = k0; k <= k1; k++) {
                     float3 X = voxel_centre(bmin.xyz, vs.xyz, i, j, k);
-                    vol[((size_t)i * ny + j) * nz + k] = (uchar)voxel_test(cams, bits, bit_off, nviews, min_views, policy, X);
+                    vol[((size_t)i * ny + j) * nz + k] = (uchar)voxel_test(cams, bits, bit_off, nviews, min_views, policy,
+                                                                           min_seen, X);
                 }
         return;
     }

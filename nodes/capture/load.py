@@ -7,7 +7,9 @@ A pattern may contain '*': the matching files, sorted, are the frames (frame N =
 file (.avi, .mp4, .mov, .mkv) holds the frames itself: frame N is its N-th frame. Without '*', {frame} or a
 video, the data is static and only frame 0 exists. The background (clean plate) is always frame 0 of its
 pattern. Masks: "alpha" takes the images' alpha channel; else grey images thresholded at mask_threshold
-(the maximum over colour channels).
+(the maximum over colour channels). With several cameras every images, masks and background pattern needs a
+camera field ({cam}, {cam1}, {name}; {image} and {nerf_path} where they apply): one without would give every
+camera the same file, and is refused ('*' means frames, never cameras).
 
 Known dataset layouts are detected automatically: layouts.yaml beside this file lists them (a marker file
 pattern that identifies the folder, then the patterns); an unknown folder is read with ``load_cameras`` and
@@ -20,7 +22,9 @@ an image folder (images/, image/ or the folder itself) whose files are paired wi
   - anything else (duplicate numbers, several varying numbers, no numbers) is refused: give patterns.
 The pairing is logged (the item log), and a warning says when it was made from numbers. Masks come from
 a masks/ or mask/ folder beside the images (same names), or the masks pattern; patterns there may also use
-{image}, the stem of the camera's image file.
+{image}, the stem of the camera's image file. One pattern given on such a folder is completed the same way:
+calibration= alone reads that calibration and pairs the images as above; images= alone expands the pattern
+per camera of the calibration found in the folder, masks from masks/ or mask/ beside the images.
 
 With patterns, files that match a pattern but belong to no camera of the calibration (a calibration file
 missing) are an error, not a camera fewer. Only regular files are read (a FIFO or a device never is).
@@ -241,9 +245,17 @@ def pair_files(names: list[str], files: list[Path], folder: Path, what: str = "i
     return keep, paired
 
 
-def _generic(root: Path, frame: int, masks: str, background: str, log) -> tuple:
-    """Unknown folder: calibration found by load_cameras, images in images/ or image/ (or the folder), paired
-    with the cameras (pair_files); masks from masks/ or mask/ beside them, or the masks pattern."""
+def _generic(root: Path, frame: int, masks: str, background: str, log, calibration: str = "") -> tuple:
+    """Unknown folder: calibration found by load_cameras (or the ``calibration`` pattern), images in images/ or
+    image/ (or the folder), paired with the cameras (pair_files); masks from masks/ or mask/ beside them, or
+    the masks pattern."""
+    calib = root
+    if calibration:
+        hits = [Path(h) for h in sorted(glob.glob(str(root / calibration)))] if "*" in calibration else [root / calibration]
+        if len(hits) != 1 or not hits[0].exists():
+            raise DataError(f"{root}: calibration pattern '{calibration}' matches {len(hits) if '*' in calibration else 0} "
+                            "files (one is needed)")
+        calib = hits[0]
     img_dir = next((d for d in (root / "images", root / "image") if d.is_dir()), root)
     files = _regular(p for p in img_dir.iterdir() if p.suffix.lower() in IMAGE_EXTS)
     if not files:  # one folder per camera (COLMAP names them by the relative path: cam0/0001)
@@ -253,40 +265,49 @@ def _generic(root: Path, frame: int, masks: str, background: str, log) -> tuple:
     if frame != 0:
         raise DataError(f"{root}: frame {frame} out of range (a folder of images is a single frame; use patterns for sequences)")
     try:
-        cams = load_cameras(root)
+        cams = load_cameras(calib)
     except MissingImageSize:
-        names = camera_names(root)
+        names = camera_names(calib)
         keep, files = pair_files(names, files, img_dir, log=log)
         sizes = {names[i]: _size(f) for i, f in zip(keep, files)}
         some = next(iter(sizes.values()))
-        cams = load_cameras(root, image_sizes={n: sizes.get(n, some) for n in names})
+        cams = load_cameras(calib, image_sizes={n: sizes.get(n, some) for n in names})
     else:
         keep, files = pair_files(cams.names, files, img_dir, log=log)
     if len(keep) < len(cams):
         cams = Cameras([cams[i] for i in keep])
     extra = {c.name: {"image": f.stem} for c, f in zip(cams, files)}
+    _check_camera_fields(root, {"masks": masks, "background": background}, len(cams))
     mask_files = None
     if masks and masks != "alpha":
         mask_files = [_expand(root, masks, i, c.name, frame, extra) for i, c in zip(keep, cams)]
     elif not masks:
-        mask_dir = next((d for d in (img_dir.parent / "masks", img_dir.parent / "mask") if d.is_dir() and d != img_dir), None)
-        if mask_dir is not None:
-            exts = IMAGE_EXTS + (".pbm", ".pgm")
-            found = _regular(p for p in mask_dir.iterdir() if p.suffix.lower() in exts) or \
-                _regular(p for p in mask_dir.glob("*/*") if p.suffix.lower() in exts)
-            if found:
-                stems = [_relative_name(f, img_dir) for f in files]
-                mk, mf = pair_files(stems, found, mask_dir, what="mask", partner="image", log=log)
-                if len(mk) != len(stems):
-                    raise DataError(f"{mask_dir}: masks for {len(mk)} of the {len(stems)} images (missing: "
-                                    f"{_list(s for i, s in enumerate(stems) if i not in set(mk))}); give the masks pattern")
-                mask_files = [(f, None) for f in mf]
+        mask_files = _masks_beside(img_dir, files, log)
     bg = None
     if background:
         bg = ImageSet([_rgb(read_image(*_expand(root, background, i, c.name, 0, extra))) for i, c in zip(keep, cams)],
                       cams.names)
     mask_imgs = [read_image(p, f) for p, f in mask_files] if mask_files else None
     return cams, files, mask_imgs, [p for p, _ in mask_files] if mask_files else None, bg
+
+
+def _masks_beside(img_dir: Path, files: list[Path], log) -> list | None:
+    """(mask file, None) per image file from a masks/ or mask/ folder beside ``img_dir`` (paired by name), None
+    when there is none; a DataError when only some images have their mask."""
+    mask_dir = next((d for d in (img_dir.parent / "masks", img_dir.parent / "mask") if d.is_dir() and d != img_dir), None)
+    if mask_dir is None:
+        return None
+    exts = IMAGE_EXTS + (".pbm", ".pgm")
+    found = _regular(p for p in mask_dir.iterdir() if p.suffix.lower() in exts) or \
+        _regular(p for p in mask_dir.glob("*/*") if p.suffix.lower() in exts)
+    if not found:
+        return None
+    stems = [_relative_name(f, img_dir) for f in files]
+    mk, mf = pair_files(stems, found, mask_dir, what="mask", partner="image", log=log)
+    if len(mk) != len(stems):
+        raise DataError(f"{mask_dir}: masks for {len(mk)} of the {len(stems)} images (missing: "
+                        f"{_list(s for i, s in enumerate(stems) if i not in set(mk))}); give the masks pattern")
+    return [(f, None) for f in mf]
 
 
 def _size(path: Path) -> tuple[int, int]:
@@ -308,12 +329,14 @@ def load_capture(path, frame: int = 0, images: str = "", masks: str = "", backgr
         raise DataError(f"frame {frame} out of range (frames start at 0)")
     layout = detect_layout(root)
     given = {k: v for k, v in dict(images=images, masks=masks, background=background, calibration=calibration).items() if v}
-    if not layout and "images" not in given and "calibration" not in given:
-        cams, files, mask_imgs, mask_files, bg = _generic(root, frame, masks, background, log)
+    if not layout and "images" not in given:  # the images are found and paired with the cameras
+        cams, files, mask_imgs, mask_files, bg = _generic(root, frame, masks, background, log, calibration)
         imgs = [read_image(f) for f in files]
         return _assemble(cams, imgs, files, mask_imgs, bg, mask_threshold, masks or ("files" if mask_imgs else ""),
                          mask_files)
     pat = {**layout, **given}
+    if not layout and "calibration" not in pat:  # images given: the calibration is found as for the folder alone
+        pat["calibration"] = "."
     if "calibration" not in pat or "images" not in pat:
         raise NodeError(f"{root}: unknown dataset layout: give both the calibration and images patterns")
     calib = root / pat["calibration"]
@@ -331,15 +354,18 @@ def load_capture(path, frame: int = 0, images: str = "", masks: str = "", backgr
     # cameras first (their names expand the patterns); sizes from the images when the calibration has none
     try:
         if isinstance(calib, list):
+            _check_camera_fields(root, pat, len(calib))
             cams, raw, img_files = _per_folder_cameras(root, calib, pat["images"], frame, extra)
         else:
             cams = load_cameras(calib)
             raw = None
     except MissingImageSize:  # names first (they expand the patterns), then the sizes from those images
         names = camera_names(calib)
+        _check_camera_fields(root, pat, len(names))
         img_files = [_expand(root, pat["images"], i, n, frame, extra) for i, n in enumerate(names)]
         raw = [read_image(p, f) for p, f in img_files]
         cams = load_cameras(calib, image_sizes=[(im.shape[1], im.shape[0]) for im in raw])
+    _check_camera_fields(root, pat, len(cams))
     _check_camera_count(root, pat["images"], cams)
     for kind in ("images", "masks", "background"):
         if pat.get(kind) and pat[kind] != "alpha" and not extra:
@@ -352,8 +378,13 @@ def load_capture(path, frame: int = 0, images: str = "", masks: str = "", backgr
         bg = ImageSet([_rgb(read_image(*_expand(root, pat["background"], i, c.name, 0, extra))) for i, c in enumerate(cams)],
                       cams.names)
     mask_imgs = mask_files = None
+    found = None
     if pat.get("masks") and pat["masks"] != "alpha":
         found = [_expand(root, pat["masks"], i, c.name, frame, extra) for i, c in enumerate(cams)]
+    elif not layout and "masks" not in pat and len({p.parent for p, f in img_files if f is None}) == 1 \
+            and all(f is None for _, f in img_files):  # images= on an unknown folder: masks/ beside them, as without
+        found = _masks_beside(img_files[0][0].parent, [p for p, _ in img_files], log)
+    if found:
         mask_files = [p for p, _ in found]
         mask_imgs = [read_image(p, f) for p, f in found]
     out = _assemble(cams, raw, [p for p, _ in img_files], mask_imgs, bg, mask_threshold, pat.get("masks", ""), mask_files)
@@ -376,6 +407,57 @@ def _per_folder_cameras(root: Path, files: list[Path], images: str, frame: int, 
             raise DataError(f"{f}: {len(one)} cameras in a per-camera calibration file (expected one)")
         cams.append(replace(one[0], name=name))
     return Cameras(cams), raw, img_files
+
+
+CAMERA_FIELDS = ("cam", "cam1", "name", "image", "nerf_path")  # the fields that differ from camera to camera
+
+
+def _fields(pattern: str) -> set[str] | None:
+    """The field names of a pattern ({cam:03d} -> cam), None when it does not parse (``_expand`` says why)."""
+    import string
+
+    try:
+        return {re.split(r"[.\[]", f)[0] for _, f, _, _ in string.Formatter().parse(pattern) if f is not None}
+    except ValueError:
+        return None
+
+
+def _camera_field_example(root: Path, pattern: str) -> str:
+    """``pattern`` with a camera field where the file names it matches hold their number: images/*.jpg
+    matching image_0.jpg, image_1.jpg, ... -> images/image_{cam}.jpg ({cam1} when they count from 1)."""
+    anywhere = re.sub(r"\{[^}]*\}", "*", pattern)
+    files = _regular(glob.glob(str(root / anywhere)))[:10_000]
+    if files:
+        rel = Path(files[0].relative_to(root).as_posix())
+        runs = list(re.finditer(r"\d+", rel.name))
+        if runs:
+            nums = _digits([f.stem for f in files])
+            d = runs[-1].group()
+            field = "{cam1}" if nums and min(nums) == 1 else f"{{cam:0{len(d)}d}}" if len(d) > 1 and d[0] == "0" else "{cam}"
+            name = rel.name[:runs[-1].start()] + field + rel.name[runs[-1].end():]
+            return (rel.parent / name).as_posix()
+    if "*" in pattern:
+        return pattern.replace("*", "{cam}", 1)
+    stem, dot, ext = pattern.rpartition(".")
+    return f"{stem}_{{cam}}.{ext}" if dot else pattern + "_{cam}"
+
+
+def _check_camera_fields(root: Path, pat: dict, n: int):
+    """A NodeError for an images, masks or background pattern without a camera field when there are several
+    cameras: every camera would read the same file(s), and nothing downstream could tell."""
+    if n < 2:
+        return
+    for kind in ("images", "masks", "background"):
+        pattern = pat.get(kind)
+        if not pattern or pattern == "alpha":
+            continue
+        fields = _fields(pattern)
+        if fields is None or fields & set(CAMERA_FIELDS):
+            continue
+        star = " ('*' in a pattern means frames, not cameras)" if "*" in pattern else ""
+        raise NodeError(f"param '{kind}': the pattern '{pattern}' has no camera field, so all {n} cameras would read "
+                        "the same file; add {cam} (camera index from 0, e.g. {cam:03d}), {cam1} (from 1) or {name} "
+                        f"(camera name){star}; e.g. '{_camera_field_example(root, pattern)}'")
 
 
 def _check_camera_count(root: Path, pattern: str, cams: Cameras):

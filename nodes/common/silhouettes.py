@@ -5,7 +5,8 @@ The vote (``vote``; kernels/silhouette.h ``hull_vote``): a point's projection in
 silhouette, on background, or unseen (behind the camera or outside the image). min_views > 0 tolerates
 t = nviews - min_views background votes (t = 0 when min_views is 0), and the outside policy holds either way:
 policy "carve" needs every view to see the point and at most t to see it on background; policy "ignore"
-needs at most t views to see it on background and at least ``min_seen`` (1) to see it inside.
+needs at most t views to see it on background, at least one to see it inside, and at least ``min_seen`` views
+to see it at all (inside or on background; 0 or 1 = no more than that one).
 
 Host forms: uint8 masks checked against the cameras (``check_masks``), ``Silhouettes`` (packed cameras,
 binary masks, optional soft alpha or a signed-distance outline: the sub-pixel point test of refine and relax).
@@ -78,13 +79,13 @@ def centre_states(mask: np.ndarray, cam_row: np.ndarray, X: np.ndarray) -> np.nd
     return state
 
 
-def vote(n_in: np.ndarray, n_out: np.ndarray, nviews: int, min_views: int, policy: str, min_seen: int = 1) -> np.ndarray:
+def vote(n_in: np.ndarray, n_out: np.ndarray, nviews: int, min_views: int, policy: str, min_seen: int = 0) -> np.ndarray:
     """The hull's vote rule (see the module docstring): ``n_in`` / ``n_out`` views see the point inside / on
-    background, of ``nviews``."""
+    background, of ``nviews``; ``min_seen``: views that must see it (carve: all of them do)."""
     tolerance = nviews - min_views if min_views > 0 else 0
     if policy == "carve":
         return (n_in + n_out == nviews) & (n_out <= tolerance)
-    return (n_out <= tolerance) & (n_in >= max(1, min_seen))
+    return (n_out <= tolerance) & (n_in >= 1) & (n_in + n_out >= min_seen)
 
 
 # ---------------------------------------------------------------- OpenCL: silhouette bits
@@ -215,6 +216,21 @@ def silhouette_windows(sil: SilhouetteBits) -> np.ndarray:
     """(V, 4) int32 ``block_window`` per view of device silhouettes, from their block tables."""
     return np.array([block_window(np.diff(np.diff(t, axis=0), axis=1), w, h)
                      for t, (w, h) in zip(sil.block_tables(), sil.sizes)], np.int32).reshape(-1, 4)
+
+
+def border_views(masks) -> list[int]:
+    """The views whose silhouette touches the image border: a mask (host uint8, inside when > 127) with an
+    inside pixel in its first or last row or column; device ``SilhouetteBits``: an inside pixel in the 8x8
+    blocks along the border (their block tables; no read-back of the bits)."""
+    if isinstance(masks, SilhouetteBits):
+        return [v for v, ((x0, y0, w, h), (W, H)) in enumerate(zip(silhouette_windows(masks), masks.sizes))
+                if w > 0 and (x0 == 0 or y0 == 0 or x0 + w == W or y0 + h == H)]
+    out = []
+    for v, m in enumerate(masks):
+        m = np.asarray(m)
+        if (m[0] > 127).any() or (m[-1] > 127).any() or (m[:, 0] > 127).any() or (m[:, -1] > 127).any():
+            out.append(v)
+    return out
 
 
 # ---------------------------------------------------------------- silhouettes

@@ -2,7 +2,9 @@
 
 Automatic: the point nearest to the viewing rays through the silhouettes' centroids, a box sized from the
 silhouettes' extents, then a coarse NumPy visual hull in that box, grown while the hull touches a side and
-tightened to the occupied voxels (+ one voxel + a margin). Or an explicit ``bbox`` param.
+tightened to the occupied voxels (+ one voxel + a margin). Or an explicit ``bbox`` param. The coarse hull
+keeps only voxels that at least ``min_seen`` views see (default: half the views, at least 2), so the box never
+grows into what fewer views constrain (e.g. the far side of a zoomed or partial rig).
 """
 from __future__ import annotations
 
@@ -75,12 +77,17 @@ def initial_box(masks: list[np.ndarray], cameras: Cameras) -> np.ndarray:
     return np.array([p0 - 1.5 * radius, p0 + 1.5 * radius])
 
 
-def auto_bounds(masks: list[np.ndarray], cameras: Cameras, resolution: int = 64, margin: float = 0.05) -> np.ndarray:
-    """Box [[xmin ymin zmin], [xmax ymax zmax]] around the object seen in ``masks`` (see module docstring)."""
+def auto_bounds(masks: list[np.ndarray], cameras: Cameras, resolution: int = 64, margin: float = 0.05,
+                min_seen: int = 0) -> np.ndarray:
+    """Box [[xmin ymin zmin], [xmax ymax zmax]] around the object seen in ``masks`` (see module docstring);
+    ``min_seen`` 0: the default rule of ``coarse_hull``."""
     masks = check_masks(masks, cameras, "bounds")
+    if min_seen > len(cameras):
+        raise NodeError(f"bounds: min_seen {min_seen} is more than the {len(cameras)} cameras")
+    seen = min_seen or None
     box = initial_box(masks, cameras)
     for _ in range(6):
-        occ = coarse_hull(masks, cameras, box, resolution)
+        occ = coarse_hull(masks, cameras, box, resolution, seen)
         if not occ.any():
             raise NodeError("bounds: the silhouettes do not intersect in space (wrong cameras or masks?)")
         occ_box, tlo, thi = _occupied_box(occ, box)
@@ -91,7 +98,7 @@ def auto_bounds(masks: list[np.ndarray], cameras: Cameras, resolution: int = 64,
     # tighten: a second pass in the occupied box (+ one coarse voxel) at the same resolution
     vs = (box[1] - box[0]) / np.array(occ.shape)
     box = occ_box + np.array([-vs, vs])
-    occ = coarse_hull(masks, cameras, box, resolution)
+    occ = coarse_hull(masks, cameras, box, resolution, seen)
     if occ.any():
         occ_box, _, _ = _occupied_box(occ, box)
     vs = (box[1] - box[0]) / np.array(occ.shape)

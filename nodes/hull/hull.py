@@ -20,7 +20,8 @@ import numpy as np
 from kernels import source
 from nodegraph import NodeError, clrt
 from nodes.common.cameras import PACK_FLOATS, Cameras
-from nodes.common.silhouettes import POLICIES, SilhouetteBits, centre_states, check_masks, check_silhouettes, vote
+from nodes.common.silhouettes import (POLICIES, SilhouetteBits, border_views, centre_states, check_masks,
+                                      check_silhouettes, vote)
 from nodes.common.types import VoxelGrid
 
 COARSE_CELLS = 16  # the first sparse level has at most this many cells along the longest side
@@ -48,9 +49,26 @@ def check_in_front(cameras: Cameras, box: np.ndarray):
                         f"{', '.join(behind)}: check their R|t (world -> camera) or the box, or set outside: ignore")
 
 
+def border_warning(masks, cameras: Cameras, policy: str) -> str | None:
+    """With policy "carve", a warning when the silhouettes touch the image border in most views (more than
+    half): the object is cut there, and carve drops every voxel projecting outside an image, losing what lies
+    beyond the border; "ignore" keeps it. None otherwise. ``masks``: a MaskSet, host arrays or SilhouetteBits."""
+    if policy != "carve" or len(cameras) < 2:
+        return None
+    if getattr(masks, "device", None) is not None:
+        masks = masks.device
+    views = border_views(masks if isinstance(masks, SilhouetteBits) else getattr(masks, "masks", masks))
+    if 2 * len(views) <= len(cameras):
+        return None
+    names = ", ".join(cameras[v].name for v in views[:8]) + (f" and {len(views) - 8} more" if len(views) > 8 else "")
+    return (f"hull: the silhouettes touch the image border in {len(views)} of the {len(cameras)} views ({names}): "
+            "the object is cut by the image border there, and outside: carve removes every voxel that projects "
+            "outside an image, so what lies beyond the border is lost; set outside: ignore to keep it")
+
+
 # ---------------------------------------------------------------- NumPy reference
 def hull_reference(masks: list[np.ndarray], cameras: Cameras, bbox_min, voxel_size, dims, min_views=0,
-                   policy="carve") -> np.ndarray:
+                   policy="carve", min_seen=0) -> np.ndarray:
     """Dense visual hull in NumPy (uint8 0/1, shape dims): the definition the kernels must reproduce."""
     f = np.float32
     bmin, vs = np.asarray(bbox_min, f), np.asarray(voxel_size, f)
@@ -63,7 +81,7 @@ def hull_reference(masks: list[np.ndarray], cameras: Cameras, bbox_min, voxel_si
         s = centre_states(m, packed[v], X)
         n_in += s == 1
         n_out += s == 2
-    return vote(n_in, n_out, len(masks), min_views, policy).astype(np.uint8).reshape(dims)
+    return vote(n_in, n_out, len(masks), min_views, policy, min_seen).astype(np.uint8).reshape(dims)
 
 
 class HullCL(clrt.Runner):
@@ -78,13 +96,13 @@ class HullCL(clrt.Runner):
         self.silhouettes: SilhouetteBits | None = None  # what hull() packs host masks into, reused between frames
 
     def hull(self, masks, cameras: Cameras, bbox_min, voxel_size, dims, min_views=0, policy="carve",
-             method="sparse") -> np.ndarray:
+             method="sparse", min_seen=0) -> np.ndarray:
         """Hull of host masks (list of uint8 (H, W)): packed to device bits, then ``carve``."""
         self.silhouettes = SilhouetteBits.from_masks(masks, out=self.silhouettes)
-        return self.carve(self.silhouettes, cameras, bbox_min, voxel_size, dims, min_views, policy, method)
+        return self.carve(self.silhouettes, cameras, bbox_min, voxel_size, dims, min_views, policy, method, min_seen)
 
     def carve(self, sil: SilhouetteBits, cameras: Cameras, bbox_min, voxel_size, dims, min_views=0, policy="carve",
-              method="sparse") -> np.ndarray:
+              method="sparse", min_seen=0) -> np.ndarray:
         """Occupancy (uint8 0/1, shape dims) of the voxel grid from device silhouettes."""
         import pyopencl as cl
 
@@ -95,7 +113,8 @@ class HullCL(clrt.Runner):
         bits, boff, sat, soff = sil.bits, sil.bit_off_buf, sil.sat, sil.sat_off_buf
         nx, ny, nz = dims
         f4 = lambda a: np.array([*np.asarray(a, np.float32), 0], np.float32)  # noqa: E731
-        common = (np.int32(nx), np.int32(ny), np.int32(nz), np.int32(min_views), np.int32(POLICIES.index(policy)))
+        common = (np.int32(nx), np.int32(ny), np.int32(nz), np.int32(min_views), np.int32(POLICIES.index(policy)),
+                  np.int32(min_seen))
         geo = (f4(bbox_min), f4(voxel_size))
         vol = self.buffer("vol", nx * ny * nz)
         nviews = np.int32(len(sil))
@@ -129,9 +148,11 @@ class HullCL(clrt.Runner):
         return self.coarse[key]
 
 
-def visual_hull(masks, cameras: Cameras, box, resolution=128, min_views=0, policy="carve", method="sparse") -> VoxelGrid:
+def visual_hull(masks, cameras: Cameras, box, resolution=128, min_views=0, policy="carve", method="sparse",
+                min_seen=0) -> VoxelGrid:
     """Visual hull over ``box`` (2, 3) as a VoxelGrid of uint8 0/1, from ``masks``: a MaskSet, or SilhouetteBits
-    already on the device (from the chroma key, as such or as the ``device`` of its MaskSet: no host round trip)."""
+    already on the device (from the chroma key, as such or as the ``device`` of its MaskSet: no host round trip).
+    ``min_seen`` k > 0: a voxel also needs k views that see it (policy "ignore"; "carve" needs all of them)."""
     if getattr(masks, "device", None) is not None and method != "numpy":
         masks = masks.device
     on_device = isinstance(masks, SilhouetteBits)
@@ -141,6 +162,8 @@ def visual_hull(masks, cameras: Cameras, box, resolution=128, min_views=0, polic
         arrays = check_masks(masks, cameras, "hull")
     if min_views > len(cameras):
         raise NodeError(f"hull: min_views {min_views} is more than the {len(cameras)} cameras")
+    if min_seen > len(cameras):
+        raise NodeError(f"hull: min_seen {min_seen} is more than the {len(cameras)} cameras")
     box = np.asarray(box, dtype=np.float64).reshape(2, 3)
     with np.errstate(over="ignore", invalid="ignore"):
         ext32 = box[1].astype(np.float32) - box[0].astype(np.float32)     # the kernels' arithmetic
@@ -151,9 +174,10 @@ def visual_hull(masks, cameras: Cameras, box, resolution=128, min_views=0, polic
     bmin, bmax, dims = hull_grid(box, resolution)
     vs = (bmax - bmin) / np.array(dims)
     if method == "numpy":
-        occ = hull_reference(masks.masks() if on_device else arrays, cameras, bmin, vs, dims, min_views, policy)
+        occ = hull_reference(masks.masks() if on_device else arrays, cameras, bmin, vs, dims, min_views, policy,
+                             min_seen)
     elif on_device:
-        occ = HullCL.get().carve(masks, cameras, bmin, vs, dims, min_views, policy, method)
+        occ = HullCL.get().carve(masks, cameras, bmin, vs, dims, min_views, policy, method, min_seen)
     else:
-        occ = HullCL.get().hull(arrays, cameras, bmin, vs, dims, min_views, policy, method)
+        occ = HullCL.get().hull(arrays, cameras, bmin, vs, dims, min_views, policy, method, min_seen)
     return VoxelGrid(occ, bmin, bmax)

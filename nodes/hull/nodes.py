@@ -9,7 +9,7 @@ from nodes.common.silhouettes import POLICIES
 from nodes.common.types import Bounds as BoundsType, CameraSet, Masks, Volume
 
 from .bounds import auto_bounds
-from .hull import visual_hull
+from .hull import border_warning, visual_hull
 
 
 class Bounds(Node):
@@ -24,9 +24,11 @@ class Bounds(Node):
         "bbox": Param(list, None, item=float, length=6, doc="explicit box [xmin ymin zmin xmax ymax zmax]"),
         "margin": Param(float, 0.05, range=(0.0, 1.0), doc="added on each side, as a fraction of the largest extent"),
         "resolution": Param(int, 64, range=(16, 256), doc="coarse hull voxels along the longest side"),
+        "min_seen": Param(int, 0, range=(0, None), doc="coarse hull voxels need k views that see them (the box "
+                          "never grows past what k views constrain); 0 = half the views, at least 2"),
     }
 
-    def run(self, masks, cameras, *, bbox, margin, resolution):
+    def run(self, masks, cameras, *, bbox, margin, resolution, min_seen):
         if bbox is not None:
             box = np.array(bbox, dtype=np.float64).reshape(2, 3)
             if not np.all(box[1] > box[0]):
@@ -34,7 +36,7 @@ class Bounds(Node):
             return {"bounds": box}
         if masks is None or cameras is None:
             raise NodeError("bounds: connect masks and cameras, or give the bbox param")
-        return {"bounds": auto_bounds(masks.masks, cameras, resolution, margin)}
+        return {"bounds": auto_bounds(masks.masks, cameras, resolution, margin, min_seen)}
 
 
 class Hull(Node):
@@ -50,11 +52,13 @@ class Hull(Node):
         "bbox": Param(list, None, item=float, length=6, doc="xmin ymin zmin xmax ymax zmax; default: the bounds input"),
         "min_views": Param(int, 0, range=(0, None), doc="0 = all views; k = inside at least k silhouettes"),
         "outside": Param(str, "carve", choices=POLICIES, doc="voxels projecting outside an image: carve, or ignore that view"),
+        "min_seen": Param(int, 0, range=(0, None), doc="0 = off; k = keep a voxel only if at least k views see it "
+                          "(in front, inside the image): for outside: ignore (carve needs every view)"),
         "method": Param(str, "sparse", choices=("sparse", "dense", "numpy"), doc="coarse-to-fine, every voxel, or NumPy"),
     }
     kernels = [source("hull.cl")]
 
-    def run(self, masks, cameras, bounds=None, *, resolution, bbox, min_views, outside, method):
+    def run(self, masks, cameras, bounds=None, *, resolution, bbox, min_views, outside, min_seen, method):
         if bbox is not None:
             box = np.array(bbox, dtype=np.float64).reshape(2, 3)
             if not np.all(box[1] > box[0]):
@@ -63,7 +67,10 @@ class Hull(Node):
             box = np.asarray(bounds, dtype=np.float64)
         else:
             raise NodeError("hull: no box to carve: set param 'bbox' or connect the 'bounds' input")
-        volume = visual_hull(masks, cameras, box, resolution, min_views, outside, method)
+        volume = visual_hull(masks, cameras, box, resolution, min_views, outside, method, min_seen)
+        cut = border_warning(masks, cameras, outside)
+        if cut:
+            self.log.warning("%s", cut)
         if not volume.occupancy.any():
             self.log.warning("hull: no voxel is inside the silhouettes: the box %s misses the object, or the masks "
                              "and cameras disagree (the mesh will be empty)", np.round(box, 6).ravel().tolist())

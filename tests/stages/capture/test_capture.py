@@ -1,5 +1,7 @@
 """The capture node on a synthetic dataset written in the test, its errors, video frames, the bounds node,
 and a golden check on the INRIA dancer."""
+import re
+
 import cv2
 import numpy as np
 import pytest
@@ -206,3 +208,61 @@ def test_cameras_named_by_relative_path_keep_their_own_images(tmp_path):
         ImageSet([np.zeros((H, W, 3), np.uint8)] * 2, ["a", "a"])
     with pytest.raises(DataError, match="camera names must be unique: 'a' \\(2x\\)"):
         MaskSet([one, one], names=["a", "a"])
+
+
+def write_ptext_dataset(root, cams):
+    """A P-matrix text file (calib.txt, no names, no sizes) and images/image_{i}.jpg, masks/image_{i}.png: a
+    folder of no known layout."""
+    lines = [f"{len(cams)}"]
+    for v in range(len(cams)):
+        lines.append(" ".join(f"{x:.12g}" for x in cams[v].P.ravel()))
+    (root / "calib.txt").write_text("\n".join(lines) + "\n")
+    (root / "images").mkdir()
+    (root / "masks").mkdir()
+    for v in range(len(cams)):
+        img = np.full((H, W, 3), 20 * v + 10, np.uint8)
+        cv2.imwrite(str(root / "images" / f"image_{v}.jpg"), img)
+        cv2.imwrite(str(root / "masks" / f"image_{v}.png"), sphere_mask(cams, v))
+
+
+@pytest.mark.parametrize("param, pattern", [
+    ("images", "images/*.jpg"),
+    ("images", "images/image_0.jpg"),
+    ("masks", "masks/*.png"),
+    ("background", "images/image_0.jpg"),
+])
+def test_pattern_without_camera_field_is_refused(tmp_path, param, pattern):
+    """'*' means frames: a pattern without {cam}, {cam1} or {name} gives every camera the same file."""
+    cams = sphere_rig(4)
+    write_ptext_dataset(tmp_path, cams)
+    given = {"images": "images/image_{cam}.jpg", "calibration": "calib.txt", param: pattern}
+    msg = (f"param '{param}': the pattern '{pattern}' has no camera field, so all 4 cameras would read the same "
+           f"file; add {{cam}} (camera index from 0, e.g. {{cam:03d}}), {{cam1}} (from 1) or {{name}} (camera name)")
+    with pytest.raises(NodeError, match=re.escape(msg)):
+        load_capture(tmp_path, 0, **given)
+
+
+def test_pattern_without_camera_field_suggests_one(tmp_path):
+    cams = sphere_rig(3)
+    write_ptext_dataset(tmp_path, cams)
+    with pytest.raises(NodeError, match=re.escape("'*' in a pattern means frames, not cameras); e.g. 'images/image_{cam}.jpg'")):
+        load_capture(tmp_path, 0, images="images/*.jpg", calibration="calib.txt")
+    one = sphere_rig(1)
+    single = tmp_path / "single"
+    single.mkdir()
+    write_ptext_dataset(single, one)
+    assert load_capture(single, 0, images="images/*.jpg", calibration="calib.txt")["cameras"].names == ["cam000"]
+
+
+def test_one_pattern_is_completed_from_the_folder(tmp_path):
+    """calibration= alone, or images= alone, on a folder that loads by itself: the other is auto-detected."""
+    cams = sphere_rig(4)
+    write_ptext_dataset(tmp_path, cams)
+    auto = load_capture(tmp_path)
+    for given in ({"calibration": "calib.txt"}, {"images": "images/image_{cam}.jpg"},
+                  {"calibration": "calib.txt", "masks": "masks/image_{cam}.png"}):
+        got = load_capture(tmp_path, 0, **given)
+        assert got["cameras"].names == auto["cameras"].names, given
+        for v in range(len(cams)):
+            assert np.array_equal(got["images"].images[v], auto["images"].images[v]), given
+            assert np.array_equal(got["masks"].masks[v], auto["masks"].masks[v]), given

@@ -234,3 +234,41 @@ def test_bounds_golden(small_stage, golden):
     from nodegraph import Array
 
     golden.check("bounds_figure_8cams", box, Array, atol=1e-6)
+
+
+def hull_warnings(masks, cams, **params) -> list[str]:
+    records = []
+    handler = logging.Handler(logging.WARNING)
+    handler.emit = records.append
+    logging.getLogger("volcap").addHandler(handler)
+    try:
+        run_node("hull", {"masks": masks, "cameras": cams}, {"resolution": 12, "bbox": BOX.ravel().tolist(), **params})
+    finally:
+        logging.getLogger("volcap").removeHandler(handler)
+    return [r.getMessage() for r in records]
+
+
+def test_silhouettes_cut_by_the_border_in_most_views_warn_with_carve():
+    """outside: carve drops every voxel projecting outside an image: an object cut by the border of most
+    views loses what lies beyond it; the hull's log says so, naming the views and outside: ignore."""
+    cams = ring(6, 64, 48)
+    base = sphere_masks(cams).masks
+
+    def cut(views):
+        out = [m.copy() for m in base]
+        for v in views:
+            out[v][20:30, -1] = 255 if v % 2 else 0
+            out[v][-1, 30:34] = 0 if v % 2 else 255
+        return MaskSet(out)
+
+    msg = ("hull: the silhouettes touch the image border in 4 of the 6 views (c0, c1, c2, c4): the object is cut "
+           "by the image border there, and outside: carve removes every voxel that projects outside an image, so "
+           "what lies beyond the border is lost; set outside: ignore to keep it")
+    assert msg in hull_warnings(cut([0, 1, 2, 4]), cams)
+    from nodes.common.silhouettes import SilhouetteBits
+
+    host = cut([0, 1, 2, 4])
+    on_device = MaskSet(host.masks, device=SilhouetteBits.from_masks(host.masks))  # read from the block tables
+    assert msg in hull_warnings(on_device, cams)
+    assert not any("image border" in w for w in hull_warnings(cut([0, 1, 2, 4]), cams, outside="ignore"))
+    assert not any("image border" in w for w in hull_warnings(cut([0, 3, 5]), cams))  # half the views: not most

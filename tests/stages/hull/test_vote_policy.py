@@ -114,3 +114,73 @@ def test_point_test_of_refine_and_relax_follows_the_same_rule(policy):
         assert ref.sum() > 500 and not np.any(ref & outside0)
     else:
         assert (ref & outside0).sum() > 300
+
+
+# ---------------------------------------------------------------- min_seen (issue: refuse what goes wrong silently)
+@pytest.mark.parametrize("n_in, n_bg, min_views, policy, min_seen, inside", [
+    (2, 0, 0, "ignore", 3, False),   # inside the 2 silhouettes that see it, but only 2 views constrain it
+    (3, 0, 0, "ignore", 3, True),
+    (2, 1, 3, "ignore", 3, True),    # 3 views see it (one on background, tolerated): seen counts both
+    (2, 1, 3, "ignore", 4, False),
+    (1, 0, 0, "ignore", 0, True), (1, 0, 0, "ignore", 1, True), (0, 0, 0, "ignore", 0, False),
+    (4, 0, 0, "carve", 4, True), (3, 1, 3, "carve", 4, True),
+])
+def test_vote_table_min_seen(n_in, n_bg, min_views, policy, min_seen, inside):
+    got = vote(np.array([n_in]), np.array([n_bg]), 4, min_views, policy, min_seen=min_seen)
+    assert bool(got[0]) is inside
+
+
+@pytest.mark.parametrize("res", [28, 70])  # 70: three sparse levels, the coarse cell test decides too
+def test_min_seen_in_the_hull_kernels_and_reference(res):
+    """min_seen k: kept only when at least k views see the voxel (in front, inside the image), and the vote
+    holds in those; dense and sparse OpenCL == NumPy. ignore + min_seen = every view is carve."""
+    cams = zoomed_rig()
+    masks = ball_masks(cams)
+    X = voxel_centres(res)
+    seen = sum(seen_by(cams, v, X).astype(int) for v in range(len(cams)))
+    plain = hulls(masks, cams, res, policy="ignore").ravel() > 0
+    assert (plain & (seen < 6)).sum() > 300
+    for k in (5, 6):
+        got = hulls(masks, cams, res, policy="ignore", min_seen=k).ravel() > 0
+        assert got.sum() > 500 and not np.any(got & (seen < k)) and np.all(got <= plain), k
+    assert np.array_equal(hulls(masks, cams, res, policy="ignore", min_seen=6), hulls(masks, cams, res, policy="carve"))
+    for min_views, k in ((5, 5), (4, 6)):  # background votes tolerated: a coarse cell partly seen is not inside
+        tolerant = hulls(masks, cams, res, policy="ignore", min_views=min_views, min_seen=k).ravel() > 0
+        assert tolerant.sum() > 500 and not np.any(tolerant & (seen < k)), (min_views, k)
+    assert np.array_equal(hulls(masks, cams, res, policy="ignore", min_seen=1), hulls(masks, cams, res, policy="ignore"))
+
+
+def test_min_seen_param_of_hull_and_bounds():
+    from nodegraph import NodeError
+    from nodegraph.testing import run_node
+
+    cams = zoomed_rig()
+    masks = ball_masks(cams)
+    box = BOX.ravel().tolist()
+    a = run_node("hull", {"masks": masks, "cameras": cams}, {"resolution": 16, "bbox": box, "outside": "ignore",
+                                                            "min_seen": 6})["volume"].occupancy
+    b = run_node("hull", {"masks": masks, "cameras": cams}, {"resolution": 16, "bbox": box})["volume"].occupancy
+    assert np.array_equal(a, b) and a.sum() > 0
+    for node, params in (("hull", {"bbox": box}), ("bounds", {})):
+        with pytest.raises(NodeError, match=f"{node}: min_seen 7 is more than the 6 cameras"):
+            run_node(node, {"masks": masks, "cameras": cams}, {**params, "min_seen": 7})
+    default = run_node("bounds", {"masks": masks, "cameras": cams})["bounds"]
+    same = run_node("bounds", {"masks": masks, "cameras": cams}, {"min_seen": 3})["bounds"]  # the default rule's k
+    np.testing.assert_array_equal(default, same)
+
+
+def test_auto_bounds_hold_only_what_k_views_constrain():
+    """The bounds' coarse hull keeps only voxels seen by at least min_seen views, so the box never grows into
+    what fewer views constrain: with every view required it lies in what camera 0 (zoomed) sees."""
+    from nodes.hull.bounds import auto_bounds, coarse_hull
+
+    cams = zoomed_rig()
+    masks = ball_masks(cams, radius=0.9).masks
+    occ = coarse_hull(masks, cams, BOX, 24, min_seen=6)
+    bmin, bmax = BOX
+    axes = [bmin[a] + (np.arange(n) + 0.5) * (bmax[a] - bmin[a]) / n for a, n in enumerate(occ.shape)]
+    X = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    assert occ.sum() > 100 and np.all(seen_by(cams, 0, X[occ.ravel()]))
+    loose, strict = auto_bounds(masks, cams, margin=0.0), auto_bounds(masks, cams, margin=0.0, min_seen=6)
+    assert np.all(strict[0] >= loose[0] - 1e-9) and np.all(strict[1] <= loose[1] + 1e-9)
+    assert np.prod(strict[1] - strict[0]) < 0.9 * np.prod(loose[1] - loose[0])
