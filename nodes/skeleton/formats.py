@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from nodes.common.types import FPS
+
 
 def _names(names: list[str], count: int) -> list[str]:
     """Valid, unique USD/glTF joint names."""
@@ -72,14 +74,14 @@ def sparse_influences(weights: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarr
 
 # ---------------------------------------------------------------- USD
 def write_usd(path: Path, vertices, faces, joints, parents, names, weights, rotations, translations, frames,
-              fps: float = 24.0, influences: int = 4):
+              fps: float = FPS, influences: int = 4):
     """Write a UsdSkel rig: /Rig (SkelRoot) with Skeleton, its Animation and the bound Mesh."""
     Path(path).write_bytes(usd_bytes(vertices=vertices, faces=faces, joints=joints, parents=parents, names=names,
                                      weights=weights, rotations=rotations, translations=translations, frames=frames,
                                      fps=fps, influences=influences))
 
 
-def usd_bytes(vertices, faces, joints, parents, names, weights, rotations, translations, frames, fps: float = 24.0,
+def usd_bytes(vertices, faces, joints, parents, names, weights, rotations, translations, frames, fps: float = FPS,
               influences: int = 4) -> bytes:
     """The UsdSkel rig of ``write_usd`` as the bytes of a binary .usd layer."""
     from nodes.common.usd import UsdStage
@@ -135,7 +137,7 @@ def read_usd(path: Path) -> dict:
 
 
 # ---------------------------------------------------------------- glTF
-def gltf_bytes(vertices, faces, joints, parents, names, weights, rotations, translations, frames, fps: float = 24.0,
+def gltf_bytes(vertices, faces, joints, parents, names, weights, rotations, translations, frames, fps: float = FPS,
                influences: int = 4) -> bytes:
     """A binary glTF (GLB): one skinned mesh, its joint nodes, one animation (LINEAR)."""
     from nodes.common.gltf import GltfBuilder

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from nodes.common.types import sequence_segments
+from nodes.common.types import FPS, sequence_segments
 
 
 def frame_numbers(meshes) -> list[int]:
@@ -25,7 +25,7 @@ def frame_numbers(meshes) -> list[int]:
 
 
 # ---------------------------------------------------------------- USD
-def usd_bytes(meshes, fps: float = 25.0) -> bytes:
+def usd_bytes(meshes, fps: float = FPS) -> bytes:
     """The sequence as a binary USD layer (see the module docstring)."""
     from nodes.common.usd import UsdStage
 
@@ -60,7 +60,7 @@ def usd_points(data: bytes, frame: int) -> np.ndarray:
 
 
 # ---------------------------------------------------------------- glTF
-def gltf_bytes(meshes, fps: float = 25.0) -> bytes:
+def gltf_bytes(meshes, fps: float = FPS) -> bytes:
     """The sequence as a binary glTF (.glb) with morph-target animation (see the module docstring)."""
     from nodes.common.gltf import GltfBuilder
 

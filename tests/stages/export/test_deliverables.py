@@ -9,7 +9,7 @@ import pytest
 import trimesh
 
 from nodegraph.testing import run_node
-from nodes.common.types import SkeletonData
+from nodes.common.types import FPS, SkeletonData
 
 
 @pytest.fixture(scope="module")
@@ -92,3 +92,24 @@ def test_the_validators_catch_what_they_are_run_for():
     errors = validation_errors({"bare.usda": UsdStage(up_axis=None).save("bare.usda")}, "bare.usda")
     assert any(e.startswith("MissingUpAxisMetadata") for e in errors)
     assert any(e.startswith("MissingDefaultPrim") for e in errors)
+
+
+def test_the_dynamic_mesh_and_the_rig_keep_one_clock(sequence, rig):
+    import pygltflib as G
+
+    from nodes.common.usd import opened
+
+    from nodegraph import node_class
+
+    assert node_class("track.export").params["fps"] is node_class("skeleton.export").params["fps"]    # one parameter
+    sk, rest = rig
+    dyn = run_node("track.export", {"sequence": sequence}, {"name": "dyn", "formats": ["usd", "gltf"]})["files"]
+    rig_files = run_node("skeleton.export", {"skeleton": sk, "rest": rest}, {"name": "rig"})["files"]
+    for name, data in (("dyn.usdc", dyn["dyn.usdc"]), ("rig.usd", rig_files["rig.usd"])):
+        with opened(data, "." + name.split(".")[-1]) as stage:
+            assert stage.GetTimeCodesPerSecond() == FPS and stage.GetFramesPerSecond() == FPS, name
+    assert G.GLTF2.load_from_bytes(dyn["dyn.glb"]).extras["fps"] == FPS
+    from nodes.skeleton import formats
+
+    times = formats.read_gltf(rig_files["rig.glb"])["times"]
+    np.testing.assert_allclose(times[1] - times[0], 1 / FPS, rtol=1e-6)

@@ -224,7 +224,7 @@ def test_exports_round_trip(tube_nodes, tmp_path):
     assert np.abs(usd["skinned"] - ours).max() < 1e-5              # UsdSkel's own skinning at frame k
     gl = formats.read_gltf(files["tube.glb"])
     assert len(gl["joints"]) == 3 and len(gl["times"]) == 12
-    np.testing.assert_allclose(gl["times"], np.arange(12) / 24.0, atol=1e-6)
+    np.testing.assert_allclose(gl["times"], np.arange(12) / 25.0, atol=1e-6)
     assert np.abs(gl["skinned"] - ours).max() < 1e-5               # skin matrices x inverse bind at keyframe k
     assert np.allclose(gl["weights"].sum(1), 1, atol=1e-6)
 
