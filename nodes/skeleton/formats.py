@@ -139,8 +139,10 @@ def read_usd(path: Path) -> dict:
 # ---------------------------------------------------------------- glTF
 def gltf_bytes(vertices, faces, joints, parents, names, weights, rotations, translations, frames, fps: float = FPS,
                influences: int = 4) -> bytes:
-    """A binary glTF (GLB): one skinned mesh, its joint nodes, one animation (LINEAR)."""
+    """A binary glTF (GLB): one skinned mesh (rest POSITION and smooth NORMAL, which the skin moves too), its
+    joint nodes, one animation (LINEAR)."""
     from nodes.common.gltf import GltfBuilder
+    from nodes.common.meshops import smooth_vertex_normals
 
     from .skinning import topological
 
@@ -160,7 +162,8 @@ def gltf_bytes(vertices, faces, joints, parents, names, weights, rotations, tran
     trans = local[..., :3, 3]
 
     b = GltfBuilder("volcap skeleton")
-    body = b.node("mesh", mesh=b.mesh(vertices, faces, joints=idx, weights=w))
+    body = b.node("mesh", mesh=b.mesh(vertices, faces, normals=smooth_vertex_normals(vertices, faces), joints=idx,
+                                      weights=w))
     nodes = {}
     for j in topological(parents):                                        # a joint's parent node exists before it
         nodes[j] = b.node(names[j], parent=nodes[parents[j]] if parents[j] >= 0 else None,

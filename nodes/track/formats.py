@@ -3,8 +3,8 @@
     USD (usd-core)   one UsdGeom.Mesh per segment under /DynamicMesh: faces once, ``points`` (and ``extent``)
                      time-sampled at the frame numbers, ``visibility`` invisible outside the segment's frames;
                      binary crate (.usdc), up axis Z, metres, time codes per second = fps.
-    glTF (pygltflib) one node + mesh per segment: its first frame as the base POSITION, every later frame a
-                     morph target (displacement), an animation whose STEP weights switch on one target per
+    glTF (pygltflib) one node + mesh per segment: its first frame as the base POSITION and NORMAL (smooth),
+                     every later frame a morph target (POSITION and NORMAL displacements), an animation whose STEP weights switch on one target per
                      frame and whose STEP scale shows the node only during its segment (.glb).
     Draco (DracoPy)  per segment its connectivity once (a mesh, vertex order preserved) and per frame its
                      positions only (a point cloud, vertex order preserved: vertex i stays the same surface point
@@ -63,6 +63,7 @@ def usd_points(data: bytes, frame: int) -> np.ndarray:
 def gltf_bytes(meshes, fps: float = FPS) -> bytes:
     """The sequence as a binary glTF (.glb) with morph-target animation (see the module docstring)."""
     from nodes.common.gltf import GltfBuilder
+    from nodes.common.meshops import smooth_vertex_normals
 
     frames = frame_numbers(meshes)
     b = GltfBuilder("volcap track.export")
@@ -70,9 +71,11 @@ def gltf_bytes(meshes, fps: float = FPS) -> bytes:
     end = (frames[-1] - t0) / fps if frames else 0.0
     for s, (a, c) in enumerate(sequence_segments(meshes)):
         base = np.asarray(meshes[a].vertices, np.float32)
-        targets = [np.asarray(meshes[k].vertices, np.float32) - base for k in range(a + 1, c)]
+        normals = [smooth_vertex_normals(meshes[k].vertices, meshes[a].faces).astype(np.float32) for k in range(a, c)]
+        targets = [{"POSITION": np.asarray(meshes[k].vertices, np.float32) - base, "NORMAL": normals[k - a] - normals[0]}
+                   for k in range(a + 1, c)]
         name = f"segment_{s:04d}"
-        node = b.node(name, mesh=b.mesh(base, meshes[a].faces, targets=targets, name=name),
+        node = b.node(name, mesh=b.mesh(base, meshes[a].faces, normals=normals[0], targets=targets, name=name),
                       scale=[0.0, 0.0, 0.0] if a > 0 else None)
         times = np.array([(frames[k] - t0) / fps for k in range(a, c)], np.float32)
         if targets:

@@ -113,3 +113,41 @@ def test_the_dynamic_mesh_and_the_rig_keep_one_clock(sequence, rig):
 
     times = formats.read_gltf(rig_files["rig.glb"])["times"]
     np.testing.assert_allclose(times[1] - times[0], 1 / FPS, rtol=1e-6)
+
+
+def _normals(glb: bytes):
+    """Per mesh of a GLB: (POSITION, NORMAL, [NORMAL morph-target displacements])."""
+    import pygltflib as G
+
+    from nodes.common.gltf import read_accessor
+
+    g = G.GLTF2.load_from_bytes(glb)
+    blob = g.binary_blob()
+    out = []
+    for mesh in g.meshes:
+        prim = mesh.primitives[0]
+        assert prim.attributes.NORMAL is not None, "a GLB without NORMAL shades flat"
+        out.append((read_accessor(g, blob, prim.attributes.POSITION), read_accessor(g, blob, prim.attributes.NORMAL),
+                    [read_accessor(g, blob, t["NORMAL"]) for t in prim.targets or []]))
+    return out
+
+
+def test_every_glb_carries_smooth_unit_normals(textured, coloured, sequence, rig):
+    from nodes.common.meshops import smooth_vertex_normals
+
+    glbs = {"textured": run_node("export.textured", {"mesh": textured}, {"path": "t.glb"})["files"]["t.glb"],
+            "coloured": run_node("export.mesh", {"mesh": coloured}, {"path": "v.glb"})["files"]["v.glb"],
+            "dynamic": run_node("track.export", {"sequence": sequence}, {"name": "d", "formats": ["gltf"]})["files"]["d.glb"]}
+    sk, rest = rig
+    glbs["rig"] = run_node("skeleton.export", {"skeleton": sk, "rest": rest}, {"name": "r", "formats": "gltf"})["files"]["r.glb"]
+    for name, glb in glbs.items():
+        for pos, nrm, _ in _normals(glb):
+            np.testing.assert_allclose(np.linalg.norm(nrm, axis=1), 1, atol=1e-5, err_msg=name)
+            assert (nrm * (pos - pos.mean(0))).sum(1).min() > 0, name       # convex inputs: every normal points out
+    for mesh, (_, nrm, _) in ((textured, _normals(glbs["textured"])[0]), (rest, _normals(glbs["rig"])[0])):
+        np.testing.assert_allclose(nrm, smooth_vertex_normals(mesh.vertices, mesh.faces), atol=1e-6)
+    # the dynamic mesh: each frame's normals are its segment's base plus that frame's NORMAL morph target
+    (_, n0, d0), (_, n1, d1) = _normals(glbs["dynamic"])
+    frames = [n0] + [n0 + d for d in d0] + [n1] + [n1 + d for d in d1]
+    for m, n in zip(sequence, frames):
+        np.testing.assert_allclose(n, smooth_vertex_normals(m.vertices, m.faces), atol=1e-6)
