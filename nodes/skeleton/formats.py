@@ -140,7 +140,8 @@ def read_usd(path: Path) -> dict:
 def gltf_bytes(vertices, faces, joints, parents, names, weights, rotations, translations, frames, fps: float = FPS,
                influences: int = 4) -> bytes:
     """A binary glTF (GLB): one skinned mesh (rest POSITION and smooth NORMAL, which the skin moves too), its
-    joint nodes, one animation (LINEAR)."""
+    joint nodes, one animation (LINEAR) of n / fps seconds: a key per frame and a last key at n / fps repeating
+    the last pose (held for one frame period, so a looping viewer shows the last frame like the others)."""
     from nodes.common.gltf import GltfBuilder
     from nodes.common.meshops import smooth_vertex_normals
 
@@ -157,9 +158,11 @@ def gltf_bytes(vertices, faces, joints, parents, names, weights, rotations, tran
     bind[:, :3, 3] = joints
     rest_local = local_transforms(bind[None], parents)[0]
     local = local_transforms(world_transforms(joints, rotations, translations), parents)
-    times = ((np.asarray(frames, np.float64) - frames[0]) / fps).astype(np.float32)
+    # key k at frame k's time; one more key at the clip's end (n / fps) holds the last pose for one frame period
+    times = np.append((np.asarray(frames, np.float64) - frames[0]) / fps, (frames[-1] - frames[0] + 1) / fps)
     quats = quaternions(local[..., :3, :3])                               # (F, J, 4) xyzw
-    trans = local[..., :3, 3]
+    quats = np.concatenate([quats, quats[-1:]]).astype(np.float32)
+    trans = np.concatenate([local[..., :3, 3], local[-1:, :, :3, 3]]).astype(np.float32)
 
     b = GltfBuilder("volcap skeleton")
     body = b.node("mesh", mesh=b.mesh(vertices, faces, normals=smooth_vertex_normals(vertices, faces), joints=idx,
@@ -178,8 +181,9 @@ def gltf_bytes(vertices, faces, joints, parents, names, weights, rotations, tran
 
 
 def read_gltf(data: bytes) -> dict:
-    """Load a GLB with pygltflib and skin its mesh the way a glTF viewer does at every keyframe: joint
-    matrices = global joint transform (from the animated node TRS) x inverse bind matrix."""
+    """Load a GLB with pygltflib and skin its mesh the way a glTF viewer does at every key (the frames', then
+    the clip's end, which holds the last pose): joint matrices = global joint transform (from the animated node
+    TRS) x inverse bind matrix."""
     import pygltflib as G
     from scipy.spatial.transform import Rotation
 

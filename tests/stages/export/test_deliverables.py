@@ -151,3 +151,48 @@ def test_every_glb_carries_smooth_unit_normals(textured, coloured, sequence, rig
     frames = [n0] + [n0 + d for d in d0] + [n1] + [n1 + d for d in d1]
     for m, n in zip(sequence, frames):
         np.testing.assert_allclose(n, smooth_vertex_normals(m.vertices, m.faces), atol=1e-6)
+
+
+def _clip(glb: bytes):
+    """(duration: the last key time over all samplers, [(input times, output values, interpolation)])."""
+    import pygltflib as G
+
+    from nodes.common.gltf import read_accessor
+
+    g = G.GLTF2.load_from_bytes(glb)
+    blob = g.binary_blob()
+    (anim,) = g.animations
+    samplers = [(read_accessor(g, blob, s.input), read_accessor(g, blob, s.output), s.interpolation)
+                for s in anim.samplers]
+    return max(float(t[-1]) for t, _, _ in samplers), samplers
+
+
+def test_animations_loop_every_frame_for_one_frame_period(sequence, rig):
+    """A looping viewer plays [0, duration) again and again: the clip lasts n / fps, so the last frame shows for
+    1 / fps like every other (were its key the clip's end it would show for 0 s)."""
+    from nodes.skeleton import formats as rig_formats
+    from nodes.track import formats
+
+    fps = 10.0
+    glb = run_node("track.export", {"sequence": sequence}, {"name": "d", "formats": ["gltf"], "fps": fps})["files"]["d.glb"]
+    n = len(sequence)
+    duration, samplers = _clip(glb)
+    assert duration == pytest.approx(n / fps) and formats.clip_duration([10, 11, 12, 13, 14], fps) == n / fps
+    for times, values, interpolation in samplers:
+        assert interpolation == "STEP" and times[-1] == pytest.approx(n / fps)     # every channel spans the clip
+        last = values.reshape(len(times), -1)
+        np.testing.assert_array_equal(last[-1], last[-2])                           # the end key repeats the last
+    last_weights = samplers[-2][0]                      # the last segment's weights: frames 13, 14, then the end
+    np.testing.assert_allclose(last_weights, np.array([3, 4, 5]) / fps, atol=1e-6)
+    np.testing.assert_allclose(formats.gltf_frame(glb, n - 1), sequence[-1].vertices, atol=1e-6)
+
+    sk, rest = rig
+    files = run_node("skeleton.export", {"skeleton": sk, "rest": rest}, {"name": "r", "fps": fps})["files"]
+    duration, samplers = _clip(files["r.glb"])
+    frames = len(sk.frames)
+    assert duration == pytest.approx(frames / fps)
+    for times, values, _ in samplers:
+        np.testing.assert_allclose(times, np.arange(frames + 1) / fps, atol=1e-6)
+        np.testing.assert_array_equal(values[-1], values[-2])
+    gl = rig_formats.read_gltf(files["r.glb"])
+    np.testing.assert_array_equal(gl["skinned"][-1], gl["skinned"][-2])
