@@ -12,7 +12,8 @@ are frame numbers). Prims are added step by step, so one stage can carry tracked
                  primvar) or from ``displayColor``, bound to the mesh (the primvar readers' ``varname`` is a
                  string, as their Sdr definition says since USD 23.11)
     skeleton     UsdSkel: Skeleton (bind / rest transforms), its Animation (time-sampled translations and
-                 rotations), and a mesh bound to it with joint indices and weights
+                 rotations), and a mesh bound to it with joint indices and weights; ``extent_at`` gives the
+                 SkelRoot the bounds of the skinned points per frame (the mesh's own extent is its rest points')
     save         .usda, .usdc / .usd (crate) or .usdz (the layer packed with its assets), as bytes
 
 ``validation_errors`` runs usd-core's validators (the ``UsdValidation`` framework, which replaced
@@ -114,10 +115,19 @@ class UsdStage:
         from pxr import Usd, Vt
 
         p = np.ascontiguousarray(points, np.float32)
-        lo, hi = (p.min(axis=0), p.max(axis=0)) if len(p) else (np.zeros(3, np.float32), np.zeros(3, np.float32))
         t = Usd.TimeCode.Default() if frame is None else Usd.TimeCode(float(frame))
         geom.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(p), t)
-        geom.GetExtentAttr().Set(Vt.Vec3fArray.FromNumpy(np.array([lo, hi], np.float32)), t)
+        self.extent_at(geom, p, frame)
+
+    def extent_at(self, boundable, points, frame: float | None) -> None:
+        """Set the ``extent`` of a boundable prim (a mesh, a SkelRoot) to the bounds of ``points`` at ``frame``
+        (a time sample), or statically when None."""
+        from pxr import Usd, Vt
+
+        p = np.asarray(points, np.float32)
+        lo, hi = (p.min(axis=0), p.max(axis=0)) if len(p) else (np.zeros(3, np.float32), np.zeros(3, np.float32))
+        t = Usd.TimeCode.Default() if frame is None else Usd.TimeCode(float(frame))
+        boundable.CreateExtentAttr().Set(Vt.Vec3fArray.FromNumpy(np.array([lo, hi], np.float32)), t)
 
     def visibility(self, geom, keys: dict) -> None:
         """Time-sampled visibility: ``keys`` maps frame -> visible (held until the next key)."""

@@ -83,7 +83,8 @@ def write_usd(path: Path, vertices, faces, joints, parents, names, weights, rota
 
 def usd_bytes(vertices, faces, joints, parents, names, weights, rotations, translations, frames, fps: float = FPS,
               influences: int = 4) -> bytes:
-    """The UsdSkel rig of ``write_usd`` as the bytes of a binary .usd layer."""
+    """The UsdSkel rig of ``write_usd`` as the bytes of a binary .usd layer; the SkelRoot's ``extent`` per frame
+    bounds the skinned mesh (the mesh's own extent bounds its rest points)."""
     from nodes.common.usd import UsdStage
 
     names = _names(names, len(parents))
@@ -98,11 +99,21 @@ def usd_bytes(vertices, faces, joints, parents, names, weights, rotations, trans
     idx, w = sparse_influences(np.asarray(weights, np.float64), k)
 
     stage = UsdStage(fps=fps, frames=(frames[0], frames[-1]))
-    stage.group("/Rig", skel_root=True)
+    root = stage.group("/Rig", skel_root=True)
     skel = stage.skeleton("/Rig/Skeleton", paths, names, bind, local_transforms(bind[None], parents)[0])
     stage.skeleton_animation(skel, "/Rig/Skeleton/Animation", frames, local[..., :3, 3], quaternions(local[..., :3, :3]))
     stage.bind_skin(stage.mesh("/Rig/Mesh", faces, vertices), skel, idx, w)
+    for k, frame in enumerate(frames):        # the SkelRoot's bounds: the mesh as UsdSkel skins it, per frame
+        stage.extent_at(root, skinned_points(vertices, idx, w, rotations[k], translations[k]), frame)
     return stage.save("rig.usd")
+
+
+def skinned_points(vertices, indices, weights, rotations, translations) -> np.ndarray:
+    """(V, 3) rest points skinned with sparse influences (``sparse_influences``) and one frame's (J, 3, 3)
+    rotations and (J, 3) translations: sum_k w_vk (R_j x_v + t_j), j = indices[v, k]."""
+    x = np.asarray(vertices, np.float64)
+    r, t = np.asarray(rotations, np.float64)[indices], np.asarray(translations, np.float64)[indices]     # (V, k, ...)
+    return np.einsum("vk,vkab,vb->va", weights, r, x) + np.einsum("vk,vka->va", weights, t)
 
 
 def read_usd(path: Path) -> dict:

@@ -196,3 +196,27 @@ def test_animations_loop_every_frame_for_one_frame_period(sequence, rig):
         np.testing.assert_array_equal(values[-1], values[-2])
     gl = rig_formats.read_gltf(files["r.glb"])
     np.testing.assert_array_equal(gl["skinned"][-1], gl["skinned"][-2])
+
+
+def test_the_rig_extent_covers_the_skinned_mesh_over_the_animation(rig, tmp_path):
+    from pxr import Usd, UsdGeom
+
+    from nodes.skeleton import formats
+
+    sk, rest = rig
+    (tmp_path / "r.usd").write_bytes(run_node("skeleton.export", {"skeleton": sk, "rest": rest},
+                                              {"name": "r", "formats": "usd"})["files"]["r.usd"])
+    skinned = formats.read_usd(tmp_path / "r.usd")["skinned"]             # UsdSkel's own skinning, per frame
+    stage = Usd.Stage.Open(str(tmp_path / "r.usd"))
+    extent = UsdGeom.Boundable(stage.GetPrimAtPath("/Rig")).GetExtentAttr()
+    assert extent.GetTimeSamples() == [float(f) for f in sk.frames]
+    rest_extent = np.array(UsdGeom.Mesh(stage.GetPrimAtPath("/Rig/Mesh")).GetExtentAttr().Get())
+    np.testing.assert_allclose(rest_extent, [rest.vertices.min(0), rest.vertices.max(0)], atol=1e-6)
+    cache = UsdGeom.BBoxCache(Usd.TimeCode(0), [UsdGeom.Tokens.default_])
+    for frame, points in zip(sk.frames, skinned):
+        lo, hi = np.array(extent.Get(Usd.TimeCode(frame)))
+        np.testing.assert_allclose([lo, hi], [points.min(0), points.max(0)], atol=1e-5)    # tight, every frame
+        cache.SetTime(Usd.TimeCode(frame))
+        box = cache.ComputeWorldBound(stage.GetPrimAtPath("/Rig")).ComputeAlignedRange()
+        assert np.all(np.array(box.GetMin()) <= points.min(0) + 1e-5) and np.all(np.array(box.GetMax()) >= points.max(0) - 1e-5)
+    assert skinned[-1][:, 1].min() < rest_extent[0, 1] - 0.5            # the bent bar leaves the rest bounds
