@@ -41,11 +41,24 @@ from pathlib import Path
 from .errors import DataError
 
 
+def _umask() -> int:
+    """The process umask, read without changing it where the system tells (Linux: /proc/self/status)."""
+    try:
+        with open("/proc/self/status") as f:
+            return next(int(line.split()[1], 8) for line in f if line.startswith("Umask:"))
+    except (OSError, StopIteration, ValueError, IndexError):
+        mask = os.umask(0o022)
+        os.umask(mask)
+        return mask
+
+
 def atomic_write_bytes(path: Path, data: bytes):
-    """Write a file so that readers see the old content or the new, never a part (temp file + rename)."""
+    """Write a file so that readers see the old content or the new, never a part (temp file + rename). The file
+    gets the mode a plain open() gives (0o666 less the umask), not mkstemp's private 0o600."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
+        os.fchmod(fd, 0o666 & ~_umask())
         with os.fdopen(fd, "wb") as f:
             f.write(data)
         os.replace(tmp, path)

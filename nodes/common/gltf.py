@@ -65,17 +65,21 @@ def png_bytes(img: np.ndarray) -> bytes:
 
 
 def mesh_glb(mesh, generator: str = "volcap") -> bytes:
-    """A trimesh mesh as a .glb of one mesh node: POSITION and indices, and TEXCOORD_0 with the texture embedded
-    as PNG in a metallic-roughness material (metallic 0, roughness 1, as trimesh writes it), else the vertex
-    colours (COLOR_0) if it has any."""
+    """A trimesh mesh as a .glb of one mesh node: POSITION, NORMAL (smooth: ``meshops.smooth_vertex_normals``)
+    and indices, and TEXCOORD_0 with the texture embedded as PNG in a metallic-roughness material (metallic 0,
+    roughness 1, as trimesh writes it), else the vertex colours (COLOR_0) if it has any."""
+    from .meshops import smooth_vertex_normals
+
     tex = texture_image(mesh)
     b = GltfBuilder(generator)
+    normals = smooth_vertex_normals(mesh.vertices, mesh.faces)
     if tex is not None:
-        m = b.mesh(mesh.vertices, mesh.faces, uv=texture_uv(mesh.visual.uv))
+        m = b.mesh(mesh.vertices, mesh.faces, normals=normals, uv=texture_uv(mesh.visual.uv))
         b.set_material(m, b.texture_material(png_bytes(tex)))
     else:
         coloured = getattr(mesh.visual, "kind", None) in ("vertex", "face")
-        m = b.mesh(mesh.vertices, mesh.faces, colours=np.asarray(mesh.visual.vertex_colors) if coloured else None)
+        m = b.mesh(mesh.vertices, mesh.faces, normals=normals,
+                   colours=np.asarray(mesh.visual.vertex_colors) if coloured else None)
     b.node("geometry_0", mesh=m)
     return b.glb()
 
@@ -126,7 +130,8 @@ class GltfBuilder:
         uv : (V, 2) glTF texture coordinates (TEXCOORD_0; see ``texture_uv``), optional.
         colours : (V, 3 or 4) uint8 vertex colours (COLOR_0, normalised), optional.
         joints, weights : (V, 4) joint indices (into the skin's joints) and weights (JOINTS_0, WEIGHTS_0).
-        targets : morph targets, each (V, 3) position displacements (or a dict of attribute -> (V, 3)).
+        targets : morph targets, each (V, 3) position displacements (or a dict of attribute -> (V, 3):
+            POSITION and NORMAL displacements).
         material : a material index (or set later with ``set_material``).
         """
         G = self._G

@@ -3,7 +3,8 @@
     topology     unique_edges, edge_faces / edge_face_pairs (edge -> faces), face_neighbours, vertex_faces (CSR)
                  and padded_rows, vertex_neighbours (CSR), component_sizes / drop_small_components /
                  largest_component
-    geometry     face_normals, face_areas, vertex_normals (area-weighted), edge_length_graph
+    geometry     face_normals, face_areas, vertex_normals (area-weighted), smooth_vertex_normals (welded, for
+                 shading: what the exports write), edge_length_graph
     folds        FOLD_DEG / FOLD_COS (faces turned more than 150 degrees), folded_edges
     averaging    ring_operator (I + A), ring_average (row-normalised I + A), neighbour_mean (uniform Laplacian)
     refinement   split_edges (conforming edge splits)
@@ -128,6 +129,25 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
             n[:, a] += np.bincount(f[:, c], fn[:, a], minlength=len(v))
     norm = np.linalg.norm(n, axis=1, keepdims=True)
     return np.divide(n, norm, out=np.zeros_like(n), where=norm > 0)
+
+
+def smooth_vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Unit vertex normals (V, 3) for shading: ``vertex_normals`` of the mesh with coincident vertices
+    welded (a texture atlas splits vertices at chart borders; welded, both copies get one normal and the seam
+    does not show in the shading); a vertex of no face area gets +Z, so every normal has unit length.
+
+    Parameters
+    ----------
+    vertices : (V, 3) positions.  faces : (F, 3) vertex indices.
+    """
+    v = np.asarray(vertices, np.float64)
+    if not len(v):
+        return np.zeros((0, 3))
+    welded, inverse = np.unique(v, axis=0, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    n = vertex_normals(welded, inverse[np.asarray(faces, np.int64).reshape(-1, 3)])[inverse]
+    n[np.linalg.norm(n, axis=1) == 0] = (0.0, 0.0, 1.0)
+    return n
 
 
 def folded_edges(vertices: np.ndarray, faces: np.ndarray, pairs=None, which: np.ndarray | None = None) -> np.ndarray:

@@ -15,7 +15,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from nodegraph import DataError, DataType
+from nodegraph import DataError, DataType, Param
 
 from . import previews
 from .cameras import Cameras, unique_names
@@ -415,6 +415,13 @@ class Skeleton(DataType):
     @classmethod
     def preview(cls, value, size, companions):
         return previews.draw_skeleton(value, size, companions)
+
+
+FPS = 25.0
+"""The capture's frame rate (frames per second): the one default of every timed export (track.export, skeleton.export),
+so a dynamic mesh and a rig referenced together keep the same clock (25: bench/e2e.py's reference rate)."""
+FPS_PARAM = Param(float, FPS, range=(1.0, 1000.0),
+                  doc="frames per second: USD timeCodesPerSecond / framesPerSecond, glTF key times (frame / fps)")
 
 
 def sequence_segments(meshes) -> list[tuple[int, int]]:

@@ -9,10 +9,15 @@ are frame numbers). Prims are added step by step, so one stage can carry tracked
                  optional normals, ``primvars:st`` (UVs) and ``displayColor``, all vertex-interpolated
     visibility   time-sampled visibility (a segment shown only during its frames)
     material     a UsdPreviewSurface, its diffuseColor read from a texture file (UsdUVTexture through the ``st``
-                 primvar) or from ``displayColor``, bound to the mesh
+                 primvar) or from ``displayColor``, bound to the mesh (the primvar readers' ``varname`` is a
+                 string, as their Sdr definition says since USD 23.11)
     skeleton     UsdSkel: Skeleton (bind / rest transforms), its Animation (time-sampled translations and
-                 rotations), and a mesh bound to it with joint indices and weights
+                 rotations), and a mesh bound to it with joint indices and weights; ``extent_at`` gives the
+                 SkelRoot the bounds of the skinned points per frame (the mesh's own extent is its rest points')
     save         .usda, .usdc / .usd (crate) or .usdz (the layer packed with its assets), as bytes
+
+``validation_errors`` runs usd-core's validators (the ``UsdValidation`` framework, which replaced
+``UsdUtils.ComplianceChecker``) on written files, as a pipeline's checker would.
 
 For example::
 
@@ -34,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-UP_AXIS = "Z"               # the capture's world frame as the track and skeleton exports label it
+UP_AXIS = "Z"               # the capture's world frame as every export labels it (textured, track, skeleton)
 METERS_PER_UNIT = 1.0
 
 
@@ -110,10 +115,19 @@ class UsdStage:
         from pxr import Usd, Vt
 
         p = np.ascontiguousarray(points, np.float32)
-        lo, hi = (p.min(axis=0), p.max(axis=0)) if len(p) else (np.zeros(3, np.float32), np.zeros(3, np.float32))
         t = Usd.TimeCode.Default() if frame is None else Usd.TimeCode(float(frame))
         geom.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(p), t)
-        geom.GetExtentAttr().Set(Vt.Vec3fArray.FromNumpy(np.array([lo, hi], np.float32)), t)
+        self.extent_at(geom, p, frame)
+
+    def extent_at(self, boundable, points, frame: float | None) -> None:
+        """Set the ``extent`` of a boundable prim (a mesh, a SkelRoot) to the bounds of ``points`` at ``frame``
+        (a time sample), or statically when None."""
+        from pxr import Usd, Vt
+
+        p = np.asarray(points, np.float32)
+        lo, hi = (p.min(axis=0), p.max(axis=0)) if len(p) else (np.zeros(3, np.float32), np.zeros(3, np.float32))
+        t = Usd.TimeCode.Default() if frame is None else Usd.TimeCode(float(frame))
+        boundable.CreateExtentAttr().Set(Vt.Vec3fArray.FromNumpy(np.array([lo, hi], np.float32)), t)
 
     def visibility(self, geom, keys: dict) -> None:
         """Time-sampled visibility: ``keys`` maps frame -> visible (held until the next key)."""
@@ -140,7 +154,7 @@ class UsdStage:
         if texture is not None:
             reader = UsdShade.Shader.Define(self.stage, f"{path}/STReader")
             reader.CreateIdAttr("UsdPrimvarReader_float2")
-            reader.CreateInput("varname", Sdf.ValueTypeNames.Token).Set("st")
+            reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")
             image = UsdShade.Shader.Define(self.stage, f"{path}/Texture")
             image.CreateIdAttr("UsdUVTexture")
             image.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(texture)
@@ -151,7 +165,7 @@ class UsdStage:
         elif display_colour:
             reader = UsdShade.Shader.Define(self.stage, f"{path}/ColorReader")
             reader.CreateIdAttr("UsdPrimvarReader_float3")
-            reader.CreateInput("varname", Sdf.ValueTypeNames.Token).Set("displayColor")
+            reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("displayColor")
             reader.CreateOutput("result", Sdf.ValueTypeNames.Float3)
             diffuse.ConnectToSource(reader.ConnectableAPI(), "result")
         UsdShade.MaterialBindingAPI.Apply(geom.GetPrim()).Bind(mat)
@@ -226,6 +240,21 @@ def _matrices(mats):
     from pxr import Gf, Vt
 
     return Vt.Matrix4dArray([Gf.Matrix4d(*np.asarray(m, np.float64).T.ravel().tolist()) for m in mats])
+
+
+def validation_errors(files: dict[str, bytes], name: str) -> list[str]:
+    """Every error usd-core's registered validators (all of them: core, geometry, shading, skeleton, usdz
+    package rules) report on the layer ``name`` of ``files`` (file name -> bytes, as published together: a
+    .usda and the texture beside it), as "validator error: message" lines; [] when it passes."""
+    from pxr import Usd, UsdValidation
+
+    context = UsdValidation.ValidationContext(UsdValidation.ValidationRegistry().GetOrLoadAllValidators())
+    with tempfile.TemporaryDirectory() as d:
+        for rel, data in files.items():
+            (Path(d) / rel).parent.mkdir(parents=True, exist_ok=True)
+            (Path(d) / rel).write_bytes(data)
+        stage = Usd.Stage.Open(str(Path(d) / name))
+        return [f"{e.GetName()}: {e.GetMessage()}" for e in context.Validate(stage) if not e.HasNoError()]
 
 
 @contextmanager

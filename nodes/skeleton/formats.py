@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from nodes.common.types import FPS
+
 
 def _names(names: list[str], count: int) -> list[str]:
     """Valid, unique USD/glTF joint names."""
@@ -72,16 +74,17 @@ def sparse_influences(weights: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarr
 
 # ---------------------------------------------------------------- USD
 def write_usd(path: Path, vertices, faces, joints, parents, names, weights, rotations, translations, frames,
-              fps: float = 24.0, influences: int = 4):
+              fps: float = FPS, influences: int = 4):
     """Write a UsdSkel rig: /Rig (SkelRoot) with Skeleton, its Animation and the bound Mesh."""
     Path(path).write_bytes(usd_bytes(vertices=vertices, faces=faces, joints=joints, parents=parents, names=names,
                                      weights=weights, rotations=rotations, translations=translations, frames=frames,
                                      fps=fps, influences=influences))
 
 
-def usd_bytes(vertices, faces, joints, parents, names, weights, rotations, translations, frames, fps: float = 24.0,
+def usd_bytes(vertices, faces, joints, parents, names, weights, rotations, translations, frames, fps: float = FPS,
               influences: int = 4) -> bytes:
-    """The UsdSkel rig of ``write_usd`` as the bytes of a binary .usd layer."""
+    """The UsdSkel rig of ``write_usd`` as the bytes of a binary .usd layer; the SkelRoot's ``extent`` per frame
+    bounds the skinned mesh (the mesh's own extent bounds its rest points)."""
     from nodes.common.usd import UsdStage
 
     names = _names(names, len(parents))
@@ -96,11 +99,21 @@ def usd_bytes(vertices, faces, joints, parents, names, weights, rotations, trans
     idx, w = sparse_influences(np.asarray(weights, np.float64), k)
 
     stage = UsdStage(fps=fps, frames=(frames[0], frames[-1]))
-    stage.group("/Rig", skel_root=True)
+    root = stage.group("/Rig", skel_root=True)
     skel = stage.skeleton("/Rig/Skeleton", paths, names, bind, local_transforms(bind[None], parents)[0])
     stage.skeleton_animation(skel, "/Rig/Skeleton/Animation", frames, local[..., :3, 3], quaternions(local[..., :3, :3]))
     stage.bind_skin(stage.mesh("/Rig/Mesh", faces, vertices), skel, idx, w)
+    for k, frame in enumerate(frames):        # the SkelRoot's bounds: the mesh as UsdSkel skins it, per frame
+        stage.extent_at(root, skinned_points(vertices, idx, w, rotations[k], translations[k]), frame)
     return stage.save("rig.usd")
+
+
+def skinned_points(vertices, indices, weights, rotations, translations) -> np.ndarray:
+    """(V, 3) rest points skinned with sparse influences (``sparse_influences``) and one frame's (J, 3, 3)
+    rotations and (J, 3) translations: sum_k w_vk (R_j x_v + t_j), j = indices[v, k]."""
+    x = np.asarray(vertices, np.float64)
+    r, t = np.asarray(rotations, np.float64)[indices], np.asarray(translations, np.float64)[indices]     # (V, k, ...)
+    return np.einsum("vk,vkab,vb->va", weights, r, x) + np.einsum("vk,vka->va", weights, t)
 
 
 def read_usd(path: Path) -> dict:
@@ -135,10 +148,13 @@ def read_usd(path: Path) -> dict:
 
 
 # ---------------------------------------------------------------- glTF
-def gltf_bytes(vertices, faces, joints, parents, names, weights, rotations, translations, frames, fps: float = 24.0,
+def gltf_bytes(vertices, faces, joints, parents, names, weights, rotations, translations, frames, fps: float = FPS,
                influences: int = 4) -> bytes:
-    """A binary glTF (GLB): one skinned mesh, its joint nodes, one animation (LINEAR)."""
+    """A binary glTF (GLB): one skinned mesh (rest POSITION and smooth NORMAL, which the skin moves too), its
+    joint nodes, one animation (LINEAR) of n / fps seconds: a key per frame and a last key at n / fps repeating
+    the last pose (held for one frame period, so a looping viewer shows the last frame like the others)."""
     from nodes.common.gltf import GltfBuilder
+    from nodes.common.meshops import smooth_vertex_normals
 
     from .skinning import topological
 
@@ -153,12 +169,15 @@ def gltf_bytes(vertices, faces, joints, parents, names, weights, rotations, tran
     bind[:, :3, 3] = joints
     rest_local = local_transforms(bind[None], parents)[0]
     local = local_transforms(world_transforms(joints, rotations, translations), parents)
-    times = ((np.asarray(frames, np.float64) - frames[0]) / fps).astype(np.float32)
+    # key k at frame k's time; one more key at the clip's end (n / fps) holds the last pose for one frame period
+    times = np.append((np.asarray(frames, np.float64) - frames[0]) / fps, (frames[-1] - frames[0] + 1) / fps)
     quats = quaternions(local[..., :3, :3])                               # (F, J, 4) xyzw
-    trans = local[..., :3, 3]
+    quats = np.concatenate([quats, quats[-1:]]).astype(np.float32)
+    trans = np.concatenate([local[..., :3, 3], local[-1:, :, :3, 3]]).astype(np.float32)
 
     b = GltfBuilder("volcap skeleton")
-    body = b.node("mesh", mesh=b.mesh(vertices, faces, joints=idx, weights=w))
+    body = b.node("mesh", mesh=b.mesh(vertices, faces, normals=smooth_vertex_normals(vertices, faces), joints=idx,
+                                      weights=w))
     nodes = {}
     for j in topological(parents):                                        # a joint's parent node exists before it
         nodes[j] = b.node(names[j], parent=nodes[parents[j]] if parents[j] >= 0 else None,
@@ -173,8 +192,9 @@ def gltf_bytes(vertices, faces, joints, parents, names, weights, rotations, tran
 
 
 def read_gltf(data: bytes) -> dict:
-    """Load a GLB with pygltflib and skin its mesh the way a glTF viewer does at every keyframe: joint
-    matrices = global joint transform (from the animated node TRS) x inverse bind matrix."""
+    """Load a GLB with pygltflib and skin its mesh the way a glTF viewer does at every key (the frames', then
+    the clip's end, which holds the last pose): joint matrices = global joint transform (from the animated node
+    TRS) x inverse bind matrix."""
     import pygltflib as G
     from scipy.spatial.transform import Rotation
 

@@ -8,7 +8,7 @@ import time
 import numpy as np
 
 from nodegraph import Files, Input, Node, NodeError, Output, Param, Table
-from nodes.common.types import Mesh, MeshSequence, Skeleton, SkeletonData, Volume, sequence_segments
+from nodes.common.types import FPS_PARAM, Mesh, MeshSequence, Skeleton, SkeletonData, Volume, sequence_segments
 
 
 # ---------------------------------------------------------------- per frame
@@ -260,7 +260,7 @@ class Export(Node):
     params = {
         "name": Param(str, "rig", doc="file name stem"),
         "formats": Param(str, "usd,gltf", choices=("usd,gltf", "usd", "gltf"), doc="which files"),
-        "fps": Param(float, 24.0, range=(1.0, 1000.0), doc="frames per second"),
+        "fps": FPS_PARAM,
         "influences": Param(int, 4, range=(1, 8), doc="joint influences per vertex in USD (glTF: 4)"),
     }
 

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from nodegraph import Files, Input, Node, NodeError, Output, Param, Table
-from nodes.common.types import Mesh, MeshSequence, sequence_segments
+from nodes.common.types import FPS_PARAM, Mesh, MeshSequence, sequence_segments
 
 from . import formats as exporters
 
@@ -25,7 +25,7 @@ class Export(Node):
     params = {
         "name": Param(str, "dynamic_mesh", doc="file name stem (USD/glTF), folder name (Draco frames)"),
         "formats": Param(list, ["usd", "gltf", "draco"], item=str, doc="any of usd, gltf, draco"),
-        "fps": Param(float, 25.0, range=(0.001, None), doc="frames per second (time codes)"),
+        "fps": FPS_PARAM,
         "draco_bits": Param(int, 14, range=(1, 30), doc="Draco position quantisation bits"),
     }
 

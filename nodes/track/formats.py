@@ -3,9 +3,11 @@
     USD (usd-core)   one UsdGeom.Mesh per segment under /DynamicMesh: faces once, ``points`` (and ``extent``)
                      time-sampled at the frame numbers, ``visibility`` invisible outside the segment's frames;
                      binary crate (.usdc), up axis Z, metres, time codes per second = fps.
-    glTF (pygltflib) one node + mesh per segment: its first frame as the base POSITION, every later frame a
-                     morph target (displacement), an animation whose STEP weights switch on one target per
-                     frame and whose STEP scale shows the node only during its segment (.glb).
+    glTF (pygltflib) one node + mesh per segment: its first frame as the base POSITION and NORMAL (smooth),
+                     every later frame a morph target (POSITION and NORMAL displacements), an animation whose
+                     STEP weights switch on one target per frame and whose STEP scale shows the node only during
+                     its segment (.glb); every channel ends at the clip's end, n frames / fps (``clip_duration``):
+                     the last frame is held for one frame period, so a looping viewer shows it like the others.
     Draco (DracoPy)  per segment its connectivity once (a mesh, vertex order preserved) and per frame its
                      positions only (a point cloud, vertex order preserved: vertex i stays the same surface point
                      within a segment), positions quantised to ``bits``.
@@ -16,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from nodes.common.types import sequence_segments
+from nodes.common.types import FPS, sequence_segments
 
 
 def frame_numbers(meshes) -> list[int]:
@@ -25,7 +27,7 @@ def frame_numbers(meshes) -> list[int]:
 
 
 # ---------------------------------------------------------------- USD
-def usd_bytes(meshes, fps: float = 25.0) -> bytes:
+def usd_bytes(meshes, fps: float = FPS) -> bytes:
     """The sequence as a binary USD layer (see the module docstring)."""
     from nodes.common.usd import UsdStage
 
@@ -60,32 +62,51 @@ def usd_points(data: bytes, frame: int) -> np.ndarray:
 
 
 # ---------------------------------------------------------------- glTF
-def gltf_bytes(meshes, fps: float = 25.0) -> bytes:
+def clip_duration(frames, fps: float) -> float:
+    """Seconds of a clip of frames ``frames[0]..frames[-1]``: each frame lasts 1 / fps, the last one too, so a
+    looping viewer shows every frame for one frame period (the clip's last key is at its end, n / fps)."""
+    return (frames[-1] - frames[0] + 1) / fps if len(frames) else 0.0
+
+
+def _held(times, values, end: float):
+    """Key times and values with a last key at ``end`` repeating the last value (held to the clip's end)."""
+    times, values = list(times), list(values)
+    if times and times[-1] < end:
+        times.append(end)
+        values.append(values[-1])
+    return np.asarray(times, np.float32), np.asarray(values, np.float32)
+
+
+def gltf_bytes(meshes, fps: float = FPS) -> bytes:
     """The sequence as a binary glTF (.glb) with morph-target animation (see the module docstring)."""
     from nodes.common.gltf import GltfBuilder
+    from nodes.common.meshops import smooth_vertex_normals
 
     frames = frame_numbers(meshes)
     b = GltfBuilder("volcap track.export")
     t0 = frames[0] if frames else 0
-    end = (frames[-1] - t0) / fps if frames else 0.0
+    end = clip_duration(frames, fps)
     for s, (a, c) in enumerate(sequence_segments(meshes)):
         base = np.asarray(meshes[a].vertices, np.float32)
-        targets = [np.asarray(meshes[k].vertices, np.float32) - base for k in range(a + 1, c)]
+        normals = [smooth_vertex_normals(meshes[k].vertices, meshes[a].faces).astype(np.float32) for k in range(a, c)]
+        targets = [{"POSITION": np.asarray(meshes[k].vertices, np.float32) - base, "NORMAL": normals[k - a] - normals[0]}
+                   for k in range(a + 1, c)]
         name = f"segment_{s:04d}"
-        node = b.node(name, mesh=b.mesh(base, meshes[a].faces, targets=targets, name=name),
+        node = b.node(name, mesh=b.mesh(base, meshes[a].faces, normals=normals[0], targets=targets, name=name),
                       scale=[0.0, 0.0, 0.0] if a > 0 else None)
-        times = np.array([(frames[k] - t0) / fps for k in range(a, c)], np.float32)
+        times = [(frames[k] - t0) / fps for k in range(a, c)]
         if targets:
             weights = np.zeros((c - a, len(targets)), np.float32)
             weights[np.arange(1, c - a), np.arange(len(targets))] = 1.0
-            b.animate(node, "weights", times, weights, "STEP", animation="dynamic_mesh")
+            b.animate(node, "weights", *_held(times, weights, end), "STEP", animation="dynamic_mesh")
         # shown only during its frames: STEP scale 0 -> 1 -> 0
         keys = [(0.0, 0.0)] if a > 0 else []
-        keys.append((float(times[0]), 1.0))
+        keys.append((times[0], 1.0))
         if c < len(meshes):
             keys.append(((frames[c] - t0) / fps, 0.0))
         if len(keys) > 1:
-            b.animate(node, "scale", [k[0] for k in keys], [[k[1]] * 3 for k in keys], "STEP", animation="dynamic_mesh")
+            b.animate(node, "scale", *_held([k[0] for k in keys], [[k[1]] * 3 for k in keys], end), "STEP",
+                      animation="dynamic_mesh")
     return b.glb(extras={"fps": fps, "duration": end, "frames": frames})
 
 

@@ -131,3 +131,22 @@ def test_averaging_operators():
     R = ring_average(TET_F, 5)
     np.testing.assert_allclose(np.asarray(R.sum(axis=1)).ravel(), 1.0, rtol=1e-15)
     np.testing.assert_allclose(R @ x5, np.vstack([np.tile(x.mean(axis=0), (4, 1)), [[7, 7, 7]]]), rtol=1e-15)
+
+
+def test_smooth_vertex_normals_weld_seams_and_are_unit():
+    import trimesh
+
+    from nodes.common.meshops import smooth_vertex_normals, vertex_normals
+
+    ball = trimesh.creation.icosphere(2)
+    v, f = np.asarray(ball.vertices), np.asarray(ball.faces)
+    # split the vertices of half the faces (a texture seam): the copies keep the welded mesh's normals
+    split = f.copy()
+    half = np.arange(len(f)) < len(f) // 2
+    split[half] += len(v)
+    v2 = np.vstack([v, v, [[5.0, 5.0, 5.0]]])                  # and one unused vertex
+    n = smooth_vertex_normals(v2, split)
+    np.testing.assert_allclose(n[:len(v)], vertex_normals(v, f), atol=1e-12)
+    np.testing.assert_allclose(n[len(v):2 * len(v)], vertex_normals(v, f), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1)
+    assert n[-1].tolist() == [0.0, 0.0, 1.0]

@@ -223,9 +223,10 @@ def test_exports_round_trip(tube_nodes, tmp_path):
     np.testing.assert_array_equal(usd["faces"], rest.faces)
     assert np.abs(usd["skinned"] - ours).max() < 1e-5              # UsdSkel's own skinning at frame k
     gl = formats.read_gltf(files["tube.glb"])
-    assert len(gl["joints"]) == 3 and len(gl["times"]) == 12
-    np.testing.assert_allclose(gl["times"], np.arange(12) / 24.0, atol=1e-6)
-    assert np.abs(gl["skinned"] - ours).max() < 1e-5               # skin matrices x inverse bind at keyframe k
+    assert len(gl["joints"]) == 3 and len(gl["times"]) == 13      # a key per frame, and the clip's end
+    np.testing.assert_allclose(gl["times"], np.arange(13) / 25.0, atol=1e-6)
+    assert np.abs(gl["skinned"][:12] - ours).max() < 1e-5          # skin matrices x inverse bind at keyframe k
+    np.testing.assert_array_equal(gl["skinned"][12], gl["skinned"][11])    # the last pose held to the end
     assert np.allclose(gl["weights"].sum(1), 1, atol=1e-6)
 
 
