@@ -133,9 +133,10 @@ class SkeletonizeSequence(Node):
         if bones > frames.shape[1]:
             raise NodeError(f"skeletonize.sequence: {bones} bones for {frames.shape[1]} vertices")
         t0 = time.perf_counter()
-        parts = rigid_parts(frames[0], frames, faces, bones=bones, tolerance=tolerance, patch_count=patches)
+        parts = rigid_parts(frames[0], frames, faces, bones=bones, tolerance=tolerance, patch_count=patches, log=self.log.info)
         rig = build_rig(frames[0], faces, parts)
         seconds = time.perf_counter() - t0
+        self.log.info("skeletonize.sequence: %d bones, joints and tree in %.1f s", len(rig.parents), seconds)
         weights = np.zeros((frames.shape[1], len(rig.parents)))
         weights[np.arange(frames.shape[1]), rig.labels] = 1.0
         sk = SkeletonData(rig.joints, rig.parents, rig.names, weights, rig.rotations, rig.translations, numbers)
