@@ -22,6 +22,12 @@ over vertices and frames:
   * free: SSDR's per-bone update, a weighted Procrustes fit of each bone to what the other bones leave
     (what Dem Bones does; shared pivots then drift apart and bone lengths change over frames).
 
+A bone that skins nothing has no data term (its pivot and rotation would drift: a leaf joint a metre off
+the body), so a bone that is the strongest influence of no vertex is merged into its parent
+(drop_weightless), and a rest-joint move that leaves a joint farther outside the mesh than its bones'
+thickness is refused (joint_clearance). The alternation stops when one iteration lowers the rms by less
+than ``tol`` of it.
+
     fit = fit_skin(traj, faces, rig, influences=4, iterations=10)   # SkinFit: weights, motions, errors
 """
 from __future__ import annotations
