@@ -45,7 +45,8 @@ from .motion import Rig, Trajectories, label_adjacency
 class SkinFit:
     """``rest`` (V, 3) the rest shape the fit skins; ``weights`` (V, J) dense with <= influences non-zeros per row; ``rotations`` (F, J, 3, 3),
     ``translations`` (F, J, 3): rest -> frame; ``joints`` (J, 3) rest pivots; ``parents``; per-frame
-    ``rmse`` and ``max_error`` (F,); ``history``: total rmse after each iteration; ``kept``: the rig's bone
+    ``rmse`` and ``max_error`` (F,); ``history``: total rmse after each iteration kept (one that raised it
+    is undone and not listed); ``kept``: the rig's bone
     index of each bone (bones that skinned no vertex were merged into their parents: drop_weightless);
     ``refused``: rest-joint moves refused because they left the body (joint_clearance)."""
 
@@ -467,12 +468,12 @@ def fit_poses_free(traj, weights, rot, tr):
 
 
 # ---------------------------------------------------------------- joints stay in the body
-def drop_weightless(weights, rot, tr, joints, parents, labels):
+def drop_weightless(weights, rot, tr, joints, parents, labels, pinned: bool = True):
     """Merge every non-root bone that is the strongest influence of no vertex into its nearest kept
     ancestor: a bone that skins nothing has no data term, so its pivot and rotation drift freely (a leaf
     joint 1 m out of the body). Its weights go to that ancestor, its children are re-parented to it (and
-    their pivots then follow it: constrain). ``labels`` (V,) bone per vertex (the candidates' parts) are
-    mapped the same way. Returns (kept indices, weights, rot, tr, joints, parents, labels)."""
+    with ``pinned``, rotation-only joints, their pivots then follow it: constrain). ``labels`` (V,) bone per
+    vertex (the candidates' parts) are mapped the same way. Returns (kept indices, weights, rot, tr, joints, parents, labels)."""
     j = len(parents)
     count = np.bincount(np.argmax(weights, axis=1), minlength=j)
     drop = (count == 0) & (np.asarray(parents) >= 0)
@@ -490,7 +491,9 @@ def drop_weightless(weights, rot, tr, joints, parents, labels):
     merged = np.zeros((len(weights), len(kept)))
     np.add.at(merged.T, to, weights.T)
     new_parents = [-1 if parents[b] < 0 else index[home(parents[b])] for b in kept]
-    rot, tr = constrain(rot[:, kept], tr[:, kept], joints[kept], new_parents)
+    rot, tr = rot[:, kept], tr[:, kept]
+    if pinned:
+        rot, tr = constrain(rot, tr, joints[kept], new_parents)
     return kept, merged, rot, tr, joints[kept], new_parents, to[labels]
 
 
@@ -575,7 +578,8 @@ def fit_skin(traj: Trajectories, faces: np.ndarray, rig: Rig, *, influences: int
 
     def drop(weights, rot, tr, joints, parents, labels):
         nonlocal kept, anchor_joints
-        idx, weights, rot, tr, joints, new_parents, labels = drop_weightless(weights, rot, tr, joints, parents, labels)
+        idx, weights, rot, tr, joints, new_parents, labels = drop_weightless(weights, rot, tr, joints, parents, labels,
+                                                                            pinned=fixed_lengths)
         if len(idx) < len(parents):
             if log:
                 log(f"skin: {len(parents) - len(idx)} bone(s) skin no vertex, merged into their parents: "

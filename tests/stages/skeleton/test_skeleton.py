@@ -258,6 +258,8 @@ def test_skin_merges_a_bone_that_skins_nothing(tube_nodes):
     assert out["error"]["removed"] == ["extra"] and out["error"]["bones"] == 3
     _assert_joints_in_the_body(np.asarray(rest.vertices), np.asarray(rest.faces), got.weights, got.joints, got.parents)
     assert out["error"]["rmse_percent"] < 0.01
+    free = run_node("skin", {"sequence": ms, "skeleton": extra}, {"lengths": "free"})
+    assert free["error"]["removed"] == ["extra"] and free["error"]["rmse_percent"] < 0.02
 
 
 def test_skin_refuses_a_pivot_move_out_of_the_body(tube_rig, monkeypatch):
