@@ -192,16 +192,22 @@ class RigidParts:
 
 
 def rigid_parts(rest: np.ndarray, frames: np.ndarray, faces: np.ndarray, *, bones: int = 0, tolerance: float = 0.005,
-                patch_count: int = 200, refine: int = 3) -> RigidParts:
+                patch_count: int = 200, refine: int = 3, log=None) -> RigidParts:
     """Rigid parts of a dynamic mesh (module docstring). ``rest`` (V, 3), ``frames`` (F, V, 3), ``faces``
     (T, 3). ``bones``: number of parts (0: automatic); ``tolerance``: with bones = 0, the largest rms
-    residual of a part, relative to the rest mesh's bounding-box diagonal."""
+    residual of a part, relative to the rest mesh's bounding-box diagonal. ``log(str)`` gets a line per
+    phase and per removal round (progress of a long sequence)."""
+    import time
+
+    t0 = time.perf_counter()
+    say = (lambda msg: log(f"skeletonize.sequence: {msg} ({time.perf_counter() - t0:.1f} s)")) if log else (lambda msg: None)
     traj = Trajectories(rest, frames)
     rest, frames = traj.rest, traj.frames
     diag = float(np.linalg.norm(np.ptp(rest, axis=0)))
     _, edges = edge_length_graph(rest, faces)
     label = patches(rest, faces, patch_count)
     k = int(label.max()) + 1
+    say(f"{k} surface patches of {len(rest)} vertices, {frames.shape[0]} frames")
     mom: dict[int, Moments] = dict(enumerate(part_moments(traj, label, k)))
     err = {i: float(kabsch(m)[2].sum()) for i, m in mom.items()}
     cent = np.array([m.sp / m.n for m in mom.values()])
@@ -246,12 +252,15 @@ def rigid_parts(rest: np.ndarray, frames: np.ndarray, faces: np.ndarray, *, bone
     for new, (_, pts) in enumerate(sorted(members.items())):
         part_of_patch[pts] = new
     labels = part_of_patch[label]
+    say(f"merged into {alive} parts")
     labels = _reassign(traj, edges, labels, refine)
-    labels = _eliminate(traj, edges, labels, bones, (tolerance * diag) ** 2, refine)
-    return _finish(traj, edges, labels)
+    labels = _eliminate(traj, edges, labels, bones, (tolerance * diag) ** 2, refine, say)
+    out = _finish(traj, edges, labels)
+    say(f"{len(out.residual)} rigid parts")
+    return out
 
 
-def _eliminate(traj, edges, labels, bones, limit, refine):
+def _eliminate(traj, edges, labels, bones, limit, refine, say=lambda msg: None):
     """Remove parts one at a time, the one whose vertices are best explained by their neighbouring parts'
     motions first (a part straddling a joint splits between both sides, which a merge cannot do), until
     ``bones`` remain, or (bones = 0) until removing any would cost its vertices more than ``limit`` (mean
@@ -262,6 +271,7 @@ def _eliminate(traj, edges, labels, bones, limit, refine):
         b = int(labels.max()) + 1
         if (bones > 0 and b <= bones) or b == 1:
             return labels
+        say(f"removing parts: {b} left" + (f", target {bones}" if bones > 0 else ""))
         rot, tr, _ = _transforms(traj, labels, b)
         err = motion_errors(traj, rot, tr)
         adj = label_adjacency(labels, edges, b) > 0

@@ -133,9 +133,10 @@ class SkeletonizeSequence(Node):
         if bones > frames.shape[1]:
             raise NodeError(f"skeletonize.sequence: {bones} bones for {frames.shape[1]} vertices")
         t0 = time.perf_counter()
-        parts = rigid_parts(frames[0], frames, faces, bones=bones, tolerance=tolerance, patch_count=patches)
+        parts = rigid_parts(frames[0], frames, faces, bones=bones, tolerance=tolerance, patch_count=patches, log=self.log.info)
         rig = build_rig(frames[0], faces, parts)
         seconds = time.perf_counter() - t0
+        self.log.info("skeletonize.sequence: %d bones, joints and tree in %.1f s", len(rig.parents), seconds)
         weights = np.zeros((frames.shape[1], len(rig.parents)))
         weights[np.arange(frames.shape[1]), rig.labels] = 1.0
         sk = SkeletonData(rig.joints, rig.parents, rig.names, weights, rig.rotations, rig.translations, numbers)
@@ -156,7 +157,9 @@ class Skin(Node):
     skeletonize.sequence's skeleton: at most ``influences`` weights per vertex, smooth where the motion
     leaves them open; ``lengths: fixed`` keeps the skeleton a tree of rotation-only joints (bone lengths
     never change; the rest joints and the rest shape are refined), ``free`` lets every bone move rigidly on
-    its own as Dem Bones does. Reports the LBS reconstruction error per frame."""
+    its own as Dem Bones does; a bone that ends up skinning no vertex is merged into its parent and a rest
+    joint is never moved out of the body. Stops when an iteration improves the error by less than ``tol``;
+    logs each iteration. Reports the LBS reconstruction error per frame and the iterations used."""
 
     type_name = "skin"
     version = 1
@@ -169,18 +172,20 @@ class Skin(Node):
     outputs = {
         "skeleton": Output(Skeleton, "rest joints, LBS weights, bone motions per frame"),
         "rest": Output(Mesh, "the rest shape the weights skin"),
-        "error": Output(Table, "LBS reconstruction error per frame (rms, max; metres and % of the bbox diagonal)"),
+        "error": Output(Table, "LBS reconstruction error per frame (rms, max; metres and % of the bbox diagonal), "
+                        "iterations, removed bones"),
     }
     params = {
         "influences": Param(int, 4, range=(1, 8), doc="most bones per vertex"),
-        "iterations": Param(int, 15, range=(1, 100), doc="weights / motion alternations (stops earlier when converged)"),
+        "iterations": Param(int, 15, range=(1, 100), doc="most weights / motion alternations (stops earlier when converged)"),
+        "tol": Param(float, 1e-3, range=(0.0, 1.0), doc="converged: an iteration lowers the LBS rms by less than this share"),
         "smooth": Param(float, 1e-6, range=(0.0, 1.0), doc="Laplacian weight smoothing (x frames x diagonal^2)"),
         "lengths": Param(str, "fixed", choices=("fixed", "free"), doc="fixed: rotation-only joints; free: rigid bones (Dem Bones)"),
         "rest_fit": Param(bool, True, doc="refit the rest shape (a posed first frame is no exact LBS rest)"),
         "segment": Param(int, -1, range=(-1, None), doc="which constant-connectivity segment; -1 = the longest"),
     }
 
-    def run(self, skeleton, meshes=None, sequence=None, *, influences, iterations, smooth, lengths, rest_fit, segment):
+    def run(self, skeleton, meshes=None, sequence=None, *, influences, iterations, tol, smooth, lengths, rest_fit, segment):
         import trimesh
 
         from .motion import Rig, Trajectories
@@ -202,13 +207,18 @@ class Skin(Node):
                   np.zeros(len(skeleton.parents)), np.zeros(len(skeleton.parents)))
         traj = Trajectories(frames[0], frames)
         fit = fit_skin(traj, faces, rig, influences=influences, iterations=iterations, smooth=smooth,
-                       fixed_lengths=lengths == "fixed", rest=rest_fit, log=self.log.info)
+                       fixed_lengths=lengths == "fixed", rest=rest_fit, tol=tol, log=self.log.info)
         seconds = time.perf_counter() - t0
         diag = float(np.linalg.norm(np.ptp(frames[0], axis=0)))
-        sk = SkeletonData(fit.joints, fit.parents, list(skeleton.names), fit.weights, fit.rotations, fit.translations,
-                          numbers)
-        return {"skeleton": sk, "rest": trimesh.Trimesh(fit.rest, faces, process=False),
-                "error": error_table(fit, numbers, diag, seconds, lengths)}
+        names = [skeleton.names[b] for b in fit.kept]
+        removed = [n for b, n in enumerate(skeleton.names) if b not in set(fit.kept)]
+        if removed:
+            self.log.warning("skin: bone(s) %s skin no vertex (no vertex has them as its strongest influence): merged "
+                             "into their parents", ", ".join(removed))
+        sk = SkeletonData(fit.joints, fit.parents, names, fit.weights, fit.rotations, fit.translations, numbers)
+        table = error_table(fit, numbers, diag, seconds, lengths)
+        table.update(removed=removed, pivot_moves_refused=fit.refused)
+        return {"skeleton": sk, "rest": trimesh.Trimesh(fit.rest, faces, process=False), "error": table}
 
 
 def bone_lengths(joints, parents, rotations, translations) -> np.ndarray:

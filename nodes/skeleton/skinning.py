@@ -22,6 +22,12 @@ over vertices and frames:
   * free: SSDR's per-bone update, a weighted Procrustes fit of each bone to what the other bones leave
     (what Dem Bones does; shared pivots then drift apart and bone lengths change over frames).
 
+A bone that skins nothing has no data term (its pivot and rotation would drift: a leaf joint a metre off
+the body), so a bone that is the strongest influence of no vertex is merged into its parent
+(drop_weightless), and a rest-joint move that leaves a joint farther outside the mesh than its bones'
+thickness is refused (joint_clearance). The alternation stops when one iteration lowers the rms by less
+than ``tol`` of it.
+
     fit = fit_skin(traj, faces, rig, influences=4, iterations=10)   # SkinFit: weights, motions, errors
 """
 from __future__ import annotations
@@ -39,7 +45,10 @@ from .motion import Rig, Trajectories, label_adjacency
 class SkinFit:
     """``rest`` (V, 3) the rest shape the fit skins; ``weights`` (V, J) dense with <= influences non-zeros per row; ``rotations`` (F, J, 3, 3),
     ``translations`` (F, J, 3): rest -> frame; ``joints`` (J, 3) rest pivots; ``parents``; per-frame
-    ``rmse`` and ``max_error`` (F,); ``history``: total rmse after each iteration."""
+    ``rmse`` and ``max_error`` (F,); ``history``: total rmse after each iteration kept (one that raised it
+    is undone and not listed); ``kept``: the rig's bone
+    index of each bone (bones that skinned no vertex were merged into their parents: drop_weightless);
+    ``refused``: rest-joint moves refused because they left the body (joint_clearance)."""
 
     rest: np.ndarray
     weights: np.ndarray
@@ -50,6 +59,8 @@ class SkinFit:
     rmse: np.ndarray
     max_error: np.ndarray
     history: list[float]
+    kept: list[int]
+    refused: int = 0
 
 
 # ---------------------------------------------------------------- LBS
@@ -456,48 +467,167 @@ def fit_poses_free(traj, weights, rot, tr):
     return rot, tr
 
 
+# ---------------------------------------------------------------- joints stay in the body
+def drop_weightless(weights, rot, tr, joints, parents, labels, pinned: bool = True):
+    """Merge every non-root bone that is the strongest influence of no vertex into its nearest kept
+    ancestor: a bone that skins nothing has no data term, so its pivot and rotation drift freely (a leaf
+    joint 1 m out of the body). Its weights go to that ancestor, its children are re-parented to it (and
+    with ``pinned``, rotation-only joints, their pivots then follow it: constrain). ``labels`` (V,) bone per
+    vertex (the candidates' parts) are mapped the same way. Returns (kept indices, weights, rot, tr, joints, parents, labels)."""
+    j = len(parents)
+    count = np.bincount(np.argmax(weights, axis=1), minlength=j)
+    drop = (count == 0) & (np.asarray(parents) >= 0)
+    if not drop.any():
+        return list(range(j)), weights, rot, tr, joints, parents, labels
+
+    def home(b):                                   # b itself if kept, else its nearest kept ancestor
+        while drop[b]:
+            b = parents[b]
+        return b
+
+    kept = [b for b in range(j) if not drop[b]]
+    index = {b: i for i, b in enumerate(kept)}
+    to = np.array([index[home(b)] for b in range(j)])
+    merged = np.zeros((len(weights), len(kept)))
+    np.add.at(merged.T, to, weights.T)
+    new_parents = [-1 if parents[b] < 0 else index[home(parents[b])] for b in kept]
+    rot, tr = rot[:, kept], tr[:, kept]
+    if pinned:
+        rot, tr = constrain(rot, tr, joints[kept], new_parents)
+    return kept, merged, rot, tr, joints[kept], new_parents, to[labels]
+
+
+def winding_numbers(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Generalized winding number of each point (P,) w.r.t. a triangle mesh (Jacobson et al. 2013, "Robust
+    inside-outside segmentation using generalized winding numbers", doi:10.1145/2461912.2461916): the
+    signed solid angles of the triangles (van Oosterom & Strackee) over 4 pi; about 1 inside a closed
+    outward-oriented mesh, 0 outside, graceful across small holes."""
+    tri = vertices[faces]                                                   # (T, 3, 3)
+    out = np.empty(len(points))
+    for i, p in enumerate(points):
+        a, b, c = (tri[:, k] - p for k in range(3))
+        la, lb, lc = (np.linalg.norm(x, axis=1) for x in (a, b, c))
+        det = np.einsum("ta,ta->t", a, np.cross(b, c))
+        den = la * lb * lc + (a * b).sum(1) * lc + (b * c).sum(1) * la + (c * a).sum(1) * lb
+        out[i] = 2.0 * np.arctan2(det, den).sum() / (4 * np.pi)
+    return out
+
+
+def bone_thickness(rest, weights, joints, parents) -> np.ndarray:
+    """(J,) median distance from each bone's vertices (those it is the strongest influence of) to the
+    bone's segments: its pivot to each child's pivot, for a leaf its pivot to the tip estimate (the pivot
+    mirrored through its vertices' centroid). 0 for a bone that skins nothing."""
+    strongest = np.argmax(weights, axis=1)
+    out = np.zeros(len(parents))
+    for b in range(len(parents)):
+        pts = rest[strongest == b]
+        if not len(pts):
+            continue
+        ends = [joints[k] for k, p in enumerate(parents) if p == b] or [2 * pts.mean(0) - joints[b]]
+        d = np.full(len(pts), np.inf)
+        for e in ends:
+            seg = e - joints[b]
+            t = np.clip((pts - joints[b]) @ seg / max(float(seg @ seg), 1e-30), 0.0, 1.0)
+            d = np.minimum(d, np.linalg.norm(pts - (joints[b] + t[:, None] * seg), axis=1))
+        out[b] = float(np.median(d))
+    return out
+
+
+def joint_clearance(rest, faces, weights, joints, parents, lazy: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """(outside, limit), each (J,): how far each joint is outside the rest mesh (0 inside, by the winding
+    number; else the distance to the nearest vertex, within half an edge of the surface's) and the
+    thickness of the thicker of the two bones that meet at it (its own and its parent's, bone_thickness).
+    A joint with outside > limit has left the body. ``lazy``: the winding number (the costly part) only
+    where the nearest vertex is farther than the limit; a nearer joint passes on either side and gets that
+    distance (an upper bound) as ``outside``."""
+    from scipy.spatial import cKDTree
+
+    dist = cKDTree(rest).query(joints)[0]
+    th = bone_thickness(rest, weights, joints, parents)
+    limit = np.array([max(th[b], th[p] if p >= 0 else 0.0) for b, p in enumerate(parents)])
+    need = dist > limit if lazy else np.ones(len(joints), bool)
+    inside = np.zeros(len(joints), bool)
+    inside[need] = winding_numbers(joints[need], rest, faces) > 0.5
+    return np.where(inside, 0.0, dist), limit
+
+
 # ---------------------------------------------------------------- the whole fit
 def fit_skin(traj: Trajectories, faces: np.ndarray, rig: Rig, *, influences: int = 4, iterations: int = 15,
              smooth: float = 1e-6, fixed_lengths: bool = True, pivots: bool = True, rest: bool = True,
-             tol: float = 1e-4, log=None) -> SkinFit:
+             tol: float = 1e-3, log=None) -> SkinFit:
     """Alternate the weights and bone-motion steps (module docstring) from the rig's rigid parts; with
-    fixed lengths, ``pivots`` also moves the rest-pose joints (fit_pivots) after each bone-motion step;
-    ``rest`` refits the rest shape (fit_rest) after it."""
+    fixed lengths, ``pivots`` also moves the rest-pose joints (fit_pivots) after each bone-motion step,
+    refusing a joint's move that takes it out of the body (joint_clearance); ``rest`` refits the rest shape
+    (fit_rest) after it. Bones that skin no vertex are merged into their parents (drop_weightless), from
+    the start and after each weights step. Stops when an iteration lowers the total rms by less than
+    ``tol`` of its previous value (an iteration that raises it is undone). ``log(str)`` gets a line per
+    iteration."""
     from nodes.common.meshops import vertex_neighbours
 
     joints = np.asarray(rig.joints, np.float64)
+    anchor_joints = joints
     parents = list(rig.parents)
-    j = len(parents)
+    labels = np.asarray(rig.labels)
+    kept = list(range(len(parents)))
     _, edges = edge_length_graph(traj.rest, faces)
     nbr = vertex_neighbours(faces, len(traj.rest))
     diag = float(np.linalg.norm(np.ptp(traj.rest, axis=0)))
-    cand = candidates(traj.rest, rig.labels, edges, parents, j, 0.03 * diag)
-    weights = np.zeros((len(traj.rest), j))
-    weights[np.arange(len(traj.rest)), rig.labels] = 1.0
+    weights = np.zeros((len(traj.rest), len(parents)))
+    weights[np.arange(len(traj.rest)), labels] = 1.0
     rot, tr = rig.rotations.copy(), rig.translations.copy()
+
+    def drop(weights, rot, tr, joints, parents, labels):
+        nonlocal kept, anchor_joints
+        idx, weights, rot, tr, joints, new_parents, labels = drop_weightless(weights, rot, tr, joints, parents, labels,
+                                                                            pinned=fixed_lengths)
+        if len(idx) < len(parents):
+            if log:
+                log(f"skin: {len(parents) - len(idx)} bone(s) skin no vertex, merged into their parents: "
+                    f"{sorted(set(kept) - {kept[i] for i in idx})}")
+            kept, anchor_joints = [kept[i] for i in idx], anchor_joints[idx]
+        return weights, rot, tr, joints, new_parents, labels
+
+    weights, rot, tr, joints, parents, labels = drop(weights, rot, tr, joints, parents, labels)
+    cand = candidates(traj.rest, labels, edges, parents, len(parents), 0.03 * diag)
     anchor = traj.rest
     if fixed_lengths:
         rot, tr = constrain(rot, tr, joints, parents)
         rot, tr = fit_poses_fixed(traj, weights, rot, tr, joints, parents, influences, steps=4)
     history = []
-    prev = np.inf
+    refused = 0
+    prev, best = np.inf, None
     for it in range(iterations):
         weights = fit_weights(traj, rot, tr, cand, weights, nbr, influences=influences, smooth=smooth)
+        count = len(parents)
+        weights, rot, tr, joints, parents, labels = drop(weights, rot, tr, joints, parents, labels)
+        if len(parents) < count:
+            cand = candidates(traj.rest, labels, edges, parents, len(parents), 0.03 * diag)
+            prev, best = np.inf, None           # another model: no comparison with the last iteration
         if fixed_lengths:
             rot, tr = fit_poses_fixed(traj, weights, rot, tr, joints, parents, influences)
             if pivots:
-                joints, rot, tr = fit_pivots(traj, weights, rot, tr, joints, parents, rig.joints)
+                moved, rot, tr = fit_pivots(traj, weights, rot, tr, joints, parents, anchor_joints)
+                outside, limit = joint_clearance(traj.rest, faces, weights, moved, parents, lazy=True)
+                bad = outside > limit
+                if bad.any():   # out of the body: the data leave that joint open; keep it where it was
+                    refused += int(bad.sum())
+                    moved[bad] = joints[bad]
+                    rot, tr = constrain(rot, tr, moved, parents)
+                joints = moved
         else:
             rot, tr = fit_poses_free(traj, weights, rot, tr)
         if rest:
             traj = traj.with_rest(fit_rest(traj, weights, rot, tr, anchor))
         rmse, _ = errors(traj, weights, rot, tr)
         total = float(np.sqrt((rmse ** 2).mean()))
-        history.append(total)
         if log:
-            log(f"skin iteration {it + 1}: rmse {total:.6g}")
-        if prev - total < tol * total:
+            log(f"skin: iteration {it + 1}/{iterations}, rms {1000 * total:.4g} mm, {len(parents)} bones")
+        if total > prev and best is not None:   # worse: undo this iteration and stop
+            traj, weights, rot, tr, joints = best
             break
-        prev = total
+        history.append(total)
+        if prev - total < tol * prev:
+            break
+        prev, best = total, (traj, weights, rot, tr, joints)
     rmse, mx = errors(traj, weights, rot, tr)
-    return SkinFit(traj.rest, weights, rot, tr, joints, parents, rmse, mx, history)
+    return SkinFit(traj.rest, weights, rot, tr, joints, parents, rmse, mx, history, kept, refused)

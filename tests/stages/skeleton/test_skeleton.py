@@ -206,9 +206,128 @@ def test_skin_node_table_and_golden(tube_nodes, golden):
     assert err["bones"] == 3 and err["frames"] == 12 and err["lengths"] == "fixed"
     assert err["rmse_percent"] < 0.01 and err["bone_length_spread"] < 1e-9 and err["influences_max"] <= 4
     assert len(err["timeline"]["rmse"]) == 12 and err["timeline"]["frame"] == list(range(12))
-    stable = {k: v for k, v in err.items() if k not in ("seconds", "history", "iterations")}
+    # not in the golden file: run-dependent, or added later (removed, pivot_moves_refused: test_skin_keeps_joints_in_the_body)
+    stable = {k: v for k, v in err.items() if k not in ("seconds", "history", "iterations", "removed", "pivot_moves_refused")}
     golden.check("skin_tube", stable, Table, rtol=0.2, atol=2e-5)
     assert a["report"]["bones"] == 3 and a["report"]["segment"] == {"first_frame": 0, "last_frame": 11, "count": 1}
+
+
+def _assert_joints_in_the_body(rest, faces, weights, joints, parents):
+    """Every bone is the strongest influence of some vertex, and no joint is farther outside the rest mesh
+    than the thicker of the two bones meeting at it (median distance of a bone's vertices to its segments)."""
+    strongest = np.bincount(np.argmax(weights, axis=1), minlength=len(parents))
+    assert (strongest > 0).all(), f"bones that skin nothing: {np.flatnonzero(strongest == 0).tolist()}"
+    outside, limit = skinning.joint_clearance(rest, faces, weights, joints, parents)
+    assert (outside <= limit).all(), f"joints out of the body: {np.flatnonzero(outside > limit).tolist()}, {outside}, {limit}"
+
+
+def test_joint_clearance_of_the_tube():
+    v, f, w = tube()
+    wn = skinning.winding_numbers(np.array([[0, 0, 0.6], [0.05, 0, 0.1], [0.3, 0, 0.6], [0, 0, 1.5]]), v, f)
+    np.testing.assert_allclose(wn, [1, 1, 0, 0], atol=1e-6)
+    joints = np.array([[0, 0, 0.2], [0, 0, 0.6], [0.5, 0, 1.0]])   # the last one 0.42 m out of the 8 cm tube
+    outside, limit = skinning.joint_clearance(v, f, w, joints, [-1, 0, 1])
+    assert outside[0] == 0 and outside[1] == 0 and abs(outside[2] - 0.42) < 0.01
+    assert abs(limit[0] - 0.08) < 0.01 and outside[2] > 2 * limit[2]   # the tube's radius; the bent-off joint fails
+
+
+def test_skin_keeps_joints_in_the_body(tube_nodes, tube_fit, tube_rig):
+    ms, a, b = tube_nodes
+    sk, rest = b["skeleton"], b["rest"]
+    _assert_joints_in_the_body(np.asarray(rest.vertices), np.asarray(rest.faces), sk.weights, sk.joints, sk.parents)
+    pts, f, _, _ = tube_rig
+    _assert_joints_in_the_body(tube_fit.rest, f, tube_fit.weights, tube_fit.joints, tube_fit.parents)
+    assert b["error"]["removed"] == [] and b["error"]["pivot_moves_refused"] == 0
+
+
+def test_skin_merges_a_bone_that_skins_nothing(tube_nodes):
+    """A skeleton with an extra leaf joint 0.9 m off the tube, skinning no vertex: it used to take small
+    weights (strongest nowhere) and keep drifting outside; now it is merged into its parent."""
+    ms, a, _ = tube_nodes
+    sk = a["skeleton"]
+    leaf = next(j for j in range(len(sk.parents)) if j not in sk.parents)
+    extra = SkeletonData(np.vstack([sk.joints, [1.0, 0.0, 0.2]]), list(sk.parents) + [leaf], list(sk.names) + ["extra"],
+                         np.c_[sk.weights, np.zeros(len(sk.weights))],
+                         np.concatenate([sk.rotations, sk.rotations[:, [leaf]]], 1),
+                         np.concatenate([sk.translations, sk.translations[:, [leaf]]], 1), sk.frames)
+    out = run_node("skin", {"sequence": ms, "skeleton": extra}, {}, roundtrip=True)
+    got, rest = out["skeleton"], out["rest"]
+    strongest = np.bincount(np.argmax(got.weights, axis=1), minlength=len(got.parents))
+    assert (strongest > 0).all(), f"bones that skin nothing: {np.flatnonzero(strongest == 0).tolist()} at {got.joints}"
+    assert got.names == list(sk.names) and got.parents == list(sk.parents)
+    assert out["error"]["removed"] == ["extra"] and out["error"]["bones"] == 3
+    _assert_joints_in_the_body(np.asarray(rest.vertices), np.asarray(rest.faces), got.weights, got.joints, got.parents)
+    assert out["error"]["rmse_percent"] < 0.01
+    free = run_node("skin", {"sequence": ms, "skeleton": extra}, {"lengths": "free"})
+    assert free["error"]["removed"] == ["extra"] and free["error"]["rmse_percent"] < 0.02
+
+
+def test_skin_refuses_a_pivot_move_out_of_the_body(tube_rig, monkeypatch):
+    """A pivot step that would put a joint 0.5 m off the tube (what an open direction of the data allows)
+    is refused: the joint stays where it was and the fit is as good as without the bad step."""
+    pts, f, w, rig = tube_rig
+    real = skinning.fit_pivots
+    leaf = next(j for j in range(3) if j not in rig.parents)
+
+    def astray(traj, weights, rot, tr, joints, parents, anchor):
+        moved, rot, tr = real(traj, weights, rot, tr, joints, parents, anchor)
+        moved = moved.copy()
+        moved[leaf] += [0.5, 0.0, 0.0]
+        return moved, *skinning.constrain(rot, tr, moved, parents)
+
+    monkeypatch.setattr(skinning, "fit_pivots", astray)
+    fit = skinning.fit_skin(motion.Trajectories(pts[0], pts), f, rig, iterations=4)
+    assert fit.refused == 4
+    _assert_joints_in_the_body(fit.rest, f, fit.weights, fit.joints, fit.parents)
+    assert np.linalg.norm(fit.joints[leaf] - rig.joints[leaf]) < 0.01
+    assert np.sqrt((fit.rmse ** 2).mean()) < 1e-4 * np.linalg.norm(np.ptp(pts[0], axis=0))
+
+
+def test_drop_weightless_reparents_children():
+    """An interior bone that skins nothing: its weights and children go to its parent."""
+    w = np.array([[1.0, 0, 0, 0], [0.6, 0.3, 0, 0.1], [0, 0, 0, 1.0], [0, 0, 1.0, 0]])
+    rot = np.tile(np.eye(3), (2, 4, 1, 1))
+    tr = np.zeros((2, 4, 3))
+    joints = np.arange(12.0).reshape(4, 3)
+    kept, w2, rot2, tr2, j2, parents, labels = skinning.drop_weightless(w, rot, tr, joints, [-1, 0, 1, 1], np.array([0, 1, 3, 2]))
+    assert kept == [0, 2, 3] and parents == [-1, 0, 0]
+    np.testing.assert_allclose(w2, [[1, 0, 0], [0.9, 0, 0.1], [0, 0, 1], [0, 1, 0]])
+    assert labels.tolist() == [0, 0, 2, 1] and np.array_equal(j2, joints[[0, 2, 3]])
+
+
+def test_skin_stops_when_converged():
+    """With 1 mm noise the LBS error levels off after a few iterations: the fit stops there (tol) within
+    0.5 % of the rms that all 15 iterations reach; the node's table says how many it used."""
+    pts, f, w, rs, ts = tube_sequence(12, noise=0.001)
+    parts = motion.rigid_parts(pts[0], pts, f, bones=3)
+    rig = motion.build_rig(pts[0], f, parts)
+    traj = motion.Trajectories(pts[0], pts)
+    lines = []
+    early = skinning.fit_skin(traj, f, rig, tol=1e-3, log=lines.append)
+    full = skinning.fit_skin(traj, f, rig, tol=0.0)
+    assert len(early.history) < 15 and len(full.history) == 15
+    assert early.history[-1] < 1.005 * full.history[-1]
+    assert np.all(np.diff(early.history) < 0)
+    assert lines[0].startswith("skin: iteration 1/15, rms ") and len(lines) == len(early.history)
+    ms = tube_meshes(12, noise=0.001)
+    a = run_node("skeletonize.sequence", {"sequence": ms}, {"bones": 3})
+    err = run_node("skin", {"sequence": ms, "skeleton": a["skeleton"]}, {})["error"]   # tol 1e-3 by default
+    assert err["iterations"] <= 5 and err["iterations"] == len(err["history"])          # (tol 1e-4 took 7)
+
+
+def test_sequence_nodes_log_their_progress(caplog):
+    """skeletonize.sequence logs each phase and removal round, skin each iteration (the node log a long
+    sequence's run writes to logs/NODE/all.log)."""
+    import logging
+
+    ms = tube_meshes(6)
+    with caplog.at_level(logging.INFO, logger="volcap.node"):
+        a = run_node("skeletonize.sequence", {"sequence": ms}, {"bones": 3})
+        run_node("skin", {"sequence": ms, "skeleton": a["skeleton"]}, {"iterations": 2})
+    lines = [r.getMessage() for r in caplog.records]
+    assert any(m.startswith("skeletonize.sequence: 200 surface patches") for m in lines)
+    assert any(m.startswith("skeletonize.sequence: removing parts:") for m in lines)
+    assert [m.split(",")[0] for m in lines if m.startswith("skin: iteration")] == ["skin: iteration 1/2", "skin: iteration 2/2"]
 
 
 def test_exports_round_trip(tube_nodes, tmp_path):
@@ -281,6 +400,7 @@ def test_figure_sequence_joints_and_error():
     assert np.sqrt((fit.rmse ** 2).mean()) < 0.001 * diag
     voxel = np.ptp(pts[0], axis=0).max() / 128
     true = scenes.figure_pose(0)[1]
+    _assert_joints_in_the_body(fit.rest, rest.faces, fit.weights, fit.joints, fit.parents)
     owners = {scenes.NAMES[int(np.argmax(w[rig.labels == j].sum(0)))] for j in range(10)}
     assert owners == {"pelvis", "chest", "l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_hip", "r_hip", "l_knee", "r_knee"}
     owner = [int(np.argmax(w[rig.labels == j].sum(0))) for j in range(10)]
