@@ -34,6 +34,11 @@ def test_demo_graph_end_to_end(tmp_path):
         assert len(list((tmp_path / "out/masks").glob(f"*/{f:04d}.png"))) == 8
         glb = trimesh.load(tmp_path / f"out/demo_{f:04d}.glb", force="mesh")     # the textured mesh, texture embedded
         assert glb.visual.kind == "texture" and glb.visual.material.baseColorTexture.size == (256, 256)
+        tex = np.asarray(glb.visual.material.baseColorTexture.convert("RGB")).astype(int)
+        uv = np.asarray(glb.visual.uv)[np.asarray(glb.faces)].mean(axis=1)      # each face's texel
+        px = tex[np.clip(((1 - uv[:, 1]) * 256).astype(int), 0, 255), np.clip((uv[:, 0] * 256).astype(int), 0, 255)]
+        green = px[:, 1] - np.maximum(px[:, 0], px[:, 2])
+        assert np.mean(green > 10) < 0.002, np.mean(green > 10)   # painted from the despilled photos: no green cast
         health = json.loads((tmp_path / f"out/tables/health/{f}.json").read_text())
         assert health["folded_edges"] == 0 and health["watertight"], health
         assert health["normal_error_mean_deg"] < 15, health["normal_error_mean_deg"]
