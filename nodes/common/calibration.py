@@ -11,9 +11,10 @@
     idr         IDR / NeuS cameras_sphere.npz (world_mat_i, scale_mat_i)
     tsinghua    calibParamsI.txt blocks: index, K, k1 k2, [R|t]
     matlab      .mat file holding a cell array of 3x4 P matrices (Oxford VGG)
-    qualisys    Qualisys QTM calibration XML (.qca, Calib.qca.txt): camera centre in mm, rotation, intrinsics in
-                1/64 px (read_qualisys); positions converted to metres
-A folder is searched for these files; per-camera files (calibration/*.xml, cam*/config.xml) make one set.
+    qualisys    Qualisys QTM calibration XML (.qca, Calib.qca.txt, or .xml): camera centre in mm, rotation,
+                intrinsics in 1/64 px, distortion as written (not /64; read_qualisys); positions in metres
+A folder is searched for these files (also calibration/*.qca.txt); per-camera files (calibration/*.xml,
+cam*/config.xml) make one set.
 
 Pixel convention: (0, 0) is the centre of the top-left pixel (nodes.common.cameras, as OpenCV's projectPoints).
 Each importer's convention for its files (CONVENTIONS; tests/stages/common/test_pixel_conventions.py checks
@@ -28,7 +29,7 @@ every one against cv2.projectPoints on hand-written files):
     qualisys    centre  centerPointU/64 - fov_video.left taken as OpenCV's cx (as Pose2Sim reads it; the file
                         does not say where its 1/64-pixel grid starts)
 Units: the cameras keep their file's length unit, except qualisys (millimetres), which is converted to metres
-(the unit of the synthetic rigs and of most real datasets here).
+(the unit of the synthetic rigs).
 P matrices are decomposed (cv2.decomposeProjectionMatrix) into a metric camera when the result is physical
 (positive focal lengths of similar size, little skew, principal point near the image); otherwise they are
 kept as bare-P cameras (``Camera.from_P``), as for the non-metric Oxford dino.
