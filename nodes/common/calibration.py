@@ -11,7 +11,10 @@
     idr         IDR / NeuS cameras_sphere.npz (world_mat_i, scale_mat_i)
     tsinghua    calibParamsI.txt blocks: index, K, k1 k2, [R|t]
     matlab      .mat file holding a cell array of 3x4 P matrices (Oxford VGG)
-A folder is searched for these files; per-camera files (calibration/*.xml, cam*/config.xml) make one set.
+    qualisys    Qualisys QTM calibration XML (.qca, Calib.qca.txt, or .xml): camera centre in mm, rotation,
+                intrinsics in 1/64 px, distortion as written (not /64; read_qualisys); positions in metres
+A folder is searched for these files (also calibration/*.qca.txt); per-camera files (calibration/*.xml,
+cam*/config.xml) make one set.
 
 Pixel convention: (0, 0) is the centre of the top-left pixel (nodes.common.cameras, as OpenCV's projectPoints).
 Each importer's convention for its files (CONVENTIONS; tests/stages/common/test_pixel_conventions.py checks
@@ -23,6 +26,10 @@ every one against cv2.projectPoints on hand-written files):
     ptext, inria, matlab, idr   centre   P = K [R|t] maps onto pixel centres at integers (Oxford VGG, INRIA,
                         IDR/NeuS cast rays through integer pixel coordinates)
     tsinghua    centre  K as given
+    qualisys    centre  centerPointU/64 - fov_video.left taken as OpenCV's cx (as Pose2Sim reads it; the file
+                        does not say where its 1/64-pixel grid starts)
+Units: the cameras keep their file's length unit, except qualisys (millimetres), which is converted to metres
+(the unit of the synthetic rigs).
 P matrices are decomposed (cv2.decomposeProjectionMatrix) into a metric camera when the result is physical
 (positive focal lengths of similar size, little skew, principal point near the image); otherwise they are
 kept as bare-P cameras (``Camera.from_P``), as for the non-metric Oxford dino.
@@ -39,10 +46,11 @@ import numpy as np
 from .cameras import Camera, Cameras
 from nodegraph.errors import DataError
 
-FORMATS = ("colmap", "nerf", "middlebury", "opencv", "ptext", "inria", "idr", "tsinghua", "matlab")
+FORMATS = ("colmap", "nerf", "middlebury", "opencv", "ptext", "inria", "idr", "tsinghua", "matlab", "qualisys")
 # where a format puts pixel coordinate (0, 0): the top-left pixel's centre or its corner (see the docstring)
 CONVENTIONS = {"colmap": "corner", "nerf": "corner", "middlebury": "centre", "opencv": "centre", "ptext": "centre",
-               "inria": "centre", "idr": "centre", "tsinghua": "centre", "matlab": "centre"}
+               "inria": "centre", "idr": "centre", "tsinghua": "centre", "matlab": "centre",
+               "qualisys": "centre"}
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".exr")
 
 
@@ -380,6 +388,82 @@ def read_matlab(path: Path, image_sizes=None) -> Cameras:
     return _checked(cams, path)
 
 
+# Qualisys distortion coefficients are taken as they are (OpenCV's k1 k2 p1 p2 k3), not divided by 64 as
+# Pose2Sim does: on pose2sim_single's checkerboard images (4x7 corners) the file's coefficients as they are
+# give a lower PnP reprojection error than /64 (= almost none) in 3 cameras of 4 (0.45 vs 0.52 px in cam02)
+# and equal in the 4th, and a free cv2.calibrateCamera of cam01 finds k1 -0.050, k2 0.113 (file: -0.046, 0.140).
+_QCA_DIST_SCALE = 1.0
+
+
+def _qca_attrs(el, keys, where) -> list[float]:
+    """The attributes ``keys`` of XML element ``el`` as finite floats; a missing one or a non-number is a
+    DataError naming ``where`` (the file and the camera)."""
+    out = []
+    for k in keys:
+        v = el.get(k)
+        if v is None:
+            raise DataError(f"{where}: <{el.tag}> has no attribute {k}")
+        try:
+            out.append(float(v))
+        except ValueError:
+            raise DataError(f"{where}: <{el.tag}> {k}=\"{v}\" is not a number") from None
+    return list(_finite(out, f"<{el.tag}>", where))
+
+
+def read_qualisys(path: Path, image_sizes=None) -> Cameras:
+    """Qualisys QTM calibration XML (``<calibration><cameras><camera serial=...>``), as Pose2Sim reads it.
+
+    Per camera: ``transform`` x, y, z = the camera centre C in the world (mm) and r11..r33 a rotation whose
+    columns are written row by row: with A = [[r11, r12, r13], [r21, r22, r23], [r31, r32, r33]]^T the
+    camera's axes in the world are the columns of A diag(1, -1, -1) in OpenCV's axes, so R = (A diag(1, -1,
+    -1))^T and t = -R C (C converted to metres). ``intrinsic`` in 1/64 pixel: fx = focalLengthU / 64, fy =
+    focalLengthV / 64, cx = centerPointU / 64 - fov_video.left, cy = centerPointV / 64 - fov_video.top;
+    distortion k1 k2 k3 = radialDistortion1..3, p1 p2 = tangentalDistortion1..2 (see _QCA_DIST_SCALE). The
+    image size is fov_video's (right - left + 1) x (bottom - top + 1). Names: the ``serial`` attribute."""
+    try:
+        root = ET.parse(path).getroot()
+    except ET.ParseError as exc:
+        raise DataError(f"{path}: unreadable Qualisys XML ({exc})") from None
+    cams_el = root.findall("./cameras/camera")
+    if root.tag != "calibration" or not cams_el:
+        raise DataError(f"{path}: not a Qualisys calibration (expected <calibration><cameras><camera ...>)")
+    flip = np.diag([1.0, -1.0, -1.0])
+    cams = []
+    for i, el in enumerate(cams_el):
+        name = el.get("serial") or f"cam{i + 1:02d}"
+        where = f"{path}: camera {i} '{name}'"
+        parts = {}
+        for tag in ("transform", "intrinsic", "fov_video"):
+            parts[tag] = el.find(tag)
+            if parts[tag] is None:
+                raise DataError(f"{where}: no <{tag}>")
+        tr, intr, fov = parts["transform"], parts["intrinsic"], parts["fov_video"]
+        if el.get("viewrotation", "0") not in ("0", ""):
+            raise DataError(f"{where}: viewrotation={el.get('viewrotation')} (rotated images) is not supported")
+        r = _qca_attrs(tr, [f"r{a}{b}" for a in "123" for b in "123"], where)
+        C = np.array(_qca_attrs(tr, "xyz", where)) / 1000.0                       # mm -> m
+        A = np.reshape(r, (3, 3)).T
+        R = (A @ flip).T
+        if abs(np.linalg.det(R) - 1) > 1e-6 or np.abs(R @ R.T - np.eye(3)).max() > 1e-6:
+            raise DataError(f"{where}: transform r11..r33 is not a rotation (det {np.linalg.det(R):.6g})")
+        left, top, right, bottom = _qca_attrs(fov, ("left", "top", "right", "bottom"), where)
+        fu, fv, cu, cv = _qca_attrs(intr, ("focalLengthU", "focalLengthV", "centerPointU", "centerPointV"), where)
+        skew = _qca_attrs(intr, ("skew",), where)[0] if intr.get("skew") is not None else 0.0
+        if skew != 0:
+            raise DataError(f"{where}: intrinsic skew={skew:g} is not supported")
+        dk = {k: (_qca_attrs(intr, (k,), where)[0] if intr.get(k) is not None else 0.0)
+              for k in ("radialDistortion1", "radialDistortion2", "radialDistortion3", "tangentalDistortion1",
+                        "tangentalDistortion2")}
+        dist = np.array([dk["radialDistortion1"], dk["radialDistortion2"], dk["tangentalDistortion1"],
+                         dk["tangentalDistortion2"], dk["radialDistortion3"]]) / _QCA_DIST_SCALE
+        K = np.array([[fu / 64, 0, cu / 64 - left], [0, fv / 64, cv / 64 - top], [0, 0, 1]])
+        w, h = int(round(right - left + 1)), int(round(bottom - top + 1))
+        if w <= 0 or h <= 0:
+            raise DataError(f"{where}: fov_video gives an empty image ({w}x{h})")
+        cams.append(_named(where, Camera, name, w, h, K, np.hstack([R, (-R @ C)[:, None]]), dist))
+    return Cameras(cams)
+
+
 _K_KEYS = ("camera_matrix", "CameraMatrix", "K", "intrinsic", "Intrinsics", "cameraMatrix")
 _D_KEYS = ("distortion_coefficients", "distortion", "DistortionCoeffs", "dist_coeffs", "distCoeffs", "D", "dist")
 _R_KEYS = ("R", "rotation_matrix", "RotationMatrix")
@@ -504,8 +588,12 @@ def _sniff_file(p: Path) -> str | None:
         return "idr"
     if suf == ".mat":
         return "matlab"
+    if name.endswith((".qca", ".qca.txt")):
+        return "qualisys"
     if suf in (".xml", ".yml", ".yaml"):
         head = p.read_text(errors="replace")[:400]
+        if suf == ".xml" and re.search(r"<calibration[\s>]", head) and "<cameras" in p.read_text(errors="replace")[:4000]:
+            return "qualisys"
         return "inria" if re.search(r"<camera>", head) and "opencv_storage" not in head else "opencv"
     if suf == ".txt":
         lines = [ln.split() for ln in p.read_text(errors="replace").splitlines() if ln.strip() and not ln.startswith("#")]
@@ -546,7 +634,8 @@ def _folder_candidates(folder: Path) -> list[tuple[str, object]]:
         out = [c for c in out if c[0] != "inria"] + [("inria+", singles)]
     calib = folder / "calibration"
     if calib.is_dir():
-        xmls = sorted(calib.glob("*.xml"))
+        out += [("qualisys", p) for p in sorted(calib.glob("*.qca*")) if p.name.lower().endswith((".qca", ".qca.txt"))]
+        xmls = [p for p in sorted(calib.glob("*.xml")) if _sniff_file(p) != "qualisys"]
         if xmls:
             out.append((_sniff_file(xmls[0]) + "+", xmls))
     configs = sorted(folder.glob("*/config.xml"))
@@ -580,7 +669,7 @@ def load_cameras(path, fmt: str = "auto", image_sizes=None) -> Cameras:
         cands = [c for c in cands if c[0].rstrip("+") == fmt]
     if not cands:
         raise DataError(f"{path}: no calibration file found (looked for COLMAP, transforms.json, *_par.txt, P text, "
-                        "OpenCV XML/YAML, cameras*.npz, .mat, calibration/*.xml, */config.xml)")
+                        "OpenCV XML/YAML, cameras*.npz, .mat, Qualisys .qca, calibration/*.xml, */config.xml)")
     loaded = [(c, _read(c[0], c[1], image_sizes)) for c in cands]
     first = loaded[0][1]
     for (fmt_i, p_i), cams in loaded[1:]:
@@ -623,7 +712,7 @@ def _read_unchecked(fmt: str, p, image_sizes) -> Cameras:
         return Cameras(cams)
     readers = {"colmap": read_colmap, "nerf": read_nerf, "middlebury": read_middlebury, "ptext": read_ptext,
                "inria": lambda q, s: read_inria([q], s), "idr": read_idr, "tsinghua": read_tsinghua,
-               "matlab": read_matlab, "opencv": read_opencv}
+               "matlab": read_matlab, "opencv": read_opencv, "qualisys": read_qualisys}
     return readers[fmt](Path(p), image_sizes)
 
 

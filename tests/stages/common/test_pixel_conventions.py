@@ -83,6 +83,19 @@ def write(fmt, folder, cams, offset):
         fs.write("image_height", H)
         fs.release()
         return folder / "cam.yml"
+    if fmt == "qualisys":   # centre in mm, rotation columns row by row with y, z flipped, 1/64 px, fov at (8, 4)
+        rows = []
+        for name, K, R, t, d in cams:
+            Kf, M, C = shifted(K, offset), np.diag([1.0, -1.0, -1.0]) @ R, -R.T @ t * 1000
+            rs = " ".join(f'r{a + 1}{b + 1}="{float(M[a, b])!r}"' for a in range(3) for b in range(3))
+            rows.append(f'<camera serial="{name}"><fov_video left="8" top="4" right="{W + 7}" bottom="{H + 3}"/>'
+                        f'<transform {rs} x="{float(C[0])!r}" y="{float(C[1])!r}" z="{float(C[2])!r}"/>'
+                        f'<intrinsic focalLengthU="{float(Kf[0, 0] * 64)!r}" focalLengthV="{float(Kf[1, 1] * 64)!r}" '
+                        f'centerPointU="{float((Kf[0, 2] + 8) * 64)!r}" centerPointV="{float((Kf[1, 2] + 4) * 64)!r}" '
+                        f'radialDistortion1="{float(d[0])!r}" radialDistortion2="{float(d[1])!r}" '
+                        f'tangentalDistortion1="{float(d[2])!r}" tangentalDistortion2="{float(d[3])!r}"/></camera>')
+        (folder / "cal.qca").write_text("<calibration><cameras>" + "".join(rows) + "</cameras></calibration>")
+        return folder / "cal.qca"
     Ps = [shifted(K, offset) @ np.hstack([R, t[:, None]]) for _, K, R, t, _ in cams]
     if fmt == "ptext":
         (folder / "P.txt").write_text("\n".join(nums(P) for P in Ps) + "\n")
@@ -114,7 +127,7 @@ def write(fmt, folder, cams, offset):
     raise AssertionError(fmt)
 
 
-DISTORTED = {"colmap", "nerf", "opencv", "tsinghua"}
+DISTORTED = {"colmap", "nerf", "opencv", "tsinghua", "qualisys"}
 
 
 @pytest.mark.parametrize("fmt", calibration.FORMATS)
