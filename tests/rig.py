@@ -49,3 +49,16 @@ def sphere_rig(n: int, size: int, *, center=(0.0, 0.0, 0.0), distance: float = 4
         up = (0, 0, 1) if abs(d[2]) < 0.95 else (0, 1, 0)
         cams.append(look_at(center + distance * d, center, up, fov, size, size, name=name.format(i=i)))
     return Cameras(cams)
+
+
+def two_segments():
+    """A tracked sequence of five frames (10..14) in two segments: a growing ball (keyframe 10), then a moving
+    box (keyframe 13), with the metadata track writes."""
+    import trimesh
+
+    sphere, box = trimesh.creation.icosphere(2), trimesh.creation.box()
+    seq = [trimesh.Trimesh(sphere.vertices * (1 + 0.1 * k), sphere.faces, process=False) for k in range(3)]
+    seq += [trimesh.Trimesh(box.vertices + [0.1 * k, 0, 0], box.faces, process=False) for k in range(2)]
+    for i, m in enumerate(seq):
+        m.metadata.update(segment=int(i >= 3), keyframe=10 if i < 3 else 13, frame=10 + i)
+    return seq

@@ -10,6 +10,7 @@ import trimesh
 
 from nodegraph.testing import run_node
 from nodes.common.types import FPS, SkeletonData
+from rig import two_segments
 
 
 @pytest.fixture(scope="module")
@@ -33,12 +34,7 @@ def coloured():
 @pytest.fixture(scope="module")
 def sequence():
     """Five frames (10..14) in two segments: a growing ball, then a moving box."""
-    sphere, box = trimesh.creation.icosphere(2), trimesh.creation.box()
-    seq = [trimesh.Trimesh(sphere.vertices * (1 + 0.1 * k), sphere.faces, process=False) for k in range(3)]
-    seq += [trimesh.Trimesh(box.vertices + [0.1 * k, 0, 0], box.faces, process=False) for k in range(2)]
-    for i, m in enumerate(seq):
-        m.metadata.update(segment=int(i >= 3), keyframe=10 if i < 3 else 13, frame=10 + i)
-    return seq
+    return two_segments()
 
 
 @pytest.fixture(scope="module")

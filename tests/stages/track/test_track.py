@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
-from rig import ring_rig
+from rig import ring_rig, two_segments
 
 from nodegraph import NodeError, Table
 from nodegraph.graphfile import load_graph
@@ -218,12 +218,7 @@ def test_empty_frame_is_its_own_segment():
 # ---------------------------------------------------------------- exports and the sequence type
 @pytest.fixture(scope="module")
 def tracked_pair():
-    sphere, box = trimesh.creation.icosphere(2), trimesh.creation.box()
-    seq = [trimesh.Trimesh(sphere.vertices * (1 + 0.1 * k), sphere.faces, process=False) for k in range(3)]
-    seq += [trimesh.Trimesh(box.vertices + [0.1 * k, 0, 0], box.faces, process=False) for k in range(2)]
-    for i, m in enumerate(seq):
-        m.metadata.update(segment=int(i >= 3), keyframe=10 if i < 3 else 13, frame=10 + i)
-    return seq
+    return two_segments()
 
 
 def test_frame_node_gives_the_frame_and_its_keyframe(tracked_pair):
