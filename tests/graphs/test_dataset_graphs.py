@@ -8,6 +8,7 @@ import json
 from pathlib import Path
 
 import pytest
+import numpy as np
 import trimesh
 
 from nodegraph.graphfile import load_graph
@@ -53,6 +54,12 @@ def test_dataset_graph_runs(path, dataset_run, data_dir, monkeypatch):
         if p.suffix == ".glb":                          # textured: the texture travels inside the GLB
             m = trimesh.load(p, force="mesh")
             assert m.visual.kind == "texture" and m.visual.material.baseColorTexture is not None, p.name
+            tex = np.asarray(m.visual.material.baseColorTexture.convert("RGB")).astype(int)
+            size = tex.shape[0]
+            uv = np.asarray(m.visual.uv)[np.asarray(m.faces)].mean(axis=1)      # each face's texel
+            px = tex[np.clip(((1 - uv[:, 1]) * size).astype(int), 0, size - 1), np.clip((uv[:, 0] * size).astype(int), 0, size - 1)]
+            cast = np.mean(px[:, 1] - np.maximum(px[:, 0], px[:, 2]) > 10)
+            assert cast < 0.005, (p.name, cast)   # no key colour baked in (thu's green floor: 2.3 % undespilled)
     for r in res.records:
         if r["type"] == "eval.silhouette":
             table = json.loads((Path(r["cache_dir"]) / "report/table.json").read_text())
