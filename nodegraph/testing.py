@@ -54,8 +54,8 @@ def unit_purity(graph, root: Path) -> list[str]:
     scheduler does (a frame's items together in one unit, values handed over in memory) with every output kept,
     then run every item alone (``worker.execute`` without the unit's memory: inputs read back from a second
     cache, in dependency order) and compare the stored files' hashes port by port for every item that shares a
-    unit. Returns one line per
-    output that differs, naming the first item in dependency order (its inputs were equal, so it is impure)."""
+    unit. Returns one line per output that differs, naming the first item in dependency order (its inputs were
+    equal, so it is impure)."""
     from .executors import LocalExecutor
     from .run import plan_graph, run_graph
 
