@@ -22,14 +22,24 @@ ROOT = Path(__file__).resolve().parents[2]
 PACKAGES = ("nodegraph", "nodes", "kernels")  # pyproject.toml: [tool.setuptools.packages.find], and py-modules app
 
 
-def tracked_copy(dest: Path) -> set[str]:
-    """Copy the checkout's git-tracked files (as they are in the working tree, uncommitted edits included; files
-    deleted there left out) to ``dest``; return their relative paths."""
+BUILD_OUTPUTS = {"build", "dist", "__pycache__", ".git", ".volcap-cache", "out", ".pytest_cache", ".hypothesis"}
+
+
+def source_files() -> set[str]:
+    """The tree's source files: git's tracked ones (as they are in the working tree, uncommitted edits included;
+    files deleted there left out), or outside a git checkout (an unpacked archive) every file except build
+    outputs (build/, dist/, *.egg-info, caches)."""
     try:
         res = subprocess.run(["git", "-C", str(ROOT), "ls-files", "-z"], capture_output=True, check=True)
+        return {f for f in res.stdout.decode().split("\0") if f and (ROOT / f).is_file()}
     except (OSError, subprocess.CalledProcessError):
-        pytest.skip("not a git checkout: which files are tracked is unknown")
-    files = {f for f in res.stdout.decode().split("\0") if f and (ROOT / f).is_file()}
+        return {p.relative_to(ROOT).as_posix() for p in ROOT.rglob("*") if p.is_file()
+                and not any(part in BUILD_OUTPUTS or part.endswith(".egg-info") for part in p.relative_to(ROOT).parts)}
+
+
+def tracked_copy(dest: Path) -> set[str]:
+    """Copy the tree's source files (``source_files``) to ``dest``; return their relative paths."""
+    files = source_files()
     for f in files:
         (dest / f).parent.mkdir(parents=True, exist_ok=True)
         shutil.copy2(ROOT / f, dest / f)
