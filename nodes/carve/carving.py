@@ -500,6 +500,8 @@ class Carver:
         of the current volume, from one item-buffer pass (``reuse``: the last full pass's, when it removed
         nothing)."""
         idx, col, var = self.b.colours(reuse)
+        order = np.argsort(idx, kind="stable")     # the compaction's order depends on the device's threads
+        idx, col, var = idx[order], col[order], var[order]
         colors = np.zeros((*self.grid.dims, 3), np.uint8)
         views = np.zeros(self.grid.dims, np.uint8)
         colors.reshape(-1, 3)[idx] = col[:, :3]
@@ -658,10 +660,10 @@ def carve(volume: VoxelGrid, images, masks, cameras: Cameras, params: CarveParam
         "input_specks_dropped": specks, "parts_out": count_parts(out),
         "passes": carver.log, "space": params.space, "threshold": params.threshold,
         "surface_voxels_seen_out": int(len(var_after)),
-        "variance_out": float(var_after.mean()) if len(var_after) else 0.0,
+        "variance_out": float(var_after.mean(dtype=np.float64)) if len(var_after) else 0.0,
         "seconds_carve": round(t2 - t1, 4), "seconds_total": round(time.perf_counter() - t0, 4),
     }
     if var_before is not None:
         stats["surface_voxels_seen_in"] = int(len(var_before))
-        stats["variance_in"] = float(var_before.mean()) if len(var_before) else 0.0
+        stats["variance_in"] = float(var_before.mean(dtype=np.float64)) if len(var_before) else 0.0
     return CarveResult(VoxelGrid(out, volume.bbox_min, volume.bbox_max, colors), stats)
