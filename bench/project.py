@@ -74,7 +74,7 @@ def main():
 
     data = Path(os.environ.get("VOLCAP_DATA", ROOT.parent / "shared" / "data")) / args.dataset
     if data.is_dir():
-        from nodes.hull.bounds import auto_bounds
+        from nodes.common.bounds import auto_bounds
         from nodes.capture.load import load_capture
 
         cap = load_capture(data)

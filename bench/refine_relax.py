@@ -122,7 +122,7 @@ def scene(name: str):
                                     "background": "green", "shadow": False})
         return st["masks"], st["cameras"], cube_around(st["bounds"]), st["mesh"]
     from nodes.capture.load import load_capture
-    from nodes.hull.bounds import auto_bounds
+    from nodes.common.bounds import auto_bounds
 
     data = Path(os.environ.get("VOLCAP_DATA", ROOT.parent / "shared" / "data"))
     cap = load_capture(data / name)

@@ -48,6 +48,7 @@ from nodes.common.types import ImageSet, MaskSet
 
 VIDEO_EXTS = (".avi", ".mp4", ".mov", ".mkv")
 PATTERN_KEYS = ("calibration", "images", "masks", "background")
+WORLD_KEYS = ("up", "units", "floor")     # the layout's world frame (world.py): up axis, metres per unit, floor height
 
 
 LOG = logging.getLogger("volcap.capture")
@@ -70,7 +71,7 @@ def layouts() -> list[dict]:
 
     doc = yaml.safe_load((Path(__file__).with_name("layouts.yaml")).read_text())
     for entry in doc:
-        unknown = set(entry) - {"name", "marker", *PATTERN_KEYS}
+        unknown = set(entry) - {"name", "marker", *PATTERN_KEYS, *WORLD_KEYS}
         if unknown or "marker" not in entry:
             raise DataError(f"layouts.yaml: layout {entry.get('name')!r} has unknown keys {sorted(unknown)} or no marker")
     return doc
@@ -154,6 +155,37 @@ def detect_layout(root: Path) -> dict:
         if glob.glob(str(root / layout["marker"])):
             return {k: v for k, v in layout.items() if k in PATTERN_KEYS}
     return {}
+
+
+def layout_world(root: Path) -> dict:
+    """The world keys (up, units, floor) of the known layout of a dataset folder ({} for an unknown one)."""
+    for layout in layouts():
+        if glob.glob(str(Path(root) / layout["marker"])):
+            return {k: v for k, v in layout.items() if k in WORLD_KEYS}
+    return {}
+
+
+def world_of(path, images, masks, background, calibration, mask_threshold, up, units, origin, origin_frame,
+             loaded: dict | None = None, log=None):
+    """(WorldFrame, report) of a capture folder, from its frame ``origin_frame`` (``loaded``: that frame when
+    the caller has it); memoised per process, as every frame of a sequence asks the same."""
+    key = (str(path), images, masks, background, calibration, mask_threshold, up, units, origin, origin_frame)
+    hit = _WORLDS.get(key)
+    if hit is None:
+        from .world import find_world
+
+        ref = loaded or load_capture(path, origin_frame, images, masks, background, calibration, mask_threshold, log=LOG)
+        ms = ref["masks"]
+        hit = find_world(ref["cameras"], None if ms is None else ms.masks, layout_world(Path(path)), up=up,
+                         units=units, origin=origin, node="capture", log=log)
+        _WORLDS[key] = hit
+    elif log:
+        for w in hit[1]["warnings"]:
+            log.warning("capture: world frame: %s", w)
+    return hit
+
+
+_WORLDS: dict = {}
 
 
 def _nerf_transforms(root: Path, calibration: str) -> Path:

@@ -23,9 +23,13 @@ So a textured, morphing or skinned mesh is built by the same calls in any combin
     b.animate(n, "weights", times, weights, "STEP")
     data = b.glb()
 
-Conventions: positions as given (the exports' frame; glTF itself says +Y up, metres); UVs are converted from
-trimesh's origin (bottom-left) to glTF's (top-left) by ``texture_uv``; matrices are ours (column-vector,
-row-major arrays) and written column-major here.
+Conventions: everything is given in the world frame (+Z up, metres: nodes/capture/world.py) and written in
+glTF's (+Y up, metres, +Z forward) by one fixed change of basis, ``GLTF_FROM_WORLD`` (x, y, z) -> (x, z, -y),
+applied here to every position, normal, morph displacement, node and key translation, rotation and scale and
+inverse bind matrix, so no export does it itself and readers undo it with ``world_points`` (what Blender's
+glTF importer does on its side: an asset lands upright in either). UVs are converted from trimesh's origin
+(bottom-left) to glTF's (top-left) by ``texture_uv``; matrices are ours (column-vector, row-major arrays) and
+written column-major here.
 """
 from __future__ import annotations
 
@@ -36,6 +40,34 @@ _COMPONENTS = {np.dtype(np.float32): 5126, np.dtype(np.uint32): 5125, np.dtype(n
 _TYPES = {(): "SCALAR", (2,): "VEC2", (3,): "VEC3", (4,): "VEC4", (3, 3): "MAT3", (4, 4): "MAT4"}
 _WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT3": 9, "MAT4": 16}
 ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 34962, 34963
+GLTF_FROM_WORLD = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])   # +Z up -> +Y up (a rotation)
+
+
+def gltf_points(p) -> np.ndarray:
+    """World points or vectors (N, 3) in glTF's frame."""
+    return np.asarray(p, np.float64) @ GLTF_FROM_WORLD.T
+
+
+def world_points(p) -> np.ndarray:
+    """glTF points or vectors (N, 3) in the world frame (what a reader does after ``read_accessor``)."""
+    return np.asarray(p, np.float64) @ GLTF_FROM_WORLD
+
+
+def _rotation(q) -> np.ndarray:
+    """Quaternions (..., 4) xyzw of world rotations as glTF rotations (B R B^T: the axis turned by B)."""
+    q = np.asarray(q, np.float64)
+    return np.concatenate([q[..., :3] @ GLTF_FROM_WORLD.T, q[..., 3:]], axis=-1)
+
+
+def _scale(s) -> np.ndarray:
+    return np.asarray(s, np.float64) @ np.abs(GLTF_FROM_WORLD).T      # B is a signed permutation
+
+
+def _matrix(m) -> np.ndarray:
+    """(..., 4, 4) world transforms as glTF's: B4 M B4^T."""
+    b4 = np.eye(4)
+    b4[:3, :3] = GLTF_FROM_WORLD
+    return b4 @ np.asarray(m, np.float64) @ b4.T
 
 
 def texture_uv(uv) -> np.ndarray:
@@ -135,10 +167,11 @@ class GltfBuilder:
         material : a material index (or set later with ``set_material``).
         """
         G = self._G
-        attrs = G.Attributes(POSITION=self.accessor(np.asarray(vertices, np.float32), ARRAY_BUFFER, minmax=True))
+        vec = lambda a: gltf_points(a).astype(np.float32)  # noqa: E731
+        attrs = G.Attributes(POSITION=self.accessor(vec(vertices), ARRAY_BUFFER, minmax=True))
         indices = self.accessor(np.asarray(faces, np.uint32).ravel(), ELEMENT_ARRAY_BUFFER)
         if normals is not None:
-            attrs.NORMAL = self.accessor(np.asarray(normals, np.float32), ARRAY_BUFFER)
+            attrs.NORMAL = self.accessor(vec(normals), ARRAY_BUFFER)
         if uv is not None:
             attrs.TEXCOORD_0 = self.accessor(np.asarray(uv, np.float32), ARRAY_BUFFER)
         if colours is not None:
@@ -149,7 +182,7 @@ class GltfBuilder:
         morphs = []
         for t in targets:
             t = t if isinstance(t, dict) else {"POSITION": t}
-            morphs.append({k: self.accessor(np.asarray(v, np.float32), ARRAY_BUFFER, minmax=k == "POSITION")
+            morphs.append({k: self.accessor(vec(v), ARRAY_BUFFER, minmax=k == "POSITION")
                            for k, v in t.items()})
         prim = G.Primitive(attributes=attrs, indices=indices, mode=G.TRIANGLES, material=material,
                            targets=morphs or None)
@@ -175,10 +208,10 @@ class GltfBuilder:
     # ------------------------------------------------------------ scene, skins, animation
     def node(self, name: str | None = None, *, mesh: int | None = None, skin: int | None = None,
              parent: int | None = None, translation=None, rotation=None, scale=None) -> int:
-        """A node (a child of ``parent``, else a root of the scene); its index."""
-        f = lambda v: None if v is None else [float(x) for x in v]  # noqa: E731
-        self.gltf.nodes.append(self._G.Node(name=name, mesh=mesh, skin=skin, translation=f(translation),
-                                            rotation=f(rotation), scale=f(scale)))
+        """A node (a child of ``parent``, else a root of the scene) with a world-frame transform; its index."""
+        f = lambda v, conv: None if v is None else [float(x) for x in conv(np.asarray(v, np.float64))]  # noqa: E731
+        self.gltf.nodes.append(self._G.Node(name=name, mesh=mesh, skin=skin, translation=f(translation, gltf_points),
+                                            rotation=f(rotation, _rotation), scale=f(scale, _scale)))
         i = len(self.gltf.nodes) - 1
         if parent is None:
             self.gltf.scenes[0].nodes.append(i)
@@ -189,7 +222,7 @@ class GltfBuilder:
     def skin(self, joints: list[int], inverse_bind, skeleton: int | None = None, node: int | None = None) -> int:
         """A skin over joint nodes ``joints`` with (J, 4, 4) inverse bind matrices (ours, column-vector),
         applied to the mesh of ``node`` when given; its index."""
-        ibm = np.asarray(inverse_bind, np.float64).transpose(0, 2, 1).astype(np.float32)    # column-major
+        ibm = _matrix(inverse_bind).transpose(0, 2, 1).astype(np.float32)    # column-major
         self.gltf.skins.append(self._G.Skin(inverseBindMatrices=self.accessor(ibm), joints=list(joints),
                                             skeleton=skeleton))
         if node is not None:
@@ -208,7 +241,8 @@ class GltfBuilder:
         if anim is None:
             anim = self._animations[animation] = G.Animation(name=animation, samplers=[], channels=[])
             self.gltf.animations.append(anim)
-        out = np.asarray(values, np.float32)
+        conv = {"translation": gltf_points, "rotation": _rotation, "scale": _scale}.get(path)
+        out = np.asarray(values if conv is None else conv(values), np.float32)
         out = out.ravel() if path == "weights" else out
         anim.samplers.append(G.AnimationSampler(input=self._times[t.tobytes()], output=self.accessor(out),
                                                 interpolation=interpolation))

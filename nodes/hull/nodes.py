@@ -8,7 +8,7 @@ from nodegraph import Input, Node, NodeError, Output, Param
 from nodes.common.silhouettes import POLICIES
 from nodes.common.types import Bounds as BoundsType, CameraSet, Masks, Volume
 
-from .bounds import auto_bounds
+from nodes.common.bounds import auto_bounds
 from .hull import border_warning, visual_hull
 
 

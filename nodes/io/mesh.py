@@ -1,7 +1,7 @@
 """The `load.mesh` source node: a triangle mesh from a file (PLY, OBJ, STL, OFF, GLB/GLTF), e.g. the ground
 truth that eval.surface compares a result with. A scene of several meshes (GLB) is concatenated; a file
 that is not a regular file, empty, not a mesh, without faces, or with non-finite vertices is refused with a
-DataError naming it."""
+DataError naming it. glTF is +Y up: its points come back in the world frame (+Z up, nodes.common.gltf)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -41,4 +41,8 @@ def load_mesh(path):
     f = np.asarray(mesh.faces)
     if f.min() < 0 or f.max() >= len(v):
         raise DataError(f"{p}: faces index vertices outside 0..{len(v) - 1}")
+    if ext in ("glb", "gltf"):
+        from nodes.common.gltf import world_points
+
+        mesh.vertices = world_points(mesh.vertices)
     return mesh

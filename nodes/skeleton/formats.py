@@ -194,11 +194,12 @@ def gltf_bytes(vertices, faces, joints, parents, names, weights, rotations, tran
 def read_gltf(data: bytes) -> dict:
     """Load a GLB with pygltflib and skin its mesh the way a glTF viewer does at every key (the frames', then
     the clip's end, which holds the last pose): joint matrices = global joint transform (from the animated node
-    TRS) x inverse bind matrix."""
+    TRS) x inverse bind matrix; positions back in the world frame (nodes.common.gltf.world_points)."""
     import pygltflib as G
     from scipy.spatial.transform import Rotation
 
     from nodes.common.gltf import read_accessor as _accessor
+    from nodes.common.gltf import world_points
 
     gltf = G.GLTF2.load_from_bytes(data)
     blob = gltf.binary_blob()
@@ -241,5 +242,5 @@ def read_gltf(data: bytes) -> dict:
         mats = np.array([glob(j) @ ibm[a] for a, j in enumerate(skin.joints)])        # (J, 4, 4)
         per = np.einsum("jab,vb->vja", mats[:, :3, :3], pos) + mats[:, :3, 3][None]
         skinned.append(np.einsum("vk,vka->va", wts, per[np.arange(len(pos))[:, None], jidx]))
-    return {"rest": pos, "faces": faces, "joints": [gltf.nodes[j].name for j in skin.joints], "times": times,
-            "skinned": np.array(skinned), "weights": wts, "indices": jidx}
+    return {"rest": world_points(pos), "faces": faces, "joints": [gltf.nodes[j].name for j in skin.joints],
+            "times": times, "skinned": world_points(np.array(skinned)), "weights": wts, "indices": jidx}

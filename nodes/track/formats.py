@@ -113,10 +113,10 @@ def gltf_bytes(meshes, fps: float = FPS) -> bytes:
 def gltf_frame(data: bytes, index: int) -> np.ndarray:
     """Positions of the ``index``-th frame (0-based over the whole sequence) as a reader evaluates the .glb:
     at that frame's time (extras: frames, fps), the node whose STEP scale is not 0, its base plus its morph
-    targets weighted by the STEP weights."""
+    targets weighted by the STEP weights; in the world frame."""
     import pygltflib as G
 
-    from nodes.common.gltf import read_accessor
+    from nodes.common.gltf import read_accessor, world_points
 
     g = G.GLTF2.load_from_bytes(data)
     blob = g.binary_blob()
@@ -148,7 +148,7 @@ def gltf_frame(data: bytes, index: int) -> np.ndarray:
         for w, tg in zip(weights if weights is not None else [], prim.targets or []):
             if w:
                 p = p + w * read(tg["POSITION"])
-        return p.astype(np.float32)
+        return world_points(p).astype(np.float32)
     raise KeyError(f"no node is visible at frame index {index} ({fps} fps)")
 
 

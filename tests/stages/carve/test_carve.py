@@ -234,7 +234,7 @@ def test_temple_photo_hull(data_dir):
     cap = run_node("capture", {}, {"path": str(data_dir / "middlebury_templeSR")})
     masks = run_node("key.threshold", {"images": cap["images"]}, {"threshold": 0.19, "dilate": 10, "erode": 7})["masks"]
     hull = run_node("hull", {"masks": masks, "cameras": cap["cameras"]},
-                    {"resolution": 64, "bbox": [-0.073568, 0.021728, -0.012445, 0.028855, 0.181892, 0.062736]})["volume"]
+                    {"resolution": 64, "bbox": [-0.047606, -0.031878, -0.063887, 0.054817, 0.043303, 0.096277]})["volume"]
     args = {"volume": hull, "images": cap["images"], "masks": masks, "cameras": cap["cameras"]}
     out = run_node("carve.space_carving", args)
     occ = out["volume"].occupancy

@@ -10,7 +10,7 @@ import pytest
 from nodes.common.cameras import Camera, Cameras
 from rig import ring_rig
 from nodegraph.errors import DataError
-from nodes.hull.bounds import auto_bounds, coarse_hull
+from nodes.common.bounds import auto_bounds, coarse_hull
 from nodes.common.calibration import camera_from_P, load_cameras, save_colmap, save_nerf
 
 W, H = 320, 240

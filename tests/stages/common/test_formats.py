@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from nodes.common.gltf import GltfBuilder, read_accessor, texture_uv
+from nodes.common.gltf import GltfBuilder, gltf_points, read_accessor, texture_uv, world_points
 
 PNG = bytes.fromhex("89504e470d0a1a0a0000000d49484452000000010000000108020000009077"
                     "53de0000000c4944415408d763f8cfc000000301010018dd8db00000000049454e44ae426082")
@@ -42,15 +42,21 @@ def test_gltf_mesh_with_normals_uv_morphs_skin_and_texture(box):
     blob = g.binary_blob()
     assert all(view.byteOffset % 4 == 0 for view in g.bufferViews)
     prim = g.meshes[0].primitives[0]
-    np.testing.assert_array_equal(read_accessor(g, blob, prim.attributes.POSITION), v)
-    np.testing.assert_array_equal(read_accessor(g, blob, prim.attributes.NORMAL), n)
+    pos = read_accessor(g, blob, prim.attributes.POSITION)
+    np.testing.assert_array_equal(pos[:, 1], v[:, 2])                         # glTF is +Y up: world z is its y
+    np.testing.assert_array_equal(world_points(pos), v)
+    np.testing.assert_array_equal(world_points(read_accessor(g, blob, prim.attributes.NORMAL)), n)
     np.testing.assert_allclose(read_accessor(g, blob, prim.attributes.TEXCOORD_0)[:, 1], 1 - uv[:, 1])
     np.testing.assert_array_equal(read_accessor(g, blob, prim.indices).reshape(-1, 3), f)
     for t, tg in zip(targets, prim.targets):
         acc = g.accessors[tg["POSITION"]]
-        assert acc.min == t.min(0).tolist() and acc.max == t.max(0).tolist()     # required by the specification
-    pos = g.accessors[prim.attributes.POSITION]
-    assert pos.min == v.min(0).tolist() and pos.max == v.max(0).tolist()
+        tg_ = gltf_points(t).astype(np.float32)
+        assert acc.min == tg_.min(0).tolist() and acc.max == tg_.max(0).tolist()  # required by the specification
+    acc = g.accessors[prim.attributes.POSITION]
+    assert acc.min == pos.min(0).tolist() and acc.max == pos.max(0).tolist()
+    assert g.nodes[root].translation == [0, 1, 0] and g.nodes[2].translation == [0, 0.5, 0]   # world +z = glTF +y
+    keys = read_accessor(g, blob, g.animations[0].samplers[1].output)
+    np.testing.assert_array_equal(keys, [[0, 1, 0], [0, 2, 0]])
     assert g.nodes[body].skin == 0 and g.nodes[root].children == [2] and g.scenes[0].nodes == [body, root]
     anim = g.animations[0]
     assert anim.samplers[0].input == anim.samplers[1].input                   # the same key times, one accessor

@@ -112,19 +112,20 @@ def test_the_dynamic_mesh_and_the_rig_keep_one_clock(sequence, rig):
 
 
 def _normals(glb: bytes):
-    """Per mesh of a GLB: (POSITION, NORMAL, [NORMAL morph-target displacements])."""
+    """Per mesh of a GLB: (POSITION, NORMAL, [NORMAL morph-target displacements]), in the world frame."""
     import pygltflib as G
 
-    from nodes.common.gltf import read_accessor
+    from nodes.common.gltf import read_accessor, world_points
 
     g = G.GLTF2.load_from_bytes(glb)
     blob = g.binary_blob()
+    read = lambda i: world_points(read_accessor(g, blob, i))  # noqa: E731
     out = []
     for mesh in g.meshes:
         prim = mesh.primitives[0]
         assert prim.attributes.NORMAL is not None, "a GLB without NORMAL shades flat"
-        out.append((read_accessor(g, blob, prim.attributes.POSITION), read_accessor(g, blob, prim.attributes.NORMAL),
-                    [read_accessor(g, blob, t["NORMAL"]) for t in prim.targets or []]))
+        out.append((read(prim.attributes.POSITION), read(prim.attributes.NORMAL),
+                    [read(t["NORMAL"]) for t in prim.targets or []]))
     return out
 
 

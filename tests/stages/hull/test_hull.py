@@ -191,7 +191,7 @@ def test_sparse_equals_dense_over_three_or_more_levels(res):
 def test_real_human_hull_mesh(real_capture, name, min_iou):
     import trimesh
 
-    from nodes.hull.bounds import auto_bounds
+    from nodes.common.bounds import auto_bounds
     from nodes.eval.silhouette import silhouette_report
     from nodes.common.meshops import largest_component
     from nodes.mesh.mc import marching_cubes

@@ -172,7 +172,7 @@ def test_min_seen_param_of_hull_and_bounds():
 def test_auto_bounds_hold_only_what_k_views_constrain():
     """The bounds' coarse hull keeps only voxels seen by at least min_seen views, so the box never grows into
     what fewer views constrain: with every view required it lies in what camera 0 (zoomed) sees."""
-    from nodes.hull.bounds import auto_bounds, coarse_hull
+    from nodes.common.bounds import auto_bounds, coarse_hull
 
     cams = zoomed_rig()
     masks = ball_masks(cams, radius=0.9).masks

@@ -68,7 +68,7 @@ def real_meshes(data_dir, name, resolution):
     """(masks, cameras, volume, largest component of the mc mesh) of a real data set."""
     from nodes.capture.load import load_capture
     from nodes.common.meshops import largest_component
-    from nodes.hull.bounds import auto_bounds
+    from nodes.common.bounds import auto_bounds
 
     cap = load_capture(data_dir / name)
     masks, cams = cap["masks"], cap["cameras"]

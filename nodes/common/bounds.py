@@ -11,8 +11,8 @@ from __future__ import annotations
 import numpy as np
 
 from nodegraph import NodeError
-from nodes.common.cameras import Cameras
-from nodes.common.silhouettes import BACKGROUND, IN, centre_states, check_masks, vote
+from .cameras import Cameras
+from .silhouettes import BACKGROUND, IN, centre_states, check_masks, vote
 
 
 def coarse_hull(masks: list[np.ndarray], cameras: Cameras, box: np.ndarray, resolution: int,
