@@ -6,14 +6,14 @@ nodes/common/gltf.py. A dataset's own frame is anything (camera 0's frame with y
 a floor board in millimetres with -Z up, ...); the frame is found, in this order of trust:
 
     up      the graph's ``up`` (a vector in the dataset's frame), else the layout's (layouts.yaml), else the
-            mean of the cameras' up vectors (the image's "up" direction at the image centre; cameras stand
-            upright on a stage, and a ring's or a dome's tilts cancel)
+            direction most orthogonal to every camera's image-right vector (cameras stand upright on a stage,
+            however they pitch towards the subject), signed like their image-up vectors
     units   the graph's ``units`` (metres per dataset unit), else the layout's, else 1 (said in the report)
     origin  the graph's ``origin`` (a point in the dataset's frame, on the floor), else: horizontally the centre
             of the subject (a coarse visual hull of the masks of frame ``origin_frame``; without masks the point
             nearest to all optical axes), vertically the layout's ``floor`` (its height along ``up`` in dataset
             units), else the subject's lowest point
-The horizontal axes keep the dataset's: world x is the dataset axis most orthogonal to up, made horizontal.
+The horizontal axes keep the dataset's: world x is the dataset's x made horizontal (its y when x is near up).
 The frame of a dataset is one for all its frames (found from ``origin_frame``, never from the frame loaded).
 Warnings when it is implausible: a subject not 0.05-4 m tall (wrong units?), most cameras below the floor
 (up upside down?), the stated up more than 45 degrees from the cameras' (wrong layout up?), cameras whose ups
@@ -45,6 +45,14 @@ class WorldFrame:
     def identity(cls) -> "WorldFrame":
         return cls(np.eye(3), 1.0, np.zeros(3))
 
+    @classmethod
+    def from_report(cls, report: dict) -> "WorldFrame":
+        """The frame a capture node's ``world`` report describes (identity for world: dataset)."""
+        if report.get("frame") != "world":
+            return cls.identity()
+        return cls(_axes(np.asarray(report["up_dataset"], np.float64)), float(report["metres_per_unit"]),
+                   np.asarray(report["origin_dataset"], np.float64))
+
     def points(self, X) -> np.ndarray:
         """Dataset points (N, 3) in the world frame."""
         return self.scale * (np.asarray(X, np.float64) - self.origin) @ self.rotation.T
@@ -65,21 +73,40 @@ class WorldFrame:
         return Cameras([self.camera(c) for c in cams])
 
 
-def camera_ups(cams: Cameras) -> np.ndarray:
-    """(N, 3) unit vectors, per camera: the world direction that moves a point at the image centre up in the
-    image, made perpendicular to the viewing ray (works for bare-P and mirrored calibrations alike)."""
-    ups = []
+def camera_axes(cams: Cameras) -> tuple[np.ndarray, np.ndarray]:
+    """(ups, rights), each (N, 3) unit vectors per camera: the world directions that move a point at the image
+    centre up and right in the image, perpendicular to the viewing ray (bare-P and mirrored calibrations alike)."""
+    ups, rights = [], []
     for v, c in enumerate(cams):
         o, d = cams.rays(v, [[c.width / 2, c.height / 2]])
         o, d = o[0], d[0]
         dist = max(1.0, float(np.linalg.norm(o)))
         X0 = o + d * dist
         eps = 1e-4 * dist
-        grad = np.array([(cams.project(X0 + eps * e, v)[0][0, 1] - cams.project(X0 - eps * e, v)[0][0, 1]) / (2 * eps)
-                         for e in np.eye(3)])
-        up = -grad - d * (-grad @ d)
-        ups.append(up / (np.linalg.norm(up) or 1.0))
-    return np.array(ups)
+        J = np.array([(cams.project(X0 + eps * e, v)[0][0] - cams.project(X0 - eps * e, v)[0][0]) / (2 * eps)
+                      for e in np.eye(3)]).T                      # (2, 3): d(u, v) / dX
+        for out, g in ((ups, -J[1]), (rights, J[0])):
+            g = g - d * (g @ d)
+            out.append(g / (np.linalg.norm(g) or 1.0))
+    return np.array(ups), np.array(rights)
+
+
+def cameras_up(cams: Cameras) -> tuple[np.ndarray, float]:
+    """(up, agreement) from the cameras: the direction most orthogonal to every camera's image-right vector
+    (upright cameras keep it level however they pitch towards the subject), signed like their mean image-up;
+    the mean image-up itself when the right vectors do not span a plane (cameras facing one way). Agreement:
+    the length of the mean of the unit image-ups (1: all alike; small: rolled or upside-down cameras)."""
+    ups, rights = camera_axes(cams)
+    mean = ups.mean(0)
+    agree = float(np.linalg.norm(mean))
+    mean = mean / (agree or 1.0)
+    w, vec = np.linalg.eigh(rights.T @ rights)
+    if len(cams) >= 2 and w[1] > 0.05 * w[2]:
+        up = vec[:, 0] * (1.0 if vec[:, 0] @ mean >= 0 else -1.0)
+    else:
+        up = mean - rights.mean(0) * (mean @ rights.mean(0)) / max(rights.mean(0) @ rights.mean(0), 1e-12)
+        up /= np.linalg.norm(up) or 1.0
+    return up, agree
 
 
 def look_at_point(cams: Cameras) -> np.ndarray:
@@ -94,17 +121,18 @@ def look_at_point(cams: Cameras) -> np.ndarray:
 
 
 def _axes(up: np.ndarray) -> np.ndarray:
-    """Rotation (rows: world x, y, z) with z = up and x the dataset axis most orthogonal to up, levelled."""
+    """Rotation (rows: world x, y, z) with z = up and x the dataset's x axis levelled (its y when x is within
+    25 degrees of up): a stable choice, the same for an up that differs in its last digits."""
     z = up / np.linalg.norm(up)
-    a = np.eye(3)[int(np.argmin(np.abs(z)))]
+    a = np.eye(3)[0 if abs(z[0]) < 0.9 else 1]
     x = a - z * (a @ z)
     x /= np.linalg.norm(x)
     return np.array([x, np.cross(z, x), z])
 
 
-def _vector(value, what: str, node: str) -> np.ndarray:
+def _vector(value, what: str, node: str, zero: bool = False) -> np.ndarray:
     v = np.asarray(AXES[value] if isinstance(value, str) and value in AXES else value, np.float64).ravel()
-    if v.shape != (3,) or not np.all(np.isfinite(v)) or np.linalg.norm(v) == 0:
+    if v.shape != (3,) or not np.all(np.isfinite(v)) or (np.linalg.norm(v) == 0 and not zero):
         raise NodeError(f"{node}: {what} must be three numbers (not all zero) or one of {', '.join(AXES)}, got {value!r}")
     return v
 
@@ -129,10 +157,7 @@ def find_world(cams: Cameras, masks, layout: dict, up=None, units: float = 0.0, 
     """The world frame of a capture (module docstring) and its report: what was used and where it came from.
     ``masks``: the origin frame's masks (or None); ``layout``: the known layout's world keys (up, units, floor)."""
     report, warnings = {}, []
-    ups = camera_ups(cams)
-    cam_up = ups.mean(0)
-    agree = float(np.linalg.norm(cam_up))
-    cam_up = cam_up / (agree or 1.0)
+    cam_up, agree = cameras_up(cams)
     if up is not None and len(up):
         u, report["up_from"] = _vector(up, "up", node), "graph"
     elif layout.get("up"):
@@ -158,7 +183,7 @@ def find_world(cams: Cameras, masks, layout: dict, up=None, units: float = 0.0, 
     Q = _axes(u)
     pts = subject_points(masks, cams) if masks is not None else None
     if origin is not None and len(origin):
-        o, report["origin_from"] = _vector(origin, "origin", node), "graph"
+        o, report["origin_from"] = _vector(origin, "origin", node, zero=True), "graph"
     else:
         centre = pts.mean(0) if pts is not None else look_at_point(cams)
         report["origin_from"] = "subject" if pts is not None else "cameras' look-at point"

@@ -12,6 +12,9 @@ from nodes.common.types import FPS_PARAM, Mesh, MeshSequence, Skeleton, Skeleton
 
 
 # ---------------------------------------------------------------- per frame
+PERSON_HEIGHT_M = (0.3, 2.5)       # a skeleton named as a person outside: a warning (units? up?)
+
+
 class Skeletonize(Node):
     """Curve skeleton of one frame's solid (a closed mesh, voxelized, or a voxel volume) as a joint tree:
     TEASAR centre lines through the distance field (what kimimaro does), short branches cut, re-rooted at
@@ -64,6 +67,13 @@ class Skeletonize(Node):
             "kinds": {k: sk.kind.count(k) for k in ("root", "branch", "bend", "end")},
             "voxel": float(np.min(spacing)), "voxels_inside": int(occ.sum()),
         }
+        if "head" in report["names"]:       # named as a person: a plausible height along up (the world frame's metres)
+            u = np.asarray(up, np.float64) / (np.linalg.norm(up) or 1.0)
+            pts = np.asarray(mesh.vertices) if mesh is not None else origin + (np.argwhere(occ) + 0.5) * spacing
+            report["height"] = round(float(np.ptp(pts @ u)), 4)
+            if not PERSON_HEIGHT_M[0] <= report["height"] <= PERSON_HEIGHT_M[1]:
+                self.log.warning("skeletonize: a person %.3g m tall along up %s: is the world frame in metres "
+                                 "(capture: units) and upright (capture: up)?", report["height"], list(up))
         return {"skeleton": SkeletonData(sk.joints, list(sk.parents), list(sk.names)), "report": report}
 
 

@@ -50,8 +50,8 @@ def write_dataset(root, cams):
 def test_capture_node_on_synthetic_dataset(tmp_path):
     cams = sphere_rig()
     patterns = write_dataset(tmp_path, cams)
-    out = run_node("capture", params={"path": str(tmp_path), **patterns}, roundtrip=True)
-    assert out["cameras"].names == cams.names
+    out = run_node("capture", params={"path": str(tmp_path), **patterns, "world": "dataset"}, roundtrip=True)
+    assert out["cameras"].names == cams.names and out["world"]["frame"] == "dataset"
     X = np.random.default_rng(0).normal(CENTRE, 0.3, (50, 3))
     for v in range(len(cams)):
         assert np.abs(out["cameras"].project(X, v)[0] - cams.project(X, v)[0]).max() < 1e-6

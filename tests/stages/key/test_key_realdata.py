@@ -95,6 +95,9 @@ def test_uu_difference_key_carves_one_body(tmp_path, data_dir, monkeypatch):
     assert (sizes > 0.001 * occ.sum()).sum() == 1
     assert 0.03 < occ.mean() < 0.3, occ.mean()  # the SOURCE.md check found 20% at 64^3
     idx = np.argwhere(labels == 1 + np.argmax(sizes))
-    extent_mm = (idx.max(0) - idx.min(0) + 1) * (vol["bbox_max"] - vol["bbox_min"]) / np.array(occ.shape)
+    extent_mm = 1000 * (idx.max(0) - idx.min(0) + 1) * (vol["bbox_max"] - vol["bbox_min"]) / np.array(occ.shape)
     assert 500 < extent_mm[0] < 1400 and 500 < extent_mm[1] < 1400, extent_mm  # person + chair on the floor
     assert 1200 < extent_mm[2] < 2100, extent_mm  # seated height plus the four-view ghost elongation
+    lo = vol["bbox_min"] + idx.min(0) * (vol["bbox_max"] - vol["bbox_min"]) / np.array(occ.shape)
+    assert -0.1 - 1e-9 <= lo[2] < 0.02, lo   # the world frame: metres, +Z up, on the floor (the 4-view hull reaches
+                                             # 84 mm below it, SOURCE.md; the box stops it at 0.1 m)
