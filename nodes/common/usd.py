@@ -141,8 +141,9 @@ class UsdStage:
     def material(self, geom, path: str, *, texture: str | None = None, display_colour: bool = False,
                  roughness: float = 1.0, metallic: float = 0.0):
         """A UsdPreviewSurface material at ``path``, bound to ``geom``. Its diffuseColor reads ``texture`` (a file
-        path relative to the layer; the mesh needs ``uv``) or, with ``display_colour``, the displayColor primvar."""
-        from pxr import Sdf, UsdShade
+        path relative to the layer, or {frame: path} time samples: a texture per frame; the mesh needs ``uv``)
+        or, with ``display_colour``, the displayColor primvar."""
+        from pxr import Sdf, Usd, UsdShade
 
         mat = UsdShade.Material.Define(self.stage, path)
         surf = UsdShade.Shader.Define(self.stage, f"{path}/PreviewSurface")
@@ -157,7 +158,13 @@ class UsdStage:
             reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")
             image = UsdShade.Shader.Define(self.stage, f"{path}/Texture")
             image.CreateIdAttr("UsdUVTexture")
-            image.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(texture)
+            file = image.CreateInput("file", Sdf.ValueTypeNames.Asset)
+            if isinstance(texture, dict):
+                for frame, name in sorted(texture.items()):
+                    file.Set(Sdf.AssetPath(name), Usd.TimeCode(float(frame)))
+                file.Set(Sdf.AssetPath(texture[min(texture)]))      # the default: a reader without time sees one
+            else:
+                file.Set(texture)
             image.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set("sRGB")
             image.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(reader.ConnectableAPI(), "result")
             image.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from nodegraph import Files, Node, NodeError, OutPath, Param
-from nodes.common.types import Masks, Mesh, Volume, write_exr
+from nodegraph import Files, Input, Node, NodeError, OutPath, Output, Param, Table
+from nodes.common.types import FPS_PARAM, Masks, Mesh, MeshSequence, TexturedMesh, Volume, write_exr
 
 MESH_FORMATS = ("ply", "obj", "glb", "stl", "off")
 
@@ -97,3 +97,42 @@ class ExportVolume(Node):
             arrays["colors"] = volume.colors
         np.savez_compressed(buf, **arrays)
         return {"files": {_format(path, frame=frame): buf.getvalue()}}
+
+
+class ExportVolumetric(Node):
+    """The textured volumetric video: per tracked segment one GLB (morph targets, UVs, the atlas), an H.264 video
+    of its atlas per frame, and one USD stage of the take (time-sampled points and texture files): see
+    nodes/export/volumetric.py. Give it the tracked sequence and each frame's textured mesh painted with its
+    segment's atlas (texture with reference: track.frame's keyframe)."""
+
+    type_name = "export.volumetric"
+    version = 1
+    per = "sequence"
+    publishes = True
+    inputs = {
+        "sequence": Input(MeshSequence, doc="tracked meshes (track)"),
+        "textured": Input(TexturedMesh, doc="each frame's textured mesh (texture of track.frame's mesh, with its "
+                          "keyframe as reference: one atlas per segment)"),
+    }
+    outputs = {"files": Files, "report": Output(Table, "per segment its frames, vertex and face counts, atlas size; "
+                                                 "bytes per file")}
+    params = {
+        "name": Param(str, "volumetric", doc="file name stem"),
+        "formats": Param(list, ["gltf", "usd", "video"], item=str, doc="any of gltf, usd, video (the atlas PNGs "
+                         "are always written)"),
+        "fps": FPS_PARAM,
+        "crf": Param(int, 18, range=(0, 51), doc="H.264 constant rate factor of the atlas video (lower: better)"),
+    }
+
+    def run(self, sequence, textured, *, name, formats, fps, crf):
+        from .volumetric import volumetric_files
+
+        unknown = sorted(set(formats) - {"gltf", "usd", "video"})
+        if unknown:
+            raise NodeError(f"export.volumetric: unknown formats {unknown}; use gltf, usd, video")
+        if not sequence:
+            raise NodeError("export.volumetric: the sequence is empty")
+        fallback = list(self.frames) if len(self.frames) == len(sequence) else list(range(len(sequence)))
+        frames = [int(m.metadata.get("frame", f)) for m, f in zip(sequence, fallback)]
+        files, report = volumetric_files(list(sequence), list(textured), frames, name, fps, formats, crf)
+        return {"files": files, "report": report}

@@ -106,7 +106,7 @@ def usd_files(mesh, tex, rel: str, ext: str) -> dict[str, bytes]:
     stem = Path(rel).with_suffix("")
     png_name = f"{stem.name}.png"
     cols = vertex_colours(mesh) if tex is None else None
-    stage = UsdStage()                      # upAxis UP_AXIS (Z, the data's current up), as the track and rig exports
+    stage = UsdStage()                      # upAxis Z, metres: the world frame (nodes/capture/world.py), as every export
     stage.group("/Capture")
     geom = stage.mesh("/Capture/Mesh", mesh.faces, mesh.vertices, uv=mesh.visual.uv if tex is not None else None,
                       colours=None if cols is None else cols / 255.0)

@@ -204,7 +204,7 @@ def test_eval_silhouette_agrees_on_real_data(dataset_run, real_capture):
     report = dataset_run.output(res, "score", "report")
     cap = real_capture("inria_dancer")
     ious = []
-    for v, cam in enumerate(cap["cameras"]):
+    for v, cam in enumerate(dataset_run.output(res, "capture", "cameras")):    # the graph's: the world frame
         ind = independent_silhouette(mesh.vertices, mesh.faces, cam)
         m = cap["masks"].masks[v] > 127
         ious.append((ind & m).sum() / (ind | m).sum())

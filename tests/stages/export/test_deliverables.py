@@ -217,3 +217,49 @@ def test_the_rig_extent_covers_the_skinned_mesh_over_the_animation(rig, tmp_path
         box = cache.ComputeWorldBound(stage.GetPrimAtPath("/Rig")).ComputeAlignedRange()
         assert np.all(np.array(box.GetMin()) <= points.min(0) + 1e-5) and np.all(np.array(box.GetMax()) >= points.max(0) - 1e-5)
     assert skinned[-1][:, 1].min() < rest_extent[0, 1] - 0.5            # the bent bar leaves the rest bounds
+
+
+def _y_up(stage, points) -> np.ndarray:
+    """USD points as a +Y-up, metres tool places them (what Blender or a glTF scene does with a stage's
+    upAxis and metersPerUnit)."""
+    from pxr import UsdGeom
+
+    p = np.asarray(points, np.float64) * UsdGeom.GetStageMetersPerUnit(stage)
+    return p if UsdGeom.GetStageUpAxis(stage) == "Y" else p @ np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]]).T
+
+
+def test_glb_and_usd_of_one_asset_stand_upright_and_coincide(rig):
+    """The world frame is +Z up, metres; a glTF reader (raw accessors: +Y up) and a USD reader (points + upAxis +
+    metersPerUnit) see the same upright bar, feet on the floor, within 1 mm: static textured, dynamic and rigged."""
+    import pygltflib as G
+    from PIL import Image
+    from pxr import Usd, UsdGeom
+
+    from nodes.common.gltf import gltf_points, read_accessor
+    from nodes.common.usd import opened
+    from nodes.track.formats import gltf_frame
+
+    _, bar = rig                                                  # 0.2 x 0.2 x 2 m, z 0..2
+    tex = trimesh.Trimesh(bar.vertices, bar.faces, visual=trimesh.visual.TextureVisuals(
+        uv=np.asarray(bar.vertices)[:, :2] + 0.5, image=Image.new("RGB", (8, 8))), process=False)
+    files = run_node("export.textured", {"mesh": tex}, {"path": "bar.glb"})["files"]
+    files.update(run_node("export.textured", {"mesh": tex}, {"path": "bar.usda"})["files"])
+    g = G.GLTF2.load_from_bytes(files["bar.glb"])
+    glb = read_accessor(g, g.binary_blob(), g.meshes[0].primitives[0].attributes.POSITION).astype(np.float64)
+    assert abs(glb[:, 1].min()) < 1e-6 and abs(glb[:, 1].max() - 2.0) < 1e-6       # +Y up, on the floor, 2 m tall
+    with opened(files["bar.usda"], ".usda") as stage:
+        mesh = next(UsdGeom.Mesh(p) for p in stage.Traverse() if p.IsA(UsdGeom.Mesh))
+        usd = _y_up(stage, mesh.GetPointsAttr().Get())
+    assert np.abs(np.sort(usd, axis=0) - np.sort(glb, axis=0)).max() < 1e-3
+
+    # a moving, tracked bar: every frame alike in both files
+    seq = [trimesh.Trimesh(bar.vertices + [0.1 * k, 0, 0.05 * k], bar.faces, process=False, metadata={"frame": k})
+           for k in range(3)]
+    dyn = run_node("track.export", {"sequence": seq}, {"name": "dyn", "formats": ["usd", "gltf"]})["files"]
+    with opened(dyn["dyn.usdc"]) as stage:
+        meshes = [UsdGeom.Mesh(p) for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)]
+        for k in range(3):
+            raw = gltf_points(gltf_frame(dyn["dyn.glb"], k))        # the reader gives the world frame: glTF's axes again
+            usd = _y_up(stage, meshes[0].GetPointsAttr().Get(Usd.TimeCode(k)))
+            assert np.abs(usd - raw).max() < 1e-3, k
+            assert abs(raw[:, 1].min() - 0.05 * k) < 1e-5                            # it rises along glTF's +Y
