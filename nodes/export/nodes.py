@@ -136,3 +136,40 @@ class ExportVolumetric(Node):
         frames = [int(m.metadata.get("frame", f)) for m, f in zip(sequence, fallback)]
         files, report = volumetric_files(list(sequence), list(textured), frames, name, fps, formats, crf)
         return {"files": files, "report": report}
+
+
+class ExportStream(Node):
+    """One rung of a streamable volumetric video (stream.py): per tracked segment Draco connectivity + UVs once,
+    every frame's positions quantised and predicted from the previous frame (LZMA), the atlas as H.264, and a
+    manifest; ``read_stream`` decodes it. A ladder is several of these nodes (e.g. one after track.simplify with
+    a smaller texture), writing NAME/RUNG/ side by side; the report measures the rung against its input."""
+
+    type_name = "export.stream"
+    version = 1
+    per = "sequence"
+    publishes = True
+    inputs = {
+        "sequence": Input(MeshSequence, doc="tracked meshes (track, or track.simplify for a lower rung)"),
+        "textured": Input(TexturedMesh, doc="each frame's textured mesh on its segment's atlas (as export.volumetric)"),
+    }
+    outputs = {"files": Files, "report": Output(Table, "bytes, Mbit/s (at fps and at 30 fps), geometry error (mm) "
+                                                 "and atlas PSNR (dB) of the decoded rung")}
+    params = {
+        "name": Param(str, "stream", doc="the ladder's folder"),
+        "rung": Param(str, "full", doc="this rung's folder in it"),
+        "fps": FPS_PARAM,
+        "bits": Param(int, 16, range=(8, 24), doc="position quantisation bits over each segment's box"),
+        "crf": Param(int, 23, range=(0, 51), doc="H.264 constant rate factor of the atlas video"),
+    }
+
+    def run(self, sequence, textured, *, name, rung, fps, bits, crf):
+        from .stream import stream_files
+
+        if not sequence:
+            raise NodeError("export.stream: the sequence is empty")
+        if not rung or "/" in rung or rung.startswith("."):
+            raise NodeError(f"export.stream: rung must be a plain folder name, got {rung!r}")
+        fallback = list(self.frames) if len(self.frames) == len(sequence) else list(range(len(sequence)))
+        frames = [int(m.metadata.get("frame", f)) for m, f in zip(sequence, fallback)]
+        files, report = stream_files(list(sequence), list(textured), frames, name, rung, fps, bits, crf)
+        return {"files": files, "report": report}

@@ -114,6 +114,27 @@ class Frame(Node):
         return {"mesh": sequence[i], "keyframe": sequence[k]}
 
 
+class Simplify(Node):
+    """A tracked sequence with fewer faces and the same motion (simplify.py): per segment the keyframe's quadric
+    edge collapses replayed on every frame, so each segment keeps one connectivity (a stream's lower rung)."""
+
+    type_name = "track.simplify"
+    version = 1
+    per = "sequence"
+    inputs = {"sequence": Input(MeshSequence, doc="a tracked sequence (track)")}
+    outputs = {"sequence": Output(MeshSequence, "the same frames and segments, fewer faces"),
+               "report": Output(Table, "faces in and out per segment")}
+    params = {"faces": Param(float, 0.25, range=(0.01, 1.0), doc="fraction of the faces to keep (about)")}
+
+    def run(self, sequence, *, faces):
+        from .simplify import simplify_sequence
+
+        if not sequence:
+            raise NodeError("track.simplify: the sequence is empty")
+        out, report = simplify_sequence(list(sequence), faces)
+        return {"sequence": out, "report": report}
+
+
 class Track(Node):
     """Per-frame reconstructions (an unconstrained mesh sequence) -> a dynamic mesh per segment: keyframes
     chosen automatically by trial (up to ``tries`` candidates per round, ranked by fewest components, lowest

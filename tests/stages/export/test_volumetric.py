@@ -119,3 +119,42 @@ def test_a_texture_on_another_layout_is_refused(take):
         run_node("export.volumetric", {"sequence": seq, "textured": wrong}, {"name": "x", "formats": ["gltf"]})
     with pytest.raises(Exception, match="faces"):
         run_node("export.volumetric", {"sequence": seq, "textured": [tex[3]] + tex[1:]}, {"name": "x"})
+
+
+def test_a_stream_rung_decodes_to_the_tracked_frames_and_atlases(take):
+    from nodes.export.stream import read_stream
+
+    seq, tex, _, _ = take
+    out = run_node("export.stream", {"sequence": seq, "textured": tex}, {"name": "s", "rung": "full", "bits": 16})
+    files, rep = out["files"], out["report"]
+    assert sorted(k.rsplit("/", 1)[-1] for k in files if k.startswith("s/full/seg_0000")) == [
+        "seg_0000.drc", "seg_0000.mp4", "seg_0000.pos"]
+    frames = read_stream(files, "full")
+    assert [f["frame"] for f in frames] == list(range(10, 15))
+    for k, f in enumerate(frames):
+        box = np.ptp(np.asarray(tex[k].vertices), axis=0).max()
+        assert np.abs(f["vertices"] - tex[k].vertices).max() <= box / (2 ** 16 - 1) + 1e-9     # half a step, x2 axes
+        np.testing.assert_array_equal(f["faces"], tex[k].faces)
+        np.testing.assert_allclose(f["uv"], tex[k].visual.uv, atol=2 / 2 ** 14)
+        ref = np.asarray(tex[k].visual.material.baseColorTexture).astype(float)
+        assert 10 * np.log10(255.0 ** 2 / np.mean((f["atlas"] - ref) ** 2)) > 30
+    assert rep["geometry_error_mm_max"] < 1000 * 2.2 / (2 ** 16 - 1) and rep["atlas_psnr_db_min"] > 30
+    assert rep["mbit_s"] > 0 and rep["geometry_bytes"] < sum(len(m.vertices) * 12 for m in seq)
+    # a lower rung from track.simplify: fewer faces, the same frames
+    low = run_node("track.simplify", {"sequence": seq}, {"faces": 0.25})["sequence"]
+    assert len(low[0].faces) <= 0.3 * len(seq[0].faces) and [m.metadata["frame"] for m in low] == list(range(10, 15))
+    with pytest.raises(Exception, match="faces"):
+        run_node("export.stream", {"sequence": low, "textured": tex}, {"name": "s", "rung": "quarter"})
+
+
+def test_positions_round_trip_exactly_to_their_quantisation():
+    from nodes.export.stream import decode_positions, encode_positions
+
+    rng = np.random.default_rng(0)
+    walk = np.cumsum(rng.normal(0, 0.002, (30, 500, 3)), axis=0) + rng.normal(0, 0.5, (1, 500, 3))
+    for bits in (12, 16, 20):
+        data = encode_positions(walk, bits)
+        back = decode_positions(data)
+        step = np.ptp(walk.reshape(-1, 3), axis=0) / (2 ** bits - 1)
+        assert np.all(np.abs(back - walk) <= step / 2 + 1e-12), bits
+    assert len(encode_positions(walk, 16)) < 0.3 * walk.size * 4     # ~1 byte per coordinate for white-noise steps of 48 quanta

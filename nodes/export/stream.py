@@ -1,0 +1,150 @@
+"""The stream package: one rung of a volumetric video ladder, small enough to stream (the deliverable's third form).
+
+A rung ``NAME/RUNG/`` holds, per tracked segment ``seg_SSSS``:
+    .drc    Draco mesh of the segment's first frame: its seam-split vertices (vertex order kept), faces, UVs
+            (``tex_coord``) - the connectivity and the UV set, once
+    .pos    every frame's positions, quantised to ``bits`` over the segment's box and predicted from the previous
+            frame (frame 0 from zero): int residuals, byte planes split, LZMA-compressed (header: JSON length,
+            JSON {frames, vertices, dtype, box, bits}, payload)
+    .mp4    the atlas per frame, H.264 (PyAV)
+and ``manifest.json``: fps, frame numbers, world frame (+Z up, metres), per segment its files, counts, box, bits
+and atlas size. ``read_stream`` decodes a rung back to per-frame meshes and atlases (the Python reader; a
+player does the same). A ladder is several rungs from several ``export.stream`` nodes (e.g. one fed by
+``track.simplify`` and a smaller ``texture`` size), each writing its own folder beside the others.
+"""
+from __future__ import annotations
+
+import json
+import lzma
+import struct
+from pathlib import Path
+
+import numpy as np
+
+from nodegraph import NodeError
+from nodes.common.types import sequence_segments
+
+from .volumetric import _segment, atlas_video, read_video
+
+FORMAT = "volcap-stream"
+VERSION = 1
+
+
+def _planes(a: np.ndarray) -> bytes:
+    """An integer array's bytes split into planes (all low bytes, then the next...): small values compress."""
+    return a.view(np.uint8).reshape(a.size, a.itemsize).T.tobytes()
+
+
+def _unplanes(data: bytes, dtype, count: int) -> np.ndarray:
+    dtype = np.dtype(dtype)
+    return np.frombuffer(data, np.uint8).reshape(dtype.itemsize, count).T.copy().view(dtype).ravel()
+
+
+def encode_positions(frames: np.ndarray, bits: int) -> bytes:
+    """(F, V, 3) positions as a .pos payload (module docstring): frame 0 quantised, then each frame's residual
+    from the one before (int16 when they fit), byte planes, LZMA."""
+    frames = np.asarray(frames, np.float64)
+    lo, hi = frames.reshape(-1, 3).min(0), frames.reshape(-1, 3).max(0)
+    span = np.where(hi > lo, hi - lo, 1.0)
+    q = np.round((frames - lo) / span * (2 ** bits - 1)).astype(np.int64)
+    first = q[0].astype(np.uint16 if bits <= 16 else np.uint32)
+    res = np.diff(q, axis=0)
+    dtype = np.int16 if np.abs(res).max(initial=0) < 2 ** 15 else np.int32
+    head = json.dumps({"frames": int(len(frames)), "vertices": int(frames.shape[1]), "first": first.dtype.name,
+                       "dtype": np.dtype(dtype).name, "box": [lo.tolist(), hi.tolist()], "bits": int(bits)}).encode()
+    return struct.pack("<I", len(head)) + head + lzma.compress(_planes(first) + _planes(res.astype(dtype)), preset=9)
+
+
+def decode_positions(data: bytes) -> np.ndarray:
+    """The (F, V, 3) float64 positions of a .pos payload."""
+    (n,) = struct.unpack("<I", data[:4])
+    head = json.loads(data[4:4 + n])
+    body = lzma.decompress(data[4 + n:])
+    nv = head["vertices"] * 3
+    split = nv * np.dtype(head["first"]).itemsize
+    first = _unplanes(body[:split], head["first"], nv).astype(np.int64)
+    res = _unplanes(body[split:], head["dtype"], nv * (head["frames"] - 1)).astype(np.int64)
+    q = np.cumsum(np.concatenate([first, res]).reshape(head["frames"], head["vertices"], 3), axis=0)
+    lo, hi = np.array(head["box"][0]), np.array(head["box"][1])
+    span = np.where(hi > lo, hi - lo, 1.0)
+    return lo + q / (2 ** head["bits"] - 1) * span
+
+
+def stream_files(meshes, textured, frames, name: str, rung: str, fps: float, bits: int, crf: int,
+                 draco_bits: int = 14) -> tuple[dict, dict]:
+    """(files, report) of one rung (module docstring); the report measures it against its input: bytes,
+    Mbit/s at 30 fps and at ``fps``, geometry error (mm) and atlas PSNR (dB) after decoding."""
+    import DracoPy
+
+    if len(textured) != len(meshes):
+        raise NodeError(f"export.stream: {len(textured)} textured meshes for {len(meshes)} tracked frames")
+    folder = f"{name}/{rung}"
+    files, segs, errors, psnrs = {}, [], [], []
+    video_bytes = geometry_bytes = 0
+    for s, (a, c) in enumerate(sequence_segments(meshes)):
+        src, uv, atlases = _segment(meshes, textured, frames, a, c)
+        faces = np.asarray(textured[a].faces)
+        points = np.stack([np.asarray(meshes[k].vertices, np.float64)[src] for k in range(a, c)])
+        stem = f"seg_{s:04d}"
+        drc = DracoPy.encode(points[0].astype(np.float32), faces.astype(np.uint32), quantization_bits=draco_bits,
+                             compression_level=7, preserve_order=True, tex_coord=np.asarray(uv, np.float64),
+                             tex_coord_quantization_bits=14)
+        pos = encode_positions(points, bits)
+        mp4 = atlas_video(atlases, fps, crf)
+        files.update({f"{folder}/{stem}.drc": drc, f"{folder}/{stem}.pos": pos, f"{folder}/{stem}.mp4": mp4})
+        geometry_bytes += len(drc) + len(pos)
+        video_bytes += len(mp4)
+        back = decode_positions(pos)
+        errors.append(np.linalg.norm(back - points, axis=2).ravel())
+        for img, dec in zip(atlases, read_video(mp4)):
+            mse = np.mean((dec[:img.shape[0], :img.shape[1]].astype(np.float64) - img) ** 2)
+            psnrs.append(10 * np.log10(255.0 ** 2 / max(mse, 1e-12)))
+        segs.append({"name": stem, "first_frame": int(frames[a]), "frames": int(c - a), "vertices": int(len(src)),
+                     "faces": int(len(faces)), "geometry": f"{stem}.drc", "positions": f"{stem}.pos",
+                     "video": f"{stem}.mp4", "atlas": list(atlases[0].shape[1::-1]), "bits": int(bits)})
+    manifest = {"format": FORMAT, "version": VERSION, "name": name, "rung": rung, "fps": fps,
+                "frames": [int(f) for f in frames], "up": "+Z", "units": "m", "segments": segs}
+    files[f"{folder}/manifest.json"] = json.dumps(manifest, indent=1).encode()
+    err = np.concatenate(errors) * 1000
+    total = geometry_bytes + video_bytes
+    seconds = len(meshes) / fps
+    report = {"rung": rung, "frames": len(meshes), "faces": max(s["faces"] for s in segs),
+              "atlas": segs[0]["atlas"], "geometry_bytes": int(geometry_bytes), "video_bytes": int(video_bytes),
+              "mbit_s": round(total * 8 / seconds / 1e6, 4),
+              "mbit_s_at_30fps": round(total * 8 / (len(meshes) / 30.0) / 1e6, 4),
+              "geometry_error_mm_mean": round(float(err.mean()), 5), "geometry_error_mm_max": round(float(err.max()), 5),
+              "atlas_psnr_db_mean": round(float(np.mean(psnrs)), 3), "atlas_psnr_db_min": round(float(np.min(psnrs)), 3)}
+    return files, report
+
+
+def read_stream(source, rung: str | None = None) -> list[dict]:
+    """Per frame {"frame", "vertices" (V, 3), "faces", "uv" (V, 2, trimesh's origin), "atlas" (H, W, 3)} of a
+    rung: ``source`` is a rung folder (or the ladder folder with ``rung``), or the files dict of the node."""
+    import DracoPy
+
+    if isinstance(source, dict):
+        prefix = next(k.rsplit("/", 1)[0] for k in source if k.endswith("manifest.json") and (rung is None or
+                                                                                          k.split("/")[-2] == rung))
+        read = lambda n: source[f"{prefix}/{n}"]  # noqa: E731
+    else:
+        folder = Path(source) / rung if rung else Path(source)
+        read = lambda n: (folder / n).read_bytes()  # noqa: E731
+    manifest = json.loads(read("manifest.json"))
+    if manifest.get("format") != FORMAT or manifest.get("version") != VERSION:
+        raise NodeError(f"not a {FORMAT} v{VERSION} rung (format {manifest.get('format')!r}, version "
+                        f"{manifest.get('version')!r})")
+    out, numbers = [], iter(manifest["frames"])
+    for seg in manifest["segments"]:
+        mesh = DracoPy.decode(read(seg["geometry"]))
+        faces = np.asarray(mesh.faces).reshape(-1, 3)
+        uv = np.asarray(mesh.tex_coord, np.float64).reshape(-1, 2)
+        points = decode_positions(read(seg["positions"]))
+        atlases = read_video(read(seg["video"]))
+        w, h = seg["atlas"]
+        if len(points) != seg["frames"] or len(atlases) < seg["frames"] or points.shape[1] != len(uv):
+            raise NodeError(f"stream segment {seg['name']}: {len(points)} position frames, {len(atlases)} video frames, "
+                            f"{points.shape[1]} vertices vs {len(uv)} UVs; the manifest says {seg['frames']} frames")
+        for k in range(seg["frames"]):
+            out.append({"frame": next(numbers), "vertices": points[k], "faces": faces, "uv": uv,
+                        "atlas": atlases[k][:h, :w]})
+    return out
