@@ -33,10 +33,14 @@ def main():
     ap.add_argument("--frames", default="0:25")
     ap.add_argument("--atlas", type=int, default=2048)
     ap.add_argument("--low-atlas", type=int, default=1024)
+    ap.add_argument("--bits", type=int, default=None, help="position bits of both rungs (default: the graph's)")
+    ap.add_argument("--crf", type=int, default=None, help="H.264 CRF of both rungs (default: the graph's)")
     ap.add_argument("--cache", default=str(ROOT / ".volcap-cache"))
     a = ap.parse_args()
     header()
     sets = [f"texture.size={a.atlas}", f"texture_low.size={a.low_atlas}"]
+    for node in ("stream", "stream_low"):
+        sets += [f"{node}.bits={a.bits}"] * (a.bits is not None) + [f"{node}.crf={a.crf}"] * (a.crf is not None)
     records = run(ROOT / "graphs/demo.yaml", Path(a.cache), a.frames, overrides=sets)
     rows = []
     for node in ("stream", "stream_low"):
@@ -45,6 +49,10 @@ def main():
                      rep["frames"]), rep["atlas_psnr_db_mean"], rep["atlas_psnr_db_min"], rep["geometry_error_mm_mean"],
                      rep["geometry_error_mm_max"]))
         n = rep["frames"]
+        print(f"{node}: at 30 fps over {n} frames: connectivity + UVs (Draco, once per segment) "
+              f"{mbit(rep['connectivity_bytes'], n):.2f} Mbit/s, positions {mbit(rep['geometry_bytes'] - rep['connectivity_bytes'], n):.2f}, "
+              f"atlas video {mbit(rep['video_bytes'], n):.2f}; without the once-per-segment part "
+              f"{rep['mbit_s_motion_at_30fps']:.2f} Mbit/s (what a long segment tends to)")
     glb = [Path(p) for r in records if r["node"] == "textured" for p in r["published"]]
     rows.append(("per-frame textured GLB (PNG atlas)", rows[0][1], rows[0][2], mbit(sum(p.stat().st_size for p in glb), n),
                  float("inf"), float("inf"), 0.0, 0.0))

@@ -1,6 +1,7 @@
 """Nodes of the skeleton stage: skeletonize (a joint tree from one frame's solid), skeletonize.sequence (a
 skeleton from the rigid parts of a dynamic mesh's motion), skin (LBS weights and bone motions fitted to the
-sequence, rotation-only joints) and skeleton.export (UsdSkel and glTF skin + animation)."""
+sequence, rotation-only joints), skeleton.humanoid (a named humanoid template fitted to one body) and
+skeleton.export (UsdSkel and glTF skin + animation)."""
 from __future__ import annotations
 
 import time
@@ -10,8 +11,10 @@ import numpy as np
 from nodegraph import Files, Input, Node, NodeError, Output, Param, Table
 from nodes.common.types import FPS_PARAM, Mesh, MeshSequence, Skeleton, SkeletonData, Volume, sequence_segments
 
+from .humanoid import TOOLS
 
 # ---------------------------------------------------------------- per frame
+
 PERSON_HEIGHT_M = (0.3, 2.5)       # a skeleton named as a person outside: a warning (units? up?)
 
 
@@ -75,6 +78,46 @@ class Skeletonize(Node):
                 self.log.warning("skeletonize: a person %.3g m tall along up %s: is the world frame in metres "
                                  "(capture: units) and upright (capture: up)?", report["height"], list(up))
         return {"skeleton": SkeletonData(sk.joints, list(sk.parents), list(sk.names)), "report": report}
+
+
+class Humanoid(Node):
+    """A named humanoid skeleton fitted to one body (humanoid.py): pelvis, spine, chest, neck, head, clavicles,
+    shoulders, elbows, wrists, hips, knees, ankles, toes (and the head's, hands' ends) placed along the body's
+    curve skeleton by the template's proportions, elbows and knees at the limb's bend; left and right from the
+    feet, which point forwards. Names as ours or as Mixamo, the Unreal mannequin or SMPL name them."""
+
+    type_name = "skeleton.humanoid"
+    version = 1
+    inputs = {"mesh": Input(Mesh, optional=True, doc="a closed body mesh"),
+              "volume": Input(Volume, optional=True, doc="or its occupancy")}
+    outputs = {"skeleton": Output(Skeleton, "the named joint tree (rest pose = this body)"),
+               "report": Output(Table, "where the sides came from, elbow/knee bends, bone lengths, height")}
+    params = {
+        "resolution": Param(int, 128, range=(16, 512), doc="voxels along the mesh's longest side"),
+        "up": Param(list, [0.0, 0.0, 1.0], item=float, length=3, doc="world up (the world frame's +Z)"),
+        "naming": Param(str, "volcap", choices=("volcap",) + TOOLS, doc="joint names: ours, or a retargeting "
+                        "tool's (joints it has no name for keep ours)"),
+    }
+
+    def run(self, mesh=None, volume=None, *, resolution, up, naming):
+        from .curve import voxelize
+        from .humanoid import fit_humanoid, retarget_names
+
+        if (mesh is None) == (volume is None):
+            raise NodeError("skeleton.humanoid: connect exactly one of 'mesh' and 'volume'")
+        if mesh is not None:
+            occ, origin, spacing = voxelize(mesh.vertices, mesh.faces, resolution)
+        else:
+            occ = np.asarray(volume.occupancy) > (0.5 if volume.occupancy.dtype.kind == "f" else 0)
+            origin, spacing = volume.bbox_min, volume.voxel_size
+        if not occ.any():
+            raise NodeError("skeleton.humanoid: the body encloses no voxel")
+        joints, parents, names, report = fit_humanoid(occ, origin, spacing, up)
+        if naming != "volcap":
+            table = retarget_names(naming)
+            names = [table.get(n, n) for n in names]
+        report["names"] = names
+        return {"skeleton": SkeletonData(joints, parents, names), "report": report}
 
 
 # ---------------------------------------------------------------- sequences

@@ -1,0 +1,206 @@
+"""A named humanoid skeleton fitted to one body: the seed's "skeletal model provided at the start".
+
+The template (``TEMPLATE``) is a joint tree with standard names and each joint's place along a path of the
+body's curve skeleton, as a fraction of that path's arc length:
+
+    spine   pelvis -> the head's tip:   spine, chest, neck, head; head_end at the tip
+    arms    where the arm's path leaves the spine -> the hand's tip: clavicle at the branch, shoulder, elbow,
+            wrist; hand_end at the tip
+    legs    pelvis -> the foot's tip: hip, knee, ankle; toe at the tip
+Fitting (``fit_humanoid``): TEASAR centre lines of the solid (curve.py, not simplified), its five extremities
+named as ``name_joints`` does (feet lowest along up, the head the nearest to the root, hands the others),
+the pelvis where the two feet's paths to the head meet, each arm's branch where its path reaches the spine
+(the legs' joints are measured from the foot with the mean leg length: the legs' paths may meet off-centre);
+then every joint at its fraction of its path (the spine's measured from where the legs meet), elbows and knees
+moved to the path's sharpest bend within +-0.15 of their fraction when it bends by more than ``BEND_DEG``
+(chords of a tenth of the path). Left and right: the feet point forwards
+(the part of each foot below the ankle lies in front of it), right = forward x up; a joint's side is the
+sign of its offset along right. Names map to the ones other tools retarget from (``RETARGET``: Mixamo, the
+Unreal mannequin, SMPL). Fractions: the median place of each joint of the synth figure along its fitted path over a walk
+cycle, checked against adult proportions (the synth figure has no hands: its wrist is the arm's end, a real
+one ~0.8 of it; 0.92 between): wrists and the spine's joints are placed by proportion, not found.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from nodegraph import NodeError
+
+SIDES = ("l", "r")
+BEND_DEG = 25.0
+# name: (parent, path, fraction of the path's arc); "{s}" is the side
+TEMPLATE = {
+    "pelvis": (None, "spine", 0.09), "spine": ("pelvis", "spine", 0.26), "chest": ("spine", "spine", 0.44),
+    "neck": ("chest", "spine", 0.71), "head": ("neck", "spine", 0.87), "head_end": ("head", "spine", 1.0),
+    "clavicle_{s}": ("chest", "arm", 0.0), "shoulder_{s}": ("clavicle_{s}", "arm", 0.26),
+    "elbow_{s}": ("shoulder_{s}", "arm", 0.60), "wrist_{s}": ("elbow_{s}", "arm", 0.92),
+    "hand_end_{s}": ("wrist_{s}", "arm", 1.0),
+    "hip_{s}": ("pelvis", "leg", 0.14), "knee_{s}": ("hip_{s}", "leg", 0.50), "ankle_{s}": ("knee_{s}", "leg", 0.88),
+    "toe_{s}": ("ankle_{s}", "leg", 1.0),
+}
+BENDS = {"elbow_{s}", "knee_{s}"}
+# our name -> (Mixamo, Unreal mannequin, SMPL); "{S}" Left/Right, "{s}" l/r, "{side}" left/right
+RETARGET = {
+    "pelvis": ("mixamorig:Hips", "pelvis", "pelvis"), "spine": ("mixamorig:Spine", "spine_01", "spine1"),
+    "chest": ("mixamorig:Spine2", "spine_03", "spine3"), "neck": ("mixamorig:Neck", "neck_01", "neck"),
+    "head": ("mixamorig:Head", "head", "head"), "head_end": ("mixamorig:HeadTop_End", "", ""),
+    "clavicle_{s}": ("mixamorig:{S}Shoulder", "clavicle_{s}", "{side}_collar"),
+    "shoulder_{s}": ("mixamorig:{S}Arm", "upperarm_{s}", "{side}_shoulder"),
+    "elbow_{s}": ("mixamorig:{S}ForeArm", "lowerarm_{s}", "{side}_elbow"),
+    "wrist_{s}": ("mixamorig:{S}Hand", "hand_{s}", "{side}_wrist"), "hand_end_{s}": ("", "", "{side}_hand"),
+    "hip_{s}": ("mixamorig:{S}UpLeg", "thigh_{s}", "{side}_hip"), "knee_{s}": ("mixamorig:{S}Leg", "calf_{s}", "{side}_knee"),
+    "ankle_{s}": ("mixamorig:{S}Foot", "foot_{s}", "{side}_ankle"), "toe_{s}": ("mixamorig:{S}ToeBase", "ball_{s}", "{side}_foot"),
+}
+TOOLS = ("mixamo", "unreal", "smpl")
+
+
+def template_names() -> list[str]:
+    """Every joint name of the template, parents first."""
+    out = []
+    for name in TEMPLATE:
+        out.extend([name.format(s=s) for s in SIDES] if "{s}" in name else [name])
+    return out
+
+
+def retarget_names(tool: str) -> dict[str, str]:
+    """Our joint name -> ``tool``'s (mixamo, unreal or smpl); joints the tool has no name for are left out."""
+    k = TOOLS.index(tool)
+    out = {}
+    for ours, theirs in RETARGET.items():
+        for s, S, side in (("l", "Left", "left"), ("r", "Right", "right")) if "{s}" in ours else ((None, None, None),):
+            name = theirs[k].format(s=s, S=S, side=side) if s else theirs[k]
+            if name:
+                out[ours.format(s=s) if s else ours] = name
+    return out
+
+
+def _tree_paths(points: np.ndarray, parent: np.ndarray):
+    """path(a, b): the node indices from a to b along the tree (parent pointers)."""
+    depth = np.full(len(parent), -1, np.int64)
+    for v in range(len(parent)):
+        stack, u = [], v
+        while u >= 0 and depth[u] < 0:
+            stack.append(u)
+            u = int(parent[u])
+        d = -1 if u < 0 else int(depth[u])
+        for w in reversed(stack):
+            d += 1
+            depth[w] = d
+
+    def path(a: int, b: int) -> list[int]:
+        up_a, up_b = [a], [b]
+        while depth[up_a[-1]] > depth[up_b[-1]]:
+            up_a.append(int(parent[up_a[-1]]))
+        while depth[up_b[-1]] > depth[up_a[-1]]:
+            up_b.append(int(parent[up_b[-1]]))
+        while up_a[-1] != up_b[-1]:
+            up_a.append(int(parent[up_a[-1]]))
+            up_b.append(int(parent[up_b[-1]]))
+        return up_a + up_b[-2::-1]
+
+    return path
+
+
+def _length(points: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(points, axis=0), axis=1).sum())
+
+
+def _at(points: np.ndarray, frac: float) -> np.ndarray:
+    """The point at ``frac`` of a polyline's arc length."""
+    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    if s[-1] == 0:
+        return points[0].copy()
+    return np.array([np.interp(frac * s[-1], s, points[:, a]) for a in range(3)])
+
+
+def _bend(points: np.ndarray, frac: float, window: float = 0.15, chord: float = 0.1) -> tuple[float, float]:
+    """(fraction, degrees) of the sharpest bend of a polyline within frac +- window: the angle between the
+    chords to the points ``chord`` of the arc before and after (long chords: the voxel path's stair steps
+    are not bends)."""
+    best = (frac, 0.0)
+    for f in np.linspace(max(chord, frac - window), min(1 - chord, frac + window), 31):
+        a, b, c = _at(points, f - chord), _at(points, f), _at(points, f + chord)
+        u, v = b - a, c - b
+        nu, nv = np.linalg.norm(u), np.linalg.norm(v)
+        if nu and nv:
+            ang = float(np.degrees(np.arccos(np.clip(u @ v / nu / nv, -1, 1))))
+            if ang > best[1]:
+                best = (float(f), ang)
+    return best
+
+
+def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str = "skeleton.humanoid"):
+    """(joints (J, 3), parents, names, report) of the template fitted to a solid (module docstring)."""
+    from .curve import joint_tree, teasar
+
+    step = float(np.min(spacing))
+    raw = teasar(occ, origin, spacing)
+    tree = joint_tree(raw, prune=2.0, prune_min=step, bend=2.0 * step, smooth=step, up=up)
+    named = {n: tree.joints[j] for j, n in enumerate(tree.names) if n in ("head", "hand_0", "hand_1", "foot_0", "foot_1")}
+    if len(named) != 5:
+        raise NodeError(f"{node}: the body's curve skeleton has {len(tree.leaves)} extremities, not the five of a "
+                        "person (head, two hands, two feet): limbs touching the body or each other? (try another frame)")
+    pts, parent = raw.points, raw.parent
+    end = {n: int(np.argmin(np.linalg.norm(pts - p, axis=1))) for n, p in named.items()}
+    path = _tree_paths(pts, parent)
+    to_head = {k: path(end[k], end["head"]) for k in ("foot_0", "foot_1", "hand_0", "hand_1")}
+    on1 = set(to_head["foot_1"])
+    pelvis = next(v for v in to_head["foot_0"] if v in on1)
+    spine_path = path(pelvis, end["head"])
+    on_spine = set(spine_path)
+    u = np.asarray(up, np.float64) / (np.linalg.norm(up) or 1.0)
+    polys = {"spine": pts[spine_path]}
+    limbs = {}
+    for k in (0, 1):
+        branch = next(v for v in to_head[f"hand_{k}"] if v in on_spine)
+        limbs[("arm", k)] = pts[path(branch, end[f"hand_{k}"])]
+        limbs[("leg", k)] = pts[path(pelvis, end[f"foot_{k}"])]
+    # sides: the part of each foot below its ankle lies in front of the ankle
+    cells = origin + (np.argwhere(occ) + 0.5) * spacing
+    forward = np.zeros(3)
+    for k in (0, 1):
+        ankle = _at(limbs[("leg", k)], TEMPLATE["ankle_{s}"][2])
+        h = (cells - ankle) @ u
+        near = np.linalg.norm((cells - ankle) - h[:, None] * u, axis=1) < 0.5 * np.linalg.norm(limbs[("leg", k)][-1] - ankle) + 3 * step
+        foot = cells[(h < 0) & near]
+        if len(foot):
+            d = foot.mean(0) - ankle
+            forward += d - (d @ u) * u
+    report = {}
+    if np.linalg.norm(forward) < step:
+        right = np.cross([1.0, 0, 0] if abs(u[0]) < 0.9 else [0, 1.0, 0], u)
+        report["sides_from"] = "unknown (no foot in front of an ankle): l/r arbitrary"
+    else:
+        right = np.cross(forward / np.linalg.norm(forward), u)
+        report["sides_from"] = "feet"
+    centre = pts[pelvis]
+    side = {}
+    for limb in ("arm", "leg"):
+        off = [(limbs[(limb, k)][-1] - centre) @ right for k in (0, 1)]
+        r = int(np.argmax(off))
+        side[(limb, "r")], side[(limb, "l")] = r, 1 - r
+    leg_length = np.mean([_length(limbs[("leg", k)]) for k in (0, 1)])
+    names = template_names()
+    joints = np.zeros((len(names), 3))
+    parents = []
+    bends = {}
+    for name in names:
+        key = next(t for t in TEMPLATE if t == name or ("{s}" in t and any(t.format(s=s) == name for s in SIDES)))
+        par, which, frac = TEMPLATE[key]
+        s = name.rsplit("_", 1)[1] if "{s}" in key else None
+        poly = polys["spine"] if which == "spine" else limbs[(which, side[(which, s)])]
+        if which == "leg":     # measured from the foot with the mean leg length: the legs may meet off-centre
+            frac = max(0.0, 1.0 - (1.0 - frac) * leg_length / _length(poly))
+        if key in BENDS:
+            f, ang = _bend(poly, frac)
+            bends[name] = round(ang, 1)
+            if ang > BEND_DEG:
+                frac = f
+        joints[names.index(name)] = _at(poly, frac)
+        parents.append(-1 if par is None else names.index(par.format(s=s) if s else par))
+    lengths = {n: round(float(np.linalg.norm(joints[j] - joints[p])), 4) for j, (n, p) in enumerate(zip(names, parents))
+               if p >= 0}
+    report.update(joints=len(names), bends_deg=bends, bone_lengths=lengths,
+                  height=round(float(np.ptp(cells @ u)), 4), forward=np.round(forward, 4).tolist())
+    return joints, parents, names, report
