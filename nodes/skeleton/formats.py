@@ -244,3 +244,128 @@ def read_gltf(data: bytes) -> dict:
         skinned.append(np.einsum("vk,vka->va", wts, per[np.arange(len(pos))[:, None], jidx]))
     return {"rest": world_points(pos), "faces": faces, "joints": [gltf.nodes[j].name for j in skin.joints],
             "times": times, "skinned": world_points(np.array(skinned)), "weights": wts, "indices": jidx}
+
+
+# ---------------------------------------------------------------- BVH
+BVH_FROM_WORLD = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])   # +Z up -> BVH's +Y up
+
+
+def bvh_text(joints, parents, names, rotations, translations, frames, fps: float = FPS, **_) -> str:
+    """The motion as BVH (Biovision hierarchy): +Y up and metres (the world frame turned as for glTF), offsets
+    from the rest joints, the root with 6 channels (position, then Z X Y rotation), every other joint 3 (Z X Y),
+    an End Site under each leaf; one line per frame at 1 / ``fps``. Joint rotations are the rig's local ones."""
+    from scipy.spatial.transform import Rotation
+
+    from .skinning import topological
+
+    B = BVH_FROM_WORLD
+    world = world_transforms(np.asarray(joints, np.float64), np.asarray(rotations), np.asarray(translations))
+    joints = np.asarray(joints, np.float64) @ B.T                                         # rest joints, BVH axes
+    names = _names(names, len(parents))
+    b4 = np.eye(4)
+    b4[:3, :3] = B
+    local = b4 @ local_transforms(world, parents) @ b4.T                                   # (F, J, 4, 4), BVH axes
+    order = topological(parents)
+    children = {j: [c for c in order if parents[c] == j] for j in range(len(parents))}
+    lines = ["HIERARCHY"]
+
+    def emit(j, depth):
+        pad = "  " * depth
+        off = joints[j] if parents[j] < 0 else joints[j] - joints[parents[j]]
+        lines.append(f"{pad}{'ROOT' if parents[j] < 0 else 'JOINT'} {names[j]}")
+        lines.append(f"{pad}{{")
+        lines.append(f"{pad}  OFFSET {off[0]:.6f} {off[1]:.6f} {off[2]:.6f}")
+        if parents[j] < 0:
+            lines.append(f"{pad}  CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation")
+        else:
+            lines.append(f"{pad}  CHANNELS 3 Zrotation Xrotation Yrotation")
+        for c in children[j]:
+            emit(c, depth + 1)
+        if not children[j]:
+            lines.extend([f"{pad}  End Site", f"{pad}  {{", f"{pad}    OFFSET 0.000000 0.000000 0.000000", f"{pad}  }}"])
+        lines.append(f"{pad}}}")
+
+    roots = [j for j in order if parents[j] < 0]
+    if len(roots) != 1:
+        raise ValueError(f"BVH holds one root; the rig has {len(roots)}")
+    emit(roots[0], 0)
+    lines += ["MOTION", f"Frames: {len(frames)}", f"Frame Time: {1.0 / fps:.8f}"]
+    channel_order = []
+
+    def walk(j):
+        channel_order.append(j)
+        for c in children[j]:
+            walk(c)
+
+    walk(roots[0])
+    r = roots[0]
+    for f in range(len(frames)):
+        vals = list(local[f, r, :3, 3])                                   # the root's position (replaces its offset)
+        for j in channel_order:
+            vals += list(Rotation.from_matrix(local[f, j, :3, :3]).as_euler("ZXY", degrees=True))
+        lines.append(" ".join(f"{v:.6f}" for v in vals))
+    return "\n".join(lines) + "\n"
+
+
+def read_bvh(text: str) -> dict:
+    """Parse a BVH from ``bvh_text`` (any BVH with ZXY rotations and one root): {"names", "parents", "offsets",
+    "positions": (F, J, 3) world joint positions by forward kinematics, in the world frame (+Z up)}."""
+    from scipy.spatial.transform import Rotation
+
+    tok = text.split()
+    names, parents, offsets, channels, stack = [], [], [], [], []
+    i = 1 if tok and tok[0] == "HIERARCHY" else 0
+    while tok[i] != "MOTION":
+        t = tok[i]
+        if t in ("ROOT", "JOINT"):
+            names.append(tok[i + 1])
+            parents.append(stack[-1] if stack else -1)
+            i += 2
+        elif t == "End":                          # End Site
+            names.append(None)
+            parents.append(stack[-1])
+            i += 2
+        elif t == "{":
+            stack.append(len(names) - 1)
+            i += 1
+        elif t == "}":
+            stack.pop()
+            i += 1
+        elif t == "OFFSET":
+            offsets.append([float(x) for x in tok[i + 1:i + 4]])
+            i += 4
+        elif t == "CHANNELS":
+            n = int(tok[i + 1])
+            channels.append((len(names) - 1, tok[i + 2:i + 2 + n]))
+            i += 2 + n
+        else:
+            raise ValueError(f"BVH: unexpected token {t!r}")
+    nframes = int(tok[i + 2])
+    values = np.array([float(x) for x in tok[i + 6:]]).reshape(nframes, -1)
+    keep = [j for j, n in enumerate(names) if n is not None]
+    offsets = np.array(offsets)
+    pos = np.zeros((nframes, len(names), 3))
+    for f in range(nframes):
+        k = 0
+        local = {}
+        for j, ch in channels:
+            v = values[f, k:k + len(ch)]
+            k += len(ch)
+            t = offsets[j].copy()
+            rot_ch = [c for c in ch if c.endswith("rotation")]
+            if len(ch) == 6:
+                t = v[:3]
+                v = v[3:]
+            local[j] = (t, Rotation.from_euler("".join(c[0] for c in rot_ch), v, degrees=True).as_matrix())
+        world = {}
+        for j in range(len(names)):
+            t, r = local.get(j, (offsets[j], np.eye(3)))
+            if parents[j] < 0:
+                world[j] = (r, t)
+            else:
+                pr, pt = world[parents[j]]
+                world[j] = (pr @ r, pr @ t + pt)
+            pos[f, j] = world[j][1]
+    return {"names": [names[j] for j in keep], "parents": [keep.index(parents[j]) if parents[j] >= 0 else -1
+                                                            for j in keep],
+            "positions": pos[:, keep] @ BVH_FROM_WORLD}

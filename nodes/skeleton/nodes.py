@@ -308,8 +308,9 @@ def error_table(fit, numbers, diag, seconds, lengths) -> dict:
 
 class Export(Node):
     """A skinned, animated rig as files: USD (UsdSkel Skeleton + Animation + bound Mesh with joint
-    indices/weights, time codes = frame numbers) and/or glTF 2.0 binary (skin, inverse bind matrices,
-    a translation + rotation channel per joint). Joint transforms at frame k reproduce the skinned mesh."""
+    indices/weights, time codes = frame numbers), glTF 2.0 binary (skin, inverse bind matrices, a translation +
+    rotation channel per joint) and/or BVH (the motion: hierarchy, offsets, ZXY rotations per frame). Joint
+    transforms at frame k reproduce the skinned mesh."""
 
     type_name = "skeleton.export"
     version = 1
@@ -322,13 +323,19 @@ class Export(Node):
     outputs = {"files": Files}
     params = {
         "name": Param(str, "rig", doc="file name stem"),
-        "formats": Param(str, "usd,gltf", choices=("usd,gltf", "usd", "gltf"), doc="which files"),
+        "formats": Param(str, "usd,gltf", doc="which files, comma-separated: usd, gltf, bvh (the motion alone, "
+                         "+Y up, metres: rotation-only rigs, i.e. skin's lengths: fixed)"),
         "fps": FPS_PARAM,
         "influences": Param(int, 4, range=(1, 8), doc="joint influences per vertex in USD (glTF: 4)"),
     }
 
     def run(self, skeleton, rest, *, name, formats, fps, influences):
         from . import formats as fmt
+
+        formats = [f.strip() for f in formats.split(",") if f.strip()]
+        unknown = sorted(set(formats) - {"usd", "gltf", "bvh"})
+        if unknown or not formats:
+            raise NodeError(f"skeleton.export: formats {unknown or formats}: give a comma-separated list of usd, gltf, bvh")
 
         if skeleton.weights is None or skeleton.rotations is None:
             raise NodeError("skeleton.export: input 'skeleton' has no weights or motion: connect skin's skeleton")
@@ -345,4 +352,9 @@ class Export(Node):
             files[f"{name}.usd"] = fmt.usd_bytes(influences=influences, **rig)
         if "gltf" in formats:
             files[f"{name}.glb"] = fmt.gltf_bytes(**rig)
+        if "bvh" in formats:
+            try:
+                files[f"{name}.bvh"] = fmt.bvh_text(**rig).encode()
+            except ValueError as exc:
+                raise NodeError(f"skeleton.export: {exc}") from None
         return {"files": files}

@@ -348,6 +348,16 @@ def test_exports_round_trip(tube_nodes, tmp_path):
     assert np.abs(gl["skinned"][:12] - ours).max() < 1e-5          # skin matrices x inverse bind at keyframe k
     np.testing.assert_array_equal(gl["skinned"][12], gl["skinned"][11])    # the last pose held to the end
     assert np.allclose(gl["weights"].sum(1), 1, atol=1e-6)
+    # BVH: the motion alone; forward kinematics of its offsets and ZXY rotations puts every joint where the rig does
+    bvh = run_node("skeleton.export", {"skeleton": sk, "rest": rest}, {"name": "tube", "formats": "bvh"})["files"]
+    text = bvh["tube.bvh"].decode()
+    assert text.startswith("HIERARCHY\nROOT ") and "Frames: 12" in text and "Frame Time: 0.04000000" in text
+    back = formats.read_bvh(text)
+    world = formats.world_transforms(np.asarray(sk.joints), np.asarray(sk.rotations), np.asarray(sk.translations))
+    assert back["names"] == formats._names(sk.names, len(sk.parents)) and back["parents"] == list(sk.parents)
+    np.testing.assert_allclose(back["positions"], world[..., :3, 3], atol=1e-5)
+    with pytest.raises(NodeError, match="formats"):
+        run_node("skeleton.export", {"skeleton": sk, "rest": rest}, {"name": "tube", "formats": "fbx"})
 
 
 def test_sequence_nodes_pick_the_longest_segment_and_explain_errors(tube_nodes):
