@@ -8,7 +8,7 @@ body's curve skeleton, as a fraction of that path's arc length:
             wrist; hand_end at the tip
     legs    pelvis -> the foot's tip: hip, knee, ankle; toe at the tip
 Fitting (``fit_humanoid``): TEASAR centre lines of the solid (curve.py, not simplified), its five extremities
-named as ``name_joints`` does (feet lowest along up, the head the nearest to the root, hands the others),
+(the shortest leaf branches cut while there are more: a stray spur of the voxel skeleton) named as ``name_joints`` does (feet lowest along up, the head the nearest to the root, hands the others),
 the pelvis where the two feet's paths to the head meet, each arm's branch where its path reaches the spine
 (the legs' joints are measured from the foot with the mean leg length: the legs' paths may meet off-centre);
 then every joint at its fraction of its path (the spine's measured from where the legs meet), elbows and knees
@@ -130,17 +130,42 @@ def _bend(points: np.ndarray, frac: float, window: float = 0.15, chord: float = 
     return best
 
 
+def _five_extremities(tree, up):
+    """The tree with its shortest leaf branches cut (leaf up to the first joint with another child, or the root)
+    until five extremities are left, renamed (``name_joints``); as it is when it has five or fewer."""
+    from .curve import CurveSkeleton, name_joints
+
+    while len(tree.leaves) > 5:
+        children = {j: [c for c, p in enumerate(tree.parents) if p == j] for j in range(len(tree.parents))}
+        best = None
+        for leaf in tree.leaves:
+            chain, j, length = [leaf], leaf, 0.0
+            while tree.parents[j] >= 0 and len(children[tree.parents[j]]) == 1 and tree.parents[tree.parents[j]] >= 0:
+                length += float(np.linalg.norm(tree.joints[j] - tree.joints[tree.parents[j]]))
+                j = tree.parents[j]
+                chain.append(j)
+            length += float(np.linalg.norm(tree.joints[j] - tree.joints[tree.parents[j]]))
+            if best is None or length < best[0]:
+                best = (length, chain)
+        keep = [j for j in range(len(tree.parents)) if j not in set(best[1])]
+        remap = {j: k for k, j in enumerate(keep)}
+        tree = CurveSkeleton(tree.joints[keep], [remap[tree.parents[j]] if tree.parents[j] >= 0 else -1 for j in keep],
+                             [], None if tree.radius is None else tree.radius[keep], [tree.kind[j] for j in keep])
+    tree.names = name_joints(tree, up)
+    return tree
+
+
 def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str = "skeleton.humanoid"):
     """(joints (J, 3), parents, names, report) of the template fitted to a solid (module docstring)."""
     from .curve import joint_tree, teasar
 
     step = float(np.min(spacing))
     raw = teasar(occ, origin, spacing)
-    tree = joint_tree(raw, prune=2.0, prune_min=step, bend=2.0 * step, smooth=step, up=up)
+    tree = _five_extremities(joint_tree(raw, prune=2.0, prune_min=step, bend=2.0 * step, smooth=step, up=up), up)
     named = {n: tree.joints[j] for j, n in enumerate(tree.names) if n in ("head", "hand_0", "hand_1", "foot_0", "foot_1")}
     if len(named) != 5:
-        raise NodeError(f"{node}: the body's curve skeleton has {len(tree.leaves)} extremities, not the five of a "
-                        "person (head, two hands, two feet): limbs touching the body or each other? (try another frame)")
+        raise NodeError(f"{node}: the body's curve skeleton has {len(tree.leaves)} extremities, fewer than the five of "
+                        "a person (head, two hands, two feet): limbs touching the body or each other? (try another frame)")
     pts, parent = raw.points, raw.parent
     end = {n: int(np.argmin(np.linalg.norm(pts - p, axis=1))) for n, p in named.items()}
     path = _tree_paths(pts, parent)
@@ -204,3 +229,41 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
     report.update(joints=len(names), bends_deg=bends, bone_lengths=lengths,
                   height=round(float(np.ptp(cells @ u)), 4), forward=np.round(forward, 4).tolist())
     return joints, parents, names, report
+
+
+def bind_humanoid(frames: np.ndarray, faces, resolution: int, up=(0.0, 0.0, 1.0), node: str = "skeletonize.humanoid"):
+    """The template fitted to a dynamic mesh's first frame and set moving with it, ready for ``skin``:
+    (joints, parents, names, one-hot weights (V, J), rotations (F, J, 3, 3), translations (F, J, 3), report).
+    The end joints (head_end, hand_end_*, toe_*) mark where a limb ends and are left out: no part of the body
+    moves with them. Each vertex goes to the nearest bone (the segment from a joint to one of its children, owned
+    by the joint); each joint's part moves rigidly (Kabsch, rest -> frame), a part with fewer than 4 vertices as
+    its parent does. ``skin`` (lengths: fixed) then makes the joints rotation-only with constant bone lengths."""
+    from .curve import voxelize
+    from .motion import fit_rigid
+
+    rest = np.asarray(frames[0], np.float64)
+    occ, origin, spacing = voxelize(rest, np.asarray(faces), resolution)
+    joints, parents, names, report = fit_humanoid(occ, origin, spacing, up, node)
+    keep = [j for j, n in enumerate(names) if not (n.endswith("_end") or n.startswith("toe_") or "_end_" in n)]
+    remap = {j: k for k, j in enumerate(keep)}
+    bones = [(j, c) for c, j in enumerate(parents) if j >= 0]            # (owner joint, child joint) segments
+    a = joints[[j for j, _ in bones]]
+    b = joints[[c for _, c in bones]]
+    ab = b - a
+    t = np.clip(np.einsum("vbk,bk->vb", rest[:, None] - a[None], ab) / np.maximum((ab * ab).sum(1), 1e-12), 0, 1)
+    d = np.linalg.norm(rest[:, None] - (a[None] + t[..., None] * ab[None]), axis=2)
+    owner = np.array([remap[j] for j, _ in bones])[np.argmin(d, axis=1)]
+    J = len(keep)
+    sub_parents = [remap[parents[j]] if parents[j] >= 0 else -1 for j in keep]
+    rot = np.tile(np.eye(3), (len(frames), J, 1, 1))
+    tr = np.zeros((len(frames), J, 3))
+    counts = np.bincount(owner, minlength=J)
+    for k in range(J):                                        # parents first (template order)
+        if counts[k] >= 4:
+            rot[:, k], tr[:, k] = fit_rigid(rest, np.asarray(frames, np.float64), np.flatnonzero(owner == k))
+        elif sub_parents[k] >= 0:
+            rot[:, k], tr[:, k] = rot[:, sub_parents[k]], tr[:, sub_parents[k]]
+    weights = np.zeros((len(rest), J))
+    weights[np.arange(len(rest)), owner] = 1.0
+    report["vertices_per_joint"] = dict(zip([names[j] for j in keep], counts.tolist()))
+    return joints[keep], sub_parents, [names[j] for j in keep], weights, rot, tr, report

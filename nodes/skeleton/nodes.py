@@ -205,6 +205,45 @@ class SkeletonizeSequence(Node):
         return {"skeleton": sk, "rest": rest, "report": report}
 
 
+class SkeletonizeHumanoid(Node):
+    """The named humanoid template on a tracked segment (humanoid.py ``bind_humanoid``): fitted to the segment's
+    first frame, each vertex on its nearest bone, each joint's part moving rigidly with the sequence; give it to
+    ``skin`` (lengths: fixed: rotation-only joints, bone lengths constant over the sequence) and
+    ``skeleton.export`` (UsdSkel, glTF skin, BVH) for a character with standard (or Mixamo/Unreal/SMPL) names."""
+
+    type_name = "skeletonize.humanoid"
+    version = 1
+    per = "sequence"
+    inputs = {
+        "meshes": Input(Mesh, optional=True, doc="per-frame meshes with one connectivity (arrive as a list)"),
+        "sequence": Input(MeshSequence, optional=True, doc="or a mesh sequence (track's output)"),
+    }
+    outputs = {"skeleton": Output(Skeleton, "the template's joints (no end markers), parts and motion, for skin"),
+               "rest": Output(Mesh, "the rest mesh (first frame of the segment)"),
+               "report": Output(Table, "sides, bends, bone lengths, vertices per joint, segment")}
+    params = {
+        "resolution": Param(int, 128, range=(16, 512), doc="voxels along the first frame's longest side"),
+        "up": Param(list, [0.0, 0.0, 1.0], item=float, length=3, doc="world up (the world frame's +Z)"),
+        "naming": Param(str, "volcap", choices=("volcap",) + TOOLS, doc="joint names: ours, or a retargeting tool's"),
+        "segment": Param(int, -1, range=(-1, None), doc="which constant-connectivity segment; -1 = the longest"),
+    }
+
+    def run(self, meshes=None, sequence=None, *, resolution, up, naming, segment):
+        import trimesh
+
+        from .humanoid import bind_humanoid, retarget_names
+
+        frames, faces, numbers, _, nseg = dynamic_mesh(self, meshes, sequence, segment)
+        joints, parents, names, weights, rot, tr, report = bind_humanoid(frames, faces, resolution, up)
+        if naming != "volcap":
+            table = retarget_names(naming)
+            names = [table.get(n, n) for n in names]
+        report.update(names=names, segment={"first_frame": int(numbers[0]), "last_frame": int(numbers[-1]),
+                                             "count": nseg})
+        sk = SkeletonData(joints, parents, names, weights, rot, tr, numbers)
+        return {"skeleton": sk, "rest": trimesh.Trimesh(frames[0], faces, process=False), "report": report}
+
+
 class Skin(Node):
     """Linear-blend-skinning weights and bone motions fitted to a dynamic mesh (SSDR, Le & Deng 2012), from
     skeletonize.sequence's skeleton: at most ``influences`` weights per vertex, smooth where the motion
@@ -235,10 +274,13 @@ class Skin(Node):
         "smooth": Param(float, 1e-6, range=(0.0, 1.0), doc="Laplacian weight smoothing (x frames x diagonal^2)"),
         "lengths": Param(str, "fixed", choices=("fixed", "free"), doc="fixed: rotation-only joints; free: rigid bones (Dem Bones)"),
         "rest_fit": Param(bool, True, doc="refit the rest shape (a posed first frame is no exact LBS rest)"),
+        "pivots": Param(bool, True, doc="move the rest joints to fit the motion (never out of the body); off: the "
+                        "joints stay where the skeleton put them (a fitted template, skeletonize.humanoid)"),
         "segment": Param(int, -1, range=(-1, None), doc="which constant-connectivity segment; -1 = the longest"),
     }
 
-    def run(self, skeleton, meshes=None, sequence=None, *, influences, iterations, tol, smooth, lengths, rest_fit, segment):
+    def run(self, skeleton, meshes=None, sequence=None, *, influences, iterations, tol, smooth, lengths, rest_fit, pivots,
+            segment):
         import trimesh
 
         from .motion import Rig, Trajectories
@@ -260,7 +302,7 @@ class Skin(Node):
                   np.zeros(len(skeleton.parents)), np.zeros(len(skeleton.parents)))
         traj = Trajectories(frames[0], frames)
         fit = fit_skin(traj, faces, rig, influences=influences, iterations=iterations, smooth=smooth,
-                       fixed_lengths=lengths == "fixed", rest=rest_fit, tol=tol, log=self.log.info)
+                       fixed_lengths=lengths == "fixed", rest=rest_fit, pivots=pivots, tol=tol, log=self.log.info)
         seconds = time.perf_counter() - t0
         diag = float(np.linalg.norm(np.ptp(frames[0], axis=0)))
         names = [skeleton.names[b] for b in fit.kept]

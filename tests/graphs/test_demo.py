@@ -22,7 +22,7 @@ def test_demo_graph_end_to_end(tmp_path):
     args = ["--cache", str(tmp_path / "cache"), "run", str(ROOT / "graphs/demo.yaml"), "--out", str(tmp_path / "out"), "-q", "-j", "1"]
     assert cli(args + small) == 0
     doc = json.loads((tmp_path / "out/run.json").read_text())
-    assert doc["counts"] == {"done": 51}
+    assert doc["counts"] == {"done": 54}
     items = {(r["node"], r["frame"]): r for r in doc["items"]}
     for f in (0, 1):
         mesh = trimesh.load(tmp_path / f"out/demo_{f:04d}.ply", process=False)
@@ -50,7 +50,8 @@ def test_demo_graph_end_to_end(tmp_path):
     glbs = [trimesh.load(tmp_path / f"out/demo_{f:04d}.glb", force="mesh") for f in (0, 1)]
     assert np.array_equal(glbs[0].faces, glbs[1].faces) and np.array_equal(glbs[0].visual.uv, glbs[1].visual.uv)
     assert not np.allclose(glbs[0].vertices, glbs[1].vertices)
-    for name in ("demo_dynamic.usdc", "demo_dynamic.glb", "demo_rig.usd", "demo_rig.glb", "demo_volumetric.usdc",
+    for name in ("demo_dynamic.usdc", "demo_dynamic.glb", "demo_rig.usd", "demo_rig.glb", "demo_character.bvh",
+                 "demo_character.glb", "demo_character.usd", "demo_volumetric.usdc",
                  "demo_volumetric_0000.mp4", "demo_volumetric_tex/00001.png"):
         assert (tmp_path / "out" / name).stat().st_size > 1000, name
     # the deliverable: one textured animated GLB for the segment, upright (+Y) and to scale as a glTF reader sees it
@@ -66,6 +67,11 @@ def test_demo_graph_end_to_end(tmp_path):
                                                   "height": 48})["mesh"].vertices)[:, 2]
     assert abs(y.min()) < 0.02 and abs(np.ptp(y) - np.ptp(truth)) < 0.03 * np.ptp(truth), (y.min(), np.ptp(y))
     assert len(prim.targets) == 1 and prim.attributes.TEXCOORD_0 is not None and g.extras["frames"] == [0, 1]
+    # the character: the humanoid template's names, as a BVH reader sees them
+    from nodes.skeleton.formats import read_bvh
+
+    bvh = read_bvh((tmp_path / "out/demo_character.bvh").read_text())
+    assert {"pelvis", "elbow_l", "knee_r", "head"} <= set(bvh["names"]) and bvh["positions"].shape[0] == 2
     # the stream ladder decodes: two rungs, the lower with about a quarter of the faces
     from nodes.export.stream import read_stream
 
@@ -76,5 +82,5 @@ def test_demo_graph_end_to_end(tmp_path):
     before = (tmp_path / "out/demo_0000.ply").read_bytes()
     assert cli(args + small) == 0
     doc = json.loads((tmp_path / "out/run.json").read_text())
-    assert doc["counts"] == {"cached": 51}
+    assert doc["counts"] == {"cached": 54}
     assert (tmp_path / "out/demo_0000.ply").read_bytes() == before
