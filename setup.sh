@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Install volcap (editable, with test extras) at the locked versions of constraints.txt (every dependency,
 # transitive ones included, pinned; ./lock.sh refreshes it), the fastest OpenCL CPU runtime the registries offer
-# here, and headless Chromium for the report test; then rank the OpenCL devices once (cached per machine).
+# here, three.js for the stream player (npm, pinned, in .player/) and headless Chromium for the report and player
+# tests; then rank the OpenCL devices once (cached per machine).
 # - Measured on a 2-core EPYC (README, Benchmarks): Debian's PoCL 3.1 runs every kernel, fastest; Intel's CPU
 #   runtime (pip intel-opencl-rt) works but is 2-12x slower on most kernels; the pip PoCL 3.0 (LLVM 14) hangs in
 #   its compiler or crashes on the key kernels. So the distribution's PoCL is installed whenever apt is there.
@@ -23,6 +24,16 @@ if ! dpkg -s pocl-opencl-icd >/dev/null 2>&1; then
     apt_install pocl-opencl-icd
 fi
 python3 -m nodegraph.clrt --rank  # probes every OpenCL device once; fails with a clear message when none works
+# the stream player's three.js (nodes/export/player.py): a pinned npm package in .player/, never in the repository
+THREE=0.170.0
+if [ "$(node -p "require('./.player/node_modules/three/package.json').version" 2>/dev/null)" != "$THREE" ]; then
+    if ! command -v npm >/dev/null; then
+        echo "setup: installing npm (for the stream player's three.js)" >&2
+        apt_install npm
+    fi
+    mkdir -p .player && [ -f .player/package.json ] || echo '{"private": true}' > .player/package.json
+    (cd .player && npm install --silent --no-audit --no-fund "three@$THREE")
+fi
 if ! command -v chromium >/dev/null 2>&1; then
     echo "setup: installing headless Chromium (used by the report test)" >&2
     apt_install chromium

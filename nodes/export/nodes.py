@@ -140,7 +140,7 @@ class ExportVolumetric(Node):
 
 class ExportStream(Node):
     """One rung of a streamable volumetric video (stream.py): per tracked segment Draco connectivity + UVs once,
-    every frame's positions quantised and predicted from the previous frame (LZMA), the atlas as H.264, and a
+    every frame's positions quantised and predicted from the previous frame (zlib), the atlas as H.264, and a
     manifest; ``read_stream`` decodes it. A ladder is several of these nodes (e.g. one after track.simplify with
     a smaller texture), writing NAME/RUNG/ side by side; the report measures the rung against its input."""
 
@@ -175,3 +175,26 @@ class ExportStream(Node):
         frames = [int(m.metadata.get("frame", f)) for m, f in zip(sequence, fallback)]
         files, report = stream_files(list(sequence), list(textured), frames, name, rung, fps, bits, crf)
         return {"files": files, "report": report}
+
+
+class ExportPlayer(Node):
+    """The stream player (player.py): a web page on three.js beside the ladder NAME/ that the export.stream
+    nodes write (their rungs listed in ``rungs``): play, scrub, pick a rung; offline from any static server."""
+
+    type_name = "export.player"
+    version = 1
+    per = "sequence"
+    publishes = True
+    inputs = {"after": Input(Table, optional=True, doc="a stream node's report, so the player runs after it (unused)")}
+    outputs = {"files": Files}
+    params = {
+        "name": Param(str, "stream", doc="the ladder's folder (export.stream's name)"),
+        "rungs": Param(list, ["full"], item=str, doc="the rungs it offers, the first shown first"),
+    }
+
+    def run(self, after=None, *, name, rungs):
+        from .player import player_files
+
+        if not rungs or any(not r or "/" in r or r.startswith(".") for r in rungs):
+            raise NodeError(f"export.player: rungs must be plain folder names, got {rungs}")
+        return {"files": player_files(name, rungs)}

@@ -6,7 +6,9 @@ A rung ``NAME/RUNG/`` holds, per tracked segment ``seg_SSSS``:
     .pos    every frame's positions, quantised to ``bits`` over the segment's box: frame 0 as is, each later
             frame's motion from the frame before less its breadth-first parent vertex's motion over the mesh
             (neighbours move alike: on the demo figure 5.9 -> 3.6 bits per coordinate), int8 with the few larger
-            values listed apart, LZMA (header: JSON length, JSON {frames, vertices, box, bits, escapes}, payload)
+            values listed apart, zlib (deflate: what a browser inflates natively; LZMA would be 9 % smaller)
+            (header: JSON length, JSON {frames, vertices, box, bits, escapes}; payload: frame 0 as byte planes,
+            int8 residuals, escape indices uint32 and values int32, the parent of each vertex int32 planes)
     .mp4    the atlas per frame, H.264 (PyAV)
 and ``manifest.json``: fps, frame numbers, world frame (+Z up, metres), per segment its files, counts, box, bits
 and atlas size. ``read_stream`` decodes a rung back to per-frame meshes and atlases (the Python reader; a
@@ -16,7 +18,7 @@ player does the same). A ladder is several rungs from several ``export.stream`` 
 from __future__ import annotations
 
 import json
-import lzma
+import zlib
 import struct
 from pathlib import Path
 
@@ -28,7 +30,7 @@ from nodes.common.types import sequence_segments
 from .volumetric import _segment, atlas_video, read_video
 
 FORMAT = "volcap-stream"
-VERSION = 2
+VERSION = 3   # 3: zlib, parents stored
 
 
 def _planes(a: np.ndarray) -> bytes:
@@ -41,9 +43,9 @@ def _unplanes(data: bytes, dtype, count: int) -> np.ndarray:
     return np.frombuffer(data, np.uint8).reshape(dtype.itemsize, count).T.copy().view(dtype).ravel()
 
 
-def _bfs_levels(faces, n: int) -> tuple[np.ndarray, list[np.ndarray]]:
-    """(parent (n,) with -1 at each component's root, vertices by breadth-first level) of a mesh's edge graph:
-    a forest (a seam-split mesh falls apart into its charts), roots the lowest index of each component."""
+def _bfs_parents(faces, n: int) -> np.ndarray:
+    """(n,) breadth-first parent of each vertex over a mesh's edge graph, -1 at each component's root (a forest:
+    a seam-split mesh falls apart into its charts; roots the lowest index of each component)."""
     import scipy.sparse as sp
     from scipy.sparse.csgraph import breadth_first_order, connected_components
 
@@ -53,27 +55,33 @@ def _bfs_levels(faces, n: int) -> tuple[np.ndarray, list[np.ndarray]]:
     A = ((A + A.T) > 0).astype(np.int8).tocsr()
     _, labels = connected_components(A, directed=False)
     parent = np.full(n, -1, np.int64)
-    depth = np.zeros(n, np.int64)
-    seen = np.zeros(n, bool)
     for root in np.unique(labels, return_index=True)[1]:
         order, pred = breadth_first_order(A, int(root), directed=False)
         parent[order[1:]] = pred[order[1:]]
-        for v in order[1:]:                      # parents come first in a BFS order
-            depth[v] = depth[parent[v]] + 1
-        seen[order] = True
-    return parent, [np.flatnonzero(depth == d) for d in range(int(depth.max()) + 1)]
+    return parent
+
+
+def _levels(parent: np.ndarray) -> list[np.ndarray]:
+    """Vertices by depth in a forest given by parent indices (-1 at roots)."""
+    depth = np.full(len(parent), -1, np.int64)
+    depth[parent < 0] = 0
+    while (depth < 0).any():
+        todo = np.flatnonzero(depth < 0)
+        known = depth[parent[todo]] >= 0
+        depth[todo[known]] = depth[parent[todo[known]]] + 1
+    return [np.flatnonzero(depth == d) for d in range(int(depth.max()) + 1)]
 
 
 def encode_positions(frames: np.ndarray, bits: int, faces) -> bytes:
     """(F, V, 3) positions as a .pos payload: frame 0 quantised over the box; each later frame's motion (the
     difference from the frame before, in quanta) less its breadth-first parent vertex's motion over the mesh
-    (``faces``: the motion of neighbours is alike); int8 with the few larger values listed apart; LZMA."""
+    (``faces``: the motion of neighbours is alike); int8 with the few larger values listed apart; zlib."""
     frames = np.asarray(frames, np.float64)
     lo, hi = frames.reshape(-1, 3).min(0), frames.reshape(-1, 3).max(0)
     span = np.where(hi > lo, hi - lo, 1.0)
     q = np.round((frames - lo) / span * (2 ** bits - 1)).astype(np.int64)
     first = q[0].astype(np.uint16 if bits <= 16 else np.uint32)
-    parent, _ = _bfs_levels(faces, frames.shape[1])
+    parent = _bfs_parents(faces, frames.shape[1])
     motion = np.diff(q, axis=0)
     res = motion - np.where(parent[None, :, None] >= 0, motion[:, np.maximum(parent, 0)], 0)
     flat = res.ravel()
@@ -82,15 +90,16 @@ def encode_positions(frames: np.ndarray, bits: int, faces) -> bytes:
     head = json.dumps({"frames": int(len(frames)), "vertices": int(frames.shape[1]), "first": first.dtype.name,
                        "box": [lo.tolist(), hi.tolist()], "bits": int(bits), "escapes": int(len(big)),
                        "prediction": "previous frame, then breadth-first parent"}).encode()
-    body = _planes(first) + small.tobytes() + big.astype(np.uint32).tobytes() + flat[big].astype(np.int32).tobytes()
-    return struct.pack("<I", len(head)) + head + lzma.compress(body, preset=9)
+    body = (_planes(first) + small.tobytes() + big.astype(np.uint32).tobytes() + flat[big].astype(np.int32).tobytes()
+            + _planes(parent.astype(np.int32)))
+    return struct.pack("<I", len(head)) + head + zlib.compress(body, 9)
 
 
-def decode_positions(data: bytes, faces) -> np.ndarray:
-    """The (F, V, 3) float64 positions of a .pos payload (``faces``: the segment's, from its .drc)."""
+def decode_positions(data: bytes) -> np.ndarray:
+    """The (F, V, 3) float64 positions of a .pos payload."""
     (n,) = struct.unpack("<I", data[:4])
     head = json.loads(data[4:4 + n])
-    body = lzma.decompress(data[4 + n:])
+    body = zlib.decompress(data[4 + n:])
     nf, nv = head["frames"], head["vertices"]
     at = nv * 3 * np.dtype(head["first"]).itemsize
     first = _unplanes(body[:at], head["first"], nv * 3).astype(np.int64).reshape(nv, 3)
@@ -100,8 +109,8 @@ def decode_positions(data: bytes, faces) -> np.ndarray:
     idx = np.frombuffer(body[at + count:at + count + 4 * k], np.uint32)
     flat[idx] = np.frombuffer(body[at + count + 4 * k:at + count + 8 * k], np.int32)
     motion = flat.reshape(nf - 1, nv, 3)
-    parent, levels = _bfs_levels(faces, nv)
-    for level in levels[1:]:                              # add each parent's motion, root to leaves
+    parent = _unplanes(body[at + count + 8 * k:], np.int32, nv).astype(np.int64)
+    for level in _levels(parent)[1:]:                     # add each parent's motion, root to leaves
         motion[:, level] += motion[:, parent[level]]
     q = np.cumsum(np.concatenate([first[None], motion]), axis=0)
     lo, hi = np.array(head["box"][0]), np.array(head["box"][1])
@@ -134,7 +143,7 @@ def stream_files(meshes, textured, frames, name: str, rung: str, fps: float, bit
         geometry_bytes += len(drc) + len(pos)
         connectivity_bytes += len(drc)
         video_bytes += len(mp4)
-        back = decode_positions(pos, faces)
+        back = decode_positions(pos)
         errors.append(np.linalg.norm(back - points, axis=2).ravel())
         for img, dec in zip(atlases, read_video(mp4)):
             mse = np.mean((dec[:img.shape[0], :img.shape[1]].astype(np.float64) - img) ** 2)
@@ -180,7 +189,7 @@ def read_stream(source, rung: str | None = None) -> list[dict]:
         mesh = DracoPy.decode(read(seg["geometry"]))
         faces = np.asarray(mesh.faces).reshape(-1, 3)
         uv = np.asarray(mesh.tex_coord, np.float64).reshape(-1, 2)
-        points = decode_positions(read(seg["positions"]), faces)
+        points = decode_positions(read(seg["positions"]))
         atlases = read_video(read(seg["video"]))
         w, h = seg["atlas"]
         if len(points) != seg["frames"] or len(atlases) < seg["frames"] or points.shape[1] != len(uv):

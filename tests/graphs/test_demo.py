@@ -22,7 +22,7 @@ def test_demo_graph_end_to_end(tmp_path):
     args = ["--cache", str(tmp_path / "cache"), "run", str(ROOT / "graphs/demo.yaml"), "--out", str(tmp_path / "out"), "-q", "-j", "1"]
     assert cli(args + small) == 0
     doc = json.loads((tmp_path / "out/run.json").read_text())
-    assert doc["counts"] == {"done": 54}
+    assert doc["counts"] == {"done": 55}
     items = {(r["node"], r["frame"]): r for r in doc["items"]}
     for f in (0, 1):
         mesh = trimesh.load(tmp_path / f"out/demo_{f:04d}.ply", process=False)
@@ -78,9 +78,11 @@ def test_demo_graph_end_to_end(tmp_path):
     full, low = (read_stream(tmp_path / "out/demo_stream", r) for r in ("full", "quarter"))
     assert [f["frame"] for f in full] == [f["frame"] for f in low] == [0, 1]
     assert 0.2 < len(low[0]["faces"]) / len(full[0]["faces"]) < 0.3 and low[0]["atlas"].shape == (512, 512, 3)
+    assert json.loads((tmp_path / "out/demo_stream/rungs.json").read_text()) == ["full", "quarter"]      # the player
+    assert (tmp_path / "out/demo_stream/lib/three.module.min.js").stat().st_size > 100_000
     # a second run is all cache hits and rewrites identical files
     before = (tmp_path / "out/demo_0000.ply").read_bytes()
     assert cli(args + small) == 0
     doc = json.loads((tmp_path / "out/run.json").read_text())
-    assert doc["counts"] == {"cached": 54}
+    assert doc["counts"] == {"cached": 55}
     assert (tmp_path / "out/demo_0000.ply").read_bytes() == before

@@ -140,7 +140,7 @@ def test_a_stream_rung_decodes_to_the_tracked_frames_and_atlases(take):
         assert 10 * np.log10(255.0 ** 2 / np.mean((f["atlas"] - ref) ** 2)) > 30
     assert rep["geometry_error_mm_max"] < 1000 * 2.2 / (2 ** 16 - 1) and rep["atlas_psnr_db_min"] > 30
     pos = sum(len(v) for k, v in files.items() if k.endswith(".pos"))
-    assert rep["mbit_s"] > 0 and pos < 0.5 * sum(len(t.vertices) * 12 for t in tex)      # vs float32 positions
+    assert rep["mbit_s"] > 0 and pos < 0.6 * sum(len(t.vertices) * 12 for t in tex)      # vs float32 positions
     # a lower rung from track.simplify: fewer faces, the same frames
     low = run_node("track.simplify", {"sequence": seq}, {"faces": 0.25})["sequence"]
     assert len(low[0].faces) <= 0.3 * len(seq[0].faces) and [m.metadata["frame"] for m in low] == list(range(10, 15))
@@ -161,7 +161,7 @@ def test_positions_round_trip_exactly_to_their_quantisation():
     faces = ball.faces
     for bits in (12, 16, 20):
         data = encode_positions(walk, bits, faces)
-        back = decode_positions(data, faces)
+        back = decode_positions(data)
         step = np.ptp(walk.reshape(-1, 3), axis=0) / (2 ** bits - 1)
         assert np.all(np.abs(back - walk) <= step / 2 + 1e-12), bits
     # the mesh falls apart into two charts (a forest), and a jump larger than int8 (an escape)
@@ -169,5 +169,5 @@ def test_positions_round_trip_exactly_to_their_quantisation():
     jump = np.concatenate([walk, walk + [3.0, 0, 0]], axis=1)
     jump[20:, 5] += 0.5
     data = encode_positions(jump, 14, two)
-    np.testing.assert_allclose(decode_positions(data, two), jump, atol=np.ptp(jump) / 2 ** 14)
-    assert len(encode_positions(walk, 12, faces)) < 0.1 * walk.size * 4     # under a tenth of float32
+    np.testing.assert_allclose(decode_positions(data), jump, atol=np.ptp(jump) / 2 ** 14)
+    assert len(encode_positions(walk, 12, faces)) < 0.15 * walk.size * 4    # under 15 % of float32

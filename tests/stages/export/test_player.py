@@ -1,0 +1,66 @@
+"""The stream player (export.player) in headless Chromium, as a viewer sees it: the page loads a two-segment
+ladder over http, decodes Draco, the zlib positions and the H.264 atlas, and renders frame k through a given
+camera; its silhouette matches our own projection of the decoded frame k (IoU >= 0.99)."""
+from __future__ import annotations
+
+import base64
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from nodegraph.testing import run_node
+from nodes.common.cameras import Cameras, look_at
+from rig import two_segments
+
+from tests.stages.export.test_volumetric import painted
+
+
+def write(files: dict, root: Path):
+    for name, data in files.items():
+        (root / name).parent.mkdir(parents=True, exist_ok=True)
+        (root / name).write_bytes(data)
+
+
+@pytest.mark.slow
+def test_the_player_shows_each_frame_where_our_projection_does(tmp_path):
+    import cv2
+
+    from browser import screenshot, serve
+    from nodes.common.raster import silhouette
+    from nodes.export.stream import read_stream
+
+    seq = two_segments()
+    tex = painted(seq)
+    files = run_node("export.stream", {"sequence": seq, "textured": tex}, {"name": "s", "rung": "full"})["files"]
+    files.update(run_node("export.player", {}, {"name": "s", "rungs": ["full"]})["files"])
+    write(files, tmp_path)
+    frames = read_stream(tmp_path / "s", "full")
+    cam = look_at([2.5, -3.0, 1.5], [0.2, 0, 0], [0, 0, 1], 40, 320, 240)
+    param = base64.b64encode(json.dumps({"K": cam.K.tolist(), "R": cam.Rt[:, :3].tolist(), "t": cam.Rt[:, 3].tolist(),
+                                         "width": 320, "height": 240}).encode()).decode()
+    with serve(tmp_path / "s") as base:
+        for k in (1, 4):                                     # one frame of each segment
+            png, title = screenshot(f"{base}/index.html?still=1&silhouette=1&frame={k}&camera={param}", 320, 240)
+            assert title == "ready", title
+            shot = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_GRAYSCALE) > 127
+            ours = silhouette(frames[k]["vertices"], frames[k]["faces"], Cameras([cam]))[0] > 0
+            iou = (shot & ours).sum() / (shot | ours).sum()
+            assert ours.sum() > 2000 and iou >= 0.99, (k, iou, shot.sum(), ours.sum())
+            print(f"frame {k}: IoU {iou:.4f} over {ours.sum()} pixels")
+        png, title = screenshot(f"{base}/index.html?still=1&frame=2&camera={param}", 320, 240)   # textured
+        assert title == "ready", title
+        img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[:, :, ::-1].astype(int)
+        body = silhouette(frames[2]["vertices"], frames[2]["faces"], Cameras([cam]))[0] > 0
+        inner = cv2.erode(body.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+        atlas_green = 40 * 2                                 # painted(): green channel = 40 x frame index
+        assert abs(np.median(img[inner][:, 1]) - atlas_green) < 30, np.median(img[inner], axis=0)
+
+
+def test_the_player_refuses_bad_rungs_and_names_a_missing_three(monkeypatch, tmp_path):
+    with pytest.raises(Exception, match="plain folder names"):
+        run_node("export.player", {}, {"name": "s", "rungs": ["../x"]})
+    monkeypatch.setenv("VOLCAP_THREE", str(tmp_path / "nothing"))
+    with pytest.raises(Exception, match="setup.sh"):
+        run_node("export.player", {}, {"name": "s", "rungs": ["full"]})
