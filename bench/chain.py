@@ -1,0 +1,180 @@
+"""The whole chain per frame through the product's path (issue 26: "a minute of footage in half an hour on one
+small machine"): graphs/demo.yaml through `volcap run` (the CLI in a fresh process: start-up, planning, cache,
+frame units and all), every stage's seconds per frame from the run record (OUT/run.json), the end-to-end wall
+time per frame, and the projected hours per minute of 30 fps footage next to the industry's figures.
+
+    python bench/chain.py [--cameras 12] [--width 640] [--height 480] [--frames 0:4] [--resolution 128] [--jobs 1]
+    python bench/chain.py --cameras 24 --width 1920 --height 1080    # the issue's 24-camera HD stage (slow here)
+
+Every run uses a fresh, temporary cache folder, so no work item is a cache hit (the synthetic stage is rendered
+too; it stands in for the cameras and is shown apart from the chain). Stages are grouped by node TYPE from
+run.json: key (key.chroma + key.cleanup), hull, mc, refine, relax, track (a sequence node: its total / frames,
+with track.frame), texture, deliver (export.volumetric, export.stream, track.simplify and what is fed from the
+simplified sequence: the second track.frame and texture), rig (skeletonize*, skin, skeleton.export), carve
+(carve.space_carving and the mc of its volume), evals/exports (the rest). Sequence nodes run once: their
+seconds are divided by the frame count like the others. "median" is the median frame of a per-frame node (the
+first frame of each node type also pays its OpenCL kernel loading); sequence nodes have one item.
+
+The same run then times the fused path of the first stages (bench/e2e.py's: chroma key straight into the hull's
+device silhouettes, hull, marching cubes, images in memory) on the same rendered frames (read back from the
+run's cache) and box, for the CLI/fused ratio of key+hull+mc. Hours per minute = seconds per frame x 1800 / 3600;
+4DViews ~ 8 h and Fraunhofer HHI / Volucap ~ 12 h per minute of footage (issue 26).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+from machine import describe, load_average  # noqa: E402
+
+GRAPH = ROOT / "graphs" / "demo.yaml"
+INDUSTRY = (("4DViews", 8.0), ("Fraunhofer HHI / Volucap", 12.0))  # hours of processing per minute of footage
+GROUPS = (  # group -> node types (in table order)
+    ("key", ("key.chroma", "key.cleanup")),
+    ("hull", ("hull",)),
+    ("mc", ("mc",)),
+    ("refine", ("refine",)),
+    ("relax", ("relax",)),
+    ("track", ("track", "track.frame")),
+    ("texture", ("texture",)),
+    ("deliver", ("export.volumetric", "export.stream", "track.simplify")),
+    ("rig", ("skeletonize", "skeletonize.sequence", "skeletonize.humanoid", "skin", "skeleton.export")),
+    ("carve", ("carve.space_carving",)),
+)
+RENDER = "stage (synth render)"
+REST = "evals/exports"
+
+
+def group_of(node: str, types: dict, upstream: dict) -> str:
+    """The group of ``node``: by its type, except what is fed from the simplified sequence (deliver) and the mc of
+    a carved volume (carve)."""
+    todo, seen = list(upstream[node]), set()
+    while todo:
+        n = todo.pop()
+        if n not in seen:
+            seen.add(n)
+            todo.extend(upstream[n])
+    if types[node] in ("track.frame", "texture") and any(types[n] == "track.simplify" for n in seen):
+        return "deliver"
+    if types[node] == "mc" and any(types[n] == "carve.space_carving" for n in upstream[node]):
+        return "carve"
+    if types[node] == "synth":
+        return RENDER
+    return next((g for g, ts in GROUPS if types[node] in ts), REST)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--cameras", type=int, default=12)
+    ap.add_argument("--width", type=int, default=640)
+    ap.add_argument("--height", type=int, default=480)
+    ap.add_argument("--frames", default="0:4", help="frame range A:B (half-open)")
+    ap.add_argument("--resolution", type=int, default=128, help="hull resolution")
+    ap.add_argument("--jobs", "-j", type=int, default=1, help="volcap run -j (1: in one process, stage times uncontended)")
+    ap.add_argument("--repeats", type=int, default=3, help="timed passes of the fused path over the frames")
+    a = ap.parse_args()
+    print(describe())
+
+    from nodegraph.cache import Cache
+    from nodegraph.graphfile import load_graph
+
+    sets = [f"stage.cameras={a.cameras}", f"stage.width={a.width}", f"stage.height={a.height}",
+            f"hull.resolution={a.resolution}"]
+    tmp = tempfile.TemporaryDirectory(dir=os.environ.get("VOLCAP_BENCH_TMP"))
+    cache, out = Path(tmp.name) / "cache", Path(tmp.name) / "out"
+    cmd = [sys.executable, str(ROOT / "app.py"), "--cache", str(cache), "run", str(GRAPH), "--frames", a.frames,
+           "--out", str(out), "-q", "-j", str(a.jobs)] + [x for s in sets for x in ("--set", s)]
+    t = time.perf_counter()
+    res = subprocess.run(cmd, capture_output=True, text=True)
+    wall = time.perf_counter() - t
+    if res.returncode != 0:
+        sys.exit(f"volcap run failed:\n{res.stdout[-2000:]}\n{res.stderr[-2000:]}")
+    doc = json.loads((out / "run.json").read_text())
+    records, nf = doc["items"], len(doc["frames"])
+    hits = sum(bool(r.get("cache_hit")) for r in records)
+
+    g = load_graph(GRAPH, overrides=sets, frames=a.frames)
+    types = {n: g.nodes[n].type_name for n in g.nodes}
+    by_node: dict[str, list[dict]] = {}
+    for r in records:
+        by_node.setdefault(r["node"], []).append(r)
+    group = {n: group_of(n, types, g.upstream) for n in by_node}
+
+    # the fused path on the same rendered frames, from this run's cache (synth is a checkpoint)
+    import e2e  # bench/e2e.py: the fused path's functions and key colour
+
+    c = Cache(cache)
+    stage_t = g.nodes["stage"].cls.outputs
+    frames = []
+    for r in sorted(by_node["stage"], key=lambda r: r["frame"]):
+        images = [np.ascontiguousarray(im) for im in c.load(r["key"], "images", stage_t["images"].type).images]
+        frames.append((images, c.load(r["key"], "cameras", stage_t["cameras"].type),
+                       np.asarray(c.load(r["key"], "bounds", stage_t["bounds"].type), dtype=np.float64)))
+    key = e2e.K.key_direction_from_rgb([round(255 * x) for x in e2e.GREEN])
+    sil, fused = None, []
+    for rep in range(1 + a.repeats):
+        for images, cams, bounds in frames:
+            t0 = time.perf_counter()
+            edges = [e2e.K.matte_edges(cams, v, bounds) for v in range(len(images))]
+            sil = e2e.K.chroma_key_bits(images, key, edges=edges, out=sil)
+            volume = e2e.visual_hull(sil, cams, bounds, a.resolution, method="sparse")  # the demo's box: stage.bounds
+            e2e.marching_cubes(volume)
+            if rep:  # the first pass warms up (kernel builds, buffers)
+                fused.append(time.perf_counter() - t0)
+    fused_ms = 1e3 * float(np.median(fused))
+
+    # the table
+    order = [RENDER] + [gname for gname, _ in GROUPS] + [REST]
+    print(f"graphs/demo.yaml, {nf} frames ({a.frames}), {a.cameras} cameras x {a.width}x{a.height}, hull "
+          f"{a.resolution}; `volcap run -j {a.jobs}` in a fresh process, fresh temporary cache: "
+          f"{len(records)} items, {hits} cache hits")
+    print(f"{'group':>22} {'node':>14} {'type':>22} {'items':>5} {'s/frame':>8} {'median':>7}")
+    sums = {}
+    for gname in order:
+        nodes = [n for n in by_node if group[n] == gname]
+        if not nodes:
+            continue
+        for n in nodes:
+            secs = [r["seconds"] for r in by_node[n]]
+            per_frame = by_node[n][0]["frame"] is not None
+            med = f"{np.median(secs):7.2f}" if per_frame else f"{'':>7}"
+            print(f"{'':>22} {n:>14} {types[n]:>22} {len(secs):5d} {sum(secs) / nf:8.3f} {med}")
+        sums[gname] = sum(r["seconds"] for n in nodes for r in by_node[n]) / nf
+        print(f"{gname:>22} {'':>14} {'group sum':>22} {'':>5} {sums[gname]:8.3f}")
+    chain = sum(v for k, v in sums.items() if k != RENDER)
+    per = wall / nf
+    print(f"{'sum of items':>22} {'':>14} {'chain (no render)':>22} {'':>5} {chain:8.3f}")
+    print(f"{'end to end':>22} {'':>14} {'wall, whole run':>22} {'':>5} {per:8.3f}   "
+          f"({wall:.1f} s: start-up, planning, render and chain; run.json says {doc['seconds']:.1f} s)")
+    print(f"{'':>22} {'':>14} {'wall less the render':>22} {'':>5} {per - sums.get(RENDER, 0):8.3f}")
+
+    def hours(s):
+        return s * 1800 / 3600
+
+    print(f"projected hours per minute of 30 fps footage: {hours(per - sums.get(RENDER, 0)):.2f} h (wall less the "
+          f"render), {hours(per):.2f} h (wall with it), {hours(chain):.2f} h (sum of chain items); "
+          + ", ".join(f"{name} ~{h:.0f} h" for name, h in INDUSTRY))
+
+    k = ("key", "hull", "mc")
+    khm = sum(sums.get(x, 0) for x in k)
+    khm_med = sum(np.median([r["seconds"] for r in by_node[n]]) for n in by_node if group[n] in k)
+    print(f"key+hull+mc: CLI {khm:.3f} s/frame (median frame {khm_med:.3f} s; the node key also despills the images "
+          f"for the texture, and cleans the masks) vs fused {fused_ms:.1f} ms/frame (median of {len(fused)}): "
+          f"{1e3 * khm / fused_ms:.1f}x ({1e3 * khm_med / fused_ms:.1f}x on the median frame)")
+    print(f"load average at the end: {load_average()}")
+
+
+if __name__ == "__main__":
+    main()
