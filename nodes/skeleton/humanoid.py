@@ -7,9 +7,12 @@ body's curve skeleton, as a fraction of that path's arc length:
     arms    where the arm's path leaves the spine -> the hand's tip: clavicle at the branch, shoulder, elbow,
             wrist; hand_end at the tip
     legs    pelvis -> the foot's tip: hip, knee, ankle; toe at the tip
-Fitting (``fit_humanoid``): TEASAR centre lines of the solid (curve.py, not simplified), its five extremities
-(the shortest leaf branches cut while there are more: a stray spur of the voxel skeleton) named as ``name_joints`` does (feet lowest along up, the head the nearest to the root, hands the others),
-the pelvis where the two feet's paths to the head meet, each arm's branch where its path reaches the spine
+Fitting (``fit_humanoid``): TEASAR centre lines of the solid (curve.py, not simplified); its extremities within
+20 % of the height above the floor are the feet (two; one when the legs touch and make one column), of the others
+the shortest branches are cut (stray spurs of the voxel skeleton) down to the head (the nearest to the root along
+the tree: arms are longer than the neck) and two hands; the pelvis where the two feet's paths to the head meet
+(legs together: where the foot's path reaches 47 % of the height, and the column is split in halves along the
+body's left-right axis, one leg in each), each arm's branch where its path reaches the spine
 (the legs' joints are measured from the foot with the mean leg length: the legs' paths may meet off-centre);
 then every joint at its fraction of its path (the spine's measured from where the legs meet), elbows and knees
 moved to the path's sharpest bend within +-0.15 of their fraction when it bends by more than ``BEND_DEG``
@@ -28,6 +31,8 @@ from nodegraph import NodeError
 
 SIDES = ("l", "r")
 BEND_DEG = 25.0
+FOOT_HEIGHT = 0.2        # extremities this share of the body's height above the floor are feet
+CROTCH_HEIGHT = 0.47     # legs together: where the legs meet, this share of the height above the floor
 # name: (parent, path, fraction of the path's arc); "{s}" is the side
 TEMPLATE = {
     "pelvis": (None, "spine", 0.09), "spine": ("pelvis", "spine", 0.26), "chest": ("spine", "spine", 0.44),
@@ -130,29 +135,92 @@ def _bend(points: np.ndarray, frac: float, window: float = 0.15, chord: float = 
     return best
 
 
-def _five_extremities(tree, up):
-    """The tree with its shortest leaf branches cut (leaf up to the first joint with another child, or the root)
-    until five extremities are left, renamed (``name_joints``); as it is when it has five or fewer."""
-    from .curve import CurveSkeleton, name_joints
+def _cut(tree, leaf: int):
+    """The tree without ``leaf``'s branch (up to the first joint with another child, or the root's child)."""
+    from .curve import CurveSkeleton
 
-    while len(tree.leaves) > 5:
-        children = {j: [c for c, p in enumerate(tree.parents) if p == j] for j in range(len(tree.parents))}
-        best = None
-        for leaf in tree.leaves:
-            chain, j, length = [leaf], leaf, 0.0
-            while tree.parents[j] >= 0 and len(children[tree.parents[j]]) == 1 and tree.parents[tree.parents[j]] >= 0:
-                length += float(np.linalg.norm(tree.joints[j] - tree.joints[tree.parents[j]]))
-                j = tree.parents[j]
-                chain.append(j)
-            length += float(np.linalg.norm(tree.joints[j] - tree.joints[tree.parents[j]]))
-            if best is None or length < best[0]:
-                best = (length, chain)
-        keep = [j for j in range(len(tree.parents)) if j not in set(best[1])]
-        remap = {j: k for k, j in enumerate(keep)}
-        tree = CurveSkeleton(tree.joints[keep], [remap[tree.parents[j]] if tree.parents[j] >= 0 else -1 for j in keep],
-                             [], None if tree.radius is None else tree.radius[keep], [tree.kind[j] for j in keep])
-    tree.names = name_joints(tree, up)
-    return tree
+    children = [0] * len(tree.parents)
+    for p in tree.parents:
+        if p >= 0:
+            children[p] += 1
+    chain, j = [leaf], leaf
+    while tree.parents[j] >= 0 and children[tree.parents[j]] == 1 and tree.parents[tree.parents[j]] >= 0:
+        j = tree.parents[j]
+        chain.append(j)
+    keep = [k for k in range(len(tree.parents)) if k not in set(chain)]
+    remap = {k: i for i, k in enumerate(keep)}
+    return CurveSkeleton(tree.joints[keep], [remap[tree.parents[k]] if tree.parents[k] >= 0 else -1 for k in keep], [],
+                         None if tree.radius is None else tree.radius[keep], [tree.kind[k] for k in keep])
+
+
+def _branch_length(tree, leaf: int) -> float:
+    children = [0] * len(tree.parents)
+    for p in tree.parents:
+        if p >= 0:
+            children[p] += 1
+    j, length = leaf, 0.0
+    while tree.parents[j] >= 0:
+        length += float(np.linalg.norm(tree.joints[j] - tree.joints[tree.parents[j]]))
+        j = tree.parents[j]
+        if children[j] > 1 or tree.parents[j] < 0:
+            break
+    return length
+
+
+def _reach(tree, j: int) -> float:
+    length = 0.0
+    while tree.parents[j] >= 0:
+        length += float(np.linalg.norm(tree.joints[j] - tree.joints[tree.parents[j]]))
+        j = tree.parents[j]
+    return length
+
+
+def _extremities(tree, u: np.ndarray, floor: float, height: float, node: str):
+    """(tree, {"head", "hand_0", "hand_1", "foot_0"[, "foot_1"]: joint}) of a person's curve skeleton: feet are
+    extremities within FOOT_HEIGHT of the floor (one foot: the legs touch, one column), at most two; of the others
+    the shortest branches are cut (a stray spur of the voxel skeleton) down to three: the head (the nearest to the
+    root along the tree: arms are longer than the neck) and the hands."""
+    while True:
+        leaves = tree.leaves
+        h = {j: float(tree.joints[j] @ u) - floor for j in leaves}
+        feet = sorted((j for j in leaves if h[j] < FOOT_HEIGHT * height), key=lambda j: h[j])
+        others = [j for j in leaves if j not in feet]
+        if len(feet) > 2:
+            tree = _cut(tree, min(feet, key=lambda j: _branch_length(tree, j)))
+        elif len(others) > 3:
+            tree = _cut(tree, min(others, key=lambda j: _branch_length(tree, j)))
+        else:
+            break
+    if not feet:
+        raise NodeError(f"{node}: no extremity of the body's curve skeleton is near the floor (within "
+                        f"{FOOT_HEIGHT:.0%} of its height): no feet found (is the world frame upright?)")
+    if len(others) < 3:
+        raise NodeError(f"{node}: the body's curve skeleton has {len(others)} extremities above the feet, fewer than a "
+                        "head and two hands: arms against the body? (try another frame)")
+    head = min(others, key=lambda j: _reach(tree, j))
+    hands = [j for j in others if j != head]
+    named = {"head": head, "hand_0": hands[0], "hand_1": hands[1]}
+    named.update({f"foot_{k}": j for k, j in enumerate(feet)})
+    return tree, named
+
+
+def _split_leg(poly: np.ndarray, cells: np.ndarray, u, right, forward, step: float):
+    """Two legs from one leg column (legs touching): at each point of its centre line, the column's extent along
+    ``right`` in a slice one voxel thick; each leg at the middle of its half. Returns (leg on +right, leg on -right)."""
+    out_r, out_l = [], []
+    for p in poly:
+        d = cells - p
+        near = (np.abs(d @ u) < 1.5 * step) & (np.abs(d @ forward) < 0.15)
+        if near.sum() < 2:
+            out_r.append(p)
+            out_l.append(p)
+            continue
+        side = d[near] @ right
+        a, b = side.max(), side.min()
+        mid, half = 0.5 * (a + b), 0.5 * (a - b)
+        out_r.append(p + right * (mid + 0.5 * half))
+        out_l.append(p + right * (mid - 0.5 * half))
+    return np.array(out_r), np.array(out_l)
 
 
 def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str = "skeleton.humanoid"):
@@ -161,30 +229,39 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
 
     step = float(np.min(spacing))
     raw = teasar(occ, origin, spacing)
-    tree = _five_extremities(joint_tree(raw, prune=2.0, prune_min=step, bend=2.0 * step, smooth=step, up=up), up)
-    named = {n: tree.joints[j] for j, n in enumerate(tree.names) if n in ("head", "hand_0", "hand_1", "foot_0", "foot_1")}
-    if len(named) != 5:
-        raise NodeError(f"{node}: the body's curve skeleton has {len(tree.leaves)} extremities, fewer than the five of "
-                        "a person (head, two hands, two feet): limbs touching the body or each other? (try another frame)")
+    u = np.asarray(up, np.float64) / (np.linalg.norm(up) or 1.0)
+    cells = origin + (np.argwhere(occ) + 0.5) * spacing
+    ch = cells @ u
+    floor, height = float(ch.min()), float(np.ptp(ch))
+    tree, named_j = _extremities(joint_tree(raw, prune=2.0, prune_min=step, bend=2.0 * step, smooth=step, up=up), u,
+                                 floor, height, node)
+    named = {n: tree.joints[j] for n, j in named_j.items()}
+    together = "foot_1" not in named
     pts, parent = raw.points, raw.parent
     end = {n: int(np.argmin(np.linalg.norm(pts - p, axis=1))) for n, p in named.items()}
     path = _tree_paths(pts, parent)
-    to_head = {k: path(end[k], end["head"]) for k in ("foot_0", "foot_1", "hand_0", "hand_1")}
-    on1 = set(to_head["foot_1"])
-    pelvis = next(v for v in to_head["foot_0"] if v in on1)
+    to_head = {k: path(end[k], end["head"]) for k in named if k != "head"}
+    if together:      # one leg column: the crotch where the path from the foot reaches CROTCH_HEIGHT
+        hf = pts[to_head["foot_0"]] @ u - floor
+        pelvis = to_head["foot_0"][int(np.argmax(hf >= CROTCH_HEIGHT * height))]
+    else:
+        on1 = set(to_head["foot_1"])
+        pelvis = next(v for v in to_head["foot_0"] if v in on1)
     spine_path = path(pelvis, end["head"])
     on_spine = set(spine_path)
-    u = np.asarray(up, np.float64) / (np.linalg.norm(up) or 1.0)
     polys = {"spine": pts[spine_path]}
     limbs = {}
     for k in (0, 1):
-        branch = next(v for v in to_head[f"hand_{k}"] if v in on_spine)
+        branch = next((v for v in to_head[f"hand_{k}"] if v in on_spine), None)
+        if branch is None or branch == pelvis:
+            raise NodeError(f"{node}: a hand's path reaches the body at the pelvis, not the spine: an arm against "
+                            "the hip? (try another frame)")
         limbs[("arm", k)] = pts[path(branch, end[f"hand_{k}"])]
-        limbs[("leg", k)] = pts[path(pelvis, end[f"foot_{k}"])]
+        foot = end["foot_0"] if together else end[f"foot_{k}"]
+        limbs[("leg", k)] = pts[path(pelvis, foot)]
     # sides: the part of each foot below its ankle lies in front of the ankle
-    cells = origin + (np.argwhere(occ) + 0.5) * spacing
     forward = np.zeros(3)
-    for k in (0, 1):
+    for k in ((0,) if together else (0, 1)):
         ankle = _at(limbs[("leg", k)], TEMPLATE["ankle_{s}"][2])
         h = (cells - ankle) @ u
         near = np.linalg.norm((cells - ankle) - h[:, None] * u, axis=1) < 0.5 * np.linalg.norm(limbs[("leg", k)][-1] - ankle) + 3 * step
@@ -199,6 +276,10 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
     else:
         right = np.cross(forward / np.linalg.norm(forward), u)
         report["sides_from"] = "feet"
+    if together:          # the column split in halves along right: each leg in its half
+        fwd = np.cross(u, right)
+        limbs[("leg", 0)], limbs[("leg", 1)] = _split_leg(limbs[("leg", 0)], cells, u, right, fwd, step)
+    report["legs"] = "together: one column split in halves" if together else "apart"
     centre = pts[pelvis]
     side = {}
     for limb in ("arm", "leg"):
@@ -226,32 +307,52 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
         parents.append(-1 if par is None else names.index(par.format(s=s) if s else par))
     lengths = {n: round(float(np.linalg.norm(joints[j] - joints[p])), 4) for j, (n, p) in enumerate(zip(names, parents))
                if p >= 0}
-    report.update(joints=len(names), bends_deg=bends, bone_lengths=lengths,
-                  height=round(float(np.ptp(cells @ u)), 4), forward=np.round(forward, 4).tolist())
+    report.update(joints=len(names), bends_deg=bends, bone_lengths=lengths, height=round(height, 4),
+                  forward=np.round(forward, 4).tolist())
     return joints, parents, names, report
 
 
-def bind_humanoid(frames: np.ndarray, faces, resolution: int, up=(0.0, 0.0, 1.0), node: str = "skeletonize.humanoid"):
-    """The template fitted to a dynamic mesh's first frame and set moving with it, ready for ``skin``:
-    (joints, parents, names, one-hot weights (V, J), rotations (F, J, 3, 3), translations (F, J, 3), report).
-    The end joints (head_end, hand_end_*, toe_*) mark where a limb ends and are left out: no part of the body
-    moves with them. Each vertex goes to the nearest bone (the segment from a joint to one of its children, owned
-    by the joint); each joint's part moves rigidly (Kabsch, rest -> frame), a part with fewer than 4 vertices as
-    its parent does. ``skin`` (lengths: fixed) then makes the joints rotation-only with constant bone lengths."""
+def bind_humanoid(frames: np.ndarray, faces, resolution: int, up=(0.0, 0.0, 1.0), node: str = "skeletonize.humanoid",
+                  tries: int = 9):
+    """The template fitted to one frame of a dynamic mesh and set moving with it, ready for ``skin``:
+    (joints, parents, names, one-hot weights (V, J), rotations (F, J, 3, 3), translations (F, J, 3), report),
+    rest = the first frame. The fit is tried on up to ``tries`` frames spread over the segment (a child's arms
+    lie against the body in some, its legs touch in others) and made on the first with the legs apart, else
+    the first that fits at all. The end joints (head_end, hand_end_*, toe_*) mark where a limb ends and are left
+    out: no part of the body moves with them. Each vertex goes to the nearest bone (the segment from a joint to
+    one of its children, owned by the joint) in the fitted frame; each joint's part moves rigidly (Kabsch, first
+    frame -> each frame), a part with fewer than 4 vertices as its parent does; the joints are carried back to the
+    first frame by their parts' motion. ``skin`` (lengths: fixed) then makes the joints rotation-only with
+    constant bone lengths."""
     from .curve import voxelize
     from .motion import fit_rigid
 
-    rest = np.asarray(frames[0], np.float64)
-    occ, origin, spacing = voxelize(rest, np.asarray(faces), resolution)
-    joints, parents, names, report = fit_humanoid(occ, origin, spacing, up, node)
+    frames = np.asarray(frames, np.float64)
+    order = sorted(set(np.linspace(0, len(frames) - 1, min(tries, len(frames))).round().astype(int).tolist()))
+    fitted, errors = None, []
+    for r in order:
+        occ, origin, spacing = voxelize(frames[r], np.asarray(faces), resolution)
+        try:
+            fit = fit_humanoid(occ, origin, spacing, up, node)
+        except NodeError as exc:
+            errors.append(f"frame index {r}: {str(exc).split(': ', 1)[-1]}")
+            continue
+        if fitted is None or (fitted[0][3]["legs"] != "apart" and fit[3]["legs"] == "apart"):
+            fitted = (fit, r)
+        if fit[3]["legs"] == "apart":
+            break
+    if fitted is None:
+        raise NodeError(f"{node}: the template fits none of the {len(order)} frames tried: " + "; ".join(errors[:3]))
+    (joints, parents, names, report), r = fitted
     keep = [j for j, n in enumerate(names) if not (n.endswith("_end") or n.startswith("toe_") or "_end_" in n)]
     remap = {j: k for k, j in enumerate(keep)}
     bones = [(j, c) for c, j in enumerate(parents) if j >= 0]            # (owner joint, child joint) segments
     a = joints[[j for j, _ in bones]]
     b = joints[[c for _, c in bones]]
     ab = b - a
-    t = np.clip(np.einsum("vbk,bk->vb", rest[:, None] - a[None], ab) / np.maximum((ab * ab).sum(1), 1e-12), 0, 1)
-    d = np.linalg.norm(rest[:, None] - (a[None] + t[..., None] * ab[None]), axis=2)
+    at = frames[r]
+    t = np.clip(np.einsum("vbk,bk->vb", at[:, None] - a[None], ab) / np.maximum((ab * ab).sum(1), 1e-12), 0, 1)
+    d = np.linalg.norm(at[:, None] - (a[None] + t[..., None] * ab[None]), axis=2)
     owner = np.array([remap[j] for j, _ in bones])[np.argmin(d, axis=1)]
     J = len(keep)
     sub_parents = [remap[parents[j]] if parents[j] >= 0 else -1 for j in keep]
@@ -260,10 +361,13 @@ def bind_humanoid(frames: np.ndarray, faces, resolution: int, up=(0.0, 0.0, 1.0)
     counts = np.bincount(owner, minlength=J)
     for k in range(J):                                        # parents first (template order)
         if counts[k] >= 4:
-            rot[:, k], tr[:, k] = fit_rigid(rest, np.asarray(frames, np.float64), np.flatnonzero(owner == k))
+            rot[:, k], tr[:, k] = fit_rigid(frames[0], frames, np.flatnonzero(owner == k))
         elif sub_parents[k] >= 0:
             rot[:, k], tr[:, k] = rot[:, sub_parents[k]], tr[:, sub_parents[k]]
-    weights = np.zeros((len(rest), J))
-    weights[np.arange(len(rest)), owner] = 1.0
+    rest_joints = np.array([rot[r, k].T @ (joints[j] - tr[r, k]) for k, j in enumerate(keep)])   # back to frame 0
+    weights = np.zeros((len(frames[0]), J))
+    weights[np.arange(len(frames[0])), owner] = 1.0
     report["vertices_per_joint"] = dict(zip([names[j] for j in keep], counts.tolist()))
-    return joints[keep], sub_parents, [names[j] for j in keep], weights, rot, tr, report
+    report["fitted_on_index"] = int(r)
+    report["frames_refused"] = errors
+    return rest_joints, sub_parents, [names[j] for j in keep], weights, rot, tr, report

@@ -206,8 +206,9 @@ class SkeletonizeSequence(Node):
 
 
 class SkeletonizeHumanoid(Node):
-    """The named humanoid template on a tracked segment (humanoid.py ``bind_humanoid``): fitted to the segment's
-    first frame, each vertex on its nearest bone, each joint's part moving rigidly with the sequence; give it to
+    """The named humanoid template on a tracked segment (humanoid.py ``bind_humanoid``): fitted to a frame of the
+    segment where it fits (legs apart preferred), each vertex on its nearest bone, each joint's part moving
+    rigidly with the sequence, rest = the segment's first frame; give it to
     ``skin`` (lengths: fixed: rotation-only joints, bone lengths constant over the sequence) and
     ``skeleton.export`` (UsdSkel, glTF skin, BVH) for a character with standard (or Mixamo/Unreal/SMPL) names."""
 
@@ -239,7 +240,7 @@ class SkeletonizeHumanoid(Node):
             table = retarget_names(naming)
             names = [table.get(n, n) for n in names]
         report.update(names=names, segment={"first_frame": int(numbers[0]), "last_frame": int(numbers[-1]),
-                                             "count": nseg})
+                                             "count": nseg}, fitted_on_frame=int(numbers[report.pop("fitted_on_index")]))
         sk = SkeletonData(joints, parents, names, weights, rot, tr, numbers)
         return {"skeleton": sk, "rest": trimesh.Trimesh(frames[0], faces, process=False), "report": report}
 
