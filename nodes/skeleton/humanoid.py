@@ -9,8 +9,8 @@ body's curve skeleton, as a fraction of that path's arc length:
     legs    pelvis -> the foot's tip: hip, knee, ankle; toe at the tip
 Fitting (``fit_humanoid``): TEASAR centre lines of the solid (curve.py, not simplified); its extremities within
 20 % of the height above the floor are the feet (two; one when the legs touch and make one column), of the others
-the shortest branches are cut (stray spurs of the voxel skeleton) down to the head (the nearest to the root along
-the tree: arms are longer than the neck) and two hands; the pelvis where the two feet's paths to the head meet
+the shortest branches are cut (stray spurs of the voxel skeleton) down to the head (the thickest right below its
+tip: a raised hand may be higher, an arm along the body shorter) and two hands; the pelvis where the two feet's paths to the head meet
 (legs together: where the foot's path reaches 47 % of the height, and the column is split in halves along the
 body's left-right axis, one leg in each), each arm's branch where its path reaches the spine
 (the legs' joints are measured from the foot with the mean leg length: the legs' paths may meet off-centre);
@@ -32,7 +32,9 @@ from nodegraph import NodeError
 SIDES = ("l", "r")
 BEND_DEG = 25.0
 FOOT_HEIGHT = 0.2        # extremities this share of the body's height above the floor are feet
-CROTCH_HEIGHT = 0.47     # legs together: where the legs meet, this share of the height above the floor
+CROTCH_HEIGHT = 0.47
+HEAD_ARC = 0.12          # a head's thickness is measured this share of the height below its tip
+HEAD_THICKER = 1.5       # ... and must be this many times a hand's     # legs together: where the legs meet, this share of the height above the floor
 # name: (parent, path, fraction of the path's arc); "{s}" is the side
 TEMPLATE = {
     "pelvis": (None, "spine", 0.09), "spine": ("pelvis", "spine", 0.26), "chest": ("spine", "spine", 0.44),
@@ -175,11 +177,24 @@ def _reach(tree, j: int) -> float:
     return length
 
 
-def _extremities(tree, u: np.ndarray, floor: float, height: float, node: str):
+def _tip_thickness(raw, point: np.ndarray, arc: float) -> float:
+    """The largest distance to the boundary along the raw skeleton within ``arc`` of an extremity's tip: a head is
+    thick right below its top, a hand is not (the tip itself touches the boundary: its own radius says nothing)."""
+    v = int(np.argmin(np.linalg.norm(raw.points - point, axis=1)))
+    best, walked = float(raw.radius[v]), 0.0
+    while raw.parent[v] >= 0 and walked < arc:
+        walked += float(np.linalg.norm(raw.points[v] - raw.points[raw.parent[v]]))
+        v = int(raw.parent[v])
+        best = max(best, float(raw.radius[v]))
+    return best
+
+
+def _extremities(tree, u: np.ndarray, floor: float, height: float, node: str, raw=None):
     """(tree, {"head", "hand_0", "hand_1", "foot_0"[, "foot_1"]: joint}) of a person's curve skeleton: feet are
     extremities within FOOT_HEIGHT of the floor (one foot: the legs touch, one column), at most two; of the others
     the shortest branches are cut (a stray spur of the voxel skeleton) down to three: the head (the nearest to the
-    root along the tree: arms are longer than the neck) and the hands."""
+    root along the tree: arms are longer than the neck; given the raw skeleton, the thickest within HEAD_ARC of the
+    height below its tip: a head is, a hand is not) and the hands."""
     while True:
         leaves = tree.leaves
         h = {j: float(tree.joints[j] @ u) - floor for j in leaves}
@@ -197,7 +212,14 @@ def _extremities(tree, u: np.ndarray, floor: float, height: float, node: str):
     if len(others) < 3:
         raise NodeError(f"{node}: the body's curve skeleton has {len(others)} extremities above the feet, fewer than a "
                         "head and two hands: arms against the body? (try another frame)")
-    head = min(others, key=lambda j: _reach(tree, j))
+    if raw is not None:   # the thickest below its tip (a raised hand can be higher, an arm longer than a neck)
+        thick = {j: _tip_thickness(raw, tree.joints[j], HEAD_ARC * height) for j in others}
+        head = max(others, key=thick.get)
+        if any(thick[head] < HEAD_THICKER * thick[j] for j in others if j != head):
+            raise NodeError(f"{node}: no extremity is clearly thicker than the others below its tip (a head: "
+                            f"{sorted(round(t, 3) for t in thick.values())} m): arms over the head? (try another frame)")
+    else:
+        head = min(others, key=lambda j: _reach(tree, j))
     hands = [j for j in others if j != head]
     named = {"head": head, "hand_0": hands[0], "hand_1": hands[1]}
     named.update({f"foot_{k}": j for k, j in enumerate(feet)})
@@ -234,7 +256,7 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
     ch = cells @ u
     floor, height = float(ch.min()), float(np.ptp(ch))
     tree, named_j = _extremities(joint_tree(raw, prune=2.0, prune_min=step, bend=2.0 * step, smooth=step, up=up), u,
-                                 floor, height, node)
+                                 floor, height, node, raw)
     named = {n: tree.joints[j] for n, j in named_j.items()}
     together = "foot_1" not in named
     pts, parent = raw.points, raw.parent
@@ -270,9 +292,13 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
             d = foot.mean(0) - ankle
             forward += d - (d @ u) * u
     report = {}
-    if np.linalg.norm(forward) < step:
-        right = np.cross([1.0, 0, 0] if abs(u[0]) < 0.9 else [0, 1.0, 0], u)
-        report["sides_from"] = "unknown (no foot in front of an ankle): l/r arbitrary"
+    if np.linalg.norm(forward) < step:   # the hips are wider than deep: their slice's main horizontal axis
+        hip = cells[np.abs(cells @ u - float(pts[pelvis] @ u)) < 0.05 * height]
+        flat = hip - np.outer(hip @ u, u)
+        axis = np.linalg.eigh(np.cov((flat - flat.mean(0)).T))[1][:, -1] if len(hip) > 3 else np.cross([1.0, 0, 0], u)
+        right = axis - (axis @ u) * u
+        right /= np.linalg.norm(right)
+        report["sides_from"] = "unknown (no foot in front of an ankle): left-right axis from the hips, l/r arbitrary"
     else:
         right = np.cross(forward / np.linalg.norm(forward), u)
         report["sides_from"] = "feet"
