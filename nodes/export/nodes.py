@@ -197,4 +197,7 @@ class ExportPlayer(Node):
 
         if not rungs or any(not r or "/" in r or r.startswith(".") for r in rungs):
             raise NodeError(f"export.player: rungs must be plain folder names, got {rungs}")
-        return {"files": player_files(name, rungs)}
+        files, warning = player_files(name, rungs)
+        if warning:
+            self.log.warning("export.player: %s", warning)
+        return {"files": files}

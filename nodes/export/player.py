@@ -12,7 +12,6 @@ import json
 import os
 from pathlib import Path
 
-from nodegraph import NodeError
 
 HERE = Path(__file__).resolve().parent
 THREE_VERSION = "0.170.0"
@@ -23,21 +22,36 @@ LIBS = {"three.module.min.js": "build/three.module.min.js", "DRACOLoader.js": "e
         "draco/draco_decoder.js": "examples/jsm/libs/draco/draco_decoder.js"}
 
 
-def three_dir() -> Path:
-    """Where setup.sh installed three.js ($VOLCAP_THREE overrides)."""
-    return Path(os.environ.get("VOLCAP_THREE") or HERE.parents[1] / ".player" / "node_modules" / "three")
+def _version(root: Path) -> str | None:
+    try:
+        return json.loads((root / "package.json").read_text()).get("version")
+    except (OSError, ValueError):
+        return None
 
 
-def player_files(name: str, rungs: list[str]) -> dict[str, bytes]:
-    """The page, its script, rungs.json and the three.js parts it loads, under ``name/``."""
-    root = three_dir()
-    version = json.loads((root / "package.json").read_text()).get("version") if (root / "package.json").is_file() else None
-    if version != THREE_VERSION:
-        raise NodeError(f"export.player: three.js {THREE_VERSION} is not installed at {root} (found {version}): run "
-                        f"./setup.sh (npm install three@{THREE_VERSION} in .player/) or set VOLCAP_THREE")
+def three_dir() -> tuple[Path | None, list[str]]:
+    """(where three.js THREE_VERSION is, the places looked at): $VOLCAP_THREE, else the checkout's .player/ (where
+    setup.sh installs it), else the working folder's .player/."""
+    env = os.environ.get("VOLCAP_THREE")
+    places = [Path(env)] if env else [HERE.parents[1] / ".player" / "node_modules" / "three",
+                                      Path.cwd() / ".player" / "node_modules" / "three"]
+    for root in places:
+        if _version(root) == THREE_VERSION:
+            return root, [str(p) for p in places]
+    return None, [f"{p} ({_version(p) or 'absent'})" for p in places]
+
+
+def player_files(name: str, rungs: list[str]) -> tuple[dict[str, bytes], str | None]:
+    """(files, warning): the page, its script, rungs.json and the three.js parts it loads, under ``name/``; without
+    three.js the page and a warning saying how to complete it (the viewer is optional: a run does not fail)."""
     files = {f"{name}/index.html": (HERE / "player" / "index.html").read_bytes(),
              f"{name}/player.js": (HERE / "player" / "player.js").read_bytes(),
              f"{name}/rungs.json": json.dumps(list(rungs)).encode()}
+    root, looked = three_dir()
+    if root is None:
+        return files, (f"three.js {THREE_VERSION} not found ({'; '.join(looked)}): the page {name}/index.html is written "
+                       f"without its lib/ folder; run ./setup.sh (npm install three@{THREE_VERSION} in .player/) or set "
+                       "VOLCAP_THREE, then run again")
     for dst, src in LIBS.items():
         files[f"{name}/lib/{dst}"] = (root / src).read_bytes()
-    return files
+    return files, None

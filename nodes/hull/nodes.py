@@ -55,10 +55,12 @@ class Hull(Node):
         "min_seen": Param(int, 0, range=(0, None), doc="0 = off; k = keep a voxel only if at least k views see it "
                           "(in front, inside the image): for outside: ignore (carve needs every view)"),
         "method": Param(str, "sparse", choices=("sparse", "dense", "numpy"), doc="coarse-to-fine, every voxel, or NumPy"),
+        "floor": Param(bool, False, doc="carve every voxel below the world frame's floor (centre z < 0): the hull's "
+                       "ghost under the feet, which cameras above the floor cannot carve"),
     }
     kernels = [source("hull.cl")]
 
-    def run(self, masks, cameras, bounds=None, *, resolution, bbox, min_views, outside, min_seen, method):
+    def run(self, masks, cameras, bounds=None, *, resolution, bbox, min_views, outside, min_seen, method, floor):
         if bbox is not None:
             box = np.array(bbox, dtype=np.float64).reshape(2, 3)
             if not np.all(box[1] > box[0]):
@@ -68,6 +70,12 @@ class Hull(Node):
         else:
             raise NodeError("hull: no box to carve: set param 'bbox' or connect the 'bounds' input")
         volume = visual_hull(masks, cameras, box, resolution, min_views, outside, method, min_seen)
+        if floor:
+            z = volume.bbox_min[2] + (np.arange(volume.occupancy.shape[2]) + 0.5) * volume.voxel_size[2]
+            below = z < 0
+            if below.any() and volume.occupancy[:, :, below].any():
+                self.log.info("hull: %d voxels below the floor carved", int(np.count_nonzero(volume.occupancy[:, :, below])))
+                volume.occupancy[:, :, below] = 0
         cut = border_warning(masks, cameras, outside)
         if cut:
             self.log.warning("%s", cut)

@@ -18,7 +18,8 @@ then every joint at its fraction of its path (the spine's measured from where th
 moved to the path's sharpest bend within +-0.15 of their fraction when it bends by more than ``BEND_DEG``
 (chords of a tenth of the path). Left and right: the feet point forwards
 (the part of each foot below the ankle lies in front of it), right = forward x up; a joint's side is the
-sign of its offset along right. Names map to the ones other tools retarget from (``RETARGET``: Mixamo, the
+sign of its offset along right (measured at the upper arm and the thigh: hands and feet may cross the midline);
+when the right arm and the right leg come out on opposite sides, the pair less aligned with right is flipped. Names map to the ones other tools retarget from (``RETARGET``: Mixamo, the
 Unreal mannequin, SMPL). Fractions: the median place of each joint of the synth figure along its fitted path over a walk
 cycle, checked against adult proportions (the synth figure has no hands: its wrist is the arm's end, a real
 one ~0.8 of it; 0.92 between): wrists and the spine's joints are placed by proportion, not found.
@@ -308,10 +309,17 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
     report["legs"] = "together: one column split in halves" if together else "apart"
     centre = pts[pelvis]
     side = {}
-    for limb in ("arm", "leg"):
-        off = [(limbs[(limb, k)][-1] - centre) @ right for k in (0, 1)]
-        r = int(np.argmax(off))
+    near = {}
+    for limb, at in (("arm", 0.3), ("leg", 0.4)):   # near the body: hands and feet may cross the midline
+        near[limb] = [_at(limbs[(limb, k)], at) for k in (0, 1)]
+        r = int(np.argmax([(q - centre) @ right for q in near[limb]]))
         side[(limb, "r")], side[(limb, "l")] = r, 1 - r
+    arms = near["arm"][side[("arm", "r")]] - near["arm"][side[("arm", "l")]]
+    legs = near["leg"][side[("leg", "r")]] - near["leg"][side[("leg", "l")]]
+    if arms @ legs < 0:   # the right arm and the right leg on opposite sides: flip the pair less along right
+        weak = min(("arm", arms), ("leg", legs), key=lambda x: abs(x[1] @ right) / (np.linalg.norm(x[1]) or 1.0))[0]
+        side[(weak, "r")], side[(weak, "l")] = side[(weak, "l")], side[(weak, "r")]
+        report["sides_flipped"] = weak
     leg_length = np.mean([_length(limbs[("leg", k)]) for k in (0, 1)])
     names = template_names()
     joints = np.zeros((len(names), 3))
