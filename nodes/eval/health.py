@@ -42,12 +42,13 @@ def dihedral_angles(mesh) -> np.ndarray:
     return np.degrees(np.asarray(mesh.face_adjacency_angles, np.float64))
 
 
-def normal_error(mesh, reference, band: float, samples: int = 2_000_000, seed: int = 0) -> dict:
+def normal_error(mesh, reference, band: float, samples: int = 500_000, seed: int = 0) -> dict:
     """Area-weighted mean / median angle (degrees) between the face normals of ``mesh`` and the normal of the
     ``reference`` face nearest to each face centroid, over faces whose centroid lies within ``band`` of the
     reference; plus the fraction of the mesh area that lies within the band. The nearest reference point is
     found among ``samples`` area-uniform points of the reference (scipy cKDTree), so distances are exact to
-    about the sample spacing."""
+    about the sample spacing. 500,000 (was 2,000,000): on the demo figure at 128^3 (band one voxel) the mean
+    error moves by 0.004 degrees and the area within the band by 0.0003, in 0.43 s instead of 3.4 s."""
     import trimesh
     from scipy.spatial import cKDTree
 
