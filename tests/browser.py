@@ -77,8 +77,9 @@ class _Pipe:
                 return reply.get("result", {})
 
 
-def screenshot(url: str, width: int, height: int, timeout: float = 120.0) -> tuple[bytes, str]:
-    """(PNG bytes, the page's title) of ``url`` at width x height, once its title is "ready" or "error"."""
+def screenshot(url: str, width: int, height: int, timeout: float = 120.0, value: str | None = None):
+    """(PNG bytes, the page's title) of ``url`` at width x height, once its title is "ready" or "error"; with
+    ``value`` (a JavaScript expression) (PNG, title, the expression's JSON value then)."""
     exe = chromium()
     if exe is None:
         raise RuntimeError("headless Chromium not found (install it: `apt-get install -y chromium`; setup.sh does)")
@@ -120,7 +121,11 @@ def screenshot(url: str, width: int, height: int, timeout: float = 120.0) -> tup
         elif title != "ready":
             raise TimeoutError(f"{url}: the page did not get ready in {timeout} s (title {title!r})")
         shot = pipe.call("Page.captureScreenshot", {"format": "png"}, s)["data"]
-        return base64.b64decode(shot), title + (f": {detail}" if detail else "")
+        out = (base64.b64decode(shot), title + (f": {detail}" if detail else ""))
+        if value is not None:
+            got = pipe.call("Runtime.evaluate", {"expression": value, "returnByValue": True}, s)
+            out += (got.get("result", {}).get("value"),)
+        return out
     finally:
         try:
             pipe.call("Browser.close", timeout=5)

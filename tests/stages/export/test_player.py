@@ -68,3 +68,57 @@ def test_the_player_refuses_bad_rungs_and_names_a_missing_three(monkeypatch, tmp
         files = run_node("export.player", {}, {"name": "s", "rungs": ["full"]})["files"]
     assert "s/index.html" in files and not any(k.startswith("s/lib/") for k in files)
     assert any("setup.sh" in r.getMessage() and "nothing" in r.getMessage() for r in caplog.records)
+
+
+GLTF_PAGE = """<!doctype html><html><head><meta charset="utf-8">
+<script type="importmap">{"imports": {"three": "./lib/three.module.min.js"}}</script></head><body>
+<script type="module">
+import * as THREE from "three";
+import { GLTFLoader } from "./lib/loaders/GLTFLoader.js";
+try {
+  const gltf = await new GLTFLoader().loadAsync("asset.glb");
+  gltf.scene.updateMatrixWorld(true);
+  const box = new THREE.Box3().setFromObject(gltf.scene);
+  window.result = { min: box.min.toArray(), max: box.max.toArray() };
+  document.title = "ready";
+} catch (err) { document.body.insertAdjacentHTML("beforeend", `<pre id="error">${err}</pre>`); document.title = "error"; }
+</script></body></html>"""
+
+
+@pytest.mark.slow
+def test_three_gltfloader_sees_every_glb_upright_and_to_scale(tmp_path):
+    """A glTF client (three.js's GLTFLoader in headless Chromium) opens our GLBs as a viewer does: a 2 m bar standing
+    on the world frame's floor comes in +Y up, feet at y = 0, 2 m tall, in the static, the dynamic and the
+    volumetric export alike."""
+    import shutil
+
+    import trimesh
+    from PIL import Image
+
+    from browser import screenshot, serve
+    from nodes.export.player import three_dir
+
+    root, looked = three_dir()
+    assert root is not None, f"three.js not installed ({looked}): ./setup.sh installs it"
+    (tmp_path / "lib" / "loaders").mkdir(parents=True)
+    (tmp_path / "lib" / "utils").mkdir()
+    shutil.copy(root / "build/three.module.min.js", tmp_path / "lib")
+    shutil.copy(root / "examples/jsm/loaders/GLTFLoader.js", tmp_path / "lib/loaders")
+    shutil.copy(root / "examples/jsm/utils/BufferGeometryUtils.js", tmp_path / "lib/utils")
+    (tmp_path / "index.html").write_text(GLTF_PAGE)
+    bar = trimesh.creation.box(extents=[0.2, 0.3, 2.0])
+    bar = trimesh.Trimesh(bar.vertices + [0.5, 0, 1.0], bar.faces, process=False)     # x 0.4..0.6, z 0..2
+    tex = trimesh.Trimesh(bar.vertices, bar.faces, visual=trimesh.visual.TextureVisuals(
+        uv=np.asarray(bar.vertices)[:, :2] % 1, image=Image.new("RGB", (8, 8))), process=False)
+    seq = [trimesh.Trimesh(bar.vertices, bar.faces, process=False, metadata={"frame": k}) for k in range(2)]
+    glbs = {"static": run_node("export.textured", {"mesh": tex}, {"path": "a.glb"})["files"]["a.glb"],
+            "dynamic": run_node("track.export", {"sequence": seq}, {"name": "d", "formats": ["gltf"]})["files"]["d.glb"],
+            "volumetric": run_node("export.volumetric", {"sequence": seq, "textured": [tex, tex]},
+                                   {"name": "v", "formats": ["gltf"]})["files"]["v_0000.glb"]}
+    with serve(tmp_path) as base:
+        for name, glb in glbs.items():
+            (tmp_path / "asset.glb").write_bytes(glb)
+            _, title, box = screenshot(f"{base}/index.html?{name}", 64, 64, value="window.result")
+            assert title == "ready", (name, title)
+            np.testing.assert_allclose(box["min"], [0.4, 0.0, -0.15], atol=1e-5, err_msg=name)   # glTF (x, z, -y)
+            np.testing.assert_allclose(box["max"], [0.6, 2.0, 0.15], atol=1e-5, err_msg=name)
