@@ -1,0 +1,80 @@
+"""Blender opens the deliverables as a user's import does: glTF (its importer, +Y up converted to Blender's +Z)
+and USD (upAxis and metersPerUnit honoured), each object's evaluated mesh (shape keys and skins applied) at the
+first frame, in Blender's world (+Z up, metres). Prints per file the bounds, the height and the lowest point,
+and for each GLB/USD pair of one asset how far apart their bounds are. Blender as a Python module (PyPI `bpy`
+4.5, Python 3.11; ~1 GB: a benchmark's peer, not the suite's):
+
+    python3 -m venv /tmp/bpyenv && /tmp/bpyenv/bin/pip install "bpy==4.5.*"
+    /tmp/bpyenv/bin/python bench/blender_import.py out/demo/demo_volumetric_0000.glb out/demo/demo_volumetric.usdc \
+        out/demo/demo_dynamic.glb out/demo/demo_dynamic.usdc out/demo/demo_character.glb out/demo/demo_character.usd
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+
+def bounds(path: Path) -> tuple[list, list, int]:
+    """(min, max) over the evaluated meshes of the file imported into an empty scene, and the mesh count."""
+    import bpy
+    import numpy as np
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    if path.suffix.lower() in (".glb", ".gltf"):
+        bpy.ops.import_scene.gltf(filepath=str(path))
+    else:
+        bpy.ops.wm.usd_import(filepath=str(path))
+    scene = bpy.context.scene
+    # the first key: glTF's time 0 (the importer keeps the scene at 24 fps and frame range 1..250; USD's range is
+    # the stage's time codes): the same capture frame in both
+    starts = [a.frame_range[0] for a in bpy.data.actions]
+    scene.frame_set(int(round(min(starts))) if starts else scene.frame_start)
+    deps = bpy.context.evaluated_depsgraph_get()
+    pts = []
+    for ob in scene.objects:
+        if ob.type != "MESH" or any(c.name == "glTF_not_exported" for c in ob.users_collection):
+            continue                                      # (the importer's bone-shape helper)
+        ev = ob.evaluated_get(deps)
+        m = np.array(ev.matrix_world)
+        if ev.hide_render or abs(np.linalg.det(m[:3, :3])) < 1e-12:     # hidden (USD visibility, glTF scale 0)
+            continue
+        me = ev.to_mesh()
+        co = np.empty(len(me.vertices) * 3)
+        me.vertices.foreach_get("co", co)
+        co = co.reshape(-1, 3) @ m[:3, :3].T + m[:3, 3]
+        pts.append(co)
+        ev.to_mesh_clear()
+    allp = np.concatenate(pts) if pts else np.zeros((1, 3))
+    return allp.min(0).tolist(), allp.max(0).tolist(), len(pts)
+
+
+def main():
+    from machine import describe
+
+    print(describe())
+    import bpy
+
+    print(f"Blender {bpy.app.version_string} (bpy)")
+    found = {}
+    print(f"{'file':40s} {'meshes':>6s} {'min (x, y, z) m':>28s} {'max (x, y, z) m':>28s} {'height':>7s} {'lowest':>7s}")
+    for arg in sys.argv[1:]:
+        p = Path(arg)
+        lo, hi, n = bounds(p)
+        found[p] = (lo, hi)
+        fmt = lambda v: "(" + ", ".join(f"{x:7.3f}" for x in v) + ")"  # noqa: E731
+        print(f"{p.name:40s} {n:6d} {fmt(lo):>28s} {fmt(hi):>28s} {hi[2] - lo[2]:7.3f} {lo[2]:7.3f}")
+    stems = {}
+    for p in found:
+        stems.setdefault(p.stem.rsplit("_0000", 1)[0], []).append(p)
+    for stem, ps in stems.items():
+        if len(ps) == 2:
+            (a, b) = ps
+            d = max(max(abs(x - y) for x, y in zip(found[a][0], found[b][0])),
+                    max(abs(x - y) for x, y in zip(found[a][1], found[b][1])))
+            print(f"{a.name} vs {b.name}: bounds {1000 * d:.2f} mm apart")
+
+
+if __name__ == "__main__":
+    main()
