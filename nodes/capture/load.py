@@ -104,6 +104,18 @@ def _expand(root: Path, pattern: str, cam: int, name: str, frame: int, extra: di
     return p, None
 
 
+def video_fps(path: Path) -> float | None:
+    """The frame rate a video file states (None when it states none)."""
+    import cv2
+
+    cap = cv2.VideoCapture(str(path))
+    try:
+        fps = float(cap.get(cv2.CAP_PROP_FPS)) if cap.isOpened() else 0.0
+    finally:
+        cap.release()
+    return fps if fps > 0 else None
+
+
 def read_image(path: Path, frame: int | None = None) -> np.ndarray:
     """An image file, or frame ``frame`` of a video, as uint8 (H, W, 3) RGB or (H, W, 4) RGBA or (H, W) grey."""
     import cv2
@@ -420,6 +432,11 @@ def load_capture(path, frame: int = 0, images: str = "", masks: str = "", backgr
         mask_files = [p for p, _ in found]
         mask_imgs = [read_image(p, f) for p, f in found]
     out = _assemble(cams, raw, [p for p, _ in img_files], mask_imgs, bg, mask_threshold, pat.get("masks", ""), mask_files)
+    videos = sorted({p for p, f in img_files if f is not None})
+    rates = sorted({r for r in (video_fps(p) for p in videos) if r})
+    out["fps"] = rates[0] if len(rates) == 1 else None
+    if len(rates) > 1:
+        log.warning("capture: the cameras' videos state different frame rates %s: give the exports' fps", rates)
     return out
 
 

@@ -21,7 +21,8 @@ class Capture(Node):
         "cameras": Output(CameraSet, "calibration"),
         "background": Output(Images, "clean plates, one per camera (None when the dataset has none)", optional=True),
         "world": Output(Table, "the world frame: up, metres per unit and origin in the dataset's frame, where each "
-                        "came from, the subject's box and height, warnings"),
+                        "came from, the subject's box and height, warnings; and the videos' frame rate (fps, None "
+                        "for image files: give the exports' fps)"),
     }
     params = {
         "path": Param(InPath, doc="dataset folder"),
@@ -47,12 +48,13 @@ class Capture(Node):
             if len(v) not in (0, 3):
                 raise NodeError(f"{self.type_name}: {name} must be [] or three numbers, got {v}")
         out = load_capture(path, frame, images, masks, background, calibration, mask_threshold, log=self.log)
+        fps = out.pop("fps", None)
         if world == "dataset":
-            out["world"] = {"frame": "dataset", "warnings": []}
+            out["world"] = {"frame": "dataset", "fps": fps, "warnings": []}
             return out
         ref = out if frame == origin_frame else None
         frame_, report = world_of(path, images, masks, background, calibration, mask_threshold, tuple(up), units,
                                   tuple(origin), origin_frame, ref, self.log)
         out["cameras"] = frame_.cameras(out["cameras"])
-        out["world"] = {"frame": "world", **report}
+        out["world"] = {"frame": "world", "fps": fps, **report}
         return out

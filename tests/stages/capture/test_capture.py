@@ -172,6 +172,7 @@ def test_utrecht_video_matches_extracted_frames(data_dir):
     """Frame 100 decoded from video.avi equals the PNG extracted by the dataset's curator; plates present."""
     cap = load_capture(data_dir / "uu_infomcv_seated", frame=100)
     assert cap["masks"] is None and len(cap["background"]) == 4
+    assert cap["fps"] == 50.0                       # the videos' rate (SOURCE.md: 50 fps), in the capture's world table
     for v, name in enumerate(cap["cameras"].names):
         png = cv2.imread(str(data_dir / "uu_infomcv_seated" / name / "frames" / "video_0100.png"))[:, :, ::-1]
         assert np.array_equal(cap["images"].images[v], png)
