@@ -424,6 +424,22 @@ def test_figure_sequence_joints_and_error():
 
 
 # ---------------------------------------------------------------- real data
+def on_silhouettes(points, masks, cams, what: str, px_tolerance: int = 6) -> int:
+    """Assert every point that a view sees (in front, inside the image) projects within ``px_tolerance`` pixels
+    of that view's silhouette; return how many (view, point) pairs were seen."""
+    from scipy import ndimage
+
+    seen = 0
+    for v, m in enumerate(masks.masks):
+        near = ndimage.binary_dilation(m > 127, iterations=px_tolerance)
+        uv, depth = cams.project(np.asarray(points), v)
+        px = np.round(uv).astype(int)
+        ok = (px[:, 0] >= 0) & (px[:, 1] >= 0) & (px[:, 0] < m.shape[1]) & (px[:, 1] < m.shape[0]) & (depth > 0)
+        assert near[px[ok, 1], px[ok, 0]].all(), f"view {v}: {what} off the silhouette"
+        seen += int(ok.sum())
+    return seen
+
+
 @pytest.mark.realdata
 @pytest.mark.parametrize("name", ["thu_wd_human", "inria_dancer"])
 def test_real_person_has_head_hands_feet_where_the_images_show_them(dataset_run, name):
@@ -435,7 +451,6 @@ def test_real_person_has_head_hands_feet_where_the_images_show_them(dataset_run,
     from pathlib import Path
 
     from nodegraph.graphfile import load_graph
-    from scipy import ndimage
 
     graph = Path(__file__).resolve().parents[3] / "graphs" / "skeleton" / f"{name}.yaml"
     res = dataset_run(graph)
@@ -452,15 +467,7 @@ def test_real_person_has_head_hands_feet_where_the_images_show_them(dataset_run,
     assert 1.4 < np.ptp(h) < 2.0 and abs(h.min()) < 0.03, (np.ptp(h), h.min())   # upright, in metres, on the floor
     rel = {n: (p @ up - h.min()) / np.ptp(h) for n, p in ends.items()}
     assert rel["head"] > 0.75 and rel["foot_0"] < 0.15 and rel["foot_1"] < 0.15, rel
-    seen = 0
-    for v, m in enumerate(masks.masks):
-        near = ndimage.binary_dilation(m > 127, iterations=6)
-        uv, depth = cams.project(np.array(list(ends.values())), v)
-        px = np.round(uv).astype(int)
-        ok = (px[:, 0] >= 0) & (px[:, 1] >= 0) & (px[:, 0] < m.shape[1]) & (px[:, 1] < m.shape[0]) & (depth > 0)
-        assert near[px[ok, 1], px[ok, 0]].all(), f"view {v}: an extremity off the silhouette"
-        seen += int(ok.sum())
-    assert seen >= 5 * len(masks.masks) - 5
+    assert on_silhouettes(np.array(list(ends.values())), masks, cams, "an extremity") >= 5 * len(masks.masks) - 5
 
 
 # ---------------------------------------------------------------- the humanoid template
@@ -523,8 +530,6 @@ def test_humanoid_on_real_people(dataset_run, name):
     silhouettes of every view that sees it, limbs in order down the body, arms and legs on the same sides."""
     from pathlib import Path
 
-    from scipy import ndimage
-
     graph = Path(__file__).resolve().parents[3] / "graphs" / "skeleton" / f"{name}.yaml"
     res = dataset_run(graph)
     sk = dataset_run.output(res, "humanoid", "skeleton")
@@ -540,12 +545,7 @@ def test_humanoid_on_real_people(dataset_run, name):
         assert j[f"shoulder_{s}"][2] > j["pelvis"][2]
     assert j["head"][2] > j["neck"][2] > j["chest"][2] > j["pelvis"][2]
     assert (j["shoulder_l"] - j["shoulder_r"]) @ (j["hip_l"] - j["hip_r"]) > 0        # one left side
-    for v, m in enumerate(masks.masks):
-        near = ndimage.binary_dilation(m > 127, iterations=6)
-        uv, depth_c = cams.project(sk.joints, v)
-        px = np.round(uv).astype(int)
-        ok = (px[:, 0] >= 0) & (px[:, 1] >= 0) & (px[:, 0] < m.shape[1]) & (px[:, 1] < m.shape[0]) & (depth_c > 0)
-        assert near[px[ok, 1], px[ok, 0]].all(), f"view {v}: a joint off the silhouette"
+    on_silhouettes(sk.joints, masks, cams, "a joint")
 
 
 @pytest.mark.slow
