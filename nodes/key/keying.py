@@ -416,3 +416,16 @@ def probe_keys() -> float:
         if i:
             best = min(best, time.perf_counter() - t)
     return best * 1e3
+
+
+# ---------------------------------------------------------------- plates from the footage
+def footage_plate(frames: list[np.ndarray], tolerance: float = 12.0, min_share: float = 0.5):
+    """(plate (H, W, 3) uint8, seen (H, W) bool, share (H, W) float32) of one camera from its frames where no clean
+    plate was shot: the per-pixel median colour over the frames, and where at least ``min_share`` of them lie
+    within ``tolerance`` grey levels of it on every channel (``seen``: the pixel showed the same background most
+    of the time; elsewhere the subject stood there in most frames and the plate there is the subject's)."""
+    stack = np.stack([np.asarray(f, np.uint8)[..., :3] for f in frames])
+    plate = np.median(stack, axis=0).round().astype(np.uint8)
+    close = (np.abs(stack.astype(np.int16) - plate.astype(np.int16)).max(axis=-1) <= tolerance)
+    share = close.mean(axis=0).astype(np.float32)
+    return plate, share >= min_share, share

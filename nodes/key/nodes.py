@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from nodegraph import Input, Node, NodeError, Param
+from nodegraph import Input, Node, NodeError, Output, Param, Table
 from nodes.common.types import Bounds, CameraSet, Images, ImageSet, Masks, MaskSet, Volume
 
 from .keying import (KERNELS, check_views, chroma_key_bits, chroma_key_cl, clean_mask, difference_key_cl, estimate_key_direction,
@@ -68,6 +68,53 @@ class ChromaKey(Node):
         names = list(images.names)
         masks = MaskSet.lazy(lambda: (key_frames()["masks"].masks, key_frames()["masks"].alpha), names, device=bits)
         return {"masks": masks, "images": ImageSet.lazy(lambda: key_frames()["images"], names)}
+
+
+class Plate(Node):
+    """Clean plates from the footage where none was shot (a sequence node): per camera the per-pixel median over
+    up to ``frames`` frames spread over the run, with a coverage report: the share of pixels that stayed one colour
+    in at least ``min_share`` of those frames (the rest: a moving subject stood there most of the time, and the plate
+    there is the subject's). Only motion reveals the background: a subject that never moves is stable too and ends
+    up in the plate (Utrecht's seated person: the plate differs from the shipped one on 5-13 % of the pixels, 70-77
+    % of them on the subject). Give its background to key.difference."""
+
+    type_name = "key.plate"
+    version = 1
+    per = "sequence"
+    inputs = {"images": Input(Images, doc="every frame's images (arrive as a list)")}
+    outputs = {"background": Output(Images, "one plate per camera"),
+               "report": Output(Table, "per camera the share of pixels seen as background, frames used")}
+    params = {
+        "frames": Param(int, 25, range=(3, 1000), doc="at most this many frames, spread over the run, make the median"),
+        "tolerance": Param(float, 12.0, range=(0.0, 255.0), doc="grey levels within which a frame agrees with the median"),
+        "min_share": Param(float, 0.5, range=(0.01, 1.0), doc="a pixel is background-seen when this share of frames agree"),
+    }
+
+    def run(self, images, *, frames, tolerance, min_share):
+        from .keying import footage_plate
+
+        sets = list(images)
+        if len(sets) < 3:
+            raise NodeError(f"key.plate: {len(sets)} frames: a plate from the footage needs at least 3 (the subject "
+                            "must have moved away from each background pixel in most of them)")
+        names = sets[0].names
+        for k, s in enumerate(sets):
+            if s.names != names:
+                raise NodeError(f"key.plate: frame {self.frames[k] if k < len(self.frames) else k} has cameras "
+                                f"{s.names}, the first frame {names}")
+        pick = sorted(set(np.linspace(0, len(sets) - 1, min(frames, len(sets))).round().astype(int).tolist()))
+        plates, report = [], {"frames_used": [int(self.frames[i]) if i < len(self.frames) else int(i) for i in pick],
+                              "cameras": {}}
+        for v, name in enumerate(names):
+            plate, seen, share = footage_plate([sets[i].images[v] for i in pick], tolerance, min_share)
+            plates.append(plate)
+            report["cameras"][name] = {"stable": round(float(seen.mean()), 4), "unstable_pixels": int((~seen).sum()),
+                                       "median_agreement": round(float(np.median(share)), 4)}
+            if seen.mean() < 0.95:
+                self.log.warning("key.plate: camera '%s': %.1f %% of the pixels never showed one background in %d "
+                                 "of %d frames (the subject stood there): the plate there is the subject's",
+                                 name, 100 * (1 - seen.mean()), int(np.ceil(min_share * len(pick))), len(pick))
+        return {"background": ImageSet(plates, names), "report": report}
 
 
 class DifferenceKey(Node):

@@ -432,3 +432,40 @@ def test_grabcut_golden(small_stage, golden):
     after = np.mean([iou(m, t) for m, t in zip(out["masks"].masks, small_stage["masks"].masks)])
     assert before < 0.75 and after > 0.95, (before, after)
     golden.check("key_grabcut_figure", out["masks"], Masks, iou=0.99)
+
+
+def test_plate_from_footage_where_the_subject_moves_away():
+    """key.plate: a textured background and a square that crosses it over 12 frames (every pixel covered in fewer
+    than half): the median plate is the background exactly, the difference key against it finds the square; a
+    second square that never moves is reported (stable, so it ends up in the plate: only motion shows background)."""
+    from nodes.common.types import ImageSet
+
+    rng = np.random.default_rng(0)
+    h, w = 60, 90
+    yy, xx = np.mgrid[0:h, 0:w]
+    bg = [np.clip(np.dstack([60 + xx, 80 + yy, 120 + 0 * xx + 20 * v]) + rng.integers(-3, 4, (h, w, 3)), 0, 255)
+          .astype(np.uint8) for v in range(2)]                    # a shaded wall with sensor noise
+    frames, truth = [], []
+    for k in range(12):
+        ims, ms = [], []
+        for v in range(2):
+            im, m = bg[v].copy(), np.zeros((h, w), bool)
+            x = 5 + 7 * k
+            m[20:35, x:x + 12] = True
+            im[m] = (250, 30, 30)
+            if v == 1:
+                im[45:55, 5:15] = (10, 220, 10)                      # never moves
+            ims.append(im)
+            ms.append(m)
+        frames.append(ImageSet(ims, ["a", "b"]))
+        truth.append(ms)
+    out = run_node("key.plate", {"images": frames}, {}, frames=list(range(12)))
+    assert np.array_equal(out["background"].images[0], bg[0])
+    rep = out["report"]["cameras"]
+    assert rep["a"]["stable"] == 1.0 and rep["b"]["unstable_pixels"] == 0        # the still square is stable...
+    assert np.all(out["background"].images[1][45:55, 5:15] == (10, 220, 10))      # ...and in the plate
+    keyed = run_node("key.difference", {"images": frames[6], "background": out["background"]})["masks"]
+    got = keyed.masks[0] > 127
+    assert (got & truth[6][0]).sum() / (got | truth[6][0]).sum() > 0.95
+    with pytest.raises(Exception, match="at least 3"):
+        run_node("key.plate", {"images": frames[:2]}, {}, frames=[0, 1])
