@@ -4,7 +4,7 @@ first frame, in Blender's world (+Z up, metres). Prints per file the bounds, the
 and for each GLB/USD pair of one asset how far apart their bounds are. Blender as a Python module (PyPI `bpy`
 4.5, Python 3.11; ~1 GB: a benchmark's peer, not the suite's):
 
-    python3 -m venv /tmp/bpyenv && /tmp/bpyenv/bin/pip install "bpy==4.5.*"
+    python3 -m venv /tmp/bpyenv && /tmp/bpyenv/bin/pip install "bpy==4.5.*" pyopencl pyyaml networkx   # (+ the device line)
     /tmp/bpyenv/bin/python bench/blender_import.py out/demo/demo_volumetric_0000.glb out/demo/demo_volumetric.usdc \
         out/demo/demo_dynamic.glb out/demo/demo_dynamic.usdc out/demo/demo_character.glb out/demo/demo_character.usd
 """
@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))   # the project, for the OpenCL device line
 
 
 def bounds(path: Path) -> tuple[list, list, int]:

@@ -49,6 +49,10 @@ def main():
     ap.add_argument("--cameras", type=int, default=24)
     ap.add_argument("dataset", nargs="?", default="thu_wd_human")
     args = ap.parse_args()
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from machine import describe
+
+    print(describe())
     cams = ring(args.cameras)
     rng = np.random.default_rng(0)
     X = rng.uniform([-0.8, -0.8, 0], [0.8, 0.8, 1.8], (args.points, 3))

@@ -21,7 +21,8 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from nodegraph import Table  # noqa: E402
 
-from track import header, outputs, run  # noqa: E402
+from machine import describe, load_average  # noqa: E402
+from track import outputs, run  # noqa: E402
 
 
 def mbit(nbytes: int, frames: int, fps: float = 30.0) -> float:
@@ -37,7 +38,7 @@ def main():
     ap.add_argument("--crf", type=int, default=None, help="H.264 CRF of both rungs (default: the graph's)")
     ap.add_argument("--cache", default=str(ROOT / ".volcap-cache"))
     a = ap.parse_args()
-    header()
+    print(describe())
     sets = [f"texture.size={a.atlas}", f"texture_low.size={a.low_atlas}"]
     for node in ("stream", "stream_low"):
         sets += [f"{node}.bits={a.bits}"] * (a.bits is not None) + [f"{node}.crf={a.crf}"] * (a.crf is not None)
@@ -70,6 +71,7 @@ def main():
     for name, faces, atlas, rate, psnr, worst, err, emax in rows:
         print(f"{name:50s} {faces!s:>6s} {atlas:>6s} {rate:8.2f} {psnr:8.2f} {worst:6.2f} {err:7.3f} {emax:6.3f}")
     print(f"ratio per-frame GLB / stream full: {rows[2][3] / rows[0][3]:.1f}x")
+    print(f"load average at the end: {load_average()}")
 
 
 if __name__ == "__main__":

@@ -99,6 +99,12 @@ class ExportVolume(Node):
         return {"files": {_format(path, frame=frame): buf.getvalue()}}
 
 
+def frame_numbers(node: Node, sequence) -> list[int]:
+    """Each mesh's frame number (its metadata "frame", else the run's frame, else its index)."""
+    fallback = list(node.frames) if len(node.frames) == len(sequence) else list(range(len(sequence)))
+    return [int(m.metadata.get("frame", f)) for m, f in zip(sequence, fallback)]
+
+
 class ExportVolumetric(Node):
     """The textured volumetric video: per tracked segment one GLB (morph targets, UVs, the atlas), an H.264 video
     of its atlas per frame, and one USD stage of the take (time-sampled points and texture files): see
@@ -132,8 +138,7 @@ class ExportVolumetric(Node):
             raise NodeError(f"export.volumetric: unknown formats {unknown}; use gltf, usd, video")
         if not sequence:
             raise NodeError("export.volumetric: the sequence is empty")
-        fallback = list(self.frames) if len(self.frames) == len(sequence) else list(range(len(sequence)))
-        frames = [int(m.metadata.get("frame", f)) for m, f in zip(sequence, fallback)]
+        frames = frame_numbers(self, sequence)
         files, report = volumetric_files(list(sequence), list(textured), frames, name, fps, formats, crf)
         return {"files": files, "report": report}
 
@@ -171,8 +176,7 @@ class ExportStream(Node):
             raise NodeError("export.stream: the sequence is empty")
         if not rung or "/" in rung or rung.startswith("."):
             raise NodeError(f"export.stream: rung must be a plain folder name, got {rung!r}")
-        fallback = list(self.frames) if len(self.frames) == len(sequence) else list(range(len(sequence)))
-        frames = [int(m.metadata.get("frame", f)) for m, f in zip(sequence, fallback)]
+        frames = frame_numbers(self, sequence)
         files, report = stream_files(list(sequence), list(textured), frames, name, rung, fps, bits, crf)
         return {"files": files, "report": report}
 

@@ -171,3 +171,18 @@ def test_positions_round_trip_exactly_to_their_quantisation():
     data = encode_positions(jump, 14, two)
     np.testing.assert_allclose(decode_positions(data), jump, atol=np.ptp(jump) / 2 ** 14)
     assert len(encode_positions(walk, 12, faces)) < 0.15 * walk.size * 4    # under 15 % of float32
+
+
+def test_goldens_of_the_deliverable(take, golden):
+    """What the deliverable nodes decide (not the bytes their encoders write, which move with library builds):
+    export.volumetric's segments and counts, export.stream's manifest, track.simplify's faces per segment."""
+    import json
+
+    from nodegraph import Table
+
+    seq, tex, _, rep = take
+    golden.check("export_volumetric_take", {"segments": rep["segments"]}, Table)
+    files = run_node("export.stream", {"sequence": seq, "textured": tex}, {"name": "s", "rung": "full"})["files"]
+    golden.check("export_stream_manifest", json.loads(files["s/full/manifest.json"]), Table)
+    low = run_node("track.simplify", {"sequence": seq}, {"faces": 0.25})["report"]
+    golden.check("track_simplify_take", low, Table)

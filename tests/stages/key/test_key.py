@@ -7,6 +7,7 @@ import pytest
 
 from nodes.common.cameras import Cameras
 import rig
+from nodegraph import Table
 from nodegraph.errors import NodeError
 from nodegraph.testing import run_node
 from nodes.common.types import ImageSet, Masks, MaskSet, VoxelGrid
@@ -469,3 +470,19 @@ def test_plate_from_footage_where_the_subject_moves_away():
     assert (got & truth[6][0]).sum() / (got | truth[6][0]).sum() > 0.95
     with pytest.raises(Exception, match="at least 3"):
         run_node("key.plate", {"images": frames[:2]}, {}, frames=[0, 1])
+
+
+def test_plate_golden(golden):
+    """key.plate's report on a slowly crossing square whose colour changes (its middle covered in most frames, by
+    other colours: unstable), a still patch (stable) and a one-frame glitch (every count exact: uint8 medians)."""
+    rng = np.random.default_rng(1)
+    bg = rng.integers(60, 70, (40, 50, 3)).astype(np.uint8)
+    frames = []
+    for k in range(8):
+        im = bg.copy()
+        im[10:20, 2 * k:2 * k + 12] = 100 + 18 * k                     # slow, changing colour: its middle unstable
+        im[30:36, 2:8] = 5                                            # still: stable, in the plate
+        frames.append(ImageSet([im], ["a"]))
+    frames[3].images[0][0:40, 45:50] = 255                            # one frame's glitch: not in the plate
+    rep = run_node("key.plate", {"images": frames}, {}, frames=list(range(8)))["report"]
+    golden.check("key_plate_square", rep, Table)

@@ -424,6 +424,16 @@ def test_figure_sequence_joints_and_error():
 
 
 # ---------------------------------------------------------------- real data
+def person_run(dataset_run, name: str, node: str):
+    """(run, the node's skeleton, relaxed mesh, masks, cameras) of graphs/skeleton/NAME.yaml on the real data."""
+    from pathlib import Path
+
+    res = dataset_run(Path(__file__).resolve().parents[3] / "graphs" / "skeleton" / f"{name}.yaml")
+    out = [dataset_run.output(res, n, port) for n, port in ((node, "skeleton"), ("relax", "mesh"),
+                                                             ("capture", "masks"), ("capture", "cameras"))]
+    return (res, *out)
+
+
 def on_silhouettes(points, masks, cams, what: str, px_tolerance: int = 6) -> int:
     """Assert every point that a view sees (in front, inside the image) projects within ``px_tolerance`` pixels
     of that view's silhouette; return how many (view, point) pairs were seen."""
@@ -453,12 +463,8 @@ def test_real_person_has_head_hands_feet_where_the_images_show_them(dataset_run,
     from nodegraph.graphfile import load_graph
 
     graph = Path(__file__).resolve().parents[3] / "graphs" / "skeleton" / f"{name}.yaml"
-    res = dataset_run(graph)
-    sk = dataset_run.output(res, "skeleton", "skeleton")
+    res, sk, mesh, masks, cams = person_run(dataset_run, name, "skeleton")
     rep = dataset_run.output(res, "skeleton", "report")
-    mesh = dataset_run.output(res, "relax", "mesh")
-    masks = dataset_run.output(res, "capture", "masks")
-    cams = dataset_run.output(res, "capture", "cameras")
     assert sorted(rep["names"]) == ["foot_0", "foot_1", "hand_0", "hand_1", "head"]
     ends = {n: sk.joints[sk.names.index(n)] for n in rep["names"]}
     up = np.array([0.0, 0.0, 1.0])                     # the world frame's (the capture node's)
@@ -528,14 +534,7 @@ def test_humanoid_refuses_a_body_without_five_extremities():
 def test_humanoid_on_real_people(dataset_run, name):
     """On a real person (thu, inria: one frame, relaxed mesh): every joint inside the body (or within 2 cm), on the
     silhouettes of every view that sees it, limbs in order down the body, arms and legs on the same sides."""
-    from pathlib import Path
-
-    graph = Path(__file__).resolve().parents[3] / "graphs" / "skeleton" / f"{name}.yaml"
-    res = dataset_run(graph)
-    sk = dataset_run.output(res, "humanoid", "skeleton")
-    mesh = dataset_run.output(res, "relax", "mesh")
-    masks = dataset_run.output(res, "capture", "masks")
-    cams = dataset_run.output(res, "capture", "cameras")
+    _, sk, mesh, masks, cams = person_run(dataset_run, name, "humanoid")
     j = {n: sk.joints[i] for i, n in enumerate(sk.names)}
     inner = [n for n in sk.names if not n.endswith("_end") and not n.startswith("toe")]
     inside = inside_body(mesh, np.array([j[n] for n in inner]), 0.02)
@@ -579,3 +578,11 @@ def test_humanoid_rig_on_a_tracked_walk():
     assert sorted(bvh["names"]) == sorted(sk.names)
     np.testing.assert_allclose(bvh["positions"], world[..., :3, 3][:, order], atol=1e-5)
     assert formats.read_gltf(files["walk.glb"])["joints"] == sk.names
+
+
+def test_humanoid_golden(golden):
+    """The template on the synth figure's frame 0 at 64^3: joint names, tree and positions (atol 1 mm)."""
+    from nodes.synth import scenes
+
+    sk = run_node("skeleton.humanoid", {"mesh": scenes.build("figure", 0).mesh}, {"resolution": 64})["skeleton"]
+    golden.check("skeleton_humanoid_figure_64", sk, Skeleton, atol=1e-3)
