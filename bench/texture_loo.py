@@ -6,10 +6,16 @@ camera i, render it into camera i, compare with the real photo inside mask_i and
 Meshes come from the dataset graphs (graphs/datasets/*.yaml; the synthetic scene: graphs/demo.yaml frame 0),
 run through the CLI into a cache. Methods, all on the same mesh and the same held-out cameras:
   vertex colours   per-vertex mean of the views that see the vertex (z-buffer) inside their mask
+  cos^2 mean       the same weighted by cos^2 of the viewing angle (vertex normals), masks eroded by 2 px
   MeshLab          pymeshlab texture from registered rasters (masks given as alpha, alpha weight on), 2048^2
   ours             the texture node's defaults, 2048^2 atlas (and its vertex-colour mode)
-Also counted for ours: texels whose surface point is background in every mask that sees it, and how many of
-those were painted from an image (must be 0).
+  ours + layers    the same with `layers: 6`, rendered view-dependently at the held-out camera
+                   (viewdep.render_layers: what a player does at that eye)
+  in-sample        ours and ours + layers textured from every camera, the held-out one included
+  oracle           the held-out camera's own photo alone through the same atlas (the geometry's ceiling)
+PSNR and SSIM (skimage, on the mask's box, averaged inside the mask and the render). Also counted for ours:
+texels whose surface point is background in every mask that sees it, and how many of those were painted from
+an image (must be 0).
 """
 from __future__ import annotations
 
@@ -32,6 +38,7 @@ from nodes.common.raster import rasterize, render_texture  # noqa: E402
 from nodes.common.types import CameraSet, Images, Masks, Mesh  # noqa: E402
 from nodes.texture.quality import background_texels  # noqa: E402
 from nodes.texture.texturing import Settings, texture_mesh  # noqa: E402
+from nodes.texture.viewdep import render_layers  # noqa: E402
 
 DATASETS = {  # graph, mesh node, masks node (port 'masks'), images node (port 'images'), cameras node
     "synthetic_figure": ("graphs/demo.yaml", "mesh", "stage", "stage", "stage"),
@@ -39,6 +46,7 @@ DATASETS = {  # graph, mesh node, masks node (port 'masks'), images node (port '
     "middlebury_templeSR": ("graphs/datasets/middlebury_templeSR.yaml", "mesh", "key", "capture", "capture"),
     "oxford_dino": ("graphs/datasets/oxford_dino.yaml", "mesh", "masks", "capture", "capture"),
     "nerf_lego": ("graphs/datasets/nerf_lego.yaml", "mesh", "capture", "capture", "capture"),
+    "middlebury_dinoSR": ("graphs/datasets/middlebury_dinoSR.yaml", "mesh", "key", "capture", "capture"),
 }
 
 
@@ -46,12 +54,14 @@ def load_dataset(name: str, cache: Path):
     graph, mesh_node, mask_node, img_node, cam_node = DATASETS[name]
     out = Path(f"/tmp/volcap_texture_loo/{name}")
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    # the demo's sequence nodes (track, rig) need its frames; the datasets are single frames
+    frames = [] if graph == "graphs/demo.yaml" else ["--frames", "0:1"]
     r = subprocess.run([sys.executable, str(ROOT / "app.py"), "run", str(ROOT / graph), "--out", str(out), "--cache",
-                        str(cache), "--frames", "0:1", "--jobs", "1", "--keep-all"], env=env, capture_output=True, text=True)
+                        str(cache), *frames, "--jobs", "1", "--keep-all"], env=env, capture_output=True, text=True)
     if r.returncode != 0:
         raise RuntimeError(f"{graph}: {r.stdout[-500:]} {r.stderr[-500:]}")
     recs = {rec["node"]: Path(rec["cache_dir"]) for rec in json.loads((out / "run.json").read_text())["items"]
-            if rec.get("cache_dir")}
+            if rec.get("cache_dir") and rec.get("frame") in (0, None)}
     mesh = Mesh.load(recs[mesh_node] / "mesh")
     masks = Masks.load(recs[mask_node] / "masks")
     images = Images.load(recs[img_node] / "images")
@@ -72,10 +82,33 @@ def psnr(render, hit, photo, mask):
     return 10 * np.log10(255.0 ** 2 / max(mse, 1e-12))
 
 
-def vertex_colour_baseline(vertices, faces, images, masks, cams, tol_frac=0.01):
-    """Per-vertex mean colour over the views where the vertex passes the z-buffer test and is in the mask."""
+def ssim(render, hit, photo, mask):
+    from skimage.metrics import structural_similarity
+
+    sel = hit & (mask > 127)
+    if not np.any(sel):
+        return float("nan")
+    ys, xs = np.nonzero(sel)
+    y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+    _, smap = structural_similarity(render[y0:y1, x0:x1], photo[y0:y1, x0:x1], channel_axis=2, data_range=255,
+                                    full=True)
+    return float(np.mean(smap.mean(axis=2)[sel[y0:y1, x0:x1]]))
+
+
+def vertex_colour_baseline(vertices, faces, images, masks, cams, tol_frac=0.01, power=0.0, erode=0):
+    """Per-vertex mean colour over the views where the vertex passes the z-buffer test and is in the mask
+    (``erode`` pixels in from its border); ``power`` > 0 weights each view by cos^power of the angle between
+    the vertex normal and the ray to the camera."""
+    import cv2
+
     v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
     tol = tol_frac * np.linalg.norm(np.ptp(v, axis=0))
+    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    vn = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(vn, f[:, k], fn)
+    vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-12)
     acc = np.zeros((len(v), 3))
     cnt = np.zeros(len(v))
     for i in range(len(cams)):
@@ -85,10 +118,19 @@ def vertex_colour_baseline(vertices, faces, images, masks, cams, tol_frac=0.01):
         x, y = np.round(uv[:, 0]).astype(np.int64), np.round(uv[:, 1]).astype(np.int64)
         ok = (x >= 0) & (y >= 0) & (x < w) & (y < h) & (z > 0)
         xs, ys = np.where(ok, x, 0), np.where(ok, y, 0)
-        ok &= (z <= depth[ys, xs] + tol) & (masks[i][ys, xs] > 127)
-        acc[ok] += images[i][ys[ok], xs[ok]]
-        cnt[ok] += 1
-    col = np.where(cnt[:, None] > 0, acc / np.maximum(cnt, 1)[:, None], 128)
+        m = (masks[i] > 127).astype(np.uint8)
+        if erode:
+            m = cv2.erode(m, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * erode + 1,) * 2))
+        ok &= (z <= depth[ys, xs] + tol) & (m[ys, xs] > 0)
+        wgt = np.ones(len(v))
+        if power > 0:
+            ray = cams.centers[i] - v
+            ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+            wgt = np.clip(np.einsum("ij,ij->i", vn, ray), 0, 1) ** power
+            ok &= wgt > 0
+        acc[ok] += wgt[ok, None] * images[i][ys[ok], xs[ok]]
+        cnt[ok] += wgt[ok]
+    col = np.where(cnt[:, None] > 0, acc / np.maximum(cnt, 1e-12)[:, None], 128)
     return col.astype(np.float32)
 
 
@@ -97,7 +139,9 @@ def evaluate(name, cache, held_n, use_meshlab, size, picture=None):
     V, F = np.asarray(mesh.vertices), np.asarray(mesh.faces)
     n = len(cams)
     held = sorted(set(np.linspace(0, n - 1, held_n + 1)[:-1].round().astype(int).tolist()))
-    rows = {k: [] for k in ("vertex colours", "MeshLab", "ours (vertex)", "ours")}
+    rows = {k: [] for k in ("vertex colours", "cos^2 mean", "MeshLab", "ours (vertex)", "ours", "ours + layers",
+                            "in-sample ours", "in-sample + layers", "oracle")}
+    ssims = {k: [] for k in rows}
     extra = {"faces": len(F), "views": n, "held": held, "bg_texels": 0, "bg_painted": 0, "ours_s": [], "meshlab_s": []}
     tiles = []
     for i in held:
@@ -107,20 +151,37 @@ def evaluate(name, cache, held_n, use_meshlab, size, picture=None):
         msk = [masks.masks[j] for j in keep]
         sub = subset(cams, keep)
         photo, mask_i = images.images[i], masks.masks[i]
+
+        def score(key, render, hit):
+            rows[key].append(psnr(render, hit, photo, mask_i))
+            ssims[key].append(ssim(render, hit, photo, mask_i))
+
         col = vertex_colour_baseline(V, F, imgs, msk, sub)
         r_vc, hit = render_texture(V, F, None, None, ci, i, face_colours=col[F])
-        rows["vertex colours"].append(psnr(r_vc, hit, photo, mask_i))
+        score("vertex colours", r_vc, hit)
+        col2 = vertex_colour_baseline(V, F, imgs, msk, sub, power=2.0, erode=2)
+        score("cos^2 mean", *render_texture(V, F, None, None, ci, i, face_colours=col2[F]))
         t = time.perf_counter()
         res = texture_mesh(V, F, imgs, msk, sub, Settings(size=size))
         extra["ours_s"].append(time.perf_counter() - t)
         r_ours, hit = render_texture(V, F, res.atlas.uv01(), res.texture, ci, i)
-        rows["ours"].append(psnr(r_ours, hit, photo, mask_i))
+        score("ours", r_ours, hit)
+        t = time.perf_counter()
+        rl = texture_mesh(V, F, imgs, msk, sub, Settings(size=size, layers=6))
+        extra.setdefault("layers_s", []).append(time.perf_counter() - t)
+        r_vd, hit = render_layers(V, F, rl.atlas.uv01(), rl.texture, rl.views, ci, i)
+        score("ours + layers", r_vd, hit)
+        ri = texture_mesh(V, F, images.images, masks.masks, cams, Settings(size=size, layers=6))
+        score("in-sample ours", *render_texture(V, F, ri.atlas.uv01(), ri.texture, ci, i))
+        score("in-sample + layers", *render_layers(V, F, ri.atlas.uv01(), ri.texture, ri.views, ci, i))
+        ro = texture_mesh(V, F, [photo], [mask_i], subset(cams, [i]), Settings(size=size))
+        score("oracle", *render_texture(V, F, ro.atlas.uv01(), ro.texture, ci, i))
         bg, painted = background_texels(res, V, F, msk, sub)
         extra["bg_texels"] += bg
         extra["bg_painted"] += painted
         resv = texture_mesh(V, F, imgs, msk, sub, Settings(size=size), mode="vertex")
         r_ov, hit = render_texture(V, F, None, None, ci, i, face_colours=resv.vertex_colours.astype(np.float32)[F])
-        rows["ours (vertex)"].append(psnr(r_ov, hit, photo, mask_i))
+        score("ours (vertex)", r_ov, hit)
         r_ml = None
         if use_meshlab:
             from meshlab_peer import meshlab_texture
@@ -130,15 +191,18 @@ def evaluate(name, cache, held_n, use_meshlab, size, picture=None):
                 extra["meshlab_s"].append(sec)
                 tex = np.asarray(ml.visual.material.image.convert("RGB"))
                 r_ml, hit = render_texture(ml.vertices, ml.faces, np.asarray(ml.visual.uv)[ml.faces], tex, ci, i)
-                rows["MeshLab"].append(psnr(r_ml, hit, photo, mask_i))
+                score("MeshLab", r_ml, hit)
             except Exception as exc:  # reported in the table, not hidden
                 print(f"  {name} cam {i}: MeshLab failed: {exc}", file=sys.stderr)
                 rows["MeshLab"].append(float("nan"))
-        if picture is not None and len(tiles) < 2:
-            tiles.append((photo, r_vc, r_ml, r_ours, mask_i))
+                ssims["MeshLab"].append(float("nan"))
+        if picture is not None:
+            tiles.append((rows["ours + layers"][-1], (photo, r_vc, r_ml, r_ours, r_vd, mask_i)))
         print(f"  {name} held-out {cams[i].name}: " + ", ".join(f"{k} {v[-1]:.2f}" for k, v in rows.items() if v), flush=True)
     if picture is not None and tiles:
-        save_picture(picture, tiles, name)
+        tiles.sort(key=lambda t: t[0])                     # the worst held-out view (for the layers) first
+        save_picture(picture, [t[1] for t in tiles[:2]], name)
+    extra["ssim"] = ssims
     return rows, extra
 
 
@@ -146,13 +210,13 @@ def save_picture(path, tiles, name):
     import cv2
 
     out = []
-    for photo, vc, ml, ours, mask in tiles:
+    for photo, vc, ml, ours, vd, mask in tiles:
         ys, xs = np.nonzero(mask > 127)
         pad = 10
         y0, y1 = max(ys.min() - pad, 0), min(ys.max() + pad, mask.shape[0])
         x0, x1 = max(xs.min() - pad, 0), min(xs.max() + pad, mask.shape[1])
-        row = [photo, vc] + ([ml] if ml is not None else []) + [ours]
-        labels = ["held-out photo", "vertex colours"] + (["MeshLab"] if ml is not None else []) + ["ours"]
+        row = [photo, vc] + ([ml] if ml is not None else []) + [ours, vd]
+        labels = ["held-out photo", "vertex colours"] + (["MeshLab"] if ml is not None else []) + ["ours", "ours + layers"]
         crops = []
         for im, lab in zip(row, labels):
             c = np.ascontiguousarray(im[y0:y1, x0:x1])
@@ -184,14 +248,26 @@ def main():
         pic = None if args.pictures is None else Path(args.pictures) / f"texture_loo_{name}.png"
         rows, extra = evaluate(name, Path(args.cache), args.held, not args.no_meshlab, args.size, pic)
         table.append((name, rows, extra))
-    print(f"\nleave-one-camera-out PSNR (dB) inside mask and render, median over held-out cameras; load {load_average()}")
-    print("| dataset | faces | views | vertex colours | MeshLab | ours (vertex mode) | **ours** | bg texels (painted) | ours s/frame | MeshLab s/frame |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print(f"\nleave-one-camera-out PSNR (dB) / SSIM inside mask and render: median (worst) over held-out cameras; "
+          f"load {load_average()}")
+    keys = list(table[0][1])
+    print("| dataset | faces | views | " + " | ".join(keys) + " | bg texels (painted) | ours s/frame | + layers s/frame |")
+    print("|---|---|---|" + "---|" * (len(keys) + 3))
     for name, rows, ex in table:
-        med = {k: (np.nanmedian(v) if v and not np.all(np.isnan(v)) else float("nan")) for k, v in rows.items()}
-        print(f"| {name} | {ex['faces']} | {ex['views']} | {med['vertex colours']:.2f} | {med['MeshLab']:.2f} | "
-              f"{med['ours (vertex)']:.2f} | **{med['ours']:.2f}** | {ex['bg_texels']} ({ex['bg_painted']}) | "
-              f"{np.median(ex['ours_s']):.2f} | {np.median(ex['meshlab_s']) if ex['meshlab_s'] else float('nan'):.2f} |")
+        cells = []
+        for k in keys:
+            v, q = np.asarray(rows[k], float), np.asarray(ex["ssim"][k], float)
+            cells.append("n/a" if not len(v) or np.all(np.isnan(v)) else
+                         f"{np.nanmedian(v):.2f} ({np.nanmin(v):.2f}) / {np.nanmedian(q):.3f}")
+        print(f"| {name} | {ex['faces']} | {ex['views']} | " + " | ".join(cells) +
+              f" | {ex['bg_texels']} ({ex['bg_painted']}) | {np.median(ex['ours_s']):.2f} | {np.median(ex['layers_s']):.2f} |")
+    print("\ngain of ours + layers over the best baseline (vertex colours, cos^2 mean, MeshLab), median dB:")
+    for name, rows, ex in table:
+        best = max(np.nanmedian(rows[k]) if rows[k] and not np.all(np.isnan(rows[k])) else -np.inf
+                   for k in ("vertex colours", "cos^2 mean", "MeshLab"))
+        print(f"  {name}: {np.nanmedian(rows['ours + layers']) - best:+.2f} dB (static ours "
+              f"{np.nanmedian(rows['ours']) - best:+.2f}); in-sample + layers {np.nanmedian(rows['in-sample + layers']):.2f} "
+              f"vs oracle {np.nanmedian(rows['oracle']):.2f}")
 
 
 if __name__ == "__main__":

@@ -19,6 +19,7 @@ from nodegraph import DataError, DataType, Param
 
 from . import previews
 from .cameras import Cameras, unique_names
+from .viewlayers import NONE, ViewLayers
 
 
 def write_exr(path: Path, arr: np.ndarray, channel: str = "A"):
@@ -384,6 +385,56 @@ class TexturedMesh(Mesh):
     @classmethod
     def preview(cls, value, size, companions):
         return previews.draw_textured_mesh(value, size, companions)
+
+
+class ViewTextures(DataType):
+    """View-dependent layers of one frame (nodes.common.viewlayers.ViewLayers): ``layer_<k>.png`` (RGB, on the
+    atlas of the frame's textured mesh), ``view_<k>.png`` (8-bit camera index per texel, 255 = none) and
+    ``cameras.json`` (names and centres in the world frame, the blend width ``sigma`` in radians and the index
+    that means none). A renderer blends as ``viewdep.layer_weights`` says."""
+
+    name = "ViewTextures"
+
+    @classmethod
+    def check(cls, v):
+        if not isinstance(v, ViewLayers):
+            return f"expected ViewLayers, got {type(v).__name__}"
+        return v.problem()
+
+    @classmethod
+    def save(cls, v: ViewLayers, folder: Path):
+        import cv2
+
+        for k in range(v.layers.shape[0]):
+            cv2.imwrite(str(folder / f"layer_{k}.png"), np.ascontiguousarray(v.layers[k][:, :, ::-1]))
+            cv2.imwrite(str(folder / f"view_{k}.png"), np.ascontiguousarray(v.texel_view[:, :, k]))
+        (folder / "cameras.json").write_text(json.dumps({"names": list(v.names), "none": NONE, "sigma": float(v.sigma),
+                                                         "centres": np.asarray(v.centres).tolist()}))
+
+    @classmethod
+    def load(cls, folder: Path) -> ViewLayers:
+        import cv2
+
+        doc = json.loads((folder / "cameras.json").read_text())
+        K = len(list(folder.glob("layer_*.png")))
+        layers = np.stack([cv2.imread(str(folder / f"layer_{k}.png"), cv2.IMREAD_COLOR)[:, :, ::-1] for k in range(K)])
+        views_ = np.stack([cv2.imread(str(folder / f"view_{k}.png"), cv2.IMREAD_UNCHANGED) for k in range(K)], axis=-1)
+        return ViewLayers(np.ascontiguousarray(layers), np.ascontiguousarray(views_),
+                          np.asarray(doc["centres"], np.float64).reshape(-1, 3), list(doc["names"]), float(doc["sigma"]))
+
+    @classmethod
+    def preview(cls, value, size, companions):
+        import cv2
+
+        k = value.layers.shape[0]
+        tile = max(16, size // max(1, int(np.ceil(np.sqrt(k)))))
+        n = int(np.ceil(np.sqrt(k)))
+        img = np.zeros((n * tile, n * tile, 3), np.uint8)
+        for i in range(k):
+            y, x = divmod(i, n)
+            img[y * tile:(y + 1) * tile, x * tile:(x + 1) * tile] = cv2.resize(value.layers[i], (tile, tile),
+                                                                               interpolation=cv2.INTER_AREA)
+        return cv2.resize(img, (size, size), interpolation=cv2.INTER_AREA)
 
 
 class Skeleton(DataType):

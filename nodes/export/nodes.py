@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from nodegraph import Files, Input, Node, NodeError, OutPath, Output, Param, Table
-from nodes.common.types import FPS_PARAM, Masks, Mesh, MeshSequence, TexturedMesh, Volume, write_exr
+from nodes.common.types import FPS_PARAM, Masks, Mesh, MeshSequence, TexturedMesh, ViewTextures, Volume, write_exr
 
 MESH_FORMATS = ("ply", "obj", "glb", "stl", "off")
 
@@ -76,6 +76,30 @@ class ExportMasks(Node):
                     write_exr(p, masks.alpha[i])
                     files[str(Path(rel).with_suffix(".exr"))] = p.read_bytes()
         return {"files": files}
+
+
+class ExportViews(Node):
+    """Write a frame's view-dependent layers (texture ``layers`` > 0) into a folder beside its textured mesh:
+    ``layer_<k>.png`` (RGB on the mesh's atlas), ``view_<k>.png`` (camera index per texel, 255 = none) and
+    ``cameras.json`` (camera names, centres in the world frame, the blend width ``sigma``). A player blends the
+    layers per fragment with w_k = exp(-(a_k / sigma)^2) / a_k over the angle a_k between the ray to the eye
+    and the ray to layer k's camera, the atlas texture counting as a layer at angle sigma
+    (nodes/texture/viewdep.py ``layer_weights``)."""
+
+    type_name = "export.views"
+    uses_frame = True
+    publishes = True
+    inputs = {"views": ViewTextures}
+    outputs = {"files": Files}
+    params = {"path": Param(OutPath, "views/{frame:04d}", doc="output folder pattern, relative to --out")}
+
+    def run(self, views, *, path, frame):
+        import tempfile
+
+        rel = _format(path, frame=frame)
+        with tempfile.TemporaryDirectory() as d:
+            ViewTextures.save(views, Path(d))
+            return {"files": {str(Path(rel) / f.name): f.read_bytes() for f in sorted(Path(d).iterdir())}}
 
 
 class ExportVolume(Node):

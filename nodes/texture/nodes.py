@@ -11,12 +11,13 @@ import numpy as np
 from nodegraph import DataType, Input, Node, NodeError, Output, Param
 from nodes.common import raster
 from nodes.common.meshops import face_neighbours
-from nodes.common.types import CameraSet, Images, Masks, Mesh, TexturedMesh
+from nodes.common.types import CameraSet, Images, Masks, Mesh, TexturedMesh, ViewTextures
 
 from . import views
 from .atlas import Atlas, make_atlas
 from .reuse import reference_atlas
 from .texturing import Settings, coloured_trimesh, texture_mesh, textured_trimesh
+from .viewdep import NONE
 
 
 class AtlasType(DataType):
@@ -82,6 +83,9 @@ class Texture(Node):
     outputs = {
         "mesh": Output(TexturedMesh, "the mesh with UVs and its texture (GLB), or with vertex colours"),
         "atlas": Output(AtlasType, "the layout used (atlas mode)", optional=True),
+        "views": Output(ViewTextures, "view-dependent layers on the same atlas (layers > 0): per face the K "
+                        "cameras spread widest in direction, for a player that blends by viewing direction",
+                        optional=True),
     }
     params = {
         "mode": Param(str, "atlas", choices=("atlas", "vertex"), doc="texture atlas or vertex colours"),
@@ -92,15 +96,20 @@ class Texture(Node):
         "feather": Param(int, 2, range=(0, 64), doc="vertex rings of cross-fade on each side of a view seam"),
         "balance": Param(bool, True, doc="estimate per-camera exposure / white-balance gains"),
         "level": Param(bool, True, doc="global seam levelling"),
+        "layers": Param(int, 0, range=(0, 16), doc="view-dependent layers kept per face (0: none; atlas mode)"),
     }
     kernels = [views.KERNELS, raster.KERNELS]
 
     def run(self, mesh, images, cameras, masks, atlas, reference, *, mode, size, directions, margin, edge_px,
-            smoothness, feather, balance, level):
+            smoothness, feather, balance, level, layers):
         if len(mesh.faces) == 0:
             raise NodeError("the mesh has no faces: nothing to texture")
         if (atlas is not None or reference is not None) and mode == "vertex":
             raise NodeError("an atlas or a reference was given but mode is 'vertex' (vertex colours use no atlas)")
+        if layers and mode == "vertex":
+            raise NodeError("layers > 0 needs mode 'atlas' (view-dependent layers are atlas images)")
+        if layers and len(cameras) > NONE:
+            raise NodeError(f"layers > 0 supports at most {NONE} cameras; this rig has {len(cameras)}")
         if atlas is not None and reference is not None:
             raise NodeError("connect 'atlas' or 'reference', not both")
         if reference is not None:
@@ -112,7 +121,7 @@ class Texture(Node):
             raise NodeError(f"input 'atlas' was made for another connectivity ({len(atlas.faces)} faces); the mesh "
                             f"has {len(mesh.faces)} faces: an atlas is reused only for meshes with the same faces")
         s = Settings(size=size, margin=margin, edge_px=edge_px, smoothness=smoothness, feather=feather,
-                     balance=balance, level=level, directions=directions)
+                     balance=balance, level=level, directions=directions, layers=layers)
         r = texture_mesh(mesh.vertices, mesh.faces, images.images, None if masks is None else masks.masks, cameras,
                          s, atlas=atlas, mode=mode)
         self.log.info("texture: %s; %s", json.dumps({k: round(v, 3) for k, v in r.timings.items()}), json.dumps(r.stats))
@@ -120,8 +129,9 @@ class Texture(Node):
             self.log.warning("%d of %d faces are seen by no camera; they are filled from their neighbours",
                              r.stats["faces_without_view"], r.stats["faces"])
         if mode == "vertex":
-            return {"mesh": coloured_trimesh(mesh.vertices, mesh.faces, r.vertex_colours), "atlas": None}
-        return {"mesh": textured_trimesh(mesh.vertices, mesh.faces, r.atlas, r.texture), "atlas": r.atlas}
+            return {"mesh": coloured_trimesh(mesh.vertices, mesh.faces, r.vertex_colours), "atlas": None, "views": None}
+        return {"mesh": textured_trimesh(mesh.vertices, mesh.faces, r.atlas, r.texture), "atlas": r.atlas,
+                "views": r.views}
 
 
 class TextureAtlas(Node):

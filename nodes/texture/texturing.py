@@ -40,6 +40,7 @@ class Settings:
     level: bool = True              # global seam levelling (offsets per vertex and view)
     gutter: int = 2                 # texels around each chart
     directions: int = 6             # chart directions (6 or 14)
+    layers: int = 0                 # view-dependent layers (the K best views per face, viewdep.py); 0 = none
 
 
 @dataclass
@@ -53,6 +54,7 @@ class Result:
     weight: np.ndarray | None = None           # (N,) summed blend weight of each layout texel (0: not painted)
     timings: dict = field(default_factory=dict)
     stats: dict = field(default_factory=dict)
+    views: object = None                       # viewdep.ViewLayers (atlas mode with Settings.layers > 0)
 
     @property
     def texel_face(self) -> np.ndarray | None:
@@ -116,7 +118,7 @@ def choose(vertices, faces, cameras, frame, stats, s: Settings, topo: Topology, 
     if s.adaptive and s.blur_px > 0:
         lo, hi = s.spread_range
         blur = np.clip((spread - lo) / max(hi - lo, 1e-6), 0, 1).astype(np.float32)
-    return labels, Blend(face_view, weight, offset, gains, blur, s.blur_px)
+    return labels, Blend(face_view, weight, offset, gains, blur, s.blur_px), q
 
 
 def texture_mesh(vertices, faces, images, masks, cameras, s: Settings = Settings(), *, atlas: Atlas | None = None,
@@ -126,7 +128,7 @@ def texture_mesh(vertices, faces, images, masks, cameras, s: Settings = Settings
     timings: dict = {}
     frame, stats = prepare(vertices, faces, images, masks, cameras, s, timings)
     topo = Topology.of(faces, len(vertices))
-    labels, blend = choose(vertices, faces, cameras, frame, stats, s, topo, timings)
+    labels, blend, quality = choose(vertices, faces, cameras, frame, stats, s, topo, timings)
 
     def fallback():
         return V.fallback_vertex_colours(labels, stats.colour, blend.gains, faces, len(vertices), topo=topo)
@@ -169,9 +171,21 @@ def texture_mesh(vertices, faces, images, masks, cameras, s: Settings = Settings
         col[need] = np.einsum("nc,ncd->nd", layout.bary[need], fallback()[faces[layout.face[need]]])
     texture = fill_texture(col, layout)
     timings["baking"] = time.perf_counter() - t
+    if s.layers > 0:
+        from .viewdep import ViewLayers, bake_layers, choose_layers
+
+        t = time.perf_counter()
+        fv = choose_layers(quality, stats.colour, blend.gains, faces, len(vertices), cameras.centers, vertices,
+                           K=s.layers, consistency=s.consistency, topo=topo)
+        layers, texel_view = bake_layers(layout, vertices, faces, cameras, frame, fv, blend.gains, texture)
+        views = ViewLayers(layers, texel_view, np.asarray(cameras.centers, np.float64), [c.name for c in cameras])
+        timings["layers"] = time.perf_counter() - t
+    else:
+        views = None
     info.update({"charts": atlas.n_charts, "texels_covered": int(np.sum(layout.inner)),
                  "texels_from_fallback": int(np.sum(layout.inner[need]))})
-    return Result(atlas, texture, None, labels, blend, layout=layout, weight=w, timings=timings, stats=info)
+    return Result(atlas, texture, None, labels, blend, layout=layout, weight=w, timings=timings, stats=info,
+                  views=views)
 
 
 # ---------------------------------------------------------------- trimesh output

@@ -1,0 +1,115 @@
+"""View-dependent texture (Debevec et al. 1996; weights after Buehler et al. 2001, unstructured lumigraph):
+per face the K best consistent views are kept as K atlas layers, each painted by one camera only, with a
+map saying which camera painted each texel; a renderer blends the layers by the angle between its viewing
+ray and each layer's camera ray, so a surface seen from near a capture camera shows that camera's photo.
+
+    face_view = choose_layers(quality, colour, gains, faces, n_vertices, K=4)   # (F, K) views, -1 = none
+    layers, texel_view = bake_layers(layout, vertices, faces, cameras, frame, face_view, gains, base)
+    w = layer_weights(points, eye, centres, ids)                                # (N, K) blend weights
+
+A static texture on approximate geometry can reproduce no photo exactly (each camera sees the surface's
+errors with its own parallax); the layers can, where the viewer is near a camera. ``layer_weights`` is the
+reference of what a player's shader does (docs in export.player).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from . import views as V
+from nodes.common.viewlayers import NONE, SIGMA, ViewLayers, layer_weights  # noqa: F401 (re-exported)
+
+from .bake import Blend, bake_samples
+
+def choose_layers(quality, colour, gains, faces, n_vertices, centres, vertices, *, K=8, consistency=40.0,
+                  topo=None) -> np.ndarray:
+    """(F, K) int32: per face K views that see it and agree with its other views' colour (``views.data_cost``'s
+    test: occluders, highlights and mis-keyed pixels drop out), -1 where fewer qualify. The first is the view
+    of highest quality; each next one the usable view farthest in direction from those already kept (angles
+    seen from the face), so that from wherever a viewer looks some layer's camera is near (a grazing or
+    edge view counts: the renderer needs the camera nearest the eye, not the best one). Quality is averaged
+    over each vertex's faces first, so neighbouring faces tend to keep the same views."""
+    from scipy.sparse import csr_matrix
+
+    q = np.asarray(quality, np.float32)                       # (V, F)
+    nv, nf = q.shape
+    K = min(K, nv)
+    faces = np.asarray(faces, np.int64)
+    cost = V.data_cost(q, colour, gains, consistency=consistency)   # (F, V): < 1 where usable and consistent
+    ok = cost < 1.0
+    inc = topo.incidence if topo is not None else csr_matrix(
+        (np.ones(3 * nf), (faces.ravel(), np.repeat(np.arange(nf), 3))), shape=(n_vertices, nf))
+    cnt = np.asarray(inc.sum(axis=1)).ravel()
+    qv = np.asarray(inc @ q.T) / np.maximum(cnt, 1)[:, None]  # (n_vertices, V)
+    score = (qv[faces[:, 0]] + qv[faces[:, 1]] + qv[faces[:, 2]]) * ok
+    v = np.asarray(vertices, np.float64)
+    g = v[faces].mean(axis=1)                                 # (F, 3)
+    d = np.asarray(centres, np.float64)[None] - g[:, None]    # (F, V, 3)
+    d /= np.maximum(np.linalg.norm(d, axis=2, keepdims=True), 1e-12)
+    d = d.astype(np.float32)
+    rows = np.arange(nf)
+    out = np.full((nf, K), -1, np.int32)
+    first = np.argmax(np.where(ok, score, -1.0), axis=1)
+    have = ok[rows, first]
+    out[:, 0] = np.where(have, first, -1)
+    near = np.where(ok, np.einsum("fvd,fd->fv", d, d[rows, first]), 2.0)   # cosine to the nearest kept view
+    taken = np.zeros((nf, nv), bool)
+    taken[rows, first] = True
+    for k in range(1, K):
+        far = np.where(ok & ~taken, near, 2.0)               # lowest cosine = farthest from the kept ones
+        nxt = np.argmin(far, axis=1)
+        have = far[rows, nxt] < 2.0
+        out[:, k] = np.where(have, nxt, -1)
+        taken[rows[have], nxt[have]] = True
+        near = np.maximum(near, np.einsum("fvd,fd->fv", d, d[rows, nxt]))
+    return out
+
+
+def bake_layers(layout, vertices, faces, cameras, frame, face_view, gains, base) -> tuple[np.ndarray, np.ndarray]:
+    """Bake each layer from its one camera per face (gain-corrected, no blending, no seam levelling: the
+    renderer blends). ``base`` (S, S, 3) uint8, the blended texture, fills what a layer's camera cannot paint.
+    Returns (layers (K, S, S, 3) uint8, texel_view (S, S, K) uint8)."""
+    nf, K = face_view.shape
+    S = layout.size
+    layers = np.repeat(np.asarray(base, np.uint8)[None], K, axis=0)
+    texel_view = np.full((S, S, K), NONE, np.uint8)
+    flat_view = texel_view.reshape(-1, K)
+    dev = layout.device()
+    for k in range(K):
+        fv = face_view[:, k:k + 1]
+        blend = Blend(fv, np.repeat((fv >= 0)[:, None, :], 3, axis=1).astype(np.float32),
+                      np.zeros((nf, 3, 1, 3), np.float32), gains)
+        rgbw = bake_samples(layout.face, layout.bary, vertices, faces, cameras, frame, blend, device_samples=dev)
+        got = rgbw[:, 3] > 0
+        idx = layout.texel[got]
+        layers[k].reshape(-1, 3)[idx] = np.clip(rgbw[got, :3] + 0.5, 0, 255).astype(np.uint8)
+        flat_view[idx, k] = fv[layout.face[got], 0].astype(np.uint8)
+    return layers, texel_view
+
+
+def render_layers(vertices, faces, face_uv, base, vl: ViewLayers, cameras, view, *, sigma=None,
+                  background=(0, 0, 0)):
+    """Render the view-dependent texture into camera ``view`` (what a player does at that eye): the layers
+    blended with the static texture ``base`` by ``layer_weights``. Returns (rgb (H, W,
+    3) uint8, coverage (H, W) bool)."""
+    from nodes.common.raster import rasterize, sample_texture
+
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    tri, _, bary = rasterize(v, f, cameras, view)
+    hit = tri >= 0
+    t = tri[hit]
+    b = bary[hit].astype(np.float64)
+    X = np.einsum("nc,ncd->nd", b, v[f[t]])
+    uv = np.einsum("nc,ncd->nd", b.astype(np.float32), np.asarray(face_uv, np.float32)[t])
+    S = vl.texel_view.shape[0]
+    tx = np.clip((uv[:, 0] * S).astype(np.int64), 0, S - 1)
+    ty = np.clip(((1.0 - uv[:, 1]) * S).astype(np.int64), 0, S - 1)
+    ids = vl.texel_view[ty, tx]                                   # (N, K) nearest texel: ids do not interpolate
+    w, wb = layer_weights(X, cameras.centers[view], vl.centres, ids, vl.sigma if sigma is None else sigma)
+    col = wb[:, None] * sample_texture(base, uv)
+    for k in range(vl.layers.shape[0]):
+        col += w[:, k:k + 1] * sample_texture(vl.layers[k], uv)
+    out = np.empty(tri.shape + (3,), np.uint8)
+    out[:] = np.asarray(background, np.uint8)
+    out[hit] = np.clip(col + 0.5, 0, 255).astype(np.uint8)
+    return out, hit
