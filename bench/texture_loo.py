@@ -245,7 +245,7 @@ def main():
     print(describe())
     table = []
     for name in args.datasets.split(","):
-        pic = None if args.pictures is None else Path(args.pictures) / f"texture_loo_{name}.png"
+        pic = None if args.pictures is None else Path(args.pictures) / f"texture_loo_{name}.jpg"
         rows, extra = evaluate(name, Path(args.cache), args.held, not args.no_meshlab, args.size, pic)
         table.append((name, rows, extra))
     print(f"\nleave-one-camera-out PSNR (dB) / SSIM inside mask and render: median (worst) over held-out cameras; "
