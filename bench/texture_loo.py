@@ -248,7 +248,8 @@ def main():
         pic = None if args.pictures is None else Path(args.pictures) / f"texture_loo_{name}.jpg"
         rows, extra = evaluate(name, Path(args.cache), args.held, not args.no_meshlab, args.size, pic)
         table.append((name, rows, extra))
-    print(f"\nleave-one-camera-out PSNR (dB) / SSIM inside mask and render: median (worst) over held-out cameras; "
+    print("\n" + describe())                               # again beside the figures: the run is long
+    print(f"leave-one-camera-out PSNR (dB) / SSIM inside mask and render: median (worst) over held-out cameras; "
           f"load {load_average()}")
     keys = list(table[0][1])
     print("| dataset | faces | views | " + " | ".join(keys) + " | bg texels (painted) | ours s/frame | + layers s/frame |")
