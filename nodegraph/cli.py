@@ -189,6 +189,46 @@ def cmd_report(args) -> int:
     return 0
 
 
+def _board(text: str) -> list[int]:
+    m = re.fullmatch(r"\s*(\d+)\s*[xX,]\s*(\d+)\s*", text)
+    if not m:
+        raise argparse.ArgumentTypeError(f"board '{text}': give the inner corners as COLSxROWS, e.g. 9x6")
+    return [int(m.group(1)), int(m.group(2))]
+
+
+def cmd_calibrate(args) -> int:
+    """`volcap calibrate FOLDER`: writes a one-node graph (OUT/calibrate.yaml, rerun or edit it) and runs it."""
+    import json
+
+    folder = Path(args.folder).resolve()
+    if not folder.is_dir():
+        raise GraphError(f"calibrate: {args.folder} is not a folder")
+    out = Path(args.out or Path("out") / f"calibrate_{folder.name}")
+    params = {"path": str(folder), "board": args.board, "square": args.square, "intrinsics": args.intrinsics,
+              "extrinsics": args.extrinsics, "cameras": [c for c in (args.cameras or "").split(",") if c],
+              "every": args.every, "k3": args.k3, "outlier_px": args.outlier_px, "out": "calibration"}
+    out.mkdir(parents=True, exist_ok=True)
+    graph = out / "calibrate.yaml"
+    text = ("# written by `volcap calibrate`; rerun with `volcap run " + graph.as_posix() + f" --out {out.as_posix()}`\n"
+            "frames: 0:1\nnodes:\n  calibrate: {type: calibrate, params: " + json.dumps(params) + "}\n")
+    from .cache import atomic_write_text
+
+    atomic_write_text(graph, text)
+    run_args = argparse.Namespace(graph=str(graph), set=None, frames=None, cache=args.cache, device=None, verbose=False,
+                                  keep_all=False, report=False, out=str(out), executor="local", jobs=1, workers=None,
+                                  scheduler=None, quiet=True)
+    rc = cmd_run(run_args)
+    report = out / "calibration" / "report.json"
+    if rc == 0 and report.is_file():
+        r = json.loads(report.read_text())
+        print(f"{'camera':<16}{'RMS px':>8}{'max px':>8}{'views':>7}{'shared':>7}{'dropped':>8}   fx        fy        cx       cy")
+        for c in r["cameras"]:
+            print(f"{c['camera']:<16}{c['rms_px']:8.3f}{c['max_px']:8.2f}{c['views']:7d}{c['shared_views']:7d}"
+                  f"{c['dropped_views']:8d}   {c['fx']:<9.2f} {c['fy']:<9.2f} {c['cx']:<8.2f} {c['cy']:.2f}")
+        print(f"all: RMS {r['rms_px']:.3f} px; world: {r['world']}; files: {out / 'calibration'}")
+    return rc
+
+
 def _positive_int(text: str) -> int:
     try:
         n = int(text)
@@ -248,6 +288,21 @@ def build_parser() -> argparse.ArgumentParser:
     dv = sub.add_parser("devices", help="list OpenCL devices, fastest first (the fastest is used by default)")
     dv.add_argument("--refresh", action="store_true", help="measure the devices again")
     dv.set_defaults(fn=cmd_devices)
+    cb = sub.add_parser("calibrate", help="calibrate a rig from checkerboard images or videos in a folder")
+    cb.add_argument("folder", help="folder holding the board images or videos")
+    cb.add_argument("--board", type=_board, required=True, help="inner corners COLSxROWS, e.g. 9x6")
+    cb.add_argument("--square", type=float, required=True, help="side of a square in metres")
+    cb.add_argument("--intrinsics", default="intrinsics/{name}/*",
+                    help="pattern of each camera's own board images ({name} = camera; default %(default)s; '' = none)")
+    cb.add_argument("--extrinsics", default="", help="pattern of the shared shots ({name}, {shot}), e.g. "
+                    "'extrinsics/{name}/{shot}.png'; default: none (intrinsics only)")
+    cb.add_argument("--cameras", help="comma-separated camera names (default: every {name} found)")
+    cb.add_argument("--every", type=_positive_int, default=10, help="videos: every k-th frame (default 10)")
+    cb.add_argument("--k3", action="store_true", help="also fit the third radial coefficient")
+    cb.add_argument("--outlier-px", type=float, default=2.0, help="outlier threshold floor in pixels (default 2)")
+    cb.add_argument("--out", help="output folder (default out/calibrate_FOLDERNAME)")
+    cb.add_argument("--cache", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
+    cb.set_defaults(fn=cmd_calibrate)
     rp = sub.add_parser("report", help="write report.html for an existing output folder")
     rp.add_argument("out_dir")
     rp.set_defaults(fn=cmd_report)

@@ -13,6 +13,9 @@
     matlab      .mat file holding a cell array of 3x4 P matrices (Oxford VGG)
     qualisys    Qualisys QTM calibration XML (.qca, Calib.qca.txt, or .xml): camera centre in mm, rotation,
                 intrinsics in 1/64 px, distortion as written (not /64; read_qualisys); positions in metres
+    toml        Pose2Sim / anipose calibration TOML: a table per camera with name, size [w, h], matrix,
+                distortions (k1 k2 p1 p2 [k3]), rotation (a rotation vector, world -> camera), translation
+Writers: save_colmap, save_nerf, save_opencv (one FileStorage YAML per camera, as read_opencv reads it), save_toml.
 A folder is searched for these files (also calibration/*.qca.txt); per-camera files (calibration/*.xml,
 cam*/config.xml) make one set.
 
@@ -28,6 +31,7 @@ every one against cv2.projectPoints on hand-written files):
     tsinghua    centre  K as given
     qualisys    centre  centerPointU/64 - fov_video.left taken as OpenCV's cx (as Pose2Sim reads it; the file
                         does not say where its 1/64-pixel grid starts)
+    toml        centre  OpenCV's matrices as Pose2Sim and anipose write them
 Units: the cameras keep their file's length unit, except qualisys (millimetres), which is converted to metres
 (the unit of the synthetic rigs).
 P matrices are decomposed (cv2.decomposeProjectionMatrix) into a metric camera when the result is physical
@@ -46,11 +50,11 @@ import numpy as np
 from .cameras import Camera, Cameras
 from nodegraph.errors import DataError
 
-FORMATS = ("colmap", "nerf", "middlebury", "opencv", "ptext", "inria", "idr", "tsinghua", "matlab", "qualisys")
+FORMATS = ("colmap", "nerf", "middlebury", "opencv", "ptext", "inria", "idr", "tsinghua", "matlab", "qualisys", "toml")
 # where a format puts pixel coordinate (0, 0): the top-left pixel's centre or its corner (see the docstring)
 CONVENTIONS = {"colmap": "corner", "nerf": "corner", "middlebury": "centre", "opencv": "centre", "ptext": "centre",
                "inria": "centre", "idr": "centre", "tsinghua": "centre", "matlab": "centre",
-               "qualisys": "centre"}
+               "qualisys": "centre", "toml": "centre"}
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".exr")
 
 
@@ -543,6 +547,42 @@ def read_opencv(path: Path, image_sizes=None, name: str | None = None) -> Camera
         fs.release()
 
 
+def read_toml(path: Path, image_sizes=None) -> Cameras:
+    """Pose2Sim / anipose calibration TOML: one table per camera (``metadata`` skipped) with ``matrix`` (3x3),
+    ``distortions`` (k1 k2 p1 p2 [k3]), ``rotation`` (rotation vector, world -> camera), ``translation`` and
+    ``size`` [width, height]; ``name`` when present, else the table's key."""
+    import tomllib
+
+    import cv2
+
+    try:
+        doc = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise DataError(f"{path}: not TOML ({exc})") from None
+    cams = []
+    for i, (key, tab) in enumerate((k, v) for k, v in doc.items() if isinstance(v, dict) and "matrix" in v):
+        name = str(tab.get("name", key))
+        missing = [f for f in ("matrix", "rotation", "translation") if f not in tab]
+        if missing:
+            raise DataError(f"{path}: [{key}] has no {', '.join(missing)}")
+        if tab.get("fisheye", False):
+            raise DataError(f"{path}: [{key}] is a fisheye camera (not supported: OpenCV radial-tangential only)")
+        K = _finite(tab["matrix"], f"[{key}] matrix", path).reshape(3, 3)
+        dist = _finite(tab.get("distortions", [0] * 4), f"[{key}] distortions", path).ravel()
+        if dist.size > 5:
+            raise DataError(f"{path}: [{key}] has {dist.size} distortion coefficients (k1 k2 p1 p2 [k3] supported)")
+        R = cv2.Rodrigues(_finite(tab["rotation"], f"[{key}] rotation", path).reshape(3, 1))[0]
+        t = _finite(tab["translation"], f"[{key}] translation", path).reshape(3)
+        if "size" in tab and image_sizes is None:
+            w, h = (int(round(v)) for v in tab["size"])
+        else:
+            w, h = _size_for(i, name, image_sizes, path)
+        cams.append(Camera(name, w, h, K, np.hstack([R, t[:, None]]), dist))
+    if not cams:
+        raise DataError(f"{path}: no camera table (with a 'matrix') in the TOML file")
+    return Cameras(cams)
+
+
 def _checked(cams: list[Camera], path) -> Cameras:
     """A camera set may not mix metric and bare-P cameras: if some P matrices decompose and others do not,
     keep them all as bare P. Bare-P cameras get their front side from the scene (orient_bare_P)."""
@@ -590,6 +630,8 @@ def _sniff_file(p: Path) -> str | None:
         return "matlab"
     if name.endswith((".qca", ".qca.txt")):
         return "qualisys"
+    if suf == ".toml":
+        return "toml" if re.search(r"^\s*matrix\s*=", p.read_text(errors="replace"), re.M) else None
     if suf in (".xml", ".yml", ".yaml"):
         head = p.read_text(errors="replace")[:400]
         if suf == ".xml" and re.search(r"<calibration[\s>]", head) and "<cameras" in p.read_text(errors="replace")[:4000]:
@@ -712,7 +754,7 @@ def _read_unchecked(fmt: str, p, image_sizes) -> Cameras:
         return Cameras(cams)
     readers = {"colmap": read_colmap, "nerf": read_nerf, "middlebury": read_middlebury, "ptext": read_ptext,
                "inria": lambda q, s: read_inria([q], s), "idr": read_idr, "tsinghua": read_tsinghua,
-               "matlab": read_matlab, "opencv": read_opencv, "qualisys": read_qualisys}
+               "matlab": read_matlab, "opencv": read_opencv, "qualisys": read_qualisys, "toml": read_toml}
     return readers[fmt](Path(p), image_sizes)
 
 
@@ -787,3 +829,45 @@ def save_nerf(cams: Cameras, path) -> None:
     if len({(f["fl_x"], f["w"]) for f in frames}) == 1:
         doc["camera_angle_x"] = float(2 * np.arctan(0.5 * frames[0]["w"] / frames[0]["fl_x"]))
     Path(path).write_text(json.dumps(doc, indent=1))
+
+
+def save_opencv(cams: Cameras, folder) -> None:
+    """One OpenCV FileStorage YAML per camera, ``<name>.yml`` (camera_matrix, distortion_coefficients, R, T,
+    image_width, image_height), as read_opencv reads it."""
+    import cv2
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    for c in cams:
+        _exportable(c, "OpenCV YAML")
+        fs = cv2.FileStorage(str(folder / f"{c.name}.yml"), cv2.FILE_STORAGE_WRITE)
+        try:
+            fs.write("image_width", c.width)
+            fs.write("image_height", c.height)
+            fs.write("camera_matrix", c.K)
+            fs.write("distortion_coefficients", c.dist.reshape(1, 5))
+            fs.write("R", c.Rt[:, :3])
+            fs.write("T", c.Rt[:, 3].reshape(3, 1))
+        finally:
+            fs.release()
+
+
+def save_toml(cams: Cameras, path, error: float = 0.0) -> None:
+    """Pose2Sim / anipose calibration TOML (rotation vector and translation world -> camera, the file's length
+    unit = the cameras'; ``error``: the calibration's reprojection RMS in pixels, written in [metadata])."""
+    import cv2
+
+    def arr(v):
+        return "[ " + ", ".join(repr(float(x)) for x in np.ravel(v)) + "]"
+
+    out = []
+    for c in cams:
+        _exportable(c, "TOML")
+        key = re.sub(r"[^A-Za-z0-9_-]", "_", c.name)
+        rows = ", ".join(arr(r) for r in c.K)
+        out += [f"[{key}]", f'name = "{c.name}"', f"size = {arr([c.width, c.height])}", f"matrix = [ {rows}]",
+                f"distortions = {arr(c.dist if c.dist[4] != 0 else c.dist[:4])}",
+                f"rotation = {arr(cv2.Rodrigues(c.Rt[:, :3])[0])}", f"translation = {arr(c.Rt[:, 3])}",
+                "fisheye = false", ""]
+    out += ["[metadata]", "adjusted = false", f"error = {float(error)!r}", ""]
+    Path(path).write_text("\n".join(out))

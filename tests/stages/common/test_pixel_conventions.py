@@ -124,10 +124,21 @@ def write(fmt, folder, cams, offset):
         blocks = [nums(i, shifted(K, offset), d[:2], R[0], t[0], R[1], t[1], R[2], t[2]) for i, (_, K, R, t, d) in enumerate(cams)]
         (folder / "calibParamsI.txt").write_text("\n".join(blocks) + "\n")
         return folder / "calibParamsI.txt"
+    if fmt == "toml":  # Pose2Sim's layout, written by hand
+        tabs = []
+        for i, (n, K, R, t, d) in enumerate(cams):
+            Kf = shifted(K, offset).tolist()
+            tabs.append(f"[cam_{i:02d}]\nname = \"{n}\"\nsize = [ {W}.0, {H}.0]\n"
+                        f"matrix = [ [ {Kf[0][0]!r}, 0.0, {Kf[0][2]!r}], [ 0.0, {Kf[1][1]!r}, {Kf[1][2]!r}], [ 0.0, 0.0, 1.0]]\n"
+                        f"distortions = [ {', '.join(repr(float(x)) for x in d[:4])}]\n"
+                        f"rotation = [ {', '.join(repr(float(x)) for x in cv2.Rodrigues(R)[0].ravel())}]\n"
+                        f"translation = [ {', '.join(repr(float(x)) for x in t)}]\nfisheye = false\n")
+        (folder / "Calib.toml").write_text("\n".join(tabs) + "\n[metadata]\nadjusted = false\nerror = 0.0\n")
+        return folder / "Calib.toml"
     raise AssertionError(fmt)
 
 
-DISTORTED = {"colmap", "nerf", "opencv", "tsinghua", "qualisys"}
+DISTORTED = {"colmap", "nerf", "opencv", "tsinghua", "qualisys", "toml"}
 
 
 @pytest.mark.parametrize("fmt", calibration.FORMATS)

@@ -1,0 +1,145 @@
+"""calibrate on synthetic boards of known truth (a ring of 12 cameras with distortion, boards held close to each
+camera and shared shots in the middle of the stage) through the CLI (`volcap calibrate`), against the plain
+OpenCV route a user would otherwise script (cv2.calibrateCamera per camera, camera poses chained through the shared
+shots from single views: the calibration's start, before the bundle adjustment), same detections, same run; and
+pose2sim_single's checkerboard intrinsics against its Qualisys calibration.
+
+    python bench/calibrate.py [--cameras 12] [--width 960] [--height 540]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+from machine import describe, load_average  # noqa: E402
+from nodes.calibrate.board import Board  # noqa: E402
+from nodes.calibrate.bundle import calibrate_views  # noqa: E402
+from nodes.calibrate.sources import detect_all, find  # noqa: E402
+from nodes.common import calibration  # noqa: E402
+from nodes.synth.boards import board_rig, write_board_capture  # noqa: E402
+
+BOARD = Board(9, 6, 0.08)
+SHARED = "extrinsics/{name}/{shot}.png"
+
+
+def cli(folder: Path, out: Path, *extra) -> float:
+    t = time.perf_counter()
+    subprocess.run([sys.executable, str(ROOT / "app.py"), "--cache", str(out / "cache"), "calibrate", str(folder),
+                    "--board", f"{BOARD.cols}x{BOARD.rows}", "--square", str(BOARD.square), "--out", str(out), *extra],
+                   check=True, stdout=subprocess.DEVNULL)
+    return time.perf_counter() - t
+
+
+def errors(truth_cams, shot, cams) -> np.ndarray:
+    Rb, tb = shot
+    rows = []
+    for c, e in zip(truth_cams, cams):
+        R, t = c.Rt[:, :3] @ Rb, c.Rt[:, :3] @ tb + c.Rt[:, 3]
+        rot = math.degrees(math.acos(np.clip((np.trace(R.T @ e.Rt[:, :3]) - 1) / 2, -1, 1)))
+        rows.append((100 * abs(e.K[0, 0] / c.K[0, 0] - 1), np.abs(e.K[:2, 2] - c.K[:2, 2]).max(), rot,
+                     1000 * np.linalg.norm(-R.T @ t - e.center)))
+    return np.array(rows)
+
+
+def synthetic(args, noise: float, blur: float, tmp: Path) -> list[str]:
+    folder = tmp / f"boards_{noise}_{blur}"
+    cams = board_rig(args.cameras, args.width, args.height)
+    t = time.perf_counter()
+    truth = write_board_capture(folder, cams, BOARD, intrinsic=args.intrinsic, shared=args.shared, noise=noise, blur=blur)
+    render_s = time.perf_counter() - t
+    out = tmp / f"out_{noise}_{blur}"
+    ours_s = cli(folder, out, "--extrinsics", SHARED)
+    report = json.loads((out / "calibration/report.json").read_text())
+    ours = calibration.load_cameras(out / "calibration/Calib.toml")
+    ref = truth["shots"][int(report["reference_shot"].split(":")[1])]
+    # the plain OpenCV route on the same detections: detection time + cv2.calibrateCamera per camera + chaining
+    names = ours.names
+    t = time.perf_counter()
+    sizes: dict = {}
+    views = []
+    for kind, pat in (("intrinsics", "intrinsics/{name}/*"), ("extrinsics", SHARED)):
+        views += detect_all(find(folder, pat, kind, names), names, BOARD, 10, kind == "extrinsics", sizes, folder)[0]
+    detect_s = time.perf_counter() - t
+    import cv2
+
+    t = time.perf_counter()
+    for c in range(len(names)):
+        vs = [v for v in views if v.cam == c]
+        cv2.calibrateCamera([BOARD.object_points().astype(np.float32)] * len(vs), [v.uv.astype(np.float32) for v in vs],
+                            sizes[names[c]], None, None, flags=cv2.CALIB_FIX_K3)
+    opencv_s = detect_s + time.perf_counter() - t
+    sol = calibrate_views(views, names, [sizes[n] for n in names], BOARD.object_points())
+    e_ours, e_cv = errors(cams, ref, ours), errors(cams, ref, sol.start)
+    start_rms = float(np.sqrt(np.mean([c["start_rms_px"] ** 2 for c in report["cameras"]])))
+    label = f"synthetic {args.cameras} cams {args.width}x{args.height}, noise {noise}, blur {blur} px"
+    rows = []
+    for what, e, rms, sec in (("OpenCV per camera + chained poses", e_cv, start_rms, opencv_s),
+                              ("volcap calibrate (CLI, bundle adjusted)", e_ours, report["rms_px"], ours_s)):
+        rows.append(f"| {label} | {what} | {np.median(e[:, 0]):.3f} / {e[:, 0].max():.3f} | "
+                    f"{np.median(e[:, 1]):.2f} / {e[:, 1].max():.2f} | {np.median(e[:, 2]):.3f} / {e[:, 2].max():.3f} | "
+                    f"{np.median(e[:, 3]):.1f} / {e[:, 3].max():.1f} | {rms:.3f} | {sec:.1f} |")
+    print(f"  {label}: rendered {render_s:.1f} s; {len(views)} views, {report['shared_shots']} shared shots, "
+          f"dropped {len(report['dropped_views'])} views; load {load_average()}", flush=True)
+    return rows
+
+
+def pose2sim(tmp: Path, data: Path) -> list[str]:
+    folder = data / "pose2sim_single/calibration/intrinsics"
+    if not folder.is_dir():
+        return [f"(pose2sim_single not found under {data})"]
+    out = tmp / "p2s"
+    board = "4x7"
+    t = time.perf_counter()
+    subprocess.run([sys.executable, str(ROOT / "app.py"), "--cache", str(out / "cache"), "calibrate", str(folder),
+                    "--board", board, "--square", "0.06", "--intrinsics", "int_{name}_img/*.jpg", "--out", str(out)],
+                   check=True, stdout=subprocess.DEVNULL)
+    sec = time.perf_counter() - t
+    report = json.loads((out / "calibration/report.json").read_text())
+    q = calibration.load_cameras(data / "pose2sim_single/calibration/Calib.qca.txt", image_sizes=(1088, 1920))
+    rows = ["| camera | views found | fx ours / Qualisys (diff %) | cx ours / Qualisys | cy ours / Qualisys | k1 ours / Qualisys | RMS px |",
+            "|---|---|---|---|---|---|---|"]
+    for r, c in zip(report["cameras"], q):
+        d = r["detected"]["intrinsics"]
+        rows.append(f"| {r['camera']} | {d['found']} of {d['images']} | {r['fx']:.1f} / {c.K[0, 0]:.1f} "
+                    f"({100 * (r['fx'] / c.K[0, 0] - 1):+.2f}) | {r['cx']:.1f} / {c.K[0, 2]:.1f} | {r['cy']:.1f} / "
+                    f"{c.K[1, 2]:.1f} | {r['k1']:+.4f} / {c.dist[0]:+.4f} | {r['rms_px']:.3f} |")
+    rows.append(f"(CLI {sec:.1f} s for the four cameras)")
+    return rows
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--cameras", type=int, default=12)
+    ap.add_argument("--width", type=int, default=960)
+    ap.add_argument("--height", type=int, default=540)
+    ap.add_argument("--intrinsic", type=int, default=6)
+    ap.add_argument("--shared", type=int, default=16)
+    ap.add_argument("--data", default=str(ROOT.parent / "shared" / "data"))
+    args = ap.parse_args()
+    print(describe(), flush=True)
+    with tempfile.TemporaryDirectory() as d:
+        tmp = Path(d)
+        rows = ["| capture | route | focal error % (median / max) | principal point px | rotation deg | centre mm | "
+                "RMS px | seconds |", "|---|---|---|---|---|---|---|---|"]
+        for noise, blur in ((2.0, 0.7), (6.0, 1.5)):
+            rows += synthetic(args, noise, blur, tmp)
+        print("\n".join(rows))
+        print("\npose2sim_single intrinsics (4x7 board, 60 mm) vs its Qualisys calibration:")
+        print("\n".join(pose2sim(tmp, Path(args.data))))
+    print(f"load after: {load_average()}")
+
+
+if __name__ == "__main__":
+    main()
