@@ -231,3 +231,28 @@ def test_pose2sim_intrinsics_match_qualisys(dataset_run, data_dir):
         assert abs(row["cx"] - q.K[0, 2]) < 50 and abs(row["cy"] - q.K[1, 2]) < 50, (row, q.K)
         assert row["rms_px"] < 0.5 and row["views"] >= 6
     assert output(res, "calibrate", "cameras") is None
+
+
+def test_videos_are_read_frame_by_frame(tmp_path):
+    """The same boards as videos (MJPG .avi): every frame a view, the frame number the shot of the shared ones;
+    the rig agrees with the one from the still images (the views found within one per camera, focal lengths within
+    0.5 %)."""
+    small_folder(tmp_path, cams=4, shared=16)
+    names = ["cam01", "cam02", "cam03", "cam04"]
+    for kind, video in (("intrinsics", "intr"), ("extrinsics", "ext")):
+        (tmp_path / video).mkdir()
+        for n in names:
+            frames = [cv2.imread(str(f)) for f in sorted((tmp_path / kind / n).glob("*.png"))]
+            h, w = frames[0].shape[:2]
+            vw = cv2.VideoWriter(str(tmp_path / video / f"{n}.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 10, (w, h))
+            for f in frames:
+                vw.write(f)
+            vw.release()
+    stills = node(tmp_path, extrinsics=SHARED, cameras=names)
+    videos = node(tmp_path, intrinsics="intr/{name}.avi", extrinsics="ext/{name}.avi", cameras=names, every=1)
+    assert abs(videos["report"]["shared_shots"] - stills["report"]["shared_shots"]) <= 1
+    assert videos["report"]["shared_shots"] >= 8
+    for a, b in zip(stills["report"]["cameras"], videos["report"]["cameras"]):
+        assert abs(a["views"] - b["views"]) <= 1  # JPEG frames: a marginal board may be found in one, not the other
+        assert abs(a["fx"] / b["fx"] - 1) < 0.005
+    assert videos["cameras"] is not None and videos["report"]["rms_px"] < 0.3
