@@ -31,13 +31,16 @@ from nodes.common import calibration  # noqa: E402
 from nodes.synth.boards import board_rig, write_board_capture  # noqa: E402
 
 BOARD = Board(9, 6, 0.08)
+CHARUCO = Board(9, 6, 0.12, marker=0.09)  # bigger: 4x4 markers need ~5 px a cell across the stage
 SHARED = "extrinsics/{name}/{shot}.png"
 
 
-def cli(folder: Path, out: Path, *extra) -> float:
+def cli(folder: Path, out: Path, board: Board, *extra) -> float:
     t = time.perf_counter()
+    charuco = ["--marker", str(board.marker), "--dictionary", board.dictionary] if board.charuco else []
     subprocess.run([sys.executable, str(ROOT / "app.py"), "--cache", str(out / "cache"), "calibrate", str(folder),
-                    "--board", f"{BOARD.cols}x{BOARD.rows}", "--square", str(BOARD.square), "--out", str(out), *extra],
+                    "--board", f"{board.cols}x{board.rows}", "--square", str(board.square), "--out", str(out),
+                    *charuco, *extra],
                    check=True, stdout=subprocess.DEVNULL)
     return time.perf_counter() - t
 
@@ -53,37 +56,38 @@ def errors(truth_cams, shot, cams) -> np.ndarray:
     return np.array(rows)
 
 
-def synthetic(args, noise: float, blur: float, tmp: Path) -> list[str]:
-    folder = tmp / f"boards_{noise}_{blur}"
+def synthetic(args, board: Board, noise: float, blur: float, tmp: Path) -> list[str]:
+    kind = "ChArUco" if board.charuco else "checkerboard"
+    folder = tmp / f"boards_{kind}_{noise}_{blur}"
     cams = board_rig(args.cameras, args.width, args.height)
     t = time.perf_counter()
-    truth = write_board_capture(folder, cams, BOARD, intrinsic=args.intrinsic, shared=args.shared, noise=noise, blur=blur)
+    truth = write_board_capture(folder, cams, board, intrinsic=args.intrinsic, shared=args.shared, noise=noise, blur=blur)
     render_s = time.perf_counter() - t
-    out = tmp / f"out_{noise}_{blur}"
-    ours_s = cli(folder, out, "--extrinsics", SHARED)
+    out = tmp / f"out_{kind}_{noise}_{blur}"
+    ours_s = cli(folder, out, board, "--extrinsics", SHARED)
     report = json.loads((out / "calibration/report.json").read_text())
-    ours = calibration.load_cameras(out / "calibration/Calib.toml")
+    ours = calibration.load_cameras(out / "calibration" / "Calib.toml")
     ref = truth["shots"][int(report["reference_shot"].split(":")[1])]
     # the plain OpenCV route on the same detections: detection time + cv2.calibrateCamera per camera + chaining
     names = ours.names
     t = time.perf_counter()
     sizes: dict = {}
     views = []
-    for kind, pat in (("intrinsics", "intrinsics/{name}/*"), ("extrinsics", SHARED)):
-        views += detect_all(find(folder, pat, kind, names), names, BOARD, 10, kind == "extrinsics", sizes, folder)[0]
+    for what, pat in (("intrinsics", "intrinsics/{name}/*"), ("extrinsics", SHARED)):
+        views += detect_all(find(folder, pat, what, names), names, board, 10, what == "extrinsics", sizes, folder)[0]
     detect_s = time.perf_counter() - t
     import cv2
 
     t = time.perf_counter()
     for c in range(len(names)):
         vs = [v for v in views if v.cam == c]
-        cv2.calibrateCamera([BOARD.object_points().astype(np.float32)] * len(vs), [v.uv.astype(np.float32) for v in vs],
+        cv2.calibrateCamera([board.object_points()[v.ids].astype(np.float32) for v in vs], [v.uv.astype(np.float32) for v in vs],
                             sizes[names[c]], None, None, flags=cv2.CALIB_FIX_K3)
     opencv_s = detect_s + time.perf_counter() - t
-    sol = calibrate_views(views, names, [sizes[n] for n in names], BOARD.object_points())
+    sol = calibrate_views(views, names, [sizes[n] for n in names], board.object_points())
     e_ours, e_cv = errors(cams, ref, ours), errors(cams, ref, sol.start)
     start_rms = float(np.sqrt(np.mean([c["start_rms_px"] ** 2 for c in report["cameras"]])))
-    label = f"synthetic {args.cameras} cams {args.width}x{args.height}, noise {noise}, blur {blur} px"
+    label = f"{kind}, {args.cameras} cams {args.width}x{args.height}, noise {noise}, blur {blur} px"
     rows = []
     for what, e, rms, sec in (("OpenCV per camera + chained poses", e_cv, start_rms, opencv_s),
                               ("volcap calibrate (CLI, bundle adjusted)", e_ours, report["rms_px"], ours_s)):
@@ -133,8 +137,8 @@ def main():
         tmp = Path(d)
         rows = ["| capture | route | focal error % (median / max) | principal point px | rotation deg | centre mm | "
                 "RMS px | seconds |", "|---|---|---|---|---|---|---|---|"]
-        for noise, blur in ((2.0, 0.7), (6.0, 1.5)):
-            rows += synthetic(args, noise, blur, tmp)
+        for board, noise, blur in ((BOARD, 2.0, 0.7), (BOARD, 6.0, 1.5), (CHARUCO, 6.0, 1.5)):
+            rows += synthetic(args, board, noise, blur, tmp)
         print("\n".join(rows))
         print("\npose2sim_single intrinsics (4x7 board, 60 mm) vs its Qualisys calibration:")
         print("\n".join(pose2sim(tmp, Path(args.data))))

@@ -204,7 +204,8 @@ def cmd_calibrate(args) -> int:
     if not folder.is_dir():
         raise GraphError(f"calibrate: {args.folder} is not a folder")
     out = Path(args.out or Path("out") / f"calibrate_{folder.name}")
-    params = {"path": str(folder), "board": args.board, "square": args.square, "intrinsics": args.intrinsics,
+    params = {"path": str(folder), "board": args.board, "square": args.square, "marker": args.marker,
+              "dictionary": args.dictionary, "intrinsics": args.intrinsics,
               "extrinsics": args.extrinsics, "cameras": [c for c in (args.cameras or "").split(",") if c],
               "every": args.every, "k3": args.k3, "outlier_px": args.outlier_px, "out": "calibration"}
     out.mkdir(parents=True, exist_ok=True)
@@ -292,6 +293,9 @@ def build_parser() -> argparse.ArgumentParser:
     cb.add_argument("folder", help="folder holding the board images or videos")
     cb.add_argument("--board", type=_board, required=True, help="inner corners COLSxROWS, e.g. 9x6")
     cb.add_argument("--square", type=float, required=True, help="side of a square in metres")
+    cb.add_argument("--marker", type=float, default=0.0, help="ChArUco: side of a marker in metres (default 0: a "
+                    "checkerboard); --board still counts inner corners")
+    cb.add_argument("--dictionary", default="DICT_4X4_50", help="ChArUco: ArUco dictionary (default %(default)s)")
     cb.add_argument("--intrinsics", default="intrinsics/{name}/*",
                     help="pattern of each camera's own board images ({name} = camera; default %(default)s; '' = none)")
     cb.add_argument("--extrinsics", default="", help="pattern of the shared shots ({name}, {shot}), e.g. "

@@ -19,22 +19,44 @@ import numpy as np
 from nodegraph.errors import NodeError
 
 
+DICTIONARIES = ("DICT_4X4_50", "DICT_4X4_100", "DICT_4X4_250", "DICT_5X5_50", "DICT_5X5_100", "DICT_5X5_250",
+                "DICT_6X6_50", "DICT_6X6_250", "DICT_7X7_50", "DICT_ARUCO_ORIGINAL")
+
+
 @dataclass(frozen=True)
 class Board:
     cols: int          # inner corners along a row
     rows: int          # inner corners along a column
     square: float      # side of a square, metres
+    marker: float = 0.0            # ChArUco: side of a marker, metres (0 = a plain checkerboard)
+    dictionary: str = "DICT_4X4_50"
 
     def __post_init__(self):
         if self.cols < 2 or self.rows < 2:
             raise NodeError(f"calibrate: board {self.cols}x{self.rows}: needs at least 2x2 inner corners")
         if not self.square > 0:
             raise NodeError(f"calibrate: square {self.square} must be a positive length (metres)")
+        if self.marker and not 0 < self.marker < self.square:
+            raise NodeError(f"calibrate: marker {self.marker} must be smaller than the square {self.square}")
+        if self.marker and self.dictionary not in DICTIONARIES:
+            raise NodeError(f"calibrate: unknown ArUco dictionary '{self.dictionary}' (have: {', '.join(DICTIONARIES)})")
+
+    @property
+    def charuco(self) -> bool:
+        return self.marker > 0
 
     @property
     def unambiguous(self) -> bool:
-        """True when a half turn of the board changes its colours (cols + rows odd, cols != rows)."""
-        return (self.cols + self.rows) % 2 == 1
+        """True when every view numbers the corners the same way: a ChArUco board (its markers say which corner is
+        which), or a checkerboard a half turn changes the colours of (cols + rows odd, so cols != rows)."""
+        return self.charuco or (self.cols + self.rows) % 2 == 1
+
+    def opencv_charuco(self):
+        """cv2.aruco.CharucoBoard of (cols + 1) x (rows + 1) squares; its corner i is our corner i."""
+        import cv2
+
+        d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
+        return cv2.aruco.CharucoBoard((self.cols + 1, self.rows + 1), self.square, self.marker, d)
 
     def object_points(self) -> np.ndarray:
         r, c = np.mgrid[0:self.rows, 0:self.cols]
@@ -73,11 +95,33 @@ def canonical(grid: np.ndarray, gray: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(grid)
 
 
-def detect(gray: np.ndarray, board: Board) -> np.ndarray | None:
-    """Inner corners of ``board`` in a grey image (uint8), sub-pixel, canonical order, (rows * cols, 2) float64;
-    None when the whole board is not found."""
+MIN_CHARUCO = 8  # corners a ChArUco view needs (a homography's worth, not all on one line)
+
+
+def detect_charuco(gray: np.ndarray, board: Board) -> tuple[np.ndarray, np.ndarray] | None:
+    """(corner indices, pixels) of the ChArUco corners found (at least MIN_CHARUCO, not all on one row or
+    column), or None. Partial views count: the markers say which corners they are."""
     import cv2
 
+    det = cv2.aruco.CharucoDetector(board.opencv_charuco())
+    corners, ids, _, _ = det.detectBoard(gray)
+    if ids is None or len(ids) < MIN_CHARUCO:
+        return None
+    ids = ids.ravel().astype(int)
+    r, c = ids // board.cols, ids % board.cols
+    if len(set(r)) < 2 or len(set(c)) < 2:
+        return None
+    order = np.argsort(ids)
+    return ids[order], corners.reshape(-1, 2)[order].astype(np.float64)
+
+
+def detect(gray: np.ndarray, board: Board):
+    """Inner corners of ``board`` in a grey image (uint8), sub-pixel, canonical order, (rows * cols, 2) float64;
+    None when the whole board is not found. A ChArUco board gives (indices, pixels) of the corners found."""
+    import cv2
+
+    if board.charuco:
+        return detect_charuco(gray, board)
     flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
     scale = 1.0
     small = gray

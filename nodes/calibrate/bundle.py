@@ -33,9 +33,10 @@ NC, NS = len(CAM_PARAMS), 6
 class View:
     cam: int
     shot: str           # the same string in two cameras = the same instant
-    uv: np.ndarray      # (n, 2) corners, canonical order (board.detect)
+    uv: np.ndarray      # (n, 2) corners (board.detect)
     source: str         # file (and frame) it came from, for messages
     shared: bool        # from the extrinsics (synchronised) set
+    ids: np.ndarray     # (n,) which board corners they are (all of them for a checkerboard)
 
 
 def rodrigues(r: np.ndarray) -> np.ndarray:
@@ -103,7 +104,7 @@ def calibrate_views(views: list[View], names: list[str], sizes: list[tuple[int, 
     K0, D0, board_in_cam = [], [], {}
     for c, vs in enumerate(per_cam):
         w, h = sizes[c]
-        o = [obj.astype(np.float32)] * len(vs)
+        o = [obj[v.ids].astype(np.float32) for v in vs]
         p = [v.uv.astype(np.float32) for v in vs]
         try:
             _, K, D, rv, tv = cv2.calibrateCamera(o, p, (w, h), None, None, flags=flags)
@@ -165,15 +166,14 @@ def calibrate_views(views: list[View], names: list[str], sizes: list[tuple[int, 
         free[ncam * NC + shot_index[ref] * NS: ncam * NC + (shot_index[ref] + 1) * NS] = False
     x_start = x.copy()
 
-    n = len(obj)
-    keep = [np.ones(n, bool) for _ in views]
+    keep = [np.ones(len(v.ids), bool) for v in views]
     use = np.ones(len(views), bool)
 
     def arrays():
         vi = [i for i in range(len(views)) if use[i]]
         cam = np.concatenate([np.full(keep[i].sum(), views[i].cam) for i in vi])
         shot = np.concatenate([np.full(keep[i].sum(), shot_index[views[i].shot]) for i in vi])
-        pts = np.concatenate([obj[keep[i]] for i in vi])
+        pts = np.concatenate([obj[views[i].ids][keep[i]] for i in vi])
         uv = np.concatenate([views[i].uv[keep[i]] for i in vi])
         return cam, shot, pts, uv
 
@@ -214,8 +214,9 @@ def calibrate_views(views: list[View], names: list[str], sizes: list[tuple[int, 
         xx = x
         C = xx[:ncam * NC].reshape(ncam, NC)
         S = xx[ncam * NC:].reshape(len(shots), NS)
-        return [np.linalg.norm(project(np.repeat(C[v.cam][None], n, 0), np.repeat(S[shot_index[v.shot]][None], n, 0),
-                                       obj) - v.uv, axis=1) for v in views]
+        return [np.linalg.norm(project(np.repeat(C[v.cam][None], len(v.ids), 0),
+                                       np.repeat(S[shot_index[v.shot]][None], len(v.ids), 0), obj[v.ids]) - v.uv, axis=1)
+                for v in views]
 
     start_err = errors()
     solve("soft_l1")
@@ -255,6 +256,7 @@ def calibrate_views(views: list[View], names: list[str], sizes: list[tuple[int, 
             "camera": names[c], "rms_px": float(np.sqrt(np.mean(e ** 2))), "max_px": float(e.max()),
             "start_rms_px": float(np.sqrt(np.mean(e0 ** 2))),
             "views": len(idx), "shared_views": sum(views[i].shared for i in idx),
+            "corners": int(sum(keep[i].sum() for i in idx)),
             "dropped_views": sum(1 for i, v in enumerate(views) if v.cam == c and not use[i]),
             "dropped_corners": int(sum((~keep[i]).sum() for i in idx)),
             **{k: float(v) for k, v in zip(CAM_PARAMS[:9], p[:9])}})

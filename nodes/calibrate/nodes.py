@@ -18,7 +18,7 @@ from .sources import detect_all, find
 
 
 class Calibrate(Node):
-    """Calibrate a camera rig from a checkerboard: intrinsics per camera from its own board images (or video
+    """Calibrate a camera rig from a checkerboard or a ChArUco board: intrinsics per camera from its own board images (or video
     frames), extrinsics from shots where several cameras see the board at once, then one bundle adjustment over
     all cameras and board poses with outliers dropped; per-camera reprojection RMS in the report. Writes OpenCV
     YAML (one per camera), COLMAP text and a Pose2Sim/anipose TOML under ``out``. Without extrinsic shots it
@@ -39,6 +39,9 @@ class Calibrate(Node):
         "board": Param(list, REQUIRED, item=int, length=2, doc="inner corners [along a row, along a column], e.g. "
                        "[9, 6]; one even and one odd for extrinsic shots"),
         "square": Param(float, REQUIRED, range=(1e-4, 10.0), doc="side of a square in metres"),
+        "marker": Param(float, 0.0, range=(0.0, 10.0), doc="ChArUco: side of a marker in metres (0 = a plain "
+                        "checkerboard); the board has (cols + 1) x (rows + 1) squares and partial views count"),
+        "dictionary": Param(str, "DICT_4X4_50", doc="ChArUco: the ArUco dictionary (OpenCV's name)"),
         "intrinsics": Param(str, "intrinsics/{name}/*", doc="pattern of each camera's own board images or videos "
                             "({name} = camera, * = any); '' = none"),
         "extrinsics": Param(str, "", doc="pattern of the shared shots ({name}, {shot} = the same instant in every "
@@ -51,11 +54,12 @@ class Calibrate(Node):
         "out": Param(str, "calibration", doc="folder of the written files, relative to the run's output folder"),
     }
 
-    def run(self, *, path, board, square, intrinsics, extrinsics, cameras, every, k3, outlier_px, out):
+    def run(self, *, path, board, square, marker, dictionary, intrinsics, extrinsics, cameras, every, k3, outlier_px,
+            out):
         root = Path(path)
         if not root.is_dir():
             raise NodeError(f"calibrate: {root} is not a folder")
-        b = Board(board[0], board[1], square)
+        b = Board(board[0], board[1], square, marker, dictionary)
         if not intrinsics and not extrinsics:
             raise NodeError("calibrate: give an intrinsics or an extrinsics pattern (or both)")
         if extrinsics and not b.unambiguous:
@@ -83,13 +87,19 @@ class Calibrate(Node):
             looked = sum(t["images"] for c in counts.values() for t in c.values())
             raise NodeError(f"calibrate: a {b.cols}x{b.rows} board was found in none of the {looked} images: check "
                             f"'board' (inner corners, not squares: a board of 10x7 squares has 9x6)")
+        if extrinsics and not any(v.shared for v in views):
+            looked = sum(c.get("extrinsics", {}).get("images", 0) for c in counts.values())
+            raise NodeError(f"calibrate: the board was found in none of the {looked} shared images ('{extrinsics}'), so "
+                            f"no camera can be placed: the board is too small or too far in those views (markers of a "
+                            f"ChArUco board need about 5 pixels a cell)")
         sol = calibrate_views(views, names, [sizes[n] for n in names], b.object_points(), k3=k3, outlier_px=outlier_px)
         for row in sol.report["cameras"]:
             row["detected"] = counts.get(row["camera"], {})
             if row["rms_px"] > 1.0:
                 self.log.warning(f"camera '{row['camera']}': reprojection RMS {row['rms_px']:.2f} px (> 1 px: blurred or "
                                  f"mis-detected boards, or a lens the model does not fit; try k3: true)")
-        report = {**sol.report, "board": [b.cols, b.rows], "square_m": b.square}
+        report = {**sol.report, "board": [b.cols, b.rows], "square_m": b.square,
+                  **({"charuco": {"marker_m": b.marker, "dictionary": b.dictionary}} if b.charuco else {})}
         return {"cameras": sol.cameras, "report": report, "files": _files(sol, report, out)}
 
 

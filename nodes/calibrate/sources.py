@@ -111,12 +111,13 @@ def detect_all(sources: list[Source], names: list[str], board: Board, every: int
             if sizes.setdefault(s.name, (w, h)) != (w, h):
                 raise NodeError(f"calibrate: camera '{s.name}': {s.path.relative_to(root)} is {w}x{h}, its other images "
                                 f"are {sizes[s.name][0]}x{sizes[s.name][1]}")
-            uv = detect(gray, board)
+            got = detect(gray, board)
             found, seen = counts.get(s.name, (0, 0))
-            counts[s.name] = (found + (uv is not None), seen + 1)
-            if uv is None:
+            counts[s.name] = (found + (got is not None), seen + 1)
+            if got is None:
                 continue
+            ids, uv = got if board.charuco else (np.arange(board.cols * board.rows), got)
             src = s.path.relative_to(root).as_posix() + ("" if k is None else f"#{k}")
             shot = (s.shot if k is None else f"{s.shot}f{k:06d}") if shared else f"{s.name}/{src}"
-            views.append(View(cam, ("shared:" + shot) if shared else shot, uv, src, shared))
+            views.append(View(cam, ("shared:" + shot) if shared else shot, uv, src, shared, ids))
     return views, counts

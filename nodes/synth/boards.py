@@ -3,7 +3,8 @@ differing intrinsics, a board held close to each camera (its intrinsic images) a
 the stage seen by several cameras at once (shared shots). Grey images, supersampled, blurred and noisy.
 
 The board is the calibrate stage's (nodes/calibrate/board.py): inner corners at (c * square, r * square, 0),
-the square between the first four corners dark, a white margin of half a square, +Z out of the board's back.
+the square between the first four corners dark, a white margin of half a square, +Z out of the board's back; a
+ChArUco board (``marker`` > 0) is OpenCV's own board image mapped onto the same squares.
 """
 from __future__ import annotations
 
@@ -119,7 +120,13 @@ def render_board(cam: Camera, Rb: np.ndarray, tb: np.ndarray, board, background:
                 inside = (lam > 0) & (bx >= x0) & (bx <= x1) & (by >= y0) & (by <= y1)
                 qx, qy = np.floor(bx / s).astype(int), np.floor(by / s).astype(int)
                 squares = (qx >= -1) & (qx <= board.cols - 1) & (qy >= -1) & (qy <= board.rows - 1)
-                val = np.where(squares & ((qx + qy) % 2 == 0), DARK, LIGHT)
+                if board.charuco:  # the OpenCV board image, 40 px a square, nearest texel
+                    tex = _charuco_texture(board)
+                    tx = np.clip(((bx + s) / s * 40).astype(int), 0, tex.shape[1] - 1)
+                    ty = np.clip(((by + s) / s * 40).astype(int), 0, tex.shape[0] - 1)
+                    val = np.where(squares, DARK + (LIGHT - DARK) * tex[ty, tx] / 255.0, LIGHT)
+                else:
+                    val = np.where(squares & ((qx + qy) % 2 == 0), DARK, LIGHT)
                 H, W = v1 - v0, u1 - u0
                 bg = np.repeat(np.repeat(img[v0:v1, u0:u1], ss, 0), ss, 1).ravel()
                 sample = np.where(inside, val, bg).reshape(H, ss, W, ss)
@@ -128,6 +135,16 @@ def render_board(cam: Camera, Rb: np.ndarray, tb: np.ndarray, board, background:
         img = cv2.GaussianBlur(img, (0, 0), blur)
     img += rng.normal(0, noise, img.shape)
     return np.clip(np.round(img), 0, 255).astype(np.uint8)
+
+
+_TEXTURES: dict = {}
+
+
+def _charuco_texture(board) -> np.ndarray:
+    if board not in _TEXTURES:
+        size = ((board.cols + 1) * 40, (board.rows + 1) * 40)
+        _TEXTURES[board] = board.opencv_charuco().generateImage(size, marginSize=0).astype(np.float64)
+    return _TEXTURES[board]
 
 
 def background_for(cam: Camera, seed: int) -> np.ndarray:

@@ -178,6 +178,7 @@ def test_refusals_name_the_problem(tmp_path):
         (dict(intrinsics="nothing/{name}/*.png"), "no file under"),
         (dict(cameras=["cam01", "cam09"]), "cam09"),
         (dict(intrinsics="", extrinsics=""), "give an intrinsics or an extrinsics"),
+
     ]
     for params, words in cases:
         with pytest.raises(NodeError, match=words.replace("{", r"\{").replace("}", r"\}")):
@@ -201,6 +202,15 @@ def test_too_few_views_and_unlinked_cameras_are_refused(tmp_path):
     with pytest.raises(NodeError, match="share no shot"):
         run_node("calibrate", params={"path": str(other), "board": [9, 6], "square": 0.08, "extrinsics": SHARED,
                                       "cameras": ["cam01", "cam03"]})
+
+
+def test_shared_shots_without_a_board_are_refused_not_dropped(tmp_path):
+    """Extrinsics asked for but the board found in none of them: an error, not a quiet intrinsics-only result."""
+    small_folder(tmp_path, cams=2, shared=2)
+    for f in (tmp_path / "extrinsics").rglob("*.png"):
+        cv2.imwrite(str(f), np.full((360, 480), 128, np.uint8))
+    with pytest.raises(NodeError, match="found in none of the 4 shared images"):
+        node(tmp_path, extrinsics=SHARED)
 
 
 def test_images_of_one_camera_must_share_a_size(tmp_path):
@@ -256,3 +266,24 @@ def test_videos_are_read_frame_by_frame(tmp_path):
         assert abs(a["views"] - b["views"]) <= 1  # JPEG frames: a marginal board may be found in one, not the other
         assert abs(a["fx"] / b["fx"] - 1) < 0.005
     assert videos["cameras"] is not None and videos["report"]["rms_px"] < 0.3
+
+
+def test_charuco_partial_views_calibrate_the_rig(tmp_path):
+    """A ChArUco board (9x6 inner corners, 120 mm squares, 90 mm markers, OpenCV's board image rendered into 4
+    cameras of 640x480 at 2 m): partial views count, so
+    more corners are used than whole boards give; the rig's truth is found (focal within 1 %, rotation 0.3 deg,
+    centre 20 mm at 2 m)."""
+    board = Board(9, 6, 0.12, marker=0.09)
+    rig = board_rig(4, 640, 480, radius=2.0)
+    truth = write_board_capture(tmp_path, rig, board, intrinsic=5, shared=16, ss=2)
+    out = run_node("calibrate", params={"path": str(tmp_path), "board": [9, 6], "square": 0.12, "marker": 0.09,
+                                        "extrinsics": SHARED})
+    r = out["report"]
+    assert r["charuco"] == {"marker_m": 0.09, "dictionary": "DICT_4X4_50"}
+    assert any(c["corners"] < 54 * c["views"] for c in r["cameras"])      # some views are partial
+    err = errors(truth, out)
+    assert err[:, 0].max() < 1.0 and err[:, 2].max() < 0.3 and err[:, 3].max() < 20, err
+    assert r["rms_px"] < 0.3
+    for params, words in ((dict(marker=0.2), "smaller than the square"), (dict(marker=0.06, dictionary="DICT_9"), "unknown ArUco")):
+        with pytest.raises(NodeError, match=words):
+            node(tmp_path, **params)
