@@ -112,12 +112,13 @@ def pose2sim(tmp: Path, data: Path) -> list[str]:
     sec = time.perf_counter() - t
     report = json.loads((out / "calibration/report.json").read_text())
     q = calibration.load_cameras(data / "pose2sim_single/calibration/Calib.qca.txt", image_sizes=(1088, 1920))
-    rows = ["| camera | views found | fx ours / Qualisys (diff %) | cx ours / Qualisys | cy ours / Qualisys | k1 ours / Qualisys | RMS px |",
+    rows = ["| camera | views found | fx ours / Qualisys (diff %) | cx ours ± σ / Qualisys | cy ours ± σ / Qualisys | k1 ours / Qualisys | RMS px |",
             "|---|---|---|---|---|---|---|"]
     for r, c in zip(report["cameras"], q):
         d = r["detected"]["intrinsics"]
         rows.append(f"| {r['camera']} | {d['found']} of {d['images']} | {r['fx']:.1f} / {c.K[0, 0]:.1f} "
-                    f"({100 * (r['fx'] / c.K[0, 0] - 1):+.2f}) | {r['cx']:.1f} / {c.K[0, 2]:.1f} | {r['cy']:.1f} / "
+                    f"({100 * (r['fx'] / c.K[0, 0] - 1):+.2f}) | {r['cx']:.1f} ± {r['sigma']['cx']:.1f} / {c.K[0, 2]:.1f} | "
+                    f"{r['cy']:.1f} ± {r['sigma']['cy']:.1f} / "
                     f"{c.K[1, 2]:.1f} | {r['k1']:+.4f} / {c.dist[0]:+.4f} | {r['rms_px']:.3f} |")
     rows.append(f"(CLI {sec:.1f} s for the four cameras)")
     return rows

@@ -14,7 +14,8 @@ first. Then ``scipy.optimize.least_squares`` over every corner of every view (sp
 on its camera and its shot only), with a soft-L1 loss of 1 px (stopping when an iteration lowers the cost by less than 1e-5 of it: on the
 synthetic rig the last 80 iterations of a tighter stop moved no error figure in its third digit); views whose median error is more than
 ``max(outlier_px, 5 x the median)`` and single corners beyond it are dropped, and the problem is solved again with
-a plain squared loss. Per camera the reprojection RMS of what is kept is reported.
+a plain squared loss. Per camera the reprojection RMS of what is kept is reported, and the standard deviations
+of fx fy cx cy (Gauss-Newton covariance at the solution).
 """
 from __future__ import annotations
 
@@ -80,6 +81,22 @@ def project(cam: np.ndarray, shot: np.ndarray, obj: np.ndarray) -> np.ndarray:
     xn = Xc[:, :2] / np.where(np.abs(z) < 1e-12, 1e-12, z)
     xd = distort(xn, cam[:, 4:9].T)
     return np.stack([cam[:, 0] * xd[:, 0] + cam[:, 2], cam[:, 1] * xd[:, 1] + cam[:, 3]], axis=1)
+
+
+def _sigmas(res, free: np.ndarray, ncam: int) -> np.ndarray:
+    """Standard deviations of the parameters at the solution (NaN where fixed): the diagonal of
+    (J^T J)^-1 scaled by the residuals' variance 2 cost / (m - n), the Gauss-Newton covariance under
+    independent pixel noise (what the data pin, not what a different rig of views would give)."""
+    J = res.jac
+    JtJ = (J.T @ J).toarray() if hasattr(J, "toarray") else J.T @ J
+    m, n = J.shape
+    s2 = 2 * res.cost / max(m - n, 1)
+    out = np.full(free.size, np.nan)
+    try:
+        out[np.flatnonzero(free)] = np.sqrt(np.clip(np.diag(np.linalg.inv(JtJ)), 0, None) * s2)
+    except np.linalg.LinAlgError:
+        pass
+    return out
 
 
 @dataclass
@@ -233,8 +250,9 @@ def calibrate_views(views: list[View], names: list[str], sizes: list[tuple[int, 
     for c in range(ncam):
         if not any(use[i] for i, v in enumerate(views) if v.cam == c):
             raise NodeError(f"calibrate: camera '{names[c]}': every view is an outlier (median error > {thr:.2g} px)")
-    solve("linear")
+    final = solve("linear")
     err = errors()
+    sigma = _sigmas(final, free, ncam)
 
     def cameras_of(xx, with_pose):
         out = []
@@ -259,7 +277,8 @@ def calibrate_views(views: list[View], names: list[str], sizes: list[tuple[int, 
             "corners": int(sum(keep[i].sum() for i in idx)),
             "dropped_views": sum(1 for i, v in enumerate(views) if v.cam == c and not use[i]),
             "dropped_corners": int(sum((~keep[i]).sum() for i in idx)),
-            **{k: float(v) for k, v in zip(CAM_PARAMS[:9], p[:9])}})
+            **{k: float(v) for k, v in zip(CAM_PARAMS[:9], p[:9])},
+            "sigma": {k: float(sigma[c * NC + j]) for j, k in enumerate(CAM_PARAMS[:4])}})
     kept = np.concatenate([err[i][keep[i]] for i in range(len(views)) if use[i]])
     report = {"rms_px": float(np.sqrt(np.mean(kept ** 2))), "iterations": iterations, "cameras": cams_rows, "views": int(use.sum()),
               "shots": len(shots), "shared_shots": len(shared), "reference_shot": ref,
