@@ -121,7 +121,40 @@ def pose2sim(tmp: Path, data: Path) -> list[str]:
                     f"{r['cy']:.1f} ± {r['sigma']['cy']:.1f} / "
                     f"{c.K[1, 2]:.1f} | {r['k1']:+.4f} / {c.dist[0]:+.4f} | {r['rms_px']:.3f} |")
     rows.append(f"(CLI {sec:.1f} s for the four cameras)")
+    rows.append(f"picture: {picture(folder, report)}")
     return rows
+
+
+def picture(folder: Path, report: dict) -> Path:
+    """docs/calibrate_pose2sim.jpg: each camera's first board image, the detected corners (green circles) and the
+    corners reprojected through our intrinsics and the view's own pose (red crosses, errors drawn 20x longer)."""
+    import cv2
+
+    from nodes.calibrate.board import detect
+
+    board = Board(4, 7, 0.06)
+    tiles = []
+    for r in report["cameras"]:
+        K = np.array([[r["fx"], 0, r["cx"]], [0, r["fy"], r["cy"]], [0, 0, 1]])
+        dist = np.array([r[k] for k in ("k1", "k2", "p1", "p2", "k3")])
+        for f in sorted((folder / f"int_{r['camera']}_img").glob("*.jpg")):
+            img = cv2.imread(str(f))
+            uv = detect(cv2.cvtColor(img, cv2.COLOR_BGR2GRAY), board)
+            if uv is not None:
+                break
+        ok, rv, tv = cv2.solvePnP(board.object_points(), uv, K, dist)
+        rep = cv2.projectPoints(board.object_points(), rv, tv, K, dist)[0].reshape(-1, 2)
+        for a, b in zip(uv, rep):
+            cv2.circle(img, tuple(np.round(a).astype(int)), 9, (0, 200, 0), 2)
+            tip = a + 20 * (b - a)
+            cv2.line(img, tuple(np.round(a).astype(int)), tuple(np.round(tip).astype(int)), (0, 0, 255), 2)
+            cv2.drawMarker(img, tuple(np.round(tip).astype(int)), (0, 0, 255), cv2.MARKER_CROSS, 12, 2)
+        cv2.putText(img, f"{r['camera']} {f.name}: RMS {r['rms_px']:.2f} px", (20, 60), cv2.FONT_HERSHEY_SIMPLEX, 1.6,
+                    (255, 255, 255), 4)
+        tiles.append(cv2.resize(img, (img.shape[1] * 640 // img.shape[0], 640), interpolation=cv2.INTER_AREA))
+    out = ROOT / "docs" / "calibrate_pose2sim.jpg"
+    cv2.imwrite(str(out), np.hstack(tiles), [cv2.IMWRITE_JPEG_QUALITY, 85])
+    return out
 
 
 def main():
@@ -140,6 +173,7 @@ def main():
                 "RMS px | seconds |", "|---|---|---|---|---|---|---|---|"]
         for board, noise, blur in ((BOARD, 2.0, 0.7), (BOARD, 6.0, 1.5), (CHARUCO, 6.0, 1.5)):
             rows += synthetic(args, board, noise, blur, tmp)
+        print(describe())
         print("\n".join(rows))
         print("\npose2sim_single intrinsics (4x7 board, 60 mm) vs its Qualisys calibration:")
         print("\n".join(pose2sim(tmp, Path(args.data))))

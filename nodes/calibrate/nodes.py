@@ -5,8 +5,6 @@ import json
 import tempfile
 from pathlib import Path
 
-import numpy as np
-
 from nodegraph import REQUIRED, InPath, Node, NodeError, Output, Param, Table
 from nodegraph.types import Files
 from nodes.common import calibration
@@ -111,20 +109,6 @@ def _files(sol, report: dict, out: str) -> dict:
             calibration.save_colmap(sol.cameras, d / "colmap")
             calibration.save_toml(sol.cameras, d / "Calib.toml", error=report["rms_px"])
         else:
-            _save_intrinsics(sol.intrinsics, d / "opencv")
+            calibration.save_opencv(sol.intrinsics, d / "opencv", pose=False)
         (d / "report.json").write_text(json.dumps(report, indent=1))
         return {f"{out}/{p.relative_to(d).as_posix()}": p.read_bytes() for p in sorted(d.rglob("*")) if p.is_file()}
-
-
-def _save_intrinsics(cams, folder: Path):
-    """OpenCV FileStorage intrinsics (camera_matrix, distortion_coefficients, image size), one per camera."""
-    import cv2
-
-    folder.mkdir(parents=True)
-    for c in cams:
-        fs = cv2.FileStorage(str(folder / f"{c.name}.yml"), cv2.FILE_STORAGE_WRITE)
-        fs.write("image_width", c.width)
-        fs.write("image_height", c.height)
-        fs.write("camera_matrix", c.K)
-        fs.write("distortion_coefficients", np.asarray(c.dist).reshape(1, 5))
-        fs.release()

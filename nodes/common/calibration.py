@@ -831,9 +831,9 @@ def save_nerf(cams: Cameras, path) -> None:
     Path(path).write_text(json.dumps(doc, indent=1))
 
 
-def save_opencv(cams: Cameras, folder) -> None:
+def save_opencv(cams: Cameras, folder, pose: bool = True) -> None:
     """One OpenCV FileStorage YAML per camera, ``<name>.yml`` (camera_matrix, distortion_coefficients, R, T,
-    image_width, image_height), as read_opencv reads it."""
+    image_width, image_height), as read_opencv reads it; ``pose`` False: intrinsics only (no R, T)."""
     import cv2
 
     folder = Path(folder)
@@ -846,8 +846,9 @@ def save_opencv(cams: Cameras, folder) -> None:
             fs.write("image_height", c.height)
             fs.write("camera_matrix", c.K)
             fs.write("distortion_coefficients", c.dist.reshape(1, 5))
-            fs.write("R", c.Rt[:, :3])
-            fs.write("T", c.Rt[:, 3].reshape(3, 1))
+            if pose:
+                fs.write("R", c.Rt[:, :3])
+                fs.write("T", c.Rt[:, 3].reshape(3, 1))
         finally:
             fs.release()
 
