@@ -332,7 +332,7 @@ def _generic(root: Path, frame: int, masks: str, background: str, log, calibrati
         bg = ImageSet([_rgb(read_image(*_expand(root, background, i, c.name, 0, extra))) for i, c in zip(keep, cams)],
                       cams.names)
     mask_imgs = [read_image(p, f) for p, f in mask_files] if mask_files else None
-    return cams, files, mask_imgs, [p for p, _ in mask_files] if mask_files else None, bg
+    return cams, files, mask_imgs, [p for p, _ in mask_files] if mask_files else None, bg, (list(keep), extra)
 
 
 def _masks_beside(img_dir: Path, files: list[Path], log) -> list | None:
@@ -361,10 +361,12 @@ def _size(path: Path) -> tuple[int, int]:
 
 # ------------------------------------------------------------------ loading
 def load_capture(path, frame: int = 0, images: str = "", masks: str = "", background: str = "",
-                 calibration: str = "", mask_threshold: int = 127, log=None) -> dict:
+                 calibration: str = "", mask_threshold: int = 127, log=None, plates: int = 0) -> dict:
     """One frame of a capture: {"images": ImageSet, "masks": MaskSet | None, "cameras": Cameras,
     "background": ImageSet | None}. Empty patterns are auto-detected (see the module docstring). ``log``
-    (the node's logger) receives the image-camera pairing and warnings about it."""
+    (the node's logger) receives the image-camera pairing and warnings about it. ``plates`` > 0: also
+    "plates", up to that many frames of the background pattern (a video, '*' or {frame}) spread over all it
+    holds, as a list of ImageSet, and "plate_frames", their frame numbers."""
     log = log or LOG
     root = Path(path)
     if not root.is_dir():
@@ -374,10 +376,13 @@ def load_capture(path, frame: int = 0, images: str = "", masks: str = "", backgr
     layout = detect_layout(root)
     given = {k: v for k, v in dict(images=images, masks=masks, background=background, calibration=calibration).items() if v}
     if not layout and "images" not in given:  # the images are found and paired with the cameras
-        cams, files, mask_imgs, mask_files, bg = _generic(root, frame, masks, background, log, calibration)
+        cams, files, mask_imgs, mask_files, bg, (keep, extra) = _generic(root, frame, masks, background, log, calibration)
         imgs = [read_image(f) for f in files]
-        return _assemble(cams, imgs, files, mask_imgs, bg, mask_threshold, masks or ("files" if mask_imgs else ""),
-                         mask_files)
+        out = _assemble(cams, imgs, files, mask_imgs, bg, mask_threshold, masks or ("files" if mask_imgs else ""),
+                        mask_files)
+        if plates:
+            out["plates"], out["plate_frames"] = _plates(root, background, list(zip(keep, cams.names)), extra, plates)
+        return out
     pat = {**layout, **given}
     if not layout and "calibration" not in pat:  # images given: the calibration is found as for the folder alone
         pat["calibration"] = "."
@@ -432,12 +437,76 @@ def load_capture(path, frame: int = 0, images: str = "", masks: str = "", backgr
         mask_files = [p for p, _ in found]
         mask_imgs = [read_image(p, f) for p, f in found]
     out = _assemble(cams, raw, [p for p, _ in img_files], mask_imgs, bg, mask_threshold, pat.get("masks", ""), mask_files)
+    if plates:
+        out["plates"], out["plate_frames"] = _plates(root, pat.get("background", ""), list(enumerate(cams.names)),
+                                                     extra, plates)
     videos = sorted({p for p, f in img_files if f is not None})
     rates = sorted({r for r in (video_fps(p) for p in videos) if r})
     out["fps"] = rates[0] if len(rates) == 1 else None
     if len(rates) > 1:
         log.warning("capture: the cameras' videos state different frame rates %s: give the exports' fps", rates)
     return out
+
+
+def _frame_count(root: Path, pattern: str, cam: int, name: str, extra: dict) -> int:
+    """How many frames a per-camera pattern holds: a video's frame count, the files '*' matches, the {frame}
+    files that exist from 0 on, or 1 for a single file."""
+    import cv2
+
+    path, index = _expand(root, pattern, cam, name, 0, extra)
+    if index is not None:
+        cap = cv2.VideoCapture(str(path))
+        try:
+            n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) if cap.isOpened() else 0
+        finally:
+            cap.release()
+        if n <= 0:
+            raise DataError(f"{path}: unreadable video, or it states no frame count")
+        return n
+    rel = pattern.format(cam=cam, cam1=cam + 1, name=name, frame=0, **extra.get(name, {}))
+    if "*" in rel:
+        return len(_regular(glob.glob(str(root / rel))))
+    if "{frame" not in pattern:
+        return 1
+    n = 1
+    while n < 1_000_000 and (root / pattern.format(cam=cam, cam1=cam + 1, name=name, frame=n,
+                                                   **extra.get(name, {}))).is_file():
+        n += 1
+    return n
+
+
+def _plates(root: Path, pattern: str, cams: list[tuple[int, str]], extra: dict, count: int):
+    """Up to ``count`` frames of every camera's background ``pattern``, spread evenly over the frames the
+    shortest camera holds: (list of ImageSet, frame numbers). Videos are decoded once, front to back."""
+    import cv2
+
+    if not pattern:
+        raise NodeError(f"{root}: no background pattern: give one (a video, '*' or {{frame}} of the empty stage)")
+    total = min(_frame_count(root, pattern, i, n, extra) for i, n in cams)
+    pick = sorted(set(np.linspace(0, total - 1, min(count, total)).round().astype(int).tolist()))
+    per_cam = []
+    for i, name in cams:
+        path, index = _expand(root, pattern, i, name, 0, extra)
+        if index is None:
+            per_cam.append([_rgb(read_image(*_expand(root, pattern, i, name, f, extra))) for f in pick])
+            continue
+        cap, got, want, f = cv2.VideoCapture(str(path)), [], set(pick), 0
+        try:
+            while f <= pick[-1]:
+                ok = cap.grab()
+                if not ok:
+                    raise DataError(f"{path}: frame {f} could not be decoded ({total} stated)")
+                if f in want:
+                    ok, img = cap.retrieve()
+                    if not ok:
+                        raise DataError(f"{path}: frame {f} could not be decoded")
+                    got.append(np.ascontiguousarray(img[:, :, ::-1]) if img.ndim == 3 else _rgb(img))
+                f += 1
+        finally:
+            cap.release()
+        per_cam.append(got)
+    names = [n for _, n in cams]
+    return [ImageSet([per_cam[c][k] for c in range(len(cams))], names) for k in range(len(pick))], pick
 
 
 def _per_folder_cameras(root: Path, files: list[Path], images: str, frame: int, extra: dict):

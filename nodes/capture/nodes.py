@@ -1,8 +1,12 @@
-"""The `capture` source node: one frame of a calibrated multi-camera capture (see load.py)."""
+"""The `capture` source nodes: one frame of a calibrated multi-camera capture (see load.py), and the background
+mixture learnt from the empty stage's frames."""
 from __future__ import annotations
 
+import numpy as np
+
 from nodegraph import InPath, Node, NodeError, Output, Param, Table
-from nodes.common.types import CameraSet, Images, Masks
+from nodes.common.background import background_mixture
+from nodes.common.types import CameraSet, Images, Masks, PlateMixture, PlateModel
 
 from .load import layout_world, load_capture, world_of
 
@@ -58,3 +62,51 @@ class Capture(Node):
         out["cameras"] = frame_.cameras(out["cameras"])
         out["world"] = {"frame": "world", "fps": fps, **report}
         return out
+
+
+class Background(Node):
+    """A per-pixel Gaussian mixture of the background learnt from several frames of the empty stage (the plate
+    video or frames of ``background``; the seed's "learning techniques" for shadows and a background that is not
+    still): every pixel gets up to ``components`` Gaussians with their own per-channel sigma, a component being
+    background when it holds ``min_weight`` of the frames (a flickering light, a monitor, sensor noise that
+    differs across the image). Give its model to key.difference. Reads the capture folder as `capture` does."""
+
+    type_name = "capture.background"
+    version = 1
+    inputs = {}
+    outputs = {"model": Output(PlateModel, "per camera the background mixture"),
+               "report": Output(Table, "per camera the frames used, the share of pixels with several backgrounds, "
+                                       "the median sigma")}
+    params = {
+        "path": Param(InPath, doc="dataset folder (as capture's)"),
+        "images": Param(str, "", doc="image pattern, as capture's ('' = auto): names the cameras"),
+        "background": Param(str, "", doc="the empty stage: a video, '*' or {frame} pattern per camera ('' = the layout's)"),
+        "calibration": Param(str, "", doc="calibration file or folder, as capture's ('' = auto)"),
+        "frames": Param(int, 25, range=(2, 100000), doc="at most this many plate frames, spread over all there are"),
+        "components": Param(int, 3, range=(1, 5), doc="Gaussians per pixel (1: one, with its own sigma)"),
+        "noise": Param(float, 4.0, range=(0.5, None), doc="lowest sigma, grey levels"),
+        "match": Param(float, 4.0, range=(1.0, None), doc="colour distance (sigmas) within which a frame joins a component"),
+        "min_weight": Param(float, 0.1, range=(0.0, 1.0), doc="share of the frames a component needs to be background"),
+    }
+
+    def run(self, *, path, images, background, calibration, frames, components, noise, match, min_weight):
+        cap = load_capture(path, 0, images=images, background=background, calibration=calibration, log=self.log,
+                           plates=frames)
+        sets, used = cap["plates"], cap["plate_frames"]
+        if len(sets) < 2:
+            raise NodeError(f"capture.background: the background pattern holds {len(sets)} frame: a mixture needs "
+                            "several frames of the empty stage (give a plate video or a '*' pattern)")
+        names = sets[0].names
+        means, sigmas, weights, report = [], [], [], {"frames_used": used, "cameras": {}}
+        for v, name in enumerate(names):
+            mean, sigma, weight = background_mixture((s.images[v] for s in sets), components, noise, match, min_weight)
+            means.append(mean)
+            sigmas.append(sigma)
+            weights.append(weight)
+            count = (weight > 0).sum(0)
+            report["cameras"][name] = {
+                "frames": len(sets),
+                "several_backgrounds": round(float((count > 1).mean()), 4),
+                "stable": round(float((weight[0] >= 0.5).mean()), 4),
+                "median_sigma": round(float(np.median(sigma[0].astype(np.float32))), 2)}
+        return {"model": PlateMixture(means, sigmas, weights, names), "report": report}

@@ -123,6 +123,29 @@ class MaskSet(_Lazy):
         return len(self.names)
 
 
+class PlateMixture:
+    """Per camera a per-pixel Gaussian mixture of the background (capture.background): ``mean`` (K, H, W, 3) uint8 and
+    ``sigma`` (K, H, W, 3) float16 per channel, components by weight, slots that are no background repeating the
+    first; ``weight`` (K, H, W) float32 (0 on those slots)."""
+
+    def __init__(self, mean: list[np.ndarray], sigma: list[np.ndarray], weight: list[np.ndarray], names: list[str]):
+        self.mean, self.sigma, self.weight, self.names = list(mean), list(sigma), list(weight), list(names)
+        self._f32: dict[int, list] = {}
+
+    def __len__(self):
+        return len(self.names)
+
+    def float_components(self, view: int) -> list[tuple[np.ndarray, np.ndarray]]:
+        """(mean, 1/sigma^2) float32 (H, W, 3) of camera ``view``'s components that are background somewhere (the
+        difference kernel's inputs), computed once per process."""
+        if view not in self._f32:
+            self._f32[view] = [(np.ascontiguousarray(m, np.float32),
+                                np.ascontiguousarray(1 / np.square(s.astype(np.float32))))
+                               for k, (m, s) in enumerate(zip(self.mean[view], self.sigma[view]))
+                               if k == 0 or np.any(self.weight[view][k] > 0)]
+        return self._f32[view]
+
+
 @dataclass
 class VoxelGrid:
     """A regular voxel grid over an axis-aligned box. ``occupancy[i, j, k]`` is the voxel whose centre is
@@ -554,6 +577,42 @@ class MeshSequence(DataType):
     @classmethod
     def preview(cls, value, size, companions):
         return previews.draw_mesh_sequence(value, size, companions)
+
+
+class PlateModel(DataType):
+    """A background mixture per camera (PlateMixture), stored as .npy per camera (mean, sigma, weight)."""
+
+    name = "PlateModel"
+
+    @classmethod
+    def check(cls, v):
+        if not isinstance(v, PlateMixture):
+            return f"expected a PlateMixture, got {type(v).__name__}"
+        for i, (m, s, w) in enumerate(zip(v.mean, v.sigma, v.weight)):
+            if not (m.dtype == np.uint8 and m.ndim == 4 and m.shape[-1] == 3 and s.shape == m.shape
+                    and s.dtype == np.float16 and w.shape == m.shape[:3]):
+                return f"camera {i}: mean (K, H, W, 3) uint8, sigma the same in float16, weight (K, H, W)"
+        if not len(v.mean) == len(v.sigma) == len(v.weight) == len(v.names):
+            return f"{len(v.mean)} means, {len(v.sigma)} sigmas, {len(v.weight)} weights, {len(v.names)} names"
+        return None
+
+    @classmethod
+    def save(cls, v: PlateMixture, folder: Path):
+        for i in range(len(v)):
+            _save_array(folder / f"{i:04d}.mean.npy", v.mean[i])
+            _save_array(folder / f"{i:04d}.sigma.npy", v.sigma[i])
+            _save_array(folder / f"{i:04d}.weight.npy", np.asarray(v.weight[i], np.float32))
+        (folder / "names.json").write_text(json.dumps(v.names))
+
+    @classmethod
+    def load(cls, folder: Path) -> PlateMixture:
+        names = json.loads((folder / "names.json").read_text())
+        return PlateMixture(*([_load_array(folder / f"{i:04d}.{part}.npy") for i in range(len(names))]
+                              for part in ("mean", "sigma", "weight")), names)
+
+    @classmethod
+    def preview(cls, value, size, companions):
+        return previews.contact_sheet([np.ascontiguousarray(m[0]) for m in value.mean], value.names, size)
 
 
 class Bounds(DataType):

@@ -429,3 +429,36 @@ def footage_plate(frames: list[np.ndarray], tolerance: float = 12.0, min_share: 
     close = (np.abs(stack.astype(np.int16) - plate.astype(np.int16)).max(axis=-1) <= tolerance)
     share = close.mean(axis=0).astype(np.float32)
     return plate, share >= min_share, share
+
+
+# ---------------------------------------------------------------- keying against a background mixture
+def _mixture_pick(alphas, labels):
+    """Per pixel the component that explains it best: the lowest alpha; on a tie the lowest class (background
+    before shadow). (alpha uint8, class uint8)."""
+    code = np.min([a.astype(np.int32) * 4 + l for a, l in zip(alphas, labels)], axis=0)
+    return (code >> 2).astype(np.uint8), (code & 3).astype(np.uint8)
+
+
+def _component_kw(k: int, kw: dict) -> dict:
+    """The Horprasert parameters for component ``k``: the shadow and highlight allowance on the first (most
+    frequent) background only. A second background (a light switched off, a screen's other picture) matches by
+    colour and chromaticity alone: its own shadow range would reach the subject's darker colours (measured on
+    the key stage: 1.7x the misses inside a flickering band)."""
+    return kw if k == 0 else {**kw, "shadow": 1.0, "highlight": 1.0}
+
+
+def difference_key_mixture_reference(rgb, mean, sigma, **kw):
+    """``difference_key_reference`` against each component of a mixture (mean (K, H, W, 3), sigma (K, H, W, 3);
+    see ``_component_kw``): a pixel is as foreground as its best-explaining background component says (see
+    ``_mixture_pick``)."""
+    out = [difference_key_reference(rgb, m.astype(np.float32), 1 / np.square(s.astype(np.float32)), **_component_kw(k, kw))
+           for k, (m, s) in enumerate(zip(mean, sigma))]
+    return _mixture_pick([a for a, _ in out], [l for _, l in out])
+
+
+def difference_key_mixture_cl(rgb, model: "PlateMixture", view: int, **kw):
+    """The OpenCL ``difference_key`` once per background component of camera ``view`` of ``model`` (a
+    component that is a repeat of the first everywhere is skipped: it cannot change the minimum); see the
+    reference."""
+    out = [difference_key_cl(rgb, m, w, **_component_kw(k, kw)) for k, (m, w) in enumerate(model.float_components(view))]
+    return _mixture_pick([a for a, _ in out], [l for _, l in out])

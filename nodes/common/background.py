@@ -1,0 +1,95 @@
+"""Per-pixel statistics of a camera's background learnt from several frames of the empty stage: a Gaussian
+mixture per pixel (capture.background learns it; key.difference keys against it, nodes/key/keying.py)."""
+from __future__ import annotations
+
+import numpy as np
+
+from nodegraph import NodeError
+
+PRIOR_SIGMA = 2.5  # a new component's sigma before its frames say, in units of the noise floor
+
+
+def background_mixture(frames, components: int = 3, noise: float = 4.0, match: float = 4.0, min_weight: float = 0.1):
+    """A per-pixel Gaussian mixture of one camera's background from several frames (Stauffer & Grimson 1999, in
+    batch; the seed's "learning techniques" for the background). Pass 1: each frame's colour joins the nearest
+    component within ``match`` sigmas (colour distance over the three channels, as ``still`` measures it) and
+    updates its sample mean and variance (Welford; the variance shrunk towards 2.5x the noise floor by two
+    pseudo-frames), or replaces the component that has seen fewest frames. Pass 2 assigns every frame again to
+    the nearest of those components (within ``match``; farther frames count for none) with their final
+    variances, and two components whose means lie within the match distance of each other (in the wider one's
+    sigmas) are pooled: one background that nearest-assignment split in two halves. A component is background when it holds at least ``min_weight`` of
+    the frames (the most frequent one always): a flickering light or a swaying leaf is two backgrounds, a subject
+    passing once is none.
+
+    Returns (mean (K, H, W, 3) uint8, sigma (K, H, W, 3) float16 per channel, at least ``noise``; weight (K, H, W)
+    float32), components sorted by weight; the slots that are not background repeat the first component (so a
+    minimum over the slots is unchanged by them) and have weight 0."""
+    frames = [np.asarray(f, np.uint8)[..., :3] for f in frames]
+    if not frames:
+        raise NodeError("background mixture: no frames")
+    K = int(components)
+    h, w = frames[0].shape[:2]
+    for f in frames:
+        if f.shape[:2] != (h, w):
+            raise NodeError(f"background frames differ in size: {f.shape[1]}x{f.shape[0]} after {w}x{h}")
+    floor = np.float32(noise) ** 2
+    limit = np.float32(match) ** 2
+    prior = np.float32(PRIOR_SIGMA * noise) ** 2
+
+    def variance(n, m2):
+        return np.maximum((m2 + 2 * prior) / (n[..., None] + 1), floor)
+
+    def accumulate(n, mu, m2, create, model=None):
+        """Every frame into (n, mu, m2) by nearest component, of ``model`` ((n, mu, var) to match against) or of
+        the statistics themselves; ``create``: a frame that matches none starts a component."""
+        for x in frames:
+            x = x.astype(np.float32)
+            mn, mm, var = model if model is not None else (n, mu, variance(n, m2))
+            d2 = np.where(mn > 0, np.sum((x - mm) ** 2 / var, -1), np.inf)
+            best = np.argmin(d2, 0)
+            ok = np.take_along_axis(d2, best[None], 0)[0] <= limit
+            weakest = np.argmin(n, 0)
+            for k in range(K):
+                hit = ok & (best == k)
+                n[k] += hit
+                delta = np.where(hit[..., None], x - mu[k], 0)
+                mu[k] += delta / np.maximum(n[k], 1)[..., None]
+                m2[k] += delta * (x - mu[k])
+                if create:
+                    new = ~ok & (weakest == k)
+                    n[k][new], mu[k][new], m2[k][new] = 1, x[new], 0
+
+    def empty():
+        return np.zeros((K, h, w), np.float32), np.zeros((K, h, w, 3), np.float32), np.zeros((K, h, w, 3), np.float32)
+
+    n, mu, m2 = empty()
+    accumulate(n, mu, m2, create=True)
+    model = (n, mu, variance(n, m2))
+    n, mu, m2 = empty()
+    mu[:] = model[1]
+    accumulate(n, mu, m2, create=False, model=model)
+    for k in range(K):
+        for j in range(k + 1, K):
+            var = variance(n, m2)
+            close = (n[k] > 0) & (n[j] > 0) & (np.sum((mu[k] - mu[j]) ** 2 / np.maximum(var[k], var[j]), -1)
+                                                 <= limit)
+            nk, nj = n[k][close][:, None], n[j][close][:, None]
+            dm = mu[j][close] - mu[k][close]
+            tot = nk + nj
+            m2[k][close] += m2[j][close] + dm * dm * nk * nj / tot
+            mu[k][close] += dm * nj / tot
+            n[k][close] = tot[:, 0]
+            n[j][close], m2[j][close] = 0, 0
+    var = variance(n, m2)
+    order = np.argsort(-n, axis=0, kind="stable")
+    n = np.take_along_axis(n, order, 0)
+    mu = np.take_along_axis(mu, order[..., None], 0)
+    var = np.take_along_axis(var, order[..., None], 0)
+    weight = n / np.float32(len(frames))
+    keep = weight >= np.float32(min_weight)
+    keep[0] = True
+    mu = np.where(keep[..., None], mu, mu[:1])
+    var = np.where(keep[..., None], var, var[:1])
+    weight = np.where(keep, weight, 0).astype(np.float32)
+    mean = np.clip(np.rint(mu), 0, 255).astype(np.uint8)
+    return mean, np.sqrt(var).astype(np.float16), weight
