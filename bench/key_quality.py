@@ -6,7 +6,8 @@ same run against the exact silhouettes: mask IoU (mean and worst over frames x c
 
 Methods: key.chroma on the green footage; key.difference against one plate frame (the 1-Gaussian key), with and
 without the shadow model (shadow 1); key.difference against capture.background's mixture (1 and 3 components, with
-and without the shadow model); the plate from the footage itself (key.plate's median over the footage frames,
+and without the shadow model; shift 0: no allowance for a camera that moved between plate and footage,
+which this stage's cameras do not); the plate from the footage itself (key.plate's median over the footage frames,
 where no plate was shot); OpenCV's MOG2 (detectShadows, learnt on the same plate frames, shadows as background)
 as the baseline a user would otherwise pick.
 
@@ -71,6 +72,7 @@ def main():
         models = {k: run_node("capture.background", {}, {"path": str(folder), **PATTERNS, "components": k})
                   for k in (1, 3)}
         learn = (time.perf_counter() - t) / 2
+        still = run_node("capture.background", {}, {"path": str(folder), **PATTERNS, "shift": 0.0})
         foot = run_node("key.plate", {"images": [c["images"] for c in caps]}, {}, frames=list(range(args.frames)))
         print(f"capture.background: {learn:.2f} s per model ({args.cameras} cameras x 24 frames); "
               f"several backgrounds on {100 * np.mean([c['several_backgrounds'] for c in models[3]['report']['cameras'].values()]):.1f} % "
@@ -89,6 +91,7 @@ def main():
                 lambda f: {"images": caps[f]["images"], "background": caps[f]["background"]}, {"shadow": 1.0}),
             "difference, mixture K=1 (24 plates)": node(lambda f: {"images": caps[f]["images"], "model": models[1]["model"]}),
             "difference, mixture K=3 (24 plates)": node(lambda f: {"images": caps[f]["images"], "model": models[3]["model"]}),
+            "difference, mixture K=3, shift 0": node(lambda f: {"images": caps[f]["images"], "model": still["model"]}),
             "difference, mixture K=3, no shadow model": node(
                 lambda f: {"images": caps[f]["images"], "model": models[3]["model"]}, {"shadow": 1.0}),
             "difference, plate from the footage": node(lambda f: {"images": caps[f]["images"], "background": foot["background"]}),

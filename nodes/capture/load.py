@@ -381,7 +381,8 @@ def load_capture(path, frame: int = 0, images: str = "", masks: str = "", backgr
         out = _assemble(cams, imgs, files, mask_imgs, bg, mask_threshold, masks or ("files" if mask_imgs else ""),
                         mask_files)
         if plates:
-            out["plates"], out["plate_frames"] = _plates(root, background, list(zip(keep, cams.names)), extra, plates)
+            out["plates"], out["plate_frames"] = _plates(root, background, list(zip(keep, cams.names)), extra, plates,
+                                                         log)
         return out
     pat = {**layout, **given}
     if not layout and "calibration" not in pat:  # images given: the calibration is found as for the folder alone
@@ -439,7 +440,7 @@ def load_capture(path, frame: int = 0, images: str = "", masks: str = "", backgr
     out = _assemble(cams, raw, [p for p, _ in img_files], mask_imgs, bg, mask_threshold, pat.get("masks", ""), mask_files)
     if plates:
         out["plates"], out["plate_frames"] = _plates(root, pat.get("background", ""), list(enumerate(cams.names)),
-                                                     extra, plates)
+                                                     extra, plates, log)
     videos = sorted({p for p, f in img_files if f is not None})
     rates = sorted({r for r in (video_fps(p) for p in videos) if r})
     out["fps"] = rates[0] if len(rates) == 1 else None
@@ -475,7 +476,7 @@ def _frame_count(root: Path, pattern: str, cam: int, name: str, extra: dict) -> 
     return n
 
 
-def _plates(root: Path, pattern: str, cams: list[tuple[int, str]], extra: dict, count: int):
+def _plates(root: Path, pattern: str, cams: list[tuple[int, str]], extra: dict, count: int, log=None):
     """Up to ``count`` frames of every camera's background ``pattern``, spread evenly over the frames the
     shortest camera holds: (list of ImageSet, frame numbers). Videos are decoded once, front to back."""
     import cv2
@@ -494,8 +495,12 @@ def _plates(root: Path, pattern: str, cams: list[tuple[int, str]], extra: dict, 
         try:
             while f <= pick[-1]:
                 ok = cap.grab()
-                if not ok:
-                    raise DataError(f"{path}: frame {f} could not be decoded ({total} stated)")
+                if not ok:  # AVI headers often state a frame or two more than the stream holds
+                    if not got:
+                        raise DataError(f"{path}: frame {f} could not be decoded ({total} stated)")
+                    (log or LOG).warning("capture: %s states %d frames, decodes %d: the plate frames stop there",
+                                         path, total, f)
+                    break
                 if f in want:
                     ok, img = cap.retrieve()
                     if not ok:
@@ -506,6 +511,7 @@ def _plates(root: Path, pattern: str, cams: list[tuple[int, str]], extra: dict, 
             cap.release()
         per_cam.append(got)
     names = [n for _, n in cams]
+    pick = pick[:min(len(g) for g in per_cam)]
     return [ImageSet([per_cam[c][k] for c in range(len(cams))], names) for k in range(len(pick))], pick
 
 

@@ -87,9 +87,11 @@ class Background(Node):
         "noise": Param(float, 4.0, range=(0.5, None), doc="lowest sigma, grey levels"),
         "match": Param(float, 4.0, range=(1.0, None), doc="colour distance (sigmas) within which a frame joins a component"),
         "min_weight": Param(float, 0.1, range=(0.0, 1.0), doc="share of the frames a component needs to be background"),
+        "shift": Param(float, 0.5, range=(0.0, 10.0), doc="pixels the footage may sit off the plate frames: sigma grows "
+                       "by this times the background's gradient (edges)"),
     }
 
-    def run(self, *, path, images, background, calibration, frames, components, noise, match, min_weight):
+    def run(self, *, path, images, background, calibration, frames, components, noise, match, min_weight, shift):
         cap = load_capture(path, 0, images=images, background=background, calibration=calibration, log=self.log,
                            plates=frames)
         sets, used = cap["plates"], cap["plate_frames"]
@@ -99,7 +101,7 @@ class Background(Node):
         names = sets[0].names
         means, sigmas, weights, report = [], [], [], {"frames_used": used, "cameras": {}}
         for v, name in enumerate(names):
-            mean, sigma, weight = background_mixture((s.images[v] for s in sets), components, noise, match, min_weight)
+            mean, sigma, weight = background_mixture((s.images[v] for s in sets), components, noise, match, min_weight, shift)
             means.append(mean)
             sigmas.append(sigma)
             weights.append(weight)

@@ -9,7 +9,8 @@ from nodegraph import NodeError
 PRIOR_SIGMA = 2.5  # a new component's sigma before its frames say, in units of the noise floor
 
 
-def background_mixture(frames, components: int = 3, noise: float = 4.0, match: float = 4.0, min_weight: float = 0.1):
+def background_mixture(frames, components: int = 3, noise: float = 4.0, match: float = 4.0, min_weight: float = 0.1,
+                       shift: float = 0.0):
     """A per-pixel Gaussian mixture of one camera's background from several frames (Stauffer & Grimson 1999, in
     batch; the seed's "learning techniques" for the background). Pass 1: each frame's colour joins the nearest
     component within ``match`` sigmas (colour distance over the three channels, as ``still`` measures it) and
@@ -20,6 +21,10 @@ def background_mixture(frames, components: int = 3, noise: float = 4.0, match: f
     sigmas) are pooled: one background that nearest-assignment split in two halves. A component is background when it holds at least ``min_weight`` of
     the frames (the most frequent one always): a flickering light or a swaying leaf is two backgrounds, a subject
     passing once is none.
+
+    ``shift`` (pixels): the footage may sit that far from the plate frames (a camera nudged between the two
+    recordings, vibration): each component's sigma grows by shift x its mean's gradient, so edges of the background
+    do not key as subject (Utrecht: the plate video and the footage are two recordings).
 
     Returns (mean (K, H, W, 3) uint8, sigma (K, H, W, 3) float16 per channel, at least ``noise``; weight (K, H, W)
     float32), components sorted by weight; the slots that are not background repeat the first component (so a
@@ -91,5 +96,13 @@ def background_mixture(frames, components: int = 3, noise: float = 4.0, match: f
     mu = np.where(keep[..., None], mu, mu[:1])
     var = np.where(keep[..., None], var, var[:1])
     weight = np.where(keep, weight, 0).astype(np.float32)
+    if shift > 0:
+        import cv2
+
+        for k in range(K):
+            for c in range(3):
+                gx = cv2.Sobel(mu[k, ..., c], cv2.CV_32F, 1, 0, ksize=3) / 8
+                gy = cv2.Sobel(mu[k, ..., c], cv2.CV_32F, 0, 1, ksize=3) / 8
+                var[k, ..., c] += np.float32(shift) ** 2 * (gx * gx + gy * gy)
     mean = np.clip(np.rint(mu), 0, 255).astype(np.uint8)
     return mean, np.sqrt(var).astype(np.float16), weight
