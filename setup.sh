@@ -10,6 +10,12 @@
 set -euo pipefail
 cd "$(dirname "$0")"
 python3 -m pip install --quiet --disable-pip-version-check -c constraints.txt -e ".[test]"
+# key.person (nodes/key/person.py): mediapipe 0.10.14 ships its pose models inside the wheel (later wheels download
+# them at run time), installed without its declared dependencies: opencv-contrib-python would shadow the project's
+# opencv-python-headless, and jax is not used by these models. Pinned here, not in constraints.txt (which holds
+# what pip resolves for ".[test]"; .ci/lock-check compares the two).
+python3 -m pip install --quiet --disable-pip-version-check --no-deps mediapipe==0.10.14 protobuf==4.25.9 \
+    absl-py==2.5.1 flatbuffers==25.12.19
 SUDO=""
 [ "$(id -u)" = 0 ] || SUDO="sudo"
 apt_install() {

@@ -379,7 +379,7 @@ def load_capture(path, frame: int = 0, images: str = "", masks: str = "", backgr
         cams, files, mask_imgs, mask_files, bg, (keep, extra) = _generic(root, frame, masks, background, log, calibration)
         imgs = [read_image(f) for f in files]
         out = _assemble(cams, imgs, files, mask_imgs, bg, mask_threshold, masks or ("files" if mask_imgs else ""),
-                        mask_files)
+                        mask_files, log)
         if plates:
             out["plates"], out["plate_frames"] = _plates(root, background, list(zip(keep, cams.names)), extra, plates,
                                                          log)
@@ -437,7 +437,8 @@ def load_capture(path, frame: int = 0, images: str = "", masks: str = "", backgr
     if found:
         mask_files = [p for p, _ in found]
         mask_imgs = [read_image(p, f) for p, f in found]
-    out = _assemble(cams, raw, [p for p, _ in img_files], mask_imgs, bg, mask_threshold, pat.get("masks", ""), mask_files)
+    out = _assemble(cams, raw, [p for p, _ in img_files], mask_imgs, bg, mask_threshold, pat.get("masks", ""), mask_files,
+                    log)
     if plates:
         out["plates"], out["plate_frames"] = _plates(root, pat.get("background", ""), list(enumerate(cams.names)),
                                                      extra, plates, log)
@@ -622,12 +623,23 @@ def _check_unclaimed(root: Path, pattern: str, cams: Cameras, kind: str):
                         f"missing? (or give a {kind} pattern that does not match them)")
 
 
+PAD = 16  # a video encoder pads or crops each side to a multiple of 16 pixels
+
+
 def _assemble(cams: Cameras, raw: list, files: list, mask_imgs, bg, threshold: int, mask_mode: str,
-              mask_files: list | None = None) -> dict:
+              mask_files: list | None = None, log=None) -> dict:
+    cropped = list(cams)
     for i, (c, img, f) in enumerate(zip(cams, raw, files)):
         h, w = img.shape[:2]
         if (w, h) != (c.width, c.height):
-            raise DataError(f"camera {i} '{c.name}': image {f} is {w}x{h} but the calibration is for {c.width}x{c.height}")
+            if not (0 <= c.width - w < PAD and 0 <= c.height - h < PAD):
+                raise DataError(f"camera {i} '{c.name}': image {f} is {w}x{h} but the calibration is for "
+                                f"{c.width}x{c.height}")
+            # pose2sim's cam01/cam02: 1080 wide videos of a 1088 wide calibrated field of view
+            (log or LOG).warning("capture: camera '%s': image %dx%d, calibration %dx%d: taken as the calibrated "
+                                 "image less its last %d columns and %d rows (a video encoder's crop to a multiple "
+                                 "of 8 or 16)", c.name, w, h, c.width, c.height, c.width - w, c.height - h)
+            cropped[i] = c = c.cropped(0, 0, w, h)
         if c.metric and not (0 <= c.K[0, 2] <= w and 0 <= c.K[1, 2] <= h):
             raise DataError(f"camera {i} '{c.name}': principal point ({c.K[0, 2]:.1f}, {c.K[1, 2]:.1f}) lies outside "
                             f"the {w}x{h} image {f}: image size and intrinsics do not match")
@@ -649,4 +661,4 @@ def _assemble(cams: Cameras, raw: list, files: list, mask_imgs, bg, threshold: i
         for i, (b, im) in enumerate(zip(bg.images, raw)):
             if b.shape[:2] != im.shape[:2]:
                 raise DataError(f"camera {i} '{cams[i].name}': background is {b.shape[1]}x{b.shape[0]} but the image is {im.shape[1]}x{im.shape[0]}")
-    return {"images": images, "masks": masks, "cameras": cams, "background": bg}
+    return {"images": images, "masks": masks, "cameras": Cameras(cropped) if cropped != list(cams) else cams, "background": bg}

@@ -178,6 +178,38 @@ class DifferenceKey(Node):
         return {"masks": maskset(alphas, images.names)}
 
 
+class Person(Node):
+    """A learned person matte where there is neither a green screen nor a clean plate: MediaPipe Pose's body
+    segmentation per view (its model ships in the mediapipe 0.10.14 wheel; nothing is downloaded), and the 33 body
+    landmarks it fits on the way (pixels, visibility) for the skeleton stage. One person per view, the most
+    prominent: follow with key.consensus where others stand around (see person.py)."""
+
+    type_name = "key.person"
+    version = 1
+    inputs = {"images": Images}
+    outputs = {"masks": Masks,
+               "keypoints": Output(Table, "per camera: found, and the 33 landmarks [x px, y px, visibility] by name")}
+    params = {
+        "threshold": Param(float, 0.5, range=(0.01, 0.99), doc="segmentation score above which a pixel is the person"),
+        "min_confidence": Param(float, 0.5, range=(0.05, 0.95), doc="person detector's confidence needed in a view"),
+    }
+
+    def run(self, images, *, threshold, min_confidence):
+        from .person import LANDMARKS, person_matte
+
+        masks, alphas, table = [], [], {"landmarks": list(LANDMARKS), "cameras": {}}
+        for name, im in zip(images.names, images.images):
+            alpha, lm = person_matte(im, min_confidence)
+            if lm is None:
+                self.log.warning("key.person: camera '%s': no person found (min_confidence %.2f): its mask is empty",
+                                 name, min_confidence)
+            masks.append(np.where(alpha > threshold, 255, 0).astype(np.uint8))
+            alphas.append(alpha)
+            table["cameras"][name] = {"found": lm is not None,
+                                      "points": None if lm is None else np.round(lm[:, :3], 2).tolist()}
+        return {"masks": MaskSet(masks, alphas, images.names), "keypoints": table}
+
+
 class Threshold(Node):
     """Grey threshold: foreground where the grey level exceeds ``threshold`` (masks shipped as images, or
     objects on a black background such as Middlebury's: threshold 0.19, dilate 10, erode 7)."""

@@ -267,3 +267,27 @@ def test_one_pattern_is_completed_from_the_folder(tmp_path):
         for v in range(len(cams)):
             assert np.array_equal(got["images"].images[v], auto["images"].images[v]), given
             assert np.array_equal(got["masks"].masks[v], auto["masks"].masks[v]), given
+
+
+def test_capture_takes_an_encoder_crop_and_says_so(tmp_path, caplog):
+    """An image up to 15 px narrower or shorter than its calibration (a video encoder's crop to a multiple of 8 or
+    16, pose2sim's 1080 of 1088) is the calibrated view less its last columns and rows: the camera is cropped, K
+    kept, and a warning names it. Larger, or 16 px and more, is refused."""
+    cams = sphere_rig()
+    patterns = write_dataset(tmp_path, cams)
+    img = cv2.imread(str(tmp_path / "cam1" / "rgb.png"))
+    mask = cv2.imread(str(tmp_path / "cam1" / "mask.png"), cv2.IMREAD_GRAYSCALE)
+    cv2.imwrite(str(tmp_path / "cam1" / "rgb.png"), img[:, : W - 8])
+    cv2.imwrite(str(tmp_path / "cam1" / "mask.png"), mask[:, : W - 8])
+    plate = cv2.imread(str(tmp_path / "cam1" / "plate.png"))
+    cv2.imwrite(str(tmp_path / "cam1" / "plate.png"), plate[:, : W - 8])    # the same encoder
+    out = load_capture(tmp_path, 0, **patterns)
+    got = out["cameras"][1]
+    assert (got.width, got.height) == (W - 8, H) and np.allclose(got.K, cams[1].K)
+    assert np.array_equal(out["masks"].masks[1], sphere_mask(cams, 1)[:, : W - 8])
+    assert f"camera 'cam1': image {W - 8}x{H}, calibration {W}x{H}: taken as the calibrated image less its last 8" \
+           in caplog.text
+    for bad in (np.zeros((H, W + 8, 3), np.uint8), img[:, : W - 16]):
+        cv2.imwrite(str(tmp_path / "cam1" / "rgb.png"), bad)
+        with pytest.raises(DataError, match=f"camera 1 'cam1'.*{bad.shape[1]}x{H} but the calibration is for {W}x{H}"):
+            load_capture(tmp_path, 0, **patterns)

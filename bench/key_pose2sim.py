@@ -1,0 +1,122 @@
+"""Keying real footage with neither a green screen nor a plate (pose2sim_single: 4 colour videos of a man on a
+treadmill in a cluttered lab, other people in two views), every route in the same run, judged by the 4 views'
+consensus: each route's mattes carve a 4-view hull (automatic box, floor), and each view's matte is compared with
+that hull's silhouette (IoU; what only some views believe is foreground lowers it), plus each route's agreement
+with the learned person matte.
+
+Routes: a plate from the footage (key.plate: per-pixel median over 20 frames spread over the 100, with its coverage
+report) then key.difference; the mixture learnt from the footage itself (capture.background over the same frames:
+components a moving subject leaves below 10 % of the frames are not background); the learned person matte
+(key.person: MediaPipe Pose segmentation, its model inside the mediapipe 0.10.14 wheel); each followed by
+key.cleanup (largest part, holes filled). Draws docs/key_pose2sim.jpg: every view's matte over frame 0, one row
+per route.
+
+    python bench/key_pose2sim.py [--frame 0]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from bench import machine  # noqa: E402
+from nodegraph.testing import run_node  # noqa: E402
+
+ROOT = Path(os.environ.get("VOLCAP_DATA", Path(__file__).resolve().parents[2] / "shared" / "data")) / "pose2sim_single"
+DOCS = Path(__file__).resolve().parent.parent / "docs"
+
+
+def iou(a, b) -> float:
+    a, b = np.asarray(a) > 127, np.asarray(b) > 127
+    return float((a & b).sum() / max((a | b).sum(), 1))
+
+
+def consensus(masks, cameras):
+    """Per view the IoU of the matte with the silhouette of the hull all four mattes carve."""
+    from nodegraph import NodeError
+
+    try:
+        bounds = run_node("bounds", {"masks": masks, "cameras": cameras})["bounds"]
+    except NodeError:          # the mattes' cones do not meet: no hull at all
+        return {"mean_iou": 0.0, "min_iou": 0.0}, None
+    vol = run_node("hull", {"masks": masks, "cameras": cameras, "bounds": bounds},
+                   {"resolution": 128, "floor": True})["volume"]
+    mesh = run_node("mc", {"volume": vol}, {"largest": True})["mesh"]
+    if len(mesh.faces) == 0:   # the mattes agree nowhere: no hull
+        return {"mean_iou": 0.0, "min_iou": 0.0}, mesh
+    score = run_node("eval.silhouette", {"mesh": mesh, "cameras": cameras, "masks": masks})["report"]
+    return score, mesh
+
+
+def main():
+    import cv2
+
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--frame", type=int, default=0)
+    args = ap.parse_args()
+    print(machine.describe())
+    frames = list(range(0, 100, 5))
+    t = time.perf_counter()
+    caps = {f: run_node("capture", params={"path": str(ROOT)}, frame=f) for f in sorted(set(frames) | {args.frame})}
+    cap = caps[args.frame]
+    cams, names = cap["cameras"], cap["images"].names
+    print(f"read {len(caps)} frames x 4 videos in {time.perf_counter() - t:.1f} s")
+    plate = run_node("key.plate", {"images": [caps[f]["images"] for f in frames]}, {}, frames=frames)
+    print("key.plate coverage (share of pixels that showed one background in half the frames):",
+          {n: c["stable"] for n, c in plate["report"]["cameras"].items()})
+    t = time.perf_counter()
+    mix = run_node("capture.background", {}, {"path": str(ROOT), "background": "videos/cam{cam1:02d}.mp4",
+                                                "frames": len(frames)})
+    print(f"capture.background over the footage: {time.perf_counter() - t:.1f} s; several backgrounds:",
+          {n: c["several_backgrounds"] for n, c in mix["report"]["cameras"].items()})
+    routes = {
+        "plate from the footage + key.difference":
+            lambda: run_node("key.difference", {"images": cap["images"], "background": plate["background"]})["masks"],
+        "mixture from the footage + key.difference":
+            lambda: run_node("key.difference", {"images": cap["images"], "model": mix["model"]})["masks"],
+        "key.person (MediaPipe Pose segmentation)":
+            lambda: run_node("key.person", {"images": cap["images"]})["masks"],
+    }
+    results = {}
+    for name, fn in routes.items():
+        fn()
+        t = time.perf_counter()
+        raw = fn()
+        ms = 1000 * (time.perf_counter() - t)
+        masks = run_node("key.cleanup", {"masks": raw})["masks"]
+        score, _ = consensus(masks, cams)
+        results[name] = (masks, score, ms)
+    person = results["key.person (MediaPipe Pose segmentation)"][0]
+    print(f"\nframe {args.frame}: consensus = IoU of each view's matte with the 4-view hull's silhouette")
+    print(f"{'route':44s} {'consensus mean':>14s} {'worst':>6s} {'area %':>7s} {'IoU vs person':>13s} {'ms (4 views)':>12s}")
+    for name, (masks, score, ms) in results.items():
+        area = 100 * np.mean([(m > 127).mean() for m in masks.masks])
+        agree = np.mean([iou(a, b) for a, b in zip(masks.masks, person.masks)])
+        print(f"{name:44s} {score['mean_iou']:14.3f} {score['min_iou']:6.3f} {area:7.2f} {agree:13.3f} {ms:12.0f}")
+    rows = []
+    for name, (masks, _, _) in results.items():
+        tiles = []
+        for v in range(len(names)):
+            im = cap["images"].images[v][:, :1080].copy()
+            m = masks.masks[v][:, :1080] > 127
+            im[m] = (0.45 * im[m] + 0.55 * np.array([40, 220, 60])).astype(np.uint8)
+            tile = cv2.resize(im, (270, 480), interpolation=cv2.INTER_AREA)
+            cv2.putText(tile, names[v], (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 2)
+            tiles.append(tile)
+        row = np.hstack(tiles)
+        label = np.full((28, row.shape[1], 3), 24, np.uint8)
+        cv2.putText(label, name, (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1)
+        rows.append(np.vstack([label, row]))
+    DOCS.mkdir(exist_ok=True)
+    cv2.imwrite(str(DOCS / "key_pose2sim.jpg"), np.vstack(rows)[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, 85])
+    print(f"\nwrote {DOCS / 'key_pose2sim.jpg'}")
+
+
+if __name__ == "__main__":
+    main()
