@@ -9,7 +9,8 @@ report) then key.difference; the mixture learnt from the footage itself (capture
 components a moving subject leaves below 10 % of the frames are not background); the learned person matte
 (key.person: MediaPipe Pose segmentation, its model inside the mediapipe 0.10.14 wheel); each followed by
 key.cleanup (largest part, holes filled). Draws docs/key_pose2sim.jpg: every view's matte over frame 0, one row
-per route.
+per route; and docs/keypoints_pose2sim.jpg: the 33 body landmarks triangulated from the four views
+(skeleton.keypoints) reprojected into each, beside each view's own landmarks.
 
     python bench/key_pose2sim.py [--frame 0]
 """
@@ -116,6 +117,39 @@ def main():
     DOCS.mkdir(exist_ok=True)
     cv2.imwrite(str(DOCS / "key_pose2sim.jpg"), np.vstack(rows)[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, 85])
     print(f"\nwrote {DOCS / 'key_pose2sim.jpg'}")
+
+    # the 33 landmarks triangulated from the 4 views (skeleton.keypoints), reprojected: green the 3D point, red
+    # each view's own 2D landmark (their gap is the triangulation's disagreement)
+    t = time.perf_counter()
+    kp = run_node("key.person", {"images": cap["images"]})["keypoints"]
+    pts = run_node("skeleton.keypoints", {"keypoints": kp, "cameras": cams})["points"]
+    ms = 1000 * (time.perf_counter() - t)
+    rms = [r for r in pts["rms_px"] if r is not None]
+    print(f"skeleton.keypoints: {sum(p is not None for p in pts['points'])} of 33 landmarks in 3D, reprojection "
+          f"median {np.median(rms):.1f} px, max {max(rms):.1f} px; key.person + triangulation {ms:.0f} ms")
+    L = {n: i for i, n in enumerate(pts["landmarks"])}
+    bones = [(f"{s}_{a}", f"{s}_{b}") for s in ("left", "right") for a, b in
+             (("shoulder", "elbow"), ("elbow", "wrist"), ("hip", "knee"), ("knee", "ankle"), ("ankle", "heel"),
+              ("heel", "foot_index"), ("shoulder", "hip"))] + [("left_shoulder", "right_shoulder"),
+                                                                 ("left_hip", "right_hip")]
+    X = np.array([p if p is not None else [np.nan] * 3 for p in pts["points"]])
+    tiles = []
+    for v, name in enumerate(names):
+        im = cap["images"].images[v][:, :1080].copy()
+        uv = cams.project(np.nan_to_num(X), v)[0]
+        own = np.array(kp["cameras"][name]["points"] or np.zeros((33, 3)))
+        for a, b in bones:
+            if np.isfinite(X[L[a]]).all() and np.isfinite(X[L[b]]).all():
+                cv2.line(im, tuple(int(c) for c in uv[L[a]]), tuple(int(c) for c in uv[L[b]]), (40, 230, 60), 5)
+        for j in range(len(X)):
+            if np.isfinite(X[j]).all():
+                cv2.circle(im, tuple(int(c) for c in own[j, :2]), 7, (230, 40, 40), -1)
+                cv2.circle(im, tuple(int(c) for c in uv[j]), 9, (40, 230, 60), 2)
+        tile = cv2.resize(im, (360, 640), interpolation=cv2.INTER_AREA)
+        cv2.putText(tile, name, (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (255, 255, 255), 2)
+        tiles.append(tile)
+    cv2.imwrite(str(DOCS / "keypoints_pose2sim.jpg"), np.hstack(tiles)[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, 85])
+    print(f"wrote {DOCS / 'keypoints_pose2sim.jpg'}")
 
 
 if __name__ == "__main__":

@@ -9,7 +9,8 @@ import time
 import numpy as np
 
 from nodegraph import Files, Input, Node, NodeError, Output, Param, Table
-from nodes.common.types import FPS_PARAM, Mesh, MeshSequence, Skeleton, SkeletonData, Volume, sequence_segments
+from nodes.common.types import (FPS_PARAM, CameraSet, Mesh, MeshSequence, Skeleton, SkeletonData, Volume,
+                               sequence_segments)
 
 from .humanoid import TOOLS
 
@@ -118,6 +119,43 @@ class Humanoid(Node):
             names = [table.get(n, n) for n in names]
         report["names"] = names
         return {"skeleton": SkeletonData(joints, parents, names), "report": report}
+
+
+class Keypoints(Node):
+    """Body landmarks seen in several views (key.person's keypoints) triangulated into 3D points (keypoints.py):
+    per landmark the point nearest the rays of the views that see it, the view that reprojects worst dropped
+    while beyond ``max_error`` pixels: named 3D body points per frame (a check of the rig, a mocap-style track)."""
+
+    type_name = "skeleton.keypoints"
+    version = 1
+    publishes = True   # OUT/tables/<node>/<frame>.json: the 3D landmarks per frame
+    inputs = {"keypoints": Input(Table, doc="key.person's table: per camera the landmarks in pixels"),
+              "cameras": CameraSet}
+    outputs = {"points": Output(Table, "landmarks: names; points: [x, y, z] or null; views; rms_px")}
+    params = {
+        "min_visibility": Param(float, 0.5, range=(0.0, 1.0), doc="a view's landmark counts from this visibility"),
+        "max_error": Param(float, 30.0, range=(0.5, None), doc="reprojection error (pixels) beyond which a view is dropped"),
+    }
+
+    def run(self, keypoints, cameras, *, min_visibility, max_error):
+        from .keypoints import triangulate
+
+        try:
+            names, per_cam = keypoints["landmarks"], keypoints["cameras"]
+        except (KeyError, TypeError):
+            raise NodeError("skeleton.keypoints: 'keypoints' is not key.person's table (landmarks, cameras)") from None
+        unknown = sorted(set(per_cam) - set(cameras.names))
+        if unknown:
+            raise NodeError(f"skeleton.keypoints: cameras {unknown} of the keypoints are not in the rig "
+                            f"{cameras.names}")
+        pts = {n: (None if not c["found"] else c["points"]) for n, c in per_cam.items()}
+        xyz, views, rms = triangulate(pts, cameras, min_visibility, max_error)
+        if len(xyz) and not np.isfinite(xyz).any():
+            self.log.warning("skeleton.keypoints: no landmark is seen in two views that agree")
+        return {"points": {"landmarks": list(names),
+                           "points": [None if not np.isfinite(x).all() else np.round(x, 5).tolist() for x in xyz],
+                           "views": views.tolist(),
+                           "rms_px": [None if not np.isfinite(r) else round(float(r), 2) for r in rms]}}
 
 
 # ---------------------------------------------------------------- sequences

@@ -50,11 +50,11 @@ def test_fingerprints_follow_imports_kernels_and_data(tree):
     base = fingerprints()
     assert fingerprints() == base  # stable
 
-    # a calibration reader (imported by the capture stage and by calibrate, which writes the formats) -> those
-    # two re-run, nothing else
+    # a calibration reader (imported by the capture stage's two nodes, which read dataset folders, and by
+    # calibrate, which writes the formats) -> those re-run, nothing else
     edit(root / "nodes/common/calibration.py", "\n# edited: a reader's fix\n")
     after = fingerprints()
-    assert changed(base, after) == {"capture", "calibrate"}
+    assert changed(base, after) == {"capture", "capture.background", "calibrate"}
     base = after
 
     # the key stage's work module -> the key nodes, no other stage
@@ -77,6 +77,6 @@ def test_fingerprints_follow_imports_kernels_and_data(tree):
     assert {"hull", "refine", "relax"} <= changed(base, after) and "mc" not in changed(base, after)
     base = after
 
-    # a data file beside a module (the dataset layouts) -> capture
+    # a data file beside a module (the dataset layouts) -> capture and capture.background (both read folders)
     edit(root / "nodes/capture/layouts.yaml", "\n# edited\n")
-    assert changed(base, fingerprints()) == {"capture"}
+    assert changed(base, fingerprints()) == {"capture", "capture.background"}
