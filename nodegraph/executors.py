@@ -106,7 +106,11 @@ class LocalExecutor:
     def __init__(self, jobs: int | None = None):
         self.jobs = max(1, jobs or os.cpu_count() or 1)
 
-    def run(self, units, cache_root, on_result):
+    def run(self, units, cache_root, on_result, on_progress=None):
+        """``on_progress(item key, done, total, what)``: a running item's Node.progress (in this process: as it
+        is called; from the pool: polled twice a second from the file beside the item's log)."""
+        from . import worker
+
         tracker = _DependencyTracker(units)
 
         def report(key, results):
@@ -115,10 +119,24 @@ class LocalExecutor:
             tracker.finished(key, results)
 
         if self.jobs == 1 or len(units) == 1:
-            while tracker.ready:
-                key = tracker.ready.pop(0)
-                report(key, execute_unit(tracker.launch(key), cache_root))
+            saved, worker.PROGRESS_HOOK = worker.PROGRESS_HOOK, on_progress
+            try:
+                while tracker.ready:
+                    key = tracker.ready.pop(0)
+                    report(key, execute_unit(tracker.launch(key), cache_root))
+            finally:
+                worker.PROGRESS_HOOK = saved
             return
+        seen: dict[str, tuple] = {}
+
+        def poll():
+            for key in running.values():
+                for spec in tracker.units[key].spec.items:
+                    got = worker.read_progress(spec.log)
+                    if got is not None and seen.get(spec.key) != got:
+                        seen[spec.key] = got
+                        on_progress(spec.key, *got)
+
         ctx = multiprocessing.get_context("spawn")
         workers = min(self.jobs, len(units))
         init = {"initializer": _init_worker, "initargs": (worker_threads(workers),)}
@@ -130,7 +148,9 @@ class LocalExecutor:
                     key = tracker.ready.pop(0)
                     with _sigint_ignored():  # workers start ignoring Ctrl-C: this process handles it
                         running[pool.submit(execute_unit, tracker.launch(key), cache_root)] = key
-                done, _ = wait(running, return_when=FIRST_COMPLETED)
+                done, _ = wait(running, return_when=FIRST_COMPLETED, timeout=0.5 if on_progress else None)
+                if on_progress:
+                    poll()
                 broken = False
                 for fut in done:
                     key = running.pop(fut)

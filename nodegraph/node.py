@@ -23,6 +23,7 @@ passed to ``run`` as ``frame=`` and is part of the cache key.
 ``publishes = True``: the node's ``Files`` outputs are copied into the run's output folder, and its ``Table``
 outputs are written there as JSON per frame and CSV per node (OUT/tables/NODE/FRAME.json, OUT/tables/NODE.csv).
 ``summary = ("key", ...)``: Table keys printed in one line per node after a run (mean, and min/max over frames).
+``self.progress(done, total, what)`` in run(): how far a long item has come, shown on the command line's bar.
 ``checkpoint = True``: the node's outputs are always stored in the cache (a costly source such as a renderer),
 even when the nodes that read them run in the same process (nodegraph/plan.py says what is kept).
 
@@ -181,6 +182,13 @@ class Node:
     frame: int | None = None
     frames: list[int] = []
     log: logging.Logger = logging.getLogger("volcap.node")
+    _progress = None   # callable(done, total, what) or None
+
+    def progress(self, done: int, total: int, what: str = "") -> None:
+        """Say how far a long run has come (a sequence node's frames, a solver's iterations): the command line's
+        bar shows it beside the item (``skin 7/15 iterations``). Cheap: call it as often as is natural."""
+        if self._progress is not None:
+            self._progress(int(done), int(total), str(what))
 
     def __init_subclass__(cls, **kw):
         super().__init_subclass__(**kw)

@@ -9,6 +9,7 @@ in memory, the files it published, its log.
 """
 from __future__ import annotations
 
+import inspect
 import json
 import sys
 import time
@@ -266,8 +267,15 @@ def run_graph(graph: Graph, cache: Cache, out_dir: Path, executor, progress: boo
             bar.set_postfix_str(f"{it.label} {res.status}", refresh=False)
             bar.update(1)
 
+    def on_progress(key: str, done: int, total: int, what: str):
+        it = by_key[key]
+        bar.set_postfix_str(f"{it.label} {done}/{total} {what}".rstrip(), refresh=True)
+
     if units:
-        executor.run(units, str(cache.root), on_result)
+        if bar is not None and "on_progress" in inspect.signature(executor.run).parameters:
+            executor.run(units, str(cache.root), on_result, on_progress=on_progress)
+        else:
+            executor.run(units, str(cache.root), on_result)
     if bar is not None:
         bar.close()
     if not any(r.status == "failed" for r in results.values()):

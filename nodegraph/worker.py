@@ -12,6 +12,7 @@ down (its dependents in the unit are skipped); the traceback goes to the item's 
 from __future__ import annotations
 
 import logging
+import os
 import time
 import traceback
 from pathlib import Path
@@ -115,7 +116,8 @@ def execute_unit(unit: UnitSpec, cache_root: str) -> dict[str, Result]:
     return results
 
 
-def call_node(cls, inputs: dict, params: dict, *, frame: int | None, frames: list[int], log: logging.Logger) -> dict:
+def call_node(cls, inputs: dict, params: dict, *, frame: int | None, frames: list[int], log: logging.Logger,
+              progress=None) -> dict:
     """Run node class ``cls`` on input values and params (as run() receives them) and check what it returns:
     a dict with exactly the declared outputs, None only where declared optional, each value passing its type's
     check. Returns port -> (DataType, value in its type's canonical form: as the cache gives it back); raises
@@ -124,6 +126,7 @@ def call_node(cls, inputs: dict, params: dict, *, frame: int | None, frames: lis
     node.frame = frame
     node.frames = frames
     node.log = log
+    node._progress = progress
     kwargs = {**params, **inputs}
     if cls.uses_frame:
         kwargs["frame"] = frame
@@ -157,6 +160,49 @@ def keep(cache: Cache, spec: ItemSpec, outputs: dict, seconds: float) -> set[str
                     {"node": spec.node, "type": spec.type, "frame": spec.frame, "components": spec.components,
                      "seconds": seconds, "in_memory": sorted(set(outputs) - kept)})
     return kept
+
+
+# In-process runs (one job): the caller's callback(key, done, total, what), called straight from Node.progress
+PROGRESS_HOOK = None
+PROGRESS_EVERY_S = 0.25
+
+
+def progress_path(log_path: str | None) -> Path | None:
+    """Where an item running in another process says how far it has come (beside its log): "done total what"."""
+    return None if not log_path else Path(log_path + ".progress")
+
+
+def read_progress(log_path: str | None) -> tuple[int, int, str] | None:
+    path = progress_path(log_path)
+    try:
+        done, total, what = path.read_text().split(" ", 2)
+        return int(done), int(total), what
+    except (AttributeError, OSError, ValueError):
+        return None
+
+
+def _progress_writer(spec: ItemSpec):
+    """Node.progress for this item: the in-process hook, or a small file the pool's parent polls (written at most
+    every PROGRESS_EVERY_S, and at the end; atomically: the reader never sees half a line)."""
+    path = progress_path(spec.log)
+    last = [0.0]
+
+    def write(done: int, total: int, what: str):
+        if PROGRESS_HOOK is not None:
+            PROGRESS_HOOK(spec.key, done, total, what)
+            return
+        now = time.perf_counter()
+        if path is None or (now - last[0] < PROGRESS_EVERY_S and done < total):
+            return
+        last[0] = now
+        try:
+            tmp = path.with_suffix(".tmp")
+            tmp.write_text(f"{done} {total} {what}")
+            os.replace(tmp, path)
+        except OSError:
+            pass   # progress is a courtesy: never a failure
+
+    return write
 
 
 def execute(spec: ItemSpec, cache_root: str, memory: Values | None = None) -> Result:
@@ -193,7 +239,8 @@ def execute(spec: ItemSpec, cache_root: str, memory: Values | None = None) -> Re
             if inputs[port] is None and ref is not None and not cls.inputs[port].optional:
                 raise NodeError(f"input '{port}' received nothing: its source produced no value for this frame")
         log.info("running %s with params %s", where, spec.params)
-        outputs = call_node(cls, inputs, spec.params, frame=spec.frame, frames=spec.frames, log=log)
+        outputs = call_node(cls, inputs, spec.params, frame=spec.frame, frames=spec.frames, log=log,
+                            progress=_progress_writer(spec))
         if memory is not None:
             for port, (dtype, value) in outputs.items():
                 memory.put(Ref(spec.key, port, type_name(dtype)), value)
@@ -215,3 +262,6 @@ def execute(spec: ItemSpec, cache_root: str, memory: Values | None = None) -> Re
         if handler:
             log.removeHandler(handler)
             handler.close()
+        done_path = progress_path(spec.log)
+        if done_path is not None:
+            done_path.unlink(missing_ok=True)   # finished: nothing more to show

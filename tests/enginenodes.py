@@ -197,3 +197,19 @@ class UsesHint(Node):
 
     def run(self, x):
         return {"out": np.asarray(x) + getattr(x, "hint", 0.0)}
+
+
+class Steps(Node):
+    """Sums the frames' values in ``steps`` steps, saying how far it has come (Node.progress), ``pause`` s each."""
+
+    type_name = "t.steps"
+    per = "sequence"
+    inputs = {"x": Array}
+    outputs = {"out": Array}
+    params = {"steps": Param(int, 5), "pause": Param(float, 0.0)}
+
+    def run(self, x, *, steps, pause):
+        for i in range(steps):
+            time.sleep(pause)
+            self.progress(i + 1, steps, "steps")
+        return {"out": np.sum(x, axis=0)}

@@ -101,6 +101,7 @@ class Background(Node):
         names = sets[0].names
         means, sigmas, weights, report = [], [], [], {"frames_used": used, "cameras": {}}
         for v, name in enumerate(names):
+            self.progress(v, len(names), "cameras")
             mean, sigma, weight = background_mixture((s.images[v] for s in sets), components, noise, match, min_weight, shift)
             means.append(mean)
             sigmas.append(sigma)

@@ -341,7 +341,8 @@ class Skin(Node):
                   np.zeros(len(skeleton.parents)), np.zeros(len(skeleton.parents)))
         traj = Trajectories(frames[0], frames)
         fit = fit_skin(traj, faces, rig, influences=influences, iterations=iterations, smooth=smooth,
-                       fixed_lengths=lengths == "fixed", rest=rest_fit, pivots=pivots, tol=tol, log=self.log.info)
+                       fixed_lengths=lengths == "fixed", rest=rest_fit, pivots=pivots, tol=tol, log=self.log.info,
+                       progress=self.progress)
         seconds = time.perf_counter() - t0
         diag = float(np.linalg.norm(np.ptp(frames[0], axis=0)))
         names = [skeleton.names[b] for b in fit.kept]

@@ -554,7 +554,7 @@ def joint_clearance(rest, faces, weights, joints, parents, lazy: bool = False) -
 # ---------------------------------------------------------------- the whole fit
 def fit_skin(traj: Trajectories, faces: np.ndarray, rig: Rig, *, influences: int = 4, iterations: int = 15,
              smooth: float = 1e-6, fixed_lengths: bool = True, pivots: bool = True, rest: bool = True,
-             tol: float = 1e-3, log=None) -> SkinFit:
+             tol: float = 1e-3, log=None, progress=None) -> SkinFit:
     """Alternate the weights and bone-motion steps (module docstring) from the rig's rigid parts; with
     fixed lengths, ``pivots`` also moves the rest-pose joints (fit_pivots) after each bone-motion step,
     refusing a joint's move that takes it out of the body (joint_clearance); ``rest`` refits the rest shape
@@ -622,6 +622,8 @@ def fit_skin(traj: Trajectories, faces: np.ndarray, rig: Rig, *, influences: int
         total = float(np.sqrt((rmse ** 2).mean()))
         if log:
             log(f"skin: iteration {it + 1}/{iterations}, rms {1000 * total:.4g} mm, {len(parents)} bones")
+        if progress:
+            progress(it + 1, iterations, f"iterations, rms {1000 * total:.3g} mm")
         if total > prev and best is not None:   # worse: undo this iteration and stop
             traj, weights, rot, tr, joints = best
             break

@@ -192,7 +192,7 @@ class Track(Node):
         params = TrackParams(spacing, data.voxel, fail_mean, fail_p95, max_iou_drop, extrapolate,
                              FitParams(iterations=iterations, arap=arap, arap_start=4.0 * arap, coverage=coverage, silhouette=silhouette,
                                        samples=samples), tries, bridge, retry)
-        results, segments = track_sequence(data, params)
+        results, segments = track_sequence(data, params, progress=self.progress)
         seconds = time.perf_counter() - t0
         import trimesh
 

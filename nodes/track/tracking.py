@@ -358,7 +358,7 @@ def grow_segment(frames: Frames, params: TrackParams, k: int, done: np.ndarray, 
             else:
                 seg.start = last
             if progress:
-                progress(len(got))
+                progress(len(results))
             i = last + direction
         else:
             if 0 <= i < n:
@@ -379,7 +379,8 @@ def track_sequence(frames: Frames, params: TrackParams, progress=None, keyframe:
     untracked frames best by ``keyframe_key``, none inside a segment already tried) and keeps the longest of
     these and of the earlier rounds' trials (cut where a kept segment took their frames; a trial is never
     grown twice). A segment that fills its whole stretch of untracked frames is kept at once, so a sequence
-    one keyframe explains costs one trial."""
+    one keyframe explains costs one trial. ``progress(done, total, what)``: frames tracked so far (the current
+    trial's included), as it grows."""
     n = len(frames)
     results: list[FrameResult | None] = [None] * n
     segments: list[Segment] = []
@@ -398,7 +399,8 @@ def track_sequence(frames: Frames, params: TrackParams, progress=None, keyframe:
                 break
             if any(t.seg.start <= k <= t.seg.stop for t in trials.values()):
                 continue
-            t = grow_segment(frames, params, k, done)
+            t = grow_segment(frames, params, k, done,
+                             (lambda m: progress(int(done.sum()) + m, n, "frames")) if progress else None)
             trials[k] = t
             fresh += 1
             lo, hi = k, k                                  # the stretch of untracked frames around k
@@ -423,7 +425,7 @@ def track_sequence(frames: Frames, params: TrackParams, progress=None, keyframe:
         log.info("segment %d: keyframe %d, frames %d..%d (%d nodes); before: %s; after: %s", seg.index, num[seg.keyframe],
                  num[seg.start], num[seg.stop], seg.nodes, seg.reason_start, seg.reason_stop)
         if progress:
-            progress(best.length)
+            progress(int(done.sum()), n, "frames")
         segments.append(seg)
     segments.sort(key=lambda s: s.start)
     renumber = {s.index: i for i, s in enumerate(segments)}

@@ -678,3 +678,41 @@ def test_the_records_a_worker_gets_are_plain_data(tmp_path):
     plus = next(it for it in items if it.node == "plus")
     [ref] = list(refs(plus.inputs))
     assert isinstance(ref, Ref) and ref.name == f"{ref.key}/{ref.port}" == plus.components["inputs"]["a"]
+
+
+# ---------------------------------------------------------------- progress of a long item
+@pytest.mark.parametrize("jobs", [1, 2])
+def test_a_long_item_shows_its_progress_on_the_bar(tmp_path, monkeypatch, jobs):
+    """Node.progress reaches the command line's bar: straight from the node in this process (every call), from the
+    pool's worker through the file beside the item's log (polled twice a second: some of the calls)."""
+    import tqdm
+
+    shown = []
+
+    class Bar:
+        def __init__(self, *a, **kw):
+            pass
+
+        def set_postfix_str(self, text, refresh=True):
+            shown.append(text)
+
+        def update(self, n=1):
+            pass
+
+        def close(self):
+            pass
+
+    monkeypatch.setattr(tqdm, "tqdm", Bar)
+    p = write(tmp_path, """
+        frames: 0:3
+        nodes:
+          src:   {type: t.source}
+          steps: {type: t.steps, in: {x: src.out}, params: {steps: 5, pause: %s}}
+    """ % (0.0 if jobs == 1 else 0.4))
+    res = run_graph(load_graph(p), Cache(tmp_path / "cache"), tmp_path / "out", LocalExecutor(jobs), progress=True)
+    assert all(r["status"] == "done" for r in res.records)
+    steps = [t for t in shown if "steps" in t and "/5" in t]
+    if jobs == 1:
+        assert steps == [f"steps@all {i}/5 steps" for i in range(1, 6)], shown
+    else:
+        assert len(steps) >= 2 and len(set(steps)) == len(steps), shown
