@@ -1,6 +1,7 @@
 """Keying speed: 24 x 1920x1080 frames, our OpenCL keys vs the baselines of REFERENCES.md (cv2.inRange,
 MOG2 with shadow detection), in the same run. Prints a table of the minimum over repeats (shared machine),
 then key.chroma's upload (a zero-copy buffer over the frame), kernel and download (alpha, despilled RGB).
+"learn" rows: the background mixture learnt from the n frames as plates (per camera, once per capture).
 "hull bits" is the fused real-time path (chroma_key_bits: silhouettes packed for the hull on the device, no
 download), here without a garbage matte, so every pixel is keyed.
 
@@ -86,6 +87,28 @@ def main():
         for im in imgs:
             K.difference_key_cl(im, mean, inv_var)
 
+    from nodes.common.background import background_mixture
+    from nodes.common.types import PlateMixture
+
+    plates = [np.clip(plate.astype(np.int16) + np.random.default_rng(k).integers(-4, 5, plate.shape), 0, 255)
+              .astype(np.uint8) for k in range(args.frames)]
+    model = PlateMixture(*[[x] for x in background_mixture(plates)], ["a"])
+
+    def mixture():
+        for im in imgs:
+            K.difference_key_mixture_cl(im, model, 0)
+
+    def learn_cl():
+        background_mixture(plates, method="opencl")
+
+    def learn_np():
+        background_mixture(plates, method="numpy")
+
+    def learn_mog2():
+        mog = cv2.createBackgroundSubtractorMOG2(detectShadows=True)
+        for im in plates:
+            mog.apply(im, learningRate=-1)
+
     rows = [
         ("cv2.cvtColor HSV + inRange", inrange),
         ("cv2.inRange (RGB box only)", inrange_only),
@@ -94,8 +117,16 @@ def main():
         ("key.chroma OpenCL (alpha+despill)", chroma_full),
         ("key.chroma OpenCL -> hull bits", chroma_bits),
         ("key.difference OpenCL", difference),
+        ("key.difference OpenCL, mixture model", mixture),
+        ("learn: capture.background OpenCL", learn_cl),
+        ("learn: its NumPy reference", learn_np),
+        ("learn: cv2 MOG2 apply (same frames)", learn_mog2),
     ]
     n = args.frames
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from machine import describe
+
+    print(describe())
     print(f"{n} frames of 1920x1080, min of {args.repeats} repeats")
     print(f"{'method':36s} {'total ms':>9s} {'ms/frame':>9s}")
     for name, fn in rows:

@@ -4,13 +4,17 @@ from __future__ import annotations
 
 import numpy as np
 
-from nodegraph import NodeError
+from kernels import source
+from nodegraph import NodeError, clrt
 
+KERNELS = source("background.cl")
+
+KMAX = 5  # components per pixel at most (kernels/background.cl holds them in private memory)
 PRIOR_SIGMA = 2.5  # a new component's sigma before its frames say, in units of the noise floor
 
 
 def background_mixture(frames, components: int = 3, noise: float = 4.0, match: float = 4.0, min_weight: float = 0.1,
-                       shift: float = 0.0):
+                       shift: float = 0.0, method: str = "opencl"):
     """A per-pixel Gaussian mixture of one camera's background from several frames (Stauffer & Grimson 1999, in
     batch; the seed's "learning techniques" for the background). Pass 1: each frame's colour joins the nearest
     component within ``match`` sigmas (colour distance over the three channels, as ``still`` measures it) and
@@ -26,20 +30,43 @@ def background_mixture(frames, components: int = 3, noise: float = 4.0, match: f
     recordings, vibration): each component's sigma grows by shift x its mean's gradient, so edges of the background
     do not key as subject (Utrecht: the plate video and the footage are two recordings).
 
+    ``method``: "opencl" (kernels/background.cl, one work item per pixel over all frames) or "numpy"
+    (background_mixture_reference, the same float32 operations).
+
     Returns (mean (K, H, W, 3) uint8, sigma (K, H, W, 3) float16 per channel, at least ``noise``; weight (K, H, W)
     float32), components sorted by weight; the slots that are not background repeat the first component (so a
     minimum over the slots is unchanged by them) and have weight 0."""
+    stack = _stack(frames)
+    K = int(components)
+    if not 1 <= K <= KMAX:
+        raise NodeError(f"background mixture: {K} components (1..{KMAX})")
+    floor = np.float32(noise) ** 2
+    limit = np.float32(match) ** 2
+    prior = np.float32(PRIOR_SIGMA * noise) ** 2
+    if method == "opencl":
+        n, mu, var = _mixture_cl(stack, K, floor, limit, prior)
+    else:
+        n, mu, var = background_mixture_reference(stack, K, floor, limit, prior)
+    return _finish(n, mu, var, len(stack), min_weight, shift)
+
+
+def _stack(frames) -> np.ndarray:
     frames = [np.asarray(f, np.uint8)[..., :3] for f in frames]
     if not frames:
         raise NodeError("background mixture: no frames")
-    K = int(components)
     h, w = frames[0].shape[:2]
     for f in frames:
         if f.shape[:2] != (h, w):
             raise NodeError(f"background frames differ in size: {f.shape[1]}x{f.shape[0]} after {w}x{h}")
-    floor = np.float32(noise) ** 2
-    limit = np.float32(match) ** 2
-    prior = np.float32(PRIOR_SIGMA * noise) ** 2
+    return np.ascontiguousarray(np.stack(frames))
+
+
+def background_mixture_reference(stack: np.ndarray, K: int, floor, limit, prior):
+    """NumPy reference of kernels/background.cl: (n (K, H, W), mu, var (K, H, W, 3)) float32 after both passes
+    and the pooling, components sorted by count (see background_mixture)."""
+    frames = list(stack)
+    h, w = frames[0].shape[:2]
+    floor, limit, prior = np.float32(floor), np.float32(limit), np.float32(prior)
 
     def variance(n, m2):
         return np.maximum((m2 + 2 * prior) / (n[..., None] + 1), floor)
@@ -90,7 +117,13 @@ def background_mixture(frames, components: int = 3, noise: float = 4.0, match: f
     n = np.take_along_axis(n, order, 0)
     mu = np.take_along_axis(mu, order[..., None], 0)
     var = np.take_along_axis(var, order[..., None], 0)
-    weight = n / np.float32(len(frames))
+    return n, mu, var
+
+
+def _finish(n, mu, var, count: int, min_weight: float, shift: float):
+    """Weights, the slots that are no background replaced by the first, the shift allowance, rounding."""
+    K = len(n)
+    weight = n / np.float32(count)
     keep = weight >= np.float32(min_weight)
     keep[0] = True
     mu = np.where(keep[..., None], mu, mu[:1])
@@ -106,3 +139,20 @@ def background_mixture(frames, components: int = 3, noise: float = 4.0, match: f
                 var[k, ..., c] += np.float32(shift) ** 2 * (gx * gx + gy * gy)
     mean = np.clip(np.rint(mu), 0, 255).astype(np.uint8)
     return mean, np.sqrt(var).astype(np.float16), weight
+
+
+class BackgroundCL(clrt.Runner):
+    source = KERNELS
+
+
+def _mixture_cl(stack: np.ndarray, K: int, floor, limit, prior):
+    run = BackgroundCL.get()
+    N, h, w = stack.shape[:3]
+    npix = h * w
+    frames = run.host(stack)
+    mu, var, n = run.buffer("mu", K * npix * 12), run.buffer("var", K * npix * 12), run.buffer("n", K * npix * 4)
+    f = np.float32
+    run.launch("background_mixture", npix, 64, frames, np.int32(N), np.int32(npix), f(floor), f(limit), f(prior),
+               mu, var, n, options=(f"-DK={K}",))
+    return (run.read(n, (K, h, w), np.float32), run.read(mu, (K, h, w, 3), np.float32),
+            run.read(var, (K, h, w, 3), np.float32))

@@ -54,6 +54,18 @@ def test_mixture_learns_two_lights_the_noise_and_drops_a_passer_by():
     assert np.array_equal(mean[2], mean[0]) and np.all(weight[2] == 0)                 # an unused slot repeats the first
 
 
+@pytest.mark.parametrize("components, noise, seed", [(3, 2.0, 0), (1, 4.0, 1), (5, 3.0, 2)])
+def test_mixture_learning_kernel_matches_reference(components, noise, seed):
+    """kernels/background.cl against background_mixture_reference: the same float32 operations, equal to the
+    bit on frames with two lights, noise and a passer-by, and on random frames (every decision exercised)."""
+    rng = np.random.default_rng(seed)
+    frames = known_frames(seed=seed) + [rng.integers(0, 256, (30, 40, 3), dtype=np.uint8) for _ in range(3)]
+    a = background_mixture(frames, components, noise, method="numpy", shift=0.5)
+    b = background_mixture(frames, components, noise, method="opencl", shift=0.5)
+    for x, y, what in zip(a, b, ("mean", "sigma", "weight")):
+        assert np.array_equal(x, y), (what, float((x != y).mean()))
+
+
 def test_mixture_kernel_matches_reference():
     frames = known_frames()
     mean, sigma, weight = background_mixture(frames)
