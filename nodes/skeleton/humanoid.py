@@ -26,11 +26,15 @@ one ~0.8 of it; 0.92 between): wrists and the spine's joints are placed by propo
 """
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 
 from nodegraph import NodeError
 
+LOG = logging.getLogger("volcap.skeleton")
 SIDES = ("l", "r")
+LOW_ARM = 0.3            # an arm whose path leaves the spine below this share of its arc meets the body at the hip
 BEND_DEG = 25.0
 FOOT_HEIGHT = 0.2        # extremities this share of the body's height above the floor are feet
 CROTCH_HEIGHT = 0.47
@@ -227,6 +231,36 @@ def _extremities(tree, u: np.ndarray, floor: float, height: float, node: str, ra
     return tree, named
 
 
+def _elbow_between(shoulder, wrist, up_len: float, fore_len: float, cells: np.ndarray, spine: np.ndarray,
+                   step: float) -> np.ndarray:
+    """An elbow ``up_len`` from the shoulder and ``fore_len`` from the wrist: of the circle where the two spheres
+    meet, the point inside the body (within half a voxel of its cells) farthest from the spine (an arm hangs beside
+    the torso, not in it); the spheres apart (a straight arm): on the line between, in the bones' ratio. Outside
+    the body either way: the nearest body cell."""
+    from scipy.spatial import cKDTree
+
+    body = cKDTree(cells)
+    d = wrist - shoulder
+    dist = float(np.linalg.norm(d))
+    if dist < 1e-9 or dist >= up_len + fore_len or dist <= abs(up_len - fore_len):   # a straight arm
+        x = shoulder + d * (up_len / max(up_len + fore_len, 1e-12))
+        gap, i = body.query(x)
+        return x if gap <= 0.5 * step else cells[i]       # never outside the body
+    axis = d / dist
+    a = (up_len**2 - fore_len**2 + dist**2) / (2 * dist)
+    r = np.sqrt(max(up_len**2 - a**2, 0.0))
+    e1 = np.cross(axis, [1.0, 0, 0] if abs(axis[0]) < 0.9 else [0, 1.0, 0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(axis, e1)
+    t = np.linspace(0, 2 * np.pi, 72, endpoint=False)
+    ring = shoulder + a * axis + r * (np.outer(np.cos(t), e1) + np.outer(np.sin(t), e2))
+    gap, idx = body.query(ring)
+    inside = gap <= 0.5 * step
+    lateral = cKDTree(spine).query(ring)[0]
+    score = np.where(inside, lateral, -np.inf)
+    return ring[int(np.argmax(score))] if inside.any() else cells[idx[int(np.argmin(gap))]]
+
+
 def _split_leg(poly: np.ndarray, cells: np.ndarray, u, right, forward, step: float):
     """Two legs from one leg column (legs touching): at each point of its centre line, the column's extent along
     ``right`` in a slice one voxel thick; each leg at the middle of its half. Returns (leg on +right, leg on -right)."""
@@ -274,12 +308,17 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
     on_spine = set(spine_path)
     polys = {"spine": pts[spine_path]}
     limbs = {}
+    at_spine = {}     # where each arm's path leaves the spine, as a share of the spine's arc from the pelvis
     for k in (0, 1):
         branch = next((v for v in to_head[f"hand_{k}"] if v in on_spine), None)
-        if branch is None or branch == pelvis:
-            raise NodeError(f"{node}: a hand's path reaches the body at the pelvis, not the spine: an arm against "
-                            "the hip? (try another frame)")
+        if branch is None:
+            raise NodeError(f"{node}: a hand's path never reaches the spine (try another frame)")
         limbs[("arm", k)] = pts[path(branch, end[f"hand_{k}"])]
+        at_spine[k] = _length(pts[spine_path[:spine_path.index(branch) + 1]]) / max(_length(pts[spine_path]), 1e-12)
+    if all(at_spine[k] < LOW_ARM for k in (0, 1)):   # one such arm is repaired from the other (below); two cannot be
+        raise NodeError(f"{node}: both hands' paths reach the body near the pelvis, not at the shoulders: arms "
+                        "against the hips? (try another frame)")
+    for k in (0, 1):
         foot = end["foot_0"] if together else end[f"foot_{k}"]
         limbs[("leg", k)] = pts[path(pelvis, foot)]
     # sides: the part of each foot below its ankle lies in front of the ankle
@@ -339,6 +378,22 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
                 frac = f
         joints[names.index(name)] = _at(poly, frac)
         parents.append(-1 if par is None else names.index(par.format(s=s) if s else par))
+    low = [k for k in (0, 1) if at_spine[k] < LOW_ARM]
+    if len(low) == 1:   # a hand against the hip: that arm's path enters the body there, not at the shoulder
+        bad = low[0]
+        sb, sg = ("r", "l") if side[("arm", "r")] == bad else ("l", "r")
+        J = {n: names.index(n) for n in names}
+        joints[J[f"clavicle_{sb}"]] = joints[J[f"clavicle_{sg}"]]
+        c = joints[J[f"clavicle_{sg}"]]
+        g = joints[J[f"shoulder_{sg}"]]
+        joints[J[f"shoulder_{sb}"]] = g - 2 * float((g - c) @ right) * right     # the good shoulder mirrored
+        up_len = float(np.linalg.norm(joints[J[f"elbow_{sg}"]] - g))
+        fore_len = float(np.linalg.norm(joints[J[f"wrist_{sg}"]] - joints[J[f"elbow_{sg}"]]))
+        joints[J[f"elbow_{sb}"]] = _elbow_between(joints[J[f"shoulder_{sb}"]], joints[J[f"wrist_{sb}"]], up_len,
+                                                  fore_len, cells, polys["spine"], step)
+        report["arm_from_hip"] = sb
+        LOG.warning("%s: arm '%s' meets the body at the hip (its hand against it): its shoulder mirrored from "
+                    "the other, its elbow between shoulder and wrist at the other arm's bone lengths", node, sb)
     lengths = {n: round(float(np.linalg.norm(joints[j] - joints[p])), 4) for j, (n, p) in enumerate(zip(names, parents))
                if p >= 0}
     report.update(joints=len(names), bends_deg=bends, bone_lengths=lengths, height=round(height, 4),
