@@ -25,8 +25,10 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench import machine  # noqa: E402
+from machine import describe, load_average  # noqa: E402
+
 from nodegraph.testing import run_node  # noqa: E402
 
 ROOT = Path(os.environ.get("VOLCAP_DATA", Path(__file__).resolve().parents[2] / "shared" / "data")) / "pose2sim_single"
@@ -55,13 +57,48 @@ def consensus(masks, cameras):
     return score, mesh
 
 
+def opencv_pairs(kp, cams) -> np.ndarray:
+    """The baseline a user would write: per landmark cv2.triangulatePoints on the two views that see it most
+    confidently, from undistorted normalised points."""
+    import cv2
+
+    names = cams.names
+    per = {n: np.array(c["points"]) for n, c in kp["cameras"].items() if c["found"]}
+    norm = {}
+    for n, p in per.items():
+        c = cams[names.index(n)]
+        norm[n] = cv2.undistortPoints(p[:, None, :2].astype(np.float64), c.K, c.dist)[:, 0, :]
+    out = np.full((len(kp["landmarks"]), 3), np.nan)
+    for j in range(len(out)):
+        order = sorted(per, key=lambda n: -per[n][j, 2])[:2]
+        if len(order) < 2:
+            continue
+        a, b = (cams[names.index(n)] for n in order)
+        X = cv2.triangulatePoints(a.Rt, b.Rt, norm[order[0]][j:j + 1].T, norm[order[1]][j:j + 1].T)
+        out[j] = X[:3, 0] / X[3, 0]
+    return out
+
+
+def reprojection(X, kp, cams, min_visibility=0.5) -> np.ndarray:
+    """Pixel distances from each 3D point's projection to the landmark of every view that sees it."""
+    errs = []
+    for n, c in kp["cameras"].items():
+        if not c["found"]:
+            continue
+        p = np.array(c["points"])
+        uv = cams.project(np.nan_to_num(X), cams.names.index(n))[0]
+        ok = (p[:, 2] >= min_visibility) & np.isfinite(X).all(1)
+        errs.extend(np.linalg.norm(uv[ok] - p[ok, :2], axis=1))
+    return np.array(errs)
+
+
 def main():
     import cv2
 
     ap = argparse.ArgumentParser()
     ap.add_argument("--frame", type=int, default=0)
     args = ap.parse_args()
-    print(machine.describe())
+    print(describe())
     frames = list(range(0, 100, 5))
     t = time.perf_counter()
     caps = {f: run_node("capture", params={"path": str(ROOT)}, frame=f) for f in sorted(set(frames) | {args.frame})}
@@ -120,13 +157,31 @@ def main():
 
     # the 33 landmarks triangulated from the 4 views (skeleton.keypoints), reprojected: green the 3D point, red
     # each view's own 2D landmark (their gap is the triangulation's disagreement)
-    t = time.perf_counter()
     kp = run_node("key.person", {"images": cap["images"]})["keypoints"]
+    run_node("skeleton.keypoints", {"keypoints": kp, "cameras": cams})
+    t = time.perf_counter()
     pts = run_node("skeleton.keypoints", {"keypoints": kp, "cameras": cams})["points"]
     ms = 1000 * (time.perf_counter() - t)
+    t = time.perf_counter()
+    base = opencv_pairs(kp, cams)
+    ms_cv = 1000 * (time.perf_counter() - t)
     rms = [r for r in pts["rms_px"] if r is not None]
-    print(f"skeleton.keypoints: {sum(p is not None for p in pts['points'])} of 33 landmarks in 3D, reprojection "
-          f"median {np.median(rms):.1f} px, max {max(rms):.1f} px; key.person + triangulation {ms:.0f} ms")
+    X = np.array([p if p is not None else [np.nan] * 3 for p in pts["points"]])
+    print(f"skeleton.keypoints: {np.isfinite(X).all(1).sum()} of 33 landmarks in 3D, reprojection median "
+          f"{np.median(rms):.1f} px, max {max(rms):.1f} px, {ms:.1f} ms")
+    print(f"baseline cv2.triangulatePoints on the two most confident views (undistorted): reprojection over every "
+          f"view that sees it, median {np.median(reprojection(base, kp, cams)):.1f} px, max "
+          f"{np.max(reprojection(base, kp, cams)):.1f} px, {ms_cv:.1f} ms; ours on the same views: median "
+          f"{np.median(reprojection(X, kp, cams)):.1f} px (the baseline fits two views exactly)")
+    held = {"ours": [], "cv2 pair": []}      # leave one view out: triangulate from the other three, reproject into it
+    for out_view in names:
+        rest = {**kp, "cameras": {n: c for n, c in kp["cameras"].items() if n != out_view}}
+        only = {**kp, "cameras": {out_view: kp["cameras"][out_view]}}
+        ours = run_node("skeleton.keypoints", {"keypoints": rest, "cameras": cams})["points"]["points"]
+        held["ours"].extend(reprojection(np.array([q if q is not None else [np.nan] * 3 for q in ours]), only, cams))
+        held["cv2 pair"].extend(reprojection(opencv_pairs(rest, cams), only, cams))
+    print("leave one view out (3 views triangulate, the 4th judges), px: " + "; ".join(
+        f"{k} median {np.median(v):.1f}, p90 {np.percentile(v, 90):.1f}, max {np.max(v):.1f}" for k, v in held.items()))
     L = {n: i for i, n in enumerate(pts["landmarks"])}
     bones = [(f"{s}_{a}", f"{s}_{b}") for s in ("left", "right") for a, b in
              (("shoulder", "elbow"), ("elbow", "wrist"), ("hip", "knee"), ("knee", "ankle"), ("ankle", "heel"),
@@ -150,6 +205,7 @@ def main():
         tiles.append(tile)
     cv2.imwrite(str(DOCS / "keypoints_pose2sim.jpg"), np.hstack(tiles)[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, 85])
     print(f"wrote {DOCS / 'keypoints_pose2sim.jpg'}")
+    print(f"load average at the end: {load_average()}")
 
 
 if __name__ == "__main__":

@@ -24,8 +24,10 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench import machine  # noqa: E402
+from machine import describe, load_average  # noqa: E402
+
 from nodegraph.testing import run_node  # noqa: E402
 from nodes.capture.load import load_capture  # noqa: E402
 from nodes.common.types import ImageSet  # noqa: E402
@@ -56,7 +58,7 @@ def main():
     ap.add_argument("--frames", type=int, default=6)
     ap.add_argument("--width", type=int, default=320)
     args = ap.parse_args()
-    print(machine.describe())
+    print(describe())
     with tempfile.TemporaryDirectory() as d:
         folder = Path(d)
         t0 = time.perf_counter()
@@ -119,6 +121,28 @@ def main():
             mean, worst, err = scores([o.masks for o in outs], [alphas_of(o) for o in outs], truth["masks"])
             dark = scores([outs[f].masks for f in off], [alphas_of(outs[f]) for f in off], [truth["masks"][f] for f in off])[0]
             print(f"{name:42s} {mean:8.3f} {worst:6.3f} {dark:9.3f} {err:11.2f} {ms:8.1f}")
+        draw_model(models[3]["model"], caps[off[0] if off else 0]["images"], folder)
+        print(f"load average at the end: {load_average()}")
+
+
+def draw_model(model, images, folder):
+    """docs/background_keystage.png, camera 0: the most frequent background, the second where there is one
+    (grey elsewhere), sigma of the first (x8), and the footage frame keyed against the model."""
+    import cv2
+
+    mean, sigma, weight = model.mean[0], model.sigma[0].astype(np.float32), model.weight[0]
+    second = np.where((weight[1] > 0)[..., None], mean[1], 96).astype(np.uint8)
+    sig = np.repeat(np.clip(sigma[0].max(-1) * 8, 0, 255).astype(np.uint8)[..., None], 3, -1)
+    masks = run_node("key.difference", {"images": images, "model": model})["masks"]
+    keyed = images.images[0].copy()
+    keyed[masks.masks[0] > 127] = (40, 220, 60)
+    tiles = [np.ascontiguousarray(mean[0]), second, sig, keyed]
+    labels = ["background 1", "background 2 (where one)", "sigma x8", "keyed, light off"]
+    for tile, label in zip(tiles, labels):
+        cv2.putText(tile, label, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1)
+    out = Path(__file__).resolve().parent.parent / "docs" / "background_keystage.png"
+    cv2.imwrite(str(out), np.hstack(tiles)[:, :, ::-1])
+    print(f"wrote {out}")
 
 
 if __name__ == "__main__":

@@ -356,6 +356,50 @@ __kernel void difference_key(__global const uchar *rgb, __global const float *me
     store_bytes16(label + i0, n, convert_uchar16(cls));
 }
 
+// Difference key against a background mixture, read as it is stored (PlateMixture: mean uint8 (K, H*W, 3), sigma
+// half (K, H*W, 3)): per pixel the difference_key test against each of the K components (the shadow and
+// highlight allowance on the first only), and the component that explains the pixel best decides (the lowest
+// alpha, on a tie the lowest class). One pixel per work item. NumPy reference: difference_key_mixture_reference.
+__kernel void difference_key_mixture(__global const uchar *rgb, __global const uchar *mean, __global const half *sigma,
+                                     int npix, int K, float cd_inner, float cd_outer, float shadow, float highlight,
+                                     float still, __global uchar *alpha_out, __global uchar *label)
+{
+    const int i = get_global_id(0);
+    if (i >= npix)
+        return;
+    const float I[3] = {(float)rgb[3 * i], (float)rgb[3 * i + 1], (float)rgb[3 * i + 2]};
+    int best = 1 << 30;
+    for (int k = 0; k < K; k++) {
+        const size_t o = ((size_t)k * npix + i) * 3;
+        float E[3], w[3];
+        for (int c = 0; c < 3; c++) {
+            const float s = vload_half(o + c, sigma);
+            E[c] = (float)mean[o + c];
+            w[c] = 1.0f / (s * s);
+        }
+        const float sh = k == 0 ? shadow : 1.0f, hi = k == 0 ? highlight : 1.0f;
+        const float b = ((I[0] * E[0]) * w[0] + (I[1] * E[1]) * w[1] + (I[2] * E[2]) * w[2])
+                      / fmax((E[0] * E[0]) * w[0] + (E[1] * E[1]) * w[1] + (E[2] * E[2]) * w[2], 1e-6f);
+        float d0 = I[0] - b * E[0], d1 = I[1] - b * E[1], d2 = I[2] - b * E[2];
+        const float cd = sqrt((d0 * d0) * w[0] + (d1 * d1) * w[1] + (d2 * d2) * w[2]);
+        d0 = I[0] - E[0];
+        d1 = I[1] - E[1];
+        d2 = I[2] - E[2];
+        const float dist = sqrt((d0 * d0) * w[0] + (d1 * d1) * w[1] + (d2 * d2) * w[2]);
+        float a = clamp((cd - cd_inner) / (cd_outer - cd_inner), 0.0f, 1.0f);
+        const int moving = dist > still;
+        if ((b < sh || b > hi) && moving)
+            a = 1.0f;
+        if (dist <= still)
+            a = 0.0f;
+        const int cls = a >= 0.5f ? 2 : ((b < 1.0f && moving) ? 1 : 0);
+        const int code = (int)((clamp(a * 255.0f, 0.0f, 255.0f) + 12582912.0f) - 12582912.0f) * 4 + cls;
+        best = min(best, code);
+    }
+    alpha_out[i] = (uchar)(best >> 2);
+    label[i] = (uchar)(best & 3);
+}
+
 // Grey threshold: foreground where the mean of R, G, B (or their max) exceeds t (0..255).
 __kernel void grey_threshold(__global const uchar *rgb, int npix, float t, int use_max, __global uchar *mask)
 {

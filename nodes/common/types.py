@@ -130,20 +130,9 @@ class PlateMixture:
 
     def __init__(self, mean: list[np.ndarray], sigma: list[np.ndarray], weight: list[np.ndarray], names: list[str]):
         self.mean, self.sigma, self.weight, self.names = list(mean), list(sigma), list(weight), list(names)
-        self._f32: dict[int, list] = {}
 
     def __len__(self):
         return len(self.names)
-
-    def float_components(self, view: int) -> list[tuple[np.ndarray, np.ndarray]]:
-        """(mean, 1/sigma^2) float32 (H, W, 3) of camera ``view``'s components that are background somewhere (the
-        difference kernel's inputs), computed once per process."""
-        if view not in self._f32:
-            self._f32[view] = [(np.ascontiguousarray(m, np.float32),
-                                np.ascontiguousarray(1 / np.square(s.astype(np.float32))))
-                               for k, (m, s) in enumerate(zip(self.mean[view], self.sigma[view]))
-                               if k == 0 or np.any(self.weight[view][k] > 0)]
-        return self._f32[view]
 
 
 @dataclass

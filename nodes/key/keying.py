@@ -456,9 +456,19 @@ def difference_key_mixture_reference(rgb, mean, sigma, **kw):
     return _mixture_pick([a for a, _ in out], [l for _, l in out])
 
 
-def difference_key_mixture_cl(rgb, model: "PlateMixture", view: int, **kw):
-    """The OpenCL ``difference_key`` once per background component of camera ``view`` of ``model`` (a
-    component that is a repeat of the first everywhere is skipped: it cannot change the minimum); see the
-    reference."""
-    out = [difference_key_cl(rgb, m, w, **_component_kw(k, kw)) for k, (m, w) in enumerate(model.float_components(view))]
-    return _mixture_pick([a for a, _ in out], [l for _, l in out])
+def difference_key_mixture_cl(rgb, model: "PlateMixture", view: int, *, cd_inner=4.0, cd_outer=8.0, shadow=0.5,
+                               highlight=1.2, still=3.0):
+    """OpenCL ``difference_key_mixture`` on one (H, W, 3) uint8 image against camera ``view`` of ``model``, read as
+    it is stored (uint8 means, float16 sigmas: no conversion, so a model loaded from the cache for every frame costs
+    nothing); see the reference. (alpha uint8 (H, W), class uint8 (H, W))."""
+    run = KeyCL.get()
+    h, w = rgb.shape[:2]
+    npix = h * w
+    mean = np.ascontiguousarray(model.mean[view])
+    sigma = np.ascontiguousarray(model.sigma[view], np.float16)
+    f = np.float32
+    alpha, label = run.buffer("alpha", npix), run.buffer("label", npix)
+    run.launch("difference_key_mixture", npix, 64, run.host(np.ascontiguousarray(rgb)), run.host(mean),
+               run.host(sigma), np.int32(npix), np.int32(len(mean)), f(cd_inner), f(cd_outer), f(shadow),
+               f(highlight), f(still), alpha, label)
+    return run.read(alpha, (h, w)), run.read(label, (h, w))
