@@ -389,10 +389,43 @@ class Mesh(DataType):
 
 
 class TexturedMesh(Mesh):
-    """A mesh with UVs and a texture image, stored as GLB."""
+    """A mesh with UVs and a texture image (or with vertex colours), stored as raw arrays (mesh.npz: float32
+    vertices, faces, float64 UVs and the uint8 texture, or RGBA vertex colours). Not a GLB: its PNG encoding
+    took 0.23 s of a 1024² atlas's 0.7 s texturing per frame; the exports write the GLB."""
 
     name = "TexturedMesh"
-    filename = "mesh.glb"
+    filename = "mesh.npz"
+
+    @classmethod
+    def save(cls, v, folder: Path):
+        arrays = {"vertices": np.asarray(v.vertices, np.float32), "faces": np.asarray(v.faces, np.int32)}
+        visual = v.visual
+        if getattr(visual, "kind", None) == "texture" and visual.uv is not None:
+            mat = visual.material
+            image = getattr(mat, "baseColorTexture", None) or getattr(mat, "image", None)
+            arrays["uv"] = np.asarray(visual.uv, np.float64)
+            arrays["texture"] = np.asarray(image)
+        elif getattr(visual, "kind", None) == "vertex":
+            arrays["vertex_colors"] = np.asarray(visual.vertex_colors, np.uint8)
+        np.savez(folder / cls.filename, **arrays)
+
+    @classmethod
+    def load(cls, folder: Path):
+        import trimesh
+
+        with np.load(folder / cls.filename) as z:
+            a = {k: z[k] for k in z.files}
+        vertices, faces = a["vertices"].astype(np.float64), a["faces"].astype(np.int64)
+        if "texture" in a:
+            from PIL import Image
+
+            mat = trimesh.visual.material.PBRMaterial(baseColorTexture=Image.fromarray(a["texture"]),
+                                                      metallicFactor=0.0, roughnessFactor=1.0, doubleSided=False)
+            return trimesh.Trimesh(vertices, faces, visual=trimesh.visual.TextureVisuals(uv=a["uv"], material=mat),
+                                   process=False)
+        if "vertex_colors" in a:
+            return trimesh.Trimesh(vertices, faces, vertex_colors=a["vertex_colors"], process=False)
+        return trimesh.Trimesh(vertices, faces, process=False)
 
     @classmethod
     def preview(cls, value, size, companions):

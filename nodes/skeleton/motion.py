@@ -47,10 +47,20 @@ class Trajectories:
     def count(self) -> int:
         return self.frames.shape[0]
 
+    @property
+    def lifted(self) -> np.ndarray:
+        """(V, 3F * 4): each vertex's trajectory times its homogeneous rest position, q_tk * [p, 1]_c (column
+        (t, k, c)), made once: ``motion_errors``' cross term for every motion is one product with it."""
+        if "_lifted" not in self.__dict__:
+            vh = np.c_[self.rest, np.ones(len(self.rest))]
+            self._lifted = (self.by_vertex[:, :, None] * vh[:, None, :]).reshape(len(self.rest), -1)
+        return self._lifted
+
     def with_rest(self, rest: np.ndarray) -> "Trajectories":
         """The same frames with another rest shape (no copies of the frame layouts)."""
         out = object.__new__(Trajectories)
         out.__dict__.update(self.__dict__)
+        out.__dict__.pop("_lifted", None)
         out.rest = np.ascontiguousarray(rest, np.float64)
         return out
 
@@ -79,8 +89,9 @@ def moments(rest: np.ndarray, frames: np.ndarray, idx: np.ndarray) -> Moments:
                    (q * q).sum(axis=(1, 2)))
 
 
-def part_moments(traj: Trajectories, labels: np.ndarray, b: int) -> list[Moments]:
-    """Moments of every part at once (sparse one-hot products; no per-part copies)."""
+def part_arrays(traj: Trajectories, labels: np.ndarray, b: int):
+    """Moments of every part at once as arrays (n (B,), sp (B, 3), sq (B, F, 3), spq (B, F, 3, 3), spp (B,),
+    sqq (B, F)): sparse one-hot products, no per-part copies."""
     from scipy.sparse import csr_matrix
 
     rest, q = traj.rest, traj.by_vertex
@@ -93,27 +104,41 @@ def part_moments(traj: Trajectories, labels: np.ndarray, b: int) -> list[Moments
     spq = spq.reshape(b, 3, f, 3).transpose(0, 2, 1, 3)
     spp = onehot @ (rest * rest).sum(1)
     sqq = onehot @ traj.qq.T                                            # (B, F)
+    return n, sp, sq, spq, spp, sqq
+
+
+def part_moments(traj: Trajectories, labels: np.ndarray, b: int) -> list[Moments]:
+    """Moments of every part (``part_arrays``) as one Moments per part."""
+    n, sp, sq, spq, spp, sqq = part_arrays(traj, labels, b)
     return [Moments(float(n[i]), sp[i], sq[i], spq[i], float(spp[i]), sqq[i]) for i in range(b)]
 
 
 def kabsch(m: Moments) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Best rigid motions rest -> frame of a moment set: (R (F, 3, 3), t (F, 3), residual (F,) = summed
     squared distances after the fit)."""
-    pbar = m.sp / m.n
-    qbar = m.sq / m.n
-    cov = m.spq - m.n * pbar[None, :, None] * qbar[:, None, :]          # sum (p - pbar)(q - qbar)^T
+    return kabsch_arrays(np.float64(m.n), m.sp, m.sq, m.spq, np.float64(m.spp), m.sqq)
+
+
+def kabsch_arrays(n, sp, sq, spq, spp, sqq):
+    """``kabsch`` for moments with any leading dimensions (``part_arrays``: all parts in one SVD call):
+    n (...), sp (..., 3), sq (..., F, 3), spq (..., F, 3, 3), spp (...), sqq (..., F) -> R (..., F, 3, 3),
+    t (..., F, 3), residual (..., F)."""
+    n = np.asarray(n, np.float64)
+    pbar = sp / n[..., None]
+    qbar = sq / n[..., None, None]
+    cov = spq - n[..., None, None, None] * pbar[..., None, :, None] * qbar[..., :, None, :]   # sum (p - pbar)(q - qbar)^T
     u, s, vt = np.linalg.svd(cov)
-    d = np.sign(np.linalg.det(np.einsum("fab,fbc->fac", u, vt)))
+    d = np.sign(np.linalg.det(np.einsum("...ab,...bc->...ac", u, vt)))
     d[d == 0] = 1.0
     s = s.copy()
-    s[:, 2] *= d
+    s[..., 2] *= d
     vt = vt.copy()
-    vt[:, 2] *= d[:, None]
-    r = np.einsum("fba,fcb->fac", vt, u)                                # R = V diag(1,1,d) U^T
-    t = qbar - np.einsum("fab,b->fa", r, pbar)
-    spp_c = m.spp - m.n * pbar @ pbar
-    sqq_c = m.sqq - m.n * (qbar * qbar).sum(1)
-    res = np.maximum(spp_c + sqq_c - 2 * s.sum(1), 0.0)
+    vt[..., 2, :] *= d[..., None]
+    r = np.einsum("...ba,...cb->...ac", vt, u)                          # R = V diag(1,1,d) U^T
+    t = qbar - np.einsum("...fab,...b->...fa", r, pbar)
+    spp_c = spp - n * (pbar * pbar).sum(-1)
+    sqq_c = sqq - n[..., None] * (qbar * qbar).sum(-1)
+    res = np.maximum(spp_c[..., None] + sqq_c - 2 * s.sum(-1), 0.0)
     return r, t, res
 
 
@@ -292,15 +317,11 @@ def _eliminate(traj, edges, labels, bones, limit, refine, say=lambda msg: None):
 
 
 def _transforms(traj, labels, b):
-    f = traj.count
-    rot = np.empty((f, b, 3, 3))
-    tr = np.empty((f, b, 3))
-    res = np.empty(b)
-    for i, m in enumerate(part_moments(traj, labels, b)):
-        r, t, e = kabsch(m)
-        rot[:, i], tr[:, i] = r, t
-        res[i] = np.sqrt(e.sum() / (max(m.n, 1.0) * f))
-    return rot, tr, res
+    n, sp, sq, spq, spp, sqq = part_arrays(traj, labels, b)
+    with np.errstate(invalid="ignore", divide="ignore"):  # an empty part: NaN motions, never chosen
+        r, t, e = kabsch_arrays(n, sp, sq, spq, spp, sqq)
+    res = np.sqrt(e.sum(1) / (np.maximum(n, 1.0) * traj.count))
+    return r.transpose(1, 0, 2, 3), t.transpose(1, 0, 2), res
 
 
 def motion_errors(traj: Trajectories, rot: np.ndarray, tr: np.ndarray) -> np.ndarray:
@@ -311,10 +332,9 @@ def motion_errors(traj: Trajectories, rot: np.ndarray, tr: np.ndarray) -> np.nda
     x = np.concatenate([rot, tr[..., None]], axis=-1)                  # (F, B, 3, 4)
     vh = np.c_[traj.rest, np.ones(len(traj.rest))]                     # (V, 4)
     xs = x.transpose(1, 0, 2, 3).reshape(b, 3 * f, 4)                  # (B, 3F, 4), rows (frame, axis)
-    cross = traj.by_vertex @ xs.transpose(1, 0, 2).reshape(3 * f, 4 * b)  # sum_t q^T X   (V, B*4)
     gram = np.einsum("bkc,bkd->bcd", xs, xs)                           # sum_t X^T X   (B, 4, 4)
-    pp = np.einsum("vc,bcd,vd->vb", vh, gram, vh, optimize=True)
-    pq = np.einsum("vbc,vc->vb", cross.reshape(-1, b, 4), vh)
+    pp = (vh[:, :, None] * vh[:, None, :]).reshape(-1, 16) @ gram.reshape(b, 16).T
+    pq = traj.lifted @ xs.reshape(b, -1).T                             # sum_t q^T X vh  (V, B)
     return np.maximum(pp - 2 * pq + traj.qq.sum(0)[:, None], 0.0)
 
 
@@ -343,16 +363,16 @@ def _keep_connected(labels, edges, b, fallback):
     same = labels[edges[:, 0]] == labels[edges[:, 1]]
     e = edges[same]
     n = len(labels)
-    _, comp = connected_components(coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)), directed=False)
+    nc, comp = connected_components(coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)), directed=False)
+    pairs, count = np.unique(labels.astype(np.int64) * nc + comp, return_counts=True)
+    part, piece = pairs // nc, pairs % nc
+    order = np.lexsort((piece, -count, part))            # per part: the largest piece first (lowest index on ties)
+    first = order[np.r_[True, part[order][1:] != part[order][:-1]]]
+    main = np.full(b, -1, np.int64)
+    main[part[first]] = piece[first]
     out = labels.copy()
-    for i in range(b):
-        idx = np.flatnonzero(labels == i)
-        if len(idx) == 0:
-            continue
-        c = comp[idx]
-        main = np.bincount(c).argmax()
-        stray = idx[c != main]
-        out[stray] = fallback[stray]
+    stray = comp != main[labels]
+    out[stray] = fallback[stray]
     if not np.array_equal(out, labels):
         empty = [i for i in range(b) if not np.any(out == i)]
         if empty:

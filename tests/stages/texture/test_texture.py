@@ -396,6 +396,28 @@ def test_vertex_mode_and_exports_open_in_their_readers(tmp_path):
         run_node("export.textured", {"mesh": tm}, {"path": "t/m.fbx"})
 
 
+def test_textured_mesh_cache_round_trip(tmp_path):
+    """The cache gives back exactly what the node made (its canonical form): UVs, texture texels and vertex
+    colours bit for bit, vertices at float32."""
+    from nodes.common.types import TexturedMesh
+
+    s = scene("sphere", 6, 160, 120)
+    ins = {"mesh": s["mesh"], "images": s["images"], "cameras": s["cameras"], "masks": s["masks"]}
+    for i, params in enumerate(({"size": 128}, {"mode": "vertex"})):
+        made = TexturedMesh.canonical(run_node("texture", ins, params)["mesh"])
+        (tmp_path / str(i)).mkdir()
+        TexturedMesh.save(made, tmp_path / str(i))
+        back = TexturedMesh.load(tmp_path / str(i))
+        assert np.array_equal(back.vertices, made.vertices) and np.array_equal(back.faces, made.faces)
+        assert back.visual.kind == made.visual.kind
+        if made.visual.kind == "texture":
+            assert np.array_equal(back.visual.uv, made.visual.uv)
+            assert np.array_equal(np.asarray(back.visual.material.baseColorTexture),
+                                  np.asarray(made.visual.material.baseColorTexture))
+        else:
+            assert np.array_equal(back.visual.vertex_colors, made.visual.vertex_colors)
+
+
 def test_textured_preview_shows_photos_over_renders(tmp_path):
     from nodegraph.preview import preview
     from nodes.common.types import CameraSet, Images, TexturedMesh
