@@ -69,7 +69,11 @@ def lbs(rest: np.ndarray, weights: np.ndarray, rotations: np.ndarray, translatio
     one = rotations.ndim == 3
     r = rotations[None] if one else rotations
     t = translations[None] if one else translations
-    out = np.einsum("vj,fjab,vb->fva", weights, r, rest, optimize=True) + np.einsum("vj,fja->fva", weights, t)
+    f, j = r.shape[:2]
+    x = np.concatenate([r, t[..., None]], axis=-1)                      # (F, J, 3, 4)
+    vh = np.c_[rest, np.ones(len(rest))]
+    lifted = (weights[:, :, None] * vh[:, None, :]).reshape(len(rest), 4 * j)   # w_vj [v, 1]_c, column (j, c)
+    out = (lifted @ x.transpose(1, 3, 0, 2).reshape(4 * j, 3 * f)).reshape(len(rest), f, 3).transpose(1, 0, 2)
     return out[0] if one else out
 
 
@@ -120,11 +124,15 @@ def _kkt_solve(hr, g, sup):
     return np.linalg.solve(kkt, rhs[..., None])[..., 0][:, :k] * sup
 
 
-def solve_simplex_active(h: np.ndarray, g: np.ndarray, allowed: np.ndarray, ridge: float = 1e-9) -> np.ndarray:
+def solve_simplex_active(h: np.ndarray, g: np.ndarray, allowed: np.ndarray, ridge: float = 1e-9,
+                         w0: np.ndarray | None = None) -> np.ndarray:
     """Batched min w^T h w - 2 g^T w over the (allowed) simplex: a primal active-set method (Lawson-Hanson
-    style). From the best single bone, solve the problem on the support with sum w = 1 in closed form; if
-    a weight would go negative, step towards that solution until the first weight reaches 0 and drop it;
-    otherwise add the allowed bone whose multiplier says the objective still falls, until none does."""
+    style). From a feasible start (``w0`` where given, restricted to the allowed bones: the last weights
+    step's, whose support rarely changes, ~4x fewer rounds; else the best single bone), solve the problem
+    on the support with sum w = 1 in closed form; if a weight would go negative, step towards that solution
+    until the first weight reaches 0 and drop it; otherwise add the allowed bone whose multiplier says the
+    objective still falls, until none does. The problem is strictly convex (ridge): every start ends at the
+    same minimiser."""
     n, k = g.shape
     scale = np.maximum(np.trace(h, axis1=1, axis2=2) / k, 1e-300)
     hr = h + (ridge * scale)[:, None, None] * np.eye(k)
@@ -132,8 +140,12 @@ def solve_simplex_active(h: np.ndarray, g: np.ndarray, allowed: np.ndarray, ridg
     start = np.argmin(np.where(allowed, diag, np.inf), axis=1)
     w = np.zeros((n, k))
     w[np.arange(n), start] = 1.0
-    sup = np.zeros((n, k), bool)
-    sup[np.arange(n), start] = True
+    if w0 is not None:
+        w0 = np.where(allowed, np.maximum(w0, 0.0), 0.0)
+        total = w0.sum(1)
+        warm = total > 0
+        w[warm] = w0[warm] / total[warm, None]
+    sup = w > 0
     todo = allowed.any(1)
     tol = 1e-12 * scale
     for _ in range(4 * k + 4):
@@ -196,9 +208,10 @@ def candidates(rest, labels, edges, parents, j, radius: float) -> np.ndarray:
 
 
 def fit_weights(traj: Trajectories, rot, tr, cand_of_vertex: np.ndarray, w_prev: np.ndarray, nbr, *, influences: int,
-                smooth: float) -> np.ndarray:
+                smooth: float, warm: bool = True) -> np.ndarray:
     """The weights step (module docstring). ``cand_of_vertex`` (V, C) bone indices (-1 = none), ``w_prev``
-    (V, J), ``nbr`` (offsets, neighbours) CSR of mesh neighbours. Returns (V, J)."""
+    (V, J), ``nbr`` (offsets, neighbours) CSR of mesh neighbours; ``warm``: the QPs start from ``w_prev``
+    (the same minimisers, fewer active-set rounds). Returns (V, J)."""
     f, j = rot.shape[:2]
     v = len(traj.rest)
     x = _homogeneous(rot, tr)
@@ -231,13 +244,13 @@ def fit_weights(traj: Trajectories, rot, tr, cand_of_vertex: np.ndarray, w_prev:
     h = h + (lam * deg)[:, None, None] * np.eye(c.shape[1])[None]
     g = g + lam * np.take_along_axis(mean_nbr, cs, axis=1)
     h = 0.5 * (h + h.transpose(0, 2, 1))
-    w = solve_simplex_active(h, g, valid)
+    w = solve_simplex_active(h, g, valid, w0=np.take_along_axis(w_prev, cs, axis=1) * valid if warm else None)
     if influences < c.shape[1]:
         order = np.argsort(-w, axis=1, kind="stable")
         keep = np.zeros_like(valid)
         np.put_along_axis(keep, order[:, :influences], True, axis=1)
         keep &= valid & (w > 0)
-        w = solve_simplex_active(h, g, keep)
+        w = solve_simplex_active(h, g, keep, w0=w if warm else None)
     out = np.zeros((v, j))
     np.add.at(out, (np.repeat(np.arange(v), c.shape[1]), cs.ravel()), (w * valid).ravel())
     return out
