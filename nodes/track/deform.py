@@ -52,7 +52,8 @@ def used_vertices(faces: np.ndarray, count: int) -> np.ndarray:
 
 def closest_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
     """Closest points on triangles (a, b, c) to points p, all (..., 3) (Ericson, Real-Time Collision
-    Detection 5.1.5, vectorised)."""
+    Detection 5.1.5, vectorised): each region's point as a + v ab + w ac, the region tests on scalars and
+    one combination at the end (half the time of choosing among seven (..., 3) candidate points)."""
     ab, ac, ap = b - a, c - a, p - a
     d1, d2 = np.einsum("...i,...i", ab, ap), np.einsum("...i,...i", ac, ap)
     bp = p - b
@@ -62,26 +63,20 @@ def closest_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndar
     va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
     with np.errstate(divide="ignore", invalid="ignore"):
         denom = va + vb + vc
-        v = np.where(denom != 0, vb / denom, 0.0)
+        v = np.where(denom != 0, vb / denom, 0.0)                           # inside the face
         w = np.where(denom != 0, vc / denom, 0.0)
-        out = a + v[..., None] * ab + w[..., None] * ac                      # inside the face
-        # edges
         t_ab = np.clip(np.where(d1 - d3 != 0, d1 / (d1 - d3), 0), 0, 1)
         t_ac = np.clip(np.where(d2 - d6 != 0, d2 / (d2 - d6), 0), 0, 1)
         t_bc = np.clip(np.where((d4 - d3) + (d5 - d6) != 0, (d4 - d3) / ((d4 - d3) + (d5 - d6)), 0), 0, 1)
-    on_ab = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
-    on_ac = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
-    on_bc = (va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0)
-    out = np.where(on_bc[..., None], b + t_bc[..., None] * (c - b), out)
-    out = np.where(on_ac[..., None], a + t_ac[..., None] * ac, out)
-    out = np.where(on_ab[..., None], a + t_ab[..., None] * ab, out)
-    at_a = (d1 <= 0) & (d2 <= 0)
-    at_b = (d3 >= 0) & (d4 <= d3)
-    at_c = (d6 >= 0) & (d5 <= d6)
-    out = np.where(at_c[..., None], c, out)
-    out = np.where(at_b[..., None], b, out)
-    out = np.where(at_a[..., None], a, out)
-    return out
+    # later tests win, as in Ericson's order (vertices first, then edges, else inside)
+    for region, rv, rw in (((va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0), 1.0 - t_bc, t_bc),   # edge bc
+                           ((vb <= 0) & (d2 >= 0) & (d6 <= 0), 0.0, t_ac),                        # edge ac
+                           ((vc <= 0) & (d1 >= 0) & (d3 <= 0), t_ab, 0.0),                        # edge ab
+                           ((d6 >= 0) & (d5 <= d6), 0.0, 1.0),                                    # vertex c
+                           ((d3 >= 0) & (d4 <= d3), 1.0, 0.0),                                    # vertex b
+                           ((d1 <= 0) & (d2 <= 0), 0.0, 0.0)):                                    # vertex a
+        v, w = np.where(region, rv, v), np.where(region, rw, w)
+    return a + v[..., None] * ab + w[..., None] * ac
 
 
 class SurfaceQuery:
@@ -99,6 +94,7 @@ class SurfaceQuery:
         self.used = used_vertices(self.faces, len(self.vertices)) if used is None else used
         self.tree = cKDTree(self.vertices[self.used])
         self.vf = padded_rows(*vertex_faces(self.faces, len(self.vertices))) if vf is None else vf
+        self.corners = None
 
     def nearest_vertex(self, points: np.ndarray, upper: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
         """(distance, vertex index) of the nearest used vertex (index -1 beyond ``upper``)."""
@@ -115,9 +111,12 @@ class SurfaceQuery:
         cand = self.vf[j]                                   # (P, M), -1 padded: only the real faces are tried
         pi, mi = np.nonzero(cand >= 0)
         f = cand[pi, mi]
-        tri = self.vertices[self.faces[f]]                  # (pairs, 3, 3)
-        q = closest_on_triangles(points[pi], tri[:, 0], tri[:, 1], tri[:, 2])
-        d = np.linalg.norm(q - points[pi], axis=1)
+        if self.corners is None:                            # each corner of every face, contiguous: one gather each
+            self.corners = [np.ascontiguousarray(self.vertices[self.faces[:, i]]) for i in range(3)]
+        a, b, c = (np.take(x, f, axis=0) for x in self.corners)
+        p = np.take(points, pi, axis=0)
+        q = closest_on_triangles(p, a, b, c)
+        d = np.linalg.norm(q - p, axis=1)
         table = np.full(cand.shape, np.inf)
         table[pi, mi] = d
         slot = np.full(cand.shape, -1, np.int64)
@@ -413,16 +412,42 @@ class Registration:
         probe = coo_matrix((np.arange(1, P * 9 + 1, dtype=np.float64), (rows.ravel(), cols.ravel())), shape=(3 * n, 3 * n)).tocsc()
         probe.sort_indices()
         self.pattern = probe
-        self.acc_index = (np.repeat(self.sample_pairs.ravel(), 9) * 9 + np.tile(np.arange(9), self.sample_pairs.size))
         self.gather = probe.data.astype(np.int64) - 1                                 # CSC slot -> (pair, a, b)
         self.n3 = 3 * n
+        # the sampled vertices as linear maps of the state, built once: p = Mp vec(R) + p0 (translation-free
+        # position), normals before normalising = Mn vec(R), and the skinning weights Wt (3N x 3S) whose
+        # transpose blends the translations (x = p + Wt^T t) and which scatters per-sample rows to the nodes
+        S = len(self.src)
+        from scipy.sparse import csr_matrix
+
+        a3 = np.arange(3)
+        rows9 = np.broadcast_to((np.arange(S)[:, None, None, None] * 3 + a3[None, None, :, None]), (S, K, 3, 3))
+        cols9 = self.idx[:, :, None, None] * 9 + a3[None, None, :, None] * 3 + a3[None, None, None, :]
+        vals = np.broadcast_to(self.w[:, :, None, None] * self.off[:, :, None, :], (S, K, 3, 3))
+        self.Mp = csr_matrix((vals.ravel(), (rows9.ravel(), np.broadcast_to(cols9, (S, K, 3, 3)).ravel())), shape=(3 * S, 9 * n))
+        vals = np.broadcast_to(self.w[:, :, None, None] * self.rest_normals[:, None, None, :], (S, K, 3, 3))
+        self.Mn = csr_matrix((vals.ravel(), (rows9.ravel(), np.broadcast_to(cols9, (S, K, 3, 3)).ravel())), shape=(3 * S, 9 * n))
+        self.p0 = np.einsum("sk,ska->sa", self.w, graph.nodes[self.idx])
+        rows3 = self.idx[:, :, None] * 3 + a3
+        cols3 = np.broadcast_to(np.arange(S)[:, None, None] * 3 + a3, (S, K, 3))
+        self.Wt = csr_matrix((np.broadcast_to(self.w[:, :, None], (S, K, 3)).ravel(), (rows3.ravel(), cols3.ravel())),
+                             shape=(3 * n, 3 * S))
+        self.WtT = self.Wt.T.tocsr()
+        # the ARAP rows' blocks per unit weight: +I at (j, j) and (k, k), -I at (j, k) and (k, j) per directed edge
+        self.arap_blocks = np.zeros((P, 9))
+        for pair, sign in ((self.edge_jj, 1.0), (self.edge_kk, 1.0), (self.edge_jk, -1.0), (self.edge_kj, -1.0)):
+            np.add.at(self.arap_blocks, pair, sign * np.eye(3).ravel())
+        # node pair <- sample: w_sj w_sk (the data blocks of pair (j, k) are sum_s w_sj w_sk Q_s: one product)
+        ww = (self.w[:, :, None] * self.w[:, None, :]).reshape(S, -1)
+        self.pair_of_sample = csr_matrix((ww.ravel(), (self.sample_pairs.ravel(), np.repeat(np.arange(S), K * K))),
+                                         shape=(P, S))
 
     def _sample_state(self, state: GraphState) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(positions x (S, 3), normals (S, 3), translation-free part p (S, 3)) of the sampled vertices."""
-        R = state.R[self.idx]                                                           # (S, K, 3, 3)
-        p = np.einsum("sk,ska->sa", self.w, np.einsum("skab,skb->ska", R, self.off) + self.graph.nodes[self.idx])
-        x = p + np.einsum("sk,ska->sa", self.w, state.t[self.idx])
-        nr = np.einsum("sk,ska->sa", self.w, np.einsum("skab,sb->ska", R, self.rest_normals))
+        r = state.R.reshape(-1)
+        p = (self.Mp @ r).reshape(-1, 3) + self.p0
+        x = p + (self.WtT @ state.t.reshape(-1)).reshape(-1, 3)
+        nr = (self.Mn @ r).reshape(-1, 3)
         nr /= np.maximum(np.linalg.norm(nr, axis=1, keepdims=True), 1e-12)
         return x, nr, p
 
@@ -430,11 +455,9 @@ class Registration:
         """Right-hand side for the rotations in ``state``: data rows give q_s = h_s - Q_s p_s(R) per sample
         (p: the translation-free position), ARAP rows (t_k - t_j - c_jk) with c_jk = (R_j - I)(g_k - g_j)."""
         jk = self.graph.directed
-        R = state.R[self.idx]
-        p = np.einsum("sk,ska->sa", self.w, np.einsum("skab,skb->ska", R, self.off) + self.graph.nodes[self.idx])
+        p = (self.Mp @ state.R.reshape(-1)).reshape(-1, 3) + self.p0
         q = h - np.einsum("sab,sb->sa", Q.reshape(-1, 3, 3), p)
-        rhs = np.bincount((self.idx[:, :, None] * 3 + np.arange(3)).ravel(), (self.w[:, :, None] * q[:, None, :]).ravel(),
-                          minlength=self.n3)
+        rhs = self.Wt @ q.reshape(-1)
         ce = np.einsum("nab,nb->na", state.R[jk[:, 0]], self.rest_edges) - self.rest_edges
         rhs += np.bincount((jk[:, 1, None] * 3 + np.arange(3)).ravel(), (w_a * ce).ravel(), minlength=self.n3)
         rhs -= np.bincount((jk[:, 0, None] * 3 + np.arange(3)).ravel(), (w_a * ce).ravel(), minlength=self.n3)
@@ -502,13 +525,9 @@ class Registration:
                     goal = xs[vi] + g * dist[:, None]                     # the outline, along the gradient
                     np.add.at(Q, vi, ws * (g[:, :, None] * g[:, None, :]).reshape(-1, 9))
                     np.add.at(h, vi, (ws * np.einsum("ij,ij->i", g, goal))[:, None] * g)
-            A_pairs = np.zeros((len(self.pair_j), 9))
-            ww = self.w[:, :, None] * self.w[:, None, :]
-            vals = ww.reshape(S, -1)[:, :, None] * Q.reshape(S, 1, 9)
-            A_pairs += np.bincount(self.acc_index, vals.ravel(), minlength=A_pairs.size).reshape(A_pairs.shape)
+            A_pairs = self.pair_of_sample @ Q
             w_a = arap / max(1, len(graph.directed))
-            for pair, sign in ((self.edge_jj, 1.0), (self.edge_kk, 1.0), (self.edge_jk, -1.0), (self.edge_kj, -1.0)):
-                np.add.at(A_pairs, pair, sign * w_a * eye9)
+            A_pairs += w_a * self.arap_blocks
             A_pairs[self.diag_pair] += 1e-8 * eye9
             A = self.pattern.copy()
             A.data = A_pairs.ravel()[self.gather]
