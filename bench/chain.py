@@ -163,6 +163,11 @@ def main():
     def hours(s):
         return s * 1800 / 3600
 
+    named = ("key", "hull", "mc", "refine", "relax", "track", "texture", "deliver")
+    core = sum(sums.get(x, 0) for x in named)
+    print(f"{'issue 26 chain':>22} {'':>14} {'key..deliver items':>22} {'':>5} {core:8.3f}   (" + " + ".join(named)
+          + f": {hours(core):.2f} h per minute of 30 fps footage; goal 1 s/frame = 0.5 h)")
+
     print(f"projected hours per minute of 30 fps footage: {hours(per - sums.get(RENDER, 0)):.2f} h (wall less the "
           f"render), {hours(per):.2f} h (wall with it), {hours(chain):.2f} h (sum of chain items); "
           + ", ".join(f"{name} ~{h:.0f} h" for name, h in INDUSTRY))

@@ -21,7 +21,8 @@ from .viewdep import NONE
 
 
 class AtlasType(DataType):
-    """A UV layout for one mesh connectivity (nodes.texture.atlas.Atlas), stored as atlas.npz."""
+    """A UV layout for one mesh connectivity (nodes.texture.atlas.Atlas), stored as atlas.npz (uncompressed:
+    compressing took 28 ms of every textured frame)."""
 
     name = "Atlas"
 
@@ -35,8 +36,7 @@ class AtlasType(DataType):
 
     @classmethod
     def save(cls, v: Atlas, folder: Path):
-        np.savez_compressed(folder / "atlas.npz", face_uv=v.face_uv, face_chart=v.face_chart, faces=v.faces,
-                            size=np.int64(v.size))
+        np.savez(folder / "atlas.npz", face_uv=v.face_uv, face_chart=v.face_chart, faces=v.faces, size=np.int64(v.size))
 
     @classmethod
     def load(cls, folder: Path) -> Atlas:
