@@ -69,18 +69,26 @@ def lbs(rest: np.ndarray, weights: np.ndarray, rotations: np.ndarray, translatio
     one = rotations.ndim == 3
     r = rotations[None] if one else rotations
     t = translations[None] if one else translations
-    f, j = r.shape[:2]
-    x = np.concatenate([r, t[..., None]], axis=-1)                      # (F, J, 3, 4)
-    vh = np.c_[rest, np.ones(len(rest))]
-    lifted = (weights[:, :, None] * vh[:, None, :]).reshape(len(rest), 4 * j)   # w_vj [v, 1]_c, column (j, c)
-    out = (lifted @ x.transpose(1, 3, 0, 2).reshape(4 * j, 3 * f)).reshape(len(rest), f, 3).transpose(1, 0, 2)
+    out = lbs_by_vertex(rest, weights, r, t).reshape(len(rest), r.shape[0], 3).transpose(1, 0, 2)
     return out[0] if one else out
+
+
+def lbs_by_vertex(rest: np.ndarray, weights: np.ndarray, rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
+    """Skinned positions in the vertex-major layout of ``Trajectories.by_vertex``: (V, 3F), column (frame,
+    axis). One product of the per-vertex weighted homogeneous rest points w_vj [v, 1] with the bones' stacked
+    motions."""
+    f, j = rotations.shape[:2]
+    x = np.concatenate([rotations, translations[..., None]], axis=-1)   # (F, J, 3, 4)
+    vh = np.c_[rest, np.ones(len(rest))]
+    lifted = (weights[:, :, None] * vh[:, None, :]).reshape(len(rest), 4 * j)   # column (j, c)
+    return lifted @ x.transpose(1, 3, 0, 2).reshape(4 * j, 3 * f)
 
 
 def errors(traj: Trajectories, weights, rotations, translations) -> tuple[np.ndarray, np.ndarray]:
     """Per-frame rms and max distance between the skinned and the given positions."""
-    d = np.linalg.norm(lbs(traj.rest, weights, rotations, translations) - traj.frames, axis=2)
-    return np.sqrt((d * d).mean(1)), d.max(1)
+    diff = lbs_by_vertex(traj.rest, weights, rotations, translations) - traj.by_vertex
+    d = np.sqrt((diff * diff).reshape(len(diff), -1, 3).sum(2))            # (V, F)
+    return np.sqrt((d * d).mean(0)), d.max(0)
 
 
 # ---------------------------------------------------------------- simplex QP
@@ -410,9 +418,8 @@ def fit_pivots(traj, weights, rot, tr, joints, parents, anchor, reg: float = 1e-
     for k, p in enumerate(parents):
         if p >= 0:
             a[:, k] = rot[:, p] - rot[:, k]
-    pred = lbs(traj.rest, weights, rot, tr)
-    res = traj.frames - pred                                             # (F, V, 3)
-    rhs_vec = np.einsum("vj,fva->fja", omega, res)                       # (F, J, 3)
+    res = traj.by_vertex - lbs_by_vertex(traj.rest, weights, rot, tr)   # (V, 3F)
+    rhs_vec = (omega.T @ res).reshape(j, -1, 3).transpose(1, 0, 2)     # (F, J, 3)
     ata = np.einsum("fjab,fkac->jkbc", a, a)                             # sum_t A_j^T A_k
     lhs = (big[:, :, None, None] * ata).transpose(0, 2, 1, 3).reshape(3 * j, 3 * j)
     rhs = np.einsum("fjab,fja->jb", a, rhs_vec).ravel()
@@ -441,12 +448,17 @@ def fit_rest(traj: Trajectories, weights, rot, tr, anchor: np.ndarray, reg: floa
     min_u sum_t |A_t u + b_t - q_t|^2 + reg * F |u - anchor|^2, with A_t = sum_j w_j R_tj and
     b_t = sum_j w_j t_tj (a 3x3 system). A posed frame used as the rest shape is not exactly an LBS rest
     shape where bones blend; this removes that error (Dem Bones keeps the given rest shape)."""
-    a = np.einsum("vj,fjab->vfab", weights, rot, optimize=True)            # (V, F, 3, 3)
-    b = np.einsum("vj,fja->vfa", weights, tr, optimize=True)                # (V, F, 3)
-    q = traj.frames.transpose(1, 0, 2)                                      # (V, F, 3)
-    f = traj.count
-    lhs = np.einsum("vfab,vfac->vbc", a, a) + reg * f * np.eye(3)
-    rhs = np.einsum("vfab,vfa->vb", a, q - b) + reg * f * anchor
+    # from per-bone-pair sums over frames (no (V, F, 3, 3) array): sum_t A_t^T A_t = sum_jk w_j w_k G_jk with
+    # G_jk = sum_t R_tj^T R_tk; sum_t A_t^T b_t = sum_jk w_j w_k H_jk, H_jk = sum_t R_tj^T t_tk; and
+    # sum_t A_t^T q_t = sum_j w_j C_j, C_vj = sum_t R_tj^T q_vt
+    f, j = rot.shape[:2]
+    v = len(weights)
+    ww = (weights[:, :, None] * weights[:, None, :]).reshape(v, j * j)
+    g = np.einsum("fjab,fkac->jkbc", rot, rot).reshape(j * j, 9)
+    h = np.einsum("fjab,fka->jkb", rot, tr).reshape(j * j, 3)
+    c = (traj.by_vertex @ rot.transpose(0, 2, 1, 3).reshape(3 * f, 3 * j)).reshape(v, j, 3)
+    lhs = (ww @ g).reshape(v, 3, 3) + reg * f * np.eye(3)
+    rhs = np.einsum("vj,vjb->vb", weights, c) - ww @ h + reg * f * anchor
     return np.linalg.solve(lhs, rhs[..., None])[..., 0]
 
 
