@@ -3,7 +3,7 @@ small machine"): graphs/demo.yaml through `volcap run` (the CLI in a fresh proce
 frame units and all), every stage's seconds per frame from the run record (OUT/run.json), the end-to-end wall
 time per frame, and the projected hours per minute of 30 fps footage next to the industry's figures.
 
-    python bench/chain.py [--cameras 12] [--width 640] [--height 480] [--frames 0:4] [--resolution 128] [--jobs 1]
+    python bench/chain.py [--cameras 12] [--width 640] [--height 480] [--frames 0:12] [--resolution 128] [--jobs 1]
     python bench/chain.py --cameras 24 --width 1920 --height 1080    # the issue's 24-camera HD stage (slow here)
 
 Every run uses a fresh, temporary cache folder, so no work item is a cache hit (the synthetic stage is rendered
@@ -80,7 +80,7 @@ def main():
     ap.add_argument("--cameras", type=int, default=12)
     ap.add_argument("--width", type=int, default=640)
     ap.add_argument("--height", type=int, default=480)
-    ap.add_argument("--frames", default="0:4", help="frame range A:B (half-open)")
+    ap.add_argument("--frames", default="0:12", help="frame range A:B (half-open)")
     ap.add_argument("--resolution", type=int, default=128, help="hull resolution")
     ap.add_argument("--jobs", "-j", type=int, default=1, help="volcap run -j (1: in one process, stage times uncontended)")
     ap.add_argument("--repeats", type=int, default=3, help="timed passes of the fused path over the frames")
