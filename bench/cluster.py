@@ -1,9 +1,11 @@
-"""Dask executor scaling: frames/s of a 20-frame synthetic graph on 1 vs 2 workers, and the per-item
-overhead of the Dask executor vs the local one (trivial nodes).
+"""Dask executor scaling: frames/s of the demo graph (small stage, the whole chain with its sequence nodes)
+on 1, 2 and 4 local processes and Dask workers, the scaling efficiency (frames/s with n / (n x frames/s with
+1)), and the per-item overhead of the Dask executor vs the local one (trivial nodes).
 
-Usage: python bench/cluster.py [--frames 20]
+Usage: python bench/cluster.py [--frames 20] [--workers 1 2 4]
 Each configuration starts from an empty cache; the cluster start-up is included in the wall time and
-also reported alone.
+also reported alone. Prints the OpenCL device, the CPU and the load average (workers beyond the cores share
+them: on a 2-core machine 4 workers measure oversubscription, not scaling).
 """
 from __future__ import annotations
 
@@ -17,6 +19,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
 
 import trivial_nodes  # noqa: E402,F401
+from machine import describe, load_average  # noqa: E402
 
 from nodegraph.cache import Cache  # noqa: E402
 from nodegraph.dask_executor import DaskExecutor  # noqa: E402
@@ -38,15 +41,19 @@ def timed_run(graph, executor, cache_dir, out_dir):
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=20)
+    ap.add_argument("--workers", type=int, nargs="+", default=[1, 2, 4])
     args = ap.parse_args()
+    print(describe())
     rows = []
     with tempfile.TemporaryDirectory() as d:
         d = Path(d)
         g = load_graph(ROOT / "graphs/demo.yaml", overrides=SMALL, frames=f"0:{args.frames}")
-        for name, ex in (("local, 1 process", LocalExecutor(1)), ("local, 2 processes", LocalExecutor(2)),
-                         ("dask, 1 worker", DaskExecutor(workers=1)), ("dask, 2 workers", DaskExecutor(workers=2))):
+        configs = [(f"local, {n} process{'es' if n > 1 else ''}", "local", n, LocalExecutor(n)) for n in args.workers]
+        configs += [(f"dask, {n} worker{'s' if n > 1 else ''}", "dask", n, DaskExecutor(workers=n)) for n in args.workers]
+        for name, kind, k, ex in configs:
             t, res = timed_run(g, ex, d / name.replace(" ", "_").replace(",", ""), d / "out")
-            rows.append((f"demo graph (small), {name}", t, args.frames / t))
+            rows.append((f"demo graph (small), {name}", kind, k, t, args.frames / t))
+            print(f"  {name}: {t:.1f} s, load {load_average()}", flush=True)
         from distributed import LocalCluster
 
         t0 = time.perf_counter()
@@ -58,15 +65,15 @@ def main():
         tr = load_graph(tg)
         t_local, _ = timed_run(tr, LocalExecutor(2), d / "tl", d / "out2")
         t_dask, _ = timed_run(tr, DaskExecutor(workers=2), d / "td", d / "out3")
-    print(f"{'configuration':48s} {'wall s':>8s} {'frames/s':>9s}")
-    for name, t, fps in rows:
-        print(f"{name:48s} {t:8.2f} {fps:9.2f}")
-    base = {r[0].rsplit(", ", 1)[1]: r[2] for r in rows}
-    print(f"scaling dask 2 workers / 1 worker: {base['2 workers'] / base['1 worker']:.2f}x; "
-          f"local 2 / 1: {base['2 processes'] / base['1 process']:.2f}x")
+    print(f"{'configuration':48s} {'wall s':>8s} {'s/frame':>8s} {'frames/s':>9s} {'speed-up':>9s} {'efficiency':>10s}")
+    for name, kind, k, t, fps in rows:
+        one = next((r[4] for r in rows if r[1] == kind and r[2] == min(args.workers)), fps)
+        base = min(args.workers)
+        print(f"{name:48s} {t:8.2f} {t / args.frames:8.2f} {fps:9.2f} {fps / one:8.2f}x {fps / one * base / k:10.2f}")
     print(f"LocalCluster start-up (2 workers): {startup:.2f} s")
     print(f"per-item overhead, {3 * n} trivial items: local pool {t_local / (3 * n) * 1000:.2f} ms, "
           f"dask {t_dask / (3 * n) * 1000:.2f} ms (cluster start-up included)")
+    print(f"load average at the end: {load_average()}")
 
 
 if __name__ == "__main__":

@@ -12,6 +12,8 @@
 """
 from __future__ import annotations
 
+import os
+
 import dataclasses
 
 from .errors import VolcapError
@@ -64,10 +66,28 @@ class DaskExecutor:
             except (OSError, ValueError, TypeError) as exc:  # unreachable, or an address Dask cannot parse
                 raise VolcapError(f"cannot reach the Dask scheduler {self.scheduler}: {exc}") from None
         else:
+            import dask
+
             from .executors import worker_threads
 
-            cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
-                                   dashboard_address=None, silence_logs=40, env=worker_threads(self.workers))
+            # The nanny's pre-spawn environment is what a worker process starts with, and two of its defaults
+            # cost us: MALLOC_TRIM_THRESHOLD_ (setting it switches off glibc's dynamic mmap threshold, so every
+            # large NumPy temporary is a fresh mmap paid in page faults: the demo graph on one worker took 1.5x
+            # a local process, skinning 2.3x) and OMP/MKL/OpenBLAS = 1 thread (read when NumPy loads, whatever
+            # env= says later). Ours: glibc's default, thread pools at the worker's share of the cores. Nannies
+            # read this once, when made: a restarted worker keeps it.
+            # (The nanny writes these into this process's os.environ before it spawns: put ours back after.)
+            threads = worker_threads(self.workers)
+            pre = {**dask.config.get("distributed.nanny.pre-spawn-environ", {}), "MALLOC_TRIM_THRESHOLD_": None,
+                   **threads}
+            before = dict(os.environ)
+            try:
+                with dask.config.set({"distributed.nanny.pre-spawn-environ": pre}):
+                    cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
+                                           dashboard_address=None, silence_logs=40, env=threads)
+            finally:
+                os.environ.clear()
+                os.environ.update(before)
             client = Client(cluster)
         try:
             from distributed.diagnostics.plugin import WorkerPlugin

@@ -83,11 +83,14 @@ def unit_failed(unit, error: str, cache_root: str) -> dict[str, Result]:
 
 def worker_threads(workers: int) -> dict:
     """Environment for one of ``workers`` worker processes on this machine: thread pools (the OpenCL CPU
-    device, OMP, and libraries reading VOLCAP_CV_THREADS) use their share of the cores instead of all of
-    them, so processes do not oversubscribe. Values the user has set are kept."""
+    device, OMP, the BLAS under NumPy, and libraries reading VOLCAP_CV_THREADS) use their share of the cores
+    instead of all of them, so processes do not oversubscribe. Values the user has set are kept. (Dask's
+    nanny sets OMP/MKL/OpenBLAS to 1 thread before spawning a worker: one worker on a 2-core machine then ran
+    its BLAS on one core; the Dask executor gives these values as its pre-spawn environment instead.)"""
     share = str(max(1, (os.cpu_count() or 1) // max(1, workers)))
     env = {}
-    for var in ("POCL_MAX_PTHREAD_COUNT", "OMP_NUM_THREADS", "VOLCAP_CV_THREADS"):
+    for var in ("POCL_MAX_PTHREAD_COUNT", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
+                "VOLCAP_CV_THREADS"):
         env[var] = os.environ.get(var, share)
     return env
 

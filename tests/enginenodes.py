@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from nodegraph import Array, Files, InPath, Node, NodeError, OutPath, Param
-from nodegraph.types import DataType
+from nodegraph.types import DataType, Table
 
 
 class Source(Node):
@@ -213,3 +213,14 @@ class Steps(Node):
             time.sleep(pause)
             self.progress(i + 1, steps, "steps")
         return {"out": np.sum(x, axis=0)}
+
+
+class WorkerEnviron(Node):
+    """The environment a worker runs its items in (test_dask: what the Dask executor's nannies hand over)."""
+
+    type_name = "t.environ"
+    outputs = {"out": Table}
+    params = {"names": Param(list, [], item=str, doc="variables to report")}
+
+    def run(self, *, names):
+        return {"out": {n: os.environ.get(n) for n in names}}
