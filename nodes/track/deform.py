@@ -379,7 +379,7 @@ class Registration:
     (scipy SuperLU)."""
 
     def __init__(self, graph: DeformationGraph, faces: np.ndarray, params: FitParams):
-        from scipy.sparse import coo_matrix
+        from scipy.sparse import coo_matrix, csr_matrix
 
         self.graph, self.faces, self.params = graph, np.asarray(faces, np.int64), params
         used = used_vertices(self.faces, len(graph.rest))
@@ -418,8 +418,6 @@ class Registration:
         # position), normals before normalising = Mn vec(R), and the skinning weights Wt (3N x 3S) whose
         # transpose blends the translations (x = p + Wt^T t) and which scatters per-sample rows to the nodes
         S = len(self.src)
-        from scipy.sparse import csr_matrix
-
         a3 = np.arange(3)
         rows9 = np.broadcast_to((np.arange(S)[:, None, None, None] * 3 + a3[None, None, :, None]), (S, K, 3, 3))
         cols9 = self.idx[:, :, None, None] * 9 + a3[None, None, :, None] * 3 + a3[None, None, None, :]
