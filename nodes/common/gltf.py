@@ -86,6 +86,17 @@ def texture_image(mesh) -> np.ndarray | None:
     return None if image is None else np.asarray(image.convert("RGB"))
 
 
+def textured_visual(uv: np.ndarray, texture: np.ndarray):
+    """trimesh TextureVisuals of per-vertex ``uv`` and an (H, W, 3) uint8 ``texture`` as the PBR base colour
+    (matte, single-sided): what texture makes and the TexturedMesh cache gives back."""
+    import trimesh
+    from PIL import Image
+
+    mat = trimesh.visual.material.PBRMaterial(baseColorTexture=Image.fromarray(texture), metallicFactor=0.0,
+                                              roughnessFactor=1.0, doubleSided=False)
+    return trimesh.visual.TextureVisuals(uv=uv, material=mat)
+
+
 def png_bytes(img: np.ndarray) -> bytes:
     """An (H, W, 3) RGB uint8 image as PNG file bytes."""
     import cv2

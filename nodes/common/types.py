@@ -417,12 +417,9 @@ class TexturedMesh(Mesh):
             a = {k: z[k] for k in z.files}
         vertices, faces = a["vertices"].astype(np.float64), a["faces"].astype(np.int64)
         if "texture" in a:
-            from PIL import Image
+            from .gltf import textured_visual
 
-            mat = trimesh.visual.material.PBRMaterial(baseColorTexture=Image.fromarray(a["texture"]),
-                                                      metallicFactor=0.0, roughnessFactor=1.0, doubleSided=False)
-            return trimesh.Trimesh(vertices, faces, visual=trimesh.visual.TextureVisuals(uv=a["uv"], material=mat),
-                                   process=False)
+            return trimesh.Trimesh(vertices, faces, visual=textured_visual(a["uv"], a["texture"]), process=False)
         if "vertex_colors" in a:
             return trimesh.Trimesh(vertices, faces, vertex_colors=a["vertex_colors"], process=False)
         return trimesh.Trimesh(vertices, faces, process=False)

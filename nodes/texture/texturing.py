@@ -193,7 +193,8 @@ def textured_trimesh(vertices, faces, atlas: Atlas, texture: np.ndarray):
     """A trimesh.Trimesh with one vertex per (vertex, chart) pair, per-vertex UVs and the texture as the PBR
     base colour (what GLB/OBJ/USD exports read)."""
     import trimesh
-    from PIL import Image
+
+    from nodes.common.gltf import textured_visual
 
     faces = np.asarray(faces, np.int64)
     key = faces * (atlas.n_charts or 1) + atlas.face_chart[:, None].astype(np.int64)
@@ -201,10 +202,8 @@ def textured_trimesh(vertices, faces, atlas: Atlas, texture: np.ndarray):
     src = uniq // (atlas.n_charts or 1)
     uv = np.zeros((len(uniq), 2), np.float64)
     uv[inverse] = atlas.uv01().reshape(-1, 2)
-    mat = trimesh.visual.material.PBRMaterial(baseColorTexture=Image.fromarray(texture), metallicFactor=0.0,
-                                              roughnessFactor=1.0, doubleSided=False)
     return trimesh.Trimesh(np.asarray(vertices, np.float64)[src], inverse.reshape(-1, 3),
-                           visual=trimesh.visual.TextureVisuals(uv=uv, material=mat), process=False)
+                           visual=textured_visual(uv, texture), process=False)
 
 
 def coloured_trimesh(vertices, faces, colours):
