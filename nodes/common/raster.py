@@ -117,15 +117,11 @@ def rasterize_reference(vertices, faces, cameras: Cameras, view: int, batch: int
     return tri_id, best_z.reshape(h, w).astype(np.float32), bary.reshape(h, w, 3).astype(np.float32)
 
 
-def shade_reference(tri_id, bary, faces, normals, texcoords, face_material, materials, light, ambient,
-                    shadow, empty_rgb, n_object):
-    """NumPy version of kernel ``shade``: (rgb (H, W, 3) uint8, mask (H, W) uint8)."""
-    tri_id = np.asarray(tri_id)
-    hit = tri_id >= 0
-    col = np.empty(tri_id.shape + (3,), np.float64)
-    col[:] = np.asarray(empty_rgb, np.float64)[:3]
-    f = tri_id[hit]
-    b = np.asarray(bary, np.float64)[hit]
+def shade_colours(tri, bary, faces, normals, texcoords, face_material, materials, light, ambient, shadow) -> np.ndarray:
+    """Colours (N, 3) float64 in 0..255 (before rounding) that kernel ``shade`` gives surface points: faces
+    ``tri`` (N,) at barycentric coordinates ``bary`` (N, 3)."""
+    f = np.asarray(tri)
+    b = np.asarray(bary, np.float64)
     corners = np.asarray(faces)[f]                                              # (P, 3)
     t = np.einsum("pk,pkc->pc", b, np.asarray(texcoords, np.float64)[corners])
     m = np.asarray(materials, np.float64).reshape(-1, MATERIAL_FLOATS)[np.asarray(face_material)[f]]
@@ -141,8 +137,19 @@ def shade_reference(tri_id, bary, faces, normals, texcoords, face_material, mate
     d2 = (t[:, 0] - shadow[0]) ** 2 + (t[:, 1] - shadow[1]) ** 2
     dark = 1 - shadow[3] * np.exp(-d2 / (2 * shadow[2] ** 2))
     c = np.where(m[:, 9:10] != 0, c * dark[:, None], c)
-    col[hit] = c
-    rgb = np.clip(col * 255 + 0.5, 0, 255).astype(np.uint8)
+    return c * 255
+
+
+def shade_reference(tri_id, bary, faces, normals, texcoords, face_material, materials, light, ambient,
+                    shadow, empty_rgb, n_object):
+    """NumPy version of kernel ``shade``: (rgb (H, W, 3) uint8, mask (H, W) uint8)."""
+    tri_id = np.asarray(tri_id)
+    hit = tri_id >= 0
+    col = np.empty(tri_id.shape + (3,), np.float64)
+    col[:] = np.asarray(empty_rgb, np.float64)[:3] * 255
+    col[hit] = shade_colours(tri_id[hit], np.asarray(bary, np.float64)[hit], faces, normals, texcoords,
+                             face_material, materials, light, ambient, shadow)
+    rgb = np.clip(col + 0.5, 0, 255).astype(np.uint8)
     mask = np.where(hit & (tri_id < n_object), 255, 0).astype(np.uint8)
     return rgb, mask
 

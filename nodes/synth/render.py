@@ -106,3 +106,25 @@ def render_scene(scene: scenes.Scene, cameras: Cameras, backdrop: str, shadow: b
     blob = (scene.center[0], scene.center[1], 0.45 * scene.radius, 0.45 if shadow else 0.0)
     return raster.render(verts, faces, normals, texcoords, face_material, materials, cameras, n_object=n_obj,
                          light=LIGHT, ambient=AMBIENT, shadow=blob)
+
+
+def surface_truth(scene: scenes.Scene, points, shadow: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """What the renderer paints at surface points (N, 3) of ``scene`` (each taken to its closest point on the
+    true surface): (colour (N, 3) float64 in 0..255 before rounding, distance (N,) in metres along the surface
+    pattern to its nearest colour edge: inf on plain materials). The truth of a texture measure."""
+    import trimesh
+
+    mesh = scene.mesh
+    near, _, tri = trimesh.proximity.closest_point(mesh, np.asarray(points, np.float64))
+    bary = trimesh.triangles.points_to_barycentric(mesh.triangles[tri], near)
+    blob = (scene.center[0], scene.center[1], 0.45 * scene.radius, 0.45 if shadow else 0.0)
+    rgb = raster.shade_colours(tri, bary, mesh.faces, mesh.vertex_normals, scene.texcoords, scene.face_material,
+                               scene.materials, LIGHT, AMBIENT, blob)
+    t = np.einsum("nk,nkc->nc", bary, scene.texcoords[mesh.faces[tri]])
+    m = scene.materials[scene.face_material[tri]]
+    period = m[:, 7:8]
+    frac = t / period - np.floor(t / period)
+    edge = np.minimum(frac, 1 - frac) * period
+    dist = np.where(m[:, 6] == raster.CHECKER, edge.min(axis=1),
+                    np.where(m[:, 6] == raster.STRIPES, edge[:, 2], np.inf))
+    return rgb, dist

@@ -2,6 +2,7 @@
 
     jumps = seam_jumps(result, faces)           # mean |colour difference| across atlas seams, view seams, inside
     bg, painted = background_texels(result, vertices, faces, masks, cameras)
+    f = flicker(colours, truth)                 # frame-to-frame change of the same texels not in the truth
 """
 from __future__ import annotations
 
@@ -146,3 +147,23 @@ def uneven_shading(images) -> list:
         fall = 1 - 0.5 * r2 if i % 2 else 1 + 0.2 * (yy / h)
         out.append(np.clip(im * fall[..., None], 0, 255).astype(np.uint8))
     return out
+
+
+def flicker(colours, truth=None, keep=None) -> dict:
+    """How much the same texels (one atlas over a tracked segment) change from frame to frame beyond what the
+    surface itself does. ``colours`` (T, N, 3) the texels' colours per frame (0..255), ``truth`` (T, N, 3)
+    what they should be (the albedo as lit in each frame; None: a static surface, no change), ``keep`` (N,)
+    bool the texels to count. Returns flicker = mean over consecutive frames and texels of
+    |(c_t+1 - c_t) - (a_t+1 - a_t)| averaged over RGB, change = the same without the truth, truth_change =
+    the truth's own, and per_pair (T-1,) flicker."""
+    c = np.asarray(colours, np.float64)
+    if c.ndim != 3 or c.shape[0] < 2 or c.shape[2] != 3:
+        raise ValueError(f"colours must be (T >= 2, N, 3), got {c.shape}")
+    a = np.zeros_like(c) if truth is None else np.asarray(truth, np.float64)
+    if a.shape != c.shape:
+        raise ValueError(f"truth {a.shape} does not match colours {c.shape}")
+    sel = np.ones(c.shape[1], bool) if keep is None else np.asarray(keep, bool)
+    dc, da = np.diff(c[:, sel], axis=0), np.diff(a[:, sel], axis=0)
+    per_pair = np.abs(dc - da).mean(axis=(1, 2)) if sel.any() else np.full(len(c) - 1, np.nan)
+    return {"flicker": float(per_pair.mean()), "change": float(np.abs(dc).mean()) if sel.any() else float("nan"),
+            "truth_change": float(np.abs(da).mean()) if sel.any() else float("nan"), "per_pair": per_pair}

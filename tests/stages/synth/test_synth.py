@@ -202,3 +202,23 @@ def test_synth_golden(golden):
     assert (len(out["mesh"].vertices), len(out["mesh"].faces)) == (13058, 26112)
     golden.check("synth_figure_vertices", np.asarray(out["mesh"].vertices[::100]), Array, atol=1e-6)
     golden.check("synth_figure_joints", out["skeleton"].joints, Array, atol=1e-6)
+
+
+def test_surface_truth_is_what_the_renderer_paints():
+    """render.surface_truth at the surface points behind a camera's pixels gives those pixels' colours (the truth
+    of the texture flicker measure), and its pattern-edge distance is small only where the photo has an edge."""
+    from nodes.synth.render import surface_truth
+
+    out = run_node("synth", {}, {"scene": "figure", "cameras": 4, "width": 320, "height": 240, "shadow": True}, frame=3)
+    sc = scenes.build("figure", 3)
+    cams, img = out["cameras"], out["images"].images[0]
+    tri, _, bary = raster.rasterize(sc.mesh.vertices, sc.mesh.faces, cams, 0)
+    ys, xs = np.nonzero(tri >= 0)
+    pick = np.random.default_rng(1).choice(len(ys), 3000, replace=False)
+    ys, xs = ys[pick], xs[pick]
+    X = np.einsum("nk,nkc->nc", bary[ys, xs].astype(np.float64), sc.mesh.vertices[sc.mesh.faces[tri[ys, xs]]])
+    colour, dist = surface_truth(sc, X)
+    diff = np.abs(colour - img[ys, xs].astype(np.float64)).max(axis=1)
+    away = dist > 0.005      # off pattern edges: the pixel's colour, to rounding and float32 (measured p99 1.15)
+    assert away.mean() > 0.5 and np.percentile(diff[away], 99) <= 1.5 and diff[away].mean() < 0.6, diff[away].mean()
+    assert np.median(diff[~away]) < 40 and np.isfinite(dist).all()

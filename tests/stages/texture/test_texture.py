@@ -19,7 +19,7 @@ from nodes.common.types import Images, ImageSet
 from nodes.texture import bake as B
 from nodes.texture import views as V
 from nodes.texture.atlas import Atlas, make_atlas
-from nodes.texture.quality import background_texels, seam_jumps, uneven_shading, view_seam_disagreement
+from nodes.texture.quality import background_texels, flicker, seam_jumps, uneven_shading, view_seam_disagreement
 from nodes.texture.texturing import Settings, texture_mesh
 from nodes.texture.viewdep import NONE, choose_layers, layer_weights, render_layers
 
@@ -628,3 +628,22 @@ def test_texture_node_layers_need_an_atlas():
                  {"mode": "vertex", "layers": 2})
     out = run_node("texture", {"mesh": s["mesh"], "images": s["images"], "cameras": s["cameras"]}, {"size": 64})
     assert out["views"] is None
+
+
+def test_flicker_counts_only_change_the_truth_does_not_have():
+    rng = np.random.default_rng(0)
+    truth = rng.uniform(0, 255, (4, 500, 3))
+    truth[1:] += np.array([3.0, -2.0, 1.0])                       # the lit surface itself changes
+    f = flicker(truth.copy(), truth)
+    assert f["flicker"] == 0.0 and f["truth_change"] == pytest.approx(np.abs(np.diff(truth, axis=0)).mean())
+    c = truth.copy()
+    c[2, :100] += 12.0                                             # 100 of 500 texels jump in frame 2 and back
+    f = flicker(c, truth)
+    # pairs 1->2 and 2->3 each carry 12 on a fifth of the texels, pair 0->1 nothing: (0 + 2.4 + 2.4) / 3
+    assert f["flicker"] == pytest.approx(1.6) and np.allclose(f["per_pair"], [0.0, 2.4, 2.4])
+    keep = np.zeros(500, bool)
+    keep[100:] = True
+    assert flicker(c, truth, keep)["flicker"] == pytest.approx(0.0, abs=1e-12)
+    assert flicker(c)["change"] == pytest.approx(np.abs(np.diff(c, axis=0)).mean())
+    with pytest.raises(ValueError, match="must be"):
+        flicker(c[:1], truth[:1])
