@@ -175,9 +175,8 @@ def texture_mesh(vertices, faces, images, masks, cameras, s: Settings = Settings
         from .viewdep import ViewLayers, bake_layers, choose_layers
 
         t = time.perf_counter()
-        fv = choose_layers(quality, stats.colour, blend.gains, faces, len(vertices), cameras.centers, vertices,
-                           K=s.layers, consistency=s.consistency, topo=topo)
-        layers, texel_view = bake_layers(layout, vertices, faces, cameras, frame, fv, blend.gains, texture)
+        fv = choose_layers(quality, faces, len(vertices), cameras.centers, vertices, K=s.layers, topo=topo)
+        layers, texel_view = bake_layers(layout, vertices, faces, cameras, frame, fv, texture)
         views = ViewLayers(layers, texel_view, np.asarray(cameras.centers, np.float64), [c.name for c in cameras])
         timings["layers"] = time.perf_counter() - t
     else:

@@ -468,7 +468,15 @@ def test_real_thu_wd_human_leave_one_out(data_dir):
     vd, _ = render_layers(mesh.vertices, mesh.faces, rl.atlas.uv01(), rl.texture, rl.views, cams, held)
     st, _ = render_texture(mesh.vertices, mesh.faces, rl.atlas.uv01(), rl.texture, cams, held)
     p_vd, p_st = psnr(vd, photo, sel), psnr(st, photo, sel)
-    assert p_vd > p_st + 0.3, (p_vd, p_st)
+    # measured +1.52 dB (with the static selection's colour test filtering the layers, as before: +0.72)
+    assert p_vd > p_st + 1.0, (p_vd, p_st)
+    ri = texture_mesh(mesh.vertices, mesh.faces, cap["images"].images, cap["masks"].masks, cams,
+                      Settings(size=1024, layers=6))
+    vi, hi = render_layers(mesh.vertices, mesh.faces, ri.atlas.uv01(), ri.texture, ri.views, cams, held)
+    si, _ = render_texture(mesh.vertices, mesh.faces, ri.atlas.uv01(), ri.texture, cams, held)
+    sel = hi & (cap["masks"].masks[held] > 127)
+    # in sample the camera's own photo comes back: measured 26.4 vs 20.5 dB static (before: 22.3)
+    assert psnr(vi, photo, sel) > psnr(si, photo, sel) + 4.0, (psnr(vi, photo, sel), psnr(si, photo, sel))
 
 
 @pytest.mark.slow
@@ -543,8 +551,7 @@ def test_layers_spread_in_direction_and_skip_views_that_cannot_see_the_face():
 
     frame = V.FrameImages.build(s["images"].images, s["masks"].masks, 2)
     st = V.face_view_stats(m.vertices, m.faces, cams, frame, edge_px=2)
-    fv = choose_layers(st.effective(), st.colour, np.ones((len(cams), 3), np.float32), m.faces, len(m.vertices),
-                       cams.centers, m.vertices, K=3)
+    fv = choose_layers(st.effective(), m.faces, len(m.vertices), cams.centers, m.vertices, K=3)
     q = st.effective().T
     rows = np.arange(len(m.faces))
     for k in range(3):
