@@ -451,6 +451,7 @@ class ViewTextures(DataType):
             cv2.imwrite(str(folder / f"layer_{k}.png"), np.ascontiguousarray(v.layers[k][:, :, ::-1]))
             cv2.imwrite(str(folder / f"view_{k}.png"), np.ascontiguousarray(v.texel_view[:, :, k]))
         (folder / "cameras.json").write_text(json.dumps({"names": list(v.names), "none": NONE, "sigma": float(v.sigma),
+                                                         "layers": int(v.layers.shape[0]),
                                                          "centres": np.asarray(v.centres).tolist()}))
 
     @classmethod

@@ -84,22 +84,58 @@ class ExportViews(Node):
     ``cameras.json`` (camera names, centres in the world frame, the blend width ``sigma``). A player blends the
     layers per fragment with w_k = exp(-(a_k / sigma)^2) / a_k over the angle a_k between the ray to the eye
     and the ray to layer k's camera, the atlas texture counting as a layer at angle sigma
-    (nodes/texture/viewdep.py ``layer_weights``)."""
+    (nodes/texture/viewdep.py ``layer_weights``). With ``mesh`` (the same texture node's mesh) the folder is
+    also a viewer: ``index.html`` (three.js, that blend in its fragment shader; serve the folder over http),
+    ``mesh.bin`` (float32 positions in the world frame, UVs, uint32 faces) and ``base.png`` (the atlas)."""
 
     type_name = "export.views"
     uses_frame = True
     publishes = True
-    inputs = {"views": ViewTextures}
+    inputs = {"views": ViewTextures,
+              "mesh": Input(TexturedMesh, optional=True, doc="the frame's textured mesh (texture.mesh): adds the viewer")}
     outputs = {"files": Files}
     params = {"path": Param(OutPath, "views/{frame:04d}", doc="output folder pattern, relative to --out")}
 
-    def run(self, views, *, path, frame):
+    def run(self, views, mesh, *, path, frame):
         import tempfile
 
         rel = _format(path, frame=frame)
         with tempfile.TemporaryDirectory() as d:
             ViewTextures.save(views, Path(d))
-            return {"files": {str(Path(rel) / f.name): f.read_bytes() for f in sorted(Path(d).iterdir())}}
+            files = {str(Path(rel) / f.name): f.read_bytes() for f in sorted(Path(d).iterdir())}
+        if mesh is not None:
+            from .player import views_files
+
+            files.update(viewer_mesh(mesh, views, rel))
+            page, warning = views_files(rel)
+            files.update(page)
+            if warning:
+                self.log.warning("export.views: %s", warning)
+        return {"files": files}
+
+
+def viewer_mesh(mesh, views, rel: str) -> dict[str, bytes]:
+    """mesh.bin and base.png of the view-dependent viewer (player/views.js reads them)."""
+    import json
+
+    from nodes.common.gltf import png_bytes
+
+    visual = getattr(mesh, "visual", None)
+    image = getattr(getattr(visual, "material", None), "baseColorTexture", None)
+    if getattr(visual, "kind", None) != "texture" or visual.uv is None or image is None:
+        raise NodeError("input 'mesh' has no atlas texture: connect the texture node's mesh (mode 'atlas') that "
+                        "made these layers")
+    base = np.asarray(image.convert("RGB"))
+    if base.shape[:2] != views.layers.shape[1:3]:
+        raise NodeError(f"input 'mesh' has a {base.shape[1]}x{base.shape[0]} texture but the layers are "
+                        f"{views.layers.shape[2]}x{views.layers.shape[1]}: connect the texture node's mesh that made them")
+    v = np.ascontiguousarray(mesh.vertices, np.float32)
+    uv = np.ascontiguousarray(visual.uv, np.float32)
+    f = np.ascontiguousarray(mesh.faces, np.uint32)
+    head = json.dumps({"vertices": len(v), "faces": len(f), "frame": "+Z up, metres"}).encode()
+    head += b" " * (-(len(head) + 4) % 4)
+    data = len(head).to_bytes(4, "little") + head + v.tobytes() + uv.tobytes() + f.tobytes()
+    return {str(Path(rel) / "mesh.bin"): data, str(Path(rel) / "base.png"): png_bytes(base)}
 
 
 class ExportVolume(Node):

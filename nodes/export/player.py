@@ -1,5 +1,7 @@
 """The stream player: a small web page on three.js that plays a volcap-stream ladder (stream.py) with
-scrubbing, a play button and a rung selector (player/index.html, player/player.js).
+scrubbing, a play button and a rung selector (player/index.html, player/player.js); and the view-dependent
+viewer (player/views.html, views.js) that export.views writes beside a frame's layers: its textured mesh
+blended per fragment by the viewing direction, as nodes/common/viewlayers.py layer_weights says.
 
 three.js is a pinned npm package that ``setup.sh`` installs into ``.player/node_modules`` (never copied into
 the repository); ``player_files`` publishes the page with the parts of it the page loads (three.module.min.js,
@@ -46,12 +48,26 @@ def player_files(name: str, rungs: list[str]) -> tuple[dict[str, bytes], str | N
     three.js the page and a warning saying how to complete it (the viewer is optional: a run does not fail)."""
     files = {f"{name}/index.html": (HERE / "player" / "index.html").read_bytes(),
              f"{name}/player.js": (HERE / "player" / "player.js").read_bytes(),
+             f"{name}/camera.js": (HERE / "player" / "camera.js").read_bytes(),
              f"{name}/rungs.json": json.dumps(list(rungs)).encode()}
+    return _with_three(files, name, LIBS)
+
+
+def views_files(folder: str) -> tuple[dict[str, bytes], str | None]:
+    """(files, warning): the view-dependent viewer's page (index.html), its scripts and the three.js parts it loads,
+    under ``folder/``, to sit beside export.views' layers, mesh.bin and base.png."""
+    files = {f"{folder}/index.html": (HERE / "player" / "views.html").read_bytes(),
+             f"{folder}/views.js": (HERE / "player" / "views.js").read_bytes(),
+             f"{folder}/camera.js": (HERE / "player" / "camera.js").read_bytes()}
+    return _with_three(files, folder, {k: v for k, v in LIBS.items() if k in ("three.module.min.js", "OrbitControls.js")})
+
+
+def _with_three(files: dict, folder: str, libs: dict) -> tuple[dict[str, bytes], str | None]:
     root, looked = three_dir()
     if root is None:
-        return files, (f"three.js {THREE_VERSION} not found ({'; '.join(looked)}): the page {name}/index.html is written "
-                       f"without its lib/ folder; run ./setup.sh (npm install three@{THREE_VERSION} in .player/) or set "
-                       "VOLCAP_THREE, then run again")
-    for dst, src in LIBS.items():
-        files[f"{name}/lib/{dst}"] = (root / src).read_bytes()
+        return files, (f"three.js {THREE_VERSION} not found ({'; '.join(looked)}): the page {folder}/index.html is "
+                       f"written without its lib/ folder; run ./setup.sh (npm install three@{THREE_VERSION} in .player/) "
+                       "or set VOLCAP_THREE, then run again")
+    for dst, src in libs.items():
+        files[f"{folder}/lib/{dst}"] = (root / src).read_bytes()
     return files, None

@@ -62,6 +62,9 @@ def test_dataset_graph_runs(path, dataset_run, data_dir, monkeypatch):
             cast = np.mean(px[:, 1] - np.maximum(px[:, 0], px[:, 2]) > 10)
             assert cast < 0.005, (p.name, cast)   # no key colour baked in (thu's green floor: 2.3 % undespilled)
     for r in res.records:
+        if r["type"] == "export.views":                 # the layers and their viewer page
+            names = {Path(p).name for p in r["published"]}
+            assert {"index.html", "mesh.bin", "base.png", "layer_0.png", "view_0.png", "cameras.json"} <= names, names
         if r["type"] == "eval.silhouette":
             table = json.loads((Path(r["cache_dir"]) / "report/table.json").read_text())
             assert table["mean_iou"] >= 0.85, (path.stem, table["mean_iou"])

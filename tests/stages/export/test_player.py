@@ -122,3 +122,57 @@ def test_three_gltfloader_sees_every_glb_upright_and_to_scale(tmp_path):
             assert title == "ready", (name, title)
             np.testing.assert_allclose(box["min"], [0.4, 0.0, -0.15], atol=1e-5, err_msg=name)   # glTF (x, z, -y)
             np.testing.assert_allclose(box["max"], [0.6, 2.0, 0.15], atol=1e-5, err_msg=name)
+
+
+def camera_param(cam, width, height) -> str:
+    return base64.b64encode(json.dumps({"K": cam.K.tolist(), "R": cam.Rt[:, :3].tolist(), "t": cam.Rt[:, 3].tolist(),
+                                        "width": width, "height": height}).encode()).decode()
+
+
+@pytest.mark.slow
+def test_the_views_page_blends_the_layers_as_the_reference_does(tmp_path):
+    """export.views with the frame's mesh is a viewer: in headless Chromium its fragment shader gives, at a capture
+    camera and at an eye between two of them, what viewdep.render_layers (the shader's reference) renders."""
+    import cv2
+
+    from browser import screenshot, serve
+    from nodes.common.raster import render_texture
+    from nodes.texture.viewdep import render_layers
+
+    W, H = 320, 240
+    s = run_node("synth", {}, {"scene": "figure", "cameras": 8, "width": W, "height": H, "shadow": False})
+    cams = s["cameras"]
+    out = run_node("texture", {"mesh": s["mesh"], "images": s["images"], "cameras": cams, "masks": s["masks"]},
+                   {"size": 512, "layers": 4}, roundtrip=True)
+    m, vl = out["mesh"], out["views"]
+    files = run_node("export.views", {"views": vl, "mesh": m}, {"path": "v/{frame:04d}"}, frame=3)["files"]
+    assert {"v/0003/index.html", "v/0003/mesh.bin", "v/0003/base.png", "v/0003/lib/three.module.min.js"} <= set(files)
+    write(files, tmp_path)
+    base = np.asarray(m.visual.material.baseColorTexture.convert("RGB"))
+    face_uv = np.asarray(m.visual.uv)[np.asarray(m.faces)]
+    c0, c1 = cams.centers[0], cams.centers[1]
+    between = look_at(0.5 * (c0 + c1), [0, 0, 0.9], [0, 0, 1], 40, W, H)
+    with serve(tmp_path / "v" / "0003") as url:
+        for name, cam, photo in (("capture camera 1", cams[1], s["images"].images[1]), ("between cameras 0 and 1", between, None)):
+            ref, hit = render_layers(m.vertices, m.faces, face_uv, base, vl, Cameras([cam]), 0)
+            png, title = screenshot(f"{url}/index.html?still=1&camera={camera_param(cam, W, H)}", W, H)
+            assert title == "ready", title
+            shot = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[:, :, ::-1]
+            inner = cv2.erode(hit.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+            cover = shot.max(axis=2) > 0
+            iou = (cover & hit).sum() / (cover | hit).sum()
+            diff = np.abs(shot[inner].astype(float) - ref[inner].astype(float))
+            print(f"{name}: IoU {iou:.4f}, |page - reference| mean {diff.mean():.2f}, p99 {np.percentile(diff, 99):.0f}")
+            # measured: IoU 0.999, mean 0.13-0.18, p99 1 (0..255)
+            assert hit.sum() > 3000 and iou > 0.98 and diff.mean() < 1.0 and np.percentile(diff, 99) <= 4, (name, iou)
+            if photo is not None:                   # at a capture camera the page gives its photo back, the atlas not
+                st, _, = screenshot(f"{url}/index.html?still=1&static=1&camera={camera_param(cam, W, H)}", W, H)
+                static = cv2.imdecode(np.frombuffer(st, np.uint8), cv2.IMREAD_COLOR)[:, :, ::-1].astype(float)
+                sel = inner & (s["masks"].masks[1] > 127)
+                e_vd = np.abs(shot[sel].astype(float) - photo[sel]).mean()
+                e_st = np.abs(static[sel] - photo[sel]).mean()
+                ref_st, _ = render_texture(m.vertices, m.faces, face_uv, base, Cameras([cam]), 0)
+                assert np.abs(static[inner] - ref_st[inner]).mean() < 2.0
+                print(f"  against the photo: layers {e_vd:.2f}, atlas alone {e_st:.2f}")
+                assert e_vd < 0.8 * e_st, (e_vd, e_st)
+                cv2.imwrite(str(tmp_path / "views_page.png"), np.hstack([photo, shot, static.astype(np.uint8)])[:, :, ::-1])
