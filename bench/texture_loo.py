@@ -11,7 +11,8 @@ run through the CLI into a cache. Methods, all on the same mesh and the same hel
   ours             the texture node's defaults, 2048^2 atlas (and its vertex-colour mode)
   ours + layers    the same with `layers: 6`, rendered view-dependently at the held-out camera
                    (viewdep.render_layers: what a player does at that eye)
-  in-sample        ours and ours + layers textured from every camera, the held-out one included
+  in-sample        ours and ours + layers textured from every camera, the held-out one included (and with
+                   `layers: 16`, the most the node keeps)
   oracle           the held-out camera's own photo alone through the same atlas (the geometry's ceiling)
 PSNR and SSIM (skimage, on the mask's box, averaged inside the mask and the render). Also counted for ours:
 texels whose surface point is background in every mask that sees it, and how many of those were painted from
@@ -140,7 +141,7 @@ def evaluate(name, cache, held_n, use_meshlab, size, picture=None):
     n = len(cams)
     held = sorted(set(np.linspace(0, n - 1, held_n + 1)[:-1].round().astype(int).tolist()))
     rows = {k: [] for k in ("vertex colours", "cos^2 mean", "MeshLab", "ours (vertex)", "ours", "ours + layers",
-                            "in-sample ours", "in-sample + layers", "oracle")}
+                            "in-sample ours", "in-sample + layers", "in-sample + 16 layers", "oracle")}
     ssims = {k: [] for k in rows}
     extra = {"faces": len(F), "views": n, "held": held, "bg_texels": 0, "bg_painted": 0, "ours_s": [], "meshlab_s": []}
     tiles = []
@@ -174,6 +175,8 @@ def evaluate(name, cache, held_n, use_meshlab, size, picture=None):
         ri = texture_mesh(V, F, images.images, masks.masks, cams, Settings(size=size, layers=6))
         score("in-sample ours", *render_texture(V, F, ri.atlas.uv01(), ri.texture, ci, i))
         score("in-sample + layers", *render_layers(V, F, ri.atlas.uv01(), ri.texture, ri.views, ci, i))
+        r16 = texture_mesh(V, F, images.images, masks.masks, cams, Settings(size=size, layers=16))
+        score("in-sample + 16 layers", *render_layers(V, F, r16.atlas.uv01(), r16.texture, r16.views, ci, i))
         ro = texture_mesh(V, F, [photo], [mask_i], subset(cams, [i]), Settings(size=size))
         score("oracle", *render_texture(V, F, ro.atlas.uv01(), ro.texture, ci, i))
         bg, painted = background_texels(res, V, F, msk, sub)
