@@ -4,6 +4,7 @@ baseline a user would otherwise pick, REFERENCES.md) in the same run. Prints tab
 meshes to out/: that data may not be published with the project).
 
     python bench/track.py synth [--nricp-frames 3]    # graphs/track_synth.yaml, 100 frames at 128^3
+    python bench/track.py synth --set stage.scene=touch --frames 0:24   # arms held against the hips: sliding
     python bench/track.py speed [--resolution 164]    # ~20k vertices (hull 164^3), ours per frame vs nricp_amberg
     python bench/track.py child_rope                  # graphs/track_child_rope.yaml, 200 frames
     options: --cache DIR (default ./.volcap-cache), --frames A:B, --no-pictures, --set NODE.PARAM=VALUE (synth, child_rope)
@@ -13,7 +14,10 @@ them: ~5 s per frame), so a second run only re-measures. The correspondence erro
 tracked vertex is attached at its keyframe to the nearest point of the true surface (a face and barycentric
 coordinates); the figure keeps its topology over frames, so that body point's true position is known in every
 frame. "tracking error" = |(x_t - x_key) - (g_t - g_key)| (the motion of the point, which leaves out the
-visual hull's own offset from the truth); "absolute" = |x_t - g_t|.
+visual hull's own offset from the truth); "absolute" = |x_t - g_t|. "Sliding" (nodes.eval.surface.sliding) is
+the part along the surface: each tracked vertex's closest true point, in rest-pose coordinates (where a texture is
+fixed), against the one it had at the keyframe; told apart where another part of the body touches (eval.surface
+contacts: a true point within 3 cm that is 15 cm away at rest), which the `touch` scene holds for half its cycle.
 """
 from __future__ import annotations
 
@@ -116,9 +120,35 @@ def correspondence(track_v: dict, key: int, truth: dict, voxel: float) -> dict:
     return rows
 
 
+def slide_report(seq, segs, frames, scene: str):
+    """Sliding over the true surface (mm along the body) at contacts and elsewhere, every tracked frame."""
+    from nodes.eval.surface import contacts, sliding
+    from nodes.synth import scenes
+
+    at, away = [], []
+    for a, b in segs:
+        key = [m.metadata["frame"] for m in seq[a:b]].index(seq[a].metadata["keyframe"])
+        sc = [scenes.build(scene, m.metadata["frame"]) for m in seq[a:b]]
+        x = np.stack([np.asarray(m.vertices) for m in seq[a:b]])
+        s = sliding(x, np.asarray(seq[a].faces), [c.mesh for c in sc], sc[0].texcoords, key)
+        for t, c in enumerate(sc):
+            touch = contacts(c.mesh.vertices, c.texcoords, x[t])
+            at.append(s[t][touch])
+            away.append(s[t][~touch])
+    at, away = np.concatenate(at) * 1000, np.concatenate(away) * 1000
+
+    def row(v):
+        return (f"{len(v)} vertex-frames, median {np.median(v):.1f}, p95 {np.percentile(v, 95):.1f}, max {v.max():.1f} mm, "
+                f"{np.mean(v > 50) * 100:.1f} % beyond 50 mm" if len(v) else "none")
+
+    print(f"  sliding over the true surface: where the body touches itself {row(at)}; elsewhere {row(away)}")
+    return at, away
+
+
 def bench_synth(args):
     from nodes.synth import scenes
 
+    scene = next((o.split("=", 1)[1] for o in args.set if o.startswith("stage.scene=")), "figure")
     graph = ROOT / "graphs/track_synth.yaml"
     records = run(graph, args.cache, args.frames, overrides=args.set)
     recon, recs = outputs(records, "relax", "mesh", T.Mesh)
@@ -129,8 +159,8 @@ def bench_synth(args):
     table = outputs(records, "track", "residuals", Table)[0][0]
     track_rec = next(r for r in records if r["node"] == "track")
     frames = [m.metadata["frame"] for m in seq]
-    truth = {f: scenes.build("figure", f).mesh for f in frames}
-    print(f"\nsynthetic walking figure: {len(frames)} frames, hull 128^3 (voxel {voxel * 1000:.2f} mm), "
+    truth = {f: scenes.build(scene, f).mesh for f in frames}
+    print(f"\nsynthetic figure ({scene}): {len(frames)} frames, hull 128^3 (voxel {voxel * 1000:.2f} mm), "
           f"{len(recon[0].vertices)} vertices per reconstruction")
     segs = T.sequence_segments(seq)
     constant = all(np.array_equal(seq[a].faces, seq[i].faces) for a, b in segs for i in range(a, b))
@@ -155,6 +185,7 @@ def bench_synth(args):
           f"{absolute.mean():.2f} (max {absolute.max():.2f}; at the keyframe {ours[key0][1]:.2f} = the hull's own offset)")
     print(f"  drift: tracking error first frame {err[0]:.2f}, last {err[-1]:.2f} (ratio {err[-1] / max(err[0], 1e-9):.2f}); "
           f"same gait phase as the last frame (frames {same_phase}): {[round(float(ours[f][0]), 2) for f in same_phase]}")
+    slide_report(seq, segs, frames, scene)
     usd_check(records, seq, args.cache / "bench_out" / graph.stem)
     # nricp_amberg frame to frame from frame 0, and ours from the same start, on the first frames
     n = min(args.nricp_frames, len(frames))

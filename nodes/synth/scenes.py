@@ -5,6 +5,9 @@
     figure   an articulated figure (torso, head, arms, legs): a smooth union of capsules meshed once by
              marching cubes, then posed per frame by linear blend skinning, so the topology is constant and
              vertex i is the same body point in every frame. Skeleton joints and LBS weights come with it.
+             It walks in place, turning slowly.
+    touch    the same figure lowering its arms onto its hips and holding them there while it twists and sways
+             (24-frame cycle): a limb touching the body, where a tracker may slide the surface sideways
 
 Every scene carries its surface pattern: texture coordinates are rest-pose positions (the pattern moves
 with the body), one material per face (layout: nodes.common.raster.MATERIAL_FLOATS).
@@ -25,7 +28,7 @@ from nodes.common.types import SkeletonData
 if TYPE_CHECKING:
     import trimesh
 
-SCENES = ("sphere", "cup", "figure")
+SCENES = ("sphere", "cup", "figure", "touch")
 
 
 def material(color_a, color_b=(0, 0, 0), pattern=PLAIN, period=1.0, lit=True, shadow=False) -> list[float]:
@@ -50,8 +53,8 @@ def build(name: str, frame: int = 0) -> Scene:
         return _sphere()
     if name == "cup":
         return _cup()
-    if name == "figure":
-        return _figure(frame)
+    if name in ("figure", "touch"):
+        return _figure(frame, "walk" if name == "figure" else "touch")
     raise ValueError(f"unknown scene '{name}'; expected one of {', '.join(SCENES)}")
 
 
@@ -188,23 +191,35 @@ def figure_rest(voxel: float = 0.015):
 
 def _rot(axis: str, angle: float) -> np.ndarray:
     c, s = math.cos(angle), math.sin(angle)
-    return {"x": np.array([[1, 0, 0], [0, c, -s], [0, s, c]]),
+    return {"x": np.array([[1, 0, 0], [0, c, -s], [0, s, c]]), "y": np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]),
             "z": np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])}[axis]
 
 
-def figure_pose(frame: int) -> tuple[np.ndarray, np.ndarray]:
-    """Global joint rotations (J, 3, 3) and positions (J, 3) at ``frame``: a walk in place, turning slowly."""
+def figure_pose(frame: int, motion: str = "walk") -> tuple[np.ndarray, np.ndarray]:
+    """Global joint rotations (J, 3, 3) and positions (J, 3) at ``frame``: ``walk`` in place, turning slowly, or
+    ``touch``: the arms lowered against the hips (adducted 0.55 rad: the wrists' capsules meet the hips') and held
+    there for half of each 24-frame cycle while the pelvis twists and the chest sways."""
     phase = 2 * math.pi * frame / 24.0
     s = math.sin(phase)
     local = {n: np.eye(3) for n in NAMES}
-    local["pelvis"] = _rot("z", 0.25 * math.sin(phase / 2))
-    local["chest"] = _rot("x", 0.08 * s)
-    local["l_shoulder"], local["r_shoulder"] = _rot("x", 0.5 * s), _rot("x", -0.5 * s)
-    local["l_elbow"] = _rot("x", -0.35 - 0.25 * max(0.0, s))
-    local["r_elbow"] = _rot("x", -0.35 - 0.25 * max(0.0, -s))
-    local["l_hip"], local["r_hip"] = _rot("x", -0.4 * s), _rot("x", 0.4 * s)
-    local["l_knee"] = _rot("x", 0.6 * max(0.0, s))
-    local["r_knee"] = _rot("x", 0.6 * max(0.0, -s))
+    if motion == "touch":
+        a = 0.55 * min(1.0, 2.0 * (0.5 - 0.5 * math.cos(phase)))     # open at 0, against the hips over 6..18
+        local["pelvis"] = _rot("z", 0.2 * math.sin(phase / 2))
+        local["chest"] = _rot("x", 0.06 * s)
+        local["l_shoulder"], local["r_shoulder"] = _rot("y", a), _rot("y", -a)
+        local["l_elbow"] = local["r_elbow"] = _rot("x", -0.2)
+        local["l_knee"], local["r_knee"] = _rot("x", 0.15 * max(0.0, s)), _rot("x", 0.15 * max(0.0, -s))
+    elif motion == "walk":
+        local["pelvis"] = _rot("z", 0.25 * math.sin(phase / 2))
+        local["chest"] = _rot("x", 0.08 * s)
+        local["l_shoulder"], local["r_shoulder"] = _rot("x", 0.5 * s), _rot("x", -0.5 * s)
+        local["l_elbow"] = _rot("x", -0.35 - 0.25 * max(0.0, s))
+        local["r_elbow"] = _rot("x", -0.35 - 0.25 * max(0.0, -s))
+        local["l_hip"], local["r_hip"] = _rot("x", -0.4 * s), _rot("x", 0.4 * s)
+        local["l_knee"] = _rot("x", 0.6 * max(0.0, s))
+        local["r_knee"] = _rot("x", 0.6 * max(0.0, -s))
+    else:
+        raise ValueError(f"unknown figure motion '{motion}'")
     rots = np.empty((len(NAMES), 3, 3))
     pos = np.empty((len(NAMES), 3))
     for j, name in enumerate(NAMES):  # parents come first in JOINTS
@@ -247,11 +262,11 @@ def skin(vertices: np.ndarray, weights: np.ndarray, rots: np.ndarray, pos: np.nd
     return np.einsum("vj,vja->va", weights, per_joint)
 
 
-def _figure(frame: int) -> Scene:
+def _figure(frame: int, motion: str = "walk") -> Scene:
     import trimesh
 
     rest, weights, face_material = figure_rest()
-    rots, pos = figure_pose(frame)
+    rots, pos = figure_pose(frame, motion)
     mesh = trimesh.Trimesh(skin(rest.vertices, weights, rots, pos), rest.faces.copy(), process=False)
     skeleton = SkeletonData(pos, list(PARENTS), list(NAMES), weights.copy())
     return Scene(mesh, rest.vertices.copy(), face_material.copy(), FIGURE_MATERIALS.copy(),
