@@ -1,12 +1,15 @@
 """Blender opens the deliverables as a user's import does: glTF (its importer, +Y up converted to Blender's +Z)
 and USD (upAxis and metersPerUnit honoured), each object's evaluated mesh (shape keys and skins applied) at the
 first frame, in Blender's world (+Z up, metres). Prints per file the bounds, the height and the lowest point,
-and for each GLB/USD pair of one asset how far apart their bounds are. Blender as a Python module (PyPI `bpy`
+and for each GLB/USD pair of one asset how far apart their bounds are. A .bvh (the character's motion) is
+imported with Blender's BVH importer, once with its defaults (forward -Z, up Y) and once with forward +Z, and
+every bone's head is compared, every frame, with the joints by our own forward kinematics (read_bvh). Blender as a Python module (PyPI `bpy`
 4.5, Python 3.11; ~1 GB: a benchmark's peer, not the suite's):
 
     python3 -m venv /tmp/bpyenv && /tmp/bpyenv/bin/pip install "bpy==4.5.*" pyopencl pyyaml networkx   # (+ the device line)
     /tmp/bpyenv/bin/python bench/blender_import.py out/demo/demo_volumetric_0000.glb out/demo/demo_volumetric.usdc \
-        out/demo/demo_dynamic.glb out/demo/demo_dynamic.usdc out/demo/demo_character.glb out/demo/demo_character.usd
+        out/demo/demo_dynamic.glb out/demo/demo_dynamic.usdc out/demo/demo_character.glb out/demo/demo_character.usd \
+        out/demo/demo_character.bvh
 """
 from __future__ import annotations
 
@@ -51,6 +54,35 @@ def bounds(path: Path) -> tuple[list, list, int]:
     return allp.min(0).tolist(), allp.max(0).tolist(), len(pts)
 
 
+def bvh_check(path: Path) -> None:
+    """The BVH through Blender's importer against read_bvh's joints (our world: +Z up, metres), every frame."""
+    import bpy
+    import numpy as np
+
+    from nodes.skeleton.formats import read_bvh
+
+    ours = read_bvh(path.read_text())
+    names, ref = ours["names"], ours["positions"]                       # (F, J, 3)
+    for forward, turn in (("-Z", np.eye(3)), ("Z", np.diag([-1.0, -1.0, 1.0]))):
+        bpy.ops.wm.read_factory_settings(use_empty=True)
+        bpy.ops.import_anim.bvh(filepath=str(path), axis_forward=forward, axis_up="Y", global_scale=1.0,
+                                use_fps_scale=False, frame_start=1, rotate_mode="NATIVE")
+        arm = next(o for o in bpy.context.scene.objects if o.type == "ARMATURE")
+        missing = [n for n in names if n not in arm.pose.bones]
+        worst = 0.0
+        for f in range(len(ref)):
+            bpy.context.scene.frame_set(1 + f)
+            m = np.array(arm.matrix_world)
+            got = np.array([(m @ np.append(np.array(arm.pose.bones[n].head), 1.0))[:3] for n in names if n not in missing])
+            want = ref[f][[i for i, n in enumerate(names) if n not in missing]] @ turn.T
+            worst = max(worst, float(np.abs(got - want).max()))
+        lo = float(np.min(ref[:, :, 2]))
+        print(f"{path.name} (Blender BVH import, forward {forward}, up Y): {len(arm.pose.bones)} bones, "
+              f"{len(missing)} of our {len(names)} joints missing; {len(ref)} frames; max |Blender head - ours"
+              f"{' turned 180 deg about Z' if forward == 'Z' else ''}| = {1000 * worst:.3f} mm; lowest joint z "
+              f"{lo:.3f} m")
+
+
 def main():
     from machine import describe
 
@@ -62,6 +94,9 @@ def main():
     print(f"{'file':40s} {'meshes':>6s} {'min (x, y, z) m':>28s} {'max (x, y, z) m':>28s} {'height':>7s} {'lowest':>7s}")
     for arg in sys.argv[1:]:
         p = Path(arg)
+        if p.suffix.lower() == ".bvh":
+            bvh_check(p)
+            continue
         lo, hi, n = bounds(p)
         found[p] = (lo, hi)
         fmt = lambda v: "(" + ", ".join(f"{x:7.3f}" for x in v) + ")"  # noqa: E731

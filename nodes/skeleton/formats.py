@@ -253,7 +253,9 @@ BVH_FROM_WORLD = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]) 
 def bvh_text(joints, parents, names, rotations, translations, frames, fps: float = FPS, **_) -> str:
     """The motion as BVH (Biovision hierarchy): +Y up and metres (the world frame turned as for glTF), offsets
     from the rest joints, the root with 6 channels (position, then Z X Y rotation), every other joint 3 (Z X Y),
-    an End Site under each leaf; one line per frame at 1 / ``fps``. Joint rotations are the rig's local ones."""
+    an End Site under each leaf half its bone's length on along it (a zero one makes Blender's importer warn and
+    guess the leaf bone); one line per frame at 1 / ``fps``. Joint rotations are the rig's local ones. Blender's
+    BVH importer with its defaults (forward -Z, up Y) puts every bone head where our joints are (+Z up)."""
     from scipy.spatial.transform import Rotation
 
     from .skinning import topological
@@ -281,8 +283,10 @@ def bvh_text(joints, parents, names, rotations, translations, frames, fps: float
             lines.append(f"{pad}  CHANNELS 3 Zrotation Xrotation Yrotation")
         for c in children[j]:
             emit(c, depth + 1)
-        if not children[j]:
-            lines.extend([f"{pad}  End Site", f"{pad}  {{", f"{pad}    OFFSET 0.000000 0.000000 0.000000", f"{pad}  }}"])
+        if not children[j]:                       # half the leaf's own bone on: importers give the leaf a length
+            end = 0.5 * off if parents[j] >= 0 and np.linalg.norm(off) > 1e-9 else np.array([0.0, 0.1, 0.0])
+            lines.extend([f"{pad}  End Site", f"{pad}  {{", f"{pad}    OFFSET {end[0]:.6f} {end[1]:.6f} {end[2]:.6f}",
+                          f"{pad}  }}"])
         lines.append(f"{pad}}}")
 
     roots = [j for j in order if parents[j] < 0]
