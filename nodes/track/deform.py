@@ -283,6 +283,8 @@ class FitParams:
     samples: int = 6000           # source vertices and target vertices sampled for the graph fit
     detail: float = 2.0           # rings of neighbours the normal displacement is smoothed over (0: no detail step)
     detail_reach: float = 4.0     # largest normal displacement (voxels)
+    detail_out: float = 1.0       # largest outward one (voxels): at a contact the reconstruction is one blob, and
+                                  # pushing the surfaces that face each other out onto it slid them over the body
     snap: int = 3                 # rounds of closest-point projection onto the target after the detail step (0: none)
     unfold: int = 8               # rounds of opening folds after the snap, back on the target (0: none)
     snap_reach: float = 1.5       # ... for vertices within this distance (voxels) whose normals agree
@@ -568,7 +570,7 @@ def detail(x: np.ndarray, faces: np.ndarray, target: Target, params: FitParams, 
         cos = np.einsum("ij,ij->i", n, nc)
         ok &= cos > 0.5
         d = np.where(ok, np.einsum("ij,ij->i", nc, c - x) / np.maximum(cos, 0.5), 0.0)
-        ok &= np.abs(d) <= params.detail_reach
+        ok &= (d <= params.detail_out) & (d >= -params.detail_reach)
         w = ok.astype(np.float64)
         num, den = w * d, w
         for _ in range(int(round(params.detail))):
