@@ -626,6 +626,14 @@ def test_export_views_writes_what_reads_back(tmp_path):
     back = ViewTextures.load(tmp_path)
     assert np.array_equal(back.layers, vl.layers) and np.array_equal(back.texel_view, vl.texel_view)
     assert back.names == vl.names and back.sigma == vl.sigma
+    # the viewer needs the atlas that made the layers: a vertex-coloured mesh or another atlas size is refused
+    coloured = run_node("texture", {"mesh": s["mesh"], "images": s["images"], "cameras": s["cameras"]},
+                        {"mode": "vertex"})["mesh"]
+    with pytest.raises(NodeError, match="input 'mesh' has no atlas texture"):
+        run_node("export.views", {"views": vl, "mesh": coloured})
+    other = run_node("texture", {"mesh": s["mesh"], "images": s["images"], "cameras": s["cameras"]}, {"size": 32})["mesh"]
+    with pytest.raises(NodeError, match="32x32 texture but the layers are 64x64"):
+        run_node("export.views", {"views": vl, "mesh": other})
 
 
 def test_texture_node_layers_need_an_atlas():
