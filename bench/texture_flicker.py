@@ -10,7 +10,8 @@ to the true surface of that frame (closest point) for the truth: the pattern as 
 within 1 cm of a pattern edge in any frame are counted apart ("all" vs "interior"): there a texel's sampling
 position moves against a hard edge of the un-antialiased photos, whatever the texturing does.
 
-Same run, in process, on the same tracked meshes and photos (and on the true meshes: no tracking drift):
+Same run, in process, on the same tracked meshes and photos (and on the true meshes: no tracking drift), through
+the node's own code (texturing.texture_mesh) with two of its steps wrapped (Variant):
   node defaults          what the texture node does (per frame, independently)
   gains fixed            the first frame's per-camera gains kept for every later frame
   selection prior l      the view selection's data cost + l where a face's view is not the one it had in the
@@ -38,7 +39,6 @@ from nodes.synth import scenes  # noqa: E402
 from nodes.synth.render import surface_truth  # noqa: E402
 from nodes.texture import texturing as T  # noqa: E402
 from nodes.texture import views as V  # noqa: E402
-from nodes.texture.bake import Blend  # noqa: E402
 from nodes.texture.nodes import AtlasType  # noqa: E402
 from nodes.texture.quality import flicker  # noqa: E402
 from nodes.texture.reuse import BakeLayout, reference_atlas  # noqa: E402
@@ -76,35 +76,49 @@ def run_graph(folder: Path, frames: int, size: int) -> dict:
     return recs
 
 
-def selection(prior: float, fixed_gains: bool):
-    """texturing.choose with the bench's options (the node's own code path when both are off)."""
-    state: dict = {}
+class Variant:
+    """The texture node's own path (texturing.texture_mesh, kernels and all) with the bench's options, applied
+    around two of its steps: ``fixed_gains`` keeps the first frame's camera_gains; ``prior`` > 0 adds ``prior``
+    to the face_cost kernel's cost of every view but the one a face had in the previous frame (the labels of the
+    last result), before the ICM."""
 
-    def choose(vertices, faces, cameras, frame, stats, s, topo, timings):
-        gains = V.camera_gains(stats.quality, stats.colour) if s.balance else np.ones((len(cameras), 3), np.float32)
-        if fixed_gains:
-            gains = state.setdefault("gains", gains)
-        sharp = V.view_sharpness(frame.images, frame.valid)
-        q = stats.effective() * sharp[:, None].astype(np.float32)
-        cost, spread = V.data_cost(q, stats.colour, gains, consistency=s.consistency, return_spread=True)
-        prev = state.get("labels")
-        if prior > 0 and prev is not None and len(prev) == len(cost):
-            pen = np.full(cost.shape, prior, np.float32)
-            ok = prev >= 0
-            pen[np.flatnonzero(ok), prev[ok]] = 0.0
-            pen[~ok] = 0.0
-            cost = np.where(cost < V.INVISIBLE, cost + pen, cost)
-        labels = V.select_views(cost, topo.nbr, smoothness=s.smoothness)
-        state["labels"] = labels
-        face_view, weight = V.blend_weights(labels, q, faces, len(vertices), feather=s.feather, spread=spread,
-                                            spread_range=s.spread_range, K=s.blend_views, power=s.average_power,
-                                            topo=topo)
-        offset = V.level_seams(vertices, faces, face_view, weight, cameras, frame, gains, topo=topo)
-        lo, hi = s.spread_range
-        blur = np.clip((spread - lo) / max(hi - lo, 1e-6), 0, 1).astype(np.float32)
-        return labels, Blend(face_view, weight, offset, gains, blur, s.blur_px), q
+    def __init__(self, prior: float, fixed_gains: bool):
+        self.prior, self.fixed, self.gains, self.labels = prior, fixed_gains, None, None
 
-    return choose
+    def __enter__(self):
+        self._gains, self._cost = V.camera_gains, V.data_cost_cl
+
+        def gains(*a, **k):
+            g = self._gains(*a, **k)
+            if self.fixed:
+                self.gains = g if self.gains is None else self.gains
+                return self.gains
+            return g
+
+        def cost(stats, *a, **k):
+            import pyopencl as cl
+
+            d_cost, spread, d_best = self._cost(stats, *a, **k)
+            nv, nf = stats.quality.shape
+            prev = self.labels
+            if self.prior > 0 and prev is not None and len(prev) == nf:
+                q = V.TextureCL.get().queue
+                c = np.empty((nf, nv), np.float32)
+                cl.enqueue_copy(q, c, d_cost, is_blocking=True)
+                seen = c < V.INVISIBLE
+                pen = np.where(prev[:, None] >= 0, np.float32(self.prior), np.float32(0.0)) * seen
+                pen[np.flatnonzero(prev >= 0), prev[prev >= 0]] = 0.0
+                c += pen
+                best = np.where(seen.any(axis=1), np.argmin(c, axis=1), -1).astype(np.int32)
+                cl.enqueue_copy(q, d_cost, c)
+                cl.enqueue_copy(q, d_best, best, is_blocking=True)
+            return d_cost, spread, d_best
+
+        V.camera_gains, V.data_cost_cl = gains, cost
+        return self
+
+    def __exit__(self, *exc):
+        V.camera_gains, V.data_cost_cl = self._gains, self._cost
 
 
 def truth_of(points, frames):
@@ -170,13 +184,14 @@ def main():
             for label, prior, fixed in (("node defaults", 0.0, False), ("gains fixed", 0.0, True),
                                         ("selection prior 0.3", 0.3, False), ("selection prior 1.0", 1.0, False),
                                         ("prior 0.3 + gains fixed", 0.3, True)):
-                T.choose = selection(prior, fixed)
                 texs, labels = [], []
-                for k, m in enumerate(ms):
-                    r = T.texture_mesh(m.vertices, m.faces, images[k], masks[k], cams[k],
-                                       T.Settings(size=args.size, margin=2, edge_px=2), atlas=atl)
-                    texs.append(r.texture)
-                    labels.append(r.labels)
+                with Variant(prior, fixed) as var:
+                    for k, m in enumerate(ms):
+                        r = T.texture_mesh(m.vertices, m.faces, images[k], masks[k], cams[k],
+                                           T.Settings(size=args.size, margin=2, edge_px=2), atlas=atl)
+                        texs.append(r.texture)
+                        labels.append(r.labels)
+                        var.labels = r.labels
                 a, i, share = score(texs, truth, interior, layout, sel)
                 rows.append((geometry, label, a, i, share, switches(labels)))
                 print(f"  {geometry}, {label}: flicker {a['flicker']:.3f} (interior {i['flicker']:.3f})", flush=True)

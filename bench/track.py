@@ -141,6 +141,9 @@ def slide_report(seq, segs, frames, scene: str):
         return (f"{len(v)} vertex-frames, median {np.median(v):.1f}, p95 {np.percentile(v, 95):.1f}, max {v.max():.1f} mm, "
                 f"{np.mean(v > 50) * 100:.1f} % beyond 50 mm" if len(v) else "none")
 
+    from machine import describe
+
+    print(describe())
     print(f"  sliding over the true surface: where the body touches itself {row(at)}; elsewhere {row(away)}")
     return at, away
 
