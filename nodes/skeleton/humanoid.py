@@ -38,6 +38,7 @@ LOW_ARM = 0.3            # an arm whose path leaves the spine below this share o
 BEND_DEG = 25.0
 FOOT_HEIGHT = 0.2        # extremities this share of the body's height above the floor are feet
 CROTCH_HEIGHT = 0.47
+MIN_LEG = 0.25           # a leg's path from the pelvis shorter than this share of the height: no fit
 HEAD_ARC = 0.12          # a head's thickness is measured this share of the height below its tip
 HEAD_THICKER = 1.5       # ... and must be this many times a hand's     # legs together: where the legs meet, this share of the height above the floor
 # name: (parent, path, fraction of the path's arc); "{s}" is the side
@@ -346,6 +347,10 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
         fwd = np.cross(u, right)
         limbs[("leg", 0)], limbs[("leg", 1)] = _split_leg(limbs[("leg", 0)], cells, u, right, fwd, step)
     report["legs"] = "together: one column split in halves" if together else "apart"
+    short = min(_length(limbs[("leg", k)]) for k in (0, 1))
+    if short < MIN_LEG * height:       # the feet's paths meet at a foot, not at a pelvis
+        raise NodeError(f"{node}: a leg's path from the pelvis is {100 * short:.0f} cm, under {MIN_LEG:.0%} of the body's "
+                        f"height ({100 * height:.0f} cm): a foot raised to the other leg? (try another frame)")
     centre = pts[pelvis]
     side = {}
     near = {}
@@ -406,19 +411,19 @@ def bind_humanoid(frames: np.ndarray, faces, resolution: int, up=(0.0, 0.0, 1.0)
     """The template fitted to one frame of a dynamic mesh and set moving with it, ready for ``skin``:
     (joints, parents, names, one-hot weights (V, J), rotations (F, J, 3, 3), translations (F, J, 3), report),
     rest = the first frame. The fit is tried on up to ``tries`` frames spread over the segment (a child's arms
-    lie against the body in some, its legs touch in others) and made on the first with the legs apart, else
-    the first that fits at all. The end joints (head_end, hand_end_*, toe_*) mark where a limb ends and are left
-    out: no part of the body moves with them. Each vertex goes to the nearest bone (the segment from a joint to
-    one of its children, owned by the joint) in the fitted frame; each joint's part moves rigidly (Kabsch, first
-    frame -> each frame), a part with fewer than 4 vertices as its parent does; the joints are carried back to the
-    first frame by their parts' motion. ``skin`` (lengths: fixed) then makes the joints rotation-only with
-    constant bone lengths."""
+    lie against the body in some, its legs touch in others); of the fits, the one whose parts move most rigidly
+    over the whole segment is kept (the rms distance of the vertices from their part's rigid motion: a part
+    that straddles a real joint, or a limb found in the wrong place, does not move rigidly). The end joints
+    (head_end, hand_end_*, toe_*) mark where a limb ends and are left out: no part of the body moves with them.
+    Each vertex goes to the nearest bone (the segment from a joint to one of its children, owned by the joint)
+    in the fitted frame; each joint's part moves rigidly (Kabsch, first frame -> each frame), a part with fewer
+    than 4 vertices as its parent does; the joints are carried back to the first frame by their parts' motion.
+    ``skin`` (lengths: fixed) then makes the joints rotation-only with constant bone lengths."""
     from .curve import voxelize
-    from .motion import fit_rigid
 
     frames = np.asarray(frames, np.float64)
     order = sorted(set(np.linspace(0, len(frames) - 1, min(tries, len(frames))).round().astype(int).tolist()))
-    fitted, errors = None, []
+    best, errors, tried = None, [], {}
     for r in order:
         occ, origin, spacing = voxelize(frames[r], np.asarray(faces), resolution)
         try:
@@ -426,13 +431,26 @@ def bind_humanoid(frames: np.ndarray, faces, resolution: int, up=(0.0, 0.0, 1.0)
         except NodeError as exc:
             errors.append(f"frame index {r}: {str(exc).split(': ', 1)[-1]}")
             continue
-        if fitted is None or (fitted[0][3]["legs"] != "apart" and fit[3]["legs"] == "apart"):
-            fitted = (fit, r)
-        if fit[3]["legs"] == "apart":
-            break
-    if fitted is None:
+        bound = _bind(frames, r, *fit[:3])
+        tried[r] = round(1000 * bound[-1], 2)
+        if best is None or bound[-1] < best[1][-1]:
+            best = (fit, bound, r)
+    if best is None:
         raise NodeError(f"{node}: the template fits none of the {len(order)} frames tried: " + "; ".join(errors[:3]))
-    (joints, parents, names, report), r = fitted
+    (_, _, names, report), (keep, rest_joints, sub_parents, weights, rot, tr, counts, _), r = best
+    report["vertices_per_joint"] = dict(zip([names[j] for j in keep], counts.tolist()))
+    report["fitted_on_index"] = int(r)
+    report["frames_refused"] = errors
+    report["rigid_rms_mm_by_index"] = tried
+    return rest_joints, sub_parents, [names[j] for j in keep], weights, rot, tr, report
+
+
+def _bind(frames: np.ndarray, r: int, joints, parents, names):
+    """The template fitted on frame index ``r`` bound to the segment (bind_humanoid): (kept joints, rest joints,
+    parents, one-hot weights, rotations, translations, vertices per joint, rms distance of the vertices from
+    their part's rigid motion over the segment)."""
+    from .motion import fit_rigid
+
     keep = [j for j, n in enumerate(names) if not (n.endswith("_end") or n.startswith("toe_") or "_end_" in n)]
     remap = {j: k for k, j in enumerate(keep)}
     bones = [(j, c) for c, j in enumerate(parents) if j >= 0]            # (owner joint, child joint) segments
@@ -453,10 +471,90 @@ def bind_humanoid(frames: np.ndarray, faces, resolution: int, up=(0.0, 0.0, 1.0)
             rot[:, k], tr[:, k] = fit_rigid(frames[0], frames, np.flatnonzero(owner == k))
         elif sub_parents[k] >= 0:
             rot[:, k], tr[:, k] = rot[:, sub_parents[k]], tr[:, sub_parents[k]]
+    moved = np.einsum("fvab,vb->fva", rot[:, owner], frames[0]) + tr[:, owner]
+    rms = float(np.sqrt(((moved - frames) ** 2).sum(2).mean()))
     rest_joints = np.array([rot[r, k].T @ (joints[j] - tr[r, k]) for k, j in enumerate(keep)])   # back to frame 0
     weights = np.zeros((len(frames[0]), J))
     weights[np.arange(len(frames[0])), owner] = 1.0
-    report["vertices_per_joint"] = dict(zip([names[j] for j in keep], counts.tolist()))
-    report["fitted_on_index"] = int(r)
-    report["frames_refused"] = errors
-    return rest_joints, sub_parents, [names[j] for j in keep], weights, rot, tr, report
+    return keep, rest_joints, sub_parents, weights, rot, tr, counts, rms
+
+
+# ---------------------------------------------------------------- rest pose
+REST_POSES = ("captured", "T", "A")
+A_POSE_DEG = 45.0        # A pose: the arms this far below the horizontal
+# the bone each joint aims in the T pose: (child joint, direction: "up", "down" or "out" = away from the midline)
+AIM = {"pelvis": ("spine", "up"), "spine": ("chest", "up"), "chest": ("neck", "up"), "neck": ("head", "up"),
+       "clavicle_{s}": ("shoulder_{s}", "out"), "shoulder_{s}": ("elbow_{s}", "arm"), "elbow_{s}": ("wrist_{s}", "arm"),
+       "hip_{s}": ("knee_{s}", "down"), "knee_{s}": ("ankle_{s}", "down")}
+
+
+def template_name(name: str) -> str | None:
+    """Our template's name for a joint named ours or by a retargeting tool (None: not a template joint)."""
+    if name in template_names():
+        return name
+    for tool in TOOLS:
+        for ours, theirs in retarget_names(tool).items():
+            if theirs == name:
+                return ours
+    return None
+
+
+def _turn(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The smallest rotation taking direction a to direction b."""
+    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+    v, c = np.cross(a, b), float(a @ b)
+    if c < -1 + 1e-9:                                   # opposite: half a turn about any axis normal to a
+        axis = np.cross(a, [1.0, 0, 0] if abs(a[0]) < 0.9 else [0, 1.0, 0])
+        axis /= np.linalg.norm(axis)
+        return 2 * np.outer(axis, axis) - np.eye(3)
+    k = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + k + k @ k / (1 + c)
+
+
+def rest_pose(joints: np.ndarray, parents: list[int], names: list[str], pose: str, up=(0.0, 0.0, 1.0)):
+    """Rotation-only joint turns that take a template rig from its captured rest pose to a T or A pose:
+    (G (J, 3, 3) each joint's world rotation, new joint positions (J, 3)); bone j then maps x to
+    G_j (x - p_j) + p'_j. The spine and the legs are straightened along ``up`` (down), clavicles point out
+    horizontally, the arms out (T) or ``A_POSE_DEG`` below (A); hands, feet and head keep their turn relative
+    to their parent bone; the pelvis keeps its heading. Left/right come from the names; the body's right
+    from its hips and shoulders."""
+    ours = [template_name(n) for n in names]
+    if None in ours:
+        bad = [n for n, o in zip(names, ours) if o is None]
+        raise ValueError(f"joints {bad[:4]} are not the humanoid template's: a T or A rest pose needs the "
+                         "template's rig (skeletonize.humanoid), not the free route's")
+    index = {n: j for j, n in enumerate(ours)}
+    u = np.asarray(up, np.float64) / np.linalg.norm(up)
+    p = np.asarray(joints, np.float64)
+    right = sum(p[index[f"{k}_r"]] - p[index[f"{k}_l"]] for k in ("hip", "shoulder") if f"{k}_r" in index)
+    right = right - (right @ u) * u
+    if not np.linalg.norm(right) > 0:
+        raise ValueError("no left-right axis: the rig has neither hips nor shoulders on both sides")
+    right /= np.linalg.norm(right)
+    a = np.radians(A_POSE_DEG if pose == "A" else 0.0)
+    aim = {}
+    for key, (child, how) in AIM.items():
+        for s in SIDES if "{s}" in key else (None,):
+            n, c = (key.format(s=s), child.format(s=s)) if s else (key, child)
+            if n in index and c in index:
+                out = right if s == "r" else -right
+                aim[index[n]] = (index[c], {"up": u, "down": -u, "out": out,
+                                            "arm": np.cos(a) * out - np.sin(a) * u}[how])
+    g = np.tile(np.eye(3), (len(parents), 1, 1))
+    new = p.copy()
+    for j in sorted(range(len(parents)), key=lambda j: _depth(parents, j)):
+        q = parents[j]
+        if q >= 0:
+            g[j] = g[q]
+            new[j] = new[q] + g[q] @ (p[j] - p[q])
+        if j in aim:
+            c, target = aim[j]
+            g[j] = _turn(g[j] @ (p[c] - p[j]), target) @ g[j]
+    return g, new
+
+
+def _depth(parents, j):
+    d = 0
+    while parents[j] >= 0:
+        j, d = parents[j], d + 1
+    return d

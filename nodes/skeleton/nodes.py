@@ -12,7 +12,7 @@ from nodegraph import Files, Input, Node, NodeError, Output, Param, Table
 from nodes.common.types import (FPS_PARAM, CameraSet, Mesh, MeshSequence, Skeleton, SkeletonData, Volume,
                                sequence_segments)
 
-from .humanoid import TOOLS
+from .humanoid import REST_POSES, TOOLS
 
 # ---------------------------------------------------------------- per frame
 
@@ -315,11 +315,14 @@ class Skin(Node):
         "rest_fit": Param(bool, True, doc="refit the rest shape (a posed first frame is no exact LBS rest)"),
         "pivots": Param(bool, True, doc="move the rest joints to fit the motion (never out of the body); off: the "
                         "joints stay where the skeleton put them (a fitted template, skeletonize.humanoid)"),
+        "rest_pose": Param(str, "captured", choices=REST_POSES, doc="the rest (bind) pose: the segment's first frame "
+                           "as captured, or a T or A pose (arms out or 45 deg down, legs and spine straight along "
+                           "the world's +Z; a template rig: skeletonize.humanoid); the motion is the same"),
         "segment": Param(int, -1, range=(-1, None), doc="which constant-connectivity segment; -1 = the longest"),
     }
 
     def run(self, skeleton, meshes=None, sequence=None, *, influences, iterations, tol, smooth, lengths, rest_fit, pivots,
-            segment):
+            rest_pose, segment):
         import trimesh
 
         from .motion import Rig, Trajectories
@@ -343,9 +346,11 @@ class Skin(Node):
         fit = fit_skin(traj, faces, rig, influences=influences, iterations=iterations, smooth=smooth,
                        fixed_lengths=lengths == "fixed", rest=rest_fit, pivots=pivots, tol=tol, log=self.log.info,
                        progress=self.progress)
+        names = [skeleton.names[b] for b in fit.kept]
+        if rest_pose != "captured":
+            fit = self._reposed(traj.with_rest(fit.rest), faces, fit, names, rest_pose, lengths, influences, smooth)
         seconds = time.perf_counter() - t0
         diag = float(np.linalg.norm(np.ptp(frames[0], axis=0)))
-        names = [skeleton.names[b] for b in fit.kept]
         removed = [n for b, n in enumerate(skeleton.names) if b not in set(fit.kept)]
         if removed:
             self.log.warning("skin: bone(s) %s skin no vertex (no vertex has them as its strongest influence): merged "
@@ -354,6 +359,27 @@ class Skin(Node):
         table = error_table(fit, numbers, diag, seconds, lengths)
         table.update(removed=removed, pivot_moves_refused=fit.refused)
         return {"skeleton": sk, "rest": trimesh.Trimesh(fit.rest, faces, process=False), "error": table}
+
+    def _reposed(self, traj, faces, fit, names, pose, lengths, influences, smooth):
+        """``fit`` about a T or A rest pose (humanoid.rest_pose, skinning.repose), its errors measured again."""
+        import dataclasses
+
+        from .humanoid import rest_pose
+        from .skinning import errors, repose
+
+        if lengths != "fixed":
+            raise NodeError(f"skin: rest_pose {pose} needs lengths: fixed (a T or A pose turns rotation-only joints)")
+        try:
+            turns, joints = rest_pose(fit.joints, fit.parents, names, pose)
+        except ValueError as exc:
+            raise NodeError(f"skin: rest_pose {pose}: {exc}") from None
+        traj, weights, rot, tr = repose(traj, faces, fit.parents, fit.weights, fit.rotations, fit.translations, fit.joints,
+                                        turns, joints, influences=influences, smooth=smooth)
+        rmse, mx = errors(traj, weights, rot, tr)
+        self.log.info("skin: rest pose %s: LBS rms %.4g -> %.4g mm", pose, 1000 * np.sqrt((fit.rmse ** 2).mean()),
+                      1000 * np.sqrt((rmse ** 2).mean()))
+        return dataclasses.replace(fit, rest=traj.rest, weights=weights, rotations=rot, translations=tr, joints=joints,
+                                   rmse=rmse, max_error=mx)
 
 
 def bone_lengths(joints, parents, rotations, translations) -> np.ndarray:
