@@ -453,10 +453,10 @@ __kernel void carve_count(__global const uint* list, int count, VIEW_ARGS, GRID_
 // Before the decisions: a candidate's face neighbours that stay (occupied, not candidates of the step) join the
 // cover counts when they are not counted yet (they cover the rays that pass the candidate; counting any voxel that
 // stays is safe, and these are surface voxels once the candidate goes).
-inline void expose(uint v, int step, __global const int* stamp, VIEW_ARGS, GRID_ARGS, __global const uchar* occ,
+inline void expose(uint v, __global const int* stamp, VIEW_ARGS, GRID_ARGS, __global const uchar* occ,
                    __global uint* counted, __global int* cover)
 {
-    int k = v % nz, j = (v / nz) % ny, i = v / (nz * ny);
+    int k = v % nz, j = (v / nz) % ny, i = v / (nz * ny), step = stamp[v] >> 2;
     for (int q = 0; q < 6; q++) {
         int a = i + (q == 0) - (q == 1), b = j + (q == 2) - (q == 3), e = k + (q == 4) - (q == 5);
         if (!inside_grid(a, b, e, nx, ny, nz)) continue;
@@ -469,10 +469,10 @@ inline void expose(uint v, int step, __global const int* stamp, VIEW_ARGS, GRID_
 
 // Per candidate: stays when a silhouette pixel its cube may cover is left with cover 0 and it is that pixel's
 // keeper (its depth won the bids; equal depths all stay) or the pixel has none.
-inline void decide(uint v, int step, __global int* stamp, VIEW_ARGS, GRID_ARGS, __global const int* cover,
+inline void decide(uint v, __global int* stamp, VIEW_ARGS, GRID_ARGS, __global const int* cover,
                    __global const uint* keeper)
 {
-    int k = v % nz, j = (v / nz) % ny, i = v / (nz * ny);
+    int k = v % nz, j = (v / nz) % ny, i = v / (nz * ny), step = stamp[v] >> 2;
     float3 X = voxel_centre(i, j, k, vs);
     int needed = 0;
     for (int c = 0; c < nviews && !needed; c++) {
@@ -532,11 +532,11 @@ inline void reveal(uint v, int i, int j, int k, float3 X, float4 C, int step, __
 // Carry out a decision: bids withdrawn; a kept candidate counts again and is protected; a removed one leaves the
 // volume, flags its occupied 26 neighbours for the next incremental pass and, in an item pass, gives back its
 // pixels in the item buffers, flagging in each view where it held pixels the voxels that now show there.
-inline void apply(uint v, int step, __global const int* stamp, VIEW_ARGS, GRID_ARGS, __global uchar* occ,
+inline void apply(uint v, __global const int* stamp, VIEW_ARGS, GRID_ARGS, __global uchar* occ,
                   __global int* cover, __global uint* keeper, __global uint* counted, int use_items,
                   __global ulong* items, FRESH_ARGS, __global int* removed)
 {
-    int k = v % nz, j = (v / nz) % ny, i = v / (nz * ny);
+    int k = v % nz, j = (v / nz) % ny, i = v / (nz * ny), step = stamp[v] >> 2;
     float3 X = voxel_centre(i, j, k, vs);
     int keep = (stamp[v] & 3) == ST_KEEP;
     for (int c = 0; c < nviews; c++) {
@@ -581,30 +581,31 @@ inline void apply(uint v, int step, __global const int* stamp, VIEW_ARGS, GRID_A
     }
 }
 
-__kernel void carve_expose(__global const uint* cands, __global const int* ncands, __global const int* stamp, int step, VIEW_ARGS,
+// The guard's kernels, over the step's candidates (each knows its step from its stamp, so a step sets no argument).
+__kernel void carve_expose(__global const uint* cands, __global const int* ncands, __global const int* stamp, VIEW_ARGS,
                            GRID_ARGS, __global const uchar* occ, __global uint* counted, __global int* cover)
 {
     int t = get_global_id(0);
     if (t >= *ncands) return;
-    expose(cands[t], step, stamp, VIEW_PASS, GRID_PASS, occ, counted, cover);
+    expose(cands[t], stamp, VIEW_PASS, GRID_PASS, occ, counted, cover);
 }
 
-__kernel void carve_decide(__global const uint* cands, __global const int* ncands, __global int* stamp, int step, VIEW_ARGS,
+__kernel void carve_decide(__global const uint* cands, __global const int* ncands, __global int* stamp, VIEW_ARGS,
                            GRID_ARGS, __global const int* cover, __global const uint* keeper)
 {
     int t = get_global_id(0);
     if (t >= *ncands) return;
-    decide(cands[t], step, stamp, VIEW_PASS, GRID_PASS, cover, keeper);
+    decide(cands[t], stamp, VIEW_PASS, GRID_PASS, cover, keeper);
 }
 
-__kernel void carve_apply(__global const uint* cands, __global const int* ncands, __global const int* stamp, int step, VIEW_ARGS,
+__kernel void carve_apply(__global const uint* cands, __global const int* ncands, __global const int* stamp, VIEW_ARGS,
                           GRID_ARGS, __global uchar* occ, __global int* cover, __global uint* keeper,
                           __global uint* counted, int use_items, __global ulong* items, FRESH_ARGS,
                           __global int* removed)
 {
     int t = get_global_id(0);
     if (t >= *ncands) return;
-    apply(cands[t], step, stamp, VIEW_PASS, GRID_PASS, occ, cover, keeper, counted, use_items, items, FRESH_PASS,
+    apply(cands[t], stamp, VIEW_PASS, GRID_PASS, occ, cover, keeper, counted, use_items, items, FRESH_PASS,
           removed);
 }
 
@@ -718,19 +719,30 @@ inline void mark_footprint(float3 X, int axis, float plane, float sign, VIEW_ARG
     }
 }
 
-// A plane of a sweep (axis, plane position, sign: +1 towards +axis), one step: its surface voxels (list[first ..
-// first + count) holds the plane's occupied voxels) are tested in the cameras behind the plane (visibility: marks
+// A round's planes (nodes/carve/carving.py, sweep_planes), in sweep order: the plane's occupied voxels are
+// list[first .. first + count); axis, plane position, sign (+1: the sweep runs towards +axis); the plane's step.
+typedef struct {
+    int first, count, axis, step;
+    float plane, sign;
+} sweep_plane_t;
+
+// A plane of a sweep, one step: its surface voxels are tested in the cameras behind the plane (visibility: marks
 // of the voxels kept in earlier planes of the sweep); inconsistent ones become candidates (then the guard's three
 // kernels); carve_sweep_mark: the plane's surface voxels that stay mark their footprints, and the candidate count
-// goes back to 0 for the next plane.
-__kernel void carve_sweep_test(__global const uint* list, int first, int count, int axis, float plane, float sign,
-                               int step, __global int* stamp, __global const uchar* marks, __global const uchar* occ,
+// goes back to 0 for the next plane. The plane is found on the device, so a plane sets no kernel argument:
+// at[0] is the next plane (carve_sweep_test reads it and copies it to at[1]), at[1] the plane under way
+// (carve_sweep_mark reads it and moves at[0] on). No kernel writes what its own work items read.
+__kernel void carve_sweep_test(__global const uint* list, __global const sweep_plane_t* planes, __global int* at,
+                               __global int* stamp, __global const uchar* marks, __global const uchar* occ,
                                VIEW_ARGS, GRID_ARGS, TEST_ARGS, __global uint* cands, __global int* ncands,
                                __global const uint* counted, __global int* cover, __global uint* keeper)
 {
     int t = get_global_id(0);
-    if (t >= count) return;
-    uint v = list[first + t];
+    int r = at[0];
+    if (t == 0) at[1] = r;
+    sweep_plane_t pl = planes[r];
+    if (t >= pl.count) return;
+    uint v = list[pl.first + t];
     if ((occ[v] & (1 | PROTECTED)) != 1) return;
     int k = v % nz, j = (v / nz) % ny, i = v / (nz * ny);
     if (!surface(occ, i, j, k, nx, ny, nz)) return;
@@ -739,20 +751,25 @@ __kernel void carve_sweep_test(__global const uint* list, int first, int count, 
     float3 rgb;
     float var;
     int views;
-    if (photo(v, X, g, axis, plane, sign, marks, 0, 0, VIEW_PASS, GRID_PASS, TEST_PASS, &rgb, &var, &views))
-        candidate(v, X, step, stamp, cands, ncands, VIEW_PASS, vs, counted, cover, keeper);
+    if (photo(v, X, g, pl.axis, pl.plane, pl.sign, marks, 0, 0, VIEW_PASS, GRID_PASS, TEST_PASS, &rgb, &var, &views))
+        candidate(v, X, pl.step, stamp, cands, ncands, VIEW_PASS, vs, counted, cover, keeper);
 }
 
-__kernel void carve_sweep_mark(__global const uint* list, int first, int count, int axis, float plane, float sign,
+__kernel void carve_sweep_mark(__global const uint* list, __global const sweep_plane_t* planes, __global int* at,
                                __global const uchar* occ, VIEW_ARGS, GRID_ARGS, __global uchar* marks,
                                __global int* ncands)
 {
     int t = get_global_id(0);
-    if (t == 0) *ncands = 0;
-    if (t >= count) return;
-    uint v = list[first + t];
+    int r = at[1];
+    if (t == 0) {
+        at[0] = r + 1;
+        *ncands = 0;
+    }
+    sweep_plane_t pl = planes[r];
+    if (t >= pl.count) return;
+    uint v = list[pl.first + t];
     if (!(occ[v] & 1)) return;
     int k = v % nz, j = (v / nz) % ny, i = v / (nz * ny);
     if (surface(occ, i, j, k, nx, ny, nz))
-        mark_footprint(voxel_centre(i, j, k, vs), axis, plane, sign, VIEW_PASS, vs, marks);
+        mark_footprint(voxel_centre(i, j, k, vs), pl.axis, pl.plane, pl.sign, VIEW_PASS, vs, marks);
 }

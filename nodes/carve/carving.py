@@ -162,6 +162,30 @@ def sweep_lists(occ: np.ndarray) -> dict:
             "base": np.array([*base, 0], np.int32)}
 
 
+# a row of kernels/carve.cl's plane table (sweep_plane_t)
+SWEEP_PLANE = np.dtype([("first", np.int32), ("count", np.int32), ("axis", np.int32), ("step", np.int32),
+                        ("plane", np.float32), ("sign", np.float32)])
+
+
+def sweep_planes(lists: dict, dims, vs: np.ndarray, step0: int) -> list[np.ndarray]:
+    """A round's planes, one SWEEP_PLANE table per sweep (+x -x +y -y +z -z) in the sweep's order, the empty
+    planes left out: the plane's voxels (first, count in sweep_lists' ``lists``), axis, plane position (float32),
+    sign, step (step0 + 1024 * sweep + plane index)."""
+    offs, base = lists["offs"], lists["base"]
+    out = []
+    for s in range(SWEEPS):
+        axis, sign = s >> 1, (-1 if s & 1 else 1)
+        t = np.arange(dims[axis])
+        p = t if sign > 0 else dims[axis] - 1 - t
+        first = offs[base[axis] + p]
+        rows = np.zeros(len(t), SWEEP_PLANE)
+        rows["first"], rows["count"], rows["axis"] = first, offs[base[axis] + p + 1] - first, axis
+        rows["plane"] = (p if sign > 0 else p + 1).astype(np.float32) * vs[axis]
+        rows["sign"], rows["step"] = sign, step0 + 1024 * s + t
+        out.append(rows[rows["count"] > 0])
+    return out
+
+
 def hull_distance(X: np.ndarray, centres: np.ndarray, vs, shape, node: str = "carve.voxel_coloring") -> np.ndarray:
     """g(X) for points (N, 3): the largest signed distance to the facet planes of the convex hull of the camera
     centres. g is convex and <= 0 at every camera, so along any ray from a camera it grows once it is positive:
@@ -276,7 +300,7 @@ class CarveCL(Runner):
 
     # ---- steps
     def _prepared(self, name: str, args: tuple):
-        """Kernel ``name`` with all its arguments set (a step then sets only what changes)."""
+        """Kernel ``name`` with all its arguments set (then only enqueued)."""
         k = self.kernel(name)
         k.set_args(*args)
         return k
@@ -287,46 +311,32 @@ class CarveCL(Runner):
         cl.enqueue_nd_range_kernel(self.queue, k, (max(self.GROUP, -(-n // self.GROUP) * self.GROUP),), (self.GROUP,))
 
     def sweeps(self, step0: int):
-        """One round of six sweeps, in order, plane by plane (step step0 + 1024 * sweep + plane index). The
-        counts stay on the device: no waiting between planes."""
-        import pyopencl as cl
-
-        lists = self.grid.lists["sweep"]
-        d_list = self.upload("sweep_lists", lists["lists"])
-        plane_args = (d_list, np.int32(0), np.int32(0), np.int32(0), np.float32(0), np.float32(0))
-        kt = self._prepared("carve_sweep_test", (*plane_args, np.int32(0), self.stamp, self.marks, self.occ,
-                                                 *self.view_args, *self.grid_args, *self.test_args, self.cands,
-                                                 self.ncands, self.counted, self.cover, self.keeper))
-        km = self._prepared("carve_sweep_mark", (*plane_args, self.occ, *self.view_args, *self.grid_args, self.marks,
+        """One round of six sweeps, in order, plane by plane (sweep_planes). The plane table is uploaded once and
+        the kernels find their plane on the device, so a plane only enqueues its five kernels (no argument set:
+        pyopencl's set_arg of a scalar costs ~10 us); the counts stay on the device: no waiting between planes."""
+        sw = self.grid.lists["sweep"]
+        planes = sweep_planes(sw, self.grid.dims, self.grid.vs, step0)
+        if not sum(len(rows) for rows in planes):
+            return
+        head = (self.upload("sweep_lists", sw["lists"]), self.upload("sweep_planes", np.concatenate(planes)),
+                self._filled("sweep_at", 8, np.int32(0)))
+        kt = self._prepared("carve_sweep_test", (*head, self.stamp, self.marks, self.occ, *self.view_args,
+                                                 *self.grid_args, *self.test_args, self.cands, self.ncands,
+                                                 self.counted, self.cover, self.keeper))
+        km = self._prepared("carve_sweep_mark", (*head, self.occ, *self.view_args, *self.grid_args, self.marks,
                                                  self.ncands))
-        guard = self._guard_kernels(False)
+        kernels = (kt, *self._guard_kernels(False), km)
         self._zero(self.ncands)
-        offs, base = lists["offs"], lists["base"]
-        for s in range(SWEEPS):
-            axis, sign = s >> 1, (-1 if s & 1 else 1)
-            n = self.grid.dims[axis]
-            cl.enqueue_fill_buffer(self.queue, self.marks, np.uint8(0), 0, int(self.npix))
-            for t in range(n):
-                p = t if sign > 0 else n - 1 - t
-                first, count = int(offs[base[axis] + p]), int(offs[base[axis] + p + 1] - offs[base[axis] + p])
-                if not count:
-                    continue
-                plane = np.float32(p if sign > 0 else p + 1) * self.grid.vs[axis]
-                step = np.int32(step0 + 1024 * s + t)
-                for k in (kt, km):
-                    for a, value in enumerate((np.int32(first), np.int32(count), np.int32(axis), np.float32(plane),
-                                               np.float32(sign)), start=1):
-                        k.set_arg(a, value)
-                kt.set_arg(6, step)
-                self._enqueue(kt, count)
-                for k in guard:
-                    k.set_arg(3, step)
+        for rows in planes:
+            self.reset_marks()
+            for count in rows["count"].tolist():
+                for k in kernels:
                     self._enqueue(k, count)
-                self._enqueue(km, count)
 
     def _guard_kernels(self, use_items: bool) -> tuple:
-        """carve_expose, carve_decide, carve_apply over list "cands" (count on the device), step at argument 3."""
-        head = (self.cands, self.ncands, self.stamp, np.int32(0))
+        """carve_expose, carve_decide, carve_apply over list "cands" (count on the device; each candidate's step
+        is in its stamp)."""
+        head = (self.cands, self.ncands, self.stamp)
         return (self._prepared("carve_expose", (*head, *self.view_args, *self.grid_args, self.occ, self.counted,
                                                 self.cover)),
                 self._prepared("carve_decide", (*head, *self.view_args, *self.grid_args, self.cover, self.keeper)),
@@ -393,7 +403,6 @@ class CarveCL(Runner):
     def guard(self, step: int, n: int, use_items: bool):
         """The guard's decisions for the step's n candidates, then carried out."""
         for k in self._guard_kernels(use_items):
-            k.set_arg(3, np.int32(step))
             self._enqueue(k, n)
 
     def removed(self) -> int:

@@ -362,7 +362,8 @@ class CarveNumPy:
             np.minimum.at(self.keeper[c], p, key[owner])
 
     def guard(self, step: int, n: int, use_items: bool):
-        """Kernels ``carve_expose``, ``carve_decide`` and ``carve_apply`` over the step's candidates."""
+        """Kernels ``carve_expose``, ``carve_decide`` and ``carve_apply`` over the step's candidates (the kernels
+        read ``step`` from each candidate's stamp)."""
         v = self.cands
         assert len(v) == n
         nb = (self.ijk(v)[:, None, :] + FACES[None]).reshape(-1, 3)
@@ -438,7 +439,8 @@ class CarveNumPy:
 
     # ---------------------------------------------------------------- steps
     def sweeps(self, step0: int):
-        """Kernel ``carve_sweeps``: six sweeps in order, per plane test, guard, marks."""
+        """Kernels ``carve_sweep_test``, the guard's three and ``carve_sweep_mark``: six sweeps in order, per plane
+        test, guard, marks (the same planes and steps as carving.sweep_planes)."""
         sw = self.lists["sweep"]
         lists, offs, base = sw["lists"].astype(np.int64), sw["offs"].astype(np.int64), sw["base"]
         for s in range(6):
