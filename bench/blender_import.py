@@ -3,7 +3,8 @@ and USD (upAxis and metersPerUnit honoured), each object's evaluated mesh (shape
 first frame, in Blender's world (+Z up, metres). Prints per file the bounds, the height and the lowest point,
 and for each GLB/USD pair of one asset how far apart their bounds are. A .bvh (the character's motion) is
 imported with Blender's BVH importer, once with its defaults (forward -Z, up Y) and once with forward +Z, and
-every bone's head is compared, every frame, with the joints by our own forward kinematics (read_bvh). Blender as a Python module (PyPI `bpy`
+every bone's head is compared, every frame, with the joints by our own forward kinematics (read_bvh). A rig's
+rest (edit-mode) pose: for the humanoid template, the arms' angle from horizontal and the legs' from vertical. Blender as a Python module (PyPI `bpy`
 4.5, Python 3.11; ~1 GB: a benchmark's peer, not the suite's):
 
     python3 -m venv /tmp/bpyenv && /tmp/bpyenv/bin/pip install "bpy==4.5.*" pyopencl pyyaml networkx   # (+ the device line)
@@ -83,6 +84,32 @@ def bvh_check(path: Path) -> None:
               f"{lo:.3f} m")
 
 
+def rest_pose(path: Path) -> None:
+    """A rig's rest (edit-mode) pose as Blender builds it from the file: for a humanoid template rig, how far the
+    arms are from horizontal and the legs from vertical (a T pose: 0 and 0)."""
+    import bpy
+    import numpy as np
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    if path.suffix.lower() in (".glb", ".gltf"):
+        bpy.ops.import_scene.gltf(filepath=str(path))
+    else:
+        bpy.ops.wm.usd_import(filepath=str(path))
+    arms = [o for o in bpy.data.objects if o.type == "ARMATURE"]
+    if not arms:
+        return
+    head = {b.name: np.array(arms[0].matrix_world @ b.head_local) for b in arms[0].data.bones}
+    if not {"shoulder_l", "wrist_l", "hip_r", "ankle_r"} <= set(head):
+        return
+    def tilt(a, b, vertical):   # degrees from vertical (legs) or horizontal (arms)
+        d = head[b] - head[a]
+        return float(np.degrees(np.arccos(abs(d[2]) / np.linalg.norm(d)) if vertical else np.arcsin(abs(d[2]) / np.linalg.norm(d))))
+    arm = max(tilt(f"shoulder_{s}", f"wrist_{s}", False) for s in "lr")
+    leg = max(tilt(f"hip_{s}", f"ankle_{s}", True) for s in "lr")
+    print(f"{path.name}: rest pose in Blender: arms {arm:.2f} deg from horizontal, legs {leg:.2f} deg from vertical, "
+          f"{len(head)} bones")
+
+
 def main():
     from machine import describe
 
@@ -97,6 +124,7 @@ def main():
         if p.suffix.lower() == ".bvh":
             bvh_check(p)
             continue
+        rest_pose(p)
         lo, hi, n = bounds(p)
         found[p] = (lo, hi)
         fmt = lambda v: "(" + ", ".join(f"{x:7.3f}" for x in v) + ")"  # noqa: E731

@@ -4,10 +4,18 @@ voxel resolution, same run: seconds per frame, and the template's joint errors a
 (median, 90th percentile, max; sides checked by name), over a walk cycle.
 
     python bench/humanoid.py [--frames 24] [--resolution 96]
+    python bench/humanoid.py child_rope [--cache DIR]
+
+child_rope: graphs/skeleton/child_rope_humanoid.yaml through the engine (the tracked sequence from its cache:
+the first run tracks, ~30 min): every tracked segment rigged with the template (skeletonize.humanoid -> skin,
+joints kept) -> per segment the frame it was fitted on, bones kept, LBS rms and max per frame against the goals
+(rms <= 1 % of the subject's height, max <= 5 %), bone lengths per segment, seconds per frame; the named joints
+over the silhouettes of 3 views at 4 frames (out/skeleton_humanoid_child_rope.jpg, and docs/ with --docs).
 """
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -29,10 +37,15 @@ TRUTH = {"pelvis": "pelvis", "chest": "chest", "neck": "neck", "head": "head", "
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("scene", nargs="?", default="synth", choices=("synth", "child_rope"))
     ap.add_argument("--frames", type=int, default=24)
     ap.add_argument("--resolution", type=int, default=96)
+    ap.add_argument("--cache", type=Path, default=ROOT / ".volcap-cache")
+    ap.add_argument("--docs", action="store_true", help="child_rope: also write the picture to docs/")
     a = ap.parse_args()
     print(describe())
+    if a.scene == "child_rope":
+        return child_rope(a)
     t_h, t_s, err, per_joint = [], [], [], {}
     for f in range(a.frames):
         scene = scenes.build("figure", f)
@@ -58,6 +71,106 @@ def main():
     print("per joint, median / max cm: " + ", ".join(f"{k} {100 * np.median(v):.1f}/{100 * max(v):.1f}"
                                                      for k, v in per_joint.items()))
     print(f"load average at the end: {load_average()}")
+
+
+SEGMENTS = 3          # the graph rigs segments 0, 1, 2 (fit_K, skin_K)
+MARK = {"head", "neck", "pelvis", "shoulder", "elbow", "wrist", "hip", "knee", "ankle"}
+
+
+def child_rope(a):
+    from nodegraph import Table
+    from nodes.common import types as T
+    from track import outputs, run
+
+    os.environ.setdefault("VOLCAP_DATA", str(ROOT.parent / "shared" / "data"))
+    graph = ROOT / "graphs" / "skeleton" / "child_rope_humanoid.yaml"
+    t0 = time.perf_counter()
+    records = run(graph, a.cache, None)
+    wall = time.perf_counter() - t0
+    seq = outputs(records, "track", "sequence", T.MeshSequence)[0][0]
+    heights = [float(np.ptp(np.asarray(m.vertices)[:, 2])) for m in seq]
+    height = float(np.percentile(heights, 95))
+    print(f"\nchild_rope: {len(seq)} tracked frames, subject height {height:.3f} m (95th percentile over frames of the "
+          f"mesh's z extent; median {np.median(heights):.3f}: the child bends and jumps): goals LBS rms <= {10 * height:.1f} mm (1 %), max <= {50 * height:.1f} mm (5 %)")
+    rigs, lengths = [], {}
+    for k in range(SEGMENTS):
+        [fit], [fit_rec] = outputs(records, f"fit_{k}", "report", Table)
+        [err], [skin_rec] = outputs(records, f"skin_{k}", "error", Table)
+        [sk], _ = outputs(records, f"skin_{k}", "skeleton", T.Skeleton)
+        t = err["timeline"]
+        rms, mx = 1000 * np.array(t["rmse"]), 1000 * np.array(t["max"])
+        secs = fit_rec["seconds"] + err["seconds"]      # skin's own time survives a cache hit; the fit's does not
+        seg = fit["segment"]
+        print(f"segment {k}: frames {seg['first_frame']}..{seg['last_frame']} ({len(t['frame'])}), template fitted "
+              f"on frame {fit['fitted_on_frame']} (legs {fit.get('legs')}; {len(fit.get('frames_refused', []))} frames "
+              f"refused; parts' rigid rms by tried frame index, mm: {fit.get('rigid_rms_mm_by_index')}), "
+              f"{err['bones']} bones kept{', removed ' + ', '.join(err['removed']) if err['removed'] else ''}")
+        print(f"  LBS rms per frame mm: median {np.median(rms):.1f}, worst {rms.max():.1f} (frame "
+              f"{t['frame'][int(rms.argmax())]}) = {rms.max() / (10 * height):.2f} % of the height; max per frame: "
+              f"median {np.median(mx):.1f}, worst {mx.max():.1f} mm = {mx.max() / (10 * height):.2f} %; frames within "
+              f"both goals {int(((rms <= 10 * height) & (mx <= 50 * height)).sum())}/{len(rms)}; bone-length spread "
+              f"{err['bone_length_spread']:.1e}; {err['iterations']} iterations")
+        print(f"  seconds: fit {fit_rec['seconds']:.1f}{' (a cache hit)' if fit_rec['cache_hit'] else ''} + skin "
+              f"{err['seconds']:.1f} = {secs / len(rms):.2f} s per frame")
+        rigs.append((sk, err))
+        piv = np.einsum("jab,jb->ja", sk.rotations[0], sk.joints) + sk.translations[0]
+        for j, p in enumerate(sk.parents):
+            if p >= 0:
+                lengths.setdefault(sk.names[j], []).append(float(np.linalg.norm(piv[j] - piv[p])))
+    print("bone lengths per segment, cm (the bone ending at the joint): " + ", ".join(
+        f"{n} {'/'.join(f'{100 * x:.0f}' for x in v)}" for n, v in lengths.items() if len(v) > 1))
+    print(f"graph run {wall:.0f} s (cached items are not recomputed); load average at the end: {load_average()}")
+    picture(rigs, a)
+
+
+def picture(rigs, a):
+    """The named joints (posed by skin's bone motions) over the silhouettes of 3 views at 4 frames."""
+    import cv2
+
+    from nodegraph.testing import run_node
+
+    frames = sorted({f for sk, _ in rigs for f in sk.frames})
+    picks = [frames[int(round(x))] for x in np.linspace(0, len(frames) - 1, 4)]
+    cams = None
+    rows = []
+    for f in picks:
+        cap = run_node("capture", {}, {"path": str(Path(os.environ["VOLCAP_DATA"]) / "child_rope")}, frame=f)
+        cams, masks = cap["cameras"], cap["masks"]
+        sk, err = next((sk, e) for sk, e in rigs if f in sk.frames)
+        i = list(sk.frames).index(f)
+        piv = np.einsum("jab,jb->ja", sk.rotations[i], sk.joints) + sk.translations[i]
+        views = [0, len(cams.cameras) // 3, 2 * len(cams.cameras) // 3]
+        tiles = []
+        for v in views:
+            m = np.asarray(masks.masks[v])
+            img = np.dstack([(m > 0) * 90 + 40] * 3).astype(np.uint8)
+            uv, _ = cams.project(piv, v)
+            for j, p in enumerate(sk.parents):
+                if p >= 0:
+                    cv2.line(img, tuple(map(int, uv[j])), tuple(map(int, uv[p])), (255, 220, 0), 3, cv2.LINE_AA)
+            for j, (x, y) in enumerate(uv):
+                n = sk.names[j]
+                c = (255, 60, 60) if n.endswith("_r") else (60, 120, 255) if n.endswith("_l") else (255, 255, 255)
+                cv2.circle(img, (int(x), int(y)), 6, c, -1, cv2.LINE_AA)
+                if n.split("_")[0] in MARK:
+                    cv2.putText(img, n, (int(x) + 8, int(y) - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 3, cv2.LINE_AA)
+                    cv2.putText(img, n, (int(x) + 8, int(y) - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.5, c, 1, cv2.LINE_AA)
+            ys, xs = np.nonzero(m)
+            lo = np.maximum([xs.min() - 60, ys.min() - 40], 0)
+            hi = np.minimum([xs.max() + 60, ys.max() + 40], [m.shape[1], m.shape[0]])
+            tile = img[lo[1]:hi[1], lo[0]:hi[0]]
+            tile = cv2.resize(tile, (int(tile.shape[1] * 420 / tile.shape[0]), 420), interpolation=cv2.INTER_AREA)
+            cv2.putText(tile, f"frame {f}, {cams.names[v]}: rms {1000 * err['timeline']['rmse'][i]:.1f} mm",
+                        (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+            tiles.append(tile)
+        rows.append(np.hstack(tiles))
+    width = max(r.shape[1] for r in rows)
+    sheet = np.vstack([np.pad(r, ((0, 4), (0, width - r.shape[1]), (0, 0))) for r in rows])
+    for path in [ROOT / "out" / "skeleton_humanoid_child_rope.jpg"] + ([ROOT / "docs" / "skeleton_humanoid_child_rope.jpg"]
+                                                                     if a.docs else []):
+        path.parent.mkdir(exist_ok=True)
+        cv2.imwrite(str(path), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 80])
+        print(path)
 
 
 if __name__ == "__main__":
