@@ -312,8 +312,9 @@ def bvh_text(joints, parents, names, rotations, translations, frames, fps: float
 
 
 def read_bvh(text: str) -> dict:
-    """Parse a BVH from ``bvh_text`` (any BVH with ZXY rotations and one root): {"names", "parents", "offsets",
-    "positions": (F, J, 3) world joint positions by forward kinematics, in the world frame (+Z up)}."""
+    """Parse a BVH from ``bvh_text`` (any BVH with ZXY rotations and one root): {"names", "parents",
+    "positions": (F, J, 3) world joint positions by forward kinematics, "rest": (J, 3) the hierarchy's offsets
+    alone, both in the world frame (+Z up)}."""
     from scipy.spatial.transform import Rotation
 
     tok = text.split()
@@ -370,6 +371,9 @@ def read_bvh(text: str) -> dict:
                 pr, pt = world[parents[j]]
                 world[j] = (pr @ r, pr @ t + pt)
             pos[f, j] = world[j][1]
+    rest = np.zeros((len(names), 3))          # the hierarchy's own pose: offsets alone, no rotation
+    for j in range(len(names)):
+        rest[j] = offsets[j] + (rest[parents[j]] if parents[j] >= 0 else 0.0)
     return {"names": [names[j] for j in keep], "parents": [keep.index(parents[j]) if parents[j] >= 0 else -1
                                                             for j in keep],
-            "positions": pos[:, keep] @ BVH_FROM_WORLD}
+            "positions": pos[:, keep] @ BVH_FROM_WORLD, "rest": rest[keep] @ BVH_FROM_WORLD}

@@ -1,14 +1,14 @@
 """Nodes of the skeleton stage: skeletonize (a joint tree from one frame's solid), skeletonize.sequence (a
 skeleton from the rigid parts of a dynamic mesh's motion), skin (LBS weights and bone motions fitted to the
-sequence, rotation-only joints), skeleton.humanoid (a named humanoid template fitted to one body) and
-skeleton.export (UsdSkel and glTF skin + animation)."""
+sequence, rotation-only joints), skeleton.humanoid (a named humanoid template fitted to one body),
+skeleton.load (a skeleton from a BVH file) and skeleton.export (UsdSkel and glTF skin + animation)."""
 from __future__ import annotations
 
 import time
 
 import numpy as np
 
-from nodegraph import Files, Input, Node, NodeError, Output, Param, Table
+from nodegraph import Files, InPath, Input, Node, NodeError, Output, Param, Table
 from nodes.common.types import (FPS_PARAM, CameraSet, Mesh, MeshSequence, Skeleton, SkeletonData, Volume,
                                sequence_segments)
 
@@ -119,6 +119,29 @@ class Humanoid(Node):
             names = [table.get(n, n) for n in names]
         report["names"] = names
         return {"skeleton": SkeletonData(joints, parents, names), "report": report}
+
+
+class LoadSkeleton(Node):
+    """A skeleton from a BVH file (its hierarchy's rest pose: the offsets; metres, +Y up as BVH is, into the world
+    frame's +Z up): e.g. your own template's bone lengths for skeletonize.humanoid (the seed's "skeletal model
+    provided at the start"), joints named as the template's or as Mixamo, the Unreal mannequin or SMPL name them."""
+
+    type_name = "skeleton.load"
+    version = 1
+    outputs = {"skeleton": Output(Skeleton, "the joint tree at the file's rest pose (no weights, no motion)")}
+    params = {"path": Param(InPath, doc="a .bvh file")}
+
+    def run(self, *, path):
+        from pathlib import Path
+
+        from .formats import read_bvh
+
+        try:
+            bvh = read_bvh(Path(path).read_text())
+        except (ValueError, IndexError, UnicodeDecodeError) as exc:
+            raise NodeError(f"skeleton.load: {path} is not a BVH this reads ({exc or 'truncated'})") from None
+        self.log.info("skeleton.load: %s: %d joints", path, len(bvh["names"]))
+        return {"skeleton": SkeletonData(bvh["rest"], bvh["parents"], bvh["names"])}
 
 
 class Keypoints(Node):
@@ -248,7 +271,9 @@ class SkeletonizeHumanoid(Node):
     segment where it fits (legs apart preferred), each vertex on its nearest bone, each joint's part moving
     rigidly with the sequence, rest = the segment's first frame; give it to
     ``skin`` (lengths: fixed: rotation-only joints, bone lengths constant over the sequence) and
-    ``skeleton.export`` (UsdSkel, glTF skin, BVH) for a character with standard (or Mixamo/Unreal/SMPL) names."""
+    ``skeleton.export`` (UsdSkel, glTF skin, BVH) for a character with standard (or Mixamo/Unreal/SMPL) names.
+    ``lengths``: the bone lengths of another skeleton kept (another segment's fit, so that one character holds
+    over a sequence, or a template of your own: skeleton.load), each joint along the line the fit gave."""
 
     type_name = "skeletonize.humanoid"
     version = 1
@@ -256,6 +281,9 @@ class SkeletonizeHumanoid(Node):
     inputs = {
         "meshes": Input(Mesh, optional=True, doc="per-frame meshes with one connectivity (arrive as a list)"),
         "sequence": Input(MeshSequence, optional=True, doc="or a mesh sequence (track's output)"),
+        "lengths": Input(Skeleton, optional=True, doc="a skeleton whose bone lengths the fit keeps (another "
+                         "segment's, so that they are one over the sequence, or your own), joints named as the "
+                         "template's or as a retargeting tool's"),
     }
     outputs = {"skeleton": Output(Skeleton, "the template's joints (no end markers), parts and motion, for skin"),
                "rest": Output(Mesh, "the rest mesh (first frame of the segment)"),
@@ -267,13 +295,21 @@ class SkeletonizeHumanoid(Node):
         "segment": Param(int, -1, range=(-1, None), doc="which constant-connectivity segment; -1 = the longest"),
     }
 
-    def run(self, meshes=None, sequence=None, *, resolution, up, naming, segment):
+    def run(self, meshes=None, sequence=None, lengths=None, *, resolution, up, naming, segment):
         import trimesh
 
-        from .humanoid import bind_humanoid, retarget_names
+        from .humanoid import bind_humanoid, retarget_names, skeleton_lengths
 
         frames, faces, numbers, _, nseg = dynamic_mesh(self, meshes, sequence, segment)
-        joints, parents, names, weights, rot, tr, report = bind_humanoid(frames, faces, resolution, up)
+        given = None
+        if lengths is not None:
+            given = skeleton_lengths(lengths.joints, lengths.parents, lengths.names)
+            if not given:
+                raise NodeError(f"skeletonize.humanoid: input 'lengths' names none of the template's joints "
+                                f"({', '.join(lengths.names[:4])}, ...): give a template rig's skeleton")
+        joints, parents, names, weights, rot, tr, report = bind_humanoid(frames, faces, resolution, up, lengths=given)
+        if given:
+            report["lengths_given"] = sorted(given)
         if naming != "volcap":
             table = retarget_names(naming)
             names = [table.get(n, n) for n in names]
@@ -288,8 +324,9 @@ class Skin(Node):
     skeletonize.sequence's skeleton: at most ``influences`` weights per vertex, smooth where the motion
     leaves them open; ``lengths: fixed`` keeps the skeleton a tree of rotation-only joints (bone lengths
     never change; the rest joints and the rest shape are refined), ``free`` lets every bone move rigidly on
-    its own as Dem Bones does; a bone that ends up skinning no vertex is merged into its parent and a rest
-    joint is never moved out of the body. Stops when an iteration improves the error by less than ``tol``;
+    its own as Dem Bones does; a bone that ends up skinning no vertex is merged into its parent (with ``pivots``
+    off, the given skeleton's tree is kept whole and such bones are reported) and a rest joint is never moved out
+    of the body. Stops when an iteration improves the error by less than ``tol``;
     logs each iteration. Reports the LBS reconstruction error per frame and the iterations used."""
 
     type_name = "skin"
@@ -344,8 +381,8 @@ class Skin(Node):
                   np.zeros(len(skeleton.parents)), np.zeros(len(skeleton.parents)))
         traj = Trajectories(frames[0], frames)
         fit = fit_skin(traj, faces, rig, influences=influences, iterations=iterations, smooth=smooth,
-                       fixed_lengths=lengths == "fixed", rest=rest_fit, pivots=pivots, tol=tol, log=self.log.info,
-                       progress=self.progress)
+                       fixed_lengths=lengths == "fixed", rest=rest_fit, pivots=pivots, tol=tol, merge=pivots,
+                       log=self.log.info, progress=self.progress)
         names = [skeleton.names[b] for b in fit.kept]
         if rest_pose != "captured":
             fit = self._reposed(traj.with_rest(fit.rest), faces, fit, names, rest_pose, lengths, influences, smooth)
@@ -357,7 +394,12 @@ class Skin(Node):
                              "into their parents", ", ".join(removed))
         sk = SkeletonData(fit.joints, fit.parents, names, fit.weights, fit.rotations, fit.translations, numbers)
         table = error_table(fit, numbers, diag, seconds, lengths)
-        table.update(removed=removed, pivot_moves_refused=fit.refused)
+        weightless = [names[b] for b in np.flatnonzero(np.bincount(np.argmax(fit.weights, axis=1),
+                                                                  minlength=len(names)) == 0)]
+        if weightless:
+            self.log.warning("skin: bone(s) %s are the strongest influence of no vertex: kept (pivots: false, the "
+                             "skeleton's joints are given), moving with their neighbours", ", ".join(weightless))
+        table.update(removed=removed, weightless=weightless, pivot_moves_refused=fit.refused)
         return {"skeleton": sk, "rest": trimesh.Trimesh(fit.rest, faces, process=False), "error": table}
 
     def _reposed(self, traj, faces, fit, names, pose, lengths, influences, smooth):

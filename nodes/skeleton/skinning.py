@@ -609,12 +609,13 @@ def joint_clearance(rest, faces, weights, joints, parents, lazy: bool = False) -
 # ---------------------------------------------------------------- the whole fit
 def fit_skin(traj: Trajectories, faces: np.ndarray, rig: Rig, *, influences: int = 4, iterations: int = 15,
              smooth: float = 1e-6, fixed_lengths: bool = True, pivots: bool = True, rest: bool = True,
-             tol: float = 1e-3, log=None, progress=None) -> SkinFit:
+             tol: float = 1e-3, merge: bool = True, log=None, progress=None) -> SkinFit:
     """Alternate the weights and bone-motion steps (module docstring) from the rig's rigid parts; with
     fixed lengths, ``pivots`` also moves the rest-pose joints (fit_pivots) after each bone-motion step,
     refusing a joint's move that takes it out of the body (joint_clearance); ``rest`` refits the rest shape
     (fit_rest) after it. Bones that skin no vertex are merged into their parents (drop_weightless), from
-    the start and after each weights step. Stops when an iteration lowers the total rms by less than
+    the start and after each weights step, unless ``merge`` is off (a template's joints, kept where the body put
+    them: the tree stays whole, its names complete). Stops when an iteration lowers the total rms by less than
     ``tol`` of its previous value (an iteration that raises it is undone). ``log(str)`` gets a line per
     iteration."""
     from nodes.common.meshops import vertex_neighbours
@@ -633,6 +634,8 @@ def fit_skin(traj: Trajectories, faces: np.ndarray, rig: Rig, *, influences: int
 
     def drop(weights, rot, tr, joints, parents, labels):
         nonlocal kept, anchor_joints
+        if not merge:
+            return weights, rot, tr, joints, parents, labels
         idx, weights, rot, tr, joints, new_parents, labels = drop_weightless(weights, rot, tr, joints, parents, labels,
                                                                             pinned=fixed_lengths)
         if len(idx) < len(parents):
