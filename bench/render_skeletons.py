@@ -5,6 +5,10 @@
 - skeleton_<dataset>.png: graphs/skeleton/<dataset>.yaml run on the real data (frame 0); the joint tree
   of the relaxed mesh (skeletonize) projected onto three camera images, extremities labelled, beside the
   tree from the hull volume. Checks by eye that the five extremities are the head, the hands and the feet.
+- skeleton_humanoid_<dataset>.jpg (argument humanoid:<dataset>, thu_wd_human / inria_dancer / pose2sim_single):
+  the named template (skeleton.humanoid) of graphs/skeleton/<dataset>.yaml over the photos of frame 0, red right,
+  blue left; where the graph triangulates MediaPipe's body landmarks (pose2sim_single) they are drawn too (white
+  crosses) and each joint's distance to its landmark printed: an independent check of the joints where limbs meet.
 - skeleton_figure.png: the synth walking figure over 100 frames: skeletonize.sequence + skin (10 bones,
   fixed bone lengths) on its true meshes; the rig drawn over the mesh at four frames (front view), the
   part of each vertex in colour, and the LBS error per frame.
@@ -113,6 +117,63 @@ def dataset_picture(name: str):
     print(out, rep)
 
 
+LANDMARK_OF = {"shoulder_{s}": "{side}_shoulder", "elbow_{s}": "{side}_elbow", "wrist_{s}": "{side}_wrist",
+               "hip_{s}": "{side}_hip", "knee_{s}": "{side}_knee", "ankle_{s}": "{side}_ankle"}
+
+
+def humanoid_picture(name: str):
+    import cv2
+
+    graph = ROOT / "graphs" / "skeleton" / f"{name}.yaml"
+    from nodegraph.graphfile import load_graph
+
+    has_points = "points" in load_graph(graph).nodes
+    wanted = [("capture", "images"), ("capture", "cameras"), ("humanoid", "skeleton"), ("humanoid", "report")]
+    vals = run_graph_outputs(graph, wanted + ([("points", "points")] if has_points else []))
+    images, cams = vals[("capture", "images")], vals[("capture", "cameras")]
+    sk, rep = vals[("humanoid", "skeleton")], vals[("humanoid", "report")]
+    j = dict(zip(sk.names, np.asarray(sk.joints)))
+    marks = {}
+    if has_points:
+        pts = vals[("points", "points")]
+        marks = {n: np.asarray(p) for n, p in zip(pts["landmarks"], pts["points"]) if p is not None}
+        dist = {}
+        for ours, theirs in LANDMARK_OF.items():
+            for s, side in (("l", "left"), ("r", "right")):
+                if theirs.format(side=side) in marks:
+                    dist[ours.format(s=s)] = 100 * float(np.linalg.norm(j[ours.format(s=s)] - marks[theirs.format(side=side)]))
+        print(f"{name}: joint to landmark, cm: " + ", ".join(f"{k} {v:.1f}" for k, v in dist.items())
+              + f"; median {np.median(list(dist.values())):.1f}, max {max(dist.values()):.1f}")
+    n_views = min(4, len(cams.cameras))
+    views = [int(v) for v in np.linspace(0, len(cams.cameras), n_views, endpoint=False)]
+    tiles = []
+    for v in views:
+        img = images.images[v].copy()
+        uv, _ = cams.project(np.asarray(sk.joints), v)
+        for c, p in enumerate(sk.parents):
+            if p >= 0:
+                cv2.line(img, tuple(map(int, uv[c])), tuple(map(int, uv[p])), (255, 220, 0), 4, cv2.LINE_AA)
+        for k, (x, y) in enumerate(uv):
+            n = sk.names[k]
+            col = (255, 60, 60) if n.endswith("_r") else (60, 120, 255) if n.endswith("_l") else (255, 255, 255)
+            cv2.circle(img, (int(x), int(y)), 7, col, -1, cv2.LINE_AA)
+        if marks:
+            muv, _ = cams.project(np.array(list(marks.values())), v)
+            for x, y in muv:
+                cv2.drawMarker(img, (int(x), int(y)), (255, 255, 255), cv2.MARKER_CROSS, 14, 2)
+        lo = np.maximum(uv.min(0) - 120, 0).astype(int)
+        hi = np.minimum(uv.max(0) + 120, [img.shape[1], img.shape[0]]).astype(int)
+        tile = img[lo[1]:hi[1], lo[0]:hi[0]]
+        tile = cv2.resize(tile, (int(tile.shape[1] * 520 / tile.shape[0]), 520), interpolation=cv2.INTER_AREA)
+        cv2.putText(tile, cams.names[v], (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (0, 0, 0), 4, cv2.LINE_AA)
+        cv2.putText(tile, cams.names[v], (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (255, 255, 255), 1, cv2.LINE_AA)
+        tiles.append(tile)
+    sheet = np.hstack(tiles)
+    out = ROOT / "docs" / f"skeleton_humanoid_{name}.jpg"
+    cv2.imwrite(str(out), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 80])
+    print(out, {k: rep[k] for k in ("sides_from", "legs", "height") if k in rep})
+
+
 def figure_picture(frames: int = 100):
     import matplotlib
 
@@ -174,4 +235,9 @@ if __name__ == "__main__":
     print(describe())
     names = sys.argv[1:] or ["thu_wd_human", "inria_dancer", "figure"]
     for n in names:
-        figure_picture() if n == "figure" else dataset_picture(n)
+        if n == "figure":
+            figure_picture()
+        elif n.startswith("humanoid:"):
+            humanoid_picture(n.split(":", 1)[1])
+        else:
+            dataset_picture(n)

@@ -195,6 +195,52 @@ def _tip_thickness(raw, point: np.ndarray, arc: float) -> float:
     return best
 
 
+MARK_REACH = 0.3        # a landmark names the tree's extremity nearest it within this distance (metres)
+
+
+def body_marks(points: dict) -> dict | None:
+    """fit_humanoid's ``marks`` from named 3D body landmarks (MediaPipe's names, skeleton.keypoints: None where
+    not triangulated): head = nose, hands = index finger (else wrist), feet = foot index (else ankle), right =
+    from the left hip and shoulder to the right ones; None when one is missing."""
+    def first(*names):
+        return next((np.asarray(points[n], np.float64) for n in names if points.get(n) is not None), None)
+
+    out = {"head": first("nose")}
+    for s, side in (("l", "left"), ("r", "right")):
+        out[f"hand_{s}"] = first(f"{side}_index", f"{side}_wrist")
+        out[f"foot_{s}"] = first(f"{side}_foot_index", f"{side}_ankle")
+    pairs = [(first(f"right_{k}"), first(f"left_{k}")) for k in ("hip", "shoulder")]
+    if any(v is None for v in out.values()) or any(a is None or b is None for a, b in pairs):
+        return None
+    out["right"] = sum(a - b for a, b in pairs)
+    return out
+
+
+def _marked_extremities(tree, marks: dict):
+    """(tree, named) with the extremities the landmarks name (head, hand_l, hand_r, foot_l, foot_r: the leaf
+    nearest each, within MARK_REACH) and every other branch cut; None where a landmark has no leaf near it.
+    Both feet on one leaf: the legs touch (one foot, as _extremities names it)."""
+    roles = {"head": "head", "hand_l": "hand_0", "hand_r": "hand_1", "foot_l": "foot_0", "foot_r": "foot_1"}
+    while True:
+        leaves = tree.leaves
+        pos = tree.joints[leaves]
+        chosen = {}
+        for role, name in roles.items():
+            d = np.linalg.norm(pos - marks[role], axis=1)
+            if d.min() > MARK_REACH:
+                return None
+            chosen[name] = leaves[int(np.argmin(d))]
+        if len({chosen["head"], chosen["hand_0"], chosen["hand_1"], chosen["foot_0"]}) < 4 or chosen["foot_1"] in (
+                chosen["head"], chosen["hand_0"], chosen["hand_1"]):
+            return None
+        rest = [j for j in leaves if j not in set(chosen.values())]
+        if not rest:
+            if chosen["foot_1"] == chosen["foot_0"]:
+                del chosen["foot_1"]
+            return tree, chosen
+        tree = _cut(tree, min(rest, key=lambda j: _branch_length(tree, j)))
+
+
 def _extremities(tree, u: np.ndarray, floor: float, height: float, node: str, raw=None):
     """(tree, {"head", "hand_0", "hand_1", "foot_0"[, "foot_1"]: joint}) of a person's curve skeleton: feet are
     extremities within FOOT_HEIGHT of the floor (one foot: the legs touch, one column), at most two; of the others
@@ -281,8 +327,13 @@ def _split_leg(poly: np.ndarray, cells: np.ndarray, u, right, forward, step: flo
     return np.array(out_r), np.array(out_l)
 
 
-def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str = "skeleton.humanoid"):
-    """(joints (J, 3), parents, names, report) of the template fitted to a solid (module docstring)."""
+def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str = "skeleton.humanoid",
+                 marks: dict | None = None):
+    """(joints (J, 3), parents, names, report) of the template fitted to a solid (module docstring). ``marks``
+    (head, hand_l, hand_r, foot_l, foot_r: 3D points, e.g. triangulated body landmarks; right: the body's left
+    to right direction): the extremities they
+    name and their sides are taken from them instead of from the shape (a head on a short neck, spurs of a
+    4-view hull, feet that point nowhere); when one has no extremity near it, the shape decides."""
     from .curve import joint_tree, teasar
 
     step = float(np.min(spacing))
@@ -291,8 +342,12 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
     cells = origin + (np.argwhere(occ) + 0.5) * spacing
     ch = cells @ u
     floor, height = float(ch.min()), float(np.ptp(ch))
-    tree, named_j = _extremities(joint_tree(raw, prune=2.0, prune_min=step, bend=2.0 * step, smooth=step, up=up), u,
-                                 floor, height, node, raw)
+    tree0 = joint_tree(raw, prune=2.0, prune_min=step, bend=2.0 * step, smooth=step, up=up)
+    marked = _marked_extremities(tree0, marks) if marks else None
+    if marks and marked is None:
+        LOG.warning("%s: the body landmarks do not each have an extremity of the curve skeleton within %.0f cm: "
+                    "extremities and sides from the shape", node, 100 * MARK_REACH)
+    tree, named_j = marked or _extremities(tree0, u, floor, height, node, raw)
     named = {n: tree.joints[j] for n, j in named_j.items()}
     together = "foot_1" not in named
     pts, parent = raw.points, raw.parent
@@ -333,7 +388,12 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
             d = foot.mean(0) - ankle
             forward += d - (d @ u) * u
     report = {}
-    if np.linalg.norm(forward) < step:   # the hips are wider than deep: their slice's main horizontal axis
+    if marked:           # left and right named by the landmarks: right from their left hip and shoulder to the right ones
+        right = np.asarray(marks["right"], np.float64)
+        right = right - (right @ u) * u
+        right /= np.linalg.norm(right)
+        report["sides_from"] = "landmarks"
+    elif np.linalg.norm(forward) < step:   # the hips are wider than deep: their slice's main horizontal axis
         hip = cells[np.abs(cells @ u - float(pts[pelvis] @ u)) < 0.05 * height]
         flat = hip - np.outer(hip @ u, u)
         axis = np.linalg.eigh(np.cov((flat - flat.mean(0)).T))[1][:, -1] if len(hip) > 3 else np.cross([1.0, 0, 0], u)
@@ -358,9 +418,12 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
         near[limb] = [_at(limbs[(limb, k)], at) for k in (0, 1)]
         r = int(np.argmax([(q - centre) @ right for q in near[limb]]))
         side[(limb, "r")], side[(limb, "l")] = r, 1 - r
+    if marked:           # hand_0 / foot_0 are the left ones; one leg column split: its first half is on +right
+        side[("arm", "l")], side[("arm", "r")] = 0, 1
+        side[("leg", "r")], side[("leg", "l")] = (0, 1) if together else (1, 0)
     arms = near["arm"][side[("arm", "r")]] - near["arm"][side[("arm", "l")]]
     legs = near["leg"][side[("leg", "r")]] - near["leg"][side[("leg", "l")]]
-    if arms @ legs < 0:   # the right arm and the right leg on opposite sides: flip the pair less along right
+    if arms @ legs < 0 and not marked:   # the right arm and the right leg on opposite sides: flip the pair less along right
         weak = min(("arm", arms), ("leg", legs), key=lambda x: abs(x[1] @ right) / (np.linalg.norm(x[1]) or 1.0))[0]
         side[(weak, "r")], side[(weak, "l")] = side[(weak, "l")], side[(weak, "r")]
         report["sides_flipped"] = weak

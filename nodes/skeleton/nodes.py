@@ -90,7 +90,9 @@ class Humanoid(Node):
     type_name = "skeleton.humanoid"
     version = 1
     inputs = {"mesh": Input(Mesh, optional=True, doc="a closed body mesh"),
-              "volume": Input(Volume, optional=True, doc="or its occupancy")}
+              "volume": Input(Volume, optional=True, doc="or its occupancy"),
+              "points": Input(Table, optional=True, doc="body landmarks in 3D (skeleton.keypoints): they name the "
+                              "head, hands and feet and tell left from right (a person's face does)")}
     outputs = {"skeleton": Output(Skeleton, "the named joint tree (rest pose = this body)"),
                "report": Output(Table, "where the sides came from, elbow/knee bends, bone lengths, height")}
     params = {
@@ -100,9 +102,20 @@ class Humanoid(Node):
                         "tool's (joints it has no name for keep ours)"),
     }
 
-    def run(self, mesh=None, volume=None, *, resolution, up, naming):
+    def run(self, mesh=None, volume=None, points=None, *, resolution, up, naming):
         from .curve import voxelize
-        from .humanoid import fit_humanoid, retarget_names
+        from .humanoid import body_marks, fit_humanoid, retarget_names
+
+        marks = None
+        if points is not None:
+            try:
+                marks = body_marks(dict(zip(points["landmarks"], points["points"])))
+            except (KeyError, TypeError):
+                raise NodeError("skeleton.humanoid: input 'points' is not skeleton.keypoints' table (landmarks, "
+                                "points)") from None
+            if marks is None:
+                self.log.warning("skeleton.humanoid: the landmarks lack a nose, a hand, a foot, hips or shoulders "
+                                 "in 3D: extremities and sides from the shape")
 
         if (mesh is None) == (volume is None):
             raise NodeError("skeleton.humanoid: connect exactly one of 'mesh' and 'volume'")
@@ -113,7 +126,7 @@ class Humanoid(Node):
             origin, spacing = volume.bbox_min, volume.voxel_size
         if not occ.any():
             raise NodeError("skeleton.humanoid: the body encloses no voxel")
-        joints, parents, names, report = fit_humanoid(occ, origin, spacing, up)
+        joints, parents, names, report = fit_humanoid(occ, origin, spacing, up, marks=marks)
         if naming != "volcap":
             table = retarget_names(naming)
             names = [table.get(n, n) for n in names]
