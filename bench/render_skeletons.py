@@ -142,8 +142,13 @@ def humanoid_picture(name: str):
             for s, side in (("l", "left"), ("r", "right")):
                 if theirs.format(side=side) in marks:
                     dist[ours.format(s=s)] = 100 * float(np.linalg.norm(j[ours.format(s=s)] - marks[theirs.format(side=side)]))
-        print(f"{name}: joint to landmark, cm: " + ", ".join(f"{k} {v:.1f}" for k, v in dist.items())
+        print(f"{name}: humanoid joint to landmark, cm: " + ", ".join(f"{k} {v:.1f}" for k, v in dist.items())
               + f"; median {np.median(list(dist.values())):.1f}, max {max(dist.values()):.1f}")
+        if "marked" in load_graph(graph).nodes:      # the shape's fit above, the landmarks-named one beside it
+            m = dict(zip(*(lambda k: (k.names, np.asarray(k.joints)))(run_graph_outputs(graph, [("marked", "skeleton")])[("marked", "skeleton")])))
+            d2 = [100 * float(np.linalg.norm(m[o.format(s=s)] - marks[t.format(side=side)])) for o, t in LANDMARK_OF.items()
+                  for s, side in (("l", "left"), ("r", "right")) if t.format(side=side) in marks]
+            print(f"{name}: with the landmarks naming extremities and sides: median {np.median(d2):.1f}, max {max(d2):.1f} cm")
     n_views = min(4, len(cams.cameras))
     views = [int(v) for v in np.linspace(0, len(cams.cameras), n_views, endpoint=False)]
     tiles = []
