@@ -128,6 +128,7 @@ def picture(rigs, a):
     import cv2
 
     from nodegraph.testing import run_node
+    from render_skeletons import draw_sides
 
     frames = sorted({f for sk, _ in rigs for f in sk.frames})
     picks = [frames[int(round(x))] for x in np.linspace(0, len(frames) - 1, 4)]
@@ -145,16 +146,7 @@ def picture(rigs, a):
             m = np.asarray(masks.masks[v])
             img = np.dstack([(m > 0) * 90 + 40] * 3).astype(np.uint8)
             uv, _ = cams.project(piv, v)
-            for j, p in enumerate(sk.parents):
-                if p >= 0:
-                    cv2.line(img, tuple(map(int, uv[j])), tuple(map(int, uv[p])), (255, 220, 0), 3, cv2.LINE_AA)
-            for j, (x, y) in enumerate(uv):
-                n = sk.names[j]
-                c = (255, 60, 60) if n.endswith("_r") else (60, 120, 255) if n.endswith("_l") else (255, 255, 255)
-                cv2.circle(img, (int(x), int(y)), 6, c, -1, cv2.LINE_AA)
-                if n.split("_")[0] in MARK:
-                    cv2.putText(img, n, (int(x) + 8, int(y) - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 3, cv2.LINE_AA)
-                    cv2.putText(img, n, (int(x) + 8, int(y) - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.5, c, 1, cv2.LINE_AA)
+            draw_sides(img, uv, sk.parents, sk.names, labelled=MARK)
             ys, xs = np.nonzero(m)
             lo = np.maximum([xs.min() - 60, ys.min() - 40], 0)
             hi = np.minimum([xs.max() + 60, ys.max() + 40], [m.shape[1], m.shape[0]])

@@ -117,6 +117,23 @@ def dataset_picture(name: str):
     print(out, rep)
 
 
+def draw_sides(img, uv, parents, names, labelled=(), thick=3):
+    """A named rig over an image: bones in yellow, joints red (right), blue (left) or white; the joints whose name
+    starts with one of ``labelled`` (e.g. "elbow") get their name beside them."""
+    import cv2
+
+    for c, p in enumerate(parents):
+        if p >= 0:
+            cv2.line(img, tuple(map(int, uv[c])), tuple(map(int, uv[p])), (255, 220, 0), thick, cv2.LINE_AA)
+    for k, (x, y) in enumerate(uv):
+        n = names[k]
+        col = (255, 60, 60) if n.endswith("_r") else (60, 120, 255) if n.endswith("_l") else (255, 255, 255)
+        cv2.circle(img, (int(x), int(y)), thick + 3, col, -1, cv2.LINE_AA)
+        if n.split("_")[0] in labelled:
+            for colour, width in (((0, 0, 0), 3), (col, 1)):
+                cv2.putText(img, n, (int(x) + 8, int(y) - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.5, colour, width, cv2.LINE_AA)
+
+
 LANDMARK_OF = {"shoulder_{s}": "{side}_shoulder", "elbow_{s}": "{side}_elbow", "wrist_{s}": "{side}_wrist",
                "hip_{s}": "{side}_hip", "knee_{s}": "{side}_knee", "ankle_{s}": "{side}_ankle"}
 
@@ -155,13 +172,7 @@ def humanoid_picture(name: str):
     for v in views:
         img = images.images[v].copy()
         uv, _ = cams.project(np.asarray(sk.joints), v)
-        for c, p in enumerate(sk.parents):
-            if p >= 0:
-                cv2.line(img, tuple(map(int, uv[c])), tuple(map(int, uv[p])), (255, 220, 0), 4, cv2.LINE_AA)
-        for k, (x, y) in enumerate(uv):
-            n = sk.names[k]
-            col = (255, 60, 60) if n.endswith("_r") else (60, 120, 255) if n.endswith("_l") else (255, 255, 255)
-            cv2.circle(img, (int(x), int(y)), 7, col, -1, cv2.LINE_AA)
+        draw_sides(img, uv, sk.parents, sk.names, thick=4)
         if marks:
             muv, _ = cams.project(np.array(list(marks.values())), v)
             for x, y in muv:
