@@ -482,8 +482,8 @@ def bind_humanoid(frames: np.ndarray, faces, resolution: int, up=(0.0, 0.0, 1.0)
     in the fitted frame; each joint's part moves rigidly (Kabsch, first frame -> each frame), a part with fewer
     than 4 vertices as its parent does; the joints are carried back to the first frame by their parts' motion.
     ``skin`` (lengths: fixed) then makes the joints rotation-only with constant bone lengths. Bone lengths: as
-    the fit measured them, left and right averaged (a body is symmetric; one fit's right upper arm came out 4 cm
-    against the left's 18), or ``lengths`` (joint name -> length of the bone ending at it) as given; each fit
+    the fit measured them, left and right averaged (a body is symmetric; one child_rope fit measured the upper
+    arms 12 and 18 cm), or ``lengths`` (joint name -> length of the bone ending at it) as given; each fit
     is given them (with_lengths), and the rest joints again once carried back to the first frame."""
     from .curve import voxelize
 
