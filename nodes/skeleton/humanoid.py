@@ -38,7 +38,7 @@ LOW_ARM = 0.3            # an arm whose path leaves the spine below this share o
 BEND_DEG = 25.0
 FOOT_HEIGHT = 0.2        # extremities this share of the body's height above the floor are feet
 CROTCH_HEIGHT = 0.47
-MIN_LEG = 0.25           # a leg's path from the pelvis shorter than this share of the height: no fit
+MIN_LEG = 0.15           # a leg's path from the pelvis shorter than this share of the height: no fit
 HEAD_ARC = 0.12          # a head's thickness is measured this share of the height below its tip
 HEAD_THICKER = 1.5       # ... and must be this many times a hand's     # legs together: where the legs meet, this share of the height above the floor
 # name: (parent, path, fraction of the path's arc); "{s}" is the side
