@@ -223,8 +223,19 @@ def border_views(masks) -> list[int]:
     inside pixel in its first or last row or column; device ``SilhouetteBits``: an inside pixel in the 8x8
     blocks along the border (their block tables; no read-back of the bits)."""
     if isinstance(masks, SilhouetteBits):
-        return [v for v, ((x0, y0, w, h), (W, H)) in enumerate(zip(silhouette_windows(masks), masks.sizes))
-                if w > 0 and (x0 == 0 or y0 == 0 or x0 + w == W or y0 + h == H)]
+        # the four border strips of blocks straight from each summed-area table T (zero first row and column):
+        # first block row T[1, Wb], first column T[Hb, 1], last row T[Hb, Wb] - T[Hb-1, Wb], last column
+        # T[Hb, Wb] - T[Hb, Wb-1] (the same views as silhouette_windows' block_window touching a border, without
+        # differencing every table: 1.8 -> 0.4 ms for 24 HD views)
+        raw = SilhouetteCL.get().read(masks.sat, int(masks.sat_off[-1]), np.int32)
+        out = []
+        for v, (w, h) in enumerate(masks.sizes):
+            wb, hb = (w + 7) // 8, (h + 7) // 8
+            t = raw[masks.sat_off[v]:masks.sat_off[v + 1]].reshape(hb + 1, wb + 1)
+            total = t[hb, wb]
+            if total > 0 and (t[1, wb] > 0 or t[hb, 1] > 0 or total > t[hb - 1, wb] or total > t[hb, wb - 1]):
+                out.append(v)
+        return out
     out = []
     for v, m in enumerate(masks):
         m = np.asarray(m)

@@ -30,10 +30,6 @@ from nodegraph import clrt
 EDGES = [(c, a) for a in range(3) for c in range(8) if not c >> a & 1]
 
 
-def _corner(c: int) -> np.ndarray:
-    return np.array([c & 1, c >> 1 & 1, c >> 2 & 1], dtype=float)
-
-
 def _edge_of(c0: int, c1: int) -> int:
     lo, hi = min(c0, c1), max(c0, c1)
     return EDGES.index((lo, (hi ^ lo).bit_length() - 1))
@@ -53,16 +49,29 @@ def _face_segments(case: int, axis: int, side: int) -> list[tuple[int, int]]:
         pairs = [(cross[0], cross[1], [ring[i] for i in range(4) if inside[i]])]
     else:  # ambiguous face: cut each inside corner off on its own
         pairs = [((i - 1) % 4, i, [ring[i]]) for i in range(4) if inside[i]]
-    normal = np.zeros(3)
-    normal[axis] = 1 if side else -1
     out = []
     for ia, ib, corners in pairs:
         ea, eb = edge(ia), edge(ib)
-        p = _corner(EDGES[ea][0]) + 0.5 * np.eye(3)[EDGES[ea][1]]
-        q = _corner(EDGES[eb][0]) + 0.5 * np.eye(3)[EDGES[eb][1]]
-        centre = np.mean([_corner(x) for x in corners], axis=0)
-        out.append((ea, eb) if np.dot(np.cross(q - p, centre - p), normal) < 0 else (eb, ea))
+        p, q = _midpoint(ea), _midpoint(eb)
+        cs = [_corner_xyz(x) for x in corners]
+        centre = [sum(c[k] for c in cs) / len(cs) for k in range(3)]
+        # the solid's normal along ``axis`` (outward: +1 on side 1, -1 on side 0) against cross(q - p, centre - p),
+        # whose ``axis`` component is all the dot product keeps (plain floats: 0.1 s of numpy calls at start-up)
+        u, w = [q[k] - p[k] for k in range(3)], [centre[k] - p[k] for k in range(3)]
+        i, j = (axis + 1) % 3, (axis + 2) % 3
+        along = u[i] * w[j] - u[j] * w[i]
+        out.append((ea, eb) if (along if side else -along) < 0 else (eb, ea))
     return out
+
+
+def _corner_xyz(c: int) -> tuple[float, float, float]:
+    return float(c & 1), float(c >> 1 & 1), float(c >> 2 & 1)
+
+
+def _midpoint(e: int) -> list[float]:
+    """The middle of edge ``e``: its first corner plus half a cell along its axis."""
+    c, a = EDGES[e]
+    return [x + (0.5 if k == a else 0.0) for k, x in enumerate(_corner_xyz(c))]
 
 
 def _faces_of(e: int) -> set:

@@ -28,3 +28,35 @@ def test_distance_outline_empty_and_full_masks():
     empty, full = outline(np.zeros((8, 9), np.uint8), np.full((8, 9), 255, np.uint8))
     assert np.all(np.isfinite(empty)) and empty.max() < 0.5   # nothing inside
     assert np.all(np.isfinite(full)) and full.min() >= 0.5    # everything inside
+
+
+def test_border_views_of_device_silhouettes_match_their_block_windows_and_the_host_masks():
+    """border_views on SilhouetteBits reads four border strips of each block table; it names the same views as
+    the block windows touching a border (silhouette_windows) and as the host masks' border rows and columns,
+    also for image sizes that are no multiple of 8 and for empty silhouettes."""
+    from nodes.common.silhouettes import SilhouetteBits, border_views, silhouette_windows
+
+    rng = np.random.default_rng(7)
+    masks = []
+    for w, h in [(37, 29), (64, 48), (41, 8), (8, 33), (50, 50), (23, 17), (64, 48), (9, 9)] * 3:
+        m = np.zeros((h, w), np.uint8)
+        case = len(masks) % 6
+        y, x = int(rng.integers(1, h - 1)), int(rng.integers(1, w - 1))
+        if case == 1:
+            m[y, x] = 255                                         # inside only
+        elif case == 2:
+            m[y, 0 if rng.random() < 0.5 else w - 1] = 200        # left or right column
+        elif case == 3:
+            m[0 if rng.random() < 0.5 else h - 1, x] = 128        # top or bottom row
+        elif case == 4:
+            m[1:-1, 1:-1] = 255                                   # one pixel from every border
+        elif case == 5:
+            m[:] = 255
+        masks.append(m)                                           # case 0: empty
+    bits = SilhouetteBits.from_masks(masks)
+    by_windows = [v for v, ((x0, y0, w, h), (W, H)) in enumerate(zip(silhouette_windows(bits), bits.sizes))
+                  if w > 0 and (x0 == 0 or y0 == 0 or x0 + w == W or y0 + h == H)]
+    assert border_views(bits) == by_windows
+    views = border_views(bits)
+    assert not any(v % 6 == 0 for v in views)                      # empty: never
+    assert all(v in views for v in range(len(masks)) if v % 6 in (2, 3, 4, 5))   # a pixel in a border block

@@ -43,6 +43,17 @@ def test_case_table_is_complementary_in_count():
         assert ntri[case] == 1 and ntri[255 - case] == 1
 
 
+def test_case_table_is_the_one_the_meshes_were_made_with():
+    """The table is derived at start-up (mc.case_table); its bytes are pinned, so a faster derivation (plain floats
+    instead of numpy, 0.14 -> 0.03 s) cannot change a single triangle of any mesh."""
+    import hashlib
+
+    ntri, table = case_table()
+    assert table.shape == (256, 5, 3) and table.dtype == np.int8 and ntri.dtype == np.int32
+    assert hashlib.sha256(ntri.tobytes() + table.tobytes()).hexdigest() == \
+        "cb30c46fb631b512c1c26b56aec1ae66d1edd7d1de80a1a1c3a1b8e2c9283589"
+
+
 @pytest.mark.parametrize("kind", ["ball", "noise", "soft", "long_rows", "soft_below_zero"])
 def test_kernel_equals_reference(kind):
     rng = np.random.default_rng(3)
