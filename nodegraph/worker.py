@@ -11,12 +11,15 @@ down (its dependents in the unit are skipped); the traceback goes to the item's 
 """
 from __future__ import annotations
 
+import copy
 import gc
 import logging
 import os
 import time
 import traceback
 from pathlib import Path
+
+import numpy as np
 
 from .cache import Cache
 from .errors import DataError, NodeError, VolcapError
@@ -68,11 +71,13 @@ class CorruptInput(VolcapError):
 class Values:
     """The in-memory outputs of a unit's items, each dropped once its last reader in the unit has read it; also
     a cached input that several of the unit's items read (a frame's cameras, read by the key and the hull), loaded
-    once and handed to each of them like an in-memory value."""
+    once and kept pristine: each reader but the last gets its own copy (``private_copy``), as if it had loaded
+    it from the cache itself, so a reader that edits its input cannot change another's."""
 
     def __init__(self, readers: dict | None = None):
         self.values: dict[str, object] = {}
         self.left = dict(readers or {})   # Ref.name -> readers still to come
+        self.loaded: set[str] = set()     # the names in ``values`` that came from the cache
 
     def put(self, ref: Ref, value):
         if self.left.get(ref.name, 0) > 0:
@@ -86,7 +91,55 @@ class Values:
         self.left[ref.name] -= 1
         if self.left[ref.name] <= 0:
             del self.values[ref.name]
+            self.loaded.discard(ref.name)
+        elif ref.name in self.loaded:
+            try:
+                value = private_copy(value)
+            except Exception:   # not copyable: this reader loads its own from the cache
+                self.left[ref.name] += 1
+                return False, None
         return True, value
+
+    def share(self, ref: Ref, value):
+        """``value`` just loaded from the cache for one reader: kept for the unit's later readers of it when there
+        are any. Returns what this reader gets (its own copy when others are to come)."""
+        if self.left.get(ref.name, 0) <= 1 or ref.name in self.values:
+            return value
+        try:
+            mine = private_copy(value)
+        except Exception:   # not copyable: every reader loads its own
+            return value
+        self.left[ref.name] -= 1
+        self.values[ref.name] = value
+        self.loaded.add(ref.name)
+        return mine
+
+
+def private_copy(value):
+    """A deep copy of a value loaded from the cache, sharing its read-only arrays (memory-mapped images and
+    masks: nobody can edit them, and copying 24 HD images would cost more than loading them)."""
+    memo: dict = {}
+    _seed_read_only(value, memo, 0)
+    return copy.deepcopy(value, memo)
+
+
+def _seed_read_only(x, memo: dict, depth: int):
+    if isinstance(x, np.ndarray):
+        if not x.flags.writeable:
+            memo[id(x)] = x
+        return
+    if depth > 6 or isinstance(x, (str, bytes, int, float, bool, type(None))):
+        return
+    if isinstance(x, dict):
+        items = x.values()
+    elif isinstance(x, (list, tuple)):
+        items = x
+    elif hasattr(x, "__dict__"):
+        items = vars(x).values()
+    else:
+        return
+    for y in items:
+        _seed_read_only(y, memo, depth + 1)
 
 
 def _load_input(cache: Cache, port: str, ref: Ref, memory: Values | None):
@@ -98,10 +151,8 @@ def _load_input(cache: Cache, port: str, ref: Ref, memory: Values | None):
         value = cache.load(ref.key, ref.port, resolve_type(ref.type))
     except DataError as exc:
         raise CorruptInput(ref.key, f"input '{port}': {exc}; the entry was removed, rerun to recompute it") from None
-    if memory is not None:   # more readers of this cached value in the unit: they get it from memory
-        memory.put(ref, value)
-        memory.take(ref)
-    return value
+    # more readers of this cached value in the unit: they get it from memory
+    return value if memory is None else memory.share(ref, value)
 
 
 def _readers(unit: UnitSpec) -> dict[str, int]:
@@ -144,7 +195,9 @@ def _settle():
     """After a process's first unit (its imports done, its kernels built): one full garbage collection, then the
     objects left (modules, classes, programs: some 10^5) are frozen out of the collector's sight. Each later
     full collection otherwise walked them all: 40-90 ms, three times in a 20-frame key -> hull -> mc run, the last
-    at exit."""
+    at exit. Frozen objects are still freed by reference counting; only a reference cycle among them that
+    becomes garbage later is never collected (bounded by what was alive here, the unit's own values dropped
+    first: ``memory`` is gone, the collection runs before the freeze)."""
     if not _SETTLED:
         _SETTLED.append(True)
         gc.collect()
@@ -251,7 +304,10 @@ def execute(spec: ItemSpec, cache_root: str, memory: Values | None = None, cache
         path.parent.mkdir(parents=True, exist_ok=True)
         # a new file, not the last run's truncated: ext4 flushes a truncated-and-rewritten file when it is closed
         # (auto_da_alloc), 0.2 ms per item on an idle machine and about 2 ms under load, three times a frame
-        path.unlink(missing_ok=True)
+        try:
+            path.unlink(missing_ok=True)
+        except OSError:   # e.g. a folder the file may be rewritten in but not removed from: truncate it
+            pass
         handler = logging.FileHandler(spec.log, mode="w")
         handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
         log.addHandler(handler)

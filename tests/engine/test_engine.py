@@ -716,3 +716,28 @@ def test_a_long_item_shows_its_progress_on_the_bar(tmp_path, monkeypatch, jobs):
         assert steps == [f"steps@all {i}/5 steps" for i in range(1, 6)], shown
     else:
         assert len(steps) >= 2 and len(set(steps)) == len(steps), shown
+
+
+def test_a_cached_input_several_items_read_is_each_ones_own(tmp_path, monkeypatch):
+    """A cached value read by several items of a unit is loaded once (worker._load_input), yet each reader gets
+    its own: one that edits its input in place (against the contract) cannot change what the next one reads,
+    as when each loaded it from the cache."""
+    text = ("frames: 0:2\nnodes:\n  src: {type: t.source, params: {value: 1.0}, keep: [out]}\n"
+            "  a: {type: t.scale, in: {x: src.out}, params: {factor: %s}}\n"
+            "  b: {type: t.scale, in: {x: src.out}, params: {factor: %s}}\n"
+            "  c: {type: t.scale, in: {x: src.out}, params: {factor: %s}}\n")
+    assert run(tmp_path, write(tmp_path, text % (2, 3, 5))).ok
+
+    def in_place(self, x, *, factor, mode):
+        x *= factor
+        return {"out": x.copy()}
+
+    monkeypatch.setattr(enginenodes.Scale, "run", in_place)
+    res = run(tmp_path, write(tmp_path, text % (7, 11, 13)))   # a, b and c run; src comes from the cache
+    assert res.ok
+    done = {(r["node"], r["frame"]): (r["status"], r["cache_hit"], r["key"]) for r in res.records}
+    assert all(done[("src", f)][1] for f in (0, 1)) and not any(done[(n, 0)][1] for n in "abc")
+    cache = Cache(tmp_path / "cache")
+    for f in (0, 1):
+        for n, factor in zip("abc", (7, 11, 13)):
+            np.testing.assert_array_equal(cache.load(done[(n, f)][2], "out", enginenodes.Array), np.full(4, (1 + f) * factor))

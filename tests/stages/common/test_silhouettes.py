@@ -60,3 +60,32 @@ def test_border_views_of_device_silhouettes_match_their_block_windows_and_the_ho
     views = border_views(bits)
     assert not any(v % 6 == 0 for v in views)                      # empty: never
     assert all(v in views for v in range(len(masks)) if v % 6 in (2, 3, 4, 5))   # a pixel in a border block
+
+
+def test_border_views_of_device_silhouettes_on_random_masks():
+    """The corner reads of border_views against the former per-view differencing of the whole block table
+    (silhouette_windows) and against a host reference (block_table_reference: a border block holding an inside
+    pixel), on random masks of random sizes and densities, a few pixels to most of the image, touching any of the four borders or none."""
+    from nodes.common.silhouettes import (SilhouetteBits, block_table_reference, border_views,
+                                          silhouette_windows)
+
+    rng = np.random.default_rng(11)
+    for trial in range(8):
+        masks = []
+        for _ in range(16):
+            w, h = int(rng.integers(1, 90)), int(rng.integers(1, 70))
+            density = float(rng.choice([0.0, 0.0005, 0.003, 0.02, 0.3]))
+            m = np.where(rng.random((h, w)) < density, rng.integers(128, 256, (h, w)), rng.integers(0, 128, (h, w)))
+            if rng.random() < 0.7:   # clear random margins (1-17 pixels, or none, a side): off the border too
+                t, b, l, r = np.where(rng.random(4) < 0.25, 0, rng.integers(1, 18, 4))
+                m[:t], m[h - b:], m[:, :l], m[:, w - r:] = 0, 0, 0, 0
+            masks.append(m.astype(np.uint8))
+        bits = SilhouetteBits.from_masks(masks)
+        by_windows = [v for v, ((x0, y0, w, h), (W, H)) in enumerate(zip(silhouette_windows(bits), bits.sizes))
+                      if w > 0 and (x0 == 0 or y0 == 0 or x0 + w == W or y0 + h == H)]
+        reference = []
+        for v, m in enumerate(masks):
+            c = np.diff(np.diff(block_table_reference(m), axis=0), axis=1)
+            if c[0].any() or c[-1].any() or c[:, 0].any() or c[:, -1].any():
+                reference.append(v)
+        assert border_views(bits) == by_windows == reference, trial
