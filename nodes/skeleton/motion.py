@@ -33,34 +33,23 @@ from nodes.common.meshops import edge_length_graph
 # ---------------------------------------------------------------- the data, in the layouts the products need
 class Trajectories:
     """A dynamic mesh's rest positions (V, 3) and frames (F, V, 3), with the layouts used below computed
-    once: ``by_vertex`` (V, 3F), ``by_frame`` (3F, V), squared norms per vertex and frame ``qq`` (F, V)."""
+    once: ``by_vertex`` (V, 3F), squared norms per vertex and frame ``qq`` (F, V)."""
 
     def __init__(self, rest: np.ndarray, frames: np.ndarray):
         self.rest = np.ascontiguousarray(rest, np.float64)
         self.frames = np.ascontiguousarray(frames, np.float64)
         f, v = self.frames.shape[:2]
         self.by_vertex = np.ascontiguousarray(self.frames.transpose(1, 0, 2).reshape(v, 3 * f))
-        self.by_frame = np.ascontiguousarray(self.by_vertex.T)
         self.qq = (self.frames * self.frames).sum(2)
 
     @property
     def count(self) -> int:
         return self.frames.shape[0]
 
-    @property
-    def lifted(self) -> np.ndarray:
-        """(V, 3F * 4): each vertex's trajectory times its homogeneous rest position, q_tk * [p, 1]_c (column
-        (t, k, c)), made once: ``motion_errors``' cross term for every motion is one product with it."""
-        if "_lifted" not in self.__dict__:
-            vh = np.c_[self.rest, np.ones(len(self.rest))]
-            self._lifted = (self.by_vertex[:, :, None] * vh[:, None, :]).reshape(len(self.rest), -1)
-        return self._lifted
-
     def with_rest(self, rest: np.ndarray) -> "Trajectories":
         """The same frames with another rest shape (no copies of the frame layouts)."""
         out = object.__new__(Trajectories)
         out.__dict__.update(self.__dict__)
-        out.__dict__.pop("_lifted", None)
         out.rest = np.ascontiguousarray(rest, np.float64)
         return out
 
@@ -326,15 +315,17 @@ def _transforms(traj, labels, b):
 
 def motion_errors(traj: Trajectories, rot: np.ndarray, tr: np.ndarray) -> np.ndarray:
     """(V, B) squared distance, summed over frames, between each vertex's trajectory and where motion b
-    takes its rest position: sum_t |R_tb v + t_tb - q_tv|^2, from per-motion Gram matrices (no (V, B, F)
-    array)."""
+    takes its rest position: sum_t |R_tb v + t_tb - q_tv|^2 = vh^T G_b vh - 2 vh . (sum_t X_tb^T q_tv) + |q_v|^2
+    with X = [R | t] and G_b = sum_t X^T X (no (V, B, F) array); the cross term is one product of the
+    trajectories (V, 3F) with all motions (3F, 4B)."""
     f, b = rot.shape[:2]
     x = np.concatenate([rot, tr[..., None]], axis=-1)                  # (F, B, 3, 4)
     vh = np.c_[traj.rest, np.ones(len(traj.rest))]                     # (V, 4)
     xs = x.transpose(1, 0, 2, 3).reshape(b, 3 * f, 4)                  # (B, 3F, 4), rows (frame, axis)
     gram = np.einsum("bkc,bkd->bcd", xs, xs)                           # sum_t X^T X   (B, 4, 4)
     pp = (vh[:, :, None] * vh[:, None, :]).reshape(-1, 16) @ gram.reshape(b, 16).T
-    pq = traj.lifted @ xs.reshape(b, -1).T                             # sum_t q^T X vh  (V, B)
+    cross = (traj.by_vertex @ xs.transpose(1, 0, 2).reshape(3 * f, 4 * b)).reshape(-1, b, 4)   # sum_t X^T q
+    pq = np.einsum("vbc,vc->vb", cross, vh)
     return np.maximum(pp - 2 * pq + traj.qq.sum(0)[:, None], 0.0)
 
 
