@@ -96,12 +96,6 @@ def part_arrays(traj: Trajectories, labels: np.ndarray, b: int):
     return n, sp, sq, spq, spp, sqq
 
 
-def part_moments(traj: Trajectories, labels: np.ndarray, b: int) -> list[Moments]:
-    """Moments of every part (``part_arrays``) as one Moments per part."""
-    n, sp, sq, spq, spp, sqq = part_arrays(traj, labels, b)
-    return [Moments(float(n[i]), sp[i], sq[i], spq[i], float(spp[i]), sqq[i]) for i in range(b)]
-
-
 def kabsch(m: Moments) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Best rigid motions rest -> frame of a moment set: (R (F, 3, 3), t (F, 3), residual (F,) = summed
     squared distances after the fit)."""
@@ -222,56 +216,68 @@ def rigid_parts(rest: np.ndarray, frames: np.ndarray, faces: np.ndarray, *, bone
     label = patches(rest, faces, patch_count)
     k = int(label.max()) + 1
     say(f"{k} surface patches of {len(rest)} vertices, {frames.shape[0]} frames")
-    mom: dict[int, Moments] = dict(enumerate(part_moments(traj, label, k)))
-    err = {i: float(kabsch(m)[2].sum()) for i, m in mom.items()}
-    cent = np.array([m.sp / m.n for m in mom.values()])
-    adj = _connect_components(label_adjacency(label, edges, k), cent)
-    nbr = {i: set(np.flatnonzero(adj[i])) for i in range(k)}
-    nf = frames.shape[0]
-    members = {i: [i] for i in range(k)}
-
-    def merge_cost(a, b):
-        m = mom[a] + mom[b]
-        e = float(kabsch(m)[2].sum())
-        return e - err[a] - err[b], e, m
-
-    heap = []
-    for a in range(k):
-        for b in nbr[a]:
-            if a < b:
-                heapq.heappush(heap, (merge_cost(a, b)[0], a, b))
     target = 2 * bones if bones > 0 else 1
-    limit = (0.5 * tolerance * diag) ** 2
-    alive = k
-    while alive > target and heap:
-        c, a, b = heapq.heappop(heap)
-        if a not in mom or b not in mom:
-            continue
-        cost, e, m = merge_cost(a, b)
-        if abs(cost - c) > 1e-12 * max(1.0, abs(c)):  # stale entry: the parts changed since it was pushed
-            heapq.heappush(heap, (cost, a, b))
-            continue
-        if bones <= 0 and cost / (min(mom[a].n, mom[b].n) * nf) > limit:
-            continue  # the smaller part would follow the other's motion worse than the tolerance
-        mom[a], err[a] = m, e
-        del mom[b], err[b]
-        members[a] += members.pop(b)
-        nbr[a] = (nbr[a] | nbr.pop(b)) - {a, b}
-        for x in nbr[a]:
-            nbr[x].discard(b)
-            nbr[x].add(a)
-            heapq.heappush(heap, (merge_cost(min(a, x), max(a, x))[0], min(a, x), max(a, x)))
-        alive -= 1
-    part_of_patch = np.empty(k, np.int64)
-    for new, (_, pts) in enumerate(sorted(members.items())):
-        part_of_patch[pts] = new
-    labels = part_of_patch[label]
-    say(f"merged into {alive} parts")
+    labels = _merge_patches(traj, edges, label, k, target, (0.5 * tolerance * diag) ** 2 if bones <= 0 else None)
+    say(f"merged into {int(labels.max()) + 1} parts")
     labels = _reassign(traj, edges, labels, refine)
     labels = _eliminate(traj, edges, labels, bones, (tolerance * diag) ** 2, refine, say)
     out = _finish(traj, edges, labels)
     say(f"{len(out.residual)} rigid parts")
     return out
+
+
+def _pair_errors(mom, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Summed Kabsch residual of the union of parts a[i] and b[i], for all pairs in one SVD call (``mom``:
+    ``part_arrays``' moment arrays)."""
+    return kabsch_arrays(*(m[a] + m[b] for m in mom))[2].sum(-1)
+
+
+def _merge_patches(traj, edges, label, k, target, limit) -> np.ndarray:
+    """Merge neighbouring patches greedily, cheapest first (module docstring), until ``target`` parts remain;
+    with a ``limit`` (mean squared distance per vertex and frame), skip merges that would cost the smaller
+    part more. Returns the part of each vertex, parts numbered in the order of their lowest patch.
+
+    A merged part's moments are kept at its lowest patch (moments are sums). Each heap entry (cost, a, b)
+    is checked against the pair's latest pushed cost: the costs of all pairs with a merged part are pushed
+    again (in one batch) right after the merge, so an entry whose cost differs is stale."""
+    mom = list(part_arrays(traj, label, k))
+    n, nf = mom[0], traj.count
+    err = kabsch_arrays(*mom)[2].sum(-1).tolist()
+    adj = _connect_components(label_adjacency(label, edges, k), mom[1] / n[:, None])
+    nbr = {i: set(np.flatnonzero(adj[i]).tolist()) for i in range(k)}
+    members = {i: [i] for i in range(k)}
+    heap, latest = [], {}
+
+    def push(a, b):
+        for x, y, e in zip(a.tolist(), b.tolist(), _pair_errors(mom, a, b).tolist()):
+            latest[x, y] = (e - err[x] - err[y], e)
+            heapq.heappush(heap, (latest[x, y][0], x, y))
+
+    pairs = np.array([(a, b) for a in range(k) for b in sorted(nbr[a]) if a < b], np.int64).reshape(-1, 2)
+    push(pairs[:, 0], pairs[:, 1])
+    alive = k
+    while alive > target and heap:
+        c, a, b = heapq.heappop(heap)
+        if a not in members or b not in members or latest[a, b][0] != c:
+            continue  # a part is gone, or the entry is stale (the pair changed since it was pushed)
+        if limit is not None and c / (min(n[a], n[b]) * nf) > limit:
+            continue  # the smaller part would follow the other's motion worse than the tolerance
+        for m in mom:
+            m[a] = m[a] + m[b]
+        err[a] = latest[a, b][1]
+        members[a] += members.pop(b)
+        nbr[a] = (nbr[a] | nbr.pop(b)) - {a, b}
+        for x in nbr[a]:
+            nbr[x].discard(b)
+            nbr[x].add(a)
+        if nbr[a]:
+            other = np.array(sorted(nbr[a]), np.int64)
+            push(np.minimum(a, other), np.maximum(a, other))
+        alive -= 1
+    part_of_patch = np.empty(k, np.int64)
+    for new, (_, pts) in enumerate(sorted(members.items())):
+        part_of_patch[pts] = new
+    return part_of_patch[label]
 
 
 def _eliminate(traj, edges, labels, bones, limit, refine, say=lambda msg: None):
