@@ -78,13 +78,16 @@ def moments(rest: np.ndarray, frames: np.ndarray, idx: np.ndarray) -> Moments:
                    (q * q).sum(axis=(1, 2)))
 
 
-def part_arrays(traj: Trajectories, labels: np.ndarray, b: int):
+def part_arrays(traj: Trajectories, labels: np.ndarray, b: int, vertices: np.ndarray | None = None):
     """Moments of every part at once as arrays (n (B,), sp (B, 3), sq (B, F, 3), spq (B, F, 3, 3), spp (B,),
-    sqq (B, F)): sparse one-hot products, no per-part copies."""
+    sqq (B, F)): sparse one-hot products, no per-part copies. With ``vertices``, only theirs (``labels``
+    then gives their parts)."""
     from scipy.sparse import csr_matrix
 
-    rest, q = traj.rest, traj.by_vertex
-    f, v = traj.frames.shape[:2]
+    rest, q, qq = traj.rest, traj.by_vertex, traj.qq.T
+    if vertices is not None:
+        rest, q, qq = rest[vertices], q[vertices], qq[vertices]
+    f, v = traj.count, len(rest)
     onehot = csr_matrix((np.ones(v), (labels, np.arange(v))), shape=(b, v))
     n = np.asarray(onehot.sum(1)).ravel()
     sp = onehot @ rest
@@ -92,8 +95,19 @@ def part_arrays(traj: Trajectories, labels: np.ndarray, b: int):
     spq = np.stack([(onehot.multiply(rest[:, a][None])).tocsr() @ q for a in range(3)], axis=1)  # (B, 3, F*3)
     spq = spq.reshape(b, 3, f, 3).transpose(0, 2, 1, 3)
     spp = onehot @ (rest * rest).sum(1)
-    sqq = onehot @ traj.qq.T                                            # (B, F)
+    sqq = onehot @ qq                                                   # (B, F)
     return n, sp, sq, spq, spp, sqq
+
+
+def moved(traj: Trajectories, mom, old: np.ndarray, new: np.ndarray):
+    """The part moments ``mom`` (``part_arrays``) after every vertex moves from part old[v] to new[v]:
+    moments are sums, so only the vertices that change part are subtracted and added, O(moved x frames)
+    instead of O(vertices x frames)."""
+    idx = np.flatnonzero(old != new)
+    if not len(idx):
+        return mom
+    b = len(mom[0])
+    return tuple(m - o + i for m, o, i in zip(mom, part_arrays(traj, old[idx], b, idx), part_arrays(traj, new[idx], b, idx)))
 
 
 def kabsch(m: Moments) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -219,8 +233,8 @@ def rigid_parts(rest: np.ndarray, frames: np.ndarray, faces: np.ndarray, *, bone
     target = 2 * bones if bones > 0 else 1
     labels = _merge_patches(traj, edges, label, k, target, (0.5 * tolerance * diag) ** 2 if bones <= 0 else None)
     say(f"merged into {int(labels.max()) + 1} parts")
-    labels = _reassign(traj, edges, labels, refine)
-    labels = _eliminate(traj, edges, labels, bones, (tolerance * diag) ** 2, refine, say)
+    labels, mom = _reassign(traj, edges, labels, refine)
+    labels = _eliminate(traj, edges, labels, mom, bones, (tolerance * diag) ** 2, refine, say)
     out = _finish(traj, edges, labels)
     say(f"{len(out.residual)} rigid parts")
     return out
@@ -280,19 +294,21 @@ def _merge_patches(traj, edges, label, k, target, limit) -> np.ndarray:
     return part_of_patch[label]
 
 
-def _eliminate(traj, edges, labels, bones, limit, refine, say=lambda msg: None):
+def _eliminate(traj, edges, labels, mom, bones, limit, refine, say=lambda msg: None):
     """Remove parts one at a time, the one whose vertices are best explained by their neighbouring parts'
     motions first (a part straddling a joint splits between both sides, which a merge cannot do), until
     ``bones`` remain, or (bones = 0) until removing any would cost its vertices more than ``limit`` (mean
-    squared distance per vertex and frame)."""
+    squared distance per vertex and frame). ``mom``: the part moments of ``labels`` (``part_arrays``), updated
+    as vertices move."""
     nf = traj.count
     while True:
-        labels = np.searchsorted(np.unique(labels), labels)
-        b = int(labels.max()) + 1
+        used = np.unique(labels)
+        labels, mom = np.searchsorted(used, labels), tuple(m[used] for m in mom)
+        b = len(used)
         if (bones > 0 and b <= bones) or b == 1:
             return labels
         say(f"removing parts: {b} left" + (f", target {bones}" if bones > 0 else ""))
-        rot, tr, _ = _transforms(traj, labels, b)
+        rot, tr, _ = _transforms(mom, nf)
         err = motion_errors(traj, rot, tr)
         adj = label_adjacency(labels, edges, b) > 0
         own = err[np.arange(len(labels)), labels]
@@ -308,14 +324,18 @@ def _eliminate(traj, edges, labels, bones, limit, refine, say=lambda msg: None):
         idx = np.flatnonzero(labels == worst)
         new = labels.copy()
         new[idx] = np.argmin(other[idx], axis=1)
-        labels = _reassign(traj, edges, np.searchsorted(np.unique(new), new), refine)
+        mom = moved(traj, mom, labels, new)
+        used = np.unique(new)
+        labels, mom = _reassign(traj, edges, np.searchsorted(used, new), refine, tuple(m[used] for m in mom))
 
 
-def _transforms(traj, labels, b):
-    n, sp, sq, spq, spp, sqq = part_arrays(traj, labels, b)
+def _transforms(mom, nf):
+    """Kabsch motions of all parts from their moments (``part_arrays``): R (F, B, 3, 3), t (F, B, 3) and the
+    rms residual (B,) over ``nf`` frames."""
+    n = mom[0]
     with np.errstate(invalid="ignore", divide="ignore"):  # an empty part: NaN motions, never chosen
-        r, t, e = kabsch_arrays(n, sp, sq, spq, spp, sqq)
-    res = np.sqrt(e.sum(1) / (np.maximum(n, 1.0) * traj.count))
+        r, t, e = kabsch_arrays(*mom)
+    res = np.sqrt(e.sum(1) / (np.maximum(n, 1.0) * nf))
     return r.transpose(1, 0, 2, 3), t.transpose(1, 0, 2), res
 
 
@@ -335,11 +355,15 @@ def motion_errors(traj: Trajectories, rot: np.ndarray, tr: np.ndarray) -> np.nda
     return np.maximum(pp - 2 * pq + traj.qq.sum(0)[:, None], 0.0)
 
 
-def _reassign(traj, edges, labels, rounds):
-    """Move vertices to the neighbouring part (or their own) whose motion predicts their trajectory best."""
+def _reassign(traj, edges, labels, rounds, mom=None):
+    """Move vertices to the neighbouring part (or their own) whose motion predicts their trajectory best.
+    Returns the labels and their part moments (``mom``: those of the given labels, kept up to date by the
+    moved vertices only)."""
     b = int(labels.max()) + 1
+    if mom is None:
+        mom = part_arrays(traj, labels, b)
     for _ in range(rounds):
-        rot, tr, _ = _transforms(traj, labels, b)
+        rot, tr, _ = _transforms(mom, traj.count)
         adj = label_adjacency(labels, edges, b) > 0
         np.fill_diagonal(adj, True)
         err = motion_errors(traj, rot, tr)
@@ -348,8 +372,9 @@ def _reassign(traj, edges, labels, rounds):
         new = _keep_connected(new, edges, b, labels)
         if np.array_equal(new, labels):
             break
+        mom = moved(traj, mom, labels, new)
         labels = new
-    return labels
+    return labels, mom
 
 
 def _keep_connected(labels, edges, b, fallback):
@@ -381,7 +406,7 @@ def _finish(traj, edges, labels) -> RigidParts:
     used = np.unique(labels)
     labels = np.searchsorted(used, labels)
     b = len(used)
-    rot, tr, res = _transforms(traj, labels, b)
+    rot, tr, res = _transforms(part_arrays(traj, labels, b), traj.count)   # afresh, not updated sums
     cent = np.array([traj.rest[labels == i].mean(0) for i in range(b)])
     adj = _connect_components(label_adjacency(labels, edges, b), cent)
     return RigidParts(labels, rot, tr, adj, res)
