@@ -82,36 +82,45 @@ def moments(rest: np.ndarray, frames: np.ndarray, idx: np.ndarray) -> Moments:
                    (q * q).sum(axis=(1, 2)))
 
 
-def part_arrays(traj: Trajectories, labels: np.ndarray, b: int, vertices: np.ndarray | None = None):
+def part_arrays(traj: Trajectories, labels: np.ndarray, b: int):
     """Moments of every part at once as arrays (n (B,), sp (B, 3), sq (B, F, 3), spq (B, F, 3, 3), spp (B,),
-    sqq (B, F)): sparse one-hot products, no per-part copies. With ``vertices``, only theirs (``labels``
-    then gives their parts)."""
+    sqq (B, F)): sparse one-hot products, no per-part copies."""
     from scipy.sparse import csr_matrix
 
+    v = len(labels)
+    return _weighted_sums(traj, csr_matrix((np.ones(v), (labels, np.arange(v))), shape=(b, v)))
+
+
+def _weighted_sums(traj: Trajectories, w, vertices: np.ndarray | None = None):
+    """``part_arrays``' moments with a sparse weight (B, V) of each vertex in each part (or (B, M) of only
+    ``vertices``)."""
     rest, q, qq = traj.rest, traj.by_vertex, traj.qq.T
     if vertices is not None:
         rest, q, qq = rest[vertices], q[vertices], qq[vertices]
-    f, v = traj.count, len(rest)
-    onehot = csr_matrix((np.ones(v), (labels, np.arange(v))), shape=(b, v))
-    n = np.asarray(onehot.sum(1)).ravel()
-    sp = onehot @ rest
-    sq = (onehot @ q).reshape(b, f, 3)
-    spq = np.stack([(onehot.multiply(rest[:, a][None])).tocsr() @ q for a in range(3)], axis=1)  # (B, 3, F*3)
+    b, f = w.shape[0], traj.count
+    n = np.asarray(w.sum(1)).ravel()
+    sp = w @ rest
+    sq = (w @ q).reshape(b, f, 3)
+    spq = np.stack([(w.multiply(rest[:, a][None])).tocsr() @ q for a in range(3)], axis=1)  # (B, 3, F*3)
     spq = spq.reshape(b, 3, f, 3).transpose(0, 2, 1, 3)
-    spp = onehot @ (rest * rest).sum(1)
-    sqq = onehot @ qq                                                   # (B, F)
+    spp = w @ (rest * rest).sum(1)
+    sqq = w @ qq                                                        # (B, F)
     return n, sp, sq, spq, spp, sqq
 
 
 def moved(traj: Trajectories, mom, old: np.ndarray, new: np.ndarray):
     """The part moments ``mom`` (``part_arrays``) after every vertex moves from part old[v] to new[v]:
-    moments are sums, so only the vertices that change part are subtracted and added, O(moved x frames)
-    instead of O(vertices x frames)."""
+    moments are sums, so only the vertices that change part are subtracted and added (one sparse product
+    with weights +1 in the new part, -1 in the old), O(moved x frames) instead of O(vertices x frames)."""
+    from scipy.sparse import csr_matrix
+
     idx = np.flatnonzero(old != new)
     if not len(idx):
         return mom
-    b = len(mom[0])
-    return tuple(m - o + i for m, o, i in zip(mom, part_arrays(traj, old[idx], b, idx), part_arrays(traj, new[idx], b, idx)))
+    m = np.arange(len(idx))
+    w = csr_matrix((np.r_[np.ones(len(idx)), -np.ones(len(idx))], (np.r_[new[idx], old[idx]], np.r_[m, m])),
+                   shape=(len(mom[0]), len(idx)))
+    return tuple(a + d for a, d in zip(mom, _weighted_sums(traj, w, idx)))
 
 
 def kabsch(m: Moments) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
