@@ -108,19 +108,47 @@ def _weighted_sums(traj: Trajectories, w, vertices: np.ndarray | None = None):
     return n, sp, sq, spq, spp, sqq
 
 
-def moved(traj: Trajectories, mom, old: np.ndarray, new: np.ndarray):
-    """The part moments ``mom`` (``part_arrays``) after every vertex moves from part old[v] to new[v]:
-    moments are sums, so only the vertices that change part are subtracted and added (one sparse product
-    with weights +1 in the new part, -1 in the old), O(moved x frames) instead of O(vertices x frames)."""
-    from scipy.sparse import csr_matrix
+class _Fits:
+    """The current parts' moments (``part_arrays``), Kabsch motions (rot (F, B, 3, 3), tr (F, B, 3)) and
+    every vertex's ``motion_errors`` under every part's motion, for labels that change a few vertices at a
+    time: moving vertices updates the moments of the parts they leave and join (moments are sums: one
+    signed sparse product over the moved vertices), and only those parts' motions and error columns are
+    computed again, when next asked for (``errors``)."""
 
-    idx = np.flatnonzero(old != new)
-    if not len(idx):
-        return mom
-    m = np.arange(len(idx))
-    w = csr_matrix((np.r_[np.ones(len(idx)), -np.ones(len(idx))], (np.r_[new[idx], old[idx]], np.r_[m, m])),
-                   shape=(len(mom[0]), len(idx)))
-    return tuple(a + d for a, d in zip(mom, _weighted_sums(traj, w, idx)))
+    def __init__(self, traj: Trajectories, labels: np.ndarray, b: int):
+        self.traj = traj
+        self.mom = part_arrays(traj, labels, b)
+        f, v = traj.count, len(labels)
+        self.rot, self.tr, self.err = np.empty((f, b, 3, 3)), np.empty((f, b, 3)), np.empty((v, b))
+        self.stale = np.arange(b)
+
+    def move(self, old: np.ndarray, new: np.ndarray):
+        """Every vertex moves from part old[v] to new[v]."""
+        from scipy.sparse import csr_matrix
+
+        idx = np.flatnonzero(old != new)
+        m = np.arange(len(idx))
+        w = csr_matrix((np.r_[np.ones(len(idx)), -np.ones(len(idx))], (np.r_[new[idx], old[idx]], np.r_[m, m])),
+                       shape=(len(self.mom[0]), len(idx)))
+        self.mom = tuple(a + d for a, d in zip(self.mom, _weighted_sums(self.traj, w, idx)))
+        self.stale = np.union1d(self.stale, np.r_[old[idx], new[idx]])
+
+    def keep(self, used: np.ndarray):
+        """Only parts ``used`` (sorted) remain, numbered 0, 1, ... in that order."""
+        self.mom = tuple(m[used] for m in self.mom)
+        self.rot, self.tr, self.err = self.rot[:, used], self.tr[:, used], self.err[:, used]
+        self.stale = np.flatnonzero(np.isin(used, self.stale))
+
+    def errors(self) -> np.ndarray:
+        """(V, B) ``motion_errors`` of the current motions (NaN columns for empty parts)."""
+        if len(self.stale):
+            p = self.stale
+            with np.errstate(invalid="ignore", divide="ignore"):  # an empty part: NaN motions, never chosen
+                r, t, _ = kabsch_arrays(*(m[p] for m in self.mom))
+            self.rot[:, p], self.tr[:, p] = r.transpose(1, 0, 2, 3), t.transpose(1, 0, 2)
+            self.err[:, p] = motion_errors(self.traj, self.rot[:, p], self.tr[:, p])
+            self.stale = np.arange(0)
+        return self.err
 
 
 def kabsch(m: Moments) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -264,8 +292,9 @@ def rigid_parts(rest: np.ndarray, frames: np.ndarray, faces: np.ndarray, *, bone
     target = 2 * bones if bones > 0 else 1
     labels = _merge_patches(traj, edges, label, k, target, (0.5 * tolerance * diag) ** 2 if bones <= 0 else None)
     say(f"merged into {int(labels.max()) + 1} parts")
-    labels, mom = _reassign(traj, edges, labels, refine)
-    labels = _eliminate(traj, edges, labels, mom, bones, (tolerance * diag) ** 2, refine, say)
+    fits = _Fits(traj, labels, int(labels.max()) + 1)
+    labels = _reassign(traj, edges, labels, refine, fits)
+    labels = _eliminate(traj, edges, labels, fits, bones, (tolerance * diag) ** 2, refine, say)
     out = _finish(traj, edges, labels)
     say(f"{len(out.residual)} rigid parts")
     return out
@@ -325,22 +354,21 @@ def _merge_patches(traj, edges, label, k, target, limit) -> np.ndarray:
     return part_of_patch[label]
 
 
-def _eliminate(traj, edges, labels, mom, bones, limit, refine, say=lambda msg: None):
+def _eliminate(traj, edges, labels, fits: _Fits, bones, limit, refine, say=lambda msg: None):
     """Remove parts one at a time, the one whose vertices are best explained by their neighbouring parts'
     motions first (a part straddling a joint splits between both sides, which a merge cannot do), until
     ``bones`` remain, or (bones = 0) until removing any would cost its vertices more than ``limit`` (mean
-    squared distance per vertex and frame). ``mom``: the part moments of ``labels`` (``part_arrays``), updated
-    as vertices move."""
+    squared distance per vertex and frame). ``fits``: those of ``labels``, kept up to date."""
     nf = traj.count
     while True:
         used = np.unique(labels)
-        labels, mom = np.searchsorted(used, labels), tuple(m[used] for m in mom)
+        labels = np.searchsorted(used, labels)
+        fits.keep(used)
         b = len(used)
         if (bones > 0 and b <= bones) or b == 1:
             return labels
         say(f"removing parts: {b} left" + (f", target {bones}" if bones > 0 else ""))
-        rot, tr, _ = _transforms(mom, nf)
-        err = motion_errors(traj, rot, tr)
+        err = fits.errors()
         adj = label_adjacency(labels, edges, b) > 0
         own = err[np.arange(len(labels)), labels]
         other = np.where(adj[labels], err, np.inf)
@@ -355,9 +383,10 @@ def _eliminate(traj, edges, labels, mom, bones, limit, refine, say=lambda msg: N
         idx = np.flatnonzero(labels == worst)
         new = labels.copy()
         new[idx] = np.argmin(other[idx], axis=1)
-        mom = moved(traj, mom, labels, new)
+        fits.move(labels, new)
         used = np.unique(new)
-        labels, mom = _reassign(traj, edges, np.searchsorted(used, new), refine, tuple(m[used] for m in mom))
+        fits.keep(used)
+        labels = _reassign(traj, edges, np.searchsorted(used, new), refine, fits)
 
 
 def _transforms(mom, nf):
@@ -386,26 +415,21 @@ def motion_errors(traj: Trajectories, rot: np.ndarray, tr: np.ndarray) -> np.nda
     return np.maximum(pp - 2 * pq + traj.qq.sum(0)[:, None], 0.0)
 
 
-def _reassign(traj, edges, labels, rounds, mom=None):
-    """Move vertices to the neighbouring part (or their own) whose motion predicts their trajectory best.
-    Returns the labels and their part moments (``mom``: those of the given labels, kept up to date by the
-    moved vertices only)."""
+def _reassign(traj, edges, labels, rounds, fits: _Fits):
+    """Move vertices to the neighbouring part (or their own) whose motion predicts their trajectory best
+    (``fits``: those of ``labels``, kept up to date)."""
     b = int(labels.max()) + 1
-    if mom is None:
-        mom = part_arrays(traj, labels, b)
     for _ in range(rounds):
-        rot, tr, _ = _transforms(mom, traj.count)
         adj = label_adjacency(labels, edges, b) > 0
         np.fill_diagonal(adj, True)
-        err = motion_errors(traj, rot, tr)
-        err[~adj[labels]] = np.inf
+        err = np.where(adj[labels], fits.errors(), np.inf)
         new = np.argmin(err, axis=1)
         new = _keep_connected(new, edges, b, labels)
         if np.array_equal(new, labels):
             break
-        mom = moved(traj, mom, labels, new)
+        fits.move(labels, new)
         labels = new
-    return labels, mom
+    return labels
 
 
 def _keep_connected(labels, edges, b, fallback):
@@ -437,7 +461,7 @@ def _finish(traj, edges, labels) -> RigidParts:
     used = np.unique(labels)
     labels = np.searchsorted(used, labels)
     b = len(used)
-    rot, tr, res = _transforms(part_arrays(traj, labels, b), traj.count)   # afresh, not updated sums
+    rot, tr, res = _transforms(part_arrays(traj, labels, b), traj.count)   # summed afresh, not the updated sums
     cent = np.array([traj.rest[labels == i].mean(0) for i in range(b)])
     adj = _connect_components(label_adjacency(labels, edges, b), cent)
     return RigidParts(labels, rot, tr, adj, res)
