@@ -8,7 +8,8 @@ merge is how much the best single rigid motion per frame of the union explains w
 (the increase of the summed squared Kabsch residual; each patch keeps only first and second moments over
 frames, so a merge costs O(frames)). Merging stops at ``bones`` parts, or, with bones = 0, skips merges
 where the smaller part would follow the union's motion worse than ``tolerance`` (rms). Vertices are then moved to the neighbouring part whose motion fits their trajectory best
-(``refine`` rounds, k-means style), and every part gets its Kabsch transform per frame.
+(``refine`` rounds, k-means style; the parts' moments are updated by the moved vertices only, and only the
+parts that changed are fitted again), and every part gets its Kabsch transform per frame.
 
 Joints: between adjacent parts a and b the joint is the rest-pose point c that both motions move alike,
 min_c sum_t |(R_a c + t_a) - (R_b c + t_b)|^2, a 3x3 linear least-squares problem per pair; along the
@@ -39,12 +40,14 @@ class Trajectories:
         self.rest = np.ascontiguousarray(rest, np.float64)
         self.frames = np.ascontiguousarray(frames, np.float64)
         f, v = self.frames.shape[:2]
+        # copied in blocks of vertices (one transposed copy strides over all frames per vertex: 4x slower),
+        # squared norms as x*x + y*y + z*z (a sum over an axis of 3 is 5x slower); the same values either way
         self.by_vertex = np.empty((v, f, 3))
-        for s in range(0, v, 512):   # in blocks of vertices: one plain transposed copy strides over all frames per vertex (4x slower)
+        for s in range(0, v, 512):
             self.by_vertex[s:s + 512] = self.frames[:, s:s + 512].transpose(1, 0, 2)
         self.by_vertex = self.by_vertex.reshape(v, 3 * f)
         x, y, z = self.frames.transpose(2, 0, 1)
-        self.qq = x * x + y * y + z * z                                 # a sum over an axis of 3 is 5x slower
+        self.qq = x * x + y * y + z * z
 
     @property
     def count(self) -> int:
