@@ -104,7 +104,7 @@ def rim_vertices(vertices, normals, cameras, masks, *, px=0.5, max_cos=0.2) -> n
 
 
 def _sample(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Bilinear colours (N, 3) float32 of a float32 image at pixel positions (N, 2) (pixel centres at
+    """Bilinear colours (N, C) (the image's dtype) at pixel positions (N, 2) (pixel centres at
     integers); outside the image the border is repeated."""
     import cv2
 
@@ -118,6 +118,24 @@ def _sample(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
     out = cv2.remap(img, mx.reshape(rows, cols), my.reshape(rows, cols), cv2.INTER_LINEAR,
                     borderMode=cv2.BORDER_REPLICATE)
     return out.reshape(-1, img.shape[2])[:n]
+
+
+def _project_sample(cam, img, base, normals, ds):
+    """Colours (S, P, n, 3) float32 of the points base (P, n, 3) + d * normals (n, 3) for every d in ds, in
+    one camera: the points move linearly in camera coordinates, so the rotation is applied once."""
+    from nodes.common.cameras import distort
+
+    R, t = cam.Rt[:, :3], cam.Rt[:, 3]
+    xc = (base @ R.T + t).astype(np.float32)                     # (P, n, 3)
+    rn = (normals @ R.T).astype(np.float32)                      # (n, 3)
+    X = xc[None] + ds.astype(np.float32)[:, None, None, None] * rn[None, None]   # (S, P, n, 3)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xn = (X[..., :2] / X[..., 2:3]).reshape(-1, 2)
+    if cam.has_distortion:
+        xn = distort(xn, cam.dist)
+    K = cam.K.astype(np.float32)
+    uv = np.nan_to_num(np.stack([K[0, 0] * xn[:, 0] + K[0, 1] * xn[:, 1] + K[0, 2], K[1, 1] * xn[:, 1] + K[1, 2]], 1))
+    return _sample(img, uv).reshape(*X.shape[:3], 3).astype(np.float32) * np.float32(1.0 / 255)
 
 
 def ring_patches(vertices, faces, size=7) -> np.ndarray:
@@ -145,33 +163,29 @@ def offset_costs(vertices, normals, images, cameras, W, offsets, *, views=6, fac
     k = min(views, len(cameras))
     order = np.argsort(-W, axis=0, kind="stable")[:k]          # (k, V) the best views per vertex
     wk = np.take_along_axis(W, order, axis=0)                  # (k, V)
-    imgs = [np.ascontiguousarray(np.asarray(im)[..., :3], np.float32) / 255.0 for im in images]
+    imgs = [np.ascontiguousarray(np.asarray(im)[..., :3]) for im in images]   # sampled as uint8 (1/255 steps: far below the noise floor)
     ds = np.asarray(offsets, np.float64)
     costs = np.zeros((len(ds), nv), np.float64)
     for lo in range(0, nv, chunk):
         hi = min(nv, lo + chunk)
         m = hi - lo
-        s0 = wk[:, lo:hi].sum(0).astype(np.float64)                        # (m,)
-        s1 = np.zeros((len(ds), P, m, 3), np.float64)
-        s2 = np.zeros((len(ds), P, m), np.float64)
+        s0 = wk[:, lo:hi].sum(0)                                             # (m,)
+        s1 = np.zeros((len(ds), P, m, 3), np.float32)
+        s2 = np.zeros((len(ds), P, m), np.float32)
         base = np.moveaxis(v[patch[lo:hi]], 1, 0)                           # (P, m, 3)
         for view in range(len(cameras)):
             kk, idx = np.nonzero(order[:, lo:hi] == view)
             if len(idx) == 0:
                 continue
-            w = wk[kk, lo + idx].astype(np.float64)
+            w = wk[kk, lo + idx]
             keep = w > 0
             if not keep.any():
                 continue
             idx, w = idx[keep], w[keep]
-            # (S, P, n, 3) points of every offset and patch position of these vertices
-            X = base[:, idx][None] + ds[:, None, None, None] * normals[lo + idx][None, None]
-            uv, _ = cameras.project(X.reshape(-1, 3), view)
-            c = _sample(imgs[view], np.nan_to_num(uv).astype(np.float32)).astype(np.float64)
-            c = c.reshape(len(ds), P, len(idx), 3)
-            np.add.at(s1, (slice(None), slice(None), idx), w[None, None, :, None] * c)
-            np.add.at(s2, (slice(None), slice(None), idx), w[None, None, :] * (c * c).sum(-1))
-        inv = 1.0 / np.maximum(s0, 1e-12)
+            c = _project_sample(cameras[view], imgs[view], base[:, idx], normals[lo + idx], ds)   # (S, P, n, 3)
+            s1[:, :, idx] += w[None, None, :, None] * c             # a vertex is at most once in a view's list
+            s2[:, :, idx] += w[None, None, :] * (c * c).sum(-1)
+        inv = (1.0 / np.maximum(s0, 1e-12)).astype(np.float32)
         var = s2 * inv - (s1 * s1).sum(-1) * inv * inv                      # (S, P, m)
         costs[:, lo:hi] = np.maximum(var, 0.0).mean(axis=1) / 3.0
     return costs

@@ -83,8 +83,10 @@ def test_mismatched_inputs_are_refused(sphere_stage):
 
 
 def test_photo_golden(golden, sphere_stage):
-    """The node on the blown-up checkered ball (642 vertices). Tolerance 2 mm: one vertex's least-cost offset
-    may fall a search step (1.8 mm) the other way on another CPU; the displacement it corrects is 10 mm."""
+    """The node on the blown-up checkered ball (642 vertices). Tolerance 5 mm on the worst vertex: rounding moves
+    the least cost of a vertex with little evidence by search steps of 1.8 mm (float32 against float64 sums moved
+    one by 3.3 mm); the displacement it corrects is 10 mm, and test_recovers_a_known_inward_offset checks the
+    accuracy."""
     s = sphere_stage
     big = trimesh.Trimesh([0, 0, 0.6] + 1.02 * (np.asarray(s["mesh"].vertices) - [0, 0, 0.6]), s["mesh"].faces,
                           process=False)
@@ -92,4 +94,4 @@ def test_photo_golden(golden, sphere_stage):
                    {"search": 0.02})["mesh"]
     from nodes.common.types import Mesh
 
-    golden.check("photo_sphere_12", out, Mesh, hausdorff=2e-3)
+    golden.check("photo_sphere_12", out, Mesh, hausdorff=5e-3)
