@@ -7,13 +7,15 @@ texture made from them is blurred where they are averaged and seamed where one i
 refinement of multi-view stereo, for every vertex a small patch (the vertex and its one-ring neighbours) is
 moved through a range of offsets along the normal; at each offset the patch is projected into the
 vertex's best views (z-buffer visible, inside the eroded mask, weight cos^2 of the viewing angle, the ``views``
-highest) and the cost is the weighted colour variance across them. The offset of least cost, and how much lower
-that cost is than at the surface (the confidence), go into a screened smoothing: a few Jacobi rounds of
+highest) and the cost is the weighted colour variance across them. The offset of least cost, and how far that
+cost lies below the vertex's median cost over the range (the confidence), go into a screened smoothing: a few Jacobi rounds of
 d = (c * d* + mean of the neighbours' d) / (c + 1), so confident vertices pull and textureless ones follow
 their neighbours. Only inward offsets are searched by default: the true surface is inside the hull.
 
-Measured on thu_wd_human (bench/texture_loo.py, held-out cameras): the texture on the refined mesh is 1 dB
-better than on a uniformly shrunk one and 1.5 dB better than on the hull surface, on the same pixels.
+Outline pixels the input covered stay covered (the vertices that held them are pinned), and no edge folds that
+did not. Measured (README, Texturing): on the synthetic figure the Chamfer distance to the true surface 5.87 ->
+4.76 mm (a uniform shrink by the same median offset: 5.68); held out, the texture on the refined mesh gains
++0.2 to +1.0 dB on the same pixels on the four real colour sets.
 """
 from __future__ import annotations
 
