@@ -87,8 +87,9 @@ def lbs_by_vertex(rest: np.ndarray, weights: np.ndarray, rotations: np.ndarray, 
 def errors(traj: Trajectories, weights, rotations, translations) -> tuple[np.ndarray, np.ndarray]:
     """Per-frame rms and max distance between the skinned and the given positions."""
     diff = lbs_by_vertex(traj.rest, weights, rotations, translations) - traj.by_vertex
-    d = np.sqrt((diff * diff).reshape(len(diff), -1, 3).sum(2))            # (V, F)
-    return np.sqrt((d * d).mean(0)), d.max(0)
+    x, y, z = diff.reshape(len(diff), -1, 3).transpose(2, 0, 1)
+    dd = x * x + y * y + z * z                                              # (V, F) (as Trajectories.qq)
+    return np.sqrt(dd.mean(0)), np.sqrt(dd.max(0))
 
 
 # ---------------------------------------------------------------- simplex QP
