@@ -17,8 +17,9 @@ over vertices and frames:
     parent's followed by a rotation about the joint's rest pivot, the root also translates, so every
     joint stays where its parent puts it and bone lengths never change. Per frame, Gauss-Newton (with
     Levenberg damping) on one rotation increment per joint (about its current world pivot, applied to its
-    whole subtree) and the root translation: 3J + 3 unknowns, normal equations from per-vertex subtree
-    sums, one BLAS product.
+    whole subtree) and the root translation: 3J + 3 unknowns; the normal equations and the error are
+    products of a frame's motions with vertex sums taken once per step (_pose_moments), so a Gauss-Newton
+    round costs no pass over the vertices, and all frames are solved together (_pose_frames).
   * free: SSDR's per-bone update, a weighted Procrustes fit of each bone to what the other bones leave
     (what Dem Bones does; shared pivots then drift apart and bone lengths change over frames).
 
@@ -313,73 +314,145 @@ def _rodrigues(w):
     return np.eye(3) + s * k + c * (k @ k)
 
 
-def _pose_frame(rest, q, idx, wv, wk_t, wk_sum, rot, tr, joints, parents, order, steps):
-    """Gauss-Newton on one frame's joint rotations (and root translation) with fixed pivots. ``wk_t``
-    (V, J, K): w_va [bone idx_va is in the subtree of k]; ``wk_sum`` (V, J) its sum over a."""
-    j = len(parents)
-    vh = rest
+def _pose_moments(rest, frames, weights, parents):
+    """What the pose step needs of the vertices, summed once (weights fixed). With h_v = [v, 1], the blend
+    weights W (V, J) and U_vjk = W_vj [j in the subtree of k], the pose step's s_vk = sum_j U_vjk (X_j - c_k e4^T) h_v
+    (_pose_frames): every sum over vertices in its Gauss-Newton system and error is a product of a frame's
+    motions with Q = sum_v (U h)(U h)^T, P = sum_v (U h)(W h)^T, G = sum_v (W h)(W h)^T, sum_v U h, sum_v W h,
+    and per frame sum_v (U h) q^T, sum_v (W h) q^T, sum_v q, sum_v |q|^2. U is kept on the ``pairs`` (j, k)
+    with j in the subtree of k only (sorted by k; about a third of J^2 for a body), the rest are zeros.
+    ``frames`` (F, V, 3). Returns a dict."""
+    from scipy.sparse import csr_matrix
 
-    rows = np.arange(len(vh))[:, None]
+    v, j = weights.shape
+    h = np.c_[rest, np.ones(v)]
+    d = subtree_matrix(parents)
+    pk, pj = np.nonzero(d.T)                                                # pairs (j, k), sorted by k
+    pair = np.full((j, j), -1)
+    pair[pj, pk] = np.arange(len(pj))
+    rows, jj = np.nonzero(weights)                                          # U_vjk = W_vj D_jk, sparse
+    jj, kk = np.repeat(jj, j), np.tile(np.arange(j), len(jj))
+    rows = np.repeat(rows, j)
+    on = d[jj, kk] > 0
+    rows, jj, kk = rows[on], jj[on], kk[on]
+    vals = weights[rows, jj][:, None] * h[rows]                             # (nnz, 4)
+    cols = (pair[jj, kk] * 4)[:, None] + np.arange(4)
+    npair = len(pj)
+    b = csr_matrix((vals.ravel(), (np.repeat(rows, 4), cols.ravel())), shape=(v, npair * 4))   # (V, pairs 4)
+    lw = csr_matrix((weights[:, :, None] * h[:, None, :]).reshape(v, j * 4))   # (V, J 4), sparse
+    f = len(frames)
+    qv = np.ascontiguousarray(frames.transpose(1, 0, 2)).reshape(v, 3 * f)   # (V, 3F)
+    bt, lwt = b.T.tocsr(), lw.T.tocsr()          # sparse products: no BLAS threads on these thin shapes
+    return {
+        "pj": pj, "pk": pk, "starts": np.searchsorted(pk, np.arange(j)),
+        "q": (bt @ b).toarray().reshape(npair, 4, npair, 4),
+        "p": (bt @ lw).toarray(),                                                    # ((pair, c), (i, d))
+        "g": (lwt @ lw).toarray(),                                                   # ((j, c), (i, d))
+        "bsum": np.asarray(b.sum(0)).reshape(npair, 4),
+        "lsum": np.asarray(lw.sum(0)).reshape(j, 4),
+        "bq": np.asarray(bt @ qv).reshape(npair, 4, f, 3).transpose(2, 0, 1, 3),     # (F, pairs, 4, 3)
+        "lq": np.asarray(lwt @ qv).reshape(j, 4, f, 3).transpose(2, 0, 1, 3),        # (F, J, 4, 3)
+        "sq": frames.sum(1),                                                         # (F, 3)
+        "qq": np.einsum("fva,fva->f", frames, frames),
+        "count": v,
+    }
 
-    def predict(rot, tr):
-        every = (vh @ rot.transpose(2, 0, 1).reshape(3, 3 * j)).reshape(len(vh), j, 3) + tr[None]  # bone j moves v
-        y = every[rows, idx]                                                 # (V, K, 3)
-        return y, np.matmul(wv[:, None, :], y)[:, 0]
 
-    y, p = predict(rot, tr)
-    err = float(((q - p) ** 2).sum())
+def _pose_frames(mom, rot, tr, joints, parents, order, steps):
+    """Gauss-Newton (Levenberg-damped) on the joint rotations (and root translation) of every frame at once,
+    pivots fixed, from the vertex sums of _pose_moments; each frame is its own problem with its own damping,
+    accepted or refused steps and stop (the per-frame arithmetic in stacked small products; einsum's own
+    loops, no BLAS threads for arrays this small). ``rot`` (F, J, 3, 3), ``tr`` (F, J, 3).
+
+    Per frame and joint k, s_vk = sum_a w_va [bone a of v is in the subtree of k] (y_va - c_k) with y_va
+    where bone a takes v and c_k the joint's world pivot; the unknowns are one rotation increment per joint
+    (about c_k, moving its subtree) and the root translation: J^T J from M[k, l] = sum_v s_vk s_vl^T."""
+    n_f, j = rot.shape[:2]
+    n = 3 * j + 3
+    eye3 = np.eye(3)
+    pj, pk, starts = mom["pj"], mom["pk"], mom["starts"]
+
+    def stacked(rot, tr):                                                       # (P, (j, c), a): X_j[a, c]
+        x = np.concatenate([rot, tr[..., None]], axis=-1)
+        return x.transpose(0, 1, 3, 2).reshape(len(x), 4 * j, 3), x
+
+    def sq_error(rot, tr, f):
+        # sum_v |p_v - q_v|^2 = sum_ji tr(X_j G_ji X_i^T) - 2 sum_j tr(X_j sum_v W_vj h_v q_v^T) + sum_v |q_v|^2
+        # (to ~1e-7 of itself on the bench figure: cancellation against |q|^2)
+        xs, x = stacked(rot, tr)
+        quad = np.einsum("pkb,pkb->p", xs, mom["g"] @ xs)
+        return quad - 2 * np.einsum("pjac,pjca->p", x, mom["lq"][f]) + mom["qq"][f]
+
+    rot, tr = rot.copy(), tr.copy()
+    err = sq_error(rot, tr, np.arange(n_f))
     mu = None
+    live = np.arange(n_f)                                                       # frames still iterating
     for _ in range(steps):
-        pivots = np.einsum("jab,jb->ja", rot, joints) + tr              # world pivot of each joint
-        r = q - p
-        # S_vk = sum_a w_va [idx_va in subtree(k)] (y_va - pivot_k)
-        s = np.matmul(wk_t, y) - wk_sum[:, :, None] * pivots[None]
-        sf = s.reshape(len(q), 3 * j)
-        m = (sf.T @ sf).reshape(j, 3, j, 3).transpose(0, 2, 1, 3)          # M[k, l] = sum_v s_vk s_vl^T
-        n = 3 * j + 3
-        jtj = np.zeros((n, n))
-        tr_m = np.trace(m, axis1=2, axis2=3)
-        # blocks[k, l] = sum_v [s_vk]x^T [s_vl]x = tr(M[k, l]) I - M[l, k]
-        blocks = tr_m[:, :, None, None] * np.eye(3) - np.swapaxes(m, 0, 1)
-        jtj[:3 * j, :3 * j] = blocks.transpose(0, 2, 1, 3).reshape(3 * j, 3 * j)
-        # J = [ -[s_vk]x ... | I ]; J^T J[k, tau] = sum_v (-[s_vk]x)^T = [sum_v s_vk]x
-        jtj[:3 * j, 3 * j:] = _skew(s.sum(0)).reshape(3 * j, 3)
-        jtj[3 * j:, :3 * j] = jtj[:3 * j, 3 * j:].T
-        jtj[3 * j:, 3 * j:] = len(q) * np.eye(3)
-        jtr = np.empty(n)
-        c = (sf.T @ r).reshape(j, 3, 3)                                   # sum_v s_vk r_v^T
-        jtr[:3 * j] = np.stack([c[:, 1, 2] - c[:, 2, 1], c[:, 2, 0] - c[:, 0, 2], c[:, 0, 1] - c[:, 1, 0]], 1).ravel()
-        # (-[s]x)^T r = s x r, summed over v
-        jtr[3 * j:] = r.sum(0)
-        if mu is None:
-            mu = 1e-6 * float(np.trace(jtj)) / n + 1e-12
-        improved = False
-        for _ in range(6):
-            delta = np.linalg.solve(jtj + mu * np.diag(np.diag(jtj) + 1e-12), jtr)
-            dr = _rodrigues(delta[:3 * j].reshape(j, 3))
-            tau = delta[3 * j:]
-            # accumulated world motion A_d = A_parent o E_d, E_d: rotation dr_d about pivots_d; root adds tau
-            a_rot = np.empty_like(rot)
-            a_tr = np.empty_like(tr)
-            for d in order:
-                e_t = pivots[d] - dr[d] @ pivots[d]
-                if parents[d] < 0:
-                    a_rot[d], a_tr[d] = dr[d], e_t + tau
-                else:
-                    pr, pt = a_rot[parents[d]], a_tr[parents[d]]
-                    a_rot[d], a_tr[d] = pr @ dr[d], pr @ e_t + pt
-            new_rot = np.einsum("jab,jbc->jac", a_rot, rot)
-            new_tr = np.einsum("jab,jb->ja", a_rot, tr) + a_tr
-            y2, p2 = predict(new_rot, new_tr)
-            e2 = float(((q - p2) ** 2).sum())
-            if e2 < err:
-                rot, tr, y, p, err = new_rot, new_tr, y2, p2, e2
-                mu *= 0.3
-                improved = True
-                break
-            mu *= 10.0
-        if not improved or err == 0.0:
+        if not len(live):
             break
+        rl, tl = rot[live], tr[live]
+        m_f = len(live)
+        xs, x = stacked(rl, tl)                                                 # (P, 4J, 3), (P, J, 3, 4)
+        pivots = np.einsum("pjab,jb->pja", rl, joints) + tl                    # world pivot of each joint
+        # X~_jk = X_j - c_k e4^T on the pairs (j, k): s_vk = sum_j U_vjk X~_jk h_v
+        y = x[:, pj]                                                            # (P, pairs, 3, 4)
+        y[..., 3] -= pivots[:, pk]
+        # M[k, l] = sum_v s_vk s_vl^T = sum over the pairs of k and of l of X~_jk Q_jk,il X~_il^T
+        z = np.einsum("pxayd,pybd->pxayb", np.einsum("pxac,xcyd->pxayd", y, mom["q"]), y)
+        m = np.add.reduceat(np.add.reduceat(z, starts, axis=1), starts, axis=3).transpose(0, 1, 3, 2, 4)
+        jtj = np.zeros((m_f, n, n))
+        tr_m = np.trace(m, axis1=3, axis2=4)
+        # blocks[k, l] = sum_v [s_vk]x^T [s_vl]x = tr(M[k, l]) I - M[l, k]
+        blocks = tr_m[..., None, None] * eye3 - np.swapaxes(m, 1, 2)
+        jtj[:, :3 * j, :3 * j] = blocks.transpose(0, 1, 3, 2, 4).reshape(m_f, 3 * j, 3 * j)
+        # J = [ -[s_vk]x ... | I ]; J^T J[k, tau] = sum_v (-[s_vk]x)^T = [sum_v s_vk]x
+        ssum = np.add.reduceat(np.einsum("pxac,xc->pxa", y, mom["bsum"]), starts, axis=1)
+        jtj[:, :3 * j, 3 * j:] = _skew(ssum).reshape(m_f, 3 * j, 3)
+        jtj[:, 3 * j:, :3 * j] = jtj[:, :3 * j, 3 * j:].transpose(0, 2, 1)
+        jtj[:, 3 * j:, 3 * j:] = mom["count"] * eye3
+        # sum_v s_vk r_v^T with r = q - p: over k's pairs X~_jk (sum_v U_vjk h_v q_v^T - sum_i P_jk,i X_i^T)
+        px = (mom["p"] @ xs).reshape(m_f, len(pj), 4, 3)
+        c = np.add.reduceat(np.einsum("pxac,pxcb->pxab", y, mom["bq"][live] - px), starts, axis=1)
+        jtr = np.empty((m_f, n))
+        # (-[s]x)^T r = s x r, summed over v
+        jtr[:, :3 * j] = np.stack([c[..., 1, 2] - c[..., 2, 1], c[..., 2, 0] - c[..., 0, 2],
+                                   c[..., 0, 1] - c[..., 1, 0]], -1).reshape(m_f, 3 * j)
+        jtr[:, 3 * j:] = mom["sq"][live] - np.einsum("pjac,jc->pa", x, mom["lsum"])
+        if mu is None:
+            mu = 1e-6 * np.trace(jtj, axis1=1, axis2=2) / n + 1e-12
+        improved = np.zeros(m_f, bool)
+        trying = np.arange(m_f)                                                 # positions within live
+        diag = np.einsum("pii->pi", jtj) + 1e-12
+        for _ in range(6):
+            if not len(trying):
+                break
+            fr = live[trying]
+            lhs = jtj[trying] + mu[fr][:, None, None] * (diag[trying][:, :, None] * np.eye(n))
+            delta = np.linalg.solve(lhs, jtr[trying][..., None])[..., 0]
+            dr = _rodrigues(delta[:, :3 * j].reshape(-1, j, 3))
+            tau = delta[:, 3 * j:]
+            pv = pivots[trying]
+            # accumulated world motion A_d = A_parent o E_d, E_d: rotation dr_d about pivots_d; root adds tau
+            a_rot = np.empty_like(dr)
+            a_tr = np.empty((len(fr), j, 3))
+            for d in order:
+                e_t = pv[:, d] - np.einsum("pab,pb->pa", dr[:, d], pv[:, d])
+                if parents[d] < 0:
+                    a_rot[:, d], a_tr[:, d] = dr[:, d], e_t + tau
+                else:
+                    pr, pt = a_rot[:, parents[d]], a_tr[:, parents[d]]
+                    a_rot[:, d], a_tr[:, d] = np.matmul(pr, dr[:, d]), np.einsum("pab,pb->pa", pr, e_t) + pt
+            new_rot = np.matmul(a_rot, rot[fr])
+            new_tr = np.einsum("pjab,pjb->pja", a_rot, tr[fr]) + a_tr
+            e2 = sq_error(new_rot, new_tr, fr)
+            ok = e2 < err[fr]
+            good = fr[ok]
+            rot[good], tr[good], err[good] = new_rot[ok], new_tr[ok], e2[ok]
+            mu[good] *= 0.3
+            mu[fr[~ok]] *= 10.0
+            improved[trying[ok]] = True
+            trying = trying[~ok]
+        live = live[improved & (err[live] != 0.0)]
     return rot, tr
 
 
@@ -389,15 +462,11 @@ def fit_poses_fixed(traj, weights, rot, tr, joints, parents, influences, steps: 
     far fewer equations than a mesh has)."""
     sel = np.unique(np.linspace(0, len(weights) - 1, min(samples, len(weights))).astype(np.int64))
     weights = weights[sel]
-    rest, frames = traj.rest[sel], traj.frames[:, sel]
     idx = np.argsort(-weights, axis=1, kind="stable")[:, :influences]
-    wv = np.take_along_axis(weights, idx, axis=1)
-    wk = wv[:, :, None] * subtree_matrix(parents)[idx]                  # (V, K, J)
-    wk_t, wk_sum = np.ascontiguousarray(wk.transpose(0, 2, 1)), wk.sum(1)
-    order = topological(parents)
-    rot, tr = rot.copy(), tr.copy()
-    for t in range(traj.count):
-        rot[t], tr[t] = _pose_frame(rest, frames[t], idx, wv, wk_t, wk_sum, rot[t], tr[t], joints, parents, order, steps)
+    top = np.zeros_like(weights)                                         # the ``influences`` largest
+    np.put_along_axis(top, idx, np.take_along_axis(weights, idx, axis=1), axis=1)
+    mom = _pose_moments(traj.rest[sel], traj.frames[:, sel], top, parents)
+    rot, tr = _pose_frames(mom, rot, tr, joints, parents, topological(parents), steps)
     # re-orthonormalise (numerical drift) and restore the exact pivot chain
     u, _, vt = np.linalg.svd(rot)
     rot = u @ vt
