@@ -488,8 +488,15 @@ def fit_pivots(traj, weights, rot, tr, joints, parents, anchor, reg: float = 1e-
     for k, p in enumerate(parents):
         if p >= 0:
             a[:, k] = rot[:, p] - rot[:, k]
-    res = traj.by_vertex - lbs_by_vertex(traj.rest, weights, rot, tr)   # (V, 3F)
-    rhs_vec = (omega.T @ res).reshape(j, -1, 3).transpose(1, 0, 2)     # (F, J, 3)
+    # omega^T (q - LBS) without the (V, 3F) residual: omega^T q - (omega^T lifted) X (lbs_by_vertex), omega
+    # sparse (a vertex's bones' ancestors only; a sparse product also keeps BLAS threads off this thin shape)
+    from scipy.sparse import csr_matrix
+
+    om_t = csr_matrix(omega.T)
+    x = np.concatenate([rot, tr[..., None]], axis=-1).transpose(1, 3, 0, 2).reshape(4 * j, -1)   # (4J, 3F)
+    vh = np.c_[traj.rest, np.ones(len(traj.rest))]
+    lifted = (weights[:, :, None] * vh[:, None, :]).reshape(len(vh), 4 * j)
+    rhs_vec = (np.asarray(om_t @ traj.by_vertex) - np.asarray(om_t @ lifted) @ x).reshape(j, -1, 3).transpose(1, 0, 2)   # (F, J, 3)
     ata = np.einsum("fjab,fkac->jkbc", a, a)                             # sum_t A_j^T A_k
     lhs = (big[:, :, None, None] * ata).transpose(0, 2, 1, 3).reshape(3 * j, 3 * j)
     rhs = np.einsum("fjab,fja->jb", a, rhs_vec).ravel()
