@@ -234,14 +234,11 @@ def fit_weights(traj: Trajectories, rot, tr, cand_of_vertex: np.ndarray, w_prev:
     valid = c >= 0
     cs = np.where(valid, c, 0)
     # H_ab = sum_t (y_a - q).(y_b - q) = vh G_ab vh - g_a - g_b + qq   with g_a = sum_t y_a . q
-    h = np.empty((v, c.shape[1], c.shape[1]))
-    groups = {}
-    for i, key in enumerate(map(tuple, cs)):
-        groups.setdefault(key, []).append(i)
-    for key, idx in groups.items():
-        idx = np.asarray(idx)
-        k = np.asarray(key)
-        h[idx] = np.einsum("vc,abcd,vd->vab", vh[idx], gram[k][:, k], vh[idx], optimize=True)
+    # vh G_ab vh for every bone pair (a, b) at once (one product with the vertices' outer products), then
+    # each vertex's candidate pairs picked out
+    every = (vh[:, :, None] * vh[:, None, :]).reshape(v, 16) @ gram.reshape(j * j, 16).T      # (V, J J)
+    h = np.take_along_axis(every, (cs[:, :, None] * j + cs[:, None, :]).reshape(v, -1), axis=1)
+    h = h.reshape(v, c.shape[1], c.shape[1])
     gq = np.einsum("vac,vc->va", cross[np.arange(v)[:, None], cs], vh)     # (V, C)
     h = h - gq[:, :, None] - gq[:, None, :] + qq[:, None, None]
     g = np.zeros_like(gq)
