@@ -6,7 +6,7 @@
     geometry     face_normals, face_areas, vertex_normals (area-weighted), smooth_vertex_normals (welded, for
                  shading: what the exports write), edge_length_graph
     folds        FOLD_DEG / FOLD_COS (faces turned more than 150 degrees), folded_edges
-    averaging    ring_operator (I + A), ring_average (row-normalised I + A), neighbour_mean (uniform Laplacian)
+    averaging    ring_operator (I + A), ring_average (row-normalised I + A), neighbour_mean (uniform Laplacian), ring_degree
     refinement   split_edges (conforming edge splits)
 
 Arrays in, arrays out (NumPy; float64 geometry, int64 indices unless a kernel needs int32: the CSR tables).
@@ -202,10 +202,17 @@ def ring_average(faces: np.ndarray, count: int):
     return csr_matrix(S.multiply(1.0 / np.asarray(S.sum(axis=1)).ravel()[:, None]))
 
 
-def neighbour_mean(S, x: np.ndarray) -> np.ndarray:
-    """Umbrella (uniform Laplacian) mean: per vertex the mean of x over its neighbours, given S = ``ring_operator``;
-    an isolated vertex gets 0. ``neighbour_mean(S, x) - x`` is the umbrella step."""
-    degree = np.maximum(np.asarray(S.sum(axis=1)).ravel() - 1.0, 1.0)
+def ring_degree(S) -> np.ndarray:
+    """Per vertex the number of its neighbours (at least 1), given S = ``ring_operator``: what ``neighbour_mean``
+    divides by (computed once for a loop of steps on one mesh)."""
+    return np.maximum(np.asarray(S.sum(axis=1)).ravel() - 1.0, 1.0)
+
+
+def neighbour_mean(S, x: np.ndarray, degree: np.ndarray | None = None) -> np.ndarray:
+    """Umbrella (uniform Laplacian) mean: per vertex the mean of x over its neighbours, given S = ``ring_operator``
+    (and its ``ring_degree``, made when None); an isolated vertex gets 0. ``neighbour_mean(S, x) - x`` is the
+    umbrella step."""
+    degree = ring_degree(S) if degree is None else degree
     return (S @ x - x) / degree[:, None]
 
 

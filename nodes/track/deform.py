@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from nodes.common.meshops import (edge_length_graph, face_normals, folded_edges, neighbour_mean, padded_rows,
+from nodes.common.meshops import (edge_length_graph, face_normals, folded_edges, neighbour_mean, padded_rows, ring_degree,
                                   ring_operator, vertex_faces, vertex_normals)
 
 
@@ -647,8 +647,9 @@ def tangential_smooth(x: np.ndarray, faces: np.ndarray, S, steps: int, lam: floa
     tangent plane (S = I + A). With ``offsets`` the keyframe's umbrella offsets (``laplacian_offsets``) the
     keyframe layout is the fixed point, so an undeformed mesh does not slide; without, uniform smoothing."""
     n = vertex_normals(x, faces)                  # tangential steps barely turn the normals: computed once
+    degree = ring_degree(S)
     for _ in range(steps):
-        move = neighbour_mean(S, x) - x
+        move = neighbour_mean(S, x, degree) - x
         if offsets is not None:
             move += offsets
         move -= np.einsum("ij,ij->i", move, n)[:, None] * n
@@ -677,6 +678,7 @@ def unfold(x: np.ndarray, faces: np.ndarray, pairs, S, rounds: int, target: "Tar
     x = x.copy()
     folded = np.zeros(len(edges), bool)
     folded[folded_edges(x, f, pairs)] = True
+    degree = ring_degree(S)
     for _ in range(rounds):
         bad = np.flatnonzero(folded)
         if len(bad) == 0:
@@ -689,7 +691,7 @@ def unfold(x: np.ndarray, faces: np.ndarray, pairs, S, rounds: int, target: "Tar
         face_moved = moved[f].any(axis=1)
         touched = np.flatnonzero(face_moved[pair[:, 0]] | face_moved[pair[:, 1]])
         for _ in range(steps):
-            mean = neighbour_mean(S, x)
+            mean = neighbour_mean(S, x, degree)
             x[move] += 0.5 * (mean[move] - x[move])
         if target is not None:
             n = vertex_normals(x, f)[move]
