@@ -23,7 +23,9 @@ disagree), then with the rotations fixed every term is linear in the translation
 
 solved with a sparse Cholesky-like factorisation (scipy SuperLU) of the 3N x 3N normal equations; the
 rotations then follow from the ARAP local step (Procrustes per node, batched SVD). Everything is computed in
-voxel units (coordinates divided by ``voxel``), so the weights are dimensionless.
+voxel units (coordinates divided by ``voxel``), so the weights are dimensionless. Closest points on a surface
+(the snap, the unfold, the residuals): the nearest vertex by a k-d tree, then the faces around it on the OpenCL
+device (kernels/closest.cl; ``SurfaceQuery.closest_reference`` is the same in NumPy, the kernel's test).
 
     graph = build_graph(vertices, faces, spacing=4.0 * voxel)
     reg = Registration(graph, faces, FitParams())
@@ -40,6 +42,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from kernels import source
+from nodegraph import clrt
 from nodes.common.meshops import (edge_length_graph, face_normals, folded_edges, neighbour_mean, padded_rows, ring_degree,
                                   ring_operator, vertex_faces, vertex_normals)
 
@@ -95,6 +99,7 @@ class SurfaceQuery:
         self.tree = cKDTree(self.vertices[self.used])
         self.vf = padded_rows(*vertex_faces(self.faces, len(self.vertices))) if vf is None else vf
         self.corners = None
+        self.device = None                                  # (host arrays kept alive, their buffers)
 
     def nearest_vertex(self, points: np.ndarray, upper: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
         """(distance, vertex index) of the nearest used vertex (index -1 beyond ``upper``)."""
@@ -105,7 +110,30 @@ class SurfaceQuery:
         return d, out
 
     def closest(self, points: np.ndarray, with_faces: bool = False):
-        """(closest points (P, 3), distances (P,)) on the surface, and their faces (P,) when ``with_faces``."""
+        """(closest points (P, 3), distances (P,)) on the surface, and their faces (P,) when ``with_faces``: the
+        nearest vertex here, the faces around it on the OpenCL device (kernels/closest.cl, the same operations
+        as ``closest_reference``, float64)."""
+        points = np.ascontiguousarray(points, np.float64)
+        _, j = self.nearest_vertex(points)
+        cl = ClosestCL.get()
+        if self.device is None:                             # the mesh on the device once: corners and vertex -> faces
+            corners = np.ascontiguousarray(self.vertices[self.faces].reshape(-1, 3))
+            vf = np.ascontiguousarray(self.vf, np.int64)
+            self.device = (corners, vf, cl.host(corners), cl.host(vf))
+        n = len(points)
+        q, d, f = np.empty((n, 3)), np.empty(n), np.empty(n, np.int64)
+        if n:
+            bufs = [cl.upload("points", points), cl.upload("nearest", j), *self.device[2:],
+                    cl.buffer("q", q.nbytes), cl.buffer("d", d.nbytes), cl.buffer("face", f.nbytes)]
+            cl.launch("closest_on_faces", n, ClosestCL.GROUP, bufs[0], bufs[1], bufs[3], np.int32(self.vf.shape[1]),
+                      bufs[2], np.int32(n), *bufs[4:])
+            cl.read(bufs[4], q.shape, np.float64, q)
+            cl.read(bufs[5], d.shape, np.float64, d)
+            cl.read(bufs[6], f.shape, np.int64, f)
+        return (q, d, f) if with_faces else (q, d)
+
+    def closest_reference(self, points: np.ndarray, with_faces: bool = False):
+        """``closest`` in NumPy (what kernels/closest.cl computes)."""
         points = np.asarray(points, np.float64)
         _, j = self.nearest_vertex(points)
         cand = self.vf[j]                                   # (P, M), -1 padded: only the real faces are tried
@@ -125,6 +153,13 @@ class SurfaceQuery:
         if with_faces:
             return q[best], d[best], f[best]
         return q[best], d[best]
+
+
+class ClosestCL(clrt.Runner):
+    """kernels/closest.cl: closest points on the faces around each point's nearest vertex."""
+
+    source = source("closest.cl")
+    GROUP = 64
 
 
 # ---------------------------------------------------------------- deformation graph

@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 
+from kernels import source
 from nodegraph import Input, Node, NodeError, Output, Param, Table
 from nodes.common.types import CameraSet, Masks, MaskSet, Mesh, MeshSequence
 
@@ -148,6 +149,7 @@ class Track(Node):
     type_name = "track"
     version = 1
     per = "sequence"
+    kernels = [source("closest.cl"), source("raster.cl")]   # closest points (deform.SurfaceQuery), silhouette IoU
     inputs = {
         "meshes": Input(Mesh, doc="each frame's reconstruction (arrive as a list)"),
         "masks": Input(Masks, optional=True, doc="silhouettes per frame (track.crop keeps them small)"),

@@ -106,6 +106,24 @@ def test_closest_point_matches_brute_force():
     assert np.mean(np.isclose(d, bd, atol=1e-9)) > 0.97 and np.all(d >= bd - 1e-12) and np.max(d - bd) < 0.05
 
 
+def test_closest_point_kernel_matches_its_numpy_reference():
+    # kernels/closest.cl against SurfaceQuery.closest_reference: points near and far, on a vertex, on an edge
+    rng = np.random.default_rng(2)
+    m = trimesh.creation.icosphere(3)
+    m = trimesh.Trimesh(m.vertices * (1 + 0.05 * rng.standard_normal((len(m.vertices), 1))), m.faces, process=False)
+    e = m.edges_unique[:20]
+    p = np.r_[rng.normal(size=(500, 3)) * 0.8, m.vertices[:20], m.vertices[e].mean(axis=1) * 1.01]
+    query = deform.SurfaceQuery(m.vertices, m.faces)
+    q, d, f = query.closest(p, with_faces=True)
+    rq, rd, rf = query.closest_reference(p, with_faces=True)
+    assert np.allclose(q, rq, rtol=0, atol=1e-12) and np.allclose(d, rd, rtol=0, atol=1e-12)
+    # a face chosen otherwise only where two faces are equally close (a shared edge or vertex)
+    other = f != rf
+    assert other.mean() < 0.05
+    assert np.allclose(np.linalg.norm(query.closest_reference(p[other])[0] - rq[other], axis=1), 0, atol=1e-12)
+    assert len(query.closest(p[:0])[0]) == 0
+
+
 def test_graph_is_geodesic_and_fit_recovers_a_bend():
     # a capsule bent by 20 degrees in one step (its tip moves 9 voxels): the fit (same connectivity, so the
     # truth is vertex for vertex) lands on it
