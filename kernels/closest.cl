@@ -1,5 +1,13 @@
-// Closest points on a triangle mesh, one work item per query point (nodes/track/deform.py: SurfaceQuery.closest
-// and its NumPy reference closest_reference, the same operations in the same order, float64): the faces around
+// Nearest vertices and closest points on a triangle mesh, one work item per query point, float64
+// (nodes/track/deform.py).
+//
+// nearest_in_grid (PointGrid.nearest; its reference is scipy's cKDTree, PointGrid.nearest_reference): the points
+// sorted by the cell of a uniform grid (cell_start: CSR over the cells, x fastest), searched in shells of cells
+// around the query's cell (Chebyshev ring r) until the best squared distance is below the shell's lower bound
+// ((r - 1) h)^2 or the bound ``upper`` (strict, as cKDTree's distance_upper_bound): exact; -1 beyond ``upper``.
+//
+// closest_on_faces (SurfaceQuery.closest and its NumPy reference closest_reference, the same operations in the
+// same order): the faces around
 // the point's nearest vertex (a padded vertex -> faces table, -1 padding skipped) are each tested with Ericson's
 // closest point on a triangle (Real-Time Collision Detection 5.1.5: region parameters v, w on scalars, the
 // point a + v ab + w ac at the end; later region tests win: vertex a, b, c, then edges ab, ac, bc, else inside),
@@ -74,4 +82,55 @@ __kernel void closest_on_faces(__global const double* p, __global const long* ne
     vstore3(bq, i, q);
     d[i] = best;
     face[i] = bf;
+}
+
+// d[i], j[i]: distance and index (ids[k] of the sorted point k) of the nearest grid point to p[i] closer than
+// ``upper`` (INFINITY: none), else INFINITY and -1.
+__kernel void nearest_in_grid(__global const double* p, int n, __global const double* pts, __global const long* ids,
+                              __global const int* cell_start, int nx, int ny, int nz, double lox, double loy,
+                              double loz, double h, double upper, __global double* d, __global long* j)
+{
+    int i = get_global_id(0);
+    if (i >= n) return;
+    double3 x = vload3(i, p);
+    // the query's cell (may lie outside the grid), clamped to a range that cannot overflow
+    double gx = clamp(floor((x.x - lox) / h), -1.0e6, 1.0e6);
+    double gy = clamp(floor((x.y - loy) / h), -1.0e6, 1.0e6);
+    double gz = clamp(floor((x.z - loz) / h), -1.0e6, 1.0e6);
+    int cx = (int)gx, cy = (int)gy, cz = (int)gz;
+    // beyond this ring no cell of the grid is left
+    int far = max(max(max(cx, nx - 1 - cx), max(cy, ny - 1 - cy)), max(cz, nz - 1 - cz));
+    double best = upper * upper;
+    long bj = -1;
+    // rings nearer than this hold no cell of the grid (a query outside it)
+    int near = max(max(max(0, -cx), cx - (nx - 1)), max(max(max(0, -cy), cy - (ny - 1)), max(max(0, -cz), cz - (nz - 1))));
+    for (int r = near; r <= far; r++) {
+        double lb = (r - 1) * h;
+        if (r > 0 && lb * lb >= best) break;
+        for (int z = max(cz - r, 0); z <= min(cz + r, nz - 1); z++) {
+            int az = abs(z - cz);
+            for (int y = max(cy - r, 0); y <= min(cy + r, ny - 1); y++) {
+                int ay = abs(y - cy);
+                int inner = (az < r && ay < r);          // only the ring's two x ends
+                int x0 = max(cx - r, 0), x1 = min(cx + r, nx - 1);
+                for (int xx = x0; xx <= x1; xx++) {
+                    if (inner && xx != cx - r && xx != cx + r) {
+                        xx = cx + r - 1;                // jump to the far end
+                        continue;
+                    }
+                    int c = (z * ny + y) * nx + xx;
+                    for (int k = cell_start[c]; k < cell_start[c + 1]; k++) {
+                        double3 e = vload3(k, pts) - x;
+                        double dd = (e.x * e.x + e.y * e.y) + e.z * e.z;
+                        if (dd < best) {
+                            best = dd;
+                            bj = ids[k];
+                        }
+                    }
+                }
+            }
+        }
+    }
+    d[i] = bj >= 0 ? sqrt(best) : INFINITY;
+    j[i] = bj;
 }

@@ -83,31 +83,94 @@ def closest_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndar
     return a + v[..., None] * ab + w[..., None] * ac
 
 
+FAR_CELLS = 4          # PointGrid: queries farther than this many cells outside the grid go to a k-d tree
+
+
+class PointGrid:
+    """Nearest points by a uniform grid of cells searched on the OpenCL device (kernels/closest.cl,
+    nearest_in_grid: exact, the same answers as a k-d tree up to ties); ``nearest_reference`` is scipy's cKDTree.
+    Cells: about ``cells_per_point`` per point in the points' bounding box (on a surface a few points per occupied cell)."""
+
+    def __init__(self, points: np.ndarray, cells_per_point: float = 8.0):
+        self.points = np.ascontiguousarray(points, np.float64).reshape(-1, 3)
+        m = len(self.points)
+        self.lo = self.points.min(axis=0) if m else np.zeros(3)
+        extent = np.maximum((self.points.max(axis=0) if m else np.ones(3)) - self.lo, 1e-9)
+        self.h = float(max(np.prod(extent) / (cells_per_point * max(m, 1)), 1e-27) ** (1 / 3))
+        self.dims = np.minimum(np.floor(extent / self.h).astype(np.int64) + 1, 1 << 10)
+        self.h = float(max(self.h, (extent / self.dims).max() * (1 + 1e-12)))   # a huge extent: fewer, larger cells
+        cell = np.minimum(np.floor((self.points - self.lo) / self.h).astype(np.int64), self.dims - 1)
+        lin = (cell[:, 2] * self.dims[1] + cell[:, 1]) * self.dims[0] + cell[:, 0]
+        order = np.argsort(lin, kind="stable")
+        self.sorted = np.ascontiguousarray(self.points[order])
+        self.ids = order.astype(np.int64)
+        count = np.bincount(lin, minlength=int(np.prod(self.dims)))
+        self.cell_start = np.r_[0, np.cumsum(count)].astype(np.int32)
+        self.device = None
+        self.tree = None
+
+    def nearest(self, points: np.ndarray, upper: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+        """(distance, index) of the nearest point closer than ``upper`` (inf and -1 where none is)."""
+        points = np.ascontiguousarray(points, np.float64).reshape(-1, 3)
+        n = len(points)
+        d, j = np.full(n, np.inf), np.full(n, -1, np.int64)
+        if n == 0 or len(self.points) == 0:
+            return d, j
+        # a point far outside the grid would sweep most of its cells ring by ring: those few go to a k-d tree
+        outside = np.maximum(self.lo - points, points - (self.lo + self.dims * self.h)).max(axis=1)
+        far = outside > FAR_CELLS * self.h
+        near = np.flatnonzero(~far)
+        if far.any():
+            d[far], j[far] = self.nearest_reference(points[far], upper)
+        if len(near) == 0:
+            return d, j
+        cl = ClosestCL.get()
+        if self.device is None:
+            self.device = (cl.host(self.sorted), cl.host(self.ids), cl.host(self.cell_start))
+        m = len(near)
+        db, jb = cl.buffer("grid_d", 8 * m), cl.buffer("grid_j", 8 * m)
+        nx, ny, nz = (np.int32(x) for x in self.dims)
+        cl.launch("nearest_in_grid", m, ClosestCL.GROUP, cl.upload("grid_points", points if m == n else points[near]),
+                  np.int32(m), *self.device, nx, ny, nz, *(np.float64(x) for x in self.lo), np.float64(self.h),
+                  np.float64(upper), db, jb)
+        if m == n:
+            cl.read(db, d.shape, np.float64, d)
+            cl.read(jb, j.shape, np.int64, j)
+        else:
+            d[near] = cl.read(db, (m,), np.float64)
+            j[near] = cl.read(jb, (m,), np.int64)
+        return d, j
+
+    def nearest_reference(self, points: np.ndarray, upper: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+        """``nearest`` by scipy's cKDTree (built once)."""
+        from scipy.spatial import cKDTree
+
+        if self.tree is None:
+            self.tree = cKDTree(self.points)
+        d, j = self.tree.query(np.asarray(points, np.float64).reshape(-1, 3), distance_upper_bound=upper)
+        return d, np.where(np.isfinite(d), j, -1)
+
+
 class SurfaceQuery:
-    """Nearest points on a triangle mesh: the nearest vertex (scipy cKDTree), then the closest point on the
+    """Nearest points on a triangle mesh: the nearest vertex (PointGrid), then the closest point on the
     faces around it (exact wherever the closest face touches the nearest vertex, as on any mesh whose
     triangles are not much longer than the distances asked for)."""
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray | None = None,
                  vf: np.ndarray | None = None, used: np.ndarray | None = None, with_normals: bool = True):
-        from scipy.spatial import cKDTree
-
         self.vertices = np.asarray(vertices, np.float64)
         self.faces = np.asarray(faces, np.int64)
         self.normals = normals if normals is not None or not with_normals else vertex_normals(self.vertices, self.faces)
         self.used = used_vertices(self.faces, len(self.vertices)) if used is None else used
-        self.tree = cKDTree(self.vertices[self.used])
+        self.grid = PointGrid(self.vertices[self.used])
         self.vf = padded_rows(*vertex_faces(self.faces, len(self.vertices))) if vf is None else vf
         self.corners = None
         self.device = None                                  # (host arrays kept alive, their buffers)
 
     def nearest_vertex(self, points: np.ndarray, upper: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
         """(distance, vertex index) of the nearest used vertex (index -1 beyond ``upper``)."""
-        d, j = self.tree.query(points, distance_upper_bound=upper, workers=1)
-        ok = np.isfinite(d)
-        out = np.full(len(points), -1, np.int64)
-        out[ok] = self.used[j[ok]]
-        return d, out
+        d, j = self.grid.nearest(points, upper)
+        return d, np.where(j >= 0, self.used[np.maximum(j, 0)], -1)
 
     def closest(self, points: np.ndarray, with_faces: bool = False):
         """(closest points (P, 3), distances (P,)) on the surface, and their faces (P,) when ``with_faces``: the
@@ -543,7 +606,6 @@ class Registration:
         import time
 
         from scipy.sparse.linalg import splu
-        from scipy.spatial import cKDTree
 
         prm = self.params
         graph = self.graph
@@ -567,9 +629,9 @@ class Registration:
             jj = np.maximum(j, 0)
             c, nc = target.vertices[jj], target.normals[jj]
             ok &= np.einsum("ij,ij->i", ns, nc) > prm.normal_cos
-            dq, i_q = cKDTree(xs).query(q, distance_upper_bound=reject, workers=1)
+            dq, i_q = PointGrid(xs).nearest(q, reject)
             ok_q = np.isfinite(dq)
-            i_q = np.minimum(i_q, S - 1)
+            i_q = np.where(ok_q, i_q, S - 1)
             ok_q &= np.einsum("ij,ij->i", ns[i_q], nq) > prm.normal_cos
             clock["match"] += time.perf_counter() - t0
             t0 = time.perf_counter()

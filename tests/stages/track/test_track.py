@@ -124,6 +124,25 @@ def test_closest_point_kernel_matches_its_numpy_reference():
     assert len(query.closest(p[:0])[0]) == 0
 
 
+def test_point_grid_matches_a_kd_tree():
+    # kernels/closest.cl nearest_in_grid against cKDTree: near and far points, bounded and not, a flat point set
+    # (the sphere pressed flat: every point twice, where either index is right)
+    rng = np.random.default_rng(3)
+    m = trimesh.creation.icosphere(4)
+    v = np.asarray(m.vertices) * [3.0, 2.0, 7.0]
+    for pts in (v, v * [1, 1, 0], v[:1]):
+        grid = deform.PointGrid(pts)
+        for scale, upper in ((0.05, np.inf), (0.5, 0.3), (3.0, 2.0), (40.0, np.inf)):
+            q = pts[rng.integers(0, len(pts), 400)] + rng.normal(0, scale, (400, 3))
+            d, j = grid.nearest(q, upper)
+            rd, rj = grid.nearest_reference(q, upper)
+            assert np.array_equal(d, rd) and np.array_equal(j >= 0, rj >= 0), (len(pts), scale, upper)
+            assert np.array_equal(pts[j[j >= 0]], pts[rj[rj >= 0]])
+            if pts is v:
+                assert np.array_equal(j, rj)
+    assert len(deform.PointGrid(v).nearest(v[:0])[0]) == 0
+
+
 def test_graph_is_geodesic_and_fit_recovers_a_bend():
     # a capsule bent by 20 degrees in one step (its tip moves 9 voxels): the fit (same connectivity, so the
     # truth is vertex for vertex) lands on it
