@@ -21,11 +21,13 @@ disagree), then with the rotations fixed every term is linear in the translation
                                    and pulling it to the nearest outline crushes it onto the body)
          + w_arap sum_(j, k) |(g_k + t_k) - (g_j + t_j) - R_j (g_k - g_j)|^2
 
-solved with a sparse Cholesky-like factorisation (scipy SuperLU) of the 3N x 3N normal equations; the
-rotations then follow from the ARAP local step (Procrustes per node, batched SVD). Everything is computed in
-voxel units (coordinates divided by ``voxel``), so the weights are dimensionless. Closest points on a surface
-(the snap, the unfold, the residuals): the nearest vertex by a k-d tree, then the faces around it on the OpenCL
-device (kernels/closest.cl; ``SurfaceQuery.closest_reference`` is the same in NumPy, the kernel's test).
+solved with a sparse Cholesky-like factorisation (scipy SuperLU, in a fill-reducing order found once per
+keyframe, diagonal pivots) of the 3N x 3N normal equations; the rotations then follow from the ARAP local step
+(Procrustes per node, batched SVD). Everything is computed in voxel units (coordinates divided by ``voxel``), so
+the weights are dimensionless. Nearest vertices and closest points on a surface (the matches, the detail, the
+snap, the unfold, the residuals) are searched on the OpenCL device (kernels/closest.cl): ``PointGrid`` (a
+uniform grid, ring by ring; its reference is scipy's cKDTree) and ``SurfaceQuery.closest`` (the faces around the
+nearest vertex; ``closest_reference`` is the same in NumPy), each checked against its reference by a test.
 
     graph = build_graph(vertices, faces, spacing=4.0 * voxel)
     reg = Registration(graph, faces, FitParams())
@@ -494,8 +496,8 @@ class Registration:
 
     Everything that depends only on the keyframe is prepared once: the sampled source vertices and their
     nodes and weights, and the sparsity pattern of the 3N x 3N normal equations (node pairs sharing a sample
-    vertex or a graph edge), so each ICP iteration only accumulates values into it (np.bincount) and factorises
-    (scipy SuperLU)."""
+    vertex or a graph edge) with its fill-reducing order, so each ICP iteration only accumulates values into it
+    (np.bincount) and factorises (scipy SuperLU)."""
 
     def __init__(self, graph: DeformationGraph, faces: np.ndarray, params: FitParams):
         from scipy.sparse import coo_matrix, csr_matrix
