@@ -52,6 +52,8 @@ def test_every_stage_is_a_package_below_nodes():
 NODES_ELSEWHERE = {
     "nodes.export.textured": "export/nodes.py would then import the rasterizer and USD code: export.mesh and "
                              "export.masks would rerun on every edit of them",
+    "nodes.mesh.photo": "mesh/nodes.py would then import the rasterizer (photo's visibility and outline tests): mc, "
+                        "refine and relax would rerun on every edit of it",
     "nodes.track.export": "track/nodes.py would then import the glTF/USD writers: the tracker would rerun on "
                           "every edit of an export format",
 }
