@@ -15,13 +15,15 @@ def surface_report(mesh, reference, samples: int = 100_000, seed: int = 0) -> di
     import trimesh
     from scipy.spatial import cKDTree
 
+    from nodes.eval.health import KD_FLAT
+
     for label, m in (("mesh", mesh), ("reference", reference)):
         if len(m.faces) == 0 or m.area <= 0:
             raise NodeError(f"eval.surface: input '{label}' has no surface (0 faces or zero area)")
     pa, _ = trimesh.sample.sample_surface(mesh, samples, seed=seed)
     pb, _ = trimesh.sample.sample_surface(reference, samples, seed=seed)
-    d_ab = cKDTree(pb).query(pa)[0]
-    d_ba = cKDTree(pa).query(pb)[0]
+    d_ab = cKDTree(pb, **KD_FLAT).query(pa, workers=-1)[0]
+    d_ba = cKDTree(pa, **KD_FLAT).query(pb, workers=-1)[0]
     diag = float(np.linalg.norm(reference.bounds[1] - reference.bounds[0]))
     out = {
         "accuracy_mean": float(d_ab.mean()), "accuracy_max": float(d_ab.max()),
