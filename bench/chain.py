@@ -15,7 +15,9 @@ simplified sequence: the second track.frame and texture), rig (skeletonize*, ski
 seconds are divided by the frame count like the others. "median" is the median frame of a per-frame node (the
 first frame of each node type also pays its OpenCL kernel loading); sequence nodes have one item.
 
-The same run then times the fused path of the first stages (bench/e2e.py's: chroma key straight into the hull's
+The same run then runs every chain stage's work items again in this process (``in_memory``: run() on values
+held in memory, in the plan's order; no cache, no units), so each stage's CLI / own-work ratio shows what the
+engine adds (loading inputs, keeping outputs); and it times the fused path of the first stages (bench/e2e.py's: chroma key straight into the hull's
 device silhouettes, hull, marching cubes, images in memory) on the same rendered frames (read back from the
 run's cache) and box, for the CLI/fused ratio of key+hull+mc. Hours per minute = seconds per frame x 1800 / 3600;
 4DViews ~ 8 h and Fraunhofer HHI / Volucap ~ 12 h per minute of footage (issue 26).
@@ -73,6 +75,57 @@ def group_of(node: str, types: dict, upstream: dict) -> str:
     if types[node] == "synth":
         return RENDER
     return next((g for g, ts in GROUPS if types[node] in ts), REST)
+
+
+def in_memory(g, cache, nodes: set[str]) -> dict[str, list[float]]:
+    """Each stage's own work, in this process: every work item of ``nodes`` (and what they read) run by
+    ``call_node`` (run() and its output checks, what an item does between loading its inputs and keeping its
+    outputs) in the plan's order, every value handed over in memory and dropped after its last reader; the
+    synthetic stage's images come from the CLI run's cache (the render is not the chain). No cache, no frame units,
+    no processes: what is left of a stage's CLI seconds is the engine's (loading, keeping, hashing). Returns node ->
+    seconds per item (frame order)."""
+    import logging
+
+    from nodegraph.records import refs
+    from nodegraph.run import plan_graph
+    from nodegraph.worker import call_node
+
+    items, _ = plan_graph(g, cache)
+    want, todo = set(), list(nodes)
+    while todo:
+        n = todo.pop()
+        if n not in want:
+            want.add(n)
+            todo.extend(g.upstream[n])
+    items = [it for it in items if it.node in want]
+    readers: dict[tuple, int] = {}
+    for it in items:
+        for r in refs(it.inputs):
+            readers[(r.key, r.port)] = readers.get((r.key, r.port), 0) + 1
+    values, seconds, log = {}, {}, logging.getLogger("bench.chain")
+
+    def take(r):
+        v = values[(r.key, r.port)]
+        readers[(r.key, r.port)] -= 1
+        if not readers[(r.key, r.port)]:
+            del values[(r.key, r.port)]
+        return v
+
+    for it in items:
+        cls = g.nodes[it.node].cls
+        if it.node == "stage":
+            out = {p: (d.type, cache.load(it.key, p, d.type)) for p, d in cls.outputs.items()}
+        else:
+            inputs = {p: None if r is None else [take(x) for x in r] if isinstance(r, list) else take(r)
+                      for p, r in it.inputs.items()}
+            t0 = time.perf_counter()
+            out = call_node(cls, inputs, it.params, frame=it.frame, frames=it.frames, log=log)
+            seconds.setdefault(it.node, []).append(time.perf_counter() - t0)
+            del inputs
+        for p, (_, v) in out.items():
+            if readers.get((it.key, p)):
+                values[(it.key, p)] = v
+    return seconds
 
 
 def main():
@@ -135,13 +188,24 @@ def main():
                 fused.append(time.perf_counter() - t0)
     fused_ms = 1e3 * float(np.median(fused))
 
+    # each chain stage's own work in this process, on the same frames (a first pass over 3 frames builds the kernels)
+    named = ("key", "hull", "mc", "refine", "relax", "track", "texture", "deliver")
+    chain_nodes = {n for n in by_node if group[n] in named}
+    first = a.frames.split(":")[0]
+    in_memory(load_graph(GRAPH, overrides=sets, frames=f"{first}:{int(first) + 3}"), c, chain_nodes)
+    own = in_memory(g, c, chain_nodes)
+
     # the table
     order = [RENDER] + [gname for gname, _ in GROUPS] + [REST]
     print(f"graphs/demo.yaml, {nf} frames ({a.frames}), {a.cameras} cameras x {a.width}x{a.height}, hull "
           f"{a.resolution}; `volcap run -j {a.jobs}` in a fresh process, fresh temporary cache: "
           f"{len(records)} items, {hits} cache hits")
-    print(f"{'group':>22} {'node':>14} {'type':>22} {'items':>5} {'s/frame':>8} {'median':>7}")
-    sums = {}
+    print("CLI = the item's seconds in run.json (inputs loaded, run, outputs kept); own = the same items' run() in this "
+          "process, values in memory (bench.chain.in_memory); ratio = CLI / own on the median frame (sequence nodes: "
+          "their one item; the CLI's first frame also pays the kernels' loading)")
+    print(f"{'group':>22} {'node':>14} {'type':>22} {'items':>5} {'s/frame':>8} {'median':>7} {'own':>7} "
+          f"{'median':>7} {'ratio':>6}")
+    sums, own_sums = {}, {}
     for gname in order:
         nodes = [n for n in by_node if group[n] == gname]
         if not nodes:
@@ -149,10 +213,21 @@ def main():
         for n in nodes:
             secs = [r["seconds"] for r in by_node[n]]
             per_frame = by_node[n][0]["frame"] is not None
-            med = f"{np.median(secs):7.2f}" if per_frame else f"{'':>7}"
-            print(f"{'':>22} {n:>14} {types[n]:>22} {len(secs):5d} {sum(secs) / nf:8.3f} {med}")
+            med = f"{np.median(secs):7.3f}" if per_frame else f"{'':>7}"
+            mine = ""
+            if n in own:
+                ref = np.median(secs) if per_frame else secs[0]
+                ours = np.median(own[n]) if per_frame else own[n][0]
+                mine = (f" {sum(own[n]) / nf:7.3f} " + (f"{ours:7.3f}" if per_frame else f"{'':>7}")
+                        + f" {ref / max(ours, 1e-9):6.2f}")
+            print(f"{'':>22} {n:>14} {types[n]:>22} {len(secs):5d} {sum(secs) / nf:8.3f} {med}{mine}")
         sums[gname] = sum(r["seconds"] for n in nodes for r in by_node[n]) / nf
-        print(f"{gname:>22} {'':>14} {'group sum':>22} {'':>5} {sums[gname]:8.3f}")
+        if all(n in own for n in nodes):
+            own_sums[gname] = sum(sum(own[n]) for n in nodes) / nf
+            print(f"{gname:>22} {'':>14} {'group sum':>22} {'':>5} {sums[gname]:8.3f} {'':>7} {own_sums[gname]:7.3f} "
+                  f"{'':>7} {sums[gname] / max(own_sums[gname], 1e-9):6.2f}")
+        else:
+            print(f"{gname:>22} {'':>14} {'group sum':>22} {'':>5} {sums[gname]:8.3f}")
     chain = sum(v for k, v in sums.items() if k != RENDER)
     per = wall / nf
     print(f"{'sum of items':>22} {'':>14} {'chain (no render)':>22} {'':>5} {chain:8.3f}")
@@ -163,10 +238,12 @@ def main():
     def hours(s):
         return s * 1800 / 3600
 
-    named = ("key", "hull", "mc", "refine", "relax", "track", "texture", "deliver")
     core = sum(sums.get(x, 0) for x in named)
-    print(f"{'issue 26 chain':>22} {'':>14} {'key..deliver items':>22} {'':>5} {core:8.3f}   (" + " + ".join(named)
-          + f": {hours(core):.2f} h per minute of 30 fps footage; goal 1 s/frame = 0.5 h)")
+    own_core = sum(own_sums.get(x, 0) for x in named)
+    print(f"{'issue 26 chain':>22} {'':>14} {'key..deliver items':>22} {'':>5} {core:8.3f} {'':>7} {own_core:7.3f} "
+          f"{'':>7} {core / max(own_core, 1e-9):6.2f}   (" + " + ".join(named)
+          + f": {hours(core):.2f} h per minute of 30 fps footage, {hours(own_core):.2f} h for the stages' own work; "
+          "goal 1 s/frame = 0.5 h)")
 
     print(f"projected hours per minute of 30 fps footage: {hours(per - sums.get(RENDER, 0)):.2f} h (wall less the "
           f"render), {hours(per):.2f} h (wall with it), {hours(chain):.2f} h (sum of chain items); "
