@@ -71,13 +71,15 @@ def _segment(meshes, textured, frames, a: int, c: int):
 
 
 def segment_glb(points, faces, src, uv, atlas, frames, fps: float, video: str | None) -> bytes:
-    """One segment as a GLB: the seam-split mesh of its first frame, morph targets for the others."""
+    """One segment as a GLB: the seam-split mesh of its first frame, morph targets for the others. ``atlas``:
+    the first frame's atlas, (H, W, 3) uint8 or its PNG bytes (``png_bytes``, when the caller has them)."""
     split = [np.asarray(p, np.float64)[src] for p in points]
     normals = [smooth_vertex_normals(p, faces) for p in split]
     b = GltfBuilder("volcap export.volumetric")
     targets = [{"POSITION": p - split[0], "NORMAL": n - normals[0]} for p, n in zip(split[1:], normals[1:])]
     m = b.mesh(split[0], faces, normals=normals[0], uv=texture_uv(uv), targets=targets, name="capture")
-    b.set_material(m, b.texture_material(png_bytes(atlas), name="atlas"))
+    png = atlas if isinstance(atlas, bytes) else png_bytes(atlas)
+    b.set_material(m, b.texture_material(png, name="atlas"))
     node = b.node("capture", mesh=m)
     n = len(points)
     if targets:
@@ -145,8 +147,8 @@ def volumetric_files(meshes, textured, frames, name: str, fps: float, formats, c
         if video:
             files[video] = atlas_video(atlases, fps, crf)
         if "gltf" in formats:
-            files[f"{stem}.glb"] = segment_glb([meshes[k].vertices for k in range(a, c)], faces, src, uv, atlases[0],
-                                               frames[a:c], fps, video)
+            files[f"{stem}.glb"] = segment_glb([meshes[k].vertices for k in range(a, c)], faces, src, uv,
+                                               files[tex_names[0]], frames[a:c], fps, video)   # its PNG, once
         if stage is not None:
             geom = stage.mesh(f"/Capture/{stem}", faces, uv=uv)
             for k in range(a, c):
