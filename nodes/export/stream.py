@@ -118,6 +118,15 @@ def decode_positions(data: bytes) -> np.ndarray:
     return lo + q / (2 ** head["bits"] - 1) * span
 
 
+def atlas_psnr(atlas: np.ndarray, decoded: np.ndarray) -> float:
+    """PSNR (dB) of a decoded uint8 image against the original: the squared errors summed as integers (exact:
+    the float64 mean of them gives the same, at 3 MP 4x the time), over their count."""
+    d = decoded.astype(np.int16) - atlas
+    se = np.einsum("i,i->", d.ravel(), d.ravel(), dtype=np.int64) if d.size else 0
+    mse = float(se) / max(d.size, 1)
+    return 10 * np.log10(255.0 ** 2 / max(mse, 1e-12))
+
+
 def stream_files(meshes, textured, frames, name: str, rung: str, fps: float, bits: int, crf: int,
                  draco_bits: int = 14) -> tuple[dict, dict]:
     """(files, report) of one rung (module docstring); the report measures it against its input: bytes,
@@ -146,8 +155,7 @@ def stream_files(meshes, textured, frames, name: str, rung: str, fps: float, bit
         back = decode_positions(pos)
         errors.append(np.linalg.norm(back - points, axis=2).ravel())
         for img, dec in zip(atlases, read_video(mp4)):
-            mse = np.mean((dec[:img.shape[0], :img.shape[1]].astype(np.float64) - img) ** 2)
-            psnrs.append(10 * np.log10(255.0 ** 2 / max(mse, 1e-12)))
+            psnrs.append(atlas_psnr(img, dec[:img.shape[0], :img.shape[1]]))
         segs.append({"name": stem, "first_frame": int(frames[a]), "frames": int(c - a), "vertices": int(len(src)),
                      "faces": int(len(faces)), "geometry": f"{stem}.drc", "positions": f"{stem}.pos",
                      "video": f"{stem}.mp4", "atlas": list(atlases[0].shape[1::-1]), "bits": int(bits)})
