@@ -93,8 +93,17 @@ def segment_glb(points, faces, src, uv, atlas, frames, fps: float, video: str | 
                          **({"texture_video": video} if video else {})})
 
 
+# libx264's settings beside ``crf``: preset veryfast with tune psnr (no adaptive quantisation, no psycho-visual
+# optimisation: the atlas is judged by its PSNR) and subpixel refinement 4 (veryfast's 2 costs bits). Against the
+# former preset medium on the demo (12 frames, 25 fps, 2-core EPYC): the 1024² atlas at crf 18 with 1.8x less encoder
+# CPU time, 39.01 dB mean (was 38.95), worst frame 38.66 (38.52), 0.4 % smaller; at crf 28 (the stream's full
+# rung) 1.4x less, 35.64 dB (35.74), worst 35.11 (35.23), 0.8 % smaller; the 512² quarter rung 1.4x less, 32.14 dB
+# (31.80), 20 % larger.
+X264_OPTIONS = {"preset": "veryfast", "tune": "psnr", "x264-params": "subme=4"}
+
+
 def atlas_video(atlases, fps: float, crf: int = 18) -> bytes:
-    """The atlases as an H.264 MP4 (yuv420p: even sizes), one frame each at ``fps``."""
+    """The atlases as an H.264 MP4 (yuv420p: even sizes), one frame each at ``fps`` (libx264: ``X264_OPTIONS``)."""
     try:
         import av
     except ImportError:
@@ -107,7 +116,7 @@ def atlas_video(atlases, fps: float, crf: int = 18) -> bytes:
         stream = out.add_stream("libx264", rate=Fraction(fps).limit_denominator(1001))
         stream.width, stream.height = w + w % 2, h + h % 2
         stream.pix_fmt = "yuv420p"
-        stream.options = {"crf": str(crf), "preset": "medium"}
+        stream.options = {"crf": str(crf), **X264_OPTIONS}
         for img in atlases:
             if w % 2 or h % 2:
                 img = np.pad(img, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")
