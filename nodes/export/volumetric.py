@@ -94,12 +94,13 @@ def segment_glb(points, faces, src, uv, atlas, frames, fps: float, video: str | 
 
 
 # libx264's settings beside ``crf``: preset veryfast with tune psnr (no adaptive quantisation, no psycho-visual
-# optimisation: the atlas is judged by its PSNR) and subpixel refinement 4 (veryfast's 2 costs bits). Against the
-# former preset medium on the demo (12 frames, 25 fps, 2-core EPYC): the 1024² atlas at crf 18 with 1.8x less encoder
-# CPU time, 39.01 dB mean (was 38.95), worst frame 38.66 (38.52), 0.4 % smaller; at crf 28 (the stream's full
-# rung) 1.4x less, 35.64 dB (35.74), worst 35.11 (35.23), 0.8 % smaller; the 512² quarter rung 1.4x less, 32.14 dB
-# (31.80), 20 % larger.
-X264_OPTIONS = {"preset": "veryfast", "tune": "psnr", "x264-params": "subme=4"}
+# optimisation: the atlas is judged by its PSNR), subpixel refinement 4 (veryfast's 2 costs bits), diamond motion
+# search, no weighted prediction (unused on an atlas: the same bytes less its analysis), no 8x8 inter partitions
+# (20-30 % of the encoder's time for 1-7 % of the bytes). Against the former preset medium on the demo (12 frames,
+# 25 fps; encoder CPU time on the 2-core EPYC, load ~6): the 1024² atlas at crf 18 1.60 -> 0.59 s, 39.01 dB mean
+# (was 38.95), worst frame 38.68 (38.52), 5 % more bytes; at crf 28 (the stream's full rung) 0.91 -> 0.49 s,
+# 35.60 dB (35.74), worst 35.05 (35.23), 1 % more; the 512² quarter rung 0.32 -> 0.12 s, 32.10 dB (31.80), 28 % more.
+X264_OPTIONS = {"preset": "veryfast", "tune": "psnr", "x264-params": "subme=4:me=dia:weightp=0:partitions=i8x8,i4x4"}
 
 
 def atlas_video(atlases, fps: float, crf: int = 18) -> bytes:
