@@ -3,8 +3,8 @@
     topology     unique_edges, edge_faces / edge_face_pairs (edge -> faces), face_neighbours, vertex_faces (CSR)
                  and padded_rows, vertex_neighbours (CSR), component_sizes / drop_small_components /
                  largest_component
-    geometry     face_normals, face_areas, vertex_normals (area-weighted), smooth_vertex_normals (welded, for
-                 shading: what the exports write), edge_length_graph
+    geometry     face_normals, face_areas, vertex_normals (area-weighted), weld_coincident, smooth_vertex_normals
+                 (welded, for shading: what the exports write), edge_length_graph
     folds        FOLD_DEG / FOLD_COS (faces turned more than 150 degrees), folded_edges
     averaging    ring_operator (I + A), ring_average (row-normalised I + A), neighbour_mean (uniform Laplacian), ring_degree
     refinement   split_edges (conforming edge splits)
@@ -140,6 +140,20 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.divide(n, norm, out=np.zeros_like(n), where=norm > 0)
 
 
+def weld_coincident(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(unique rows in lexicographic order, (N,) index of each point's row): ``np.unique(points, axis=0,
+    return_inverse=True)``'s result, by a lexsort of the columns and a comparison of neighbours (4x faster on
+    14k points than its sort of the rows as one structured type)."""
+    p = np.asarray(points)
+    order = np.lexsort(p.T[::-1])
+    rows = p[order]
+    new = np.ones(len(p), bool)
+    np.any(rows[1:] != rows[:-1], axis=1, out=new[1:])
+    inverse = np.empty(len(p), np.int64)
+    inverse[order] = np.cumsum(new) - 1
+    return rows[new], inverse
+
+
 def smooth_vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Unit vertex normals (V, 3) for shading: ``vertex_normals`` of the mesh with coincident vertices
     welded (a texture atlas splits vertices at chart borders; welded, both copies get one normal and the seam
@@ -152,8 +166,7 @@ def smooth_vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray
     v = np.asarray(vertices, np.float64)
     if not len(v):
         return np.zeros((0, 3))
-    welded, inverse = np.unique(v, axis=0, return_inverse=True)
-    inverse = inverse.reshape(-1)
+    welded, inverse = weld_coincident(v)
     n = vertex_normals(welded, inverse[np.asarray(faces, np.int64).reshape(-1, 3)])[inverse]
     n[np.linalg.norm(n, axis=1) == 0] = (0.0, 0.0, 1.0)
     return n

@@ -107,3 +107,26 @@ def test_one_usd_stage_holds_a_tracked_textured_skinned_mesh(box, tmp_path):
 
     names = zipfile.ZipFile(tmp_path / "b.usdz").namelist()                 # the packer files the PNG as 0/body.png
     assert names[0] == "b.usdc" and len(names) == 2 and names[1].endswith("body.png")
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (7, 1), (1, 9), (64, 64), (333, 517), (1024, 1024)])
+def test_png_bytes_decode_to_the_image(shape):
+    """The PNG writer (Sub-filtered rows, zlib, libpng's small-image window) reads back exactly with OpenCV and PIL,
+    and is a valid PNG to libpng (OpenCV) at every size, one pixel wide included."""
+    import io
+
+    import cv2
+    from PIL import Image
+
+    from nodes.common.gltf import png_bytes
+
+    rng = np.random.default_rng(sum(shape))
+    img = rng.integers(0, 256, shape + (3,), dtype=np.uint8)
+    img[: shape[0] // 2] //= 64                                            # runs and noise
+    data = png_bytes(img)
+    np.testing.assert_array_equal(cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)[:, :, ::-1], img)
+    with Image.open(io.BytesIO(data)) as im:
+        im.verify()
+    with Image.open(io.BytesIO(data)) as im:
+        assert im.mode == "RGB" and np.array_equal(np.asarray(im), img)
+    np.testing.assert_array_equal(cv2.imdecode(np.frombuffer(png_bytes(img[:, ::-1]), np.uint8), 1)[:, ::-1, ::-1], img)

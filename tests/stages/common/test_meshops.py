@@ -150,3 +150,20 @@ def test_smooth_vertex_normals_weld_seams_and_are_unit():
     np.testing.assert_allclose(n[len(v):2 * len(v)], vertex_normals(v, f), atol=1e-12)
     np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1)
     assert n[-1].tolist() == [0.0, 0.0, 1.0]
+
+
+def test_weld_coincident_is_numpy_unique_of_the_rows():
+    from nodes.common.meshops import weld_coincident
+
+    rng = np.random.default_rng(3)
+    p = rng.integers(0, 4, (500, 3)).astype(np.float64) / 2        # many exact repeats and ties per column
+    p[::7] = rng.normal(size=(len(p[::7]), 3))
+    p[5] = [-0.0, 1.0, 0.0]                                          # -0 and +0 are one coordinate
+    p[6] = [0.0, 1.0, -0.0]
+    for pts in (p, p.astype(np.float32), p[:1]):
+        rows, inverse = weld_coincident(pts)
+        ref_rows, ref_inverse = np.unique(pts, axis=0, return_inverse=True)
+        np.testing.assert_array_equal(rows, ref_rows)
+        np.testing.assert_array_equal(inverse, ref_inverse.reshape(-1))
+        assert inverse.dtype == np.int64
+    assert weld_coincident(p)[1][5] == weld_coincident(p)[1][6]

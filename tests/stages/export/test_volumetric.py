@@ -186,3 +186,28 @@ def test_goldens_of_the_deliverable(take, golden):
     golden.check("export_stream_manifest", json.loads(files["s/full/manifest.json"]), Table)
     low = run_node("track.simplify", {"sequence": seq}, {"faces": 0.25})["report"]
     golden.check("track_simplify_take", low, Table)
+
+
+def test_breadth_first_parents_are_each_charts_own_search():
+    """The one search from a hub over all charts gives every vertex the parent a search from its chart's root
+    (its lowest vertex) gives."""
+    import scipy.sparse as sp
+    import trimesh
+    from scipy.sparse.csgraph import breadth_first_order
+
+    from nodes.export.stream import _bfs_parents
+
+    ball = trimesh.creation.icosphere(2)
+    n = len(ball.vertices)
+    perm = np.random.default_rng(1).permutation(3 * n)                 # three charts, vertices interleaved
+    faces = perm[np.vstack([ball.faces, ball.faces + n, ball.faces + 2 * n])]
+    parent = _bfs_parents(faces, 3 * n)
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    graph = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(3 * n, 3 * n)).tocsr()
+    graph = ((graph + graph.T) > 0).astype(np.int8).tocsr()
+    for chart in range(3):
+        members = perm[chart * n:(chart + 1) * n]
+        root = int(members.min())
+        order, pred = breadth_first_order(graph, root, directed=False)
+        assert sorted(order) == sorted(members) and parent[root] == -1
+        np.testing.assert_array_equal(parent[order[1:]], pred[order[1:]])
