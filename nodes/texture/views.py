@@ -465,7 +465,46 @@ def blend_weights(labels, quality, faces, n_vertices, *, feather=2, K=4, spread=
 
 def vertex_view_samples(vertices, index, views, cameras: Cameras, frame: FrameImages, radius=1.5):
     """Colour (N, 3) of vertex index[i] seen in view views[i] (mean of five bilinear samples within ``radius``
-    pixels) and whether all five fell on valid pixels."""
+    pixels) and whether all five fell on valid pixels. (Projected view by view; the samples are then read for
+    all views at once from ``frame.packed``, with the arithmetic of ``_sample_rgb_reference``.)"""
+    vertices = np.asarray(vertices, np.float64)
+    views = np.asarray(views, np.int64)
+    n = len(views)
+    p = np.zeros((n, 2))
+    good = np.zeros(n, bool)
+    for v in np.unique(views):
+        sel = np.flatnonzero(views == v)
+        p[sel], z = cameras.project(vertices[index[sel]], int(v))
+        good[sel] = z > 1e-6
+    w = np.array([c.width for c in cameras], np.int64)[views]
+    h = np.array([c.height for c in cameras], np.int64)[views]
+    img_off = frame.offsets[views]
+    val_off = img_off // 3
+    acc = np.zeros((n, 3), np.float32)
+    rgb = np.arange(3)
+    for dx, dy in ((0, 0), (radius, 0), (-radius, 0), (0, radius), (0, -radius)):
+        q = p + (dx, dy)
+        inside = (q[:, 0] > -0.5) & (q[:, 1] > -0.5) & (q[:, 0] < w - 0.5) & (q[:, 1] < h - 0.5)
+        x = np.where(inside, np.floor(q[:, 0] + 0.5), 0).astype(np.int64)
+        y = np.where(inside, np.floor(q[:, 1] + 0.5), 0).astype(np.int64)
+        good &= inside & (frame.packed_valid[val_off + y * w + x] != 0)
+        q = np.nan_to_num(q)                                  # _sample_rgb_reference, per sample's image
+        xf = np.clip(q[:, 0], 0, w - 1).astype(np.float32)
+        yf = np.clip(q[:, 1], 0, h - 1).astype(np.float32)
+        x0, y0 = np.floor(xf).astype(np.int64), np.floor(yf).astype(np.int64)
+        x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+        fx, fy = (xf - x0)[:, None], (yf - y0)[:, None]
+
+        def px(yy, xx):
+            return frame.packed[(img_off + 3 * (yy * w + xx))[:, None] + rgb].astype(np.float32)
+
+        acc += ((1 - fy) * ((1 - fx) * px(y0, x0) + fx * px(y0, x1))
+                + fy * ((1 - fx) * px(y1, x0) + fx * px(y1, x1)))
+    return acc / 5, good
+
+
+def vertex_view_samples_reference(vertices, index, views, cameras: Cameras, frame: FrameImages, radius=1.5):
+    """``vertex_view_samples`` view by view on the (H, W, 3) images (the tests compare the two)."""
     vertices = np.asarray(vertices, np.float64)
     out = np.zeros((len(views), 3), np.float32)
     ok = np.zeros(len(views), bool)
@@ -507,8 +546,11 @@ def level_seams(vertices, faces, face_view, weight, cameras: Cameras, frame: Fra
     nvert = len(vertices)
     slot_v = np.repeat(faces[:, :, None], K, axis=2)                     # (F, 3, K) vertex of each slot
     slot_view = np.repeat(face_view[:, None, :], 3, axis=1).astype(np.int64)
-    used = (slot_view >= 0) & (weight >= min_weight)        # slots that matter at their corner
-    keys = np.unique(slot_v[used] * nviews + slot_view[used])
+    used = np.flatnonzero((slot_view >= 0) & (weight >= min_weight))   # slots that matter at their corner
+    used_keys = slot_v.reshape(-1)[used] * nviews + slot_view.reshape(-1)[used]
+    present = np.zeros(nvert * nviews, bool)                             # sorted unique keys, by a table
+    present[used_keys] = True
+    keys = np.flatnonzero(present)
     kv = keys // nviews
     seam = np.zeros(nvert, bool)
     seam[kv[1:][kv[1:] == kv[:-1]]] = True                               # vertices with two or more views
@@ -531,9 +573,9 @@ def level_seams(vertices, faces, face_view, weight, cameras: Cameras, frame: Fra
     edges = edges[inband[edges[:, 0]] | inband[edges[:, 1]]]
     rows, cols, vals = [np.arange(len(i0))] * 2, [i0, i1], [np.ones(len(i0)), -np.ones(len(i0))]
     m = len(i0)
+    table = np.full((nvert, nviews), -1, np.int64)                        # node id per (vertex, view)
+    table[node_vertex, node_view] = np.arange(n)
     if len(edges):
-        table = np.full((nvert, nviews), -1, np.int64)                    # node id per (vertex, view)
-        table[node_vertex, node_view] = np.arange(n)
         ta, tb = table[edges[:, 0]], table[edges[:, 1]]                  # (E, views)
         # an edge whose other end is outside the band (offset 0 there) pins the offset towards 0
         a_out = ~inband[edges[:, 0]][:, None]
@@ -560,39 +602,44 @@ def level_seams(vertices, faces, face_view, weight, cameras: Cameras, frame: Fra
     M = (A.T @ A + diags(np.full(n, regular ** 2))).tocsr()
     rhs = np.asarray(A.T @ b)
     g = block_pcg(M, rhs, tol=tol, maxiter=maxiter)
-    # offsets of every slot: the node's value inside the band, 0 outside
-    slot_keys = slot_v * nviews + np.maximum(slot_view, 0)
-    idx = np.searchsorted(nodes, slot_keys)
-    hit = used & (idx < n) & (nodes[np.minimum(idx, n - 1)] == slot_keys)
-    offset[hit] = g[idx[hit]].astype(np.float32)
+    # offsets of the used slots: the node's value inside the band, 0 outside
+    node = table.reshape(-1)[used_keys]
+    hit = node >= 0
+    offset.reshape(-1, 3)[used[hit]] = g[node[hit]].astype(np.float32)
     return offset
 
 
 def block_pcg(M, B, *, tol=1e-4, maxiter=200):
     """Solve M X = B (M symmetric positive definite, sparse; B (n, k)) by conjugate gradients with a Jacobi
-    preconditioner, all k columns at once. Stops when every column's residual is below tol * |b|."""
+    preconditioner, all k columns at once. Stops when every column's residual is below tol * |b|. (The
+    columns are kept as contiguous rows (k, n) and updated in place: elementwise work over a trailing axis
+    of 3 ran at a third of the speed.)"""
     d = M.diagonal()
-    inv = np.where(d > 0, 1.0 / np.where(d > 0, d, 1), 1.0)[:, None]
-    X = np.zeros_like(B, dtype=np.float64)
-    R = np.asarray(B, np.float64).copy()
+    inv = np.where(d > 0, 1.0 / np.where(d > 0, d, 1), 1.0)
+    R = np.array(np.asarray(B, np.float64).T, order="C")                  # (k, n) residuals
+    X = np.zeros_like(R)
     Z = inv * R
     P = Z.copy()
-    rz = np.einsum("ij,ij->j", R, Z)
-    bnorm = np.maximum(np.linalg.norm(B, axis=0), 1e-30)
+    Q = np.empty_like(P)
+    T = np.empty_like(P)
+    rz = np.einsum("ij,ij->i", R, Z)
+    lim = tol * np.maximum(np.sqrt(np.einsum("ij,ij->i", R, R)), 1e-30)
     for _ in range(maxiter):
-        if np.all(np.linalg.norm(R, axis=0) <= tol * bnorm):
+        if np.all(np.sqrt(np.einsum("ij,ij->i", R, R)) <= lim):
             break
-        Q = M @ P
-        pq = np.einsum("ij,ij->j", P, Q)
-        alpha = np.divide(rz, pq, out=np.zeros_like(rz), where=pq != 0)
-        X += alpha * P
-        R -= alpha * Q
-        Z = inv * R
-        rz_new = np.einsum("ij,ij->j", R, Z)
-        beta = np.divide(rz_new, rz, out=np.zeros_like(rz), where=rz != 0)
-        P = Z + beta * P
+        for j in range(len(P)):
+            Q[j] = M @ P[j]
+        pq = np.einsum("ij,ij->i", P, Q)
+        alpha = np.divide(rz, pq, out=np.zeros_like(rz), where=pq != 0)[:, None]
+        X += np.multiply(alpha, P, out=T)
+        R -= np.multiply(alpha, Q, out=T)
+        np.multiply(inv, R, out=Z)
+        rz_new = np.einsum("ij,ij->i", R, Z)
+        beta = np.divide(rz_new, rz, out=np.zeros_like(rz), where=rz != 0)[:, None]
+        P *= beta
+        P += Z
         rz = rz_new
-    return X
+    return X.T
 
 
 def fallback_vertex_colours(labels, colour, gains, faces, n_vertices, rounds=50, topo=None) -> np.ndarray:

@@ -244,6 +244,40 @@ def test_gains_and_levelling_reduce_view_seam_disagreement():
     assert j["n_atlas_seams"] > 100 and j["atlas_seams"] < 1.2 * j["inside"] + 1, j
 
 
+def test_vertex_view_samples_match_the_per_view_reference():
+    """All views at once from the packed images gives what the view-by-view reference gives, bit for bit,
+    also for vertices behind a camera or outside its image (ok False there)."""
+    s, images = _uneven_scene()
+    m = s["mesh"]
+    frame = V.FrameImages.build(images, s["masks"].masks, 2)
+    nv = len(s["cameras"])
+    rng = np.random.default_rng(3)
+    keys = np.unique(rng.integers(0, len(m.vertices) * nv, 4000))
+    far = np.vstack([m.vertices, m.vertices * 50.0])                     # the second half outside the images
+    index = np.concatenate([keys // nv, len(m.vertices) + keys[:200] // nv])
+    views = np.concatenate([keys % nv, keys[:200] % nv])
+    col, ok = V.vertex_view_samples(far, index, views, s["cameras"], frame)
+    ref_col, ref_ok = V.vertex_view_samples_reference(far, index, views, s["cameras"], frame)
+    assert 0.2 * len(views) < ok.sum() < len(views) and not ok[-200:].any()
+    np.testing.assert_array_equal(ok, ref_ok)
+    np.testing.assert_array_equal(col, ref_col)
+
+
+def test_block_pcg_solves_every_column():
+    from scipy.sparse import diags, random as sparse_random
+    from scipy.sparse.linalg import spsolve
+
+    rng = np.random.default_rng(1)
+    A = sparse_random(400, 300, density=0.02, random_state=2, format="csr")
+    M = (A.T @ A + diags(np.full(300, 0.1))).tocsr()
+    B = rng.normal(size=(300, 3)) * [1.0, 100.0, 0.01]                 # columns of very different size
+    X = V.block_pcg(M, B, tol=1e-8, maxiter=500)
+    assert X.shape == B.shape
+    for j in range(3):
+        exact = spsolve(M.tocsc(), B[:, j])
+        np.testing.assert_allclose(X[:, j], exact, rtol=1e-6, atol=1e-7 * np.abs(exact).max())
+
+
 # ---------------------------------------------------------------- quality and background
 @pytest.mark.slow
 def test_leave_one_out_beats_vertex_colours_and_never_paints_background():
