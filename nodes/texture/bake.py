@@ -245,15 +245,19 @@ def fill_texture(colour: np.ndarray, layout) -> np.ndarray:
     s = layout.size
     ch, cw = layout.coarse_shape
     n = ch * cw
-    col = np.asarray(colour, np.float64)
     area = layout.cell_area.reshape(-1)
-    wt = (np.bincount(layout.cell, minlength=n) / area).reshape(ch, cw).astype(np.float32)
-    c = np.stack([np.bincount(layout.cell, col[:, k], minlength=n) / area for k in range(3)], axis=1)
+    wt = (layout.cell_count / area).reshape(ch, cw).astype(np.float32)
+    # one bincount over (cell, channel): per bin the same texels in the same order as one per channel
+    c = np.bincount(layout.cell_channel, np.ascontiguousarray(colour).reshape(-1), minlength=3 * n).reshape(n, 3)
+    c /= area[:, None]
     filled = _pyramid_fill(c.reshape(ch, cw, 3).astype(np.float32), wt)
     c16 = layout.COARSE                                       # cells of c16 texels (the last ones partial)
     up = cv2.resize(np.clip(filled + 0.5, 0, 255).astype(np.uint8), (cw * c16, ch * c16),
                     interpolation=cv2.INTER_LINEAR)[:s, :s]
     up = np.ascontiguousarray(up)
     flat = up.reshape(-1, 3)
-    flat[layout.texel] = np.clip(col + 0.5, 0, 255).astype(np.uint8)
+    v = np.asarray(colour, np.float64) + 0.5                  # as np.clip(colour + 0.5, 0, 255) in float64
+    np.maximum(v, 0, out=v)
+    np.minimum(v, 255, out=v)
+    flat[layout.texel] = v.astype(np.uint8)
     return up

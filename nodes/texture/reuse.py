@@ -89,7 +89,8 @@ class BakeLayout:
     """The texels an atlas bakes, compact: ``texel`` (N,) flat indices into the size x size texture of every
     texel with a face (inside a chart or in its gutter), ``face`` (N,) and ``bary`` (N, 3) the surface point
     it shows, ``inner`` (N,) whether its centre lies inside the face (not the gutter). ``texel_face`` is the
-    full (S, S) map (-1 = empty). The fill pyramid's coarsest cells per texel are kept too."""
+    full (S, S) map (-1 = empty). The fill pyramid's coarsest cells per texel are kept too (``cell``, their
+    texel counts, and ``cell_channel``: the bin of each of a texel's three colour values)."""
 
     COARSE = 16
 
@@ -109,6 +110,9 @@ class BakeLayout:
         self.coarse_shape = (-(-s // c), -(-s // c))
         y, x = np.divmod(self.texel, s)
         self.cell = (y // c) * self.coarse_shape[1] + x // c
+        n_cells = self.coarse_shape[0] * self.coarse_shape[1]
+        self.cell_count = np.bincount(self.cell, minlength=n_cells)
+        self.cell_channel = (self.cell[:, None] * 3 + np.arange(3)).reshape(-1)   # bin of each colour value
         self.cell_area = np.full(self.coarse_shape, float(c * c))
         if s % c:                                             # edge cells are partly outside the square
             ys = np.minimum(np.arange(self.coarse_shape[0]) * c + c, s) - np.arange(self.coarse_shape[0]) * c

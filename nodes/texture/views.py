@@ -370,22 +370,57 @@ def camera_gains(quality, colour, *, iterations=6, min_level=8.0, max_faces=8000
     """(V, 3) per-camera, per-channel gains that make the views agree (exposure and white balance): the
     model colour[v, f] = a_v * t_f is fitted in log space over every face seen by at least two views
     (alternating robust means, residuals beyond 0.3 ignored), normalised so the gains' geometric mean is 1.
-    Returns 1 / a_v."""
+    Returns 1 / a_v. (Sums over faces by einsum: the same numbers as ``sum(axis=1)``, which reduced over a
+    trailing axis of 3 four times slower.)"""
     q = np.asarray(quality)
     nv = q.shape[0]
     vis = q > 0
     both = np.flatnonzero(vis.sum(axis=0) >= 2)
     if len(both) > max_faces:                               # an even subsample is plenty for V x 3 unknowns
         both = both[np.linspace(0, len(both) - 1, max_faces).astype(np.int64)]
-    c = np.asarray(colour)[:, both].astype(np.float32)      # (V, F', 3)
+    c = np.ascontiguousarray(np.asarray(colour)[:, both], np.float32)   # (V, F', 3) (the indexing gives (F', V, 3) order)
     m = vis[:, both][..., None] & (c > min_level)           # (V, F', 3)
+    if not np.any(m):
+        return np.ones((nv, 3), np.float32)
+
+    def over_faces(x):                                      # (V, 1, 3), = x.sum(axis=1, keepdims=True)
+        return np.einsum("vfc->vc", x)[:, None]
+
+    L = np.log(np.maximum(c, 1e-3))
+    a = np.zeros((nv, 1, 3), np.float32)
+    w = m.astype(np.float32)
+    m_count = np.count_nonzero(m)
+    for _ in range(iterations):
+        La = L - a
+        t = (w * La).sum(axis=0) / np.maximum(w.sum(axis=0), 1e-9)                     # (F', 3)
+        r = La - t[None]
+        wr = w * (np.abs(r) < 0.3)
+        a = a + (over_faces(wr * r) / np.maximum(over_faces(wr), 1e-9))
+        seen = over_faces(w) > 0
+        a = np.where(seen, a, 0.0)
+        a -= a[seen[:, 0, 0]].mean(axis=0, keepdims=True) if np.any(seen) else 0
+        w = wr if np.count_nonzero(wr) > 0.5 * m_count else w      # (0/1 values: the count is their sum)
+    return np.exp(-a[:, 0, :]).astype(np.float32)
+
+
+def camera_gains_reference(quality, colour, *, iterations=6, min_level=8.0, max_faces=8000) -> np.ndarray:
+    """``camera_gains`` written plainly (every sum a NumPy ``sum``): the tests check that both give the same
+    numbers."""
+    q = np.asarray(quality)
+    nv = q.shape[0]
+    vis = q > 0
+    both = np.flatnonzero(vis.sum(axis=0) >= 2)
+    if len(both) > max_faces:
+        both = both[np.linspace(0, len(both) - 1, max_faces).astype(np.int64)]
+    c = np.ascontiguousarray(np.asarray(colour)[:, both], np.float32)
+    m = vis[:, both][..., None] & (c > min_level)
     if not np.any(m):
         return np.ones((nv, 3), np.float32)
     L = np.log(np.maximum(c, 1e-3))
     a = np.zeros((nv, 1, 3), np.float32)
     w = m.astype(np.float32)
     for _ in range(iterations):
-        t = (w * (L - a)).sum(axis=0) / np.maximum(w.sum(axis=0), 1e-9)               # (F', 3)
+        t = (w * (L - a)).sum(axis=0) / np.maximum(w.sum(axis=0), 1e-9)
         r = L - a - t[None]
         wr = w * (np.abs(r) < 0.3)
         a = a + ((wr * r).sum(axis=1, keepdims=True) / np.maximum(wr.sum(axis=1, keepdims=True), 1e-9))

@@ -219,6 +219,19 @@ def test_camera_gains_recover_exposure_and_white_balance():
     np.testing.assert_allclose(gains * true, 1.0, atol=0.02)
 
 
+def test_camera_gains_give_the_plain_formula_s_numbers():
+    """camera_gains (einsum sums, counts) gives bit for bit what its plainly written reference gives."""
+    s = scene("figure", 8, 240, 180)
+    m = s["mesh"]
+    images = uneven_shading(s["images"].images)
+    frame = V.FrameImages.build(images, s["masks"].masks, 2)
+    st = V.face_view_stats(m.vertices, m.faces, s["cameras"], frame)
+    for max_faces in (8000, 500):
+        g = V.camera_gains(st.quality, st.colour, max_faces=max_faces)
+        np.testing.assert_array_equal(g, V.camera_gains_reference(st.quality, st.colour, max_faces=max_faces))
+        assert np.ptp(g) > 0.05                                   # the shading made the cameras differ
+
+
 def _uneven_scene():
     """The figure with camera-dependent shading: vignetting on odd cameras, a vertical brightness ramp on even
     ones (what per-camera gains alone cannot undo)."""
