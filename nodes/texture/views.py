@@ -500,42 +500,53 @@ def blend_weights(labels, quality, faces, n_vertices, *, feather=2, K=4, spread=
 
 def vertex_view_samples(vertices, index, views, cameras: Cameras, frame: FrameImages, radius=1.5):
     """Colour (N, 3) of vertex index[i] seen in view views[i] (mean of five bilinear samples within ``radius``
-    pixels) and whether all five fell on valid pixels. (Projected view by view; the samples are then read for
-    all views at once from ``frame.packed``, with the arithmetic of ``_sample_rgb_reference``.)"""
+    pixels) and whether all five fell on valid pixels. (All samples at once from ``frame.packed``, sorted by
+    view so the reads stay in one image at a time, one colour channel at a time: the arithmetic of
+    ``_sample_rgb_reference``, the numbers of ``vertex_view_samples_reference``.)"""
     vertices = np.asarray(vertices, np.float64)
     views = np.asarray(views, np.int64)
     n = len(views)
-    p = np.zeros((n, 2))
+    order = np.argsort(views, kind="stable")
+    vs = views[order]
+    bounds = np.searchsorted(vs, np.arange(len(cameras) + 1))
+    pts = vertices[np.asarray(index)[order]]
+    px, py = np.zeros(n), np.zeros(n)
     good = np.zeros(n, bool)
-    for v in np.unique(views):
-        sel = np.flatnonzero(views == v)
-        p[sel], z = cameras.project(vertices[index[sel]], int(v))
-        good[sel] = z > 1e-6
-    w = np.array([c.width for c in cameras], np.int64)[views]
-    h = np.array([c.height for c in cameras], np.int64)[views]
-    img_off = frame.offsets[views]
+    for v in range(len(cameras)):
+        a, b = bounds[v], bounds[v + 1]
+        if a < b:
+            p, z = cameras.project(pts[a:b], v)
+            px[a:b], py[a:b] = p[:, 0], p[:, 1]
+            good[a:b] = z > 1e-6
+    w = np.array([c.width for c in cameras], np.int64)[vs]
+    h = np.array([c.height for c in cameras], np.int64)[vs]
+    img_off = frame.offsets[vs]
     val_off = img_off // 3
-    acc = np.zeros((n, 3), np.float32)
-    rgb = np.arange(3)
+    packed, packed_valid = frame.packed, frame.packed_valid
+    f32 = np.float32
+    acc = [np.zeros(n, f32) for _ in range(3)]
     for dx, dy in ((0, 0), (radius, 0), (-radius, 0), (0, radius), (0, -radius)):
-        q = p + (dx, dy)
-        inside = (q[:, 0] > -0.5) & (q[:, 1] > -0.5) & (q[:, 0] < w - 0.5) & (q[:, 1] < h - 0.5)
-        x = np.where(inside, np.floor(q[:, 0] + 0.5), 0).astype(np.int64)
-        y = np.where(inside, np.floor(q[:, 1] + 0.5), 0).astype(np.int64)
-        good &= inside & (frame.packed_valid[val_off + y * w + x] != 0)
-        q = np.nan_to_num(q)                                  # _sample_rgb_reference, per sample's image
-        xf = np.clip(q[:, 0], 0, w - 1).astype(np.float32)
-        yf = np.clip(q[:, 1], 0, h - 1).astype(np.float32)
+        qx, qy = px + dx, py + dy
+        inside = (qx > -0.5) & (qy > -0.5) & (qx < w - 0.5) & (qy < h - 0.5)
+        x = np.where(inside, np.floor(qx + 0.5), 0).astype(np.int64)
+        y = np.where(inside, np.floor(qy + 0.5), 0).astype(np.int64)
+        good &= inside & (packed_valid[val_off + y * w + x] != 0)
+        xf = np.clip(np.nan_to_num(qx), 0, w - 1).astype(f32)
+        yf = np.clip(np.nan_to_num(qy), 0, h - 1).astype(f32)
         x0, y0 = np.floor(xf).astype(np.int64), np.floor(yf).astype(np.int64)
         x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
-        fx, fy = (xf - x0)[:, None], (yf - y0)[:, None]
-
-        def px(yy, xx):
-            return frame.packed[(img_off + 3 * (yy * w + xx))[:, None] + rgb].astype(np.float32)
-
-        acc += ((1 - fy) * ((1 - fx) * px(y0, x0) + fx * px(y0, x1))
-                + fy * ((1 - fx) * px(y1, x0) + fx * px(y1, x1)))
-    return acc / 5, good
+        fx, fy = xf - x0, yf - y0
+        gx, gy = 1 - fx, 1 - fy
+        r0, r1 = img_off + 3 * (y0 * w), img_off + 3 * (y1 * w)
+        i00, i01, i10, i11 = r0 + 3 * x0, r0 + 3 * x1, r1 + 3 * x0, r1 + 3 * x1
+        for ch in range(3):
+            acc[ch] += (gy * (gx * packed[i00 + ch].astype(f32) + fx * packed[i01 + ch].astype(f32))
+                        + fy * (gx * packed[i10 + ch].astype(f32) + fx * packed[i11 + ch].astype(f32)))
+    out = np.empty((n, 3), np.float32)
+    ok = np.empty(n, bool)
+    out[order] = np.stack(acc, axis=1) / 5
+    ok[order] = good
+    return out, ok
 
 
 def vertex_view_samples_reference(vertices, index, views, cameras: Cameras, frame: FrameImages, radius=1.5):
@@ -572,8 +583,6 @@ def level_seams(vertices, faces, face_view, weight, cameras: Cameras, frame: Fra
     One sparse least-squares problem (normal equations by conjugate gradients, Jacobi preconditioner), three
     right-hand sides. Only slots weighing at least ``min_weight`` at their corner take part (the rest keep 0).
     Returns offsets (F, 3, K, 3) for the face slots (0..255 units)."""
-    from scipy.sparse import coo_matrix, csr_matrix, diags
-
     faces = np.asarray(faces, np.int64)
     nf, K = face_view.shape
     offset = np.zeros((nf, 3, K, 3), np.float32)
@@ -606,42 +615,64 @@ def level_seams(vertices, faces, face_view, weight, cameras: Cameras, frame: Fra
     i1 = i0 + 1
     edges = topo.edges if topo is not None else unique_edges(faces)[0]
     edges = edges[inband[edges[:, 0]] | inband[edges[:, 1]]]
-    rows, cols, vals = [np.arange(len(i0))] * 2, [i0, i1], [np.ones(len(i0)), -np.ones(len(i0))]
-    m = len(i0)
     table = np.full((nvert, nviews), -1, np.int64)                        # node id per (vertex, view)
     table[node_vertex, node_view] = np.arange(n)
+    pa = pb = pins = np.zeros(0, np.int64)
     if len(edges):
         ta, tb = table[edges[:, 0]], table[edges[:, 1]]                  # (E, views)
         # an edge whose other end is outside the band (offset 0 there) pins the offset towards 0
         a_out = ~inband[edges[:, 0]][:, None]
         b_out = ~inband[edges[:, 1]][:, None]
         both = (ta >= 0) & (tb >= 0)
-        one_a = (ta >= 0) & b_out
-        one_b = (tb >= 0) & a_out
-        for sel, r_cols, signed in ((both, (ta, tb), True), (one_a, (ta,), False), (one_b, (tb,), False)):
-            k = int(sel.sum())
-            if k == 0:
-                continue
-            rr = m + np.arange(k)
-            rows.append(rr)
-            cols.append(r_cols[0][sel])
-            vals.append(np.full(k, smoothness))
-            if signed:
-                rows.append(rr)
-                cols.append(r_cols[1][sel])
-                vals.append(np.full(k, -smoothness))
-            m += k
-    A = csr_matrix(coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(m, n)))
-    b = np.zeros((m, 3))
-    b[:len(i0)] = colour[i1] - colour[i0]
-    M = (A.T @ A + diags(np.full(n, regular ** 2))).tocsr()
-    rhs = np.asarray(A.T @ b)
+        pa, pb = ta[both], tb[both]
+        pins = np.concatenate([ta[(ta >= 0) & b_out], tb[(tb >= 0) & a_out]])
+    M, rhs = levelling_system(n, i0, i1, colour[i1] - colour[i0], pa, pb, pins, smoothness, regular)
     g = block_pcg(M, rhs, tol=tol, maxiter=maxiter)
     # offsets of the used slots: the node's value inside the band, 0 outside
     node = table.reshape(-1)[used_keys]
     hit = node >= 0
     offset.reshape(-1, 3)[used[hit]] = g[node[hit]].astype(np.float32)
     return offset
+
+
+def levelling_system(n, i0, i1, diff, pa, pb, pins, smoothness, regular):
+    """Normal equations (M = A^T A + regular^2 I sparse (n, n), rhs = A^T b (n, 3)) of ``level_seams``'s
+    least-squares rows, built directly: a row g[i0] - g[i1] = diff per pair (i0, i1) (i0 sorted, increasing),
+    smoothness * (g[pa] - g[pb]) = 0 per edge pair and smoothness * g[pin] = 0 per pin. The sums are added in
+    the order a sparse product A^T A gives them (``levelling_system_reference``: the same numbers)."""
+    from scipy.sparse import csr_matrix
+
+    s2 = smoothness * smoothness
+    d = (np.bincount(i0, minlength=n) + np.bincount(i1, minlength=n)).astype(np.float64)
+    reps = np.bincount(pa, minlength=n) + np.bincount(pb, minlength=n) + np.bincount(pins, minlength=n)
+    for k in range(int(reps.max()) if n else 0):                         # the edge rows' s^2, one at a time
+        d[reps > k] += s2
+    d += regular ** 2
+    r = np.concatenate([np.arange(n), i0, i1, pa, pb])
+    c = np.concatenate([np.arange(n), i1, i0, pb, pa])
+    v = np.concatenate([d, np.full(2 * len(i0), -1.0), np.full(2 * len(pa), -s2)])
+    M = csr_matrix((v, (r, c)), shape=(n, n))
+    M.sort_indices()
+    rhs = np.zeros((n, 3))
+    diff = np.asarray(diff, np.float64)
+    rhs[i1] -= diff                                                    # row order: i1's row comes first
+    rhs[i0] += diff
+    return M, rhs
+
+
+def levelling_system_reference(n, i0, i1, diff, pa, pb, pins, smoothness, regular):
+    """``levelling_system`` as the sparse product of the rows' matrix A."""
+    from scipy.sparse import coo_matrix, csr_matrix, diags
+
+    m0, ke, kp = len(i0), len(pa), len(pins)
+    rows = [np.arange(m0), np.arange(m0), m0 + np.arange(ke), m0 + np.arange(ke), m0 + ke + np.arange(kp)]
+    cols = [i0, i1, pa, pb, pins]
+    vals = [np.ones(m0), -np.ones(m0), np.full(ke, smoothness), np.full(ke, -smoothness), np.full(kp, smoothness)]
+    m = m0 + ke + kp
+    A = csr_matrix(coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(m, n)))
+    b = np.zeros((m, 3))
+    b[:m0] = diff
+    return (A.T @ A + diags(np.full(n, regular ** 2))).tocsr(), np.asarray(A.T @ b)
 
 
 def block_pcg(M, B, *, tol=1e-4, maxiter=200):

@@ -276,6 +276,24 @@ def test_vertex_view_samples_match_the_per_view_reference():
     np.testing.assert_array_equal(col, ref_col)
 
 
+def test_levelling_system_matches_the_sparse_product():
+    """The normal equations built directly are the sparse product's, entry for entry and in the same order."""
+    rng = np.random.default_rng(5)
+    n = 3000
+    i0 = np.sort(rng.choice(n - 1, 1500, replace=False))
+    i1 = i0 + 1
+    pa = rng.integers(0, n, 4000)
+    pb = (pa + rng.integers(1, n, 4000)) % n
+    pins = rng.integers(0, n, 700)
+    diff = rng.normal(size=(len(i0), 3)).astype(np.float32) * 20
+    M, rhs = V.levelling_system(n, i0, i1, diff, pa, pb, pins, 0.3, 0.1)
+    M_ref, rhs_ref = V.levelling_system_reference(n, i0, i1, diff, pa, pb, pins, 0.3, 0.1)
+    np.testing.assert_array_equal(M.indptr, M_ref.indptr)
+    np.testing.assert_array_equal(M.indices, M_ref.indices)
+    np.testing.assert_array_equal(M.data, M_ref.data)
+    np.testing.assert_array_equal(rhs, rhs_ref)
+
+
 def test_block_pcg_solves_every_column():
     from scipy.sparse import diags, random as sparse_random
     from scipy.sparse.linalg import spsolve
