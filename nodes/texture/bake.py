@@ -255,9 +255,8 @@ def fill_texture(colour: np.ndarray, layout) -> np.ndarray:
     up = cv2.resize(np.clip(filled + 0.5, 0, 255).astype(np.uint8), (cw * c16, ch * c16),
                     interpolation=cv2.INTER_LINEAR)[:s, :s]
     up = np.ascontiguousarray(up)
-    flat = up.reshape(-1, 3)
     v = np.asarray(colour, np.float64) + 0.5                  # as np.clip(colour + 0.5, 0, 255) in float64
     np.maximum(v, 0, out=v)
     np.minimum(v, 255, out=v)
-    flat[layout.texel] = v.astype(np.uint8)
+    up.reshape(-1)[layout.texel_channel] = v.astype(np.uint8).reshape(-1)   # 1-D: rows of 3 were 4x slower
     return up

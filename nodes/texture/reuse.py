@@ -90,7 +90,8 @@ class BakeLayout:
     texel with a face (inside a chart or in its gutter), ``face`` (N,) and ``bary`` (N, 3) the surface point
     it shows, ``inner`` (N,) whether its centre lies inside the face (not the gutter). ``texel_face`` is the
     full (S, S) map (-1 = empty). The fill pyramid's coarsest cells per texel are kept too (``cell``, their
-    texel counts, and ``cell_channel``: the bin of each of a texel's three colour values)."""
+    texel counts, and ``cell_channel``: the bin of each of a texel's three colour values; ``texel_channel``
+    their bytes in the (S, S, 3) texture)."""
 
     COARSE = 16
 
@@ -112,7 +113,8 @@ class BakeLayout:
         self.cell = (y // c) * self.coarse_shape[1] + x // c
         n_cells = self.coarse_shape[0] * self.coarse_shape[1]
         self.cell_count = np.bincount(self.cell, minlength=n_cells)
-        self.cell_channel = (self.cell[:, None] * 3 + np.arange(3)).reshape(-1)   # bin of each colour value
+        self.cell_channel = (self.cell[:, None] * 3 + np.arange(3)).reshape(-1).astype(np.int32)   # bin of each value
+        self.texel_channel = (self.texel[:, None] * 3 + np.arange(3)).reshape(-1)  # its byte in the texture
         self.cell_area = np.full(self.coarse_shape, float(c * c))
         if s % c:                                             # edge cells are partly outside the square
             ys = np.minimum(np.arange(self.coarse_shape[0]) * c + c, s) - np.arange(self.coarse_shape[0]) * c
