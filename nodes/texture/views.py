@@ -458,7 +458,7 @@ def blend_weights(labels, quality, faces, n_vertices, *, feather=2, K=4, spread=
 
     rows = faces[has].ravel()
     cols = np.repeat(labels[has], 3)
-    W = csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n_vertices, nviews)).toarray()
+    W = np.bincount(rows * nviews + cols, minlength=n_vertices * nviews).reshape(n_vertices, nviews).astype(np.float64)
     s = W.sum(axis=1, keepdims=True)
     W = np.divide(W, s, out=np.zeros_like(W), where=s > 0)
     if feather > 0:
@@ -476,7 +476,7 @@ def blend_weights(labels, quality, faces, n_vertices, *, feather=2, K=4, spread=
         W_avg = np.divide(W_avg, sw, out=np.zeros_like(W_avg), where=sw > 0)
         lo, hi = spread_range
         a_f = np.clip((np.asarray(spread, np.float32) - lo) / max(hi - lo, 1e-6), 0, 1)
-        cnt = np.asarray(inc.sum(axis=1)).ravel()
+        cnt = topo.corner_count if topo is not None else np.asarray(inc.sum(axis=1)).ravel()
         a_v = np.divide(inc @ a_f, cnt, out=np.zeros(n_vertices), where=cnt > 0)
         W = (1 - a_v[:, None]) * W + a_v[:, None] * W_avg
     W = W.astype(np.float32)
@@ -489,11 +489,11 @@ def blend_weights(labels, quality, faces, n_vertices, *, feather=2, K=4, spread=
     order, top = np.take_along_axis(order, srt, axis=1), np.take_along_axis(top, srt, axis=1)
     keep = top > 0
     face_view[:] = np.where(keep, order, -1)
-    cw = np.stack([np.take_along_axis(W[faces[:, c]], order, axis=1) for c in range(3)], axis=1)   # (F, 3, K)
-    cw = np.where(keep[:, None, :], cw, 0)
+    cw = W[faces[:, :, None], order[:, None, :]]              # (F, 3, K): the kept views' corner weights
+    cw *= keep[:, None, :]                                    # (weights are >= 0)
     own = (order == labels[:, None]) & has[:, None]           # corners where every kept weight is 0: own view
-    dead = cw.sum(axis=2) <= 0
-    cw = np.where(dead[:, :, None] & own[:, None, :], 1.0, cw)
+    dead = ~cw.any(axis=2)
+    cw[dead[:, :, None] & own[:, None, :]] = 1.0
     weight[:] = cw
     return face_view, weight
 
