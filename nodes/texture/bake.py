@@ -120,15 +120,19 @@ def texel_bary_reference(texel_face, face_uv) -> np.ndarray:
 def bake_samples(sample_face, sample_bary, vertices, faces, cameras, frame: FrameImages, blend: Blend, *,
                  device_samples=None) -> np.ndarray:
     """(N, 4) float32: colour (0..255) and summed blend weight of each sample (kernel ``bake``).
-    ``device_samples``: (face, bary) already on the device (a BakeLayout's), used instead of uploading."""
+    ``device_samples``: (face, bary, order) already on the device (a BakeLayout's: the samples ``order``
+    (N,) in that order), used instead of uploading."""
     import pyopencl as cl
 
     tcl = TextureCL.get()
     n = len(sample_face)
     K = blend.face_view.shape[1]
+    order = None
     if device_samples is None:
         device_samples = (tcl.upload("s_face", np.ascontiguousarray(sample_face, np.int32)),
                           tcl.upload("s_bary", np.ascontiguousarray(sample_bary, np.float32).reshape(-1)))
+    else:
+        *device_samples, order = device_samples
     args = [*device_samples,
             tcl.upload("verts", np.ascontiguousarray(vertices, np.float32)),
             tcl.upload("faces", np.ascontiguousarray(faces, np.int32)),
@@ -147,6 +151,10 @@ def bake_samples(sample_face, sample_bary, vertices, faces, cameras, frame: Fram
     out = np.empty((n, 4), np.float32)
     if n:
         cl.enqueue_copy(tcl.queue, out, d_out)
+    if order is not None:
+        back = np.empty_like(out)
+        back[order] = out
+        out = back
     return out
 
 
