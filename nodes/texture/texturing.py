@@ -195,14 +195,29 @@ def textured_trimesh(vertices, faces, atlas: Atlas, texture: np.ndarray):
 
     from nodes.common.gltf import textured_visual
 
+    src, tri, uv = _uv_vertices(atlas, faces)
+    return trimesh.Trimesh(np.asarray(vertices, np.float64)[src], tri.copy(), visual=textured_visual(uv.copy(), texture),
+                           process=False)
+
+
+def _uv_vertices(atlas: Atlas, faces):
+    """(source vertex per output vertex, output faces, uv per output vertex) of ``textured_trimesh``: they
+    depend on the connectivity and the atlas only, so they are kept on the atlas object for the next frame."""
     faces = np.asarray(faces, np.int64)
+    kept = getattr(atlas, "_uv_vertices", None)
+    if kept is not None and np.array_equal(kept[0], faces):
+        return kept[1:]
     key = faces * (atlas.n_charts or 1) + atlas.face_chart[:, None].astype(np.int64)
     uniq, inverse = np.unique(key.ravel(), return_inverse=True)
     src = uniq // (atlas.n_charts or 1)
     uv = np.zeros((len(uniq), 2), np.float64)
     uv[inverse] = atlas.uv01().reshape(-1, 2)
-    return trimesh.Trimesh(np.asarray(vertices, np.float64)[src], inverse.reshape(-1, 3),
-                           visual=textured_visual(uv, texture), process=False)
+    out = (src, inverse.reshape(-1, 3), uv)
+    try:
+        atlas._uv_vertices = (faces.copy(), *out)
+    except AttributeError:
+        pass
+    return out
 
 
 def coloured_trimesh(vertices, faces, colours):

@@ -219,6 +219,19 @@ def test_camera_gains_recover_exposure_and_white_balance():
     np.testing.assert_allclose(gains * true, 1.0, atol=0.02)
 
 
+def test_camera_gains_give_the_plain_formula_s_numbers():
+    """camera_gains (einsum sums, counts) gives bit for bit what its plainly written reference gives."""
+    s = scene("figure", 8, 240, 180)
+    m = s["mesh"]
+    images = uneven_shading(s["images"].images)
+    frame = V.FrameImages.build(images, s["masks"].masks, 2)
+    st = V.face_view_stats(m.vertices, m.faces, s["cameras"], frame)
+    for max_faces in (8000, 500):
+        g = V.camera_gains(st.quality, st.colour, max_faces=max_faces)
+        np.testing.assert_array_equal(g, V.camera_gains_reference(st.quality, st.colour, max_faces=max_faces))
+        assert np.ptp(g) > 0.05                                   # the shading made the cameras differ
+
+
 def _uneven_scene():
     """The figure with camera-dependent shading: vignetting on odd cameras, a vertical brightness ramp on even
     ones (what per-camera gains alone cannot undo)."""
@@ -242,6 +255,58 @@ def test_gains_and_levelling_reduce_view_seam_disagreement():
     # the texture is continuous across atlas seams: both sides bake the same surface point
     j = seam_jumps(r, m.faces)
     assert j["n_atlas_seams"] > 100 and j["atlas_seams"] < 1.2 * j["inside"] + 1, j
+
+
+def test_vertex_view_samples_match_the_per_view_reference():
+    """All views at once from the packed images gives what the view-by-view reference gives, bit for bit,
+    also for vertices behind a camera or outside its image (ok False there)."""
+    s, images = _uneven_scene()
+    m = s["mesh"]
+    frame = V.FrameImages.build(images, s["masks"].masks, 2)
+    nv = len(s["cameras"])
+    rng = np.random.default_rng(3)
+    keys = np.unique(rng.integers(0, len(m.vertices) * nv, 4000))
+    far = np.vstack([m.vertices, m.vertices * 50.0])                     # the second half outside the images
+    index = np.concatenate([keys // nv, len(m.vertices) + keys[:200] // nv])
+    views = np.concatenate([keys % nv, keys[:200] % nv])
+    col, ok = V.vertex_view_samples(far, index, views, s["cameras"], frame)
+    ref_col, ref_ok = V.vertex_view_samples_reference(far, index, views, s["cameras"], frame)
+    assert 0.2 * len(views) < ok.sum() < len(views) and not ok[-200:].any()
+    np.testing.assert_array_equal(ok, ref_ok)
+    np.testing.assert_array_equal(col, ref_col)
+
+
+def test_levelling_system_matches_the_sparse_product():
+    """The normal equations built directly are the sparse product's, entry for entry and in the same order."""
+    rng = np.random.default_rng(5)
+    n = 3000
+    i0 = np.sort(rng.choice(n - 1, 1500, replace=False))
+    i1 = i0 + 1
+    pa = rng.integers(0, n, 4000)
+    pb = (pa + rng.integers(1, n, 4000)) % n
+    pins = rng.integers(0, n, 700)
+    diff = rng.normal(size=(len(i0), 3)).astype(np.float32) * 20
+    M, rhs = V.levelling_system(n, i0, i1, diff, pa, pb, pins, 0.3, 0.1)
+    M_ref, rhs_ref = V.levelling_system_reference(n, i0, i1, diff, pa, pb, pins, 0.3, 0.1)
+    np.testing.assert_array_equal(M.indptr, M_ref.indptr)
+    np.testing.assert_array_equal(M.indices, M_ref.indices)
+    np.testing.assert_array_equal(M.data, M_ref.data)
+    np.testing.assert_array_equal(rhs, rhs_ref)
+
+
+def test_block_pcg_solves_every_column():
+    from scipy.sparse import diags, random as sparse_random
+    from scipy.sparse.linalg import spsolve
+
+    rng = np.random.default_rng(1)
+    A = sparse_random(400, 300, density=0.02, random_state=2, format="csr")
+    M = (A.T @ A + diags(np.full(300, 0.1))).tocsr()
+    B = rng.normal(size=(300, 3)) * [1.0, 100.0, 0.01]                 # columns of very different size
+    X = V.block_pcg(M, B, tol=1e-8, maxiter=500)
+    assert X.shape == B.shape
+    for j in range(3):
+        exact = spsolve(M.tocsc(), B[:, j])
+        np.testing.assert_allclose(X[:, j], exact, rtol=1e-6, atol=1e-7 * np.abs(exact).max())
 
 
 # ---------------------------------------------------------------- quality and background
