@@ -279,10 +279,44 @@ def disc(radius: int) -> np.ndarray:
 
 def clean_mask(mask: np.ndarray, *, open_px=1, close_px=2, keep=1, fill_holes=True) -> np.ndarray:
     """Binary (0/255) mask after opening, closing, keeping the ``keep`` largest 8-connected components
-    (0 = all) and filling holes (background regions not connected to the image border)."""
+    (0 = all) and filling holes (background regions not connected to the image border).
+
+    The work is done on the foreground's bounding box grown by ``open_px + close_px + 1`` (clipped to the image),
+    with the same result as on the whole image (``clean_mask_reference``): outside that box the result is
+    background whatever is done; a structuring element reaching out of it from a pixel that matters meets the
+    margin's background first (the discs are convex), so the morphology is the same; the components and their
+    areas are the same; and the margin is a ring of background joined to the image border, so what the hole
+    filling reaches is the same. Only the order of equal-sized components may differ (OpenCV numbers them by
+    its 2x2-block scan): when the ``keep``-th and the next largest have the same area, the whole image is
+    cleaned instead. A figure filling a tenth of a 640x480 view: ~5x less work."""
+    m = (mask > 127).astype(np.uint8)
+    box = _foreground_box(m, open_px + close_px + 1)
+    if box is None:   # no foreground: nothing to keep or fill
+        return np.zeros_like(m)
+    (y0, y1), (x0, x1) = box
+    part = _clean_binary(m[y0:y1, x0:x1], open_px, close_px, keep, fill_holes, ties=False)
+    if part is None:
+        return _clean_binary(m, open_px, close_px, keep, fill_holes) * np.uint8(255)
+    out = np.zeros_like(m)
+    out[y0:y1, x0:x1] = part * np.uint8(255)
+    return out
+
+
+def _foreground_box(m: np.ndarray, margin: int):
+    """((y0, y1), (x0, x1)) of the nonzero pixels of ``m`` grown by ``margin`` and clipped to it, or None."""
     import cv2
 
-    m = (mask > 127).astype(np.uint8)
+    x, y, w, h = cv2.boundingRect(m)
+    if w == 0 or h == 0:
+        return None
+    return ((max(y - margin, 0), min(y + h + margin, m.shape[0])), (max(x - margin, 0), min(x + w + margin, m.shape[1])))
+
+
+def _clean_binary(m: np.ndarray, open_px: int, close_px: int, keep: int, fill_holes: bool, ties: bool = True):
+    """The clean-up of a 0/1 uint8 mask (see ``clean_mask``), 0/1 uint8; None when ``ties`` is false and the
+    components kept would depend on how OpenCV numbers equal-sized ones."""
+    import cv2
+
     if open_px > 0:
         m = cv2.morphologyEx(m, cv2.MORPH_OPEN, disc(open_px))
     if close_px > 0:
@@ -290,14 +324,40 @@ def clean_mask(mask: np.ndarray, *, open_px=1, close_px=2, keep=1, fill_holes=Tr
     if keep > 0:
         n, labels, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
         if n > 1:
-            order = 1 + np.argsort(-stats[1:, cv2.CC_STAT_AREA], kind="stable")[:keep]
-            m = np.isin(labels, order).astype(np.uint8)
+            order = 1 + np.argsort(-stats[1:, cv2.CC_STAT_AREA], kind="stable")
+            if not ties and keep < n - 1 and stats[order[keep - 1], cv2.CC_STAT_AREA] == stats[order[keep], cv2.CC_STAT_AREA]:
+                return None
+            order = order[:keep]
+            m = (labels == order[0]).astype(np.uint8) if keep == 1 else np.isin(labels, order).astype(np.uint8)
     if fill_holes:
         # background reachable from the border, via a 1-pixel frame so every border pixel is a seed
         framed = np.pad(m, 1)
         cv2.floodFill(framed, None, (0, 0), 2)
         m = (framed[1:-1, 1:-1] != 2).astype(np.uint8)
-    return m * 255
+    return m
+
+
+def clean_mask_reference(mask: np.ndarray, *, open_px=1, close_px=2, keep=1, fill_holes=True) -> np.ndarray:
+    """``clean_mask`` on the whole image (what the bounding-box version must equal)."""
+    return _clean_binary((mask > 127).astype(np.uint8), open_px, close_px, keep, fill_holes) * np.uint8(255)
+
+
+def cleaned_alpha(cleaned: np.ndarray, mask: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """The soft alpha (float32) that goes with a cleaned mask: ``alpha`` where the mask was kept as it was, 1 where
+    the clean-up added foreground (filled holes, closed cracks), 0 where it removed it or there was none; computed
+    on the cleaned mask's bounding box (outside it all 0). Same as ``cleaned_alpha_reference``."""
+    import cv2
+
+    out = np.zeros(cleaned.shape, np.float32)
+    x, y, w, h = cv2.boundingRect(cleaned)
+    if w and h:
+        box = np.s_[y:y + h, x:x + w]
+        out[box] = cleaned_alpha_reference(cleaned[box], np.asarray(mask)[box], np.asarray(alpha)[box])
+    return out
+
+
+def cleaned_alpha_reference(cleaned: np.ndarray, mask: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    return np.where(cleaned > 0, np.where(mask > 127, alpha, 1.0), 0.0).astype(np.float32)
 
 
 def hull_footprint(volume, cameras: Cameras, view: int, dilate_px: int = 1) -> np.ndarray:

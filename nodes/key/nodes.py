@@ -7,7 +7,7 @@ import numpy as np
 from nodegraph import Input, Node, NodeError, Output, Param, Table
 from nodes.common.types import Bounds, CameraSet, Images, ImageSet, Masks, MaskSet, PlateModel, Volume
 
-from .keying import (KERNELS, check_views, chroma_key_bits, chroma_key_cl, clean_mask, difference_key_cl,
+from .keying import (KERNELS, check_views, chroma_key_bits, chroma_key_cl, clean_mask, cleaned_alpha, difference_key_cl,
                      difference_key_mixture_cl, estimate_key_direction,
                      grabcut_band, grey_threshold_cl, hull_footprint, key_direction_from_rgb, maskset, matte_edges,
                      plate_model, disc)
@@ -260,8 +260,7 @@ class Cleanup(Node):
             c = clean_mask(m, open_px=open, close_px=close, keep=keep, fill_holes=fill_holes)
             out.append(c)
             if masks.alpha is not None:
-                a = masks.alpha[i]
-                alphas.append(np.where(c > 0, np.where(m > 127, a, 1.0), 0.0).astype(np.float32))
+                alphas.append(cleaned_alpha(c, m, masks.alpha[i]))
         return {"masks": MaskSet(out, alphas if masks.alpha is not None else None, list(masks.names))}
 
 

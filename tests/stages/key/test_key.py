@@ -309,6 +309,39 @@ def test_cleanup_keeps_largest_fills_holes_drops_specks():
     assert two[30, 65] == 255 and two[30, 25] == 0
 
 
+def test_cleanup_on_the_foreground_box_equals_the_whole_image():
+    """clean_mask works on the foreground's bounding box (plus a margin): the result is the whole image's
+    (clean_mask_reference), also with specks at the borders, equal-sized components (ties at the ``keep`` cut) and
+    soft values around the 127 threshold."""
+    import cv2
+
+    rng = np.random.default_rng(1)
+    for trial in range(300):
+        h, w = (int(v) for v in rng.integers(5, 90, 2))
+        kind = trial % 4
+        if kind == 0:   # noise of any density
+            m = (rng.random((h, w)) < rng.uniform(0.01, 0.9)).astype(np.uint8) * 255
+        elif kind == 1:   # blobs (some cut by the border) with specks and pinholes
+            m = np.zeros((h, w), np.uint8)
+            for _ in range(int(rng.integers(1, 6))):
+                cv2.circle(m, (int(rng.integers(-5, w + 5)), int(rng.integers(-5, h + 5))), int(rng.integers(1, 20)), 255, -1)
+            m[rng.random((h, w)) < 0.02] = 255
+            m[rng.random((h, w)) < 0.02] = 0
+        elif kind == 2:   # single-pixel specks: ties everywhere
+            m = np.zeros((h, w), np.uint8)
+            m[rng.integers(0, h, 8), rng.integers(0, w, 8)] = 255
+        else:   # soft values around the threshold
+            m = rng.integers(120, 135, (h, w)).astype(np.uint8)
+        for op, cl, keep, fill in ((1, 2, 1, True), (0, 0, 2, True), (2, 3, 0, False), (0, 1, 3, True), (3, 0, 1, False)):
+            got = K.clean_mask(m, open_px=op, close_px=cl, keep=keep, fill_holes=fill)
+            want = K.clean_mask_reference(m, open_px=op, close_px=cl, keep=keep, fill_holes=fill)
+            assert got.dtype == np.uint8 and np.array_equal(got, want), (trial, op, cl, keep, fill)
+        alpha = rng.random((h, w)).astype(np.float32)
+        a = K.cleaned_alpha(got, m, alpha)
+        assert a.dtype == np.float32 and np.array_equal(a, K.cleaned_alpha_reference(got, m, alpha))
+    assert not K.clean_mask(np.zeros((7, 9), np.uint8)).any()
+
+
 # ---------------------------------------------------------------- GrabCut at the boundary
 def dark_cap_scene():
     """A red body with a dark cap (hair) on a dark greenish wall; a rough mask with a halo and a bite."""
