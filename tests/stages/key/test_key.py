@@ -110,6 +110,16 @@ def test_chroma_key_recovers_ball_and_despills():
     assert np.abs(desp.mean(0) - 0.299 * 200 - 0.587 * 225 - 0.114 * 200).max() < 10  # luma kept: grey-white
 
 
+def test_key_colour_estimate_equals_its_reference():
+    """estimate_key_direction (the strip's channels as rows) gives rgb_to_ycc's result bit for bit."""
+    rng = np.random.default_rng(3)
+    images = [green_scene(disc(48, 64, 24, 30, 12), seed=1)] + [
+        rng.integers(0, 256, (int(h), int(w), 3), dtype=np.uint8) for h, w in rng.integers(10, 120, (40, 2))]
+    for im in images:
+        got, want = K.estimate_key_direction(im), K.estimate_key_direction_reference(im)
+        assert got.dtype == np.float32 and np.array_equal(got, want)
+
+
 def test_chroma_key_colour_param_and_blue_screen():
     h, w = 40, 50
     obj = disc(h, w, 20, 25, 9)
