@@ -358,12 +358,14 @@ def clean_mask_reference(mask: np.ndarray, *, open_px=1, close_px=2, keep=1, fil
 
 
 def cleaned_alpha(cleaned: np.ndarray, mask: np.ndarray, alpha: np.ndarray) -> np.ndarray:
-    """The soft alpha (float32) that goes with a cleaned mask: ``alpha`` where the mask was kept as it was, 1 where
-    the clean-up added foreground (filled holes, closed cracks), 0 where it removed it or there was none; computed
-    on the cleaned mask's bounding box (outside it all 0). Same as ``cleaned_alpha_reference``."""
+    """The soft alpha that goes with a cleaned mask: ``alpha`` where the mask was kept as it was, opaque where the
+    clean-up added foreground (filled holes, closed cracks), 0 where it removed it or there was none; computed
+    on the cleaned mask's bounding box (outside it all 0). Same as ``cleaned_alpha_reference``. A uint8 ``alpha``
+    (8-bit levels) gives levels (opaque = 255), a float alpha float32 (opaque = 1): levels / 255 are the float's."""
     import cv2
 
-    out = np.zeros(cleaned.shape, np.float32)
+    levels = alpha.dtype == np.uint8
+    out = np.zeros(cleaned.shape, np.uint8 if levels else np.float32)
     x, y, w, h = cv2.boundingRect(cleaned)
     if w and h:
         box = np.s_[y:y + h, x:x + w]
@@ -372,6 +374,8 @@ def cleaned_alpha(cleaned: np.ndarray, mask: np.ndarray, alpha: np.ndarray) -> n
 
 
 def cleaned_alpha_reference(cleaned: np.ndarray, mask: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    if alpha.dtype == np.uint8:
+        return np.where(cleaned > 0, np.where(mask > 127, alpha, np.uint8(255)), np.uint8(0)).astype(np.uint8)
     return np.where(cleaned > 0, np.where(mask > 127, alpha, 1.0), 0.0).astype(np.float32)
 
 
@@ -450,6 +454,15 @@ def check_views(what: str, images, cameras: Cameras | None, kind: str = "image")
 
 
 def maskset(alphas: list[np.ndarray], names: list[str]) -> MaskSet:
+    """The MaskSet of uint8 alphas: masks alpha >= 128 (cv2.threshold: one pass), the alpha kept as its levels
+    (``MaskSet.alpha8``: the float alpha is alpha / 255 when a reader asks)."""
+    import cv2
+
+    masks = [cv2.threshold(a, 127, 255, cv2.THRESH_BINARY)[1] for a in alphas]
+    return MaskSet(masks, None, list(names), alpha8=alphas)
+
+
+def maskset_reference(alphas: list[np.ndarray], names: list[str]) -> MaskSet:
     masks = [np.where(a >= 128, 255, 0).astype(np.uint8) for a in alphas]
     return MaskSet(masks, [a.astype(np.float32) / 255 for a in alphas], list(names))
 

@@ -48,10 +48,13 @@ class ChromaKey(Node):
         check_views("key.chroma", frames, cameras)
         keys = [key_direction_from_rgb(key_color) if key_color else estimate_key_direction(im) for im in frames]
         edges = [matte_edges(cameras, v, bounds, matte_margin) for v in range(len(frames))] if cameras is not None else None
-        # The silhouettes go straight into the hull's device layout; the soft alpha, the host masks and the
-        # despilled images are computed only if a reader (or the cache) asks for them.
-        bits = chroma_key_bits(frames, keys, side=side, luma_floor=luma_floor, inner=inner, outer=outer, black=black,
-                               edges=edges)
+        # The silhouettes go straight into the hull's device layout, the soft alpha, the host masks and the
+        # despilled images are computed, each only if a reader (or the cache) asks for them: the demo's clean-up
+        # reads the host masks only, bench/cli.py's hull the device's only.
+        def bits():
+            return chroma_key_bits(frames, keys, side=side, luma_floor=luma_floor, inner=inner, outer=outer,
+                                   black=black, edges=edges)
+
         full: dict = {}
 
         def key_frames():
@@ -67,7 +70,8 @@ class ChromaKey(Node):
             return full
 
         names = list(images.names)
-        masks = MaskSet.lazy(lambda: (key_frames()["masks"].masks, key_frames()["masks"].alpha), names, device=bits)
+        masks = MaskSet.lazy(lambda: (key_frames()["masks"].masks, None, key_frames()["masks"].alpha8), names,
+                             make_device=bits)
         return {"masks": masks, "images": ImageSet.lazy(lambda: key_frames()["images"], names)}
 
 
@@ -256,12 +260,15 @@ class Cleanup(Node):
 
     def run(self, masks, *, open, close, keep, fill_holes):
         out, alphas = [], []
+        soft = masks.alpha8 if masks.alpha8 is not None else masks.alpha
         for i, m in enumerate(masks.masks):
             c = clean_mask(m, open_px=open, close_px=close, keep=keep, fill_holes=fill_holes)
             out.append(c)
-            if masks.alpha is not None:
-                alphas.append(cleaned_alpha(c, m, masks.alpha[i]))
-        return {"masks": MaskSet(out, alphas if masks.alpha is not None else None, list(masks.names))}
+            if soft is not None:
+                alphas.append(cleaned_alpha(c, m, soft[i]))
+        if masks.alpha8 is not None:   # 8-bit alpha in, 8-bit out (the same float alpha)
+            return {"masks": MaskSet(out, None, list(masks.names), alpha8=alphas)}
+        return {"masks": MaskSet(out, alphas if soft is not None else None, list(masks.names))}
 
 
 class Consensus(Node):

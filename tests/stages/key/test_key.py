@@ -352,6 +352,31 @@ def test_cleanup_on_the_foreground_box_equals_the_whole_image():
     assert not K.clean_mask(np.zeros((7, 9), np.uint8)).any()
 
 
+def test_eight_bit_alpha_is_stored_as_levels_and_reads_back_as_the_same_floats(tmp_path):
+    """The keys' alpha travels as its 8-bit levels (MaskSet.alpha8): the masks and the float alpha equal the
+    float path's (maskset_reference), the cache stores .alpha8.npy (uint8) and gives the same floats back, and the
+    clean-up of the levels gives the float clean-up's alpha; the device silhouettes are made only when read."""
+    h, w = 48, 64
+    img = green_scene(np.maximum(disc(h, w, 24, 30, 12), disc(h, w, 5, 5, 3)))
+    out = run_node("key.chroma", {"images": ImageSet([img, img[::-1].copy()])})
+    ms = out["masks"]
+    assert ms._make_device is not None, "the device silhouettes wait for a reader"
+    levels = ms.alpha8
+    ref = K.maskset_reference(levels, ms.names)
+    assert all(np.array_equal(a, b) for a, b in zip(ms.masks, ref.masks))
+    assert all(a.dtype == np.float32 and np.array_equal(a, b) for a, b in zip(ms.alpha, ref.alpha))
+    Masks.save(ms, tmp_path)
+    assert sorted(p.name for p in tmp_path.glob("*.npy")) == ["0000.alpha8.npy", "0000.npy", "0001.alpha8.npy", "0001.npy"]
+    back = Masks.load(tmp_path)
+    assert all(np.array_equal(a, b) for a, b in zip(back.alpha, ref.alpha)) and back.alpha8[0].dtype == np.uint8
+    as_levels = run_node("key.cleanup", {"masks": back})["masks"]
+    as_floats = run_node("key.cleanup", {"masks": ref})["masks"]
+    assert as_levels.alpha8 is not None and as_floats.alpha8 is None
+    assert all(np.array_equal(a, b) for a, b in zip(as_levels.masks, as_floats.masks))
+    assert all(np.array_equal(a, b) for a, b in zip(as_levels.alpha, as_floats.alpha))
+    assert ms.device is not None and ms._make_device is None
+
+
 # ---------------------------------------------------------------- GrabCut at the boundary
 def dark_cap_scene():
     """A red body with a dark cap (hair) on a dark greenish wall; a rough mask with a halo and a bite."""
