@@ -43,8 +43,10 @@ def ycc_to_rgb(ycc: np.ndarray) -> np.ndarray:
 def estimate_key_direction(rgb: np.ndarray, border: int = 16) -> np.ndarray:
     """Unit CbCr direction of the screen colour: median chroma of the most saturated quarter of the pixels
     in a strip around the image, ``border`` pixels wide (at most a tenth of the short side), so dark or
-    neutral border pixels are ignored. (``rgb_to_ycc``'s arithmetic on the strip's channels as contiguous rows:
-    the same values, ~2x faster than on the interleaved pixels.)"""
+    neutral border pixels are ignored. (``rgb_to_ycc``'s arithmetic on the strip's channels as contiguous rows,
+    and the chroma's length as the float32 rounding of the double square root (IEEE: exact squares, one rounded
+    sum, a correctly rounded root), which is glibc's hypotf: equal for all 2^24 colours; ~2x faster than the
+    reference in all.)"""
     border = max(1, min(border, min(rgb.shape[:2]) // 10))
     strip = np.concatenate([rgb[:border].reshape(-1, 3), rgb[-border:].reshape(-1, 3),
                             rgb[:, :border].reshape(-1, 3), rgb[:, -border:].reshape(-1, 3)])
@@ -52,7 +54,7 @@ def estimate_key_direction(rgb: np.ndarray, border: int = 16) -> np.ndarray:
     f = np.float32
     y = f(0.299) * r + f(0.587) * g + f(0.114) * b
     cb, cr = f(0.564) * (b - y), f(0.713) * (r - y)
-    chroma = np.hypot(cb, cr)
+    chroma = np.sqrt(np.square(cb, dtype=np.float64) + np.square(cr, dtype=np.float64)).astype(np.float32)
     sel = chroma >= np.percentile(chroma, 75)
     return key_direction_from_ycc(np.median(cb[sel]), np.median(cr[sel]))
 
