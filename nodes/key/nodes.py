@@ -6,6 +6,7 @@ import numpy as np
 
 from nodegraph import Input, Node, NodeError, Output, Param, Table
 from nodes.common.types import Bounds, CameraSet, Images, ImageSet, Masks, MaskSet, PlateModel, Volume
+from nodes.common.views import map_views
 
 from .keying import (KERNELS, check_views, chroma_key_bits, chroma_key_cl, clean_mask, cleaned_alpha, difference_key_cl,
                      difference_key_mixture_cl, estimate_key_direction,
@@ -46,7 +47,7 @@ class ChromaKey(Node):
             raise NodeError("key.chroma: the garbage matte needs both inputs 'cameras' and 'bounds'")
         frames = images.images
         check_views("key.chroma", frames, cameras)
-        keys = [key_direction_from_rgb(key_color) if key_color else estimate_key_direction(im) for im in frames]
+        keys = [key_direction_from_rgb(key_color)] * len(frames) if key_color else map_views(estimate_key_direction, frames)
         edges = [matte_edges(cameras, v, bounds, matte_margin) for v in range(len(frames))] if cameras is not None else None
         # The silhouettes go straight into the hull's device layout, the soft alpha, the host masks and the
         # despilled images are computed, each only if a reader (or the cache) asks for them: the demo's clean-up
@@ -259,13 +260,14 @@ class Cleanup(Node):
     }
 
     def run(self, masks, *, open, close, keep, fill_holes):
-        out, alphas = [], []
         soft = masks.alpha8 if masks.alpha8 is not None else masks.alpha
-        for i, m in enumerate(masks.masks):
+
+        def clean(m, a):
             c = clean_mask(m, open_px=open, close_px=close, keep=keep, fill_holes=fill_holes)
-            out.append(c)
-            if soft is not None:
-                alphas.append(cleaned_alpha(c, m, soft[i]))
+            return c, (None if a is None else cleaned_alpha(c, m, a))
+
+        done = map_views(clean, masks.masks, soft if soft is not None else [None] * len(masks))
+        out, alphas = [c for c, _ in done], [a for _, a in done]
         if masks.alpha8 is not None:   # 8-bit alpha in, 8-bit out (the same float alpha)
             return {"masks": MaskSet(out, None, list(masks.names), alpha8=alphas)}
         return {"masks": MaskSet(out, alphas if soft is not None else None, list(masks.names))}
