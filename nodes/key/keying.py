@@ -305,7 +305,8 @@ def clean_mask(mask: np.ndarray, *, open_px=1, close_px=2, keep=1, fill_holes=Tr
     areas are the same; and the margin is a ring of background joined to the image border, so what the hole
     filling reaches is the same. Only the order of equal-sized components may differ (OpenCV numbers them by
     its 2x2-block scan): when the ``keep``-th and the next largest have the same area, the whole image is
-    cleaned instead. A figure filling a tenth of a 640x480 view: ~5x less work."""
+    cleaned instead. A figure filling a tenth of a 640x480 view: ~5x less work; the areas counted from the
+    labels, not OpenCV's statistics: 12 crops' labelling ~8 -> ~3 ms."""
     m = (mask > 127).astype(np.uint8)
     box = _foreground_box(m, open_px + close_px + 1)
     if box is None:   # no foreground: nothing to keep or fill
@@ -339,10 +340,14 @@ def _clean_binary(m: np.ndarray, open_px: int, close_px: int, keep: int, fill_ho
     if close_px > 0:
         m = cv2.morphologyEx(m, cv2.MORPH_CLOSE, disc(close_px))
     if keep > 0:
-        n, labels, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
+        # labels without OpenCV's statistics (their boxes and centroids cost twice the labelling), 16-bit where
+        # no image of this size can have more components; the areas by counting
+        most = ((m.shape[0] + 1) // 2) * ((m.shape[1] + 1) // 2)
+        n, labels = cv2.connectedComponents(m, connectivity=8, ltype=cv2.CV_16U if most < 65535 else cv2.CV_32S)
         if n > 1:
-            order = 1 + np.argsort(-stats[1:, cv2.CC_STAT_AREA], kind="stable")
-            if not ties and keep < n - 1 and stats[order[keep - 1], cv2.CC_STAT_AREA] == stats[order[keep], cv2.CC_STAT_AREA]:
+            area = np.bincount(labels.ravel(), minlength=n)
+            order = 1 + np.argsort(-area[1:], kind="stable")
+            if not ties and keep < n - 1 and area[order[keep - 1]] == area[order[keep]]:
                 return None
             order = order[:keep]
             m = (labels == order[0]).astype(np.uint8) if keep == 1 else np.isin(labels, order).astype(np.uint8)
@@ -355,8 +360,24 @@ def _clean_binary(m: np.ndarray, open_px: int, close_px: int, keep: int, fill_ho
 
 
 def clean_mask_reference(mask: np.ndarray, *, open_px=1, close_px=2, keep=1, fill_holes=True) -> np.ndarray:
-    """``clean_mask`` on the whole image (what the bounding-box version must equal)."""
-    return _clean_binary((mask > 127).astype(np.uint8), open_px, close_px, keep, fill_holes) * np.uint8(255)
+    """What ``clean_mask`` must equal: the clean-up on the whole image, components by OpenCV's statistics."""
+    import cv2
+
+    m = (mask > 127).astype(np.uint8)
+    if open_px > 0:
+        m = cv2.morphologyEx(m, cv2.MORPH_OPEN, disc(open_px))
+    if close_px > 0:
+        m = cv2.morphologyEx(m, cv2.MORPH_CLOSE, disc(close_px))
+    if keep > 0:
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
+        if n > 1:
+            order = 1 + np.argsort(-stats[1:, cv2.CC_STAT_AREA], kind="stable")[:keep]
+            m = np.isin(labels, order).astype(np.uint8)
+    if fill_holes:
+        framed = np.pad(m, 1)
+        cv2.floodFill(framed, None, (0, 0), 2)
+        m = (framed[1:-1, 1:-1] != 2).astype(np.uint8)
+    return m * 255
 
 
 def cleaned_alpha(cleaned: np.ndarray, mask: np.ndarray, alpha: np.ndarray) -> np.ndarray:
