@@ -248,6 +248,13 @@ def _load_array(path: Path) -> np.ndarray:
         raise DataError(f"{path}: unreadable array ({exc})") from None
 
 
+def _mask_of_levels(levels: np.ndarray) -> np.ndarray:
+    """The binary mask (0 / 255) of 8-bit alpha levels: alpha >= 128, as the keys make it (cv2.threshold: one pass)."""
+    import cv2
+
+    return cv2.threshold(np.asarray(levels, np.uint8), 127, 255, cv2.THRESH_BINARY)[1]
+
+
 class Images(DataType):
     """Stored as one raw .npy per camera (read by memory map: loading a frame of 24 HD images costs nothing
     until a kernel reads it; see bench/formats.py for PNG and compressed forms measured against it)."""
@@ -286,7 +293,9 @@ class Images(DataType):
 
 class Masks(DataType):
     """Stored as one raw .npy per camera (uint8), and the soft alpha as .alpha.npy (float32), or as .alpha8.npy
-    (uint8 levels) when the set carries ``alpha8``."""
+    (uint8 levels) when the set carries ``alpha8``; masks that are exactly the levels' alpha >= 128 (the keys'
+    and key.cleanup's) are then not stored but made from the levels when loaded (the same masks, half the
+    bytes to write and hash)."""
 
     name = "Masks"
     kept_by_default = False  # large: passed in memory within a frame unless kept
@@ -315,22 +324,29 @@ class Masks(DataType):
     @classmethod
     def save(cls, v: MaskSet, folder: Path):
         levels = v.alpha8   # 8-bit alpha stays 8-bit on disk: (H, W) uint8 per camera, .alpha8.npy
+        # masks that are the levels' alpha >= 128 (the keys' and their clean-up's) are not stored: read back from them
+        derived = levels is not None and all(np.array_equal(m, _mask_of_levels(a)) for m, a in zip(v.masks, levels))
         for i, m in enumerate(v.masks):
-            _save_array(folder / f"{i:04d}.npy", m)
+            if not derived:
+                _save_array(folder / f"{i:04d}.npy", m)
             if levels is not None:
                 _save_array(folder / f"{i:04d}.alpha8.npy", np.asarray(levels[i], np.uint8))
             elif v.alpha is not None:
                 _save_array(folder / f"{i:04d}.alpha.npy", np.asarray(v.alpha[i], np.float32))
         has = levels is not None or v.alpha is not None
-        (folder / "names.json").write_text(json.dumps({"names": v.names, "alpha": has, "alpha8": levels is not None}))
+        (folder / "names.json").write_text(json.dumps({"names": v.names, "alpha": has, "alpha8": levels is not None,
+                                                       "masks_from_alpha8": derived}))
 
     @classmethod
     def load(cls, folder: Path) -> MaskSet:
         meta = json.loads((folder / "names.json").read_text())
         names = meta["names"]
-        masks = [_load_array(folder / f"{i:04d}.npy") for i in range(len(names))]
         if meta.get("alpha8"):
-            return MaskSet(masks, None, names, alpha8=[_load_array(folder / f"{i:04d}.alpha8.npy") for i in range(len(names))])
+            levels = [_load_array(folder / f"{i:04d}.alpha8.npy") for i in range(len(names))]
+            masks = [_mask_of_levels(a) if meta.get("masks_from_alpha8") else _load_array(folder / f"{i:04d}.npy")
+                     for i, a in enumerate(levels)]
+            return MaskSet(masks, None, names, alpha8=levels)
+        masks = [_load_array(folder / f"{i:04d}.npy") for i in range(len(names))]
         alpha = [_load_array(folder / f"{i:04d}.alpha.npy") for i in range(len(names))] if meta["alpha"] else None
         return MaskSet(masks, alpha, names)
 

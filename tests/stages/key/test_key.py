@@ -370,10 +370,19 @@ def test_eight_bit_alpha_is_stored_as_levels_and_reads_back_as_the_same_floats(t
     ref = K.maskset_reference(levels, ms.names)
     assert all(np.array_equal(a, b) for a, b in zip(ms.masks, ref.masks))
     assert all(a.dtype == np.float32 and np.array_equal(a, b) for a, b in zip(ms.alpha, ref.alpha))
-    Masks.save(ms, tmp_path)
-    assert sorted(p.name for p in tmp_path.glob("*.npy")) == ["0000.alpha8.npy", "0000.npy", "0001.alpha8.npy", "0001.npy"]
+    Masks.save(ms, tmp_path)   # the masks are the levels' alpha >= 128: only the levels are stored
+    assert sorted(p.name for p in tmp_path.glob("*.npy")) == ["0000.alpha8.npy", "0001.alpha8.npy"]
     back = Masks.load(tmp_path)
     assert all(np.array_equal(a, b) for a, b in zip(back.alpha, ref.alpha)) and back.alpha8[0].dtype == np.uint8
+    assert all(a.dtype == np.uint8 and np.array_equal(a, b) for a, b in zip(back.masks, ref.masks))
+    other = tmp_path / "other"   # masks that are not their levels' threshold are stored as they are
+    other.mkdir()
+    edited = [m.copy() for m in ms.masks]
+    edited[1][0, 0] = 255 - edited[1][0, 0]
+    Masks.save(MaskSet(edited, None, ms.names, alpha8=levels), other)
+    again = Masks.load(other)
+    assert (other / "0001.npy").is_file() and all(np.array_equal(a, b) for a, b in zip(again.masks, edited))
+    assert all(np.array_equal(a, b) for a, b in zip(again.alpha, ref.alpha))
     as_levels = run_node("key.cleanup", {"masks": back})["masks"]
     as_floats = run_node("key.cleanup", {"masks": ref})["masks"]
     assert as_levels.alpha8 is not None and as_floats.alpha8 is None
