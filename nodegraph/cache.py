@@ -15,7 +15,8 @@ Layout under the cache root:
 A work item's outputs are written into a staging folder and renamed into place in one step, so a run
 killed mid-write leaves no half artifact: the item simply is not cached and the next run recomputes it.
 
-Content verification: ``write`` records a BLAKE2b-128 hash of every stored file in meta.json; ``load`` checks
+Content verification: ``write`` records a SHA-256 hash (its first 128 bits) of every stored file in meta.json (``hash`` names it:
+entries written before record BLAKE2b-128, still checked with it); ``load`` checks
 the files it reads against them (DataError "damaged"), ``verify`` checks a whole entry, and an entry whose
 meta.json is not a readable record is not a hit. A damaged entry is evicted and recomputed (run.py checks
 what a run will read before it starts; `cache verify` checks everything).
@@ -71,7 +72,8 @@ def atomic_write_text(path: Path, text: str):
     atomic_write_bytes(path, text.encode())
 
 
-HASH_NAME = "blake2b-128"
+HASH_NAME = "sha256-128"        # what new entries record; entries written with "blake2b-128" are still checked
+HASHES = {"sha256-128": hashlib.sha256, "blake2b-128": lambda: hashlib.blake2b(digest_size=16)}
 CHECKED = "checked.json"        # per entry: file -> [inode, size, mtime_ns, ctime_ns] when its hash last matched
 SETTLED_NS = 2_000_000_000      # files younger than this are not remembered (coarse timestamps)
 
@@ -84,13 +86,24 @@ def _read_checked(entry: Path) -> dict:
     return checked if isinstance(checked, dict) else {}
 
 
-def file_hash(path: Path) -> str:
-    """BLAKE2b-128 of a file's content (hex): fast, and any flipped bit changes it."""
-    h = hashlib.blake2b(digest_size=16)
+def file_hash(path: Path, name: str = HASH_NAME) -> str:
+    """The content hash ``name`` (a key of HASHES) of a file, 128 bits in hex: any flipped bit changes it. SHA-256, since
+    CPUs hash it in hardware (SHA-NI; OpenSSL): 1.25 GB/s against BLAKE2b's 0.49 on the 2-core EPYC, where the
+    cache hashed the ~30 MB a frame of 12 640x480 views stores (despilled images, masks, alpha) in ~60 ms."""
     with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
+        return hashlib.file_digest(f, HASHES[name]).hexdigest()[:32]   # 128 bits, as BLAKE2b-128 recorded
+
+
+def _hash_all(folder: Path, names: list[str]) -> dict[str, str]:
+    """file -> file_hash of the files ``names`` under ``folder``; several at once on a few threads when they are
+    many (hashlib hashes outside the GIL: a frame of 12 views' images, masks and alpha on both cores of a
+    2-core machine)."""
+    if len(names) < 4:
+        return {f: file_hash(folder / f) for f in names}
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(min(4, os.cpu_count() or 1)) as pool:
+        return dict(zip(names, pool.map(lambda f: file_hash(folder / f), names)))
 
 
 def _valid_meta(meta) -> bool:
@@ -164,6 +177,9 @@ class Cache:
         hash every file)."""
         d = self.object_dir(key)
         hashes = meta.get("hashes")
+        algo = meta.get("hash", "blake2b-128")   # entries before the name was recorded used BLAKE2b
+        if hashes is not None and algo not in HASHES:
+            return f"its content hash '{algo}' is not one this version knows ({', '.join(HASHES)})"
         checked = {} if full else _read_checked(d)
         learned = {}
         for f in files:
@@ -180,7 +196,7 @@ class Cache:
             if checked.get(f) == sig:
                 continue
             try:
-                got = file_hash(p)
+                got = file_hash(p, algo)
             except OSError as exc:
                 return f"{f} cannot be read ({exc.strerror or exc})"
             if hashes.get(f) != got:
@@ -252,7 +268,7 @@ class Cache:
                 d.mkdir()
                 dtype.save(value, d)
                 files[port] = [p.relative_to(stage).as_posix() for p in dtype.files(d)]
-            hashes = {f: file_hash(stage / f) for listed in files.values() for f in listed or []}
+            hashes = _hash_all(stage, [f for listed in files.values() for f in listed or []])
             meta = dict(meta, key=key, files=files, types=types, created=time.time(), hash=HASH_NAME, hashes=hashes)
             (stage / "meta.json").write_text(json.dumps(meta, indent=1, sort_keys=True))
             final = self.object_dir(key)

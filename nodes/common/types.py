@@ -2,7 +2,8 @@
 
 Values are plain classes (ImageSet, MaskSet, VoxelGrid, SkeletonData; cameras: nodes.common.cameras;
 meshes: trimesh.Trimesh; boxes: (2, 3) arrays). Port types (nodegraph.DataType) give each its on-disk form
-in the cache and its preview in the report: images/masks as raw .npy per camera (soft alpha as .alpha.npy),
+in the cache and its preview in the report: images/masks as raw .npy per camera (soft alpha as .alpha.npy,
+8-bit alpha as .alpha8.npy),
 cameras as JSON, volumes as .npz, meshes as PLY, textured meshes as GLB, skeletons as JSON (+ .npy weights),
 boxes as JSON.
 """
@@ -90,24 +91,44 @@ class ImageSet(_Lazy):
 class MaskSet(_Lazy):
     """Silhouettes per camera: binary uint8 masks (0 / 255) and optional soft alpha (float32 0..1).
 
+    ``alpha8``: the soft alpha as 8-bit levels (uint8 0..255) where the producer made it so (the keys): ``alpha``
+    is then ``alpha8 / 255`` in float32, computed when first read, and the cache stores the levels (a quarter of
+    the bytes; the same float32 values come back).
     ``device``: the same silhouettes already on the OpenCL device (nodes.common.silhouettes.SilhouetteBits),
     when the producer made them there; a reader that can use them (the hull) then needs no host masks at all.
-    ``MaskSet.lazy(produce, names, device=...)`` defers the host masks (``produce() -> (masks, alpha)``)."""
+    ``MaskSet.lazy(produce, names, device=...)`` defers the host masks (``produce() -> (masks, alpha)`` or
+    ``(masks, None, alpha8)``); ``make_device`` (a function returning the SilhouetteBits) defers the device's too,
+    until a reader asks for ``device``."""
 
     def __init__(self, masks: list[np.ndarray], alpha: list[np.ndarray] | None = None, names: list[str] | None = None,
-                 device=None):
+                 device=None, alpha8: list[np.ndarray] | None = None):
         super().__init__(None, names or [f"cam{i:03d}" for i in range(len(masks))])
-        self._masks, self._alpha = list(masks), (list(alpha) if alpha is not None else None)
-        self.device = device
+        self._set(masks, alpha, alpha8)
+        self._device, self._make_device = device, None
 
     @classmethod
-    def lazy(cls, produce, names: list[str], device=None) -> "MaskSet":
+    def lazy(cls, produce, names: list[str], device=None, make_device=None) -> "MaskSet":
         s = cls([], None, names, device)
         s._produce = produce
+        s._make_device = make_device
         return s
 
-    def _set(self, masks, alpha):
+    def _set(self, masks, alpha, alpha8=None):
+        if alpha is not None and alpha8 is not None:
+            raise ValueError("MaskSet: give alpha or alpha8, not both")
         self._masks, self._alpha = list(masks), (list(alpha) if alpha is not None else None)
+        self._alpha8 = list(alpha8) if alpha8 is not None else None
+
+    @property
+    def device(self):
+        if self._make_device is not None:
+            make, self._make_device = self._make_device, None
+            self._device = make()
+        return self._device
+
+    @device.setter
+    def device(self, value):
+        self._device, self._make_device = value, None
 
     @property
     def masks(self) -> list[np.ndarray]:
@@ -117,7 +138,15 @@ class MaskSet(_Lazy):
     @property
     def alpha(self) -> list[np.ndarray] | None:
         self._materialise()
+        if self._alpha is None and self._alpha8 is not None:
+            self._alpha = [np.divide(a, np.float32(255), dtype=np.float32) for a in self._alpha8]
         return self._alpha
+
+    @property
+    def alpha8(self) -> list[np.ndarray] | None:
+        """The soft alpha's 8-bit levels when the set was made from them, else None (read ``alpha``)."""
+        self._materialise()
+        return self._alpha8
 
     def __len__(self):
         return len(self.names)
@@ -219,6 +248,13 @@ def _load_array(path: Path) -> np.ndarray:
         raise DataError(f"{path}: unreadable array ({exc})") from None
 
 
+def _mask_of_levels(levels: np.ndarray) -> np.ndarray:
+    """The binary mask (0 / 255) of 8-bit alpha levels: alpha >= 128, as the keys make it (cv2.threshold: one pass)."""
+    import cv2
+
+    return cv2.threshold(np.asarray(levels, np.uint8), 127, 255, cv2.THRESH_BINARY)[1]
+
+
 class Images(DataType):
     """Stored as one raw .npy per camera (read by memory map: loading a frame of 24 HD images costs nothing
     until a kernel reads it; see bench/formats.py for PNG and compressed forms measured against it)."""
@@ -256,7 +292,10 @@ class Images(DataType):
 
 
 class Masks(DataType):
-    """Stored as one raw .npy per camera (uint8), and the soft alpha as .alpha.npy (float32)."""
+    """Stored as one raw .npy per camera (uint8), and the soft alpha as .alpha.npy (float32), or as .alpha8.npy
+    (uint8 levels) when the set carries ``alpha8``; masks that are exactly the levels' alpha >= 128 (the keys'
+    and key.cleanup's) are then not stored but made from the levels when loaded (the same masks, half the
+    bytes to write and hash)."""
 
     name = "Masks"
     kept_by_default = False  # large: passed in memory within a frame unless kept
@@ -272,22 +311,41 @@ class Masks(DataType):
                 return f"mask {i} must be an (H, W) uint8 array"
         if len(v.masks) != len(v.names):
             return f"{len(v.masks)} masks but {len(v.names)} names"
-        if v.alpha is not None and len(v.alpha) != len(v.masks):
+        if v.alpha8 is not None:
+            if len(v.alpha8) != len(v.masks):
+                return "alpha8 must have one image per mask"
+            for i, (a, m) in enumerate(zip(v.alpha8, v.masks)):
+                if not (isinstance(a, np.ndarray) and a.dtype == np.uint8 and a.shape == m.shape):
+                    return f"alpha8 {i} must be a uint8 array the shape of its mask"
+        elif v.alpha is not None and len(v.alpha) != len(v.masks):
             return "alpha must have one image per mask"
         return None
 
     @classmethod
     def save(cls, v: MaskSet, folder: Path):
+        levels = v.alpha8   # 8-bit alpha stays 8-bit on disk: (H, W) uint8 per camera, .alpha8.npy
+        # masks that are the levels' alpha >= 128 (the keys' and their clean-up's) are not stored: read back from them
+        derived = levels is not None and all(np.array_equal(m, _mask_of_levels(a)) for m, a in zip(v.masks, levels))
         for i, m in enumerate(v.masks):
-            _save_array(folder / f"{i:04d}.npy", m)
-            if v.alpha is not None:
+            if not derived:
+                _save_array(folder / f"{i:04d}.npy", m)
+            if levels is not None:
+                _save_array(folder / f"{i:04d}.alpha8.npy", np.asarray(levels[i], np.uint8))
+            elif v.alpha is not None:
                 _save_array(folder / f"{i:04d}.alpha.npy", np.asarray(v.alpha[i], np.float32))
-        (folder / "names.json").write_text(json.dumps({"names": v.names, "alpha": v.alpha is not None}))
+        has = levels is not None or v.alpha is not None
+        (folder / "names.json").write_text(json.dumps({"names": v.names, "alpha": has, "alpha8": levels is not None,
+                                                       "masks_from_alpha8": derived}))
 
     @classmethod
     def load(cls, folder: Path) -> MaskSet:
         meta = json.loads((folder / "names.json").read_text())
         names = meta["names"]
+        if meta.get("alpha8"):
+            levels = [_load_array(folder / f"{i:04d}.alpha8.npy") for i in range(len(names))]
+            masks = [_mask_of_levels(a) if meta.get("masks_from_alpha8") else _load_array(folder / f"{i:04d}.npy")
+                     for i, a in enumerate(levels)]
+            return MaskSet(masks, None, names, alpha8=levels)
         masks = [_load_array(folder / f"{i:04d}.npy") for i in range(len(names))]
         alpha = [_load_array(folder / f"{i:04d}.alpha.npy") for i in range(len(names))] if meta["alpha"] else None
         return MaskSet(masks, alpha, names)

@@ -43,7 +43,24 @@ def ycc_to_rgb(ycc: np.ndarray) -> np.ndarray:
 def estimate_key_direction(rgb: np.ndarray, border: int = 16) -> np.ndarray:
     """Unit CbCr direction of the screen colour: median chroma of the most saturated quarter of the pixels
     in a strip around the image, ``border`` pixels wide (at most a tenth of the short side), so dark or
-    neutral border pixels are ignored."""
+    neutral border pixels are ignored. (``rgb_to_ycc``'s arithmetic on the strip's channels as contiguous rows,
+    and the chroma's length as the float32 rounding of the double square root (IEEE: exact squares, one rounded
+    sum, a correctly rounded root), which is glibc's hypotf: equal for all 2^24 colours; ~2x faster than the
+    reference in all.)"""
+    border = max(1, min(border, min(rgb.shape[:2]) // 10))
+    strip = np.concatenate([rgb[:border].reshape(-1, 3), rgb[-border:].reshape(-1, 3),
+                            rgb[:, :border].reshape(-1, 3), rgb[:, -border:].reshape(-1, 3)])
+    r, g, b = np.ascontiguousarray(strip.T).astype(np.float32)
+    f = np.float32
+    y = f(0.299) * r + f(0.587) * g + f(0.114) * b
+    cb, cr = f(0.564) * (b - y), f(0.713) * (r - y)
+    chroma = np.sqrt(np.square(cb, dtype=np.float64) + np.square(cr, dtype=np.float64)).astype(np.float32)
+    sel = chroma >= np.percentile(chroma, 75)
+    return key_direction_from_ycc(np.median(cb[sel]), np.median(cr[sel]))
+
+
+def estimate_key_direction_reference(rgb: np.ndarray, border: int = 16) -> np.ndarray:
+    """``estimate_key_direction`` through ``rgb_to_ycc`` (what it must equal)."""
     border = max(1, min(border, min(rgb.shape[:2]) // 10))
     strip = np.concatenate([rgb[:border].reshape(-1, 3), rgb[-border:].reshape(-1, 3),
                             rgb[:, :border].reshape(-1, 3), rgb[:, -border:].reshape(-1, 3)])
@@ -279,7 +296,71 @@ def disc(radius: int) -> np.ndarray:
 
 def clean_mask(mask: np.ndarray, *, open_px=1, close_px=2, keep=1, fill_holes=True) -> np.ndarray:
     """Binary (0/255) mask after opening, closing, keeping the ``keep`` largest 8-connected components
-    (0 = all) and filling holes (background regions not connected to the image border)."""
+    (0 = all) and filling holes (background regions not connected to the image border).
+
+    The work is done on the foreground's bounding box grown by ``open_px + close_px + 1`` (clipped to the image),
+    with the same result as on the whole image (``clean_mask_reference``): outside that box the result is
+    background whatever is done; a structuring element reaching out of it from a pixel that matters meets the
+    margin's background first (the discs are convex), so the morphology is the same; the components and their
+    areas are the same; and the margin is a ring of background joined to the image border, so what the hole
+    filling reaches is the same. Only the order of equal-sized components may differ (OpenCV numbers them by
+    its 2x2-block scan): when the ``keep``-th and the next largest have the same area, the whole image is
+    cleaned instead. A figure filling a tenth of a 640x480 view: ~5x less work; the areas counted from the
+    labels, not OpenCV's statistics: 12 crops' labelling ~8 -> ~3 ms."""
+    m = (mask > 127).astype(np.uint8)
+    box = _foreground_box(m, open_px + close_px + 1)
+    if box is None:   # no foreground: nothing to keep or fill
+        return np.zeros_like(m)
+    (y0, y1), (x0, x1) = box
+    part = _clean_binary(m[y0:y1, x0:x1], open_px, close_px, keep, fill_holes, ties=False)
+    if part is None:
+        return _clean_binary(m, open_px, close_px, keep, fill_holes) * np.uint8(255)
+    out = np.zeros_like(m)
+    out[y0:y1, x0:x1] = part * np.uint8(255)
+    return out
+
+
+def _foreground_box(m: np.ndarray, margin: int):
+    """((y0, y1), (x0, x1)) of the nonzero pixels of ``m`` grown by ``margin`` and clipped to it, or None."""
+    import cv2
+
+    x, y, w, h = cv2.boundingRect(m)
+    if w == 0 or h == 0:
+        return None
+    return ((max(y - margin, 0), min(y + h + margin, m.shape[0])), (max(x - margin, 0), min(x + w + margin, m.shape[1])))
+
+
+def _clean_binary(m: np.ndarray, open_px: int, close_px: int, keep: int, fill_holes: bool, ties: bool = True):
+    """The clean-up of a 0/1 uint8 mask (see ``clean_mask``), 0/1 uint8; None when ``ties`` is false and the
+    components kept would depend on how OpenCV numbers equal-sized ones."""
+    import cv2
+
+    if open_px > 0:
+        m = cv2.morphologyEx(m, cv2.MORPH_OPEN, disc(open_px))
+    if close_px > 0:
+        m = cv2.morphologyEx(m, cv2.MORPH_CLOSE, disc(close_px))
+    if keep > 0:
+        # labels without OpenCV's statistics (their boxes and centroids cost twice the labelling), 16-bit where
+        # no image of this size can have more components; the areas by counting
+        most = ((m.shape[0] + 1) // 2) * ((m.shape[1] + 1) // 2)
+        n, labels = cv2.connectedComponents(m, connectivity=8, ltype=cv2.CV_16U if most < 65535 else cv2.CV_32S)
+        if n > 1:
+            area = np.bincount(labels.ravel(), minlength=n)
+            order = 1 + np.argsort(-area[1:], kind="stable")
+            if not ties and keep < n - 1 and area[order[keep - 1]] == area[order[keep]]:
+                return None
+            order = order[:keep]
+            m = (labels == order[0]).astype(np.uint8) if keep == 1 else np.isin(labels, order).astype(np.uint8)
+    if fill_holes:
+        # background reachable from the border, via a 1-pixel frame so every border pixel is a seed
+        framed = np.pad(m, 1)
+        cv2.floodFill(framed, None, (0, 0), 2)
+        m = (framed[1:-1, 1:-1] != 2).astype(np.uint8)
+    return m
+
+
+def clean_mask_reference(mask: np.ndarray, *, open_px=1, close_px=2, keep=1, fill_holes=True) -> np.ndarray:
+    """What ``clean_mask`` must equal: the clean-up on the whole image, components by OpenCV's statistics."""
     import cv2
 
     m = (mask > 127).astype(np.uint8)
@@ -293,11 +374,32 @@ def clean_mask(mask: np.ndarray, *, open_px=1, close_px=2, keep=1, fill_holes=Tr
             order = 1 + np.argsort(-stats[1:, cv2.CC_STAT_AREA], kind="stable")[:keep]
             m = np.isin(labels, order).astype(np.uint8)
     if fill_holes:
-        # background reachable from the border, via a 1-pixel frame so every border pixel is a seed
         framed = np.pad(m, 1)
         cv2.floodFill(framed, None, (0, 0), 2)
         m = (framed[1:-1, 1:-1] != 2).astype(np.uint8)
     return m * 255
+
+
+def cleaned_alpha(cleaned: np.ndarray, mask: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """The soft alpha that goes with a cleaned mask: ``alpha`` where the mask was kept as it was, opaque where the
+    clean-up added foreground (filled holes, closed cracks), 0 where it removed it or there was none; computed
+    on the cleaned mask's bounding box (outside it all 0). Same as ``cleaned_alpha_reference``. A uint8 ``alpha``
+    (8-bit levels) gives levels (opaque = 255), a float alpha float32 (opaque = 1): levels / 255 are the float's."""
+    import cv2
+
+    levels = alpha.dtype == np.uint8
+    out = np.zeros(cleaned.shape, np.uint8 if levels else np.float32)
+    x, y, w, h = cv2.boundingRect(cleaned)
+    if w and h:
+        box = np.s_[y:y + h, x:x + w]
+        out[box] = cleaned_alpha_reference(cleaned[box], np.asarray(mask)[box], np.asarray(alpha)[box])
+    return out
+
+
+def cleaned_alpha_reference(cleaned: np.ndarray, mask: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    if alpha.dtype == np.uint8:
+        return np.where(cleaned > 0, np.where(mask > 127, alpha, np.uint8(255)), np.uint8(0)).astype(np.uint8)
+    return np.where(cleaned > 0, np.where(mask > 127, alpha, 1.0), 0.0).astype(np.float32)
 
 
 def hull_footprint(volume, cameras: Cameras, view: int, dilate_px: int = 1) -> np.ndarray:
@@ -375,6 +477,15 @@ def check_views(what: str, images, cameras: Cameras | None, kind: str = "image")
 
 
 def maskset(alphas: list[np.ndarray], names: list[str]) -> MaskSet:
+    """The MaskSet of uint8 alphas: masks alpha >= 128 (cv2.threshold: one pass), the alpha kept as its levels
+    (``MaskSet.alpha8``: the float alpha is alpha / 255 when a reader asks)."""
+    import cv2
+
+    masks = [cv2.threshold(a, 127, 255, cv2.THRESH_BINARY)[1] for a in alphas]
+    return MaskSet(masks, None, list(names), alpha8=alphas)
+
+
+def maskset_reference(alphas: list[np.ndarray], names: list[str]) -> MaskSet:
     masks = [np.where(a >= 128, 255, 0).astype(np.uint8) for a in alphas]
     return MaskSet(masks, [a.astype(np.float32) / 255 for a in alphas], list(names))
 

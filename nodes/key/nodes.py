@@ -6,8 +6,9 @@ import numpy as np
 
 from nodegraph import Input, Node, NodeError, Output, Param, Table
 from nodes.common.types import Bounds, CameraSet, Images, ImageSet, Masks, MaskSet, PlateModel, Volume
+from nodes.common.views import map_views
 
-from .keying import (KERNELS, check_views, chroma_key_bits, chroma_key_cl, clean_mask, difference_key_cl,
+from .keying import (KERNELS, check_views, chroma_key_bits, chroma_key_cl, clean_mask, cleaned_alpha, difference_key_cl,
                      difference_key_mixture_cl, estimate_key_direction,
                      grabcut_band, grey_threshold_cl, hull_footprint, key_direction_from_rgb, maskset, matte_edges,
                      plate_model, disc)
@@ -46,12 +47,15 @@ class ChromaKey(Node):
             raise NodeError("key.chroma: the garbage matte needs both inputs 'cameras' and 'bounds'")
         frames = images.images
         check_views("key.chroma", frames, cameras)
-        keys = [key_direction_from_rgb(key_color) if key_color else estimate_key_direction(im) for im in frames]
+        keys = [key_direction_from_rgb(key_color)] * len(frames) if key_color else map_views(estimate_key_direction, frames)
         edges = [matte_edges(cameras, v, bounds, matte_margin) for v in range(len(frames))] if cameras is not None else None
-        # The silhouettes go straight into the hull's device layout; the soft alpha, the host masks and the
-        # despilled images are computed only if a reader (or the cache) asks for them.
-        bits = chroma_key_bits(frames, keys, side=side, luma_floor=luma_floor, inner=inner, outer=outer, black=black,
-                               edges=edges)
+        # The silhouettes go straight into the hull's device layout, the soft alpha, the host masks and the
+        # despilled images are computed, each only if a reader (or the cache) asks for them: the demo's clean-up
+        # reads the host masks only, bench/cli.py's hull the device's only.
+        def bits():
+            return chroma_key_bits(frames, keys, side=side, luma_floor=luma_floor, inner=inner, outer=outer,
+                                   black=black, edges=edges)
+
         full: dict = {}
 
         def key_frames():
@@ -67,7 +71,8 @@ class ChromaKey(Node):
             return full
 
         names = list(images.names)
-        masks = MaskSet.lazy(lambda: (key_frames()["masks"].masks, key_frames()["masks"].alpha), names, device=bits)
+        masks = MaskSet.lazy(lambda: (key_frames()["masks"].masks, None, key_frames()["masks"].alpha8), names,
+                             make_device=bits)
         return {"masks": masks, "images": ImageSet.lazy(lambda: key_frames()["images"], names)}
 
 
@@ -255,14 +260,17 @@ class Cleanup(Node):
     }
 
     def run(self, masks, *, open, close, keep, fill_holes):
-        out, alphas = [], []
-        for i, m in enumerate(masks.masks):
+        soft = masks.alpha8 if masks.alpha8 is not None else masks.alpha
+
+        def clean(m, a):
             c = clean_mask(m, open_px=open, close_px=close, keep=keep, fill_holes=fill_holes)
-            out.append(c)
-            if masks.alpha is not None:
-                a = masks.alpha[i]
-                alphas.append(np.where(c > 0, np.where(m > 127, a, 1.0), 0.0).astype(np.float32))
-        return {"masks": MaskSet(out, alphas if masks.alpha is not None else None, list(masks.names))}
+            return c, (None if a is None else cleaned_alpha(c, m, a))
+
+        done = map_views(clean, masks.masks, soft if soft is not None else [None] * len(masks))
+        out, alphas = [c for c, _ in done], [a for _, a in done]
+        if masks.alpha8 is not None:   # 8-bit alpha in, 8-bit out (the same float alpha)
+            return {"masks": MaskSet(out, None, list(masks.names), alpha8=alphas)}
+        return {"masks": MaskSet(out, alphas if soft is not None else None, list(masks.names))}
 
 
 class Consensus(Node):

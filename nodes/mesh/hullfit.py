@@ -75,8 +75,8 @@ class SilhouetteField:
         """Check a MaskSet against the cameras (NodeError naming the camera) and pack both."""
         check_vote_inputs(masks, cameras, min_views, outside, node)
         origin = np.asarray(origin, np.float64).reshape(3)
-        device = getattr(masks, "device", None)
-        if device is not None and not use_alpha:  # the producer's device silhouettes: no host masks needed
+        device = None if use_alpha else getattr(masks, "device", None)   # (a key makes its device's only when asked)
+        if device is not None:  # the producer's device silhouettes: no host masks needed
             check_sizes([np.broadcast_to(np.uint8(0), (h, w)) for w, h in device.sizes], cameras, node)
             return cls(cameras.pack(origin), origin, None, False, int(min_views), outside, device, list(device.sizes),
                        masks)

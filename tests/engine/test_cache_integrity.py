@@ -143,6 +143,32 @@ def test_meta_records_a_content_hash_per_file(tmp_path):
     assert set(meta["hashes"]) == {"files/files/sum_000.txt"} and len(meta["hashes"]["files/files/sum_000.txt"]) == 32
 
 
+
+def test_entries_hashed_with_blake2b_are_still_checked(tmp_path):
+    """New entries record SHA-256 (first 128 bits, ``hash``: sha256-128); an entry an older version wrote with
+    BLAKE2b-128 is checked with BLAKE2b (unchanged: a hit; a flipped byte: damaged); a hash this version does not
+    know makes the entry damaged (recomputed), not a crash."""
+    import hashlib
+
+    import nodegraph.cache as C
+
+    first = run(tmp_path, graph(tmp_path))
+    s0 = record(first, "src", 0)
+    entry = Path(s0["cache_dir"])
+    meta = json.loads((entry / "meta.json").read_text())
+    npy = entry / "out" / "array.npy"
+    assert meta["hash"] == "sha256-128"
+    assert meta["hashes"]["out/array.npy"] == hashlib.sha256(npy.read_bytes()).hexdigest()[:32]
+    old = dict(meta, hash="blake2b-128", hashes={f: hashlib.blake2b((entry / f).read_bytes(), digest_size=16).hexdigest()
+                                                 for f in meta["hashes"]})
+    (entry / "meta.json").write_text(json.dumps(old))
+    (entry / C.CHECKED).unlink(missing_ok=True)
+    assert Cache(tmp_path / "cache").verify(s0["key"], full=True) is None
+    flip_bytes(npy)
+    assert "does not match" in Cache(tmp_path / "cache").verify(s0["key"], full=True)
+    (entry / "meta.json").write_text(json.dumps(dict(old, hash="md4-9")))
+    assert "md4-9" in Cache(tmp_path / "cache").verify(s0["key"], full=True)
+
 # ---------------------------------------------------------------- item 8: FIFOs and devices in input folders
 def test_fifo_and_dev_zero_in_an_input_folder_do_not_hang(tmp_path):
     data = tmp_path / "data"
@@ -176,7 +202,7 @@ def test_checked_files_are_not_read_again_until_they_change(tmp_path, monkeypatc
     npy = Path(s0["cache_dir"]) / "out" / "array.npy"
     hashed = []
     real = C.file_hash
-    monkeypatch.setattr(C, "file_hash", lambda f: hashed.append(Path(f).name) or real(f))
+    monkeypatch.setattr(C, "file_hash", lambda f, *a: hashed.append(Path(f).name) or real(f, *a))
     from nodegraph.types import Array
 
     assert Cache(tmp_path / "cache").verify(s0["key"]) is None and hashed == ["array.npy"]

@@ -110,6 +110,21 @@ def test_chroma_key_recovers_ball_and_despills():
     assert np.abs(desp.mean(0) - 0.299 * 200 - 0.587 * 225 - 0.114 * 200).max() < 10  # luma kept: grey-white
 
 
+def test_key_colour_estimate_equals_its_reference():
+    """estimate_key_direction (the strip's channels as rows) gives rgb_to_ycc's result bit for bit."""
+    rng = np.random.default_rng(3)
+    images = [green_scene(disc(48, 64, 24, 30, 12), seed=1)] + [
+        rng.integers(0, 256, (int(h), int(w), 3), dtype=np.uint8) for h, w in rng.integers(10, 120, (40, 2))]
+    for im in images:
+        got, want = K.estimate_key_direction(im), K.estimate_key_direction_reference(im)
+        assert got.dtype == np.float32 and np.array_equal(got, want)
+    # its chroma length (float32 of the double root) is np.hypot's (checked here on a million colours; all 2^24 agree)
+    ycc = K.rgb_to_ycc(rng.integers(0, 256, (1 << 20, 3), dtype=np.uint8))
+    cb, cr = ycc[:, 1], ycc[:, 2]
+    fast = np.sqrt(np.square(cb, dtype=np.float64) + np.square(cr, dtype=np.float64)).astype(np.float32)
+    assert np.array_equal(fast, np.hypot(cb, cr))
+
+
 def test_chroma_key_colour_param_and_blue_screen():
     h, w = 40, 50
     obj = disc(h, w, 20, 25, 9)
@@ -307,6 +322,73 @@ def test_cleanup_keeps_largest_fills_holes_drops_specks():
     assert out["masks"].alpha[0][hole > 0].min() == 1.0  # filled holes are opaque
     two = run_node("key.cleanup", {"masks": MaskSet([m])}, {"keep": 2, "fill_holes": False})["masks"].masks[0]
     assert two[30, 65] == 255 and two[30, 25] == 0
+
+
+def test_cleanup_on_the_foreground_box_equals_the_whole_image():
+    """clean_mask works on the foreground's bounding box (plus a margin): the result is the whole image's
+    (clean_mask_reference), also with specks at the borders, equal-sized components (ties at the ``keep`` cut) and
+    soft values around the 127 threshold."""
+    import cv2
+
+    rng = np.random.default_rng(1)
+    for trial in range(300):
+        h, w = (int(v) for v in rng.integers(5, 90, 2))
+        kind = trial % 4
+        if kind == 0:   # noise of any density
+            m = (rng.random((h, w)) < rng.uniform(0.01, 0.9)).astype(np.uint8) * 255
+        elif kind == 1:   # blobs (some cut by the border) with specks and pinholes
+            m = np.zeros((h, w), np.uint8)
+            for _ in range(int(rng.integers(1, 6))):
+                cv2.circle(m, (int(rng.integers(-5, w + 5)), int(rng.integers(-5, h + 5))), int(rng.integers(1, 20)), 255, -1)
+            m[rng.random((h, w)) < 0.02] = 255
+            m[rng.random((h, w)) < 0.02] = 0
+        elif kind == 2:   # single-pixel specks: ties everywhere
+            m = np.zeros((h, w), np.uint8)
+            m[rng.integers(0, h, 8), rng.integers(0, w, 8)] = 255
+        else:   # soft values around the threshold
+            m = rng.integers(120, 135, (h, w)).astype(np.uint8)
+        for op, cl, keep, fill in ((1, 2, 1, True), (0, 0, 2, True), (2, 3, 0, False), (0, 1, 3, True), (3, 0, 1, False)):
+            got = K.clean_mask(m, open_px=op, close_px=cl, keep=keep, fill_holes=fill)
+            want = K.clean_mask_reference(m, open_px=op, close_px=cl, keep=keep, fill_holes=fill)
+            assert got.dtype == np.uint8 and np.array_equal(got, want), (trial, op, cl, keep, fill)
+        alpha = rng.random((h, w)).astype(np.float32)
+        a = K.cleaned_alpha(got, m, alpha)
+        assert a.dtype == np.float32 and np.array_equal(a, K.cleaned_alpha_reference(got, m, alpha))
+    assert not K.clean_mask(np.zeros((7, 9), np.uint8)).any()
+
+
+def test_eight_bit_alpha_is_stored_as_levels_and_reads_back_as_the_same_floats(tmp_path):
+    """The keys' alpha travels as its 8-bit levels (MaskSet.alpha8): the masks and the float alpha equal the
+    float path's (maskset_reference), the cache stores .alpha8.npy (uint8) and gives the same floats back, and the
+    clean-up of the levels gives the float clean-up's alpha; the device silhouettes are made only when read."""
+    h, w = 48, 64
+    img = green_scene(np.maximum(disc(h, w, 24, 30, 12), disc(h, w, 5, 5, 3)))
+    out = run_node("key.chroma", {"images": ImageSet([img, img[::-1].copy()])})
+    ms = out["masks"]
+    assert ms._make_device is not None, "the device silhouettes wait for a reader"
+    levels = ms.alpha8
+    ref = K.maskset_reference(levels, ms.names)
+    assert all(np.array_equal(a, b) for a, b in zip(ms.masks, ref.masks))
+    assert all(a.dtype == np.float32 and np.array_equal(a, b) for a, b in zip(ms.alpha, ref.alpha))
+    Masks.save(ms, tmp_path)   # the masks are the levels' alpha >= 128: only the levels are stored
+    assert sorted(p.name for p in tmp_path.glob("*.npy")) == ["0000.alpha8.npy", "0001.alpha8.npy"]
+    back = Masks.load(tmp_path)
+    assert all(np.array_equal(a, b) for a, b in zip(back.alpha, ref.alpha)) and back.alpha8[0].dtype == np.uint8
+    assert all(a.dtype == np.uint8 and np.array_equal(a, b) for a, b in zip(back.masks, ref.masks))
+    other = tmp_path / "other"   # masks that are not their levels' threshold are stored as they are
+    other.mkdir()
+    edited = [m.copy() for m in ms.masks]
+    edited[1][0, 0] = 255 - edited[1][0, 0]
+    Masks.save(MaskSet(edited, None, ms.names, alpha8=levels), other)
+    again = Masks.load(other)
+    assert (other / "0001.npy").is_file() and all(np.array_equal(a, b) for a, b in zip(again.masks, edited))
+    assert all(np.array_equal(a, b) for a, b in zip(again.alpha, ref.alpha))
+    as_levels = run_node("key.cleanup", {"masks": back})["masks"]
+    as_floats = run_node("key.cleanup", {"masks": ref})["masks"]
+    assert as_levels.alpha8 is not None and as_floats.alpha8 is None
+    assert all(np.array_equal(a, b) for a, b in zip(as_levels.masks, as_floats.masks))
+    assert all(np.array_equal(a, b) for a, b in zip(as_levels.alpha, as_floats.alpha))
+    assert ms.device is not None and ms._make_device is None
 
 
 # ---------------------------------------------------------------- GrabCut at the boundary
