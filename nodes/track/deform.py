@@ -23,7 +23,7 @@ disagree), then with the rotations fixed every term is linear in the translation
 
 solved with a sparse Cholesky-like factorisation (scipy SuperLU, in a fill-reducing order found once per
 keyframe, diagonal pivots) of the 3N x 3N normal equations; the rotations then follow from the ARAP local step
-(Procrustes per node, batched SVD). Everything is computed in voxel units (coordinates divided by ``voxel``), so
+(Procrustes per node, on the OpenCL device: kernels/rotations.cl). Everything is computed in voxel units (coordinates divided by ``voxel``), so
 the weights are dimensionless. Nearest vertices and closest points on a surface (the matches, the detail, the
 snap, the unfold, the residuals) are searched on the OpenCL device (kernels/closest.cl): ``PointGrid`` (a
 uniform grid, ring by ring; its reference is scipy's cKDTree) and ``SurfaceQuery.closest`` (the faces around the
@@ -433,13 +433,40 @@ def scatter_rows(index: np.ndarray, values: np.ndarray, count: int) -> np.ndarra
 
 def arap_rotations(graph: DeformationGraph, t: np.ndarray) -> np.ndarray:
     """ARAP local step: per node the rotation best mapping its rest edges g_k - g_j onto the deformed edges
-    (g_k + t_k) - (g_j + t_j) (Procrustes, batched SVD, reflections removed)."""
-    S = graph.cov_rest + (graph.cov_map @ t.reshape(-1)).reshape(-1, 3, 3)
-    U, _, Vt = np.linalg.svd(S)
-    D = np.ones((len(S), 3))
+    (g_k + t_k) - (g_j + t_j) (Procrustes: the rotation nearest to their covariance, ``nearest_rotations``)."""
+    return nearest_rotations(graph.cov_rest + (graph.cov_map @ t.reshape(-1)).reshape(-1, 3, 3))
+
+
+def nearest_rotations(S: np.ndarray) -> np.ndarray:
+    """Per 3x3 matrix S (n, 3, 3) the rotation R maximising trace(R S) (V D U^T for S = U diag(s) V^T, D removing
+    a reflection), on the OpenCL device (kernels/rotations.cl: one-sided Jacobi, 2 to 20 times faster than
+    batched LAPACK for the ARAP step's ~600 nodes, which is 40 calls a frame); ``nearest_rotations_reference``
+    is the same from LAPACK's SVD (equal to ~1e-14 wherever the rotation is unique: s2 > s3)."""
+    S = np.ascontiguousarray(S, np.float64).reshape(-1, 3, 3)
+    n = len(S)
+    R = np.empty_like(S)
+    if n:
+        cl = RotationsCL.get()
+        out = cl.buffer("R", R.nbytes)
+        cl.launch("nearest_rotations", n, RotationsCL.GROUP, cl.upload("S", S), np.int32(n), out)
+        cl.read(out, R.shape, np.float64, R)
+    return R
+
+
+def nearest_rotations_reference(S: np.ndarray) -> np.ndarray:
+    """``nearest_rotations`` by LAPACK's SVD (batched), reflections removed."""
+    U, _, Vt = np.linalg.svd(np.asarray(S, np.float64).reshape(-1, 3, 3))
+    D = np.ones((len(U), 3))
     D[:, 2] = np.sign(np.linalg.det(U @ Vt))
     D[D[:, 2] == 0, 2] = 1
     return (np.swapaxes(Vt, 1, 2) * D[:, None, :]) @ np.swapaxes(U, 1, 2)    # V diag(D) U^T
+
+
+class RotationsCL(clrt.Runner):
+    """kernels/rotations.cl: the rotation nearest to each 3x3 matrix."""
+
+    source = source("rotations.cl")
+    GROUP = 64
 
 
 def silhouette_rows(x: np.ndarray, target: Target, step: float = 0.5):
