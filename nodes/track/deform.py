@@ -816,11 +816,14 @@ def unfold(x: np.ndarray, faces: np.ndarray, pairs, S, rounds: int, target: "Tar
         moved[move] = True
         face_moved = moved[f].any(axis=1)
         touched = np.flatnonzero(face_moved[pair[:, 0]] | face_moved[pair[:, 1]])
+        # only the moving rows: the umbrella means of S's rows of ``move`` and the normals from the faces around
+        # them (each the same sums in the same order as over the whole mesh: the same values)
+        rows, deg = S[move], degree[move][:, None]
         for _ in range(steps):
-            mean = neighbour_mean(S, x, degree)
-            x[move] += 0.5 * (mean[move] - x[move])
+            xm = x[move]
+            x[move] = xm + 0.5 * ((rows @ x - xm) / deg - xm)
         if target is not None:
-            n = vertex_normals(x, f)[move]
+            n = vertex_normals(x, f[face_moved])[move]
             q, d, fq = target.query.closest(x[move], with_faces=True)
             fn = face_normals(target.vertices, target.faces[fq])
             ok = (d <= reach) & (np.einsum("ij,ij->i", n, fn) > 0.5)
