@@ -272,9 +272,26 @@ class DeformationGraph:
         moved = np.einsum("vkab,vkb->vka", R[idx], off) + self.nodes[idx]
         return np.einsum("vk,vka->va", w, moved)
 
+    def blend_map(self, vectors: np.ndarray):
+        """The sparse (3V, 9N) map M with (M @ vec(R))_i = sum_j w_ij R_j y_i for per-vertex vectors y (V, 3):
+        one sparse product per frame instead of gathering every vertex's node rotations (a (V, K, 3, 3) array)."""
+        from scipy.sparse import csr_matrix
+
+        v, k = self.vertex_nodes.shape
+        a3 = np.arange(3)
+        # row 3 i + a holds, per node slot and b, column 9 j + 3 a + b with w_ij y_ib: laid out row by row (no sort)
+        cols = self.vertex_nodes[:, None, :, None] * 9 + a3[None, :, None, None] * 3 + a3[None, None, None, :]
+        y = np.asarray(vectors, np.float64).reshape(v, -1, 3)
+        vals = np.broadcast_to((self.vertex_weights[:, :, None] * y)[:, None, :, :], (v, 3, k, 3))
+        return csr_matrix((vals.ravel(), cols.ravel(), np.arange(0, 9 * k * v + 1, 3 * k)), shape=(3 * v, 9 * len(self.nodes)))
+
     def deform(self, state: "GraphState", rows: np.ndarray | None = None) -> np.ndarray:
-        W = self.W if rows is None else self.W[rows]
-        return self.rotated_part(state.R, rows) + W @ state.t
+        if rows is not None:
+            return self.rotated_part(state.R, rows) + self.W[rows] @ state.t
+        if getattr(self, "_deform_map", None) is None:          # x = M vec(R) + sum_j w_ij g_j + W t, M built once
+            self._deform_map = self.blend_map(self.offsets)
+            self._deform_base = self.W @ self.nodes
+        return (self._deform_map @ state.R.reshape(-1)).reshape(-1, 3) + self._deform_base + self.W @ state.t
 
 
 @dataclass
@@ -786,9 +803,10 @@ def tangential_smooth(x: np.ndarray, faces: np.ndarray, S, steps: int, lam: floa
 def laplacian_offsets(graph: DeformationGraph, state: GraphState, S) -> np.ndarray:
     """Per vertex the keyframe's umbrella offset v_i - mean of its neighbours, turned by the vertex's blend of
     its nodes' rotations (sum_j w_ij R_j)."""
-    delta = graph.rest - neighbour_mean(S, graph.rest)
-    R = np.einsum("vk,vkab->vab", graph.vertex_weights, state.R[graph.vertex_nodes])
-    return np.einsum("vab,vb->va", R, delta)
+    cached = getattr(graph, "_offset_map", None)
+    if cached is None or cached[0] is not S:                     # per keyframe and ring operator: built once
+        cached = graph._offset_map = (S, graph.blend_map(graph.rest - neighbour_mean(S, graph.rest)))
+    return (cached[1] @ state.R.reshape(-1)).reshape(-1, 3)
 
 
 def unfold(x: np.ndarray, faces: np.ndarray, pairs, S, rounds: int, target: "Target | None" = None,
