@@ -325,7 +325,9 @@ def sample_nodes(vertices: np.ndarray, faces: np.ndarray, spacing: float, seed: 
         picks.append(i)
         # covered within the spacing: a batch of the next candidates would be faster, but one source at a time
         # keeps the disk property exact
-        d = dijkstra(graph, directed=False, indices=i, limit=spacing)
+        # (directed: the edge graph holds both directions already; undirected, scipy symmetrises it on every call,
+        # 3x the time, the same distances)
+        d = dijkstra(graph, directed=True, indices=i, limit=spacing)
         covered |= np.isfinite(d)
     return np.array(picks, np.int64)
 
@@ -338,7 +340,7 @@ def build_graph(vertices, faces, spacing: float, k: int = 4, seed: int = 0) -> D
     faces = np.asarray(faces, np.int64)
     nodes = sample_nodes(vertices, faces, spacing, seed)
     graph, _ = edge_length_graph(vertices, faces)
-    _, _, source = dijkstra(graph, directed=False, indices=nodes, min_only=True, return_predecessors=True)
+    _, _, source = dijkstra(graph, directed=True, indices=nodes, min_only=True, return_predecessors=True)   # symmetric
     node_of = np.full(len(nodes) and int(nodes.max()) + 1, -1, np.int64)
     node_of[nodes] = np.arange(len(nodes))
     cell = np.where(source >= 0, node_of[np.maximum(source, 0)], -1)           # Voronoi cell per vertex
