@@ -319,16 +319,24 @@ def sample_nodes(vertices: np.ndarray, faces: np.ndarray, spacing: float, seed: 
     covered = ~used
     order = np.random.default_rng(seed).permutation(len(vertices))
     picks = []
-    for i in order:
-        if covered[i]:
-            continue
-        picks.append(i)
-        # covered within the spacing: a batch of the next candidates would be faster, but one source at a time
-        # keeps the disk property exact
-        # (directed: the edge graph holds both directions already; undirected, scipy symmetrises it on every call,
-        # 3x the time, the same distances)
-        d = dijkstra(graph, directed=True, indices=i, limit=spacing)
-        covered |= np.isfinite(d)
+    # the searches of the next ``batch`` candidates still uncovered run in one call (directed: the edge graph holds
+    # both directions already; undirected, scipy symmetrises it on every call, 3x the time), then are taken in
+    # order as one at a time would: a candidate an earlier one of its batch covered is skipped (its search
+    # wasted, a few %), so the picks are exactly the sequential greedy's
+    batch = 16
+    pos = 0
+    while pos < len(order):
+        rest = order[pos:]
+        pending = np.flatnonzero(~covered[rest])[:batch]
+        if len(pending) == 0:
+            break
+        d = dijkstra(graph, directed=True, indices=rest[pending], limit=spacing)
+        for row, i in zip(d, rest[pending]):
+            if covered[i]:
+                continue
+            picks.append(i)
+            covered |= np.isfinite(row)
+        pos += int(pending[-1]) + 1
     return np.array(picks, np.int64)
 
 
