@@ -32,10 +32,10 @@ def unique_edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(edges (E, 2) sorted vertex pairs, face_edges (F, 3)): side k of face i runs from faces[i, k] to
     faces[i, (k + 1) % 3] and is edge face_edges[i, k]."""
     faces = np.asarray(faces, np.int64).reshape(-1, 3)
-    sides = np.stack([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]], axis=1).reshape(-1, 2)
-    sides = np.sort(sides, axis=1)
+    a, b = faces.ravel(), faces[:, [1, 2, 0]].ravel()         # side k of face i: row 3 i + k
+    lo, hi = np.minimum(a, b), np.maximum(a, b)                 # np.sort(sides, axis=1), 20x faster
     n = int(faces.max(initial=0)) + 1
-    keys = sides[:, 0] * n + sides[:, 1]
+    keys = lo * n + hi
     order = np.argsort(keys)  # np.unique(keys, return_inverse=True), several times faster here
     first = np.ones(len(keys), bool)       # (no faces: no edges)
     first[1:] = keys[order][1:] != keys[order][:-1]
