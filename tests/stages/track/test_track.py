@@ -162,6 +162,23 @@ def test_rotation_kernel_matches_its_svd_reference():
     assert len(deform.nearest_rotations(S[:0])) == 0
 
 
+def test_graph_nodes_are_the_sequential_greedy_picks():
+    # sample_nodes searches 16 candidates per Dijkstra call: the picks are those of the greedy one source at a time
+    from scipy.sparse.csgraph import dijkstra
+
+    from nodes.common.meshops import edge_length_graph
+
+    m = trimesh.creation.capsule(height=2.0, radius=0.3, count=[24, 24])
+    v, f = np.asarray(m.vertices) / 0.05, np.asarray(m.faces)
+    graph, _ = edge_length_graph(v, f)
+    covered, picks = np.zeros(len(v), bool), []
+    for i in np.random.default_rng(0).permutation(len(v)):
+        if not covered[i]:
+            picks.append(i)
+            covered |= np.isfinite(dijkstra(graph, directed=False, indices=i, limit=4.0))
+    assert np.array_equal(deform.sample_nodes(v, f, 4.0, seed=0), picks) and len(picks) > 20
+
+
 def test_graph_is_geodesic_and_fit_recovers_a_bend():
     # a capsule bent by 20 degrees in one step (its tip moves 9 voxels): the fit (same connectivity, so the
     # truth is vertex for vertex) lands on it
