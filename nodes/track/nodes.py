@@ -149,7 +149,8 @@ class Track(Node):
     type_name = "track"
     version = 1
     per = "sequence"
-    kernels = [source("closest.cl"), source("raster.cl")]   # closest points (deform.SurfaceQuery), silhouette IoU
+    kernels = [source("closest.cl"), source("rotations.cl"), source("raster.cl")]   # closest points (deform.SurfaceQuery),
+    #                                                           ARAP rotations, silhouette IoU
     inputs = {
         "meshes": Input(Mesh, doc="each frame's reconstruction (arrive as a list)"),
         "masks": Input(Masks, optional=True, doc="silhouettes per frame (track.crop keeps them small)"),

@@ -43,6 +43,23 @@ def test_edge_faces_counts_borders_interiors_and_non_manifold_edges():
     assert len(e) == 18 and len(p) == 18 and (p[:, 0] < p[:, 1]).all()
 
 
+def test_edge_faces_are_each_edges_first_two_faces_on_a_shuffled_non_manifold_mesh():
+    # every edge's two smallest face indices, by a plain loop, on a sphere with repeated and flipped faces
+    # (edges of 3 and more faces) in random order: the pairs edge_faces finds without a stable sort
+    rng = np.random.default_rng(4)
+    f = np.asarray(trimesh.creation.icosphere(2).faces)
+    f = np.concatenate([f, f[rng.choice(len(f), 40)], f[rng.choice(len(f), 30)][:, ::-1]])[rng.permutation(len(f) + 70)]
+    edges, fe, pair, count = edge_faces(f)
+    faces_of = {}
+    for i, face in enumerate(f):
+        for k in range(3):
+            faces_of.setdefault(tuple(sorted((face[k], face[(k + 1) % 3]))), []).append(i)
+    assert len(faces_of) == len(edges) and (count > 2).sum() > 10
+    for e, (a, b) in enumerate(edges):
+        got = faces_of[(a, b)]
+        assert count[e] == len(got) and pair[e, 0] == got[0] and pair[e, 1] == (got[1] if len(got) > 1 else -1)
+
+
 def test_face_neighbours():
     nbr = face_neighbours(TET_F)
     for i in range(4):                                   # every face touches the three others once

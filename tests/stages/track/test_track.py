@@ -143,6 +143,42 @@ def test_point_grid_matches_a_kd_tree():
     assert len(deform.PointGrid(v).nearest(v[:0])[0]) == 0
 
 
+def test_rotation_kernel_matches_its_svd_reference():
+    # kernels/rotations.cl (one-sided Jacobi) against LAPACK's SVD: general matrices, near rotations, near
+    # reflections (det < 0: the rotation, not the reflection), rank 2 (coplanar edges), and every result a rotation
+    rng = np.random.default_rng(5)
+    n = 300
+    low = np.einsum("nik,njk->nij", rng.normal(size=(n, 3, 2)), rng.normal(size=(n, 3, 2)))
+    for S in (rng.normal(size=(n, 3, 3)), 16 * np.eye(3) + rng.normal(size=(n, 3, 3)),
+              16 * np.diag([1.0, 1.0, -1.0]) + rng.normal(size=(n, 3, 3)), low, low + 1e-9 * np.eye(3)):
+        R = deform.nearest_rotations(S)
+        assert np.abs(R - deform.nearest_rotations_reference(S)).max() < 1e-12
+        assert np.allclose(np.einsum("nab,nac->nbc", R, R), np.eye(3), atol=1e-13) and np.allclose(np.linalg.det(R), 1)
+    # rank 1 (a node with one neighbour): the rotation about the edge is not unique; still the best trace
+    S = np.einsum("ni,nj->nij", rng.normal(size=(n, 3)), rng.normal(size=(n, 3)))
+    R, ref = deform.nearest_rotations(S), deform.nearest_rotations_reference(S)
+    assert np.allclose(np.einsum("nab,nba->n", R, S), np.einsum("nab,nba->n", ref, S), atol=1e-12)
+    assert np.allclose(np.linalg.det(R), 1)
+    assert len(deform.nearest_rotations(S[:0])) == 0
+
+
+def test_graph_nodes_are_the_sequential_greedy_picks():
+    # sample_nodes searches 16 candidates per Dijkstra call: the picks are those of the greedy one source at a time
+    from scipy.sparse.csgraph import dijkstra
+
+    from nodes.common.meshops import edge_length_graph
+
+    m = trimesh.creation.capsule(height=2.0, radius=0.3, count=[24, 24])
+    v, f = np.asarray(m.vertices) / 0.05, np.asarray(m.faces)
+    graph, _ = edge_length_graph(v, f)
+    covered, picks = np.zeros(len(v), bool), []
+    for i in np.random.default_rng(0).permutation(len(v)):
+        if not covered[i]:
+            picks.append(i)
+            covered |= np.isfinite(dijkstra(graph, directed=False, indices=i, limit=4.0))
+    assert np.array_equal(deform.sample_nodes(v, f, 4.0, seed=0), picks) and len(picks) > 20
+
+
 def test_graph_is_geodesic_and_fit_recovers_a_bend():
     # a capsule bent by 20 degrees in one step (its tip moves 9 voxels): the fit (same connectivity, so the
     # truth is vertex for vertex) lands on it
