@@ -84,6 +84,7 @@ def in_memory(g, cache, nodes: set[str]) -> dict[str, list[float]]:
     synthetic stage's images come from the CLI run's cache (the render is not the chain). No cache, no frame units,
     no processes: what is left of a stage's CLI seconds is the engine's (loading, keeping, hashing). Returns node ->
     seconds per item (frame order)."""
+    import gc
     import logging
 
     from nodegraph.records import refs
@@ -97,7 +98,16 @@ def in_memory(g, cache, nodes: set[str]) -> dict[str, list[float]]:
         if n not in want:
             want.add(n)
             todo.extend(g.upstream[n])
-    items = [it for it in items if it.node in want]
+    # frame by frame, as the engine's frame units run (the plan lists a node's items for every frame together, which
+    # would hold every frame's images at once): per-frame items by (sequence nodes before them, frame), a sequence
+    # item after the frames it reads
+    level: dict[str, int] = {}
+    for n in g.order():
+        level[n] = max((level[s] + (g.nodes[s].cls.per == "sequence") for s in g.upstream[n]), default=0)
+    items = sorted((it for it in items if it.node in want),
+                   key=lambda it: (level[it.node], it.frame is None, -1 if it.frame is None else it.frame))
+    gc.collect()      # as the engine's workers do after their first unit (worker._settle): later full collections
+    gc.freeze()       # would otherwise walk every module, class and program object of this process
     readers: dict[tuple, int] = {}
     for it in items:
         for r in refs(it.inputs):
