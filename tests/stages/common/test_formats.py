@@ -111,7 +111,7 @@ def test_one_usd_stage_holds_a_tracked_textured_skinned_mesh(box, tmp_path):
 
 @pytest.mark.parametrize("shape", [(1, 1), (7, 1), (1, 9), (64, 64), (333, 517), (1024, 1024)])
 def test_png_bytes_decode_to_the_image(shape):
-    """The PNG writer (Sub-filtered rows, zlib, libpng's small-image window) reads back exactly with OpenCV and PIL,
+    """png_bytes reads back exactly with OpenCV and PIL (RGB, not BGR),
     and is a valid PNG to libpng (OpenCV) at every size, one pixel wide included."""
     import io
 
