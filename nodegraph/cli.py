@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from .errors import GraphError, VolcapError
+from .records import frames_of
 
 
 def _cache_dir(args) -> Path:
@@ -48,10 +49,10 @@ def cmd_run(args) -> int:
         print(f"warning: {w}", file=sys.stderr)
     for r in result.records:
         for w in r.get("warnings", []):
-            frame = "" if r["frame"] is None else f" frame {r['frame']}"
+            frame = "" if frames_of(r) == "all" else f" frame{'s' * ('frames' in r)} {frames_of(r)}"
             print(f"warning: node '{r['node']}' ({r['type']}){frame}: {w}", file=sys.stderr)
     for f in result.failures:
-        frame = "" if f["frame"] is None else f" frame {f['frame']}"
+        frame = "" if frames_of(f) == "all" else f" frame{'s' * ('frames' in f)} {frames_of(f)}"
         print(f"FAILED node '{f['node']}' ({f['type']}){frame}: {f['error']}\n  log: {f['log']}", file=sys.stderr)
     if args.report:
         from .report import write_report
@@ -93,7 +94,7 @@ def cmd_explain(args) -> int:
         os.environ["VOLCAP_CL_DEVICE"] = args.device
     rows = explain(graph, Cache(_cache_dir(args)))
     for r in rows:
-        frame = "all" if r["frame"] is None else r["frame"]
+        frame = frames_of(r)
         state = "cached" if r["cached"] else "run   "
         why = "" if r["cached"] else "  changed: " + ", ".join(r["changed"])
         mem = f"  in memory: {', '.join(r['in_memory'])}" if r["in_memory"] else ""
@@ -254,7 +255,7 @@ def build_parser() -> argparse.ArgumentParser:
     def graph_cmd(name, help_text, fn):
         sp = sub.add_parser(name, help=help_text)
         sp.add_argument("graph", help="graph file (YAML)")
-        sp.add_argument("--set", action="append", metavar="NODE.PARAM=VALUE", help="override a parameter (repeatable)")
+        sp.add_argument("--set", action="append", metavar="NODE.PARAM=VALUE", help="override a parameter, or a sequence node's window: NODE.window=FRAMES (repeatable)")
         sp.add_argument("--frames", metavar="A:B", help="override the frame range (half-open)")
         sp.add_argument("--cache", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
         sp.set_defaults(fn=fn)

@@ -35,7 +35,7 @@ MAX_PATH_CHARS = 4096
 MAX_NAME_CHARS = 64          # node names (they name log files and folders)
 MAX_NAME_BYTES = 255         # one path component
 TOP_KEYS = ("frames", "defaults", "nodes", "description")
-NODE_KEYS = ("type", "in", "params", "keep", "doc")
+NODE_KEYS = ("type", "in", "params", "keep", "window", "doc")
 NAME_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")   # used with fullmatch ('$' also matches before a final newline)
 # what YAML allows in a document (yaml.reader.Reader.NON_PRINTABLE): tab, newlines and printable characters
 NON_PRINTABLE = re.compile("[^\x09\x0A\x0D\x20-\x7E\x85\xA0-\uD7FF\uE000-\uFFFD\U00010000-\U0010ffff]")
@@ -294,6 +294,7 @@ class NodeSpec:
     line: int
     lines: dict = field(default_factory=dict)   # "param:NAME" / "in:PORT" -> line
     keep: tuple = ()                   # output ports the graph asks to store in the cache (checkpoints)
+    window: int = 0                    # a sequence node's frames per work item (0: one item over all frames)
 
 
 @dataclass
@@ -380,6 +381,11 @@ def load_graph(path: str | Path, overrides: list[str] = (), frames: str | None =
     if not isinstance(data, dict):
         raise GraphError(problems + [f"{where}:1: a graph file is a mapping with 'nodes:' (and optional 'frames:', 'defaults:')"])
     return _validate(path.resolve(), where, data, problems, list(overrides), frames)
+
+
+def windows(frames: list[int], n: int) -> list[list[int]]:
+    """A sequence node's work items: ``frames`` in consecutive runs of ``n`` (the last may be shorter); n = 0: one."""
+    return [list(frames[i:i + n]) for i in range(0, len(frames), n)] if n else [list(frames)]
 
 
 def _validate(path: Path, where: str, data: _Map, problems: list[str], overrides: list[str], frames_arg) -> Graph:
@@ -473,6 +479,18 @@ def _validate(path: Path, where: str, data: _Map, problems: list[str], overrides
                 spec.keep = tuple(k for k in keep if k in cls.outputs)
             else:
                 problems.append(f"{kline}: node '{name}': keep must be true, false or a list of output ports, got {show(keep)}")
+        window = sets.pop((name, "window"), None) if "window" not in cls.params else None
+        if window is not None or "window" in entry:  # a sequence node split into work items of N frames
+            value, wline = window if window is not None else (entry["window"], at(entry.lines["window"]))
+            if cls.per != "sequence":
+                problems.append(f"{wline}: node '{name}': window applies to sequence nodes; type '{t}' runs per frame")
+            elif cls.publishes:
+                problems.append(f"{wline}: node '{name}': type '{t}' writes files: its windows would overwrite each other's")
+            elif isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                problems.append(f"{wline}: node '{name}': window must be a whole number of frames >= 1 (0: all frames), "
+                                f"got {show(value)}")
+            else:
+                spec.window = value
         # parameters: declaration default < graph defaults < node params < --set
         given = entry.get("params") or {}
         if not isinstance(given, dict):
@@ -549,6 +567,30 @@ def _validate(path: Path, where: str, data: _Map, problems: list[str], overrides
         for port, inp in spec.cls.inputs.items():
             if not inp.optional and port not in spec.inputs:
                 problems.append(f"{at(spec.line)}: node '{name}': required input '{port}' ({describe_type(inp.type)}) is not connected")
+    for name, spec in nodes.items():   # a sequence node reading a windowed one: whole windows, joined by their type
+        if spec.cls.per != "sequence":
+            continue
+        mine = windows(frames, spec.window)
+        for port, (src, sport) in spec.inputs.items():
+            if src not in nodes or nodes[src].cls.per != "sequence" or sport not in nodes[src].cls.outputs:
+                continue
+            theirs = windows(frames, nodes[src].window)
+            pline = spec.lines[f"in:{port}"]
+            cut = next((w for w in theirs for m in mine if set(w) & set(m) and not set(w) <= set(m)), None)
+            if cut is not None and not nodes[src].window:
+                problems.append(f"{pline}: node '{name}': input '{port}': '{src}' covers all frames in one item, more "
+                                f"than one of {name}'s windows: window '{src}' too (the same or a divisor), or not '{name}'")
+                continue
+            if cut is not None:
+                problems.append(f"{pline}: node '{name}': input '{port}': '{src}' works in windows ({cut[0]}..{cut[-1]} is "
+                                f"one) that {name}'s own windows cut: give '{name}' a window that is a multiple of "
+                                f"{nodes[src].window}, or none")
+                continue
+            dtype = nodes[src].cls.outputs[sport].type
+            if len(theirs) > len(mine) and getattr(dtype, "join", None) is None:
+                problems.append(f"{pline}: node '{name}': input '{port}': '{src}' works in windows of "
+                                f"{nodes[src].window} frames and {describe_type(dtype)} cannot be joined over windows: "
+                                f"read it per frame, or give '{name}' the same window")
     cycle = find_cycle(upstream)
     if cycle:
         problems.append(f"{at(nodes[cycle[0]].line)}: cycle in the graph: {' -> '.join(cycle + [cycle[0]])}")

@@ -5,10 +5,14 @@ follow it (the records they hand around are in records.py, the cache's layout in
 
 State, per work item (``WorkItem``)
     node, frame        one node run: (node, frame) for a per-frame node, (node, None) over all frames for a
-                       sequence node (``frames`` lists them)
+                       sequence node (``frames`` lists them), or over one window of N consecutive frames for a
+                       sequence node with the graph key ``window: N`` (``window`` true; the (node, frame) map
+                       lists it under the window's first frame)
     params             what run() receives (input paths absolute; graphfile.coerce_param)
     inputs             port -> Ref(key, port, type) of the item producing it, a list of Refs (a sequence node
-                       reading a per-frame one: one per frame), or None (not connected)
+                       reading a per-frame one: one per frame), a Join of Refs (a sequence node reading several
+                       windows of a windowed one: loaded and joined by the port type's ``join``), or None (not
+                       connected); a per-frame node reading a windowed one reads the window holding its frame
     key                SHA-256 (first 32 hex digits) of ``components``:
                          schema          hashing.KEY_SCHEMA, the recipe's version
                          node, version   the node type and its class's ``version``
@@ -84,13 +88,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from .graphfile import Graph
+from .graphfile import Graph, windows
 from . import fingerprint
 from .environment import environment
 from .fingerprint import implementation_fingerprint
 from .hashing import KEY_SCHEMA, FileHasher, digest
 from .node import InPath
-from .records import Inputs, ItemSpec, Ref, refs, type_name
+from .records import Inputs, ItemSpec, Join, Ref, refs, type_name
 from .types import Files
 
 
@@ -108,25 +112,36 @@ class WorkItem:
     deps: list[str] = field(default_factory=list)  # keys of the items producing the inputs
     kept: list[str] = field(default_factory=list)  # output ports stored in the cache
     unit: str = ""                  # "frame:N" for a frame's own items, else "item:KEY"
+    window: bool = False            # one window of a windowed sequence node (frames: the window's)
+
+    @property
+    def tag(self) -> str:
+        """Which frames: "N", "all" (a sequence item) or "A-B" (a window's item)."""
+        return f"{self.frames[0]}-{self.frames[-1]}" if self.window else "all" if self.frame is None else str(self.frame)
 
     @property
     def label(self) -> str:
-        return f"{self.node}@{'all' if self.frame is None else self.frame}"
+        return f"{self.node}@{self.tag}"
 
     def spec(self, log_path: str | None = None) -> ItemSpec:
         return ItemSpec(self.node, self.type_name, self.module, self.frame, self.frames, self.params, self.inputs,
-                        self.key, self.components, list(self.kept), log_path)
+                        self.key, self.components, list(self.kept), log_path, self.window)
 
 
 def make_plan(graph: Graph, hasher: FileHasher) -> tuple[list[WorkItem], dict[tuple[str, int | None], str]]:
     """Work items in dependency order (deduplicated by key) and the (node, frame) -> key map.
-    Sequence items are stored under frame None."""
+    Sequence items are stored under frame None, a windowed sequence node's under each window's first frame."""
     items: dict[str, WorkItem] = {}
     slot: dict[tuple[str, int | None], str] = {}
     env = environment()
 
+    window_of: dict[tuple[str, int], str] = {}   # (windowed node, frame) -> the key of the window holding it
+
     def key_of(node: str, frame: int) -> str:
-        return slot[(node, frame)] if (node, frame) in slot else slot[(node, None)]
+        for at in ((node, frame), (node, None)):
+            if at in slot:
+                return slot[at]
+        return window_of[(node, frame)]
 
     for name in graph.order():
         spec = graph.nodes[name]
@@ -136,7 +151,7 @@ def make_plan(graph: Graph, hasher: FileHasher) -> tuple[list[WorkItem], dict[tu
         for p, v in spec.params.items():
             decl = cls.params[p]
             hashed_params[p] = {"content": hasher.path(v)} if (decl.type is InPath and v is not None) else v
-        frame_sets = [[f] for f in graph.frames] if cls.per == "frame" else [list(graph.frames)]
+        frame_sets = [[f] for f in graph.frames] if cls.per == "frame" else windows(graph.frames, spec.window)
         for frames in frame_sets:
             frame = frames[0] if cls.per == "frame" else None
             inputs, in_keys, deps = {}, {}, []
@@ -150,7 +165,10 @@ def make_plan(graph: Graph, hasher: FileHasher) -> tuple[list[WorkItem], dict[tu
                 keys = [key_of(src, f) for f in frames]
                 per_frame = [Ref(k, sport, stype) for k in keys]
                 src_is_seq = graph.nodes[src].cls.per == "sequence"
-                if cls.per == "frame" or src_is_seq:
+                if src_is_seq and cls.per == "sequence" and len(set(keys)) > 1:   # a windowed source's windows
+                    joined = [Ref(k, sport, stype) for k in dict.fromkeys(keys)]
+                    inputs[port], in_keys[port] = Join(tuple(joined), stype), {"join": [r.name for r in joined]}
+                elif cls.per == "frame" or src_is_seq:
                     inputs[port], in_keys[port] = per_frame[0], per_frame[0].name
                 else:
                     inputs[port], in_keys[port] = per_frame, [r.name for r in per_frame]
@@ -161,10 +179,15 @@ def make_plan(graph: Graph, hasher: FileHasher) -> tuple[list[WorkItem], dict[tu
             if cls.per == "sequence":  # run() sees self.frames: which frames it covers is part of the work
                 components["frames"] = frames
             key = digest(components)[:32]
-            slot[(name, frame)] = key
+            if cls.per == "sequence" and len(frame_sets) > 1:   # a window's item: listed under its first frame
+                slot[(name, frames[0])] = key
+                window_of.update(((name, f), key) for f in frames)
+            else:
+                slot[(name, frame)] = key
             if key not in items:
                 items[key] = WorkItem(name, spec.type_name, cls.__module__, frame, frames, dict(spec.params),
-                                      inputs, key, components, sorted(set(deps)))
+                                      inputs, key, components, sorted(set(deps)),
+                                      window=cls.per == "sequence" and len(frame_sets) > 1)
     hasher.save()
     fingerprint.save_parsed()
     _assign_units(graph, items, slot)

@@ -2,6 +2,7 @@
 strings, numbers, lists and dicts, so they pickle to a process pool or a Dask worker unchanged.
 
     Ref         one output port of one work item, as an input of another: (key, port, type)
+    Join        the windows of a windowed sequence node read as one value
     ItemSpec    what a worker needs to run one work item (never a live object)
     UnitSpec    a unit's items in dependency order, with how many of its items read each in-memory value
     Result      what running (or skipping) one item came to
@@ -41,7 +42,17 @@ def resolve_type(name: str) -> type:
     return obj
 
 
-Inputs = dict[str, Union[Ref, list[Ref], None]]   # port -> one ref, a ref per frame (a sequence reader), or None
+@dataclass(frozen=True)
+class Join:
+    """The windows of a windowed sequence node (graph key ``window:``) that one sequence item reads as one value:
+    each loaded, then joined by the port type's ``join`` (frames in order)."""
+
+    refs: tuple[Ref, ...]
+    type: str
+
+
+Inputs = dict[str, Union[Ref, list[Ref], Join, None]]   # port -> one ref, a ref per frame (a sequence reader), the
+#                                                       windows to join, or None
 
 
 def refs(inputs: Inputs) -> Iterator[Ref]:
@@ -49,8 +60,17 @@ def refs(inputs: Inputs) -> Iterator[Ref]:
     for ref in inputs.values():
         if isinstance(ref, list):
             yield from ref
+        elif isinstance(ref, Join):
+            yield from ref.refs
         elif ref is not None:
             yield ref
+
+
+def frames_of(record: dict) -> str:
+    """Which frames a run.json / explain row covers, for a message: "N", "all" or "A-B" (a window's item)."""
+    if record.get("frames"):
+        return f"{record['frames'][0]}-{record['frames'][1]}"
+    return "all" if record["frame"] is None else str(record["frame"])
 
 
 @dataclass
@@ -70,10 +90,12 @@ class ItemSpec:
     components: dict
     kept: list[str] = field(default_factory=list)
     log: str | None = None
+    window: bool = False              # one window of a windowed sequence node (``frames`` the window's)
 
     @property
     def where(self) -> str:
-        return f"node '{self.node}' ({self.type})" + ("" if self.frame is None else f" frame {self.frame}")
+        return f"node '{self.node}' ({self.type})" + (
+            f" frames {self.frames[0]}..{self.frames[-1]}" if self.window else "" if self.frame is None else f" frame {self.frame}")
 
     def input_keys(self) -> list[str]:
         return [r.key for r in refs(self.inputs)]

@@ -21,6 +21,7 @@ import numpy as np
 from .errors import DataError, VolcapError
 from .graphfile import topological_order
 from .preview import MAX_WIDTH, numeric_series, preview
+from .records import frames_of
 
 MAX_PREVIEW_FRAMES = 8
 STATUS_COLOURS = {"done": "#7ac27a", "cached": "#8fb8e0", "failed": "#e07070", "skipped": "#c8c8c8"}
@@ -216,7 +217,7 @@ def _node_section(name, recs, by_node, dag, out_dir: Path, pics: Path) -> str:
     for rec in picked:
         figures = _previews(name, rec, by_node, dag, out_dir)
         if figures:
-            frame = "all frames" if rec["frame"] is None else f"frame {rec['frame']}"
+            frame = "all frames" if rec["frame"] is None else f"frame{'s' * ('frames' in rec)} {frames_of(rec)}"
             parts.append(f'<div class="frame"><h4>{frame}</h4><div class="previews">' + "".join(figures) + "</div></div>")
     for port, series in tables.items():
         parts.append(_metrics_block(name, port, series, out_dir, pics))
@@ -230,7 +231,7 @@ def _previews(name: str, rec: dict, by_node: dict, dag: nx.DiGraph, out_dir: Pat
     ports = output_types(rec["type"], cache_dir)
     comps = _companions(rec, ports, by_node, dag)
     own = {t for p, t in ports.items() if (cache_dir / p).is_dir()}
-    frame = "all" if rec["frame"] is None else rec["frame"]
+    frame = frames_of(rec)
     figures = []
     for port, t in ports.items():
         folder = cache_dir / port
@@ -257,7 +258,7 @@ def _previews(name: str, rec: dict, by_node: dict, dag: nx.DiGraph, out_dir: Pat
 def _items_table(recs: list[dict], out_dir: Path) -> str:
     rows = []
     for r in recs:
-        frame = "all" if r["frame"] is None else r["frame"]
+        frame = frames_of(r)
         log = r.get("log")
         log_link = f'<a href="{_e(_rel(log, out_dir))}">log</a>' if log and Path(log).is_file() else ""
         files = " ".join(f'<a href="{_e(_rel(f, out_dir))}">{_e(Path(f).name)}</a>' for f in r.get("published") or [])
@@ -353,7 +354,7 @@ def _page(run, out_dir, order, status, by_node, sections) -> str:
     fail_html = ""
     if failed:
         fail_html = "<h2>Failures</h2><ul>" + "".join(
-            f'<li><a href="#node-{_e(r["node"])}">{_e(r["node"])}</a> frame {"all" if r["frame"] is None else r["frame"]}: '
+            f'<li><a href="#node-{_e(r["node"])}">{_e(r["node"])}</a> frame {frames_of(r)}: '
             f'{_e(r.get("error", ""))}</li>' for r in failed) + "</ul>"
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>volcap run — {_e(Path(run.get("graph", "?")).name)}</title>

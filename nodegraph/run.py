@@ -195,7 +195,8 @@ def explain(graph: Graph, cache: Cache) -> list[dict]:
     rows = []
     for (node, frame), key in slot.items():
         it = by_key[key]
-        row = {"node": node, "frame": frame, "key": key, "cached": key not in must, "changed": [], "kept": list(it.kept),
+        row = {"node": node, "frame": frame, **({"frames": [it.frames[0], it.frames[-1]]} if it.window else {}),
+               "key": key, "cached": key not in must, "changed": [], "kept": list(it.kept),
                "in_memory": [p for p in graph.nodes[node].cls.outputs if p not in it.kept]}
         if key in damaged:
             row["changed"] = [f"(cached result damaged: {damaged[key]})"]
@@ -247,7 +248,7 @@ def run_graph(graph: Graph, cache: Cache, out_dir: Path, executor, progress: boo
             if stored[it.key] is not None:
                 cache.touch(it.key)
     log_dir = out_dir / "logs"
-    specs = {it.key: it.spec(str(log_dir / it.node / f"{'all' if it.frame is None else it.frame}.log"))
+    specs = {it.key: it.spec(str(log_dir / it.node / f"{it.tag}.log"))
              for it in items if it.key in must}
     units = make_units(items, must, specs)
 
@@ -294,7 +295,8 @@ def run_graph(graph: Graph, cache: Cache, out_dir: Path, executor, progress: boo
     for (node, frame), key in slot.items():
         it = by_key[key]
         res = results.get(key, Result("skipped", error="not run"))
-        rec = {"node": node, "type": it.type_name, "frame": frame, "status": res.status,
+        rec = {"node": node, "type": it.type_name, "frame": frame, **({"frames": [it.frames[0], it.frames[-1]]} if it.window else {}),
+               "status": res.status,
                "cache_hit": res.status == "cached", "seconds": round(res.seconds, 4), "key": key,
                "cache_dir": str(cache.object_dir(key)) if stored.get(key) is not None or (res.status == "done" and it.kept) else None,
                "log": specs[key].log if key in specs else None, "published": [], "kept": list(it.kept),

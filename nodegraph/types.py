@@ -29,6 +29,9 @@ class DataType:
 
     name: ClassVar[str] = "Data"
     kept_by_default: ClassVar[bool] = True
+    # join(values) -> value: a windowed sequence node's windows as one value, frames in order (graph key
+    # ``window:``), for a type whose values are per-frame runs (a mesh sequence); None: the type cannot be joined
+    join: ClassVar = None
 
     def __init_subclass__(cls, **kw):
         super().__init_subclass__(**kw)

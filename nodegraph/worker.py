@@ -24,7 +24,7 @@ import numpy as np
 from .cache import Cache
 from .errors import DataError, NodeError, VolcapError
 from .node import node_class
-from .records import ItemSpec, Ref, Result, UnitSpec, refs, resolve_type, type_name
+from .records import ItemSpec, Join, Ref, Result, UnitSpec, refs, resolve_type, type_name
 
 
 _STARTUP: list = []
@@ -329,6 +329,8 @@ def execute(spec: ItemSpec, cache_root: str, memory: Values | None = None, cache
                 inputs[port] = None
             elif isinstance(ref, list):
                 inputs[port] = [_load_input(cache, port, r, memory) for r in ref]
+            elif isinstance(ref, Join):   # a windowed sequence node's windows, frames in order
+                inputs[port] = resolve_type(ref.type).join([_load_input(cache, port, r, memory) for r in ref.refs])
             else:
                 inputs[port] = _load_input(cache, port, ref, memory)
             if inputs[port] is None and ref is not None and not cls.inputs[port].optional:

@@ -224,3 +224,54 @@ class WorkerEnviron(Node):
 
     def run(self, *, names):
         return {"out": {n: os.environ.get(n) for n in names}}
+
+
+class Rows(Array):
+    """Per-frame rows of a sequence node ([frame, value] each): windows join by stacking (graph key ``window:``)."""
+
+    name = "t.Rows"
+
+    @classmethod
+    def join(cls, parts):
+        return np.concatenate(parts)
+
+
+class FrameRows(Node):
+    """Sequence node: one row [frame, sum] per frame it covers."""
+
+    type_name = "t.rows"
+    per = "sequence"
+    inputs = {"x": Array}
+    outputs = {"out": Rows, "sum": Array}
+
+    def run(self, x):
+        assert len(x) == len(self.frames)
+        return {"out": np.array([[f, float(a.sum())] for f, a in zip(self.frames, x)]),
+                "sum": np.array([float(sum(a.sum() for a in x))])}
+
+
+class RowsTotal(Node):
+    """Sequence node over rows: the frames it was given, and the sum of the values."""
+
+    type_name = "t.rows_total"
+    per = "sequence"
+    inputs = {"rows": Rows}
+    outputs = {"out": Array}
+
+    def run(self, rows):
+        return {"out": np.concatenate([rows[:, 0], [rows[:, 1].sum()]])}
+
+
+class PickRow(Node):
+    """A frame's row of a rows table (a per-frame reader of a sequence node)."""
+
+    type_name = "t.pick_row"
+    uses_frame = True
+    inputs = {"rows": Rows}
+    outputs = {"out": Array}
+
+    def run(self, rows, *, frame):
+        at = np.nonzero(rows[:, 0] == frame)[0]
+        if not len(at):
+            raise NodeError(f"frame {frame} not in rows {rows[:, 0].tolist()}")
+        return {"out": rows[at[0], 1:]}

@@ -617,6 +617,24 @@ class MeshSequence(DataType):
         return None
 
     @classmethod
+    def join(cls, parts):
+        """Windows of a sequence (a windowed track) as one: frames in order, segments numbered on (a window's
+        segment 0 follows the last window's last), the meshes new objects sharing their arrays."""
+        import trimesh
+
+        out, base = [], 0
+        for part in parts:
+            ids: dict = {}
+            for m in part:
+                c = trimesh.Trimesh(m.vertices, m.faces, process=False)
+                c.metadata.update(m.metadata)
+                if "segment" in m.metadata:
+                    c.metadata["segment"] = base + ids.setdefault(m.metadata["segment"], len(ids))
+                out.append(c)
+            base += len(ids)
+        return out
+
+    @classmethod
     def save(cls, v, folder: Path):
         segments = []
         for s, (start, stop) in enumerate(sequence_segments(v)):

@@ -86,3 +86,25 @@ def test_demo_graph_end_to_end(tmp_path):
     doc = json.loads((tmp_path / "out/run.json").read_text())
     assert doc["counts"] == {"cached": 55}
     assert (tmp_path / "out/demo_0000.ply").read_bytes() == before
+
+
+@pytest.mark.slow
+def test_demo_graph_with_track_in_windows(tmp_path):
+    """`--set track.window=2` over 4 frames: two track items (run side by side with -j 2), a segment per window,
+    each frame's texture on its own window's segment, and the sequence nodes after track on the joined windows."""
+    small = ["--set", "stage.width=240", "--set", "stage.height=180", "--set", "stage.cameras=8",
+             "--set", "hull.resolution=64", "--set", "skeleton.resolution=64", "--set", "texture.size=256",
+             "--frames", "0:4", "--set", "track.window=2"]
+    args = ["--cache", str(tmp_path / "cache"), "run", str(ROOT / "graphs/demo.yaml"), "--out", str(tmp_path / "out"), "-q", "-j", "2"]
+    assert cli(args + small) == 0
+    doc = json.loads((tmp_path / "out/run.json").read_text())
+    assert sorted(r["frames"] for r in doc["items"] if r["node"] == "track") == [[0, 1], [2, 3]]
+    dynamic = json.loads((tmp_path / "out/tables/dynamic/all.json").read_text())
+    assert dynamic["segments"] == 2 and dynamic["segments_frames"] == [2, 2], dynamic
+    glbs = [trimesh.load(tmp_path / f"out/demo_{f:04d}.glb", force="mesh") for f in range(4)]
+    assert np.array_equal(glbs[0].faces, glbs[1].faces) and np.array_equal(glbs[2].faces, glbs[3].faces)
+    assert len(glbs[1].faces) != len(glbs[2].faces) or not np.array_equal(glbs[1].faces, glbs[2].faces)
+    assert all((tmp_path / f"out/demo_volumetric_{s:04d}.glb").is_file() for s in (0, 1))
+    from nodes.export.stream import read_stream
+
+    assert [f["frame"] for f in read_stream(tmp_path / "out/demo_stream", "full")] == [0, 1, 2, 3]

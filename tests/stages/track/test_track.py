@@ -366,6 +366,20 @@ def test_mesh_sequence_roundtrip_keeps_segments(tracked_pair, tmp_path):
     assert "do not share their faces" in MeshSequence.check(bad)
 
 
+def test_windows_of_a_sequence_join_with_their_segments_numbered_on(tracked_pair, tmp_path):
+    """A windowed track's windows each number their segments from 0; joined, they stay apart."""
+    second = [trimesh.Trimesh(m.vertices, m.faces, process=False, metadata={**m.metadata, "segment": 0})
+              for m in tracked_pair[3:]]
+    joined = MeshSequence.join([tracked_pair[:3], second])
+    assert MeshSequence.check(joined) is None
+    assert sequence_segments(joined) == [(0, 3), (3, 5)]
+    assert [m.metadata for m in joined] == [m.metadata for m in tracked_pair]
+    assert [m.metadata["segment"] for m in second] == [0, 0], "the windows' own values are not changed"
+    assert all(np.array_equal(a.vertices, b.vertices) and np.array_equal(a.faces, b.faces) for a, b in zip(joined, tracked_pair))
+    MeshSequence.save(joined, tmp_path)
+    assert sequence_segments(MeshSequence.load(tmp_path)) == [(0, 3), (3, 5)]
+
+
 def test_crop_keeps_the_point_test():
     from nodes.common.silhouettes import Silhouettes, inside_hull
 
