@@ -121,3 +121,21 @@ def test_a_windows_error_names_its_frames(tmp_path):
     assert [r["frames"] for r in skipped] == [[3, 5]], res.records
     done = sorted(r["frames"][0] for r in res.records if r["node"] == "rows" and r["status"] == "done")
     assert done == [0, 6], "the other windows run"
+
+
+def test_a_reader_whose_window_is_a_multiple_joins_the_windows_it_covers(tmp_path):
+    text = ROWS.replace("rows_total, in: {rows: rows.out}", "rows_total, in: {rows: rows.out}, window: 6")
+    items, _ = plan_graph(graph(tmp_path, text), Cache(tmp_path / "cache"))
+    totals = {it.frames[0]: it for it in items if it.node == "total"}
+    assert isinstance(totals[0].inputs["rows"], Join) and len(totals[0].inputs["rows"].refs) == 2
+    assert not isinstance(totals[6].inputs["rows"], Join), "one window: read as it is"
+    res = run_graph(graph(tmp_path, text), Cache(tmp_path / "cache"), tmp_path / "out", LocalExecutor(1), progress=False)
+    assert res.ok, res.failures
+    first = [r for r in res.records if r["node"] == "total" and r["frame"] == 0]
+    assert first[0]["frames"] == [0, 5]
+    rows = {r["frame"]: r for r in res.records if r["node"] == "total"}
+    from nodegraph.node import node_class
+
+    out = {f: Cache(tmp_path / "cache").load(r["key"], "out", node_class("t.rows_total").outputs["out"].type) for f, r in rows.items()}
+    np.testing.assert_array_equal(out[0], [0, 1, 2, 3, 4, 5, sum(2.0 * (1 + f) for f in range(6))])
+    np.testing.assert_array_equal(out[6], [6, 14.0])
