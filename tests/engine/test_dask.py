@@ -59,6 +59,22 @@ def test_dask_runs_frame_nodes_after_a_sequence_node(tmp_path):
 
 
 @pytest.mark.slow
+def test_dask_runs_a_windowed_sequence_node(tmp_path):
+    """The windows of a windowed sequence node are items of their own on the cluster; a frame after it reads its
+    window, a sequence node after it the windows joined."""
+    from conftest import output
+
+    text = GRAPH + ("  rows:  {type: t.rows, in: {x: scale.out}, window: 4}\n  pick:  {type: t.pick_row, in: {rows: rows.out}}\n"
+                    "  all:   {type: t.rows_total, in: {rows: rows.out}}\n")
+    res = _run(tmp_path, text, DaskExecutor(workers=2))
+    assert res.ok and res.counts() == {"done": 19 + 2 + 6 + 1}, res.failures
+    assert sorted(r["frames"] for r in res.records if r["node"] == "rows") == [[0, 3], [4, 5]]
+    for f in range(6):   # 4 elements x (2 + f) x 3
+        assert output(res, "pick", "out", f).tolist() == [12.0 * (2 + f)]
+    assert output(res, "all", "out", None).tolist() == [0, 1, 2, 3, 4, 5, sum(12.0 * (2 + f) for f in range(6))]
+
+
+@pytest.mark.slow
 def test_dask_survives_a_killed_worker(tmp_path):
     marker = tmp_path / "crashed"
     text = GRAPH.replace("  total:", f"  crash: {{type: t.crash, in: {{x: scale.out}}, params: {{on_frame: 2, marker: '{marker}'}}}}\n  total:")
