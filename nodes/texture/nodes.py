@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from kernels import source
 from nodegraph import DataType, Input, Node, NodeError, Output, Param
 from nodes.common import raster
 from nodes.common.meshops import face_neighbours
@@ -160,3 +161,48 @@ class TextureAtlas(Node):
         if len(ref.faces) == 0:
             raise NodeError("the reference mesh has no faces")
         return {"atlas": make_atlas(ref.vertices, ref.faces, face_neighbours(ref.faces), size, directions=directions)}
+
+
+class TextureTransfer(Node):
+    """Paints a mesh's atlas from another textured mesh of the same surface instead of from the photos: every
+    texel takes the source's texture at the closest point of the source surface (nodes/texture/transfer.py). For
+    a stream's lower rung (the tracked sequence simplified, same motion): the same colours as the full rung
+    (its gains, levelling and blending), at a cost that depends on the atlas only, not on the cameras."""
+
+    type_name = "texture.transfer"
+    version = 1
+    inputs = {
+        "mesh": Mesh,
+        "source": Input(TexturedMesh, doc="the same surface textured (e.g. the full rung's texture.mesh of this frame)"),
+        "atlas": Input(AtlasType, optional=True, doc="a layout made for this connectivity (texture.atlas): reused"),
+        "reference": Input(Mesh, optional=True, doc="a mesh with the same faces to chart the atlas on (track.frame's "
+                           "keyframe): every frame of a tracked segment gets the same layout"),
+    }
+    outputs = {"mesh": Output(TexturedMesh, "the mesh with UVs and its texture"),
+               "atlas": Output(AtlasType, "the layout used")}
+    params = {**COMMON_PARAMS}
+    kernels = [source("closest.cl")]   # closest points on the source surface (nodes.track.deform.SurfaceQuery)
+
+    def run(self, mesh, source, atlas, reference, *, size, directions):
+        from .transfer import transfer_texture
+
+        if len(mesh.faces) == 0:
+            raise NodeError("the mesh has no faces: nothing to texture")
+        if atlas is not None and reference is not None:
+            raise NodeError("connect 'atlas' or 'reference', not both")
+        if reference is not None:
+            if len(reference.faces) != len(mesh.faces) or not np.array_equal(reference.faces, mesh.faces):
+                raise NodeError(f"input 'reference' has other faces ({len(reference.faces)}) than the mesh "
+                                f"({len(mesh.faces)}): it must be the same connectivity (track.frame's keyframe)")
+            atlas = reference_atlas(reference.vertices, reference.faces, size, directions)
+        elif atlas is None:
+            atlas = reference_atlas(mesh.vertices, mesh.faces, size, directions)
+        if not atlas.matches(mesh.faces):
+            raise NodeError(f"input 'atlas' was made for another connectivity ({len(atlas.faces)} faces); the mesh "
+                            f"has {len(mesh.faces)} faces: an atlas is reused only for meshes with the same faces")
+        try:
+            texture, stats = transfer_texture(mesh.vertices, mesh.faces, atlas, source)
+        except ValueError as exc:
+            raise NodeError(str(exc)) from None
+        self.log.info("texture.transfer: %s", json.dumps(stats))
+        return {"mesh": textured_trimesh(mesh.vertices, mesh.faces, atlas, texture), "atlas": atlas}
