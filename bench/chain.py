@@ -68,7 +68,7 @@ def group_of(node: str, types: dict, upstream: dict) -> str:
         if n not in seen:
             seen.add(n)
             todo.extend(upstream[n])
-    if types[node] in ("track.frame", "texture") and any(types[n] == "track.simplify" for n in seen):
+    if types[node] in ("track.frame", "texture", "texture.transfer") and any(types[n] == "track.simplify" for n in seen):
         return "deliver"
     if types[node] == "mc" and any(types[n] == "carve.space_carving" for n in upstream[node]):
         return "carve"
@@ -87,7 +87,7 @@ def in_memory(g, cache, nodes: set[str]) -> dict[str, list[float]]:
     import gc
     import logging
 
-    from nodegraph.records import refs
+    from nodegraph.records import Join, refs, resolve_type
     from nodegraph.run import plan_graph
     from nodegraph.worker import call_node
 
@@ -126,7 +126,8 @@ def in_memory(g, cache, nodes: set[str]) -> dict[str, list[float]]:
         if it.node == "stage":
             out = {p: (d.type, cache.load(it.key, p, d.type)) for p, d in cls.outputs.items()}
         else:
-            inputs = {p: None if r is None else [take(x) for x in r] if isinstance(r, list) else take(r)
+            inputs = {p: None if r is None else [take(x) for x in r] if isinstance(r, list)
+                      else resolve_type(r.type).join([take(x) for x in r.refs]) if isinstance(r, Join) else take(r)
                       for p, r in it.inputs.items()}
             t0 = time.perf_counter()
             out = call_node(cls, inputs, it.params, frame=it.frame, frames=it.frames, log=log)
@@ -147,17 +148,22 @@ def main():
     ap.add_argument("--resolution", type=int, default=128, help="hull resolution")
     ap.add_argument("--jobs", "-j", type=int, default=1, help="volcap run -j (1: in one process, stage times uncontended)")
     ap.add_argument("--repeats", type=int, default=3, help="timed passes of the fused path over the frames")
+    ap.add_argument("--graph", default=str(GRAPH), help="graphs/demo.yaml (default) or graphs/bench/chain.yaml (the "
+                    "issue's chain alone: no evals, rig or carve, so the end-to-end wall is the chain's)")
+    ap.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE",
+                    help="passed to volcap run, e.g. track.window=4 (repeatable)")
     a = ap.parse_args()
     print(describe())
 
     from nodegraph.cache import Cache
     from nodegraph.graphfile import load_graph
 
+    graph = Path(a.graph).resolve()
     sets = [f"stage.cameras={a.cameras}", f"stage.width={a.width}", f"stage.height={a.height}",
-            f"hull.resolution={a.resolution}"]
+            f"hull.resolution={a.resolution}"] + a.set
     tmp = tempfile.TemporaryDirectory(dir=os.environ.get("VOLCAP_BENCH_TMP"))
     cache, out = Path(tmp.name) / "cache", Path(tmp.name) / "out"
-    cmd = [sys.executable, str(ROOT / "app.py"), "--cache", str(cache), "run", str(GRAPH), "--frames", a.frames,
+    cmd = [sys.executable, str(ROOT / "app.py"), "--cache", str(cache), "run", str(graph), "--frames", a.frames,
            "--out", str(out), "-q", "-j", str(a.jobs)] + [x for s in sets for x in ("--set", s)]
     t = time.perf_counter()
     res = subprocess.run(cmd, capture_output=True, text=True)
@@ -168,7 +174,7 @@ def main():
     records, nf = doc["items"], len(doc["frames"])
     hits = sum(bool(r.get("cache_hit")) for r in records)
 
-    g = load_graph(GRAPH, overrides=sets, frames=a.frames)
+    g = load_graph(graph, overrides=sets, frames=a.frames)
     types = {n: g.nodes[n].type_name for n in g.nodes}
     by_node: dict[str, list[dict]] = {}
     for r in records:
@@ -202,17 +208,17 @@ def main():
     named = ("key", "hull", "mc", "refine", "relax", "track", "texture", "deliver")
     chain_nodes = {n for n in by_node if group[n] in named}
     first = a.frames.split(":")[0]
-    in_memory(load_graph(GRAPH, overrides=sets, frames=f"{first}:{int(first) + 3}"), c, chain_nodes)
+    in_memory(load_graph(graph, overrides=sets, frames=f"{first}:{int(first) + 3}"), c, chain_nodes)
     own = in_memory(g, c, chain_nodes)
 
     # the table
     order = [RENDER] + [gname for gname, _ in GROUPS] + [REST]
-    print(f"graphs/demo.yaml, {nf} frames ({a.frames}), {a.cameras} cameras x {a.width}x{a.height}, hull "
+    print(f"{graph.relative_to(ROOT) if graph.is_relative_to(ROOT) else graph}{' ' + ' '.join(a.set) if a.set else ''}, {nf} frames ({a.frames}), {a.cameras} cameras x {a.width}x{a.height}, hull "
           f"{a.resolution}; `volcap run -j {a.jobs}` in a fresh process, fresh temporary cache: "
           f"{len(records)} items, {hits} cache hits")
     print("CLI = the item's seconds in run.json (inputs loaded, run, outputs kept); own = the same items' run() in this "
           "process, values in memory (bench.chain.in_memory); ratio = CLI / own on the median frame (sequence nodes: "
-          "their one item; the CLI's first frame also pays the kernels' loading)")
+          "their items summed; the CLI's first frame also pays the kernels' loading)")
     print(f"{'group':>22} {'node':>14} {'type':>22} {'items':>5} {'s/frame':>8} {'median':>7} {'own':>7} "
           f"{'median':>7} {'ratio':>6}")
     sums, own_sums = {}, {}
@@ -222,12 +228,12 @@ def main():
             continue
         for n in nodes:
             secs = [r["seconds"] for r in by_node[n]]
-            per_frame = by_node[n][0]["frame"] is not None
+            per_frame = by_node[n][0]["frame"] is not None and "frames" not in by_node[n][0]   # not a window's item
             med = f"{np.median(secs):7.3f}" if per_frame else f"{'':>7}"
             mine = ""
             if n in own:
-                ref = np.median(secs) if per_frame else secs[0]
-                ours = np.median(own[n]) if per_frame else own[n][0]
+                ref = np.median(secs) if per_frame else sum(secs)
+                ours = np.median(own[n]) if per_frame else sum(own[n])
                 mine = (f" {sum(own[n]) / nf:7.3f} " + (f"{ours:7.3f}" if per_frame else f"{'':>7}")
                         + f" {ref / max(ours, 1e-9):6.2f}")
             print(f"{'':>22} {n:>14} {types[n]:>22} {len(secs):5d} {sum(secs) / nf:8.3f} {med}{mine}")

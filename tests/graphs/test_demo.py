@@ -108,3 +108,15 @@ def test_demo_graph_with_track_in_windows(tmp_path):
     from nodes.export.stream import read_stream
 
     assert [f["frame"] for f in read_stream(tmp_path / "out/demo_stream", "full")] == [0, 1, 2, 3]
+
+
+def test_the_bench_chain_graph_is_the_demos_chain():
+    """graphs/bench/chain.yaml (bench/chain.py --graph) is graphs/demo.yaml's chain, node for node."""
+    from nodegraph.graphfile import load_graph
+
+    demo, chain = load_graph(ROOT / "graphs/demo.yaml"), load_graph(ROOT / "graphs/bench/chain.yaml")
+    assert {"stage", "key", "hull", "track", "texture", "volumetric", "stream_low"} <= set(chain.nodes)
+    for name, spec in chain.nodes.items():
+        other = demo.nodes[name]
+        assert (spec.type_name, spec.params, spec.inputs) == (other.type_name, other.params, other.inputs), name
+    assert chain.frames == demo.frames
