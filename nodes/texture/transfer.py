@@ -42,6 +42,24 @@ def source_parts(source) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray
             np.asarray(visual.uv, np.float64), np.ascontiguousarray(np.asarray(image.convert("RGB")), np.uint8))
 
 
+def face_uv_maps(sv: np.ndarray, sf: np.ndarray, suv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per face the affine map of a point on its plane to its texture coordinates: uv = C + M p, with M (F, 2, 3)
+    and C (F, 2) (barycentric coordinates from the dual basis of the face's edges; a degenerate face maps every
+    point to its corners' mean)."""
+    a, b, c = (sv[sf[:, k]] for k in range(3))
+    e1, e2 = b - a, c - a
+    d11, d12, d22 = (np.einsum("ij,ij->i", x, y) for x, y in ((e1, e1), (e1, e2), (e2, e2)))
+    det = d11 * d22 - d12 * d12
+    ok = det > 1e-30 * np.maximum(d11 * d22, 1e-300)
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    g1 = (d22 * inv)[:, None] * e1 - (d12 * inv)[:, None] * e2      # s = g1 . (p - a)
+    g2 = (d11 * inv)[:, None] * e2 - (d12 * inv)[:, None] * e1      # t = g2 . (p - a)
+    u0, u1, u2 = (suv[sf[:, k]] for k in range(3))
+    M = (u1 - u0)[:, :, None] * g1[:, None, :] + (u2 - u0)[:, :, None] * g2[:, None, :]
+    C = np.where(ok[:, None], u0 - np.einsum("fij,fj->fi", M, a), (u0 + u1 + u2) / 3)
+    return M, C
+
+
 def texel_uv(points: np.ndarray, sv: np.ndarray, sf: np.ndarray, suv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(uv (N, 2) of the closest point of the surface (sv, sf) to each point, with the per-vertex ``suv`` of the
     faces sf; distance (N,)). The surface is welded by position first, so a chart seam hides no face."""
@@ -49,16 +67,8 @@ def texel_uv(points: np.ndarray, sv: np.ndarray, sf: np.ndarray, suv: np.ndarray
 
     wv, wf = welded(sv, sf)
     q, d, face = SurfaceQuery(wv, wf, with_normals=False).closest(points, with_faces=True)
-    a, b, c = (wv[wf[face, k]] for k in range(3))             # barycentric coordinates of q in its face
-    e1, e2, r = b - a, c - a, q - a
-    d11, d12, d22 = (np.einsum("ij,ij->i", x, y) for x, y in ((e1, e1), (e1, e2), (e2, e2)))
-    r1, r2 = np.einsum("ij,ij->i", r, e1), np.einsum("ij,ij->i", r, e2)
-    det = d11 * d22 - d12 * d12
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = np.where(det > 0, (d22 * r1 - d12 * r2) / det, 1 / 3)
-        t = np.where(det > 0, (d11 * r2 - d12 * r1) / det, 1 / 3)
-    uv = (1 - s - t)[:, None] * suv[sf[face, 0]] + s[:, None] * suv[sf[face, 1]] + t[:, None] * suv[sf[face, 2]]
-    return uv, d
+    M, C = face_uv_maps(sv, sf, suv)                         # a face's corners: the same points, split or welded
+    return C[face] + np.einsum("nij,nj->ni", M[face], q), d
 
 
 def transfer_texture(vertices, faces, atlas: Atlas, source, gutter: int = 2) -> tuple[np.ndarray, dict]:
