@@ -81,9 +81,16 @@ class SilhouetteField:
             return cls(cameras.pack(origin), origin, None, False, int(min_views), outside, device, list(device.sizes),
                        masks)
         binary = check_masks(masks, cameras, node)
-        soft = bool(use_alpha and masks.alpha is not None)
+        eight = getattr(masks, "alpha8", None)
+        soft = bool(use_alpha and (eight is not None or masks.alpha is not None))
         levels = binary
-        if soft:
+        if soft and eight is not None:   # the key's 8-bit levels: what rint(alpha * 255) gives back, bit for bit
+            for cam, m, a in zip(cameras, binary, eight):
+                if a.shape != m.shape:
+                    raise NodeError(f"{node}: alpha of camera '{cam.name}' is {a.shape[1]}x{a.shape[0]}, its mask "
+                                    f"{m.shape[1]}x{m.shape[0]}")
+            levels = [np.ascontiguousarray(a, np.uint8) for a in eight]
+        elif soft:
             levels = []
             for cam, m, a in zip(cameras, binary, masks.alpha):
                 a = np.asarray(a, np.float32)

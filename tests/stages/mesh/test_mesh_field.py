@@ -33,6 +33,20 @@ def test_levels_of_a_straight_edge():
     np.testing.assert_allclose(f, want, atol=2e-3)
 
 
+def test_a_keys_8_bit_alpha_gives_the_same_levels_as_its_float_alpha():
+    """The keys' MaskSet carries its soft alpha as 8-bit levels: the field takes them as they are (no float alpha
+    made), the levels rint(alpha * 255) of the same alpha read as float32 give, bit for bit."""
+    cams, masks, vol, _ = figure_case(24, count=3, size=61, soft=True)
+    levels = [np.clip(np.rint(np.asarray(a, np.float32) * 255), 0, 255).astype(np.uint8) for a in masks.alpha]
+    eight = MaskSet(list(masks.masks), None, list(masks.names), alpha8=levels)
+    as_float = MaskSet(list(masks.masks), [np.divide(a, np.float32(255), dtype=np.float32) for a in levels], list(masks.names))
+    origin = 0.5 * (vol.bbox_min + vol.bbox_max)
+    a, b = SilhouetteField.from_inputs(eight, cams, origin), SilhouetteField.from_inputs(as_float, cams, origin)
+    assert a.soft and b.soft and eight._alpha is None, "the float alpha was never made"
+    for x, y in zip(a.masks, b.masks):
+        np.testing.assert_array_equal(x, y)
+
+
 @pytest.mark.parametrize("soft", [False, True])
 def test_kernels_match_reference(soft):
     cams, masks, vol, mesh = figure_case(24, count=5, size=61, soft=soft)  # odd width: partial bit bytes
