@@ -41,7 +41,7 @@ from nodegraph.executors import LocalExecutor  # noqa: E402
 from nodegraph.graphfile import load_graph  # noqa: E402
 from nodegraph.run import run_graph  # noqa: E402
 from nodes.common import types as T  # noqa: E402
-from nodes.track.deform import SurfaceQuery  # noqa: E402
+from nodes.common.closest import SurfaceQuery  # noqa: E402
 from nodes.track.tracking import Frames, TrackParams, track_sequence, surface_residuals  # noqa: E402
 
 DOCS = ROOT / "docs"

@@ -181,7 +181,7 @@ class TextureTransfer(Node):
     outputs = {"mesh": Output(TexturedMesh, "the mesh with UVs and its texture"),
                "atlas": Output(AtlasType, "the layout used")}
     params = {**COMMON_PARAMS}
-    kernels = [source("closest.cl")]   # closest points on the source surface (nodes.track.deform.SurfaceQuery)
+    kernels = [source("closest.cl")]   # closest points on the source surface (nodes.common.closest.SurfaceQuery)
 
     def run(self, mesh, source, atlas, reference, *, size, directions):
         from .transfer import transfer_texture

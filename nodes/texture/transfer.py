@@ -63,7 +63,7 @@ def face_uv_maps(sv: np.ndarray, sf: np.ndarray, suv: np.ndarray) -> tuple[np.nd
 def texel_uv(points: np.ndarray, sv: np.ndarray, sf: np.ndarray, suv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(uv (N, 2) of the closest point of the surface (sv, sf) to each point, with the per-vertex ``suv`` of the
     faces sf; distance (N,)). The surface is welded by position first, so a chart seam hides no face."""
-    from nodes.track.deform import SurfaceQuery
+    from nodes.common.closest import SurfaceQuery
 
     wv, wf = welded(sv, sf)
     q, d, face = SurfaceQuery(wv, wf, with_normals=False).closest(points, with_faces=True)

@@ -149,7 +149,7 @@ class Track(Node):
     type_name = "track"
     version = 1
     per = "sequence"
-    kernels = [source("closest.cl"), source("rotations.cl"), source("raster.cl")]   # closest points (deform.SurfaceQuery),
+    kernels = [source("closest.cl"), source("rotations.cl"), source("raster.cl")]   # closest points (nodes.common.closest),
     #                                                           ARAP rotations, silhouette IoU
     inputs = {
         "meshes": Input(Mesh, doc="each frame's reconstruction (arrive as a list)"),

@@ -42,10 +42,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from nodes.common.closest import SurfaceQuery
 from nodes.common.meshops import edge_face_pairs, face_normals, padded_rows, ring_operator, vertex_faces
 
 from . import deform
-from .deform import FitParams, SurfaceQuery, Target
+from .deform import FitParams, Target
 from .topology import mesh_topology
 
 log = logging.getLogger("volcap.track")

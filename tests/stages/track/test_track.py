@@ -12,6 +12,7 @@ from rig import ring_rig, two_segments
 from nodegraph import NodeError, Table
 from nodegraph.graphfile import load_graph
 from nodegraph.testing import run_node
+from nodes.common import closest
 from nodes.common.meshops import edge_face_pairs, folded_edges, ring_operator, split_edges, unique_edges
 from nodes.common.types import Mesh, MeshSequence, MaskSet, sequence_segments
 from nodes.synth import scenes
@@ -97,9 +98,9 @@ def test_closest_point_matches_brute_force():
     m = trimesh.creation.icosphere(2)
     m = trimesh.Trimesh(m.vertices * (1 + 0.1 * rng.standard_normal((len(m.vertices), 1))), m.faces, process=False)
     p = rng.normal(size=(300, 3)) * 0.6
-    q, d = deform.SurfaceQuery(m.vertices, m.faces).closest(p)
+    q, d = closest.SurfaceQuery(m.vertices, m.faces).closest(p)
     tri = m.triangles
-    brute = deform.closest_on_triangles(p[:, None, :], tri[None, :, 0], tri[None, :, 1], tri[None, :, 2])
+    brute = closest.closest_on_triangles(p[:, None, :], tri[None, :, 0], tri[None, :, 1], tri[None, :, 2])
     bd = np.linalg.norm(brute - p[:, None, :], axis=2).min(axis=1)
     assert np.allclose(np.linalg.norm(q - p, axis=1), d)
     # nearest-vertex one-ring search is exact here except where a farther vertex's face is closer
@@ -113,7 +114,7 @@ def test_closest_point_kernel_matches_its_numpy_reference():
     m = trimesh.Trimesh(m.vertices * (1 + 0.05 * rng.standard_normal((len(m.vertices), 1))), m.faces, process=False)
     e = m.edges_unique[:20]
     p = np.r_[rng.normal(size=(500, 3)) * 0.8, m.vertices[:20], m.vertices[e].mean(axis=1) * 1.01]
-    query = deform.SurfaceQuery(m.vertices, m.faces)
+    query = closest.SurfaceQuery(m.vertices, m.faces)
     q, d, f = query.closest(p, with_faces=True)
     rq, rd, rf = query.closest_reference(p, with_faces=True)
     assert np.allclose(q, rq, rtol=0, atol=1e-12) and np.allclose(d, rd, rtol=0, atol=1e-12)
@@ -131,7 +132,7 @@ def test_point_grid_matches_a_kd_tree():
     m = trimesh.creation.icosphere(4)
     v = np.asarray(m.vertices) * [3.0, 2.0, 7.0]
     for pts in (v, v * [1, 1, 0], v[:1]):
-        grid = deform.PointGrid(pts)
+        grid = closest.PointGrid(pts)
         for scale, upper in ((0.05, np.inf), (0.5, 0.3), (3.0, 2.0), (40.0, np.inf)):
             q = pts[rng.integers(0, len(pts), 400)] + rng.normal(0, scale, (400, 3))
             d, j = grid.nearest(q, upper)
@@ -140,7 +141,7 @@ def test_point_grid_matches_a_kd_tree():
             assert np.array_equal(pts[j[j >= 0]], pts[rj[rj >= 0]])
             if pts is v:
                 assert np.array_equal(j, rj)
-    assert len(deform.PointGrid(v).nearest(v[:0])[0]) == 0
+    assert len(closest.PointGrid(v).nearest(v[:0])[0]) == 0
 
 
 def test_rotation_kernel_matches_its_svd_reference():
