@@ -388,6 +388,26 @@ def windows(frames: list[int], n: int) -> list[list[int]]:
     return [list(frames[i:i + n]) for i in range(0, len(frames), n)] if n else [list(frames)]
 
 
+def count_windows(length: int, n: int) -> int:
+    return -(-length // n) if n and length else 1
+
+
+def cut_window(length: int, n_src: int, n_dst: int) -> tuple[int, int] | None:
+    """The first window of ``n_src`` frames (positions start, stop) that a reader's windows of ``n_dst`` frames cut
+    (a reader window boundary strictly inside it), or None: arithmetic on the positions, no lists of frames."""
+    if not n_dst or n_dst >= length:
+        return None
+    if not n_src:
+        return (0, length)
+    import numpy as np
+
+    start = np.arange(0, length, n_src)
+    stop = np.minimum(start + n_src, length)
+    boundary = (start // n_dst + 1) * n_dst          # the first reader boundary after each window's start
+    hit = np.flatnonzero(boundary < stop)
+    return (int(start[hit[0]]), int(stop[hit[0]])) if len(hit) else None
+
+
 def _validate(path: Path, where: str, data: _Map, problems: list[str], overrides: list[str], frames_arg) -> Graph:
     def at(line) -> str:
         return f"{where}:{line}"
@@ -570,27 +590,25 @@ def _validate(path: Path, where: str, data: _Map, problems: list[str], overrides
     for name, spec in nodes.items():   # a sequence node reading a windowed one: whole windows, joined by their type
         if spec.cls.per != "sequence":
             continue
-        mine = windows(frames, spec.window)
         for port, (src, sport) in spec.inputs.items():
             if src not in nodes or nodes[src].cls.per != "sequence" or sport not in nodes[src].cls.outputs:
                 continue
-            theirs = windows(frames, nodes[src].window)
-            pline = spec.lines[f"in:{port}"]
-            cut = next((w for w in theirs for m in mine if set(w) & set(m) and not set(w) <= set(m)), None)
-            if cut is not None and not nodes[src].window:
+            n_src, pline = nodes[src].window, spec.lines[f"in:{port}"]
+            cut = cut_window(len(frames), n_src, spec.window)
+            if cut is not None and not n_src:
                 problems.append(f"{pline}: node '{name}': input '{port}': '{src}' covers all frames in one item, more "
                                 f"than one of {name}'s windows: window '{src}' too (the same or a divisor), or not '{name}'")
                 continue
             if cut is not None:
-                problems.append(f"{pline}: node '{name}': input '{port}': '{src}' works in windows ({cut[0]}..{cut[-1]} is "
-                                f"one) that {name}'s own windows cut: give '{name}' a window that is a multiple of "
-                                f"{nodes[src].window}, or none")
+                problems.append(f"{pline}: node '{name}': input '{port}': '{src}' works in windows "
+                                f"({frames[cut[0]]}..{frames[cut[1] - 1]} is one) that {name}'s own windows cut: give "
+                                f"'{name}' a window that is a multiple of {n_src}, or none")
                 continue
             dtype = nodes[src].cls.outputs[sport].type
-            if len(theirs) > len(mine) and getattr(dtype, "join", None) is None:
-                problems.append(f"{pline}: node '{name}': input '{port}': '{src}' works in windows of "
-                                f"{nodes[src].window} frames and {describe_type(dtype)} cannot be joined over windows: "
-                                f"read it per frame, or give '{name}' the same window")
+            if count_windows(len(frames), n_src) > count_windows(len(frames), spec.window) and getattr(dtype, "join", None) is None:
+                problems.append(f"{pline}: node '{name}': input '{port}': '{src}' works in windows of {n_src} frames "
+                                f"and {describe_type(dtype)} cannot be joined over windows: read it per frame, or give "
+                                f"'{name}' the same window")
     cycle = find_cycle(upstream)
     if cycle:
         problems.append(f"{at(nodes[cycle[0]].line)}: cycle in the graph: {' -> '.join(cycle + [cycle[0]])}")
