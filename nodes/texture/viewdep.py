@@ -64,6 +64,29 @@ def choose_layers(quality, faces, n_vertices, centres, vertices, *, K=8, topo=No
     return out
 
 
+def stable_slots(face_view, n_views) -> np.ndarray:
+    """The same views per face as ``face_view`` (F, K), moved to layer slots that depend on the camera: camera c
+    takes slot c mod K where free (else the next free one), in the order they were chosen. Neighbouring faces
+    then keep a camera in the same layer, so a renderer's bilinear lookup of layer k at a face border reads
+    that camera on both sides (with K >= the number of cameras, always); -1 = empty slot."""
+    fv = np.asarray(face_view, np.int32)
+    nf, K = fv.shape
+    out = np.full((nf, K), -1, np.int32)
+    rows = np.arange(nf)
+    for k in range(K):
+        c = fv[:, k]
+        todo = c >= 0
+        slot = np.where(todo, c % K, 0)
+        for _ in range(K):
+            free = todo & (out[rows, slot] < 0)
+            out[rows[free], slot[free]] = c[free]
+            todo &= ~free
+            if not todo.any():
+                break
+            slot = (slot + 1) % K
+    return out
+
+
 def bake_layers(layout, vertices, faces, cameras, frame, face_view, base) -> tuple[np.ndarray, np.ndarray]:
     """Bake each layer from its one camera per face, in that camera's own colours (no gains, no blending, no
     seam levelling: near a capture camera its photo is what the viewer should see, and the renderer blends).
