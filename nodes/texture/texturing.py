@@ -124,7 +124,7 @@ def choose(vertices, faces, cameras, frame, stats, s: Settings, topo: Topology, 
     if s.adaptive and s.blur_px > 0:
         lo, hi = s.spread_range
         blur = np.clip((spread - lo) / max(hi - lo, 1e-6), 0, 1).astype(np.float32)
-    return labels, Blend(face_view, weight, offset, gains, blur, s.blur_px), q
+    return labels, Blend(face_view, weight, offset, gains, blur, s.blur_px), q, sharp
 
 
 def texture_mesh(vertices, faces, images, masks, cameras, s: Settings = Settings(), *, atlas: Atlas | None = None,
@@ -134,7 +134,7 @@ def texture_mesh(vertices, faces, images, masks, cameras, s: Settings = Settings
     timings: dict = {}
     frame, stats, layer_frame = prepare(vertices, faces, images, masks, cameras, s, timings)
     topo = Topology.of(faces, len(vertices))
-    labels, blend, quality = choose(vertices, faces, cameras, frame, stats, s, topo, timings)
+    labels, blend, quality, sharp = choose(vertices, faces, cameras, frame, stats, s, topo, timings)
 
     def fallback():
         return V.fallback_vertex_colours(labels, stats.colour, blend.gains, faces, len(vertices), topo=topo)
@@ -183,7 +183,6 @@ def texture_mesh(vertices, faces, images, masks, cameras, s: Settings = Settings
         t = time.perf_counter()
         # a view the static tests refuse (the outline, the mask's edge) but that sees the face unoccluded inside
         # its mask may paint its own layer, ranked below every view the static atlas may use
-        sharp = V.view_sharpness(frame.images, frame.valid)
         lq = np.where(quality > 0, quality, np.float32(0.01) * stats.seen * sharp[:, None]).astype(np.float32)
         fv = choose_layers(lq, faces, len(vertices), cameras.centers, vertices, K=s.layers, topo=topo)
         if s.stable_slots:

@@ -4,11 +4,15 @@ map saying which camera painted each texel; a renderer blends the layers by the 
 ray and each layer's camera ray, so a surface seen from near a capture camera shows that camera's photo.
 
     face_view = choose_layers(quality, faces, n_vertices, centres, vertices, K=4)   # (F, K) views, -1 = none
-    layers, texel_view = bake_layers(layout, vertices, faces, cameras, frame, face_view, base)
+    face_view = stable_slots(face_view, n_views)                                  # camera c in slot c mod K
+    layers, texel_view = bake_layers(layout, vertices, faces, cameras, layer_frame, face_view, base)
     w = layer_weights(points, eye, centres, ids)                                # (N, K) blend weights
 
 A static texture on approximate geometry can reproduce no photo exactly (each camera sees the surface's
-errors with its own parallax); the layers can, where the viewer is near a camera. ``layer_weights`` is the
+errors with its own parallax); the layers can, where the viewer is near a camera. A layer is its camera's own
+picture of the surface: a view may paint a face there wherever it sees it unoccluded inside its mask (texturing:
+``layer_margin`` 0 and ``FaceViews.seen``, no edge margin), also at the outline the static atlas keeps away from,
+so that at the capture camera the whole photo comes back. ``layer_weights`` is the
 reference of what a player's shader does (docs in export.player).
 """
 from __future__ import annotations
