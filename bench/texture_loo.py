@@ -331,7 +331,7 @@ def main():
               f" | {ex['bg_texels']} ({ex['bg_painted']}) | {med(ex['ours_s']):.2f} | {med(ex.get('layers_s', [])):.2f} |")
     print("\ngain of ours + layers over the best baseline (vertex colours, cos^2 mean, MeshLab), median dB:")
     for name, rows, ex in table:
-        best = max(mdb(rows, k) if rows[k] else -np.inf for k in ("vertex colours", "cos^2 mean", "MeshLab"))
+        best = max([mdb(rows, k) for k in ("vertex colours", "cos^2 mean", "MeshLab") if rows[k]] or [np.nan])
         line = f"  {name}: {mdb(rows, 'ours + layers') - best:+.2f} dB (static ours {mdb(rows, 'ours') - best:+.2f}"
         if rows["ours + photo"]:
             line += (f", + photo {mdb(rows, 'ours + photo') - best:+.2f} (over ours on its pixels "

@@ -42,7 +42,7 @@ class Settings:
     directions: int = 6             # chart directions (6 or 14)
     layers: int = 0                 # view-dependent layers (the K best views per face, viewdep.py); 0 = none
     stable_slots: bool = True       # a camera keeps one layer slot across faces (viewdep.stable_slots)
-    layer_margin: int = 0           # mask erosion for the layers, pixels: a camera paints its own layer up to its
+    layer_margin: int = 0           # mask erosion for the layers, pixels (< 0: grown): a camera paints its own layer up to its
                                     # mask's edge and its outline (depth test only), so its photo comes back there
 
 
