@@ -2,6 +2,7 @@
 camera i, render it into camera i, compare with the real photo inside mask_i and the render.
 
     python3 bench/texture_loo.py [--datasets thu_wd_human,...] [--held 5] [--no-meshlab] [--picture docs/x.png]
+                                 [--rows baselines,layers,in-sample,...]
 
 Meshes come from the dataset graphs (graphs/datasets/*.yaml; the synthetic scene: graphs/demo.yaml frame 0),
 run through the CLI into a cache. Methods, all on the same mesh and the same held-out cameras:
@@ -14,12 +15,16 @@ run through the CLI into a cache. Methods, all on the same mesh and the same hel
                    those pixels ("ours (photo's pixels)": the fair comparison)
   ours + layers    the same with `layers: 6`, rendered view-dependently at the held-out camera
                    (viewdep.render_layers: what a player does at that eye)
+  photo mesh: ...  vertex colours, cos^2 mean and ours + layers on the photo-refined mesh, all three scored on
+                   its own coverage (the same pixels): the layers on the refined mesh against the baselines on
+                   the same mesh
   in-sample        ours and ours + layers textured from every camera, the held-out one included (and with
                    `layers: 16`, the most the node keeps)
   oracle           the held-out camera's own photo alone through the same atlas (the geometry's ceiling)
 PSNR and SSIM (skimage, on the mask's box, averaged inside the mask and the render). Also counted for ours:
 texels whose surface point is background in every mask that sees it, and how many of those were painted from
-an image (must be 0).
+an image (must be 0). ``--rows`` runs some of the methods only (groups: baselines, ours, photo, layers,
+photo-layers, in-sample, oracle, vertex, meshlab); VOLCAP_ROOT=DIR scores another checkout's code with this bench.
 """
 from __future__ import annotations
 
@@ -33,9 +38,9 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(os.environ.get("VOLCAP_ROOT") or Path(__file__).resolve().parents[1])
 sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from nodes.common.cameras import Cameras  # noqa: E402
 from nodes.common.meshops import vertex_normals  # noqa: E402
@@ -58,7 +63,7 @@ DATASETS = {  # graph, mesh node, masks node (port 'masks'), images node (port '
 
 def load_dataset(name: str, cache: Path):
     graph, mesh_node, mask_node, img_node, cam_node = DATASETS[name]
-    out = Path(f"/tmp/volcap_texture_loo/{name}")
+    out = Path(f"/tmp/volcap_texture_loo/{name}_{os.getpid()}")       # one per process: runs may overlap
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     # the demo's sequence nodes (track, rig) need its frames; the datasets are single frames
     frames = [] if graph == "graphs/demo.yaml" else ["--frames", "0:1"]
@@ -140,13 +145,18 @@ def vertex_colour_baseline(vertices, faces, images, masks, cams, tol_frac=0.01, 
     return col.astype(np.float32)
 
 
-def evaluate(name, cache, held_n, use_meshlab, size, picture=None):
+ROW_GROUPS = ("baselines", "ours", "photo", "layers", "photo-layers", "in-sample", "oracle", "vertex", "meshlab")
+
+
+def evaluate(name, cache, held_n, use_meshlab, size, picture=None, groups=ROW_GROUPS):
     mesh, images, masks, cams = load_dataset(name, cache)
     V, F = np.asarray(mesh.vertices), np.asarray(mesh.faces)
     n = len(cams)
     held = sorted(set(np.linspace(0, n - 1, held_n + 1)[:-1].round().astype(int).tolist()))
     rows = {k: [] for k in ("vertex colours", "cos^2 mean", "MeshLab", "ours (vertex)", "ours", "ours (photo's pixels)", "ours + photo", "ours + layers",
+                            "photo mesh: vertex colours", "photo mesh: cos^2 mean", "photo mesh: ours + layers",
                             "in-sample ours", "in-sample + layers", "in-sample + 16 layers", "oracle")}
+    use_meshlab = use_meshlab and "meshlab" in groups
     ssims = {k: [] for k in rows}
     extra = {"faces": len(F), "views": n, "held": held, "bg_texels": 0, "bg_painted": 0, "ours_s": [], "meshlab_s": []}
     tiles = []
@@ -162,44 +172,64 @@ def evaluate(name, cache, held_n, use_meshlab, size, picture=None):
             rows[key].append(psnr(render, hit, photo, mask_i))
             ssims[key].append(ssim(render, hit, photo, mask_i))
 
-        col = vertex_colour_baseline(V, F, imgs, msk, sub)
-        r_vc, hit = render_texture(V, F, None, None, ci, i, face_colours=col[F])
-        score("vertex colours", r_vc, hit)
-        col2 = vertex_colour_baseline(V, F, imgs, msk, sub, power=2.0, erode=2)
-        score("cos^2 mean", *render_texture(V, F, None, None, ci, i, face_colours=col2[F]))
-        t = time.perf_counter()
-        res = texture_mesh(V, F, imgs, msk, sub, Settings(size=size))
-        extra["ours_s"].append(time.perf_counter() - t)
-        r_ours, hit = render_texture(V, F, res.atlas.uv01(), res.texture, ci, i)
-        score("ours", r_ours, hit)
-        # the photo node's refinement from the training views, then ours; scored where both meshes cover (the
-        # refined one moves inward: on its own coverage it would drop rim pixels and look better than it is)
-        t = time.perf_counter()
-        ph = photo_offsets(V, F, imgs, msk, sub)
-        Vp = V + ph.offsets[:, None] * vertex_normals(V, F)
-        rp = texture_mesh(Vp, F, imgs, msk, sub, Settings(size=size))
-        extra.setdefault("photo_s", []).append(time.perf_counter() - t)
-        r_ph, hit_ph = render_texture(Vp, F, rp.atlas.uv01(), rp.texture, ci, i)
-        score("ours + photo", r_ph, hit_ph & hit)
-        score("ours (photo's pixels)", r_ours, hit_ph & hit)
-        t = time.perf_counter()
-        rl = texture_mesh(V, F, imgs, msk, sub, Settings(size=size, layers=6))
-        extra.setdefault("layers_s", []).append(time.perf_counter() - t)
-        r_vd, hit = render_layers(V, F, rl.atlas.uv01(), rl.texture, rl.views, ci, i)
-        score("ours + layers", r_vd, hit)
-        ri = texture_mesh(V, F, images.images, masks.masks, cams, Settings(size=size, layers=6))
-        score("in-sample ours", *render_texture(V, F, ri.atlas.uv01(), ri.texture, ci, i))
-        score("in-sample + layers", *render_layers(V, F, ri.atlas.uv01(), ri.texture, ri.views, ci, i))
-        r16 = texture_mesh(V, F, images.images, masks.masks, cams, Settings(size=size, layers=16))
-        score("in-sample + 16 layers", *render_layers(V, F, r16.atlas.uv01(), r16.texture, r16.views, ci, i))
-        ro = texture_mesh(V, F, [photo], [mask_i], subset(cams, [i]), Settings(size=size))
-        score("oracle", *render_texture(V, F, ro.atlas.uv01(), ro.texture, ci, i))
-        bg, painted = background_texels(res, V, F, msk, sub)
-        extra["bg_texels"] += bg
-        extra["bg_painted"] += painted
-        resv = texture_mesh(V, F, imgs, msk, sub, Settings(size=size), mode="vertex")
-        r_ov, hit = render_texture(V, F, None, None, ci, i, face_colours=resv.vertex_colours.astype(np.float32)[F])
-        score("ours (vertex)", r_ov, hit)
+        r_vc = r_ours = r_vd = None
+        if "baselines" in groups:
+            col = vertex_colour_baseline(V, F, imgs, msk, sub)
+            r_vc, hit = render_texture(V, F, None, None, ci, i, face_colours=col[F])
+            score("vertex colours", r_vc, hit)
+            col2 = vertex_colour_baseline(V, F, imgs, msk, sub, power=2.0, erode=2)
+            score("cos^2 mean", *render_texture(V, F, None, None, ci, i, face_colours=col2[F]))
+        if "ours" in groups or "photo" in groups:
+            t = time.perf_counter()
+            res = texture_mesh(V, F, imgs, msk, sub, Settings(size=size))
+            extra["ours_s"].append(time.perf_counter() - t)
+            r_ours, hit = render_texture(V, F, res.atlas.uv01(), res.texture, ci, i)
+            score("ours", r_ours, hit)
+            bg, painted = background_texels(res, V, F, msk, sub)
+            extra["bg_texels"] += bg
+            extra["bg_painted"] += painted
+        if "photo" in groups or "photo-layers" in groups:
+            # the photo node's refinement from the training views, then ours; scored where both meshes cover (the
+            # refined one moves inward: on its own coverage it would drop rim pixels and look better than it is)
+            t = time.perf_counter()
+            ph = photo_offsets(V, F, imgs, msk, sub)
+            Vp = V + ph.offsets[:, None] * vertex_normals(V, F)
+            extra.setdefault("refine_s", []).append(time.perf_counter() - t)
+        if "photo" in groups:
+            t = time.perf_counter()
+            rp = texture_mesh(Vp, F, imgs, msk, sub, Settings(size=size))
+            extra.setdefault("photo_s", []).append(time.perf_counter() - t + extra["refine_s"][-1])
+            r_ph, hit_ph = render_texture(Vp, F, rp.atlas.uv01(), rp.texture, ci, i)
+            _, hit = render_texture(V, F, None, None, ci, i, face_colours=np.zeros((len(F), 3, 3), np.float32))
+            score("ours + photo", r_ph, hit_ph & hit)
+            score("ours (photo's pixels)", r_ours, hit_ph & hit)
+        if "photo-layers" in groups:
+            # the layers on the refined mesh, and the baselines on that same mesh (its own coverage for all three)
+            cp = vertex_colour_baseline(Vp, F, imgs, msk, sub)
+            score("photo mesh: vertex colours", *render_texture(Vp, F, None, None, ci, i, face_colours=cp[F]))
+            cp2 = vertex_colour_baseline(Vp, F, imgs, msk, sub, power=2.0, erode=2)
+            score("photo mesh: cos^2 mean", *render_texture(Vp, F, None, None, ci, i, face_colours=cp2[F]))
+            rpl = texture_mesh(Vp, F, imgs, msk, sub, Settings(size=size, layers=6))
+            score("photo mesh: ours + layers", *render_layers(Vp, F, rpl.atlas.uv01(), rpl.texture, rpl.views, ci, i))
+        if "layers" in groups:
+            t = time.perf_counter()
+            rl = texture_mesh(V, F, imgs, msk, sub, Settings(size=size, layers=6))
+            extra.setdefault("layers_s", []).append(time.perf_counter() - t)
+            r_vd, hit = render_layers(V, F, rl.atlas.uv01(), rl.texture, rl.views, ci, i)
+            score("ours + layers", r_vd, hit)
+        if "in-sample" in groups:
+            ri = texture_mesh(V, F, images.images, masks.masks, cams, Settings(size=size, layers=6))
+            score("in-sample ours", *render_texture(V, F, ri.atlas.uv01(), ri.texture, ci, i))
+            score("in-sample + layers", *render_layers(V, F, ri.atlas.uv01(), ri.texture, ri.views, ci, i))
+            r16 = texture_mesh(V, F, images.images, masks.masks, cams, Settings(size=size, layers=16))
+            score("in-sample + 16 layers", *render_layers(V, F, r16.atlas.uv01(), r16.texture, r16.views, ci, i))
+        if "oracle" in groups:
+            ro = texture_mesh(V, F, [photo], [mask_i], subset(cams, [i]), Settings(size=size))
+            score("oracle", *render_texture(V, F, ro.atlas.uv01(), ro.texture, ci, i))
+        if "vertex" in groups:
+            resv = texture_mesh(V, F, imgs, msk, sub, Settings(size=size), mode="vertex")
+            r_ov, hit = render_texture(V, F, None, None, ci, i, face_colours=resv.vertex_colours.astype(np.float32)[F])
+            score("ours (vertex)", r_ov, hit)
         r_ml = None
         if use_meshlab:
             from meshlab_peer import meshlab_texture
@@ -214,7 +244,7 @@ def evaluate(name, cache, held_n, use_meshlab, size, picture=None):
                 print(f"  {name} cam {i}: MeshLab failed: {exc}", file=sys.stderr)
                 rows["MeshLab"].append(float("nan"))
                 ssims["MeshLab"].append(float("nan"))
-        if picture is not None:
+        if picture is not None and r_vc is not None and r_ours is not None and r_vd is not None:
             tiles.append((rows["ours + layers"][-1], (photo, r_vc, r_ml, r_ours, r_vd, mask_i)))
         print(f"  {name} held-out {cams[i].name}: " + ", ".join(f"{k} {v[-1]:.2f}" for k, v in rows.items() if v), flush=True)
     if picture is not None and tiles:
@@ -260,21 +290,35 @@ def main():
     ap.add_argument("--held", type=int, default=5)
     ap.add_argument("--size", type=int, default=2048)
     ap.add_argument("--no-meshlab", action="store_true")
+    ap.add_argument("--rows", default=",".join(ROW_GROUPS), help="method groups to run: " + ", ".join(ROW_GROUPS))
     ap.add_argument("--cache", default="/tmp/volcap_texture_loo/cache")
     ap.add_argument("--pictures", default=None, help="folder for held-out comparison pictures")
     args = ap.parse_args()
     from machine import describe, load_average
 
+    groups = tuple(args.rows.split(","))
+    bad = [g for g in groups if g not in ROW_GROUPS]
+    if bad:
+        ap.error(f"unknown --rows {bad}; choose from {', '.join(ROW_GROUPS)}")
     print(describe())
+    print(f"code: {ROOT}")
     table = []
     for name in args.datasets.split(","):
         pic = None if args.pictures is None else Path(args.pictures) / f"texture_loo_{name}.jpg"
-        rows, extra = evaluate(name, Path(args.cache), args.held, not args.no_meshlab, args.size, pic)
+        rows, extra = evaluate(name, Path(args.cache), args.held, not args.no_meshlab, args.size, pic, groups)
         table.append((name, rows, extra))
     print("\n" + describe())                               # again beside the figures: the run is long
     print(f"leave-one-camera-out PSNR (dB) / SSIM inside mask and render: median (worst) over held-out cameras; "
           f"load {load_average()}")
-    keys = list(table[0][1])
+    keys = [k for k in table[0][1] if any(rows[k] for _, rows, _ in table)]
+
+    def med(x):
+        return float(np.median(x)) if len(x) else float("nan")
+
+    def mdb(rows, k):
+        v = rows.get(k, [])
+        return float(np.nanmedian(v)) if len(v) and not np.all(np.isnan(v)) else float("nan")
+
     print("| dataset | faces | views | " + " | ".join(keys) + " | bg texels (painted) | ours s/frame | + layers s/frame |")
     print("|---|---|---|" + "---|" * (len(keys) + 3))
     for name, rows, ex in table:
@@ -284,16 +328,24 @@ def main():
             cells.append("n/a" if not len(v) or np.all(np.isnan(v)) else
                          f"{np.nanmedian(v):.2f} ({np.nanmin(v):.2f}) / {np.nanmedian(q):.3f}")
         print(f"| {name} | {ex['faces']} | {ex['views']} | " + " | ".join(cells) +
-              f" | {ex['bg_texels']} ({ex['bg_painted']}) | {np.median(ex['ours_s']):.2f} | {np.median(ex['layers_s']):.2f} |")
+              f" | {ex['bg_texels']} ({ex['bg_painted']}) | {med(ex['ours_s']):.2f} | {med(ex.get('layers_s', [])):.2f} |")
     print("\ngain of ours + layers over the best baseline (vertex colours, cos^2 mean, MeshLab), median dB:")
     for name, rows, ex in table:
-        best = max(np.nanmedian(rows[k]) if rows[k] and not np.all(np.isnan(rows[k])) else -np.inf
-                   for k in ("vertex colours", "cos^2 mean", "MeshLab"))
-        print(f"  {name}: {np.nanmedian(rows['ours + layers']) - best:+.2f} dB (static ours "
-              f"{np.nanmedian(rows['ours']) - best:+.2f}, + photo {np.nanmedian(rows['ours + photo']) - best:+.2f} "
-              f"(over ours on its pixels {photo_gain(rows):+.2f}), "
-              f"photo + texture {np.median(ex['photo_s']):.1f} s); in-sample + layers {np.nanmedian(rows['in-sample + layers']):.2f} "
-              f"vs oracle {np.nanmedian(rows['oracle']):.2f}")
+        best = max([mdb(rows, k) for k in ("vertex colours", "cos^2 mean", "MeshLab") if rows[k]] or [np.nan])
+        line = f"  {name}: {mdb(rows, 'ours + layers') - best:+.2f} dB (static ours {mdb(rows, 'ours') - best:+.2f}"
+        if rows["ours + photo"]:
+            line += (f", + photo {mdb(rows, 'ours + photo') - best:+.2f} (over ours on its pixels "
+                     f"{photo_gain(rows):+.2f}), photo + texture {med(ex['photo_s']):.1f} s")
+        line += ")"
+        if rows["photo mesh: ours + layers"]:
+            pbest = max(mdb(rows, "photo mesh: vertex colours"), mdb(rows, "photo mesh: cos^2 mean"))
+            line += (f"; on the photo-refined mesh ours + layers {mdb(rows, 'photo mesh: ours + layers'):.2f}: "
+                     f"{mdb(rows, 'photo mesh: ours + layers') - pbest:+.2f} over the best baseline on that mesh, "
+                     f"{mdb(rows, 'photo mesh: ours + layers') - best:+.2f} over the best on the unrefined one")
+        if rows["in-sample + layers"]:
+            line += (f"; in-sample + 6 / 16 layers {mdb(rows, 'in-sample + layers'):.2f} / "
+                     f"{mdb(rows, 'in-sample + 16 layers'):.2f} vs oracle {mdb(rows, 'oracle'):.2f}")
+        print(line)
 
 
 if __name__ == "__main__":

@@ -98,11 +98,13 @@ class Texture(Node):
         "balance": Param(bool, True, doc="estimate per-camera exposure / white-balance gains"),
         "level": Param(bool, True, doc="global seam levelling"),
         "layers": Param(int, 0, range=(0, 16), doc="view-dependent layers kept per face (0: none; atlas mode)"),
+        "layer_margin": Param(int, 0, range=(0, 64), doc="mask erosion for the layers, pixels: a camera paints its "
+                              "own layer up to its mask's edge and its outline (depth test only)"),
     }
     kernels = [views.KERNELS, raster.KERNELS]
 
     def run(self, mesh, images, cameras, masks, atlas, reference, *, mode, size, directions, margin, edge_px,
-            smoothness, feather, balance, level, layers):
+            smoothness, feather, balance, level, layers, layer_margin):
         if len(mesh.faces) == 0:
             raise NodeError("the mesh has no faces: nothing to texture")
         if (atlas is not None or reference is not None) and mode == "vertex":
@@ -122,7 +124,8 @@ class Texture(Node):
             raise NodeError(f"input 'atlas' was made for another connectivity ({len(atlas.faces)} faces); the mesh "
                             f"has {len(mesh.faces)} faces: an atlas is reused only for meshes with the same faces")
         s = Settings(size=size, margin=margin, edge_px=edge_px, smoothness=smoothness, feather=feather,
-                     balance=balance, level=level, directions=directions, layers=layers)
+                     balance=balance, level=level, directions=directions, layers=layers,
+                     layer_margin=layer_margin)
         r = texture_mesh(mesh.vertices, mesh.faces, images.images, None if masks is None else masks.masks, cameras,
                          s, atlas=atlas, mode=mode)
         self.log.info("texture: %s; %s", json.dumps({k: round(v, 3) for k, v in r.timings.items()}), json.dumps(r.stats))

@@ -41,6 +41,9 @@ class Settings:
     gutter: int = 2                 # texels around each chart
     directions: int = 6             # chart directions (6 or 14)
     layers: int = 0                 # view-dependent layers (the K best views per face, viewdep.py); 0 = none
+    stable_slots: bool = True       # a camera keeps one layer slot across faces (viewdep.stable_slots)
+    layer_margin: int = 0           # mask erosion for the layers, pixels (< 0: grown): a camera paints its own layer up to its
+                                    # mask's edge and its outline (depth test only), so its photo comes back there
 
 
 @dataclass
@@ -92,9 +95,12 @@ def prepare(vertices, faces, images, masks, cameras, s: Settings, timings: dict)
             raise NodeError(f"mask {i} is {masks[i].shape[1]}x{masks[i].shape[0]} but image {i} is {im.shape[1]}x{im.shape[0]}")
     t = time.perf_counter()
     frame = V.FrameImages.build(images, masks, s.margin)
-    stats = V.face_view_stats(vertices, faces, cameras, frame, depth_tol=s.depth_tol, edge_tol=s.edge_tol, edge_px=s.edge_px)
+    # the layers' frame: the same images, masks eroded by layer_margin (their visibility: FaceViews.seen)
+    layer_frame = frame.with_margin(masks, s.layer_margin) if s.layers > 0 else None
+    stats = V.face_view_stats(vertices, faces, cameras, frame, depth_tol=s.depth_tol, edge_tol=s.edge_tol,
+                              edge_px=s.edge_px, seen_frame=layer_frame)
     timings["visibility"] = time.perf_counter() - t
-    return frame, stats
+    return frame, stats, layer_frame
 
 
 def choose(vertices, faces, cameras, frame, stats, s: Settings, topo: Topology, timings: dict):
@@ -118,7 +124,7 @@ def choose(vertices, faces, cameras, frame, stats, s: Settings, topo: Topology, 
     if s.adaptive and s.blur_px > 0:
         lo, hi = s.spread_range
         blur = np.clip((spread - lo) / max(hi - lo, 1e-6), 0, 1).astype(np.float32)
-    return labels, Blend(face_view, weight, offset, gains, blur, s.blur_px), q
+    return labels, Blend(face_view, weight, offset, gains, blur, s.blur_px), q, sharp
 
 
 def texture_mesh(vertices, faces, images, masks, cameras, s: Settings = Settings(), *, atlas: Atlas | None = None,
@@ -126,9 +132,9 @@ def texture_mesh(vertices, faces, images, masks, cameras, s: Settings = Settings
     vertices = np.asarray(vertices, np.float64)
     faces = np.asarray(faces, np.int32)
     timings: dict = {}
-    frame, stats = prepare(vertices, faces, images, masks, cameras, s, timings)
+    frame, stats, layer_frame = prepare(vertices, faces, images, masks, cameras, s, timings)
     topo = Topology.of(faces, len(vertices))
-    labels, blend, quality = choose(vertices, faces, cameras, frame, stats, s, topo, timings)
+    labels, blend, quality, sharp = choose(vertices, faces, cameras, frame, stats, s, topo, timings)
 
     def fallback():
         return V.fallback_vertex_colours(labels, stats.colour, blend.gains, faces, len(vertices), topo=topo)
@@ -172,11 +178,16 @@ def texture_mesh(vertices, faces, images, masks, cameras, s: Settings = Settings
     texture = fill_texture(col, layout)
     timings["baking"] = time.perf_counter() - t
     if s.layers > 0:
-        from .viewdep import ViewLayers, bake_layers, choose_layers
+        from .viewdep import ViewLayers, bake_layers, choose_layers, stable_slots
 
         t = time.perf_counter()
-        fv = choose_layers(quality, faces, len(vertices), cameras.centers, vertices, K=s.layers, topo=topo)
-        layers, texel_view = bake_layers(layout, vertices, faces, cameras, frame, fv, texture)
+        # a view the static tests refuse (the outline, the mask's edge) but that sees the face unoccluded inside
+        # its mask may paint its own layer, ranked below every view the static atlas may use
+        lq = np.where(quality > 0, quality, np.float32(0.01) * stats.seen * sharp[:, None]).astype(np.float32)
+        fv = choose_layers(lq, faces, len(vertices), cameras.centers, vertices, K=s.layers, topo=topo)
+        if s.stable_slots:
+            fv = stable_slots(fv, len(cameras))
+        layers, texel_view = bake_layers(layout, vertices, faces, cameras, layer_frame, fv, texture)
         views = ViewLayers(layers, texel_view, np.asarray(cameras.centers, np.float64), [c.name for c in cameras])
         timings["layers"] = time.perf_counter() - t
     else:

@@ -4,11 +4,15 @@ map saying which camera painted each texel; a renderer blends the layers by the 
 ray and each layer's camera ray, so a surface seen from near a capture camera shows that camera's photo.
 
     face_view = choose_layers(quality, faces, n_vertices, centres, vertices, K=4)   # (F, K) views, -1 = none
-    layers, texel_view = bake_layers(layout, vertices, faces, cameras, frame, face_view, base)
+    face_view = stable_slots(face_view, n_views)                                  # camera c in slot c mod K
+    layers, texel_view = bake_layers(layout, vertices, faces, cameras, layer_frame, face_view, base)
     w = layer_weights(points, eye, centres, ids)                                # (N, K) blend weights
 
 A static texture on approximate geometry can reproduce no photo exactly (each camera sees the surface's
-errors with its own parallax); the layers can, where the viewer is near a camera. ``layer_weights`` is the
+errors with its own parallax); the layers can, where the viewer is near a camera. A layer is its camera's own
+picture of the surface: a view may paint a face there wherever it sees it unoccluded inside its mask (texturing:
+``layer_margin`` 0 and ``FaceViews.seen``, no edge margin), also at the outline the static atlas keeps away from,
+so that at the capture camera the whole photo comes back. ``layer_weights`` is the
 reference of what a player's shader does (docs in export.player).
 """
 from __future__ import annotations
@@ -61,6 +65,29 @@ def choose_layers(quality, faces, n_vertices, centres, vertices, *, K=8, topo=No
         out[:, k] = np.where(have, nxt, -1)
         taken[rows[have], nxt[have]] = True
         near = np.maximum(near, np.einsum("fvd,fd->fv", d, d[rows, nxt]))
+    return out
+
+
+def stable_slots(face_view, n_views) -> np.ndarray:
+    """The same views per face as ``face_view`` (F, K), moved to layer slots that depend on the camera: camera c
+    takes slot c mod K where free (else the next free one), in the order they were chosen. Neighbouring faces
+    then keep a camera in the same layer, so a renderer's bilinear lookup of layer k at a face border reads
+    that camera on both sides (with K >= the number of cameras, always); -1 = empty slot."""
+    fv = np.asarray(face_view, np.int32)
+    nf, K = fv.shape
+    out = np.full((nf, K), -1, np.int32)
+    rows = np.arange(nf)
+    for k in range(K):
+        c = fv[:, k]
+        todo = c >= 0
+        slot = np.where(todo, c % K, 0)
+        for _ in range(K):
+            free = todo & (out[rows, slot] < 0)
+            out[rows[free], slot[free]] = c[free]
+            todo &= ~free
+            if not todo.any():
+                break
+            slot = (slot + 1) % K
     return out
 
 

@@ -58,6 +58,16 @@ class FrameImages:
         packed_valid = np.concatenate([v.reshape(-1) for v in valid])
         return cls(list(images), valid, packed, packed_valid, offsets)
 
+    def with_margin(self, masks, margin: int) -> "FrameImages":
+        """The same images with valid masks eroded by ``margin`` instead (the view-dependent layers' own
+        pictures: a camera paints its layer up to its mask's edge)."""
+        valid = [valid_mask(im.shape[:2], None if masks is None else masks[i], margin)
+                 for i, im in enumerate(self.images)]
+        out = FrameImages(self.images, valid, self.packed, np.concatenate([v.reshape(-1) for v in valid]),
+                          self.offsets)
+        out._d_img = getattr(self, "_d_img", None)
+        return out
+
     def device_images(self, tcl):
         """``packed`` as a device buffer (made once per frame; on a CPU device it is the host memory itself)."""
         if getattr(self, "_d_img", None) is None:
@@ -81,6 +91,8 @@ def valid_mask(shape, mask, margin: int) -> np.ndarray:
     if margin > 0:
         m = cv2.erode(m, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin + 1, 2 * margin + 1)),
                       borderValue=0)
+    elif margin < 0:                              # grown by -margin pixels
+        m = cv2.dilate(m, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (1 - 2 * margin, 1 - 2 * margin)))
     return m
 
 
@@ -89,6 +101,8 @@ class FaceViews:
     quality: np.ndarray   # (V, F) float32, 0 = not usable
     colour: np.ndarray    # (V, F, 3) float32 mean colour (0..255) where usable (the centroid's where relaxed)
     relaxed: np.ndarray   # (V, F) float32 quality under the weaker test (centroid only, no edge margin)
+    seen: np.ndarray | None = None   # (V, F) float32 the relaxed test on another frame's valid masks (the
+                                     # layers': centroid unoccluded inside the mask), when asked for
 
     device = None         # (quality, relaxed, colour) device buffers, as written by face_view_stats
 
@@ -104,9 +118,10 @@ def _tolerances(vertices, depth_tol, edge_tol):
 
 
 def face_view_stats(vertices, faces, cameras: Cameras, frame: FrameImages, *, depth_tol=0.01, edge_tol=0.02,
-                    edge_px=2) -> FaceViews:
+                    edge_px=2, seen_frame: FrameImages | None = None) -> FaceViews:
     """Per view and face: quality and mean colour (kernel ``face_views`` over the z-buffer of kernels/raster.cl).
-    ``depth_tol`` and ``edge_tol`` are fractions of the mesh's bounding-box diagonal."""
+    ``depth_tol`` and ``edge_tol`` are fractions of the mesh's bounding-box diagonal. With ``seen_frame`` (the
+    same images, other valid masks) also ``seen``: the relaxed test against its masks, over the same z-buffer."""
     import pyopencl as cl
 
     from nodes.common.raster import MeshRaster
@@ -128,16 +143,26 @@ def face_view_stats(vertices, faces, cameras: Cameras, frame: FrameImages, *, de
     d_r = tcl.buffer("fv_relaxed", 4 * nf * nv)
     d_c = tcl.buffer("fv_colour", 12 * nf * nv)
     centres = cameras.centers
+    if seen_frame is not None:
+        seen = np.zeros((nv, nf), np.float32)
+        d_seen_valid = seen_frame.device_valid(tcl)
+        d_s = [tcl.buffer(role, n * nf * nv) for role, n in (("fv_seen_q", 4), ("fv_seen", 4), ("fv_seen_c", 12))]
     for view in range(nv):
         zbuf = r.zbuffer(view)
         off = int(frame.offsets[view])
         tcl.launch("face_views", (nf,), (64,), r.d_verts, r.d_faces, np.int32(nf), r.d_cams, np.int32(view),
                    cl.cltypes.make_float4(*centres[view], 0), zbuf, d_valid, d_img, np.int64(off), np.float32(dt), np.float32(et),
                    np.int32(edge_px), d_q, d_r, d_c)
+        if seen_frame is not None:                 # same z-buffer, the other masks: its relaxed output is ``seen``
+            tcl.launch("face_views", (nf,), (64,), r.d_verts, r.d_faces, np.int32(nf), r.d_cams, np.int32(view),
+                       cl.cltypes.make_float4(*centres[view], 0), zbuf, d_seen_valid, d_img, np.int64(off),
+                       np.float32(dt), np.float32(et), np.int32(0), *d_s)
     cl.enqueue_copy(tcl.queue, quality, d_q, is_blocking=False)
     cl.enqueue_copy(tcl.queue, relaxed, d_r, is_blocking=False)
+    if seen_frame is not None:
+        cl.enqueue_copy(tcl.queue, seen, d_s[1], is_blocking=False)
     cl.enqueue_copy(tcl.queue, colour, d_c, is_blocking=True)
-    out = FaceViews(quality, colour, relaxed)
+    out = FaceViews(quality, colour, relaxed, seen if seen_frame is not None else None)
     out.device = (d_q, d_r, d_c)
     tcl.face_views_latest = weakref.ref(out)       # the buffers are shared: only the latest stats own them
     return out
@@ -156,10 +181,14 @@ def _sample_rgb_reference(img, p):
 
 
 def face_view_stats_reference(vertices, faces, cameras: Cameras, frame: FrameImages, *, depth_tol=0.01,
-                              edge_tol=0.02, edge_px=2) -> FaceViews:
+                              edge_tol=0.02, edge_px=2, seen_frame: FrameImages | None = None) -> FaceViews:
     """NumPy version of ``face_view_stats`` (z-buffer from raster.rasterize_reference)."""
     from nodes.common.raster import rasterize_reference
 
+    seen_other = None
+    if seen_frame is not None:
+        seen_other = face_view_stats_reference(vertices, faces, cameras, seen_frame, depth_tol=depth_tol,
+                                         edge_tol=edge_tol, edge_px=0).relaxed
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces, np.int64)
     nv, nf = len(cameras), len(f)
@@ -210,7 +239,7 @@ def face_view_stats_reference(vertices, faces, cameras: Cameras, frame: FrameIma
         quality[view] = np.where(strict, q, 0)
         relaxed[view] = np.where(centre_ok, q, 0)
         colour[view] = np.where(strict[:, None], acc * 0.25, np.where(centre_ok[:, None], first, 0))
-    return FaceViews(quality, colour, relaxed)
+    return FaceViews(quality, colour, relaxed, seen_other)
 
 
 # ---------------------------------------------------------------- selection
