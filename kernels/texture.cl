@@ -86,6 +86,12 @@ __kernel void face_views(__global const float *verts, __global const int *faces,
     relaxed[f] = 0.0f;
     colour[3 * f] = colour[3 * f + 1] = colour[3 * f + 2] = 0.0f;
     if (cosine <= 0.0f) return;
+    // the centroid first: where it is outside the valid pixels or occluded nothing is usable (quality, relaxed
+    // and colour stay 0, as after the corners' tests), so the corners need not be projected
+    float zg;
+    float2 pg = project_point(cam, G, &zg);
+    int ig;
+    if (zg <= NEAR_Z || !pixel_ok(valid, w, h, pg, &ig) || zg > zbuf_depth(zbuf, ig) + depth_tol) return;
     float za, zb, zc;
     float2 pa = project_point(cam, A, &za), pb = project_point(cam, B, &zb), pc = project_point(cam, C, &zc);
     if (za <= NEAR_Z || zb <= NEAR_Z || zc <= NEAR_Z) return;
@@ -93,11 +99,14 @@ __kernel void face_views(__global const float *verts, __global const int *faces,
     float3 sum = (float3)(0.0f), first = (float3)(0.0f);
     int strict = 1;
     for (int s = 0; s < 4; s++) {
-        float3 X = s == 0 ? G : (s == 1 ? G + 0.8f * (A - G) : (s == 2 ? G + 0.8f * (B - G) : G + 0.8f * (C - G)));
-        float z;
-        float2 p = project_point(cam, X, &z);
-        int idx;
-        if (z <= NEAR_Z || !pixel_ok(valid, w, h, p, &idx) || z > zbuf_depth(zbuf, idx) + depth_tol) {
+        float z = zg;
+        float2 p = pg;
+        int idx = ig;
+        if (s > 0) {
+            float3 X = s == 1 ? G + 0.8f * (A - G) : (s == 2 ? G + 0.8f * (B - G) : G + 0.8f * (C - G));
+            p = project_point(cam, X, &z);
+        }
+        if (s > 0 && (z <= NEAR_Z || !pixel_ok(valid, w, h, p, &idx) || z > zbuf_depth(zbuf, idx) + depth_tol)) {
             strict = 0;
             break;
         }
