@@ -135,16 +135,17 @@ class BakeLayout:
         return lay
 
     def device(self):
-        """(face, bary, order) on the OpenCL device, uploaded once: the texels sorted by face (``order``, the
+        """(face, bary, dest) on the OpenCL device, uploaded once: the texels sorted by face (``dest``, the
         layout's index of each device sample), so that neighbouring work items bake the same face from the
-        same views (the bake kernel ran 12 % faster than in atlas order); ``bake_samples`` puts its output
-        back in layout order."""
+        same views (the bake kernel ran 12 % faster than in atlas order); the kernel writes each result to
+        row ``dest`` (layout order)."""
         if self._device is None:
             from nodegraph import clrt
 
             order = np.argsort(self.face, kind="stable")
             self._device = (clrt.to_device(np.ascontiguousarray(self.face[order], np.int32)),
-                            clrt.to_device(np.ascontiguousarray(self.bary[order], np.float32).reshape(-1)), order)
+                            clrt.to_device(np.ascontiguousarray(self.bary[order], np.float32).reshape(-1)),
+                            clrt.to_device(order.astype(np.int32)))
         return self._device
 
     def __len__(self):

@@ -86,6 +86,17 @@ def test_uv_raster_bary_and_bake_kernels_match_references():
     assert painted.sum() > 1000
     assert np.mean((got[:, 3] > 0) == (ref[:, 3] > 0)) > 0.995
     assert np.percentile(np.abs(got[painted, :3] - ref[painted, :3]), 99) < 0.5
+    # a layout's samples, baked sorted by face on the device and written back to their rows by the kernel: the
+    # same numbers as the same samples uploaded in layout order
+    from nodes.texture.reuse import BakeLayout
+
+    lay = BakeLayout.of(atlas, 2)
+    assert not np.all(np.diff(lay.face) >= 0)                    # layout order is not face order
+    plain = B.bake_samples(lay.face, lay.bary, m.vertices, m.faces, s["cameras"], frame, blend)
+    sorted_ = B.bake_samples(lay.face, lay.bary, m.vertices, m.faces, s["cameras"], frame, blend,
+                             device_samples=lay.device())
+    assert np.sum(plain[:, 3] > 0) > 1000
+    np.testing.assert_array_equal(sorted_, plain)
 
 
 def test_bake_layout_and_compact_fill_match_the_full_image_path():
