@@ -615,24 +615,56 @@ def level_seams(vertices, faces, face_view, weight, cameras: Cameras, frame: Fra
     i1 = i0 + 1
     edges = topo.edges if topo is not None else unique_edges(faces)[0]
     edges = edges[inband[edges[:, 0]] | inband[edges[:, 1]]]
-    table = np.full((nvert, nviews), -1, np.int64)                        # node id per (vertex, view)
-    table[node_vertex, node_view] = np.arange(n)
-    pa = pb = pins = np.zeros(0, np.int64)
-    if len(edges):
-        ta, tb = table[edges[:, 0]], table[edges[:, 1]]                  # (E, views)
-        # an edge whose other end is outside the band (offset 0 there) pins the offset towards 0
-        a_out = ~inband[edges[:, 0]][:, None]
-        b_out = ~inband[edges[:, 1]][:, None]
-        both = (ta >= 0) & (tb >= 0)
-        pa, pb = ta[both], tb[both]
-        pins = np.concatenate([ta[(ta >= 0) & b_out], tb[(tb >= 0) & a_out]])
+    pa, pb, pins = _edge_nodes(nodes, node_vertex, node_view, nviews, nvert, edges, inband)
     M, rhs = levelling_system(n, i0, i1, colour[i1] - colour[i0], pa, pb, pins, smoothness, regular)
     g = block_pcg(M, rhs, tol=tol, maxiter=maxiter)
     # offsets of the used slots: the node's value inside the band, 0 outside
-    node = table.reshape(-1)[used_keys]
-    hit = node >= 0
+    node, hit = _node_of(nodes, used_keys)
     offset.reshape(-1, 3)[used[hit]] = g[node[hit]].astype(np.float32)
     return offset
+
+
+def _node_of(nodes, keys):
+    """(index into the sorted ``nodes`` of each key, whether it is there)."""
+    pos = np.searchsorted(nodes, keys)
+    hit = pos < len(nodes)
+    hit[hit] = nodes[pos[hit]] == keys[hit]
+    return pos, hit
+
+
+def _edge_nodes(nodes, node_vertex, node_view, nviews, nvert, edges, inband):
+    """The levelling's edge rows from the band's nodes (sorted keys vertex * nviews + view): pairs (pa, pb) of
+    nodes with the same view at the two ends of an edge, and ``pins``: the nodes at an edge's end whose other
+    end is outside the band (offset 0 there: pinned towards 0). In the order of a dense (edge, view) table of
+    node ids read row by row (``_edge_nodes_reference``), without making that table."""
+    empty = np.zeros(0, np.int64)
+    if not len(edges):
+        return empty, empty, empty
+    start = np.searchsorted(node_vertex, np.arange(nvert))
+    count = np.bincount(node_vertex, minlength=nvert)
+
+    def nodes_at(vert):                    # per vertex (in order) its nodes, by view: (which vertex, node)
+        c = count[vert]
+        first = np.cumsum(c) - c
+        which = np.repeat(np.arange(len(vert)), c)
+        return which, np.repeat(start[vert] - first, c) + np.arange(int(c.sum()))
+
+    e, na = nodes_at(edges[:, 0])
+    nb, found = _node_of(nodes, edges[e, 1] * nviews + node_view[na])
+    a_out, b_out = ~inband[edges[:, 0]], ~inband[edges[:, 1]]
+    pins = np.concatenate([nodes_at(edges[b_out, 0])[1], nodes_at(edges[a_out, 1])[1]]).astype(np.int64)
+    return na[found].astype(np.int64), nb[found].astype(np.int64), pins
+
+
+def _edge_nodes_reference(nodes, node_vertex, node_view, nviews, nvert, edges, inband):
+    """``_edge_nodes`` by the dense (vertex, view) table of node ids."""
+    table = np.full((nvert, nviews), -1, np.int64)
+    table[node_vertex, node_view] = np.arange(len(nodes))
+    ta, tb = table[edges[:, 0]], table[edges[:, 1]]                      # (E, views)
+    a_out = ~inband[edges[:, 0]][:, None]
+    b_out = ~inband[edges[:, 1]][:, None]
+    both = (ta >= 0) & (tb >= 0)
+    return ta[both], tb[both], np.concatenate([ta[(ta >= 0) & b_out], tb[(tb >= 0) & a_out]])
 
 
 def levelling_system(n, i0, i1, diff, pa, pb, pins, smoothness, regular):

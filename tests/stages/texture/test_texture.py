@@ -738,3 +738,22 @@ def test_flicker_counts_only_change_the_truth_does_not_have():
     assert flicker(c)["change"] == pytest.approx(np.abs(np.diff(c, axis=0)).mean())
     with pytest.raises(ValueError, match="must be"):
         flicker(c[:1], truth[:1])
+
+
+def test_levelling_edge_rows_match_the_dense_table():
+    rng = np.random.default_rng(3)
+    nvert, nviews = 400, 7
+    inband = rng.random(nvert) < 0.6
+    keys = np.unique(rng.integers(0, nvert * nviews, 900))
+    nodes = keys[inband[keys // nviews]]
+    edges = np.unique(np.sort(rng.integers(0, nvert, (1500, 2)), axis=1), axis=0)
+    edges = edges[edges[:, 0] != edges[:, 1]]
+    edges = edges[inband[edges[:, 0]] | inband[edges[:, 1]]]
+    args = (nodes, nodes // nviews, nodes % nviews, nviews, nvert, edges, inband)
+    got, ref = V._edge_nodes(*args), V._edge_nodes_reference(*args)
+    assert len(got[0]) > 100 and len(got[2]) > 100
+    for a, b in zip(got, ref):
+        assert a.dtype == b.dtype
+        np.testing.assert_array_equal(a, b)
+    pos, hit = V._node_of(nodes, keys)
+    assert hit.sum() == len(nodes) and np.array_equal(pos[hit], np.arange(len(nodes)))
