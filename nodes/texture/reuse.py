@@ -113,7 +113,7 @@ class BakeLayout:
         self.cell = (y // c) * self.coarse_shape[1] + x // c
         n_cells = self.coarse_shape[0] * self.coarse_shape[1]
         self.cell_count = np.bincount(self.cell, minlength=n_cells)
-        self.cell_channel = (self.cell[:, None] * 3 + np.arange(3)).reshape(-1).astype(np.int32)   # bin of each value
+        self.cell_channel = (self.cell[:, None] * 3 + np.arange(3)).reshape(-1).astype(np.intp)    # bin of each value
         self.texel_channel = (self.texel[:, None] * 3 + np.arange(3)).reshape(-1)  # its byte in the texture
         self.cell_area = np.full(self.coarse_shape, float(c * c))
         if s % c:                                             # edge cells are partly outside the square

@@ -390,16 +390,20 @@ def camera_gains(quality, colour, *, iterations=6, min_level=8.0, max_faces=8000
     a = np.zeros((nv, 1, 3), np.float32)
     w = m.astype(np.float32)
     m_count = np.count_nonzero(m)
+    La, r, tmp, wr = (np.empty_like(L) for _ in range(4))    # the (V, F', 3) temporaries, written in place
+    near = np.empty(L.shape, bool)
     for _ in range(iterations):
-        La = L - a
-        t = (w * La).sum(axis=0) / np.maximum(w.sum(axis=0), 1e-9)                     # (F', 3)
-        r = La - t[None]
-        wr = w * (np.abs(r) < 0.3)
-        a = a + (over_faces(wr * r) / np.maximum(over_faces(wr), 1e-9))
+        np.subtract(L, a, out=La)
+        t = np.multiply(w, La, out=tmp).sum(axis=0) / np.maximum(w.sum(axis=0), 1e-9)   # (F', 3)
+        np.subtract(La, t[None], out=r)
+        np.less(np.abs(r, out=tmp), 0.3, out=near)
+        np.multiply(w, near, out=wr)
+        a = a + (over_faces(np.multiply(wr, r, out=tmp)) / np.maximum(over_faces(wr), 1e-9))
         seen = over_faces(w) > 0
         a = np.where(seen, a, 0.0)
         a -= a[seen[:, 0, 0]].mean(axis=0, keepdims=True) if np.any(seen) else 0
-        w = wr if np.count_nonzero(wr) > 0.5 * m_count else w      # (0/1 values: the count is their sum)
+        if np.count_nonzero(wr) > 0.5 * m_count:                 # (0/1 values: the count is their sum)
+            w, wr = wr, w
     return np.exp(-a[:, 0, :]).astype(np.float32)
 
 
