@@ -51,11 +51,23 @@ class FrameImages:
 
     @classmethod
     def build(cls, images, masks=None, margin: int = 2) -> "FrameImages":
-        valid = [valid_mask(im.shape[:2], None if masks is None else masks[i], margin) for i, im in enumerate(images)]
+        """(Per view on a few threads, nodes.common.views: the masks' erosion and the copies into the packed
+        arrays release the GIL.)"""
+        from nodes.common.views import map_views
+
         sizes = np.array([im.size for im in images], np.int64)
         offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
-        packed = np.concatenate([np.ascontiguousarray(im).reshape(-1) for im in images])
-        packed_valid = np.concatenate([v.reshape(-1) for v in valid])
+        packed = np.empty(int(sizes.sum()), np.uint8)
+        packed_valid = np.empty(int(sizes.sum()) // 3, np.uint8)
+
+        def one(i, im):
+            v = valid_mask(im.shape[:2], None if masks is None else masks[i], margin)
+            a, n = int(offsets[i]), int(sizes[i])
+            packed[a:a + n] = np.asarray(im).reshape(-1)
+            packed_valid[a // 3:(a + n) // 3] = v.reshape(-1)
+            return v
+
+        valid = map_views(one, range(len(images)), images)
         return cls(list(images), valid, packed, packed_valid, offsets)
 
     def device_images(self, tcl):
@@ -72,7 +84,25 @@ class FrameImages:
 
 def valid_mask(shape, mask, margin: int) -> np.ndarray:
     """uint8 1 where a pixel may be sampled: inside the mask eroded by ``margin`` pixels (all pixels without a
-    mask)."""
+    mask). (Eroded on the mask's bounding box: outside it the mask is 0, as the erosion's border is, so the box
+    gives the same pixels as the whole image, ``valid_mask_reference``.)"""
+    import cv2
+
+    if mask is None:
+        return np.ones(shape, np.uint8)
+    m = np.greater(np.asarray(mask), 127).view(np.uint8)       # the comparison's bytes are 0 / 1
+    if margin > 0:
+        x, y, w, h = cv2.boundingRect(m)
+        out = np.zeros(m.shape, np.uint8)
+        if w and h:
+            kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin + 1, 2 * margin + 1))
+            out[y:y + h, x:x + w] = cv2.erode(m[y:y + h, x:x + w], kernel, borderValue=0)
+        m = out
+    return m
+
+
+def valid_mask_reference(shape, mask, margin: int) -> np.ndarray:
+    """``valid_mask`` on the whole image."""
     import cv2
 
     if mask is None:
@@ -216,21 +246,66 @@ def face_view_stats_reference(vertices, faces, cameras: Cameras, frame: FrameIma
 # ---------------------------------------------------------------- selection
 def view_sharpness(images, valid) -> np.ndarray:
     """(V,) relative sharpness of each view: median gradient energy inside the valid region, divided by the
-    median over views (1 = typical; a blurred or defocused view scores lower)."""
-    import cv2
+    median over views (1 = typical; a blurred or defocused view scores lower). (Per view on a few threads, and
+    on the valid region's bounding box when the image's size is a whole number of the 1/k reduction's blocks:
+    the same numbers as ``view_sharpness_reference``'s whole images.)"""
+    from nodes.common.views import map_views
 
-    s = []
-    for im, m in zip(images, valid):
-        g = cv2.cvtColor(im, cv2.COLOR_RGB2GRAY)
-        k = max(1, g.shape[1] // 512)                     # judged at about 512 pixels across
-        small = g if k == 1 else cv2.resize(g, (g.shape[1] // k, g.shape[0] // k), interpolation=cv2.INTER_AREA)
-        ms = m if m.shape == small.shape else cv2.resize(m, small.shape[::-1], interpolation=cv2.INTER_NEAREST)
-        lap = np.abs(cv2.Laplacian(small, cv2.CV_32F))
-        vals = lap[ms > 0]
-        s.append(float(np.mean(vals)) if vals.size else 0.0)
-    s = np.asarray(s)
+    return _relative(np.asarray(map_views(_sharpness_boxed, images, valid)))
+
+
+def view_sharpness_reference(images, valid) -> np.ndarray:
+    """``view_sharpness`` on whole images, one view after the other."""
+    return _relative(np.asarray([_sharpness(im, m) for im, m in zip(images, valid)]))
+
+
+def _relative(s):
     med = np.median(s[s > 0]) if np.any(s > 0) else 1.0
     return np.clip(s / med, 0.25, 2.0) if med > 0 else np.ones(len(s))
+
+
+def _sharpness(im, m) -> float:
+    """Mean |Laplacian| of the grey image inside the valid mask, judged at about 512 pixels across."""
+    import cv2
+
+    g = cv2.cvtColor(im, cv2.COLOR_RGB2GRAY)
+    k = max(1, g.shape[1] // 512)
+    small = g if k == 1 else cv2.resize(g, (g.shape[1] // k, g.shape[0] // k), interpolation=cv2.INTER_AREA)
+    ms = m if m.shape == small.shape else cv2.resize(m, small.shape[::-1], interpolation=cv2.INTER_NEAREST)
+    lap = np.abs(cv2.Laplacian(small, cv2.CV_32F))
+    vals = lap[ms > 0]
+    return float(np.mean(vals)) if vals.size else 0.0
+
+
+def _sharpness_boxed(im, m) -> float:
+    """``_sharpness`` on the valid mask's bounding box, grown by one pixel of the reduced image (the Laplacian's
+    reach) and aligned to the reduction's k x k blocks (their means, and the mask's nearest samples, are then
+    those of the whole image); the values inside the mask come in the same order, so their mean is the same."""
+    import cv2
+
+    h, w = m.shape
+    k = max(1, w // 512)
+    if h % k or w % k:                                    # the reduction is not by whole blocks: whole image
+        return _sharpness(im, m)
+    x, y, bw, bh = cv2.boundingRect(m)
+    if not (bw and bh):
+        return 0.0
+    sx0, sy0 = max(x // k - 1, 0), max(y // k - 1, 0)     # the box in the reduced image, grown by one
+    sx1, sy1 = min(-(-(x + bw) // k) + 1, w // k), min(-(-(y + bh) // k) + 1, h // k)
+    return _sharpness(im[k * sy0:k * sy1, k * sx0:k * sx1], m[k * sy0:k * sy1, k * sx0:k * sx1]) if k == 1 else \
+        _sharpness_reduced(im[k * sy0:k * sy1, k * sx0:k * sx1], m[k * sy0:k * sy1, k * sx0:k * sx1], k)
+
+
+def _sharpness_reduced(im, m, k) -> float:
+    """``_sharpness`` of a crop whose reduction factor is the whole image's ``k`` (not the crop's own width's)."""
+    import cv2
+
+    g = cv2.cvtColor(np.ascontiguousarray(im), cv2.COLOR_RGB2GRAY)
+    small = cv2.resize(g, (g.shape[1] // k, g.shape[0] // k), interpolation=cv2.INTER_AREA)
+    ms = cv2.resize(np.ascontiguousarray(m), small.shape[::-1], interpolation=cv2.INTER_NEAREST)
+    lap = np.abs(cv2.Laplacian(small, cv2.CV_32F))
+    vals = lap[ms > 0]
+    return float(np.mean(vals)) if vals.size else 0.0
 
 
 def data_cost(quality, colour, gains=None, *, consistency=40.0, return_spread=False):

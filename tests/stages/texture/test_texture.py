@@ -757,3 +757,25 @@ def test_levelling_edge_rows_match_the_dense_table():
         np.testing.assert_array_equal(a, b)
     pos, hit = V._node_of(nodes, keys)
     assert hit.sum() == len(nodes) and np.array_equal(pos[hit], np.arange(len(nodes)))
+
+
+def test_valid_masks_and_sharpness_on_the_mask_box_match_the_whole_image():
+    rng = np.random.default_rng(5)
+    for h, w in ((120, 160), (864, 1536), (700, 1030), (701, 1031)):     # k = 1, 3, 2 and 2 not by whole blocks
+        images, masks = [], []
+        for box in ((0, 0, h, w), (0, 0, h // 2, w // 3), (h // 3, w // 4, h, w), (h // 4, w // 5, h // 2, w // 2)):
+            m = np.zeros((h, w), np.uint8)
+            m[box[0]:box[2], box[1]:box[3]] = rng.integers(100, 256, (box[2] - box[0], box[3] - box[1]))
+            masks.append(m)
+            images.append(rng.integers(0, 256, (h, w, 3), dtype=np.uint8))
+        masks.append(np.zeros((h, w), np.uint8))                        # an empty mask
+        images.append(images[0])
+        for margin in (0, 2):
+            valid = [V.valid_mask((h, w), m, margin) for m in masks]
+            for got, m in zip(valid, masks):
+                ref = V.valid_mask_reference((h, w), m, margin)
+                assert got.dtype == ref.dtype and np.array_equal(got, ref)
+            assert valid[3].sum() > 0 and valid[-1].sum() == 0
+            sharp = V.view_sharpness(images, valid)
+            np.testing.assert_array_equal(sharp, V.view_sharpness_reference(images, valid))
+            assert np.all(sharp[:-1] > 0.25)
