@@ -86,6 +86,12 @@ __kernel void face_views(__global const float *verts, __global const int *faces,
     relaxed[f] = 0.0f;
     colour[3 * f] = colour[3 * f + 1] = colour[3 * f + 2] = 0.0f;
     if (cosine <= 0.0f) return;
+    // the centroid first: where it is outside the valid pixels or occluded nothing is usable (quality, relaxed
+    // and colour stay 0, as after the corners' tests), so the corners need not be projected
+    float zg;
+    float2 pg = project_point(cam, G, &zg);
+    int ig;
+    if (zg <= NEAR_Z || !pixel_ok(valid, w, h, pg, &ig) || zg > zbuf_depth(zbuf, ig) + depth_tol) return;
     float za, zb, zc;
     float2 pa = project_point(cam, A, &za), pb = project_point(cam, B, &zb), pc = project_point(cam, C, &zc);
     if (za <= NEAR_Z || zb <= NEAR_Z || zc <= NEAR_Z) return;
@@ -93,11 +99,14 @@ __kernel void face_views(__global const float *verts, __global const int *faces,
     float3 sum = (float3)(0.0f), first = (float3)(0.0f);
     int strict = 1;
     for (int s = 0; s < 4; s++) {
-        float3 X = s == 0 ? G : (s == 1 ? G + 0.8f * (A - G) : (s == 2 ? G + 0.8f * (B - G) : G + 0.8f * (C - G)));
-        float z;
-        float2 p = project_point(cam, X, &z);
-        int idx;
-        if (z <= NEAR_Z || !pixel_ok(valid, w, h, p, &idx) || z > zbuf_depth(zbuf, idx) + depth_tol) {
+        float z = zg;
+        float2 p = pg;
+        int idx = ig;
+        if (s > 0) {
+            float3 X = s == 1 ? G + 0.8f * (A - G) : (s == 2 ? G + 0.8f * (B - G) : G + 0.8f * (C - G));
+            p = project_point(cam, X, &z);
+        }
+        if (s > 0 && (z <= NEAR_Z || !pixel_ok(valid, w, h, p, &idx) || z > zbuf_depth(zbuf, idx) + depth_tol)) {
             strict = 0;
             break;
         }
@@ -180,18 +189,20 @@ __kernel void texel_bary(__global const int *texel_face, int size, __global cons
 // invalid pixel), c_k = gain[view] * image sample + sum_c b_c offset[f, c, k]; where face_blur[f] > 0 the
 // image sample is mixed with a 5-tap cross of radius blur_px (views that disagree: geometry or calibration
 // errors, where a sharp sample is sharply wrong from other viewpoints). out = (r, g, b, sum wt),
-// 0..255 scale; sum wt = 0: no view could colour it (the caller fills it).
+// 0..255 scale; sum wt = 0: no view could colour it (the caller fills it). With ``scatter`` sample i's result
+// goes to row dest[i] (a BakeLayout's samples sorted by face, written back in layout order).
 __kernel void bake(int nsamples, __global const int *sample_face, __global const float *sample_bary,
                    __global const float *verts, __global const int *faces, __global const float *cams,
                    __global const uchar *images, __global const uchar *valid, __global const long *img_off,
                    int K, __global const int *face_view, __global const float *weight,
                    __global const float *offset, __global const float *gain, __global const float *face_blur,
-                   float blur_px, __global float4 *out)
+                   float blur_px, __global const int *dest, int scatter, __global float4 *out)
 {
     int i = get_global_id(0);
     if (i >= nsamples) return;
+    int o = scatter ? dest[i] : i;                // the sample's row of ``out`` (samples sorted by face, out not)
     int f = sample_face[i];
-    if (f < 0) { out[i] = (float4)(0.0f); return; }
+    if (f < 0) { out[o] = (float4)(0.0f); return; }
     float b0 = sample_bary[3 * i], b1 = sample_bary[3 * i + 1], b2 = sample_bary[3 * i + 2];
     float3 X = b0 * vertex3(verts, faces[3 * f]) + b1 * vertex3(verts, faces[3 * f + 1]) + b2 * vertex3(verts, faces[3 * f + 2]);
     float3 acc = (float3)(0.0f);
@@ -223,7 +234,7 @@ __kernel void bake(int nsamples, __global const int *sample_face, __global const
         acc += wt * c;
         wsum += wt;
     }
-    out[i] = wsum > 0.0f ? (float4)(acc / wsum, wsum) : (float4)(0.0f);
+    out[o] = wsum > 0.0f ? (float4)(acc / wsum, wsum) : (float4)(0.0f);
 }
 
 #define INVISIBLE 1e6f

@@ -120,19 +120,19 @@ def texel_bary_reference(texel_face, face_uv) -> np.ndarray:
 def bake_samples(sample_face, sample_bary, vertices, faces, cameras, frame: FrameImages, blend: Blend, *,
                  device_samples=None) -> np.ndarray:
     """(N, 4) float32: colour (0..255) and summed blend weight of each sample (kernel ``bake``).
-    ``device_samples``: (face, bary, order) already on the device (a BakeLayout's: the samples ``order``
-    (N,) in that order), used instead of uploading."""
+    ``device_samples``: (face, bary, dest) already on the device (a BakeLayout's: its samples sorted by face,
+    ``dest`` (N,) the layout's index of each device sample, where the kernel writes its result), used instead
+    of uploading. The blend arrays are read by the device from their host memory (no copy on a CPU device)."""
     import pyopencl as cl
 
     tcl = TextureCL.get()
     n = len(sample_face)
     K = blend.face_view.shape[1]
-    order = None
     if device_samples is None:
         device_samples = (tcl.upload("s_face", np.ascontiguousarray(sample_face, np.int32)),
-                          tcl.upload("s_bary", np.ascontiguousarray(sample_bary, np.float32).reshape(-1)))
-    else:
-        *device_samples, order = device_samples
+                          tcl.upload("s_bary", np.ascontiguousarray(sample_bary, np.float32).reshape(-1)), None)
+    *device_samples, dest = device_samples
+    keep = [np.ascontiguousarray(a, np.float32) for a in (blend.weight, blend.offset)]   # alive until the read
     args = [*device_samples,
             tcl.upload("verts", np.ascontiguousarray(vertices, np.float32)),
             tcl.upload("faces", np.ascontiguousarray(faces, np.int32)),
@@ -141,20 +141,16 @@ def bake_samples(sample_face, sample_bary, vertices, faces, cameras, frame: Fram
             tcl.upload("img_off", frame.offsets.astype(np.int64)),
             np.int32(K),
             tcl.upload("face_view", np.ascontiguousarray(blend.face_view, np.int32)),
-            tcl.upload("weight", np.ascontiguousarray(blend.weight, np.float32)),
-            tcl.upload("offset", np.ascontiguousarray(blend.offset, np.float32)),
+            *(tcl.host(a) if a.size else tcl.buffer(f"bake_empty{i}", 4) for i, a in enumerate(keep)),
             tcl.upload("gain", np.ascontiguousarray(blend.gains, np.float32)),
-            tcl.upload("face_blur", blend.face_blur()), np.float32(blend.blur_px)]
+            tcl.upload("face_blur", blend.face_blur()), np.float32(blend.blur_px),
+            dest if dest is not None else tcl.buffer("bake_dest", 4), np.int32(dest is not None)]
     d_out = tcl.buffer("bake_out", 16 * max(n, 1))
-    if n:
-        tcl.launch("bake", (n,), (64,), np.int32(n), *args, d_out)
     out = np.empty((n, 4), np.float32)
     if n:
+        tcl.launch("bake", (n,), (64,), np.int32(n), *args, d_out)
         cl.enqueue_copy(tcl.queue, out, d_out)
-    if order is not None:
-        back = np.empty_like(out)
-        back[order] = out
-        out = back
+    del keep
     return out
 
 
@@ -256,14 +252,16 @@ def fill_texture(colour: np.ndarray, layout) -> np.ndarray:
     area = layout.cell_area.reshape(-1)
     wt = (layout.cell_count / area).reshape(ch, cw).astype(np.float32)
     # one bincount over (cell, channel): per bin the same texels in the same order as one per channel
-    c = np.bincount(layout.cell_channel, np.ascontiguousarray(colour).reshape(-1), minlength=3 * n).reshape(n, 3)
+    # (the values as float64 and the bins as intp, what bincount works in: it converted them itself, 2-3x slower)
+    c64 = np.ascontiguousarray(colour, np.float64)
+    c = np.bincount(layout.cell_channel, c64.reshape(-1), minlength=3 * n).reshape(n, 3)
     c /= area[:, None]
     filled = _pyramid_fill(c.reshape(ch, cw, 3).astype(np.float32), wt)
     c16 = layout.COARSE                                       # cells of c16 texels (the last ones partial)
     up = cv2.resize(np.clip(filled + 0.5, 0, 255).astype(np.uint8), (cw * c16, ch * c16),
                     interpolation=cv2.INTER_LINEAR)[:s, :s]
     up = np.ascontiguousarray(up)
-    v = np.asarray(colour, np.float64) + 0.5                  # as np.clip(colour + 0.5, 0, 255) in float64
+    v = np.add(c64, 0.5, out=c64)                             # as np.clip(colour + 0.5, 0, 255) in float64
     np.maximum(v, 0, out=v)
     np.minimum(v, 255, out=v)
     up.reshape(-1)[layout.texel_channel] = v.astype(np.uint8).reshape(-1)   # 1-D: rows of 3 were 4x slower

@@ -113,7 +113,7 @@ class BakeLayout:
         self.cell = (y // c) * self.coarse_shape[1] + x // c
         n_cells = self.coarse_shape[0] * self.coarse_shape[1]
         self.cell_count = np.bincount(self.cell, minlength=n_cells)
-        self.cell_channel = (self.cell[:, None] * 3 + np.arange(3)).reshape(-1).astype(np.int32)   # bin of each value
+        self.cell_channel = (self.cell[:, None] * 3 + np.arange(3)).reshape(-1).astype(np.intp)    # bin of each value
         self.texel_channel = (self.texel[:, None] * 3 + np.arange(3)).reshape(-1)  # its byte in the texture
         self.cell_area = np.full(self.coarse_shape, float(c * c))
         if s % c:                                             # edge cells are partly outside the square
@@ -135,16 +135,17 @@ class BakeLayout:
         return lay
 
     def device(self):
-        """(face, bary, order) on the OpenCL device, uploaded once: the texels sorted by face (``order``, the
+        """(face, bary, dest) on the OpenCL device, uploaded once: the texels sorted by face (``dest``, the
         layout's index of each device sample), so that neighbouring work items bake the same face from the
-        same views (the bake kernel ran 12 % faster than in atlas order); ``bake_samples`` puts its output
-        back in layout order."""
+        same views (the bake kernel ran 12 % faster than in atlas order); the kernel writes each result to
+        row ``dest`` (layout order)."""
         if self._device is None:
             from nodegraph import clrt
 
             order = np.argsort(self.face, kind="stable")
             self._device = (clrt.to_device(np.ascontiguousarray(self.face[order], np.int32)),
-                            clrt.to_device(np.ascontiguousarray(self.bary[order], np.float32).reshape(-1)), order)
+                            clrt.to_device(np.ascontiguousarray(self.bary[order], np.float32).reshape(-1)),
+                            clrt.to_device(order.astype(np.int32)))
         return self._device
 
     def __len__(self):

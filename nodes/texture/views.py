@@ -51,11 +51,23 @@ class FrameImages:
 
     @classmethod
     def build(cls, images, masks=None, margin: int = 2) -> "FrameImages":
-        valid = [valid_mask(im.shape[:2], None if masks is None else masks[i], margin) for i, im in enumerate(images)]
+        """(Per view on a few threads, nodes.common.views: the masks' erosion and the copies into the packed
+        arrays release the GIL.)"""
+        from nodes.common.views import map_views
+
         sizes = np.array([im.size for im in images], np.int64)
         offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
-        packed = np.concatenate([np.ascontiguousarray(im).reshape(-1) for im in images])
-        packed_valid = np.concatenate([v.reshape(-1) for v in valid])
+        packed = np.empty(int(sizes.sum()), np.uint8)
+        packed_valid = np.empty(int(sizes.sum()) // 3, np.uint8)
+
+        def one(i, im):
+            v = valid_mask(im.shape[:2], None if masks is None else masks[i], margin)
+            a, n = int(offsets[i]), int(sizes[i])
+            packed[a:a + n] = np.asarray(im).reshape(-1)
+            packed_valid[a // 3:(a + n) // 3] = v.reshape(-1)
+            return v
+
+        valid = map_views(one, range(len(images)), images)
         return cls(list(images), valid, packed, packed_valid, offsets)
 
     def with_margin(self, masks, margin: int) -> "FrameImages":
@@ -82,7 +94,25 @@ class FrameImages:
 
 def valid_mask(shape, mask, margin: int) -> np.ndarray:
     """uint8 1 where a pixel may be sampled: inside the mask eroded by ``margin`` pixels (all pixels without a
-    mask)."""
+    mask). (Eroded on the mask's bounding box: outside it the mask is 0, as the erosion's border is, so the box
+    gives the same pixels as the whole image, ``valid_mask_reference``.)"""
+    import cv2
+
+    if mask is None:
+        return np.ones(shape, np.uint8)
+    m = np.greater(np.asarray(mask), 127).view(np.uint8)       # the comparison's bytes are 0 / 1
+    if margin > 0:
+        x, y, w, h = cv2.boundingRect(m)
+        out = np.zeros(m.shape, np.uint8)
+        if w and h:
+            kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin + 1, 2 * margin + 1))
+            out[y:y + h, x:x + w] = cv2.erode(m[y:y + h, x:x + w], kernel, borderValue=0)
+        m = out
+    return m
+
+
+def valid_mask_reference(shape, mask, margin: int) -> np.ndarray:
+    """``valid_mask`` on the whole image."""
     import cv2
 
     if mask is None:
@@ -245,21 +275,66 @@ def face_view_stats_reference(vertices, faces, cameras: Cameras, frame: FrameIma
 # ---------------------------------------------------------------- selection
 def view_sharpness(images, valid) -> np.ndarray:
     """(V,) relative sharpness of each view: median gradient energy inside the valid region, divided by the
-    median over views (1 = typical; a blurred or defocused view scores lower)."""
-    import cv2
+    median over views (1 = typical; a blurred or defocused view scores lower). (Per view on a few threads, and
+    on the valid region's bounding box when the image's size is a whole number of the 1/k reduction's blocks:
+    the same numbers as ``view_sharpness_reference``'s whole images.)"""
+    from nodes.common.views import map_views
 
-    s = []
-    for im, m in zip(images, valid):
-        g = cv2.cvtColor(im, cv2.COLOR_RGB2GRAY)
-        k = max(1, g.shape[1] // 512)                     # judged at about 512 pixels across
-        small = g if k == 1 else cv2.resize(g, (g.shape[1] // k, g.shape[0] // k), interpolation=cv2.INTER_AREA)
-        ms = m if m.shape == small.shape else cv2.resize(m, small.shape[::-1], interpolation=cv2.INTER_NEAREST)
-        lap = np.abs(cv2.Laplacian(small, cv2.CV_32F))
-        vals = lap[ms > 0]
-        s.append(float(np.mean(vals)) if vals.size else 0.0)
-    s = np.asarray(s)
+    return _relative(np.asarray(map_views(_sharpness_boxed, images, valid)))
+
+
+def view_sharpness_reference(images, valid) -> np.ndarray:
+    """``view_sharpness`` on whole images, one view after the other."""
+    return _relative(np.asarray([_sharpness(im, m) for im, m in zip(images, valid)]))
+
+
+def _relative(s):
     med = np.median(s[s > 0]) if np.any(s > 0) else 1.0
     return np.clip(s / med, 0.25, 2.0) if med > 0 else np.ones(len(s))
+
+
+def _sharpness(im, m) -> float:
+    """Mean |Laplacian| of the grey image inside the valid mask, judged at about 512 pixels across."""
+    import cv2
+
+    g = cv2.cvtColor(im, cv2.COLOR_RGB2GRAY)
+    k = max(1, g.shape[1] // 512)
+    small = g if k == 1 else cv2.resize(g, (g.shape[1] // k, g.shape[0] // k), interpolation=cv2.INTER_AREA)
+    ms = m if m.shape == small.shape else cv2.resize(m, small.shape[::-1], interpolation=cv2.INTER_NEAREST)
+    lap = np.abs(cv2.Laplacian(small, cv2.CV_32F))
+    vals = lap[ms > 0]
+    return float(np.mean(vals)) if vals.size else 0.0
+
+
+def _sharpness_boxed(im, m) -> float:
+    """``_sharpness`` on the valid mask's bounding box, grown by one pixel of the reduced image (the Laplacian's
+    reach) and aligned to the reduction's k x k blocks (their means, and the mask's nearest samples, are then
+    those of the whole image); the values inside the mask come in the same order, so their mean is the same."""
+    import cv2
+
+    h, w = m.shape
+    k = max(1, w // 512)
+    if h % k or w % k:                                    # the reduction is not by whole blocks: whole image
+        return _sharpness(im, m)
+    x, y, bw, bh = cv2.boundingRect(m)
+    if not (bw and bh):
+        return 0.0
+    sx0, sy0 = max(x // k - 1, 0), max(y // k - 1, 0)     # the box in the reduced image, grown by one
+    sx1, sy1 = min(-(-(x + bw) // k) + 1, w // k), min(-(-(y + bh) // k) + 1, h // k)
+    return _sharpness(im[k * sy0:k * sy1, k * sx0:k * sx1], m[k * sy0:k * sy1, k * sx0:k * sx1]) if k == 1 else \
+        _sharpness_reduced(im[k * sy0:k * sy1, k * sx0:k * sx1], m[k * sy0:k * sy1, k * sx0:k * sx1], k)
+
+
+def _sharpness_reduced(im, m, k) -> float:
+    """``_sharpness`` of a crop whose reduction factor is the whole image's ``k`` (not the crop's own width's)."""
+    import cv2
+
+    g = cv2.cvtColor(np.ascontiguousarray(im), cv2.COLOR_RGB2GRAY)
+    small = cv2.resize(g, (g.shape[1] // k, g.shape[0] // k), interpolation=cv2.INTER_AREA)
+    ms = cv2.resize(np.ascontiguousarray(m), small.shape[::-1], interpolation=cv2.INTER_NEAREST)
+    lap = np.abs(cv2.Laplacian(small, cv2.CV_32F))
+    vals = lap[ms > 0]
+    return float(np.mean(vals)) if vals.size else 0.0
 
 
 def data_cost(quality, colour, gains=None, *, consistency=40.0, return_spread=False):
@@ -419,16 +494,20 @@ def camera_gains(quality, colour, *, iterations=6, min_level=8.0, max_faces=8000
     a = np.zeros((nv, 1, 3), np.float32)
     w = m.astype(np.float32)
     m_count = np.count_nonzero(m)
+    La, r, tmp, wr = (np.empty_like(L) for _ in range(4))    # the (V, F', 3) temporaries, written in place
+    near = np.empty(L.shape, bool)
     for _ in range(iterations):
-        La = L - a
-        t = (w * La).sum(axis=0) / np.maximum(w.sum(axis=0), 1e-9)                     # (F', 3)
-        r = La - t[None]
-        wr = w * (np.abs(r) < 0.3)
-        a = a + (over_faces(wr * r) / np.maximum(over_faces(wr), 1e-9))
+        np.subtract(L, a, out=La)
+        t = np.multiply(w, La, out=tmp).sum(axis=0) / np.maximum(w.sum(axis=0), 1e-9)   # (F', 3)
+        np.subtract(La, t[None], out=r)
+        np.less(np.abs(r, out=tmp), 0.3, out=near)
+        np.multiply(w, near, out=wr)
+        a = a + (over_faces(np.multiply(wr, r, out=tmp)) / np.maximum(over_faces(wr), 1e-9))
         seen = over_faces(w) > 0
         a = np.where(seen, a, 0.0)
         a -= a[seen[:, 0, 0]].mean(axis=0, keepdims=True) if np.any(seen) else 0
-        w = wr if np.count_nonzero(wr) > 0.5 * m_count else w      # (0/1 values: the count is their sum)
+        if np.count_nonzero(wr) > 0.5 * m_count:                 # (0/1 values: the count is their sum)
+            w, wr = wr, w
     return np.exp(-a[:, 0, :]).astype(np.float32)
 
 
@@ -644,24 +723,56 @@ def level_seams(vertices, faces, face_view, weight, cameras: Cameras, frame: Fra
     i1 = i0 + 1
     edges = topo.edges if topo is not None else unique_edges(faces)[0]
     edges = edges[inband[edges[:, 0]] | inband[edges[:, 1]]]
-    table = np.full((nvert, nviews), -1, np.int64)                        # node id per (vertex, view)
-    table[node_vertex, node_view] = np.arange(n)
-    pa = pb = pins = np.zeros(0, np.int64)
-    if len(edges):
-        ta, tb = table[edges[:, 0]], table[edges[:, 1]]                  # (E, views)
-        # an edge whose other end is outside the band (offset 0 there) pins the offset towards 0
-        a_out = ~inband[edges[:, 0]][:, None]
-        b_out = ~inband[edges[:, 1]][:, None]
-        both = (ta >= 0) & (tb >= 0)
-        pa, pb = ta[both], tb[both]
-        pins = np.concatenate([ta[(ta >= 0) & b_out], tb[(tb >= 0) & a_out]])
+    pa, pb, pins = _edge_nodes(nodes, node_vertex, node_view, nviews, nvert, edges, inband)
     M, rhs = levelling_system(n, i0, i1, colour[i1] - colour[i0], pa, pb, pins, smoothness, regular)
     g = block_pcg(M, rhs, tol=tol, maxiter=maxiter)
     # offsets of the used slots: the node's value inside the band, 0 outside
-    node = table.reshape(-1)[used_keys]
-    hit = node >= 0
+    node, hit = _node_of(nodes, used_keys)
     offset.reshape(-1, 3)[used[hit]] = g[node[hit]].astype(np.float32)
     return offset
+
+
+def _node_of(nodes, keys):
+    """(index into the sorted ``nodes`` of each key, whether it is there)."""
+    pos = np.searchsorted(nodes, keys)
+    hit = pos < len(nodes)
+    hit[hit] = nodes[pos[hit]] == keys[hit]
+    return pos, hit
+
+
+def _edge_nodes(nodes, node_vertex, node_view, nviews, nvert, edges, inband):
+    """The levelling's edge rows from the band's nodes (sorted keys vertex * nviews + view): pairs (pa, pb) of
+    nodes with the same view at the two ends of an edge, and ``pins``: the nodes at an edge's end whose other
+    end is outside the band (offset 0 there: pinned towards 0). In the order of a dense (edge, view) table of
+    node ids read row by row (``_edge_nodes_reference``), without making that table."""
+    empty = np.zeros(0, np.int64)
+    if not len(edges):
+        return empty, empty, empty
+    start = np.searchsorted(node_vertex, np.arange(nvert))
+    count = np.bincount(node_vertex, minlength=nvert)
+
+    def nodes_at(vert):                    # per vertex (in order) its nodes, by view: (which vertex, node)
+        c = count[vert]
+        first = np.cumsum(c) - c
+        which = np.repeat(np.arange(len(vert)), c)
+        return which, np.repeat(start[vert] - first, c) + np.arange(int(c.sum()))
+
+    e, na = nodes_at(edges[:, 0])
+    nb, found = _node_of(nodes, edges[e, 1] * nviews + node_view[na])
+    a_out, b_out = ~inband[edges[:, 0]], ~inband[edges[:, 1]]
+    pins = np.concatenate([nodes_at(edges[b_out, 0])[1], nodes_at(edges[a_out, 1])[1]]).astype(np.int64)
+    return na[found].astype(np.int64), nb[found].astype(np.int64), pins
+
+
+def _edge_nodes_reference(nodes, node_vertex, node_view, nviews, nvert, edges, inband):
+    """``_edge_nodes`` by the dense (vertex, view) table of node ids."""
+    table = np.full((nvert, nviews), -1, np.int64)
+    table[node_vertex, node_view] = np.arange(len(nodes))
+    ta, tb = table[edges[:, 0]], table[edges[:, 1]]                      # (E, views)
+    a_out = ~inband[edges[:, 0]][:, None]
+    b_out = ~inband[edges[:, 1]][:, None]
+    both = (ta >= 0) & (tb >= 0)
+    return ta[both], tb[both], np.concatenate([ta[(ta >= 0) & b_out], tb[(tb >= 0) & a_out]])
 
 
 def levelling_system(n, i0, i1, diff, pa, pb, pins, smoothness, regular):

@@ -95,6 +95,17 @@ def test_uv_raster_bary_and_bake_kernels_match_references():
     assert painted.sum() > 1000
     assert np.mean((got[:, 3] > 0) == (ref[:, 3] > 0)) > 0.995
     assert np.percentile(np.abs(got[painted, :3] - ref[painted, :3]), 99) < 0.5
+    # a layout's samples, baked sorted by face on the device and written back to their rows by the kernel: the
+    # same numbers as the same samples uploaded in layout order
+    from nodes.texture.reuse import BakeLayout
+
+    lay = BakeLayout.of(atlas, 2)
+    assert not np.all(np.diff(lay.face) >= 0)                    # layout order is not face order
+    plain = B.bake_samples(lay.face, lay.bary, m.vertices, m.faces, s["cameras"], frame, blend)
+    sorted_ = B.bake_samples(lay.face, lay.bary, m.vertices, m.faces, s["cameras"], frame, blend,
+                             device_samples=lay.device())
+    assert np.sum(plain[:, 3] > 0) > 1000
+    np.testing.assert_array_equal(sorted_, plain)
 
 
 def test_bake_layout_and_compact_fill_match_the_full_image_path():
@@ -787,3 +798,44 @@ def test_flicker_counts_only_change_the_truth_does_not_have():
     assert flicker(c)["change"] == pytest.approx(np.abs(np.diff(c, axis=0)).mean())
     with pytest.raises(ValueError, match="must be"):
         flicker(c[:1], truth[:1])
+
+
+def test_levelling_edge_rows_match_the_dense_table():
+    rng = np.random.default_rng(3)
+    nvert, nviews = 400, 7
+    inband = rng.random(nvert) < 0.6
+    keys = np.unique(rng.integers(0, nvert * nviews, 900))
+    nodes = keys[inband[keys // nviews]]
+    edges = np.unique(np.sort(rng.integers(0, nvert, (1500, 2)), axis=1), axis=0)
+    edges = edges[edges[:, 0] != edges[:, 1]]
+    edges = edges[inband[edges[:, 0]] | inband[edges[:, 1]]]
+    args = (nodes, nodes // nviews, nodes % nviews, nviews, nvert, edges, inband)
+    got, ref = V._edge_nodes(*args), V._edge_nodes_reference(*args)
+    assert len(got[0]) > 100 and len(got[2]) > 100
+    for a, b in zip(got, ref):
+        assert a.dtype == b.dtype
+        np.testing.assert_array_equal(a, b)
+    pos, hit = V._node_of(nodes, keys)
+    assert hit.sum() == len(nodes) and np.array_equal(pos[hit], np.arange(len(nodes)))
+
+
+def test_valid_masks_and_sharpness_on_the_mask_box_match_the_whole_image():
+    rng = np.random.default_rng(5)
+    for h, w in ((120, 160), (864, 1536), (700, 1030), (701, 1031)):     # k = 1, 3, 2 and 2 not by whole blocks
+        images, masks = [], []
+        for box in ((0, 0, h, w), (0, 0, h // 2, w // 3), (h // 3, w // 4, h, w), (h // 4, w // 5, h // 2, w // 2)):
+            m = np.zeros((h, w), np.uint8)
+            m[box[0]:box[2], box[1]:box[3]] = rng.integers(100, 256, (box[2] - box[0], box[3] - box[1]))
+            masks.append(m)
+            images.append(rng.integers(0, 256, (h, w, 3), dtype=np.uint8))
+        masks.append(np.zeros((h, w), np.uint8))                        # an empty mask
+        images.append(images[0])
+        for margin in (0, 2):
+            valid = [V.valid_mask((h, w), m, margin) for m in masks]
+            for got, m in zip(valid, masks):
+                ref = V.valid_mask_reference((h, w), m, margin)
+                assert got.dtype == ref.dtype and np.array_equal(got, ref)
+            assert valid[3].sum() > 0 and valid[-1].sum() == 0
+            sharp = V.view_sharpness(images, valid)
+            np.testing.assert_array_equal(sharp, V.view_sharpness_reference(images, valid))
+            assert np.all(sharp[:-1] > 0.25)
