@@ -368,11 +368,13 @@ class Skin(Node):
         "rest_pose": Param(str, "captured", choices=REST_POSES, doc="the rest (bind) pose: the segment's first frame "
                            "as captured, or a T or A pose (arms out or 45 deg down, legs and spine straight along "
                            "the world's +Z; a template rig: skeletonize.humanoid); the motion is the same"),
+        "rest_rounds": Param(int, 6, range=(0, 50), doc="T or A rest pose: rounds of the fit carried on about it (bone "
+                             "motions, weights, rest shape); 0: the captured rig's motion exactly, re-expressed"),
         "segment": Param(int, -1, range=(-1, None), doc="which constant-connectivity segment; -1 = the longest"),
     }
 
     def run(self, skeleton, meshes=None, sequence=None, *, influences, iterations, tol, smooth, lengths, rest_fit, pivots,
-            rest_pose, segment):
+            rest_pose, rest_rounds, segment):
         import trimesh
 
         from .motion import Rig, Trajectories
@@ -398,7 +400,8 @@ class Skin(Node):
                        log=self.log.info, progress=self.progress)
         names = [skeleton.names[b] for b in fit.kept]
         if rest_pose != "captured":
-            fit = self._reposed(traj.with_rest(fit.rest), faces, fit, names, rest_pose, lengths, influences, smooth)
+            fit = self._reposed(traj.with_rest(fit.rest), faces, fit, names, rest_pose, lengths, influences, smooth,
+                                rest_rounds)
         seconds = time.perf_counter() - t0
         diag = float(np.linalg.norm(np.ptp(frames[0], axis=0)))
         removed = [n for b, n in enumerate(skeleton.names) if b not in set(fit.kept)]
@@ -415,7 +418,7 @@ class Skin(Node):
         table.update(removed=removed, weightless=weightless, pivot_moves_refused=fit.refused)
         return {"skeleton": sk, "rest": trimesh.Trimesh(fit.rest, faces, process=False), "error": table}
 
-    def _reposed(self, traj, faces, fit, names, pose, lengths, influences, smooth):
+    def _reposed(self, traj, faces, fit, names, pose, lengths, influences, smooth, refits):
         """``fit`` about a T or A rest pose (humanoid.rest_pose, skinning.repose), its errors measured again."""
         import dataclasses
 
@@ -429,7 +432,7 @@ class Skin(Node):
         except ValueError as exc:
             raise NodeError(f"skin: rest_pose {pose}: {exc}") from None
         traj, weights, rot, tr = repose(traj, faces, fit.parents, fit.weights, fit.rotations, fit.translations, fit.joints,
-                                        turns, joints, influences=influences, smooth=smooth)
+                                        turns, joints, influences=influences, smooth=smooth, refits=refits)
         rmse, mx = errors(traj, weights, rot, tr)
         self.log.info("skin: rest pose %s: LBS rms %.4g -> %.4g mm", pose, 1000 * np.sqrt((fit.rmse ** 2).mean()),
                       1000 * np.sqrt((rmse ** 2).mean()))

@@ -701,7 +701,9 @@ def test_humanoid_rest_pose_t_and_a(tmp_path):
     captured and with rest_pose T: every posed joint goes where it went (1e-9 m: the motion is unchanged), bone
     lengths as captured, arms horizontal and out to their side (A: 45 deg down), legs and spine along +Z; the
     rest shape refit, so LBS error stays within twice the captured rig's (measured rms 0.49 -> 0.81 mm on 12
-    frames); a free rig (no template names) is refused with the reason."""
+    frames); with ``rest_rounds`` (the default 6: bone motions, weights and rest shape refit about the T pose)
+    the error is no higher than the exact re-expression's and the bone lengths stay; a free rig (no template
+    names) is refused with the reason."""
     from nodes.skeleton.humanoid import rest_pose
     from nodes.synth import scenes
 
@@ -709,7 +711,8 @@ def test_humanoid_rest_pose_t_and_a(tmp_path):
     meshes = [scenes.build("figure", f).mesh for f in frames]
     a = run_node("skeletonize.humanoid", {"meshes": meshes}, {"resolution": 64}, frames=frames)
     fits = {pose: run_node("skin", {"meshes": meshes, "skeleton": a["skeleton"]},
-                           {"iterations": 3, "pivots": False, "rest_pose": pose}, frames=frames) for pose in ("captured", "T")}
+                           {"iterations": 3, "pivots": False, "rest_pose": pose, "rest_rounds": 0}, frames=frames)
+            for pose in ("captured", "T")}
     cap, tp = fits["captured"]["skeleton"], fits["T"]["skeleton"]
     assert cap.names == tp.names
     world = {k: formats.world_transforms(np.asarray(f["skeleton"].joints), f["skeleton"].rotations,
@@ -732,6 +735,11 @@ def test_humanoid_rest_pose_t_and_a(tmp_path):
             assert abs(np.linalg.norm(tp.joints[c] - tp.joints[p]) - np.linalg.norm(cap.joints[c] - cap.joints[p])) < 1e-9
     e_cap, e_t = fits["captured"]["error"], fits["T"]["error"]
     assert e_t["rmse"] <= 2 * e_cap["rmse"] and e_t["max"] < 0.02, (e_cap["rmse"], e_t["rmse"], e_t["max"])
+    refit = run_node("skin", {"meshes": meshes, "skeleton": a["skeleton"]},
+                     {"iterations": 3, "pivots": False, "rest_pose": "T"}, frames=frames)
+    assert refit["error"]["rmse"] <= e_t["rmse"] and refit["error"]["bone_length_spread"] < 1e-9, (
+        e_t["rmse"], refit["error"]["rmse"])
+    np.testing.assert_allclose(np.asarray(refit["skeleton"].joints), np.asarray(tp.joints), atol=1e-12)
     g, new = rest_pose(np.asarray(cap.joints), cap.parents, cap.names, "A")
     ja = dict(zip(cap.names, new))
     d = ja["elbow_l"] - ja["shoulder_l"]
