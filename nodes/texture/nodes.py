@@ -59,6 +59,22 @@ class AtlasType(DataType):
         return img
 
 
+def given_atlas(mesh, atlas, reference, size: int, directions: int):
+    """The layout a node was given for ``mesh``: ``atlas`` itself, or the one charted on ``reference`` (same faces:
+    track.frame's keyframe), or None; a NodeError naming the input when it does not fit the mesh's faces."""
+    if atlas is not None and reference is not None:
+        raise NodeError("connect 'atlas' or 'reference', not both")
+    if reference is not None:
+        if len(reference.faces) != len(mesh.faces) or not np.array_equal(reference.faces, mesh.faces):
+            raise NodeError(f"input 'reference' has other faces ({len(reference.faces)}) than the mesh "
+                            f"({len(mesh.faces)}): it must be the same connectivity (track.frame's keyframe)")
+        atlas = reference_atlas(reference.vertices, reference.faces, size, directions)
+    if atlas is not None and not atlas.matches(mesh.faces):
+        raise NodeError(f"input 'atlas' was made for another connectivity ({len(atlas.faces)} faces); the mesh "
+                        f"has {len(mesh.faces)} faces: an atlas is reused only for meshes with the same faces")
+    return atlas
+
+
 COMMON_PARAMS = {
     "size": Param(int, 2048, range=(16, 16384), doc="atlas texels per side"),
     "directions": Param(int, 6, choices=(6, 14), doc="chart projection directions (6 axes, or axes + diagonals)"),
@@ -113,16 +129,7 @@ class Texture(Node):
             raise NodeError("layers > 0 needs mode 'atlas' (view-dependent layers are atlas images)")
         if layers and len(cameras) > NONE:
             raise NodeError(f"layers > 0 supports at most {NONE} cameras; this rig has {len(cameras)}")
-        if atlas is not None and reference is not None:
-            raise NodeError("connect 'atlas' or 'reference', not both")
-        if reference is not None:
-            if len(reference.faces) != len(mesh.faces) or not np.array_equal(reference.faces, mesh.faces):
-                raise NodeError(f"input 'reference' has other faces ({len(reference.faces)}) than the mesh "
-                                f"({len(mesh.faces)}): it must be the same connectivity (track.frame's keyframe)")
-            atlas = reference_atlas(reference.vertices, reference.faces, size, directions)
-        if atlas is not None and not atlas.matches(mesh.faces):
-            raise NodeError(f"input 'atlas' was made for another connectivity ({len(atlas.faces)} faces); the mesh "
-                            f"has {len(mesh.faces)} faces: an atlas is reused only for meshes with the same faces")
+        atlas = given_atlas(mesh, atlas, reference, size, directions)
         s = Settings(size=size, margin=margin, edge_px=edge_px, smoothness=smoothness, feather=feather,
                      balance=balance, level=level, directions=directions, layers=layers,
                      layer_margin=layer_margin)
@@ -191,18 +198,9 @@ class TextureTransfer(Node):
 
         if len(mesh.faces) == 0:
             raise NodeError("the mesh has no faces: nothing to texture")
-        if atlas is not None and reference is not None:
-            raise NodeError("connect 'atlas' or 'reference', not both")
-        if reference is not None:
-            if len(reference.faces) != len(mesh.faces) or not np.array_equal(reference.faces, mesh.faces):
-                raise NodeError(f"input 'reference' has other faces ({len(reference.faces)}) than the mesh "
-                                f"({len(mesh.faces)}): it must be the same connectivity (track.frame's keyframe)")
-            atlas = reference_atlas(reference.vertices, reference.faces, size, directions)
-        elif atlas is None:
+        atlas = given_atlas(mesh, atlas, reference, size, directions)
+        if atlas is None:
             atlas = reference_atlas(mesh.vertices, mesh.faces, size, directions)
-        if not atlas.matches(mesh.faces):
-            raise NodeError(f"input 'atlas' was made for another connectivity ({len(atlas.faces)} faces); the mesh "
-                            f"has {len(mesh.faces)} faces: an atlas is reused only for meshes with the same faces")
         try:
             texture, stats = transfer_texture(mesh.vertices, mesh.faces, atlas, source)
         except ValueError as exc:
