@@ -20,7 +20,7 @@ class ChromaKey(Node):
     the capture box are background) and spill suppression of the screen colour in the kept pixels."""
 
     type_name = "key.chroma"
-    version = 1
+    version = 2
     inputs = {
         "images": Images,
         "cameras": Input(CameraSet, optional=True, doc="with bounds: garbage matte"),
@@ -36,11 +36,14 @@ class ChromaKey(Node):
         "black": Param(float, 0.0, range=(0, 255), doc="pixels darker than this luma are background (dark studio walls)"),
         "spill": Param(float, 1.0, range=(0, 1), doc="fraction of the key-coloured chroma removed from kept pixels"),
         "matte_margin": Param(float, 8.0, range=(0, None), doc="garbage matte slack, pixels"),
+        "window_margin": Param(int, 16, range=(-1, None), doc="the despilled images are black beyond this many "
+                               "pixels around the box of the alpha (the cache then keeps that box only; a texture "
+                               "or carve samples inside the masks); -1: the whole images"),
     }
     kernels = [KERNELS]
 
     def run(self, images, cameras=None, bounds=None, *, key_color, inner, outer, side, luma_floor, black, spill,
-            matte_margin):
+            matte_margin, window_margin):
         if outer <= inner:
             raise NodeError(f"key.chroma: param 'outer' ({outer}) must be larger than 'inner' ({inner})")
         if (cameras is None) != (bounds is None):
@@ -60,20 +63,40 @@ class ChromaKey(Node):
 
         def key_frames():
             if not full:
-                alphas, despilled = [], []
+                alphas, despilled, windows = [], [], []
                 for v, im in enumerate(frames):
                     a, d = chroma_key_cl(im, keys[v], side=side, luma_floor=luma_floor, inner=inner, outer=outer,
                                          black=black, spill=spill, edges=None if edges is None else edges[v],
                                          despill=spill > 0)
                     alphas.append(a)
                     despilled.append(d if spill > 0 else im)
-                full.update(masks=maskset(alphas, images.names), images=despilled)
+                    windows.append(black_outside(d, a, window_margin) if spill > 0 and window_margin >= 0 else None)
+                full.update(masks=maskset(alphas, images.names), images=despilled,
+                            windows=windows if any(w is not None for w in windows) else None)
             return full
 
         names = list(images.names)
         masks = MaskSet.lazy(lambda: (key_frames()["masks"].masks, None, key_frames()["masks"].alpha8), names,
                              make_device=bits)
-        return {"masks": masks, "images": ImageSet.lazy(lambda: key_frames()["images"], names)}
+        return {"masks": masks, "images": ImageSet.lazy(lambda: (key_frames()["images"], key_frames()["windows"]), names)}
+
+
+def black_outside(image: np.ndarray, alpha: np.ndarray, margin: int) -> list[int]:
+    """The box (x0, y0, x1, y1) of ``alpha`` > 0 grown by ``margin`` pixels (clipped to the image), with
+    ``image`` set to black outside it, in place (an empty alpha: an empty box, all black)."""
+    import cv2
+
+    h, w = alpha.shape
+    x, y, bw, bh = cv2.boundingRect(np.greater(alpha, 0).view(np.uint8))
+    if bw == 0 or bh == 0:
+        image[:] = 0
+        return [0, 0, 0, 0]
+    x0, y0, x1, y1 = max(0, x - margin), max(0, y - margin), min(w, x + bw + margin), min(h, y + bh + margin)
+    image[:y0] = 0
+    image[y1:] = 0
+    image[y0:y1, :x0] = 0
+    image[y0:y1, x1:] = 0
+    return [x0, y0, x1, y1]
 
 
 class Plate(Node):

@@ -568,3 +568,32 @@ def test_plate_golden(golden):
     frames[3].images[0][0:40, 45:50] = 255                            # one frame's glitch: not in the plate
     rep = run_node("key.plate", {"images": frames}, {}, frames=list(range(8)))["report"]
     golden.check("key_plate_square", rep, Table)
+
+
+def test_chroma_key_images_black_outside_the_alpha_window_and_stored_as_the_window(tmp_path):
+    """key.chroma's despilled images are black beyond `window_margin` pixels around the box of the alpha, and say
+    so (ImageSet.windows); Images stores the windows' pixels only and gives the same images back. -1 keeps the
+    whole images (the despill inside the box is the same)."""
+    from nodes.common.types import Images
+
+    h, w = 120, 160
+    ball = disc(h, w, 60, 70, 15)
+    img = green_scene(ball)
+    out = run_node("key.chroma", {"images": ImageSet([img, img[:, ::-1].copy()])}, params={"window_margin": 8})
+    whole = run_node("key.chroma", {"images": ImageSet([img, img[:, ::-1].copy()])}, params={"window_margin": -1})
+    s = out["images"]
+    assert whole["images"].windows is None
+    for k, (im, win, full, alpha) in enumerate(zip(s.images, s.windows, whole["images"].images, out["masks"].alpha8)):
+        ys, xs = np.nonzero(alpha)
+        assert win == [xs.min() - 8, ys.min() - 8, xs.max() + 1 + 8, ys.max() + 1 + 8], (k, win)
+        x0, y0, x1, y1 = win
+        inside = np.zeros((h, w), bool)
+        inside[y0:y1, x0:x1] = True
+        assert not im[~inside].any() and full[~inside].any()          # black outside; the whole image is not
+        assert np.array_equal(im[inside], full[inside])
+    Images.save(s, tmp_path)
+    assert sum(p.stat().st_size for p in tmp_path.glob("*.npy")) < 0.25 * 2 * img.nbytes
+    back = Images.load(tmp_path)
+    assert back.windows == s.windows and all(np.array_equal(a, b) for a, b in zip(back.images, s.images))
+    assert Images.check(back) is None
+    assert "window" in Images.check(ImageSet(s.images, s.names, [[0, 0, w + 1, h], None]))
