@@ -271,6 +271,25 @@ def _mask_of_levels(levels: np.ndarray) -> np.ndarray:
     return cv2.threshold(np.asarray(levels, np.uint8), 127, 255, cv2.THRESH_BINARY)[1]
 
 
+def _nonzero_box(a: np.ndarray) -> tuple[np.ndarray, list]:
+    """(the box of ``a``'s non-zero pixels cut out of it, [height, width, x0, y0, x1, y1])."""
+    import cv2
+
+    x, y, w, h = cv2.boundingRect(np.greater(a, 0).view(np.uint8))
+    return a[y:y + h, x:x + w], [int(a.shape[0]), int(a.shape[1]), x, y, x + w, y + h]
+
+
+def _paste(a: np.ndarray, box, path: Path) -> np.ndarray:
+    """The (height, width) array, 0 outside the box [height, width, x0, y0, x1, y1] that ``a`` fills."""
+    h, w, x0, y0, x1, y1 = box
+    if a.shape != (y1 - y0, x1 - x0) or not (0 <= x0 <= x1 <= w and 0 <= y0 <= y1 <= h):
+        raise DataError(f"{path}: {a.shape} does not fill its box {box[2:]} of {w}x{h}")
+    out = np.zeros((h, w), a.dtype)       # untouched pages cost nothing until read
+    out[y0:y1, x0:x1] = a
+    out.flags.writeable = False
+    return out
+
+
 class Images(DataType):
     """Stored as one raw .npy per camera (read by memory map: loading a frame of 24 HD images costs nothing
     until a kernel reads it; see bench/formats.py for PNG and compressed forms measured against it)."""
@@ -370,16 +389,20 @@ class Masks(DataType):
         levels = v.alpha8   # 8-bit alpha stays 8-bit on disk: (H, W) uint8 per camera, .alpha8.npy
         # masks that are the levels' alpha >= 128 (the keys' and their clean-up's) are not stored: read back from them
         derived = levels is not None and all(np.array_equal(m, _mask_of_levels(a)) for m, a in zip(v.masks, levels))
+        boxes = []
         for i, m in enumerate(v.masks):
             if not derived:
                 _save_array(folder / f"{i:04d}.npy", m)
-            if levels is not None:
-                _save_array(folder / f"{i:04d}.alpha8.npy", np.asarray(levels[i], np.uint8))
+            if levels is not None:   # the levels' box only (0 outside it): the same levels come back
+                a, box = _nonzero_box(np.asarray(levels[i], np.uint8))
+                _save_array(folder / f"{i:04d}.alpha8.npy", a)
+                boxes.append(box)
             elif v.alpha is not None:
                 _save_array(folder / f"{i:04d}.alpha.npy", np.asarray(v.alpha[i], np.float32))
         has = levels is not None or v.alpha is not None
         (folder / "names.json").write_text(json.dumps({"names": v.names, "alpha": has, "alpha8": levels is not None,
-                                                       "masks_from_alpha8": derived}))
+                                                       "masks_from_alpha8": derived,
+                                                       **({"alpha8_boxes": boxes} if boxes else {})}))
 
     @classmethod
     def load(cls, folder: Path) -> MaskSet:
@@ -387,6 +410,9 @@ class Masks(DataType):
         names = meta["names"]
         if meta.get("alpha8"):
             levels = [_load_array(folder / f"{i:04d}.alpha8.npy") for i in range(len(names))]
+            if "alpha8_boxes" in meta:
+                levels = [_paste(a, box, folder / f"{i:04d}.alpha8.npy")
+                          for i, (a, box) in enumerate(zip(levels, meta["alpha8_boxes"]))]
             masks = [_mask_of_levels(a) if meta.get("masks_from_alpha8") else _load_array(folder / f"{i:04d}.npy")
                      for i, a in enumerate(levels)]
             return MaskSet(masks, None, names, alpha8=levels)

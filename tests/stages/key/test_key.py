@@ -372,8 +372,16 @@ def test_eight_bit_alpha_is_stored_as_levels_and_reads_back_as_the_same_floats(t
     assert all(a.dtype == np.float32 and np.array_equal(a, b) for a, b in zip(ms.alpha, ref.alpha))
     Masks.save(ms, tmp_path)   # the masks are the levels' alpha >= 128: only the levels are stored
     assert sorted(p.name for p in tmp_path.glob("*.npy")) == ["0000.alpha8.npy", "0001.alpha8.npy"]
+    ys, xs = np.nonzero(levels[0])   # of the levels, their box of non-zero pixels only
+    assert np.load(tmp_path / "0000.alpha8.npy").shape == (ys.max() + 1 - ys.min(), xs.max() + 1 - xs.min())
     back = Masks.load(tmp_path)
     assert all(np.array_equal(a, b) for a, b in zip(back.alpha, ref.alpha)) and back.alpha8[0].dtype == np.uint8
+    assert all(np.array_equal(a, b) for a, b in zip(back.alpha8, levels))
+    empty = tmp_path / "empty"       # nothing keyed in: an empty box, the zeros come back
+    empty.mkdir()
+    Masks.save(MaskSet([np.zeros((h, w), np.uint8)], None, ["a"], alpha8=[np.zeros((h, w), np.uint8)]), empty)
+    none = Masks.load(empty)
+    assert none.alpha8[0].shape == (h, w) and not none.alpha8[0].any() and not none.masks[0].any()
     assert all(a.dtype == np.uint8 and np.array_equal(a, b) for a, b in zip(back.masks, ref.masks))
     other = tmp_path / "other"   # masks that are not their levels' threshold are stored as they are
     other.mkdir()
