@@ -13,7 +13,8 @@ are frame numbers). Prims are added step by step, so one stage can carry tracked
                  string, as their Sdr definition says since USD 23.11)
     skeleton     UsdSkel: Skeleton (bind / rest transforms), its Animation (time-sampled translations and
                  rotations), and a mesh bound to it with joint indices and weights; ``extent_at`` gives the
-                 SkelRoot the bounds of the skinned points per frame (the mesh's own extent is its rest points')
+                 SkelRoot the bounds of the skinned points per frame (the mesh's own extent is its rest points');
+                 ``blend_shapes``: BlendShape prims on the mesh, their weights per frame on the Animation
     save         .usda, .usdc / .usd (crate) or .usdz (the layer packed with its assets), as bytes
 
 ``validation_errors`` runs usd-core's validators (the ``UsdValidation`` framework, which replaced
@@ -219,6 +220,25 @@ class UsdStage:
         binding.CreateJointIndicesPrimvar(False, k).Set(Vt.IntArray.FromNumpy(indices.astype(np.int32).ravel()))
         binding.CreateJointWeightsPrimvar(False, k).Set(Vt.FloatArray.FromNumpy(weights.astype(np.float32).ravel()))
         binding.CreateGeomBindTransformAttr(Gf.Matrix4d(1.0))
+
+    def blend_shapes(self, geom, anim, names: list[str], offsets, frames, weights) -> None:
+        """UsdSkel BlendShape prims ``names`` under ``geom`` (each (V, 3) rest-space point ``offsets``, on every
+        point), bound to it (``skel:blendShapes`` / ``skel:blendShapeTargets``), and their (F, K) ``weights``
+        per frame on the Animation ``anim`` (``blendShapes`` / ``blendShapeWeights`` time samples)."""
+        from pxr import Usd, UsdSkel, Vt
+
+        targets = []
+        for name, off in zip(names, offsets):
+            shape = UsdSkel.BlendShape.Define(self.stage, geom.GetPath().AppendChild(name))
+            shape.CreateOffsetsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(off, np.float32)))
+            targets.append(shape.GetPath())
+        binding = UsdSkel.BindingAPI(geom.GetPrim())
+        binding.CreateBlendShapesAttr(Vt.TokenArray(names))
+        binding.CreateBlendShapeTargetsRel().SetTargets(targets)
+        anim.CreateBlendShapesAttr(Vt.TokenArray(names))
+        attr = anim.CreateBlendShapeWeightsAttr()
+        for k, fr in enumerate(frames):
+            attr.Set(Vt.FloatArray.FromNumpy(np.ascontiguousarray(weights[k], np.float32)), Usd.TimeCode(float(fr)))
 
     # ------------------------------------------------------------ file
     def save(self, filename: str, assets: dict[str, bytes] | None = None) -> bytes:

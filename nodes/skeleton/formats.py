@@ -82,9 +82,11 @@ def write_usd(path: Path, vertices, faces, joints, parents, names, weights, rota
 
 
 def usd_bytes(vertices, faces, joints, parents, names, weights, rotations, translations, frames, fps: float = FPS,
-              influences: int = 4) -> bytes:
+              influences: int = 4, correctives=None) -> bytes:
     """The UsdSkel rig of ``write_usd`` as the bytes of a binary .usd layer; the SkelRoot's ``extent`` per frame
-    bounds the skinned mesh (the mesh's own extent bounds its rest points)."""
+    bounds the skinned mesh (the mesh's own extent bounds its rest points). ``correctives`` (correctives.py,
+    fitted with these ``influences``): UsdSkel BlendShape prims under the mesh (``skel:blendShapes`` /
+    ``skel:blendShapeTargets``) and the Animation's ``blendShapes`` and per-frame ``blendShapeWeights``."""
     from nodes.common.usd import UsdStage
 
     names = _names(names, len(parents))
@@ -101,10 +103,17 @@ def usd_bytes(vertices, faces, joints, parents, names, weights, rotations, trans
     stage = UsdStage(fps=fps, frames=(frames[0], frames[-1]))
     root = stage.group("/Rig", skel_root=True)
     skel = stage.skeleton("/Rig/Skeleton", paths, names, bind, local_transforms(bind[None], parents)[0])
-    stage.skeleton_animation(skel, "/Rig/Skeleton/Animation", frames, local[..., :3, 3], quaternions(local[..., :3, :3]))
-    stage.bind_skin(stage.mesh("/Rig/Mesh", faces, vertices), skel, idx, w)
+    anim = stage.skeleton_animation(skel, "/Rig/Skeleton/Animation", frames, local[..., :3, 3],
+                                    quaternions(local[..., :3, :3]))
+    mesh = stage.mesh("/Rig/Mesh", faces, vertices)
+    stage.bind_skin(mesh, skel, idx, w)
+    rest = np.zeros((len(frames),) + np.shape(vertices))
+    if correctives is not None and len(correctives.shapes):
+        stage.blend_shapes(mesh, anim, [f"corrective_{i}" for i in range(len(correctives.shapes))],
+                           correctives.shapes, frames, correctives.weights)
+        rest = np.einsum("fk,kva->fva", correctives.weights, correctives.shapes)
     for k, frame in enumerate(frames):        # the SkelRoot's bounds: the mesh as UsdSkel skins it, per frame
-        stage.extent_at(root, skinned_points(vertices, idx, w, rotations[k], translations[k]), frame)
+        stage.extent_at(root, skinned_points(vertices + rest[k], idx, w, rotations[k], translations[k]), frame)
     return stage.save("rig.usd")
 
 
@@ -118,7 +127,8 @@ def skinned_points(vertices, indices, weights, rotations, translations) -> np.nd
 
 def read_usd(path: Path) -> dict:
     """What a UsdSkel reader gets: rest points, faces, joint paths, frames (time samples), and per frame the
-    points skinned by UsdSkel itself (SkeletonQuery skinning transforms + SkinningQuery LBS)."""
+    points skinned by UsdSkel itself (blend shapes first: AnimQuery weights, the SkinningQuery's mapper,
+    BlendShapeQuery; then SkeletonQuery skinning transforms + SkinningQuery LBS)."""
     from pxr import Usd, UsdGeom, UsdSkel
 
     stage = Usd.Stage.Open(str(path))
@@ -135,24 +145,36 @@ def read_usd(path: Path) -> dict:
     rest = np.array(mesh.GetPointsAttr().Get(), np.float64)
     counts = np.array(mesh.GetFaceVertexCountsAttr().Get())
     faces = np.array(mesh.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3) if np.all(counts == 3) else None
-    skinned = []
+    shapes = UsdSkel.BlendShapeQuery(UsdSkel.BindingAPI(mesh_prim)) if skin.HasBlendShapes() else None
+    skinned, morph = [], []
     for t in times:
         xf = sq.ComputeSkinningTransforms(Usd.TimeCode(t))
         pts = mesh.GetPointsAttr().Get(Usd.TimeCode(t))
+        if shapes is not None:
+            w = skin.GetBlendShapeMapper().Remap(sq.GetAnimQuery().ComputeBlendShapeWeights(Usd.TimeCode(t)))
+            morph.append(np.array(w, np.float64))
+            sub, shape_idx, sub_idx = shapes.ComputeSubShapeWeights(w)
+            if not shapes.ComputeDeformedPoints(sub, shape_idx, sub_idx, shapes.ComputeBlendShapePointIndices(),
+                                                shapes.ComputeSubShapePointOffsets(), pts):
+                raise ValueError(f"{path}: UsdSkel could not apply the blend shapes at time {t}")
         ok = skin.ComputeSkinnedPoints(xf, pts, Usd.TimeCode(t))
         if not ok:
             raise ValueError(f"{path}: UsdSkel could not skin the mesh at time {t}")
         skinned.append(np.array(pts, np.float64))
     return {"rest": rest, "faces": faces, "joints": list(skel.GetJointsAttr().Get()), "times": list(times),
-            "skinned": np.array(skinned), "up": UsdGeom.GetStageUpAxis(stage), "fps": stage.GetTimeCodesPerSecond()}
+            "skinned": np.array(skinned), "up": UsdGeom.GetStageUpAxis(stage), "fps": stage.GetTimeCodesPerSecond(),
+            "blend_shapes": list(skin.GetBlendShapeOrder() or []) if shapes is not None else [],
+            "blend_shape_weights": np.array(morph)}
 
 
 # ---------------------------------------------------------------- glTF
 def gltf_bytes(vertices, faces, joints, parents, names, weights, rotations, translations, frames, fps: float = FPS,
-               influences: int = 4) -> bytes:
+               influences: int = 4, correctives=None) -> bytes:
     """A binary glTF (GLB): one skinned mesh (rest POSITION and smooth NORMAL, which the skin moves too), its
     joint nodes, one animation (LINEAR) of n / fps seconds: a key per frame and a last key at n / fps repeating
-    the last pose (held for one frame period, so a looping viewer shows the last frame like the others)."""
+    the last pose (held for one frame period, so a looping viewer shows the last frame like the others).
+    ``correctives`` (correctives.py, fitted with 4 influences): its shapes as the mesh's morph targets (POSITION
+    displacements, added before skinning as glTF does) and a ``weights`` channel on the same keys (LINEAR)."""
     from nodes.common.gltf import GltfBuilder
     from nodes.common.meshops import smooth_vertex_normals
 
@@ -176,8 +198,9 @@ def gltf_bytes(vertices, faces, joints, parents, names, weights, rotations, tran
     trans = np.concatenate([local[..., :3, 3], local[-1:, :, :3, 3]]).astype(np.float32)
 
     b = GltfBuilder("volcap skeleton")
+    shapes = [] if correctives is None else list(correctives.shapes)
     body = b.node("mesh", mesh=b.mesh(vertices, faces, normals=smooth_vertex_normals(vertices, faces), joints=idx,
-                                      weights=w))
+                                      weights=w, targets=shapes))
     nodes = {}
     for j in topological(parents):                                        # a joint's parent node exists before it
         nodes[j] = b.node(names[j], parent=nodes[parents[j]] if parents[j] >= 0 else None,
@@ -188,13 +211,18 @@ def gltf_bytes(vertices, faces, joints, parents, names, weights, rotations, tran
     for j in range(len(parents)):
         b.animate(nodes[j], "translation", times, trans[:, j], animation="motion")
         b.animate(nodes[j], "rotation", times, quats[:, j], animation="motion")
+    if shapes:
+        mw = np.concatenate([correctives.weights, correctives.weights[-1:]])          # the last key held, too
+        b.animate(body, "weights", times, mw, animation="motion")
     return b.glb()
 
 
 def read_gltf(data: bytes) -> dict:
     """Load a GLB with pygltflib and skin its mesh the way a glTF viewer does at every key (the frames', then
-    the clip's end, which holds the last pose): joint matrices = global joint transform (from the animated node
-    TRS) x inverse bind matrix; positions back in the world frame (nodes.common.gltf.world_points)."""
+    the clip's end, which holds the last pose): morph targets first (POSITION + sum of the key's weights x
+    target displacements, the weights channel of the mesh's node, else the mesh's default weights), then joint
+    matrices = global joint transform (from the animated node TRS) x inverse bind matrix; positions back in the
+    world frame (nodes.common.gltf.world_points)."""
     import pygltflib as G
     from scipy.spatial.transform import Rotation
 
@@ -222,8 +250,15 @@ def read_gltf(data: bytes) -> dict:
         s = anim.samplers[ch.sampler]
         times = _accessor(gltf, blob, s.input).astype(np.float64)
         tracks[(ch.target.node, ch.target.path)] = _accessor(gltf, blob, s.output).astype(np.float64)
+    targets = np.array([_accessor(gltf, blob, t["POSITION"] if isinstance(t, dict) else t.POSITION)
+                        for t in prim.targets or []], np.float64).reshape(-1, len(pos), 3)
+    body = next(i for i, node in enumerate(gltf.nodes) if node.mesh == 0)
+    morph = tracks.get((body, "weights"))
+    morph = (np.tile(gltf.meshes[0].weights or [0.0] * len(targets), (len(times), 1)) if morph is None
+             else morph.reshape(len(times), len(targets)))
     skinned = []
     for k in range(len(times)):
+        moved = pos + np.einsum("t,tva->va", morph[k], targets)
         local = np.tile(np.eye(4), (n, 1, 1))
         for i, node in enumerate(gltf.nodes):
             t = tracks.get((i, "translation"), [node.translation or [0, 0, 0]] * len(times))[k]
@@ -240,10 +275,11 @@ def read_gltf(data: bytes) -> dict:
             return world[i]
 
         mats = np.array([glob(j) @ ibm[a] for a, j in enumerate(skin.joints)])        # (J, 4, 4)
-        per = np.einsum("jab,vb->vja", mats[:, :3, :3], pos) + mats[:, :3, 3][None]
+        per = np.einsum("jab,vb->vja", mats[:, :3, :3], moved) + mats[:, :3, 3][None]
         skinned.append(np.einsum("vk,vka->va", wts, per[np.arange(len(pos))[:, None], jidx]))
     return {"rest": world_points(pos), "faces": faces, "joints": [gltf.nodes[j].name for j in skin.joints],
-            "times": times, "skinned": world_points(np.array(skinned)), "weights": wts, "indices": jidx}
+            "times": times, "skinned": world_points(np.array(skinned)), "weights": wts, "indices": jidx,
+            "targets": world_points(targets), "morph_weights": morph}
 
 
 # ---------------------------------------------------------------- BVH

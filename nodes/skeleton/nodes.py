@@ -476,26 +476,36 @@ class Export(Node):
     """A skinned, animated rig as files: USD (UsdSkel Skeleton + Animation + bound Mesh with joint
     indices/weights, time codes = frame numbers), glTF 2.0 binary (skin, inverse bind matrices, a translation +
     rotation channel per joint) and/or BVH (the motion: hierarchy, offsets, ZXY rotations per frame). Joint
-    transforms at frame k reproduce the skinned mesh."""
+    transforms at frame k reproduce the skinned mesh. Given the tracked frames the rig was fitted to, it reports
+    the LBS error per frame, and with ``correctives`` keeps what LBS misses as K corrective blend shapes
+    (correctives.py: per-frame rest-space residuals, truncated SVD) with their weights per frame: glTF morph
+    targets + a weights channel, UsdSkel BlendShapes + blendShapeWeights."""
 
     type_name = "skeleton.export"
-    version = 1
+    version = 2
     per = "sequence"
     publishes = True
     inputs = {
         "skeleton": Input(Skeleton, doc="skin's skeleton (weights and motion)"),
         "rest": Input(Mesh, doc="the rest shape the weights belong to (skin's rest)"),
+        "meshes": Input(Mesh, optional=True, doc="the tracked frames skin fitted (its input; arrive as a list): "
+                        "the error report and the corrective shapes"),
+        "sequence": Input(MeshSequence, optional=True, doc="or skin's mesh sequence"),
     }
-    outputs = {"files": Files}
+    outputs = {"files": Files,
+               "report": Output(Table, "with the tracked frames: per file the LBS error per frame (rms, max; metres) "
+                                "with 0 and with the corrective shapes")}
     params = {
         "name": Param(str, "rig", doc="file name stem"),
         "formats": Param(str, "usd,gltf", doc="which files, comma-separated: usd, gltf, bvh (the motion alone, "
                          "+Y up, metres: rotation-only rigs, i.e. skin's lengths: fixed)"),
         "fps": FPS_PARAM,
         "influences": Param(int, 4, range=(1, 8), doc="joint influences per vertex in USD (glTF: 4)"),
+        "correctives": Param(int, 0, range=(0, 1024), doc="corrective blend shapes (glTF morph targets, UsdSkel "
+                             "BlendShapes) fitted to the tracked frames; 0 = none; at least the frame count: exact"),
     }
 
-    def run(self, skeleton, rest, *, name, formats, fps, influences):
+    def run(self, skeleton, rest, meshes=None, sequence=None, *, name, formats, fps, influences, correctives):
         from . import formats as fmt
 
         formats = [f.strip() for f in formats.split(",") if f.strip()]
@@ -513,14 +523,53 @@ class Export(Node):
                    parents=list(skeleton.parents), names=list(skeleton.names), weights=np.asarray(skeleton.weights),
                    rotations=np.asarray(skeleton.rotations), translations=np.asarray(skeleton.translations),
                    frames=frames, fps=fps)
+        targets = None if meshes is None and sequence is None else self._tracked(meshes, sequence, frames, rig)
+        if correctives and targets is None:
+            raise NodeError("skeleton.export: correctives need the tracked frames: connect skin's 'sequence' (or "
+                            "'meshes') to this node's")
+        fits, report = {}, {}
+
+        def fitted(k: int, file: str):
+            """The corrective shapes (and errors) for the LBS a file with k influences per vertex skins."""
+            if targets is None:
+                return None
+            if k not in fits:
+                from .correctives import fit_correctives
+
+                idx, w = fmt.sparse_influences(rig["weights"], k)
+                fits[k] = fit_correctives(rig["vertices"], idx, w, rig["rotations"], rig["translations"], targets,
+                                          correctives)
+            c = fits[k]
+            report[file] = c.table()
+            self.log.info("skeleton.export: %s: LBS rms %.3g mm (max %.3g) -> %d corrective shape(s): rms %.3g mm "
+                          "(max %.3g)", file, 1000 * report[file]["lbs_rms_total"], 1000 * c.lbs_max.max(),
+                          len(c.shapes), 1000 * report[file]["corrected_rms_total"], 1000 * c.max.max())
+            return c
+
         files = {}
         if "usd" in formats:
-            files[f"{name}.usd"] = fmt.usd_bytes(influences=influences, **rig)
+            files[f"{name}.usd"] = fmt.usd_bytes(influences=influences, **rig, correctives=fitted(
+                max(1, min(influences, len(rig["parents"]))), f"{name}.usd"))
         if "gltf" in formats:
-            files[f"{name}.glb"] = fmt.gltf_bytes(**rig)
+            files[f"{name}.glb"] = fmt.gltf_bytes(**rig, correctives=fitted(min(4, len(rig["parents"])), f"{name}.glb"))
         if "bvh" in formats:
             try:
                 files[f"{name}.bvh"] = fmt.bvh_text(**rig).encode()
             except ValueError as exc:
                 raise NodeError(f"skeleton.export: {exc}") from None
-        return {"files": files}
+        if report:
+            report = {"frames": [int(f) for f in frames], "files": report}
+        return {"files": files, "report": report}
+
+    def _tracked(self, meshes, sequence, frames, rig) -> np.ndarray:
+        """(F, V, 3) the tracked frames of the connected input that the rig's frames are (its segment)."""
+        seq = list(sequence if sequence is not None else meshes or [])
+        for segment in range(len(sequence_segments(seq)) if seq else 1):
+            try:
+                points, _, numbers, _, _ = dynamic_mesh(self, meshes, sequence, segment)
+            except NodeError:           # a segment too short to rig, or no meshes: not the rig's
+                continue
+            if list(numbers) == list(frames) and points.shape[1] == len(rig["vertices"]):
+                return points
+        raise NodeError(f"skeleton.export: no segment of the tracked frames is the rig's (frames {frames[0]}..{frames[-1]}, "
+                        f"{len(rig['vertices'])} vertices): connect the sequence skin fitted")
