@@ -13,8 +13,12 @@ det A < 0.3, some ~0), so the exact rest residuals there are huge, and their tru
 them: 8 shapes made a segment's worst vertex 1.27 m off, where plain LBS left 0.23 m. So the start is the SVD of
 the damped residuals (A^T A + DAMPING I)^-1 A^T r, then ``ROUNDS`` of alternating least squares in the posed
 space: the shapes per vertex (3K normal equations over the frames), the weights per frame (K x K); the weights
-last, so no frame's rms is above plain LBS's. Each shape is scaled so its weights span [-1, 1] (a slider's range
-in Blender and other tools). The error after correction is measured in the posed (skinned) space, per frame.
+last, so no frame's rms is above plain LBS's. The weights are then made what a DCC slider holds, 0..1: a shape
+whose weights take both signs is kept as two (itself on its positive side, its negation on the negative side;
+the same deformation), one of one sign turned positive, each scaled so its weights reach 1. Blender's glTF
+importer (4.5) clamps a shape key to [slider_min, 1] and takes slider_min from the first key only, so negative
+weights came out clamped: on child_rope frame 40 the mesh 10.0 mm (median) from the tracked surface in Blender
+against 6.3 read by us. The error after correction is measured in the posed (skinned) space, per frame.
 """
 from __future__ import annotations
 
@@ -36,10 +40,11 @@ class Correctives:
     lbs_max: np.ndarray
     rms: np.ndarray
     max: np.ndarray
+    fitted: int = 0          # the shapes fitted (each one or two of ``shapes``: its sides)
 
     def table(self) -> dict:
         r = lambda a: [round(float(x), 7) for x in a]  # noqa: E731
-        return {"shapes": int(len(self.shapes)), "lbs_rms": r(self.lbs_rms), "lbs_max": r(self.lbs_max),
+        return {"shapes": int(len(self.shapes)), "fitted": int(self.fitted), "lbs_rms": r(self.lbs_rms), "lbs_max": r(self.lbs_max),
                 "corrected_rms": r(self.rms), "corrected_max": r(self.max),
                 "lbs_rms_total": float(np.sqrt((self.lbs_rms ** 2).mean())),
                 "corrected_rms_total": float(np.sqrt((self.rms ** 2).mean())),
@@ -95,10 +100,27 @@ def _posed_shapes(ata, atr, w) -> np.ndarray:
     return out.transpose(1, 0, 2)
 
 
+def _non_negative(w, shapes):
+    """The same deformation sum_k w_fk D_k with weights in [0, 1]: per shape its positive side, and its negated
+    shape for the negative side where the weights go below 0 (shapes with no weight dropped)."""
+    ws, ds = [], []
+    for k in range(w.shape[1]):
+        for sign in (1.0, -1.0):
+            side = np.maximum(sign * w[:, k], 0.0)
+            top = side.max(initial=0.0)
+            if top > 0:
+                ws.append(side / top)
+                ds.append(sign * top * shapes[k])
+    if not ws:
+        return np.zeros((len(w), 0)), np.zeros((0,) + shapes.shape[1:])
+    return np.stack(ws, 1), np.stack(ds)
+
+
 def fit_correctives(vertices, indices, weights, rotations, translations, targets, k: int) -> Correctives:
     """``k`` corrective shapes and their weights per frame (the module docstring: exact per frame when k >= the
     frame count, else fitted in the posed space), with the posed error per frame before and after
-    (``Correctives``); k is capped at the frame count."""
+    (``Correctives``); k is capped at the frame count. Each comes out as one or two shapes with weights in
+    [0, 1] (its two sides), so up to 2k."""
     x = np.asarray(vertices, np.float64)
     y = np.asarray(targets, np.float64)
     a, b = blended_transforms(indices, weights, rotations, translations)
@@ -123,10 +145,9 @@ def fit_correctives(vertices, indices, weights, rotations, translations, targets
             w = _posed_weights(a, r, shapes)
     else:
         w, shapes = np.zeros((f, 0)), np.zeros((0, v, 3))
-    span = np.abs(w).max(0) if k else np.zeros(0)
-    span = np.where(span > 0, span, 1.0)
-    w, shapes = w / span, shapes * span[:, None, None]
+    w, shapes = _non_negative(w, shapes)
     approx = np.einsum("fk,kva->fva", w, shapes)
     posed = np.einsum("fvab,fvb->fva", a, x[None] + approx) + b
     err = np.linalg.norm(posed - y, axis=2)
-    return Correctives(shapes, w, np.sqrt((err0 ** 2).mean(1)), err0.max(1), np.sqrt((err ** 2).mean(1)), err.max(1))
+    return Correctives(shapes, w, np.sqrt((err0 ** 2).mean(1)), err0.max(1), np.sqrt((err ** 2).mean(1)), err.max(1),
+                       fitted=k)
