@@ -16,7 +16,10 @@ body's left-right axis, one leg in each), each arm's branch where its path reach
 (the legs' joints are measured from the foot with the mean leg length: the legs' paths may meet off-centre);
 then every joint at its fraction of its path (the spine's measured from where the legs meet), elbows and knees
 moved to the path's sharpest bend within +-0.15 of their fraction when it bends by more than ``BEND_DEG``
-(chords of a tenth of the path). Left and right: the feet point forwards
+(chords of a tenth of the path). A hip's place along its path is where the path has entered the thigh, below the
+joint (the path leaves the crotch's branch point sideways and down): the hip is taken up the thigh's centre line
+(knee -> that point, extended) to ``HIP_DROP`` of the leg below the branch point (synth walk at 128^3: hips median
+5.3-6.0 -> 1.7 cm from the true joints; the branch point's own height gives 2.4). Left and right: the feet point forwards
 (the part of each foot below the ankle lies in front of it), right = forward x up; a joint's side is the
 sign of its offset along right (measured at the upper arm and the thigh: hands and feet may cross the midline);
 when the right arm and the right leg come out on opposite sides, the pair less aligned with right is flipped. Names map to the ones other tools retarget from (``RETARGET``: Mixamo, the
@@ -38,6 +41,7 @@ LOW_ARM = 0.3            # an arm whose path leaves the spine below this share o
 BEND_DEG = 25.0
 FOOT_HEIGHT = 0.2        # extremities this share of the body's height above the floor are feet
 CROTCH_HEIGHT = 0.47
+HIP_DROP = 0.02          # the hips this share of the leg's path below where the legs' paths meet (on the thigh's line)
 MIN_LEG = 0.15           # a leg's path from the pelvis shorter than this share of the height: no fit
 HEAD_ARC = 0.12          # a head's thickness is measured this share of the height below its tip
 HEAD_THICKER = 1.5       # ... and must be this many times a hand's     # legs together: where the legs meet, this share of the height above the floor
@@ -446,6 +450,14 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
                 frac = f
         joints[names.index(name)] = _at(poly, frac)
         parents.append(-1 if par is None else names.index(par.format(s=s) if s else par))
+    for s in SIDES:     # the hip on its thigh's centre line, raised to about where the legs' paths meet
+        j_h, j_k = names.index(f"hip_{s}"), names.index(f"knee_{s}")
+        top, knee = joints[j_h], joints[j_k]
+        d = top - knee
+        du = float(d @ u)
+        z = float(pts[pelvis] @ u) - HIP_DROP * leg_length
+        if du > 1e-6 and z > float(top @ u):
+            joints[j_h] = top + d * ((z - float(top @ u)) / du)
     low = [k for k in (0, 1) if at_spine[k] < LOW_ARM]
     if len(low) == 1:   # a hand against the hip: that arm's path enters the body there, not at the shoulder
         bad = low[0]
