@@ -38,6 +38,8 @@ from nodegraph import NodeError
 LOG = logging.getLogger("volcap.skeleton")
 SIDES = ("l", "r")
 LOW_ARM = 0.3            # an arm whose path leaves the spine below this share of its arc meets the body at the hip
+NEAR_SPINE = 0.12        # ... unless, coming from the hand, it passes this share of the height from the spine higher up:
+                         # the curve skeleton has a second trunk there (the shoulders' bar joined low, not at the neck)
 BEND_DEG = 25.0
 FOOT_HEIGHT = 0.2        # extremities this share of the body's height above the floor are feet
 CROTCH_HEIGHT = 0.47
@@ -116,6 +118,11 @@ def _tree_paths(points: np.ndarray, parent: np.ndarray):
         return up_a + up_b[-2::-1]
 
     return path
+
+
+def _spine_share(pts, spine_path, v) -> float:
+    """Where node ``v`` of the spine's path lies along it, as a share of its arc from the pelvis."""
+    return _length(pts[spine_path[:spine_path.index(v) + 1]]) / max(_length(pts[spine_path]), 1e-12)
 
 
 def _length(points: np.ndarray) -> float:
@@ -374,7 +381,18 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
         if branch is None:
             raise NodeError(f"{node}: a hand's path never reaches the spine (try another frame)")
         limbs[("arm", k)] = pts[path(branch, end[f"hand_{k}"])]
-        at_spine[k] = _length(pts[spine_path[:spine_path.index(branch) + 1]]) / max(_length(pts[spine_path]), 1e-12)
+        at_spine[k] = _spine_share(pts, spine_path, branch)
+        if at_spine[k] < LOW_ARM:   # a second trunk beside the spine? then the arm comes near the spine up high
+            arm = to_head[f"hand_{k}"]
+            sp = pts[spine_path]
+            for v in arm:
+                gap = np.linalg.norm(sp - pts[v], axis=1)
+                if gap.min() < NEAR_SPINE * height:
+                    break
+            near = spine_path[int(np.argmin(gap))]
+            if _spine_share(pts, spine_path, near) >= LOW_ARM:
+                limbs[("arm", k)] = np.vstack([pts[near], pts[path(v, end[f"hand_{k}"])]])
+                at_spine[k] = _spine_share(pts, spine_path, near)
     if all(at_spine[k] < LOW_ARM for k in (0, 1)):   # one such arm is repaired from the other (below); two cannot be
         raise NodeError(f"{node}: both hands' paths reach the body near the pelvis, not at the shoulders: arms "
                         "against the hips? (try another frame)")

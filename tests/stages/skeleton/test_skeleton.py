@@ -898,22 +898,25 @@ def test_humanoid_golden(golden):
     golden.check("skeleton_humanoid_figure_64", sk, Skeleton, atol=1e-3)
 
 
-def test_humanoid_arm_with_its_hand_at_the_hip():
-    """Frames of the walk where a swinging hand touches the hip (1, 8, 9, 10, 13, 14, 15): that arm's centre line
-    enters the body there, and its shoulder and elbow were 23-32 cm off. Now the report names the arm, its
-    shoulder is the other's mirrored and its elbow lies between shoulder and wrist inside the body: every joint
-    within 12 cm of the truth (measured max 9.0), and the frames where both arms leave the spine normally
-    unchanged (no report)."""
+def test_humanoid_arms_from_a_second_trunk_beside_the_spine():
+    """Frames of the walk (1, 8, 9, 10, 13, 14, 15 at 96^3; 2, 5, 13 at 128^3) whose curve skeleton joins the
+    shoulders' bar to a second trunk that leaves the spine near the pelvis (the loop through the neck broken there):
+    the hands' paths reached the spine at 5-15 % of its arc. Read first as a hand against the hip (the shoulder
+    mirrored from the other arm, 5-9 cm off), and at 128^3, both arms so, the frame refused. Now an arm whose path
+    comes within NEAR_SPINE of the spine higher up starts at the spine there: no repair reported, every joint
+    within 10 cm of the truth (measured max 9.2, an elbow; before, 9.0 with the repair), and no frame refused at
+    128^3."""
     from nodes.synth import scenes
 
-    for f in (1, 8, 9, 10, 13, 14, 15, 2):
-        sc = scenes.build("figure", f)
-        out = run_node("skeleton.humanoid", {"mesh": sc.mesh}, {"resolution": 96})
-        sk, rep = out["skeleton"], out["report"]
-        assert ("arm_from_hip" in rep) == (f != 2), (f, rep.get("arm_from_hip"))
-        _, pos = scenes.figure_pose(f)
-        for ours, theirs in HUMANOID_TRUTH.items():
-            for s in ("l", "r") if "{s}" in ours else (None,):
-                n = ours.format(s=s) if s else ours
-                truth = pos[scenes.NAMES.index(theirs.format(s=s) if s else theirs)]
-                assert np.linalg.norm(sk.joints[sk.names.index(n)] - truth) < 0.12, (f, n)
+    for res, frames in ((96, (1, 8, 9, 10, 13, 14, 15, 2)), (128, (2, 5, 13))):
+        for f in frames:
+            sc = scenes.build("figure", f)
+            out = run_node("skeleton.humanoid", {"mesh": sc.mesh}, {"resolution": res})
+            sk, rep = out["skeleton"], out["report"]
+            assert "arm_from_hip" not in rep, (res, f, rep.get("arm_from_hip"))
+            _, pos = scenes.figure_pose(f)
+            for ours, theirs in HUMANOID_TRUTH.items():
+                for s in ("l", "r") if "{s}" in ours else (None,):
+                    n = ours.format(s=s) if s else ours
+                    truth = pos[scenes.NAMES.index(theirs.format(s=s) if s else theirs)]
+                    assert np.linalg.norm(sk.joints[sk.names.index(n)] - truth) < 0.10, (res, f, n)
