@@ -178,6 +178,33 @@ __kernel void matte_rows(__global const float4 *edges, int nedges, int width, in
         spans[y] = matte_span(edges, nedges, width, (float)y);
 }
 
+// Spill suppression of 16 pixels given as luma, chroma and chroma along the key (chroma_alpha16's): the key-
+// coloured chroma times `spill` removed, back to packed RGB; the first `nbytes` bytes written to dst.
+inline void despill_store48(float16 y, float16 cb, float16 cr, float16 along, float2 key, float spill,
+                            __global uchar *dst, int nbytes)
+{
+    float16 remove = spill * fmax(along, 0.0f);
+    cb -= remove * key.x;
+    cr -= remove * key.y;
+    // back to interleaved RGB as three 16-byte chunks: byte q of chunk j is pixel (16 j + q) / 3, channel
+    // (16 j + q) % 3; R = Y + Cr / 0.713, B = Y + Cb / 0.564, G = (Y - 0.299 R - 0.114 B) / 0.587.
+    const float kr_g = -0.299f / (0.587f * 0.713f), kb_g = -0.114f / (0.587f * 0.564f);
+    const float kr_r = 1.0f / 0.713f, kb_b = 1.0f / 0.564f;
+    uint16 p0 = (uint16)(0, 0, 0, 1, 1, 1, 2, 2, 2, 3, 3, 3, 4, 4, 4, 5);
+    uint16 p1 = (uint16)(5, 5, 6, 6, 6, 7, 7, 7, 8, 8, 8, 9, 9, 9, 10, 10);
+    uint16 p2 = (uint16)(10, 11, 11, 11, 12, 12, 12, 13, 13, 13, 14, 14, 14, 15, 15, 15);
+    float16 kr0 = (float16)(kr_r, kr_g, 0, kr_r, kr_g, 0, kr_r, kr_g, 0, kr_r, kr_g, 0, kr_r, kr_g, 0, kr_r);
+    float16 kb0 = (float16)(0, kb_g, kb_b, 0, kb_g, kb_b, 0, kb_g, kb_b, 0, kb_g, kb_b, 0, kb_g, kb_b, 0);
+    float16 kr1 = (float16)(kr_g, 0, kr_r, kr_g, 0, kr_r, kr_g, 0, kr_r, kr_g, 0, kr_r, kr_g, 0, kr_r, kr_g);
+    float16 kb1 = (float16)(kb_g, kb_b, 0, kb_g, kb_b, 0, kb_g, kb_b, 0, kb_g, kb_b, 0, kb_g, kb_b, 0, kb_g);
+    float16 kr2 = (float16)(0, kr_r, kr_g, 0, kr_r, kr_g, 0, kr_r, kr_g, 0, kr_r, kr_g, 0, kr_r, kr_g, 0);
+    float16 kb2 = (float16)(kb_b, 0, kb_g, kb_b, 0, kb_g, kb_b, 0, kb_g, kb_b, 0, kb_g, kb_b, 0, kb_g, kb_b);
+    float16 o0 = shuffle(y, p0) + shuffle(cr, p0) * kr0 + shuffle(cb, p0) * kb0;
+    float16 o1 = shuffle(y, p1) + shuffle(cr, p1) * kr1 + shuffle(cb, p1) * kb1;
+    float16 o2 = shuffle(y, p2) + shuffle(cr, p2) * kr2 + shuffle(cb, p2) * kb2;
+    store_bytes48(dst, nbytes, to_u8x16(o0), to_u8x16(o1), to_u8x16(o2));
+}
+
 // Chroma key. key = (u_cb, u_cr) unit direction of the key colour in the CbCr plane.
 // strength s = (c.u - side * |c x u|) / max(Y, luma_floor): how strongly the pixel's chroma points at the
 // key hue, relative to its brightness. Foreground alpha = 1 - ramp of s over [inner, outer] (inv_ramp =
@@ -229,26 +256,26 @@ __kernel void chroma_key(__global const uchar *rgb, int npix, float2 key, float 
     }
     if (!despill)
         return;
-    float16 remove = spill * fmax(along, 0.0f);
-    cb -= remove * key.x;
-    cr -= remove * key.y;
-    // back to interleaved RGB as three 16-byte chunks: byte q of chunk j is pixel (16 j + q) / 3, channel
-    // (16 j + q) % 3; R = Y + Cr / 0.713, B = Y + Cb / 0.564, G = (Y - 0.299 R - 0.114 B) / 0.587.
-    const float kr_g = -0.299f / (0.587f * 0.713f), kb_g = -0.114f / (0.587f * 0.564f);
-    const float kr_r = 1.0f / 0.713f, kb_b = 1.0f / 0.564f;
-    uint16 p0 = (uint16)(0, 0, 0, 1, 1, 1, 2, 2, 2, 3, 3, 3, 4, 4, 4, 5);
-    uint16 p1 = (uint16)(5, 5, 6, 6, 6, 7, 7, 7, 8, 8, 8, 9, 9, 9, 10, 10);
-    uint16 p2 = (uint16)(10, 11, 11, 11, 12, 12, 12, 13, 13, 13, 14, 14, 14, 15, 15, 15);
-    float16 kr0 = (float16)(kr_r, kr_g, 0, kr_r, kr_g, 0, kr_r, kr_g, 0, kr_r, kr_g, 0, kr_r, kr_g, 0, kr_r);
-    float16 kb0 = (float16)(0, kb_g, kb_b, 0, kb_g, kb_b, 0, kb_g, kb_b, 0, kb_g, kb_b, 0, kb_g, kb_b, 0);
-    float16 kr1 = (float16)(kr_g, 0, kr_r, kr_g, 0, kr_r, kr_g, 0, kr_r, kr_g, 0, kr_r, kr_g, 0, kr_r, kr_g);
-    float16 kb1 = (float16)(kb_g, kb_b, 0, kb_g, kb_b, 0, kb_g, kb_b, 0, kb_g, kb_b, 0, kb_g, kb_b, 0, kb_g);
-    float16 kr2 = (float16)(0, kr_r, kr_g, 0, kr_r, kr_g, 0, kr_r, kr_g, 0, kr_r, kr_g, 0, kr_r, kr_g, 0);
-    float16 kb2 = (float16)(kb_b, 0, kb_g, kb_b, 0, kb_g, kb_b, 0, kb_g, kb_b, 0, kb_g, kb_b, 0, kb_g, kb_b);
-    float16 o0 = shuffle(y, p0) + shuffle(cr, p0) * kr0 + shuffle(cb, p0) * kb0;
-    float16 o1 = shuffle(y, p1) + shuffle(cr, p1) * kr1 + shuffle(cb, p1) * kb1;
-    float16 o2 = shuffle(y, p2) + shuffle(cr, p2) * kr2 + shuffle(cb, p2) * kb2;
-    store_bytes48(despilled + 3 * i0, 3 * n, to_u8x16(o0), to_u8x16(o1), to_u8x16(o2));
+    despill_store48(y, cb, cr, along, key, spill, despilled + 3 * i0, 3 * n);
+}
+
+// The despilled RGB of the box [x0, x0 + bw) x [y0, y0 + rows) of a packed RGB image `width` pixels wide, written
+// packed as (rows, bw, 3): chroma_key's despill, bit for bit, for the pixels a reader keeps (key.chroma's window
+// around the alpha; the rest of the image is black). Work item (i, r): PIX pixels of the box's row r from column 16 i.
+__kernel void despill_box(__global const uchar *rgb, int width, int x0, int y0, int bw, float2 key, float spill,
+                          __global uchar *out)
+{
+    int c0 = get_global_id(0) * PIX, r = get_global_id(1);
+    if (c0 >= bw)
+        return;
+    int n = min(PIX, bw - c0);
+    size_t src = (size_t)(y0 + r) * width + x0 + c0;
+    uchar16 a0, a1, a2;
+    load_bytes48(rgb + 3 * src, 3 * n, &a0, &a1, &a2);
+    float16 rf, gf, bf, y, cb, cr, along;
+    rgb_planes16(a0, a1, a2, &rf, &gf, &bf);
+    chroma_alpha16(rf, gf, bf, key, 0.0f, 1.0f, 0.0f, 1.0f, 0.0f, &y, &cb, &cr, &along);
+    despill_store48(y, cb, cr, along, key, spill, out + 3 * ((size_t)r * bw + c0), 3 * n);
 }
 
 // 16 lanes of -1 / 0 (a comparison's result) to a 16-bit mask, lane i in bit i

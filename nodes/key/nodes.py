@@ -8,7 +8,7 @@ from nodegraph import Input, Node, NodeError, Output, Param, Table
 from nodes.common.types import Bounds, CameraSet, Images, ImageSet, Masks, MaskSet, PlateModel, Volume
 from nodes.common.views import map_views
 
-from .keying import (KERNELS, check_views, chroma_key_bits, chroma_key_cl, clean_mask, cleaned_alpha, difference_key_cl,
+from .keying import (KERNELS, check_views, chroma_key_bits, chroma_key_cl, chroma_key_windowed, clean_mask, cleaned_alpha, difference_key_cl,
                      difference_key_mixture_cl, estimate_key_direction,
                      grabcut_band, grey_threshold_cl, hull_footprint, key_direction_from_rgb, maskset, matte_edges,
                      plate_model, disc)
@@ -64,13 +64,16 @@ class ChromaKey(Node):
         def key_frames():
             if not full:
                 alphas, despilled, windows = [], [], []
+                kw = dict(side=side, luma_floor=luma_floor, inner=inner, outer=outer, black=black, spill=spill)
                 for v, im in enumerate(frames):
-                    a, d = chroma_key_cl(im, keys[v], side=side, luma_floor=luma_floor, inner=inner, outer=outer,
-                                         black=black, spill=spill, edges=None if edges is None else edges[v],
-                                         despill=spill > 0)
+                    e = None if edges is None else edges[v]
+                    if spill > 0 and window_margin >= 0:  # despilled inside the alpha's window only, black beyond
+                        a, d, win = chroma_key_windowed(im, keys[v], margin=window_margin, edges=e, **kw)
+                    else:
+                        (a, d), win = chroma_key_cl(im, keys[v], edges=e, despill=spill > 0, **kw), None
                     alphas.append(a)
                     despilled.append(d if spill > 0 else im)
-                    windows.append(black_outside(d, a, window_margin) if spill > 0 and window_margin >= 0 else None)
+                    windows.append(win)
                 full.update(masks=maskset(alphas, images.names), images=despilled,
                             windows=windows if any(w is not None for w in windows) else None)
             return full
@@ -79,24 +82,6 @@ class ChromaKey(Node):
         masks = MaskSet.lazy(lambda: (key_frames()["masks"].masks, None, key_frames()["masks"].alpha8), names,
                              make_device=bits)
         return {"masks": masks, "images": ImageSet.lazy(lambda: (key_frames()["images"], key_frames()["windows"]), names)}
-
-
-def black_outside(image: np.ndarray, alpha: np.ndarray, margin: int) -> list[int]:
-    """The box (x0, y0, x1, y1) of ``alpha`` > 0 grown by ``margin`` pixels (clipped to the image), with
-    ``image`` set to black outside it, in place (an empty alpha: an empty box, all black)."""
-    import cv2
-
-    h, w = alpha.shape
-    x, y, bw, bh = cv2.boundingRect(np.greater(alpha, 0).view(np.uint8))
-    if bw == 0 or bh == 0:
-        image[:] = 0
-        return [0, 0, 0, 0]
-    x0, y0, x1, y1 = max(0, x - margin), max(0, y - margin), min(w, x + bw + margin), min(h, y + bh + margin)
-    image[:y0] = 0
-    image[y1:] = 0
-    image[y0:y1, :x0] = 0
-    image[y0:y1, x1:] = 0
-    return [x0, y0, x1, y1]
 
 
 class Plate(Node):

@@ -69,6 +69,30 @@ def test_chroma_kernel_matches_reference():
     assert np.all(a[~K.matte_reference(edges, img.shape[:2])] == 0)
 
 
+def test_windowed_chroma_key_is_the_whole_images_despill_inside_the_window():
+    """chroma_key_windowed: the alpha of chroma_key_cl, the despill run on the alpha's window alone (the box grown
+    by the margin and clipped to the image; widths that are no multiple of 16, a window at the border, an empty
+    alpha): inside it byte for byte chroma_key_cl's (and within a level of the NumPy reference), black beyond."""
+    rng = np.random.default_rng(3)
+    key = K.key_direction_from_rgb(GREEN)
+    for h, w, (cy, cx, r), margin in ((61, 83, (30, 40, 9), 5), (40, 70, (5, 66, 12), 16), (33, 47, (0, 0, 0), 4)):
+        img = green_scene(disc(h, w, cy, cx, r), seed=int(rng.integers(100)))
+        a_full, d_full = K.chroma_key_cl(img, key)
+        a, d, win = K.chroma_key_windowed(img, key, margin=margin)
+        assert np.array_equal(a, a_full)
+        ys, xs = np.nonzero(a)
+        want = ([max(0, xs.min() - margin), max(0, ys.min() - margin), min(w, xs.max() + 1 + margin),
+                 min(h, ys.max() + 1 + margin)] if len(xs) else [0, 0, 0, 0])
+        assert win == want, (win, want)
+        x0, y0, x1, y1 = win
+        inside = np.zeros((h, w), bool)
+        inside[y0:y1, x0:x1] = True
+        assert np.array_equal(d[inside], d_full[inside]) and not d[~inside].any()
+        _, d_np = K.chroma_key_reference(img, key)
+        assert np.abs(d[inside].astype(int) - d_np[inside]).max(initial=0) <= 1
+    assert win == [0, 0, 0, 0]                                        # the empty alpha: all black
+
+
 def test_difference_kernel_matches_reference():
     rng = np.random.default_rng(2)
     plate = plate_scene(h=29, w=41)[0]
