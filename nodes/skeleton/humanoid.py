@@ -46,6 +46,9 @@ CROTCH_HEIGHT = 0.47
 HIP_DROP = 0.02          # the hips this share of the leg's path below where the legs' paths meet (on the thigh's line)
 MIN_LEG = 0.15           # a leg's path from the pelvis shorter than this share of the height: no fit
 HEAD_ARC = 0.12          # a head's thickness is measured this share of the height below its tip
+LIMB_QUANTILE = 0.75     # each limb bone's length: this quantile of the fits' lengths of it (a bent limb's centre line
+                         # cuts the corners and measures short, a misplaced joint may measure long)
+LIMB_BONES = ("shoulder", "elbow", "wrist", "hand_end", "knee", "ankle", "toe")  # the limbs' bones, by the joint they end at
 HEAD_THICKER = 1.5       # ... and must be this many times a hand's     # legs together: where the legs meet, this share of the height above the floor
 # name: (parent, path, fraction of the path's arc); "{s}" is the side
 TEMPLATE = {
@@ -500,11 +503,11 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
 
 
 def bind_humanoid(frames: np.ndarray, faces, resolution: int, up=(0.0, 0.0, 1.0), node: str = "skeletonize.humanoid",
-                  tries: int = 9, lengths: dict | None = None):
+                  tries: int = 40, lengths: dict | None = None):
     """The template fitted to one frame of a dynamic mesh and set moving with it, ready for ``skin``:
     (joints, parents, names, one-hot weights (V, J), rotations (F, J, 3, 3), translations (F, J, 3), report),
     rest = the first frame. The fit is tried on up to ``tries`` frames spread over the segment (a child's arms
-    lie against the body in some, its legs touch in others); of the fits, the one whose parts move most rigidly
+    lie against the body in some, its legs touch in others; 40: enough fits to measure the limbs); of the fits, the one whose parts move most rigidly
     over the whole segment is kept (the rms distance of the vertices from their part's rigid motion: a part
     that straddles a real joint, or a limb found in the wrong place, does not move rigidly). The end joints
     (head_end, hand_end_*, toe_*) mark where a limb ends and are left out: no part of the body moves with them.
@@ -512,14 +515,17 @@ def bind_humanoid(frames: np.ndarray, faces, resolution: int, up=(0.0, 0.0, 1.0)
     in the fitted frame; each joint's part moves rigidly (Kabsch, first frame -> each frame), a part with fewer
     than 4 vertices as its parent does; the joints are carried back to the first frame by their parts' motion.
     ``skin`` (lengths: fixed) then makes the joints rotation-only with constant bone lengths. Bone lengths: as
-    the fit measured them, left and right averaged (a body is symmetric; one child_rope fit measured the upper
-    arms 12 and 18 cm), or ``lengths`` (joint name -> length of the bone ending at it) as given; each fit
-    is given them (with_lengths), and the rest joints again once carried back to the first frame."""
+    the fits measured them, left and right averaged (a body is symmetric; one child_rope fit measured the upper
+    arms 12 and 18 cm), the limbs' bones (``LIMB_BONES``) each the ``LIMB_QUANTILE`` of the fits' lengths of it
+    (the most rigid fits of child_rope are crouched frames, whose bent legs' centre lines cut the corners: shins
+    7-16 cm against 19-26 upright; the segment's lengths 24/11 cm -> 25/22 thigh/shin), the others the kept fit's;
+    or ``lengths`` (joint name -> length of the bone ending at it) as given; each fit is given them
+    (with_lengths), and the rest joints again once carried back to the first frame."""
     from .curve import voxelize
 
     frames = np.asarray(frames, np.float64)
     order = sorted(set(np.linspace(0, len(frames) - 1, min(tries, len(frames))).round().astype(int).tolist()))
-    best, errors, tried = None, [], {}
+    fits, errors, tried = [], [], {}
     for r in order:
         occ, origin, spacing = voxelize(frames[r], np.asarray(faces), resolution)
         try:
@@ -531,10 +537,22 @@ def bind_humanoid(frames: np.ndarray, faces, resolution: int, up=(0.0, 0.0, 1.0)
         fit = (with_lengths(fit[0], fit[1], fit[2], own), *fit[1:], own)
         bound = _bind(frames, r, *fit[:3])
         tried[r] = round(1000 * bound[-1], 2)
-        if best is None or bound[-1] < best[1][-1]:
-            best = (fit, bound, r)
-    if best is None:
+        fits.append((fit, bound, r))
+    if not fits:
         raise NodeError(f"{node}: the template fits none of the {len(order)} frames tried: " + "; ".join(errors[:3]))
+    best = min(fits, key=lambda x: x[1][-1])
+    if lengths is None:   # each limb as long as most fits measure it: a bent limb's centre line cuts the corners
+        own, source = dict(best[0][4]), {}
+        for b in LIMB_BONES:
+            by = sorted(fits, key=lambda x: x[0][4][f"{b}_l"])
+            src = by[int(round(LIMB_QUANTILE * (len(by) - 1)))]
+            source[b] = int(src[2])
+            own.update({f"{b}_{s}": src[0][4][f"{b}_{s}"] for s in SIDES})
+        if any(v != best[2] for v in source.values()):
+            fit, r = best[0], best[2]
+            fit = (with_lengths(fit[0], fit[1], fit[2], own), *fit[1:4], own)
+            best = (fit, _bind(frames, r, *fit[:3]), r)
+        best[0][3]["limb_lengths_from_index"] = source
     (_, _, names, report, own), (keep, rest_joints, sub_parents, weights, rot, tr, counts, _), r = best
     # carried back to the first frame by their parts' own motions, a joint and its parent drift apart: the lengths again
     rest_joints = with_lengths(rest_joints, sub_parents, [names[j] for j in keep], own)

@@ -797,6 +797,48 @@ def test_humanoid_rig_on_a_tracked_walk():
     assert formats.read_gltf(files["walk.glb"])["joints"] == sk.names
 
 
+def test_humanoid_limb_bones_as_long_as_most_fits_measure_them(monkeypatch):
+    """bind_humanoid: each limb bone's length is the 75th percentile of the fits' lengths of it, not the length the
+    fit whose parts move most rigidly measured (child_rope: the most rigid fits are crouched frames, whose bent legs'
+    centre lines cut the corners: shins 7-16 cm against 19-26 upright). Six fits of the figure's frame 0 with the
+    shin measured 0.5, 0.55, 1, 1.02, 1.04 and 2.5 times (a misplaced ankle) and the shortest the most rigid: the
+    joints of the most rigid fit, the shin 1.04 times, the other bones as fitted."""
+    from nodes.skeleton import humanoid as H
+    from nodes.synth import scenes
+
+    meshes = [scenes.build("figure", f).mesh for f in range(6)]
+    frames = np.array([np.asarray(m.vertices) for m in meshes])
+    real = H.fit_humanoid(*curve.voxelize(frames[0], np.asarray(meshes[0].faces), 64))
+    names = real[2]
+    scale = [0.5, 0.55, 1.0, 1.02, 1.04, 2.5]
+    calls = []
+
+    def fit(occ, origin, spacing, up, node):
+        k = len(calls)
+        calls.append(k)
+        joints = np.array(real[0])
+        for s in "lr":
+            knee, ankle, toe = (names.index(f"{n}_{s}") for n in ("knee", "ankle", "toe"))
+            moved = joints[knee] + scale[k] * (joints[ankle] - joints[knee])
+            joints[toe] += moved - joints[ankle]
+            joints[ankle] = moved
+        return joints, real[1], names, dict(real[3])
+
+    bind = H._bind
+    monkeypatch.setattr(H, "fit_humanoid", fit)
+    monkeypatch.setattr(H, "_bind", lambda fr, r, *a: (*bind(fr, r, *a)[:-1], 0.01 * (1 + r)))   # frame 0 most rigid
+    joints, parents, kept, *_, report = H.bind_humanoid(frames, meshes[0].faces, 64)
+    shin = H.symmetric(H.skeleton_lengths(*real[:3]))
+    assert len(calls) == 6 and report["fitted_on_index"] == 0
+    used = report["bone_lengths_used"]
+    for s in "lr":
+        assert abs(used[f"ankle_{s}"] - 1.04 * shin[f"ankle_{s}"]) < 1e-4, (used[f"ankle_{s}"], shin[f"ankle_{s}"])
+        for b in ("knee", "elbow", "wrist"):
+            assert abs(used[f"{b}_{s}"] - shin[f"{b}_{s}"]) < 1e-4, b
+        d = np.linalg.norm(joints[kept.index(f"ankle_{s}")] - joints[kept.index(f"knee_{s}")])
+        assert abs(d - used[f"ankle_{s}"]) < 1e-4, (d, used[f"ankle_{s}"])
+
+
 def test_humanoid_rest_pose_t_and_a(tmp_path):
     """skin's rest_pose: the same motion about a T or an A pose. The walk's template rig (6 frames) skinned as
     captured and with rest_pose T: every posed joint goes where it went (1e-9 m: the motion is unchanged), bone
