@@ -9,7 +9,8 @@ voxel resolution, same run: seconds per frame, and the template's joint errors a
 child_rope: graphs/skeleton/child_rope_humanoid.yaml through the engine (the tracked sequence from its cache:
 the first run tracks, ~30 min): every tracked segment rigged with the template (skeletonize.humanoid -> skin,
 joints kept) -> per segment the frame it was fitted on, bones kept, LBS rms and max per frame against the goals
-(rms <= 1 % of the subject's height, max <= 5 %), bone lengths per segment, seconds per frame; the named joints
+(rms <= 1 % of the subject's height, max <= 5 %), posed joints outside the tracked body, bone lengths per segment,
+seconds per frame; the named joints
 over the silhouettes of 3 views at 4 frames (out/skeleton_humanoid_child_rope.jpg, and docs/ with --docs).
 """
 from __future__ import annotations
@@ -110,6 +111,14 @@ def child_rope(a):
               f"median {np.median(mx):.1f}, worst {mx.max():.1f} mm = {mx.max() / (10 * height):.2f} %; frames within "
               f"both goals {int(((rms <= 10 * height) & (mx <= 50 * height)).sum())}/{len(rms)}; bone-length spread "
               f"{err['bone_length_spread']:.1e}; {err['iterations']} iterations")
+        out = err.get("joints_outside")
+        if out:
+            worst = sorted(out["worst_by_joint"].items(), key=lambda kv: -kv[1])[:3]
+            print(f"  posed joints outside the tracked body: {out['beyond_2cm']} of {out['pairs']} (frame, joint) "
+                  f"pairs ({100 * out['beyond_2cm'] / out['pairs']:.1f} %) beyond 2 cm, {out['beyond_limit']} beyond "
+                  f"their bones' thickness; worst {1000 * out['worst']:.0f} mm ({out['worst_joint']}, frame "
+                  f"{out['worst_frame']}); "
+                  f"worst joints {', '.join(f'{n} {1000 * x:.0f}' for n, x in worst)} mm")
         print(f"  seconds: fit {fit_rec['seconds']:.1f}{' (a cache hit)' if fit_rec['cache_hit'] else ''} + skin "
               f"{err['seconds']:.1f} = {secs / len(rms):.2f} s per frame")
         rigs.append((sk, err))

@@ -513,15 +513,18 @@ def bind_humanoid(frames: np.ndarray, faces, resolution: int, up=(0.0, 0.0, 1.0)
     (head_end, hand_end_*, toe_*) mark where a limb ends and are left out: no part of the body moves with them.
     Each vertex goes to the nearest bone (the segment from a joint to one of its children, owned by the joint)
     in the fitted frame; each joint's part moves rigidly (Kabsch, first frame -> each frame), a part with fewer
-    than 4 vertices as its parent does; the joints are carried back to the first frame by their parts' motion.
-    ``skin`` (lengths: fixed) then makes the joints rotation-only with constant bone lengths. Bone lengths: as
+    than 4 vertices as its parent does. The fitted joints (inside the body there) are carried to every frame by
+    the surface around each (motion.carry_joints): the first frame's are the rest joints, and each joint's
+    motion takes it where its carried one goes (``skin``'s ``hold`` keeps the posed joints near there). ``skin``
+    (lengths: fixed) then makes the joints rotation-only with constant bone lengths. Bone lengths: as
     the fits measured them, left and right averaged (a body is symmetric; one child_rope fit measured the upper
     arms 12 and 18 cm), the limbs' bones (``LIMB_BONES``) each the ``LIMB_QUANTILE`` of the fits' lengths of it
     (the most rigid fits of child_rope are crouched frames, whose bent legs' centre lines cut the corners: shins
     7-16 cm against 19-26 upright; the segment's lengths 24/11 cm -> 25/22 thigh/shin), the others the kept fit's;
     or ``lengths`` (joint name -> length of the bone ending at it) as given; each fit is given them
-    (with_lengths), and the rest joints again once carried back to the first frame."""
+    (with_lengths), and the rest joints again once carried to the first frame."""
     from .curve import voxelize
+    from .motion import Trajectories, carry_joints
 
     frames = np.asarray(frames, np.float64)
     order = sorted(set(np.linspace(0, len(frames) - 1, min(tries, len(frames))).round().astype(int).tolist()))
@@ -534,10 +537,11 @@ def bind_humanoid(frames: np.ndarray, faces, resolution: int, up=(0.0, 0.0, 1.0)
             errors.append(f"frame index {r}: {str(exc).split(': ', 1)[-1]}")
             continue
         own = lengths or symmetric(skeleton_lengths(*fit[:3]))
+        raw = fit[0]
         fit = (with_lengths(fit[0], fit[1], fit[2], own), *fit[1:], own)
         bound = _bind(frames, r, *fit[:3])
         tried[r] = round(1000 * bound[-1], 2)
-        fits.append((fit, bound, r))
+        fits.append((fit, bound, r, raw))
     if not fits:
         raise NodeError(f"{node}: the template fits none of the {len(order)} frames tried: " + "; ".join(errors[:3]))
     best = min(fits, key=lambda x: x[1][-1])
@@ -549,13 +553,20 @@ def bind_humanoid(frames: np.ndarray, faces, resolution: int, up=(0.0, 0.0, 1.0)
             source[b] = int(src[2])
             own.update({f"{b}_{s}": src[0][4][f"{b}_{s}"] for s in SIDES})
         if any(v != best[2] for v in source.values()):
-            fit, r = best[0], best[2]
-            fit = (with_lengths(fit[0], fit[1], fit[2], own), *fit[1:4], own)
-            best = (fit, _bind(frames, r, *fit[:3]), r)
+            fit, r, raw = best[0], best[2], best[3]
+            fit = (with_lengths(raw, fit[1], fit[2], own), *fit[1:4], own)
+            best = (fit, _bind(frames, r, *fit[:3]), r, raw)
         best[0][3]["limb_lengths_from_index"] = source
-    (_, _, names, report, own), (keep, rest_joints, sub_parents, weights, rot, tr, counts, _), r = best
-    # carried back to the first frame by their parts' own motions, a joint and its parent drift apart: the lengths again
+    (_, _, names, report, own), (keep, rest_joints, sub_parents, weights, rot, tr, counts, _), r, raw = best
+    # the fitted joints (inside the body there, before any length was imposed) carried to every frame by the surface
+    # around each (motion.carry_joints); a part's own motion carries its joint poorly where the part holds vertices
+    # far from it (child_rope: an arm's part reaching into the torso it lies against put the wrists 8-14 cm outside
+    # the body in the first frame)
+    carried, has = carry_joints(Trajectories(frames[r], frames), raw[keep], sub_parents, np.argmax(weights, axis=1))
+    rest_joints[has] = carried[0, has]
     rest_joints = with_lengths(rest_joints, sub_parents, [names[j] for j in keep], own)
+    # each joint's motion takes it where the surface carries the fitted joint: skin's ``hold`` pulls towards there
+    tr[:, has] = carried[:, has] - np.einsum("fjab,jb->fja", rot[:, has], rest_joints[has])
     report["vertices_per_joint"] = dict(zip([names[j] for j in keep], counts.tolist()))
     report["fitted_on_index"] = int(r)
     report["frames_refused"] = errors
@@ -566,16 +577,25 @@ def bind_humanoid(frames: np.ndarray, faces, resolution: int, up=(0.0, 0.0, 1.0)
 
 def with_lengths(joints: np.ndarray, parents: list[int], names: list[str], lengths: dict) -> np.ndarray:
     """The joints with the given bone lengths (joint name -> distance from its parent): parents first, each
-    joint on the line from its parent the fit gave, at the given distance (the root and joints not named keep
-    their offsets from their parents)."""
+    joint on the line from its parent's new place towards its own given place, at the given distance (the
+    root and joints not named keep their offsets from their parents). Aimed from the new parent, a chain's
+    joints each stay as near their given places as the lengths allow; along the given bones' directions a
+    length changed near the root moved the whole limb below it (child_rope: the wrists 16-30 mm outside the
+    body in the first frame went to 57-176 mm)."""
     new = np.array(joints, np.float64)
     for j in sorted(range(len(parents)), key=lambda j: _depth(parents, j)):
         p = parents[j]
         if p < 0:
             continue
-        d = np.asarray(joints[j], np.float64) - joints[p]
+        if names[j] not in lengths:
+            new[j] = new[p] + (np.asarray(joints[j], np.float64) - joints[p])
+            continue
+        d = np.asarray(joints[j], np.float64) - new[p]
         n = float(np.linalg.norm(d))
-        new[j] = new[p] + (d / n * lengths[names[j]] if names[j] in lengths and n > 0 else d)
+        if n == 0:
+            d = np.asarray(joints[j], np.float64) - joints[p]
+            n = float(np.linalg.norm(d))
+        new[j] = new[p] + (d / n * lengths[names[j]] if n > 0 else d)
     return new
 
 

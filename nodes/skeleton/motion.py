@@ -91,10 +91,10 @@ def part_arrays(traj: Trajectories, labels: np.ndarray, b: int):
     from scipy.sparse import csr_matrix
 
     v = len(labels)
-    return _weighted_sums(traj, csr_matrix((np.ones(v), (labels, np.arange(v))), shape=(b, v)))
+    return weighted_sums(traj, csr_matrix((np.ones(v), (labels, np.arange(v))), shape=(b, v)))
 
 
-def _weighted_sums(traj: Trajectories, w, vertices: np.ndarray | None = None):
+def weighted_sums(traj: Trajectories, w, vertices: np.ndarray | None = None):
     """``part_arrays``' moments with a sparse weight (B, V) of each vertex in each part (or (B, M) of only
     ``vertices``)."""
     rest, q, qq = traj.rest, traj.by_vertex, traj.qq.T
@@ -133,7 +133,7 @@ class _Fits:
         m = np.arange(len(idx))
         w = csr_matrix((np.r_[np.ones(len(idx)), -np.ones(len(idx))], (np.r_[new[idx], old[idx]], np.r_[m, m])),
                        shape=(len(self.mom[0]), len(idx)))
-        self.mom = tuple(a + d for a, d in zip(self.mom, _weighted_sums(self.traj, w, idx)))
+        self.mom = tuple(a + d for a, d in zip(self.mom, weighted_sums(self.traj, w, idx)))
         self.stale = np.union1d(self.stale, np.r_[old[idx], new[idx]])
 
     def keep(self, used: np.ndarray):
@@ -484,6 +484,45 @@ def _finish(traj, edges, labels) -> RigidParts:
 
 
 # ---------------------------------------------------------------- joints and tree
+def carry_joints(traj: Trajectories, joints: np.ndarray, parents: list[int], labels: np.ndarray,
+                 reach: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Where the surface around each joint (given in the rest shape) carries it in every frame: the rest
+    vertices of the joint's own part, its parent's and its children's (``labels``: each vertex's joint) within
+    2 ``reach`` a of it, a = the joint's distance to the nearest rest vertex (a limb's radius at a joint on
+    its centre line), weighted exp(-(d / reach a)^2) by their distance d, fitted rigidly (weighted Kabsch) rest
+    -> every frame, and the joint moved with them. Only the surface near the joint counts: a part's own motion
+    is a poor carrier where the part holds vertices far from it (an arm's part reaching into the torso it
+    lies against), and at a bent elbow the ring around it moves between its two limbs, inside both. Returns
+    (positions (F, J, 3), ``has`` (J,)): joints with fewer than 6 such vertices get none (zeros)."""
+    from scipy.sparse import csr_matrix
+    from scipy.spatial import cKDTree
+
+    j = len(parents)
+    tree = cKDTree(traj.rest)
+    near, _ = tree.query(joints)
+    floor = 2.0 * float(np.median(tree.query(traj.rest, k=2)[0][:, 1]))      # two vertex spacings
+    rows, cols, vals = [], [], []
+    has = np.zeros(j, bool)
+    for k in range(j):
+        r = reach * max(float(near[k]), floor)
+        mine = [k] + ([parents[k]] if parents[k] >= 0 else []) + [c for c, q in enumerate(parents) if q == k]
+        idx = np.asarray(tree.query_ball_point(joints[k], 2 * r), np.int64)
+        idx = idx[np.isin(labels[idx], mine)]
+        if len(idx) < 6:
+            continue
+        rows.append(np.full(len(idx), k))
+        cols.append(idx)
+        vals.append(np.exp(-((traj.rest[idx] - joints[k]) ** 2).sum(1) / (r * r)))
+        has[k] = True
+    out = np.zeros((traj.count, j, 3))
+    if has.any():
+        w = csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(j, len(labels)))
+        rot, tr, _ = kabsch_arrays(*(x[has] for x in weighted_sums(traj, w)))     # (H, F, 3, 3), (H, F, 3)
+        out[:, has] = (np.einsum("hfab,hb->hfa", rot, joints[has]) + tr).transpose(1, 0, 2)
+    return out, has
+
+
+
 def joint_between(ra, ta, rb, tb, near: np.ndarray, reg: float = 1e-3) -> tuple[np.ndarray, float]:
     """Rest-pose point c that motions a and b (R (F, 3, 3), t (F, 3)) move alike, nearest to ``near`` along
     undetermined directions: min sum_t |(R_a - R_b) c + t_a - t_b|^2 + reg * s |c - near|^2 (s: the system's

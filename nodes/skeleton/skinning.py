@@ -355,7 +355,7 @@ def _pose_moments(rest, frames, weights, parents):
     }
 
 
-def _pose_frames(mom, rot, tr, joints, parents, order, steps):
+def _pose_frames(mom, rot, tr, joints, parents, order, steps, hold=None):
     """Gauss-Newton (Levenberg-damped) on the joint rotations (and root translation) of every frame at once,
     pivots fixed, from the vertex sums of _pose_moments; each frame is its own problem with its own damping,
     accepted or refused steps and stop (the per-frame arithmetic in stacked small products; einsum's own
@@ -363,7 +363,11 @@ def _pose_frames(mom, rot, tr, joints, parents, order, steps):
 
     Per frame and joint k, s_vk = sum_a w_va [bone a of v is in the subtree of k] (y_va - c_k) with y_va
     where bone a takes v and c_k the joint's world pivot; the unknowns are one rotation increment per joint
-    (about c_k, moving its subtree) and the root translation: J^T J from M[k, l] = sum_v s_vk s_vl^T."""
+    (about c_k, moving its subtree) and the root translation: J^T J from M[k, l] = sum_v s_vk s_vl^T.
+
+    ``hold`` (targets (F, J, 3), lam (J,)) adds sum_k lam_k |c_k - target_k|^2 (skin: its input skeleton's posed
+    joints): joint k's pivot moves by delta_d x (c_k - c_d) under each ancestor d's increment and by the root
+    translation (_hold_normal_equations)."""
     n_f, j = rot.shape[:2]
     n = 3 * j + 3
     eye3 = np.eye(3)
@@ -378,7 +382,11 @@ def _pose_frames(mom, rot, tr, joints, parents, order, steps):
         # (to ~1e-7 of itself on the bench figure: cancellation against |q|^2)
         xs, x = stacked(rot, tr)
         quad = np.einsum("pkb,pkb->p", xs, mom["g"] @ xs)
-        return quad - 2 * np.einsum("pjac,pjca->p", x, mom["lq"][f]) + mom["qq"][f]
+        out = quad - 2 * np.einsum("pjac,pjca->p", x, mom["lq"][f]) + mom["qq"][f]
+        if hold is not None:
+            off = np.einsum("pjab,jb->pja", rot, joints) + tr - hold[0][f]
+            out = out + np.einsum("pja,pja,j->p", off, off, hold[1])
+        return out
 
     rot, tr = rot.copy(), tr.copy()
     err = sq_error(rot, tr, np.arange(n_f))
@@ -415,6 +423,8 @@ def _pose_frames(mom, rot, tr, joints, parents, order, steps):
         jtr[:, :3 * j] = np.stack([c[..., 1, 2] - c[..., 2, 1], c[..., 2, 0] - c[..., 0, 2],
                                    c[..., 0, 1] - c[..., 1, 0]], -1).reshape(m_f, 3 * j)
         jtr[:, 3 * j:] = mom["sq"][live] - np.einsum("pjac,jc->pa", x, mom["lsum"])
+        if hold is not None:
+            _hold_normal_equations(jtj, jtr, pivots, hold[0][live] - pivots, hold[1], parents)
         if mu is None:
             mu = 1e-6 * np.trace(jtj, axis1=1, axis2=2) / n + 1e-12
         improved = np.zeros(m_f, bool)
@@ -453,17 +463,48 @@ def _pose_frames(mom, rot, tr, joints, parents, order, steps):
     return rot, tr
 
 
-def fit_poses_fixed(traj, weights, rot, tr, joints, parents, influences, steps: int = 2, samples: int = 4000):
+def _hold_normal_equations(jtj, jtr, pivots, res, lam, parents):
+    """Add the joint term of _pose_frames to its Gauss-Newton system (in place): per frame p, joint k with
+    residual r = target - c_k and a_d = c_k - c_d for each proper ancestor d, the Jacobian is -[a_d]x for
+    d's rotation increment and I for the root translation, so J^T J gains lam ([a_d]x^T [a_e]x = (a_d.a_e) I -
+    a_e a_d^T), [a_d]x against the translation, lam I; J^T r gains lam a_d x r and lam r."""
+    j = len(parents)
+    eye3 = np.eye(3)
+    for k in np.flatnonzero(lam > 0):
+        anc, d = [], parents[k]
+        while d >= 0:
+            anc.append(d)
+            d = parents[d]
+        lk, r = lam[k], res[:, k]
+        a = {d: pivots[:, k] - pivots[:, d] for d in anc}
+        for d in anc:
+            jtr[:, 3 * d:3 * d + 3] += lk * np.cross(a[d], r)
+            sk = lk * _skew(a[d])
+            jtj[:, 3 * d:3 * d + 3, 3 * j:] += sk
+            jtj[:, 3 * j:, 3 * d:3 * d + 3] += sk.transpose(0, 2, 1)
+            for e in anc:
+                jtj[:, 3 * d:3 * d + 3, 3 * e:3 * e + 3] += lk * (
+                    np.einsum("pa,pa->p", a[d], a[e])[:, None, None] * eye3 - a[e][:, :, None] * a[d][:, None, :])
+        jtj[:, 3 * j:, 3 * j:] += lk * eye3
+        jtr[:, 3 * j:] += lk * r
+
+
+def fit_poses_fixed(traj, weights, rot, tr, joints, parents, influences, steps: int = 2, samples: int = 4000,
+                    hold: float = 0.0, targets: np.ndarray | None = None):
     """The bone-motion step with fixed bone lengths (module docstring), every frame, on ``samples``
     vertices spread evenly over the vertex order (every vertex when fewer; 3J + 3 unknowns per frame need
-    far fewer equations than a mesh has)."""
+    far fewer equations than a mesh has). ``hold`` > 0 with ``targets`` (F, J, 3) also pulls each posed joint
+    towards its target: the joints together weigh ``hold`` times the sampled vertices."""
+    held = None
+    if hold > 0 and targets is not None:
+        held = (targets, np.full(len(parents), hold * min(samples, len(weights)) / len(parents)))
     sel = np.unique(np.linspace(0, len(weights) - 1, min(samples, len(weights))).astype(np.int64))
     weights = weights[sel]
     idx = np.argsort(-weights, axis=1, kind="stable")[:, :influences]
     top = np.zeros_like(weights)                                         # the ``influences`` largest
     np.put_along_axis(top, idx, np.take_along_axis(weights, idx, axis=1), axis=1)
     mom = _pose_moments(traj.rest[sel], traj.frames[:, sel], top, parents)
-    rot, tr = _pose_frames(mom, rot, tr, joints, parents, topological(parents), steps)
+    rot, tr = _pose_frames(mom, rot, tr, joints, parents, topological(parents), steps, held)
     # re-orthonormalise (numerical drift) and restore the exact pivot chain
     u, _, vt = np.linalg.svd(rot)
     rot = u @ vt
@@ -537,7 +578,7 @@ def fit_rest(traj: Trajectories, weights, rot, tr, anchor: np.ndarray, reg: floa
 
 
 def repose(traj: Trajectories, faces, parents, weights, rot, tr, joints, turns, new_joints, *, influences: int,
-           smooth: float, rounds: int = 2, refits: int = 0):
+           smooth: float, rounds: int = 2, refits: int = 0, hold: float = 0.0, targets=None):
     """The same skinned motion about another rest pose: each bone j turned about its joint,
     A_j: x -> G_j (x - p_j) + p'_j (``turns`` G (J, 3, 3), ``new_joints`` p'), so its motion becomes
     M_tj A_j^-1 (the joint still goes where it went: rotation-only joints stay so, bone lengths unchanged).
@@ -566,7 +607,8 @@ def repose(traj: Trajectories, faces, parents, weights, rot, tr, joints, turns, 
     best = None
     for k in range(rounds + refits):
         if k >= rounds:
-            rot2, tr2 = fit_poses_fixed(moved, weights, rot2, tr2, new_joints, parents, influences)
+            rot2, tr2 = fit_poses_fixed(moved, weights, rot2, tr2, new_joints, parents, influences, hold=hold,
+                                        targets=targets)
         cand = candidates(moved.rest, np.argmax(weights, 1), edges, parents, len(new_joints), 0.03 * diag)
         weights = fit_weights(moved, rot2, tr2, cand, weights, nbr, influences=influences, smooth=smooth)
         moved = moved.with_rest(fit_rest(moved, weights, rot2, tr2, moved.rest))
@@ -691,16 +733,35 @@ def joint_clearance(rest, faces, weights, joints, parents, lazy: bool = False) -
     return np.where(inside, 0.0, dist), limit
 
 
+def posed_clearance(frames: np.ndarray, faces: np.ndarray, rot, tr, joints, near) -> np.ndarray:
+    """(F, J) how far each posed joint (rot, tr applied to the rest ``joints``) is outside the frame's mesh:
+    0 inside (winding number), else the distance to the frame's nearest vertex; a joint within ``near`` (J,)
+    of a vertex gets that distance without the inside test (an upper bound: counts above ``near`` are exact)."""
+    from scipy.spatial import cKDTree
+
+    posed = np.einsum("fjab,jb->fja", rot, joints) + tr
+    out = np.zeros(posed.shape[:2])
+    for f in range(len(frames)):
+        dist = cKDTree(frames[f]).query(posed[f])[0]
+        need = dist > near
+        inside = np.zeros(len(dist), bool)
+        inside[need] = winding_numbers(posed[f][need], frames[f], faces) > 0.5
+        out[f] = np.where(inside, 0.0, dist)
+    return out
+
+
 # ---------------------------------------------------------------- the whole fit
 def fit_skin(traj: Trajectories, faces: np.ndarray, rig: Rig, *, influences: int = 4, iterations: int = 15,
              smooth: float = 1e-6, fixed_lengths: bool = True, pivots: bool = True, rest: bool = True,
-             tol: float = 1e-3, merge: bool = True, log=None, progress=None) -> SkinFit:
+             tol: float = 1e-3, merge: bool = True, hold: float = 0.0, targets: np.ndarray | None = None, log=None,
+             progress=None) -> SkinFit:
     """Alternate the weights and bone-motion steps (module docstring) from the rig's rigid parts; with
     fixed lengths, ``pivots`` also moves the rest-pose joints (fit_pivots) after each bone-motion step,
     refusing a joint's move that takes it out of the body (joint_clearance); ``rest`` refits the rest shape
     (fit_rest) after it. Bones that skin no vertex are merged into their parents (drop_weightless), from
     the start and after each weights step, unless ``merge`` is off (a template's joints, kept where the body put
-    them: the tree stays whole, its names complete). Stops when an iteration lowers the total rms by less than
+    them: the tree stays whole, its names complete). ``hold`` (fixed lengths) keeps the posed joints near ``targets``
+    (F, J, 3) (fit_poses_fixed). Stops when an iteration lowers the total rms by less than
     ``tol`` of its previous value (an iteration that raises it is undone). ``log(str)`` gets a line per
     iteration."""
     from nodes.common.meshops import vertex_neighbours
@@ -735,7 +796,8 @@ def fit_skin(traj: Trajectories, faces: np.ndarray, rig: Rig, *, influences: int
     anchor = traj.rest
     if fixed_lengths:
         rot, tr = constrain(rot, tr, joints, parents)
-        rot, tr = fit_poses_fixed(traj, weights, rot, tr, joints, parents, influences, steps=4)
+        rot, tr = fit_poses_fixed(traj, weights, rot, tr, joints, parents, influences, steps=4, hold=hold,
+                                  targets=None if targets is None else targets[:, kept])
     history = []
     refused = 0
     prev, best = np.inf, None
@@ -747,7 +809,8 @@ def fit_skin(traj: Trajectories, faces: np.ndarray, rig: Rig, *, influences: int
             cand = candidates(traj.rest, labels, edges, parents, len(parents), 0.03 * diag)
             prev, best = np.inf, None           # another model: no comparison with the last iteration
         if fixed_lengths:
-            rot, tr = fit_poses_fixed(traj, weights, rot, tr, joints, parents, influences)
+            rot, tr = fit_poses_fixed(traj, weights, rot, tr, joints, parents, influences, hold=hold,
+                                      targets=None if targets is None else targets[:, kept])
             if pivots:
                 moved, rot, tr = fit_pivots(traj, weights, rot, tr, joints, parents, anchor_joints)
                 outside, limit = joint_clearance(traj.rest, faces, weights, moved, parents, lazy=True)
