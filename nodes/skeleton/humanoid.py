@@ -46,9 +46,13 @@ CROTCH_HEIGHT = 0.47
 HIP_DROP = 0.02          # the hips this share of the leg's path below where the legs' paths meet (on the thigh's line)
 MIN_LEG = 0.15           # a leg's path from the pelvis shorter than this share of the height: no fit
 HEAD_ARC = 0.12          # a head's thickness is measured this share of the height below its tip
-LIMB_QUANTILE = 0.75     # each limb bone's length: this quantile of the fits' lengths of it (a bent limb's centre line
-                         # cuts the corners and measures short, a misplaced joint may measure long)
-LIMB_BONES = ("shoulder", "elbow", "wrist", "hand_end", "knee", "ankle", "toe")  # the limbs' bones, by the joint they end at
+# each limb bone's length: this quantile of the fits' lengths of it, by the joint it ends at. A crouch's bent legs' centre
+# lines cut the corners and measure short: the legs' 75th percentile. The arms' median: a misplaced joint measures
+# long as often (child_rope: the 75th percentile put the forearm at 20 cm, the wrist at 0.92 of the arm's path, and
+# the crouched rest's wrists outside the arms; with the median 16 cm, posed joints > 2 cm outside 1.5 / 2.3 / 5.7 ->
+# 0.9 / 1.2 / 3.2 % per segment, LBS and correctives no worse)
+LIMB_QUANTILE = {"shoulder": 0.5, "elbow": 0.5, "wrist": 0.5, "hand_end": 0.5, "knee": 0.75, "ankle": 0.75, "toe": 0.75}
+LIMB_BONES = tuple(LIMB_QUANTILE)  # the limbs' bones, by the joint they end at
 HEAD_THICKER = 1.5       # ... and must be this many times a hand's     # legs together: where the legs meet, this share of the height above the floor
 # name: (parent, path, fraction of the path's arc); "{s}" is the side
 TEMPLATE = {
@@ -518,9 +522,10 @@ def bind_humanoid(frames: np.ndarray, faces, resolution: int, up=(0.0, 0.0, 1.0)
     motion takes it where its carried one goes (``skin``'s ``hold`` keeps the posed joints near there). ``skin``
     (lengths: fixed) then makes the joints rotation-only with constant bone lengths. Bone lengths: as
     the fits measured them, left and right averaged (a body is symmetric; one child_rope fit measured the upper
-    arms 12 and 18 cm), the limbs' bones (``LIMB_BONES``) each the ``LIMB_QUANTILE`` of the fits' lengths of it
+    arms 12 and 18 cm), the limbs' bones (``LIMB_BONES``) each its ``LIMB_QUANTILE`` of the fits' lengths of it
     (the most rigid fits of child_rope are crouched frames, whose bent legs' centre lines cut the corners: shins
-    7-16 cm against 19-26 upright; the segment's lengths 24/11 cm -> 25/22 thigh/shin), the others the kept fit's;
+    7-16 cm against 19-26 upright; the segment's lengths 24/11 cm -> 25/22 thigh/shin: the legs' 75th percentile,
+    the arms' median), the others the kept fit's;
     or ``lengths`` (joint name -> length of the bone ending at it) as given; each fit is given them
     (with_lengths), and the rest joints again once carried to the first frame."""
     from .curve import voxelize
@@ -549,7 +554,7 @@ def bind_humanoid(frames: np.ndarray, faces, resolution: int, up=(0.0, 0.0, 1.0)
         own, source = dict(best[0][4]), {}
         for b in LIMB_BONES:
             by = sorted(fits, key=lambda x: x[0][4][f"{b}_l"])
-            src = by[int(round(LIMB_QUANTILE * (len(by) - 1)))]
+            src = by[int(round(LIMB_QUANTILE[b] * (len(by) - 1)))]
             source[b] = int(src[2])
             own.update({f"{b}_{s}": src[0][4][f"{b}_{s}"] for s in SIDES})
         if any(v != best[2] for v in source.values()):

@@ -861,11 +861,12 @@ def test_humanoid_rig_on_a_tracked_walk():
 
 
 def test_humanoid_limb_bones_as_long_as_most_fits_measure_them(monkeypatch):
-    """bind_humanoid: each limb bone's length is the 75th percentile of the fits' lengths of it, not the length the
-    fit whose parts move most rigidly measured (child_rope: the most rigid fits are crouched frames, whose bent legs'
-    centre lines cut the corners: shins 7-16 cm against 19-26 upright). Six fits of the figure's frame 0 with the
-    shin measured 0.5, 0.55, 1, 1.02, 1.04 and 2.5 times (a misplaced ankle) and the shortest the most rigid: the
-    joints of the most rigid fit, the shin 1.04 times, the other bones as fitted."""
+    """bind_humanoid: each leg bone's length is the 75th percentile of the fits' lengths of it, each arm bone's the
+    median, not the length the fit whose parts move most rigidly measured (child_rope: the most rigid fits are
+    crouched frames, whose bent legs' centre lines cut the corners: shins 7-16 cm against 19-26 upright). Six fits of
+    the figure's frame 0 with the shin and the forearm measured 0.5, 0.55, 1, 1.02, 1.04 and 2.5 times (a misplaced
+    ankle, wrist) and the shortest the most rigid: the joints of the most rigid fit, the shin 1.04 times, the forearm
+    1.0 times, the other bones as fitted."""
     from nodes.skeleton import humanoid as H
     from nodes.synth import scenes
 
@@ -881,10 +882,11 @@ def test_humanoid_limb_bones_as_long_as_most_fits_measure_them(monkeypatch):
         calls.append(k)
         joints = np.array(real[0])
         for s in "lr":
-            knee, ankle, toe = (names.index(f"{n}_{s}") for n in ("knee", "ankle", "toe"))
-            moved = joints[knee] + scale[k] * (joints[ankle] - joints[knee])
-            joints[toe] += moved - joints[ankle]
-            joints[ankle] = moved
+            for a, b, c in (("knee", "ankle", "toe"), ("elbow", "wrist", "hand_end")):
+                ia, ib, ic = (names.index(f"{n}_{s}") for n in (a, b, c))
+                moved = joints[ia] + scale[k] * (joints[ib] - joints[ia])
+                joints[ic] += moved - joints[ib]
+                joints[ib] = moved
         return joints, real[1], names, dict(real[3])
 
     bind = H._bind
@@ -896,7 +898,8 @@ def test_humanoid_limb_bones_as_long_as_most_fits_measure_them(monkeypatch):
     used = report["bone_lengths_used"]
     for s in "lr":
         assert abs(used[f"ankle_{s}"] - 1.04 * shin[f"ankle_{s}"]) < 1e-4, (used[f"ankle_{s}"], shin[f"ankle_{s}"])
-        for b in ("knee", "elbow", "wrist"):
+        assert abs(used[f"wrist_{s}"] - 1.0 * shin[f"wrist_{s}"]) < 1e-4, (used[f"wrist_{s}"], shin[f"wrist_{s}"])
+        for b in ("knee", "elbow"):
             assert abs(used[f"{b}_{s}"] - shin[f"{b}_{s}"]) < 1e-4, b
         d = np.linalg.norm(joints[kept.index(f"ankle_{s}")] - joints[kept.index(f"knee_{s}")])
         assert abs(d - used[f"ankle_{s}"]) < 1e-4, (d, used[f"ankle_{s}"])
