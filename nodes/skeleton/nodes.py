@@ -362,7 +362,8 @@ class Skin(Node):
     params = {
         "influences": Param(int, 4, range=(1, 8), doc="most bones per vertex"),
         "iterations": Param(int, 15, range=(1, 100), doc="most weights / motion alternations (stops earlier when converged)"),
-        "tol": Param(float, 1e-3, range=(0.0, 1.0), doc="converged: an iteration lowers the LBS rms by less than this share"),
+        "tol": Param(float, 1e-3, range=(0.0, 1.0), doc="converged: an iteration lowers the LBS rms by less than this "
+                     "share, or by less than 1e-5 of the bounding-box diagonal (10 um per metre); 0: every iteration"),
         "smooth": Param(float, 1e-6, range=(0.0, 1.0), doc="Laplacian weight smoothing (x frames x diagonal^2)"),
         "lengths": Param(str, "fixed", choices=("fixed", "free"), doc="fixed: rotation-only joints; free: rigid bones (Dem Bones)"),
         "rest_fit": Param(bool, True, doc="refit the rest shape (a posed first frame is no exact LBS rest)"),
