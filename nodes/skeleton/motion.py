@@ -522,7 +522,6 @@ def carry_joints(traj: Trajectories, joints: np.ndarray, parents: list[int], lab
     return out, has
 
 
-
 def joint_between(ra, ta, rb, tb, near: np.ndarray, reg: float = 1e-3) -> tuple[np.ndarray, float]:
     """Rest-pose point c that motions a and b (R (F, 3, 3), t (F, 3)) move alike, nearest to ``near`` along
     undetermined directions: min sum_t |(R_a - R_b) c + t_a - t_b|^2 + reg * s |c - near|^2 (s: the system's

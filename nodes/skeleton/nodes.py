@@ -282,11 +282,13 @@ class SkeletonizeSequence(Node):
 class SkeletonizeHumanoid(Node):
     """The named humanoid template on a tracked segment (humanoid.py ``bind_humanoid``): fitted to a frame of the
     segment where it fits (legs apart preferred), each vertex on its nearest bone, each joint's part moving
-    rigidly with the sequence, rest = the segment's first frame; give it to
+    rigidly with the sequence, each joint carried to every frame by the surface around it (the motion skin's
+    ``hold`` keeps the posed joints near), rest = the segment's first frame; give it to
     ``skin`` (lengths: fixed: rotation-only joints, bone lengths constant over the sequence) and
     ``skeleton.export`` (UsdSkel, glTF skin, BVH) for a character with standard (or Mixamo/Unreal/SMPL) names.
     ``lengths``: the bone lengths of another skeleton kept (another segment's fit, so that one character holds
-    over a sequence, or a template of your own: skeleton.load), each joint along the line the fit gave."""
+    over a sequence, or a template of your own: skeleton.load), each joint aimed from its parent at where the fit
+    put it."""
 
     type_name = "skeletonize.humanoid"
     version = 2
