@@ -212,11 +212,10 @@ def test_carried_joints_follow_the_tube_and_hold_the_pose_step():
     err = np.linalg.norm(targets - true, axis=-1)
     assert err.max() < 0.02, err.max()
     rot, tr = skinning.constrain(rs, ts, TUBE_JOINTS, [-1, 0, 1])
-    mom_w = w
+    mom = skinning._pose_moments(traj.rest, traj.frames, w, [-1, 0, 1])
     off = {}
     for hold in (0.0, 0.1, 10.0):
         shifted = (targets + np.array([0.05, 0.0, 0.0]), np.array([0.0, 1.0, 1.0]) * hold * len(w) / 2)
-        mom = skinning._pose_moments(traj.rest, traj.frames, mom_w, [-1, 0, 1])
         r2, t2 = skinning._pose_frames(mom, rot, tr, TUBE_JOINTS, [-1, 0, 1], skinning.topological([-1, 0, 1]), 8,
                                        shifted if hold else None)
         piv = np.einsum("fjab,jb->fja", r2, TUBE_JOINTS) + t2
