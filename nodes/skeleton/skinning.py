@@ -679,11 +679,33 @@ def drop_weightless(weights, rot, tr, joints, parents, labels, pinned: bool = Tr
     return kept, merged, rot, tr, joints[kept], new_parents, to[labels]
 
 
-def winding_numbers(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+def winding_numbers(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, batch: int = 8) -> np.ndarray:
     """Generalized winding number of each point (P,) w.r.t. a triangle mesh (Jacobson et al. 2013, "Robust
     inside-outside segmentation using generalized winding numbers", doi:10.1145/2461912.2461916): the
     signed solid angles of the triangles (van Oosterom & Strackee) over 4 pi; about 1 inside a closed
-    outward-oriented mesh, 0 outside, graceful across small holes."""
+    outward-oriented mesh, 0 outside, graceful across small holes. The corners' coordinates as nine (T,)
+    arrays and ``batch`` points at a time, products written out per axis (no reductions over an axis of 3):
+    winding_numbers_reference's formula, 2-3x faster (skin's posed-joint report on child_rope's segments of 79 / 27 /
+    94 frames: 8.1 / 2.4 / 8.0 -> 3.5 / 0.8 / 3.0 s, against 18-21 s for the skin itself)."""
+    points = np.asarray(points, np.float64)
+    tri = np.asarray(vertices, np.float64)[faces]                            # (T, 3, 3)
+    cols = [np.ascontiguousarray(tri[:, k, c]) for k in range(3) for c in range(3)]
+    out = np.empty(len(points))
+    for s in range(0, len(points), batch):
+        p = points[s:s + batch]
+        ax, ay, az, bx, by, bz, cx, cy, cz = (cols[i][None, :] - p[:, i % 3, None] for i in range(9))
+        la = np.sqrt(ax * ax + ay * ay + az * az)
+        lb = np.sqrt(bx * bx + by * by + bz * bz)
+        lc = np.sqrt(cx * cx + cy * cy + cz * cz)
+        det = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
+        den = (la * lb * lc + (ax * bx + ay * by + az * bz) * lc + (bx * cx + by * cy + bz * cz) * la
+               + (cx * ax + cy * ay + cz * az) * lb)
+        out[s:s + batch] = 2.0 * np.arctan2(det, den).sum(axis=1) / (4 * np.pi)
+    return out
+
+
+def winding_numbers_reference(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """winding_numbers, one point at a time with vector products (the formula as written)."""
     tri = vertices[faces]                                                   # (T, 3, 3)
     out = np.empty(len(points))
     for i, p in enumerate(points):
