@@ -850,6 +850,22 @@ def test_humanoid_on_a_real_child_fits_or_says_why(dataset_run):
         run_node("skeleton.humanoid", {"mesh": dataset_run.output(res, "relax", "mesh", frame=96)})
 
 
+def _posed_joint_errors(sk, frames) -> list[float]:
+    """Distances (m) of a skinned template rig's posed joints from the synth figure's true joints, every frame and
+    named joint (HUMANOID_TRUTH, both sides)."""
+    from nodes.synth import scenes
+
+    world = formats.world_transforms(np.asarray(sk.joints), np.asarray(sk.rotations), np.asarray(sk.translations))
+    out = []
+    for f in frames:
+        _, pos = scenes.figure_pose(f)
+        for ours, theirs in HUMANOID_TRUTH.items():
+            for s in ("l", "r") if "{s}" in ours else (None,):
+                truth = pos[scenes.NAMES.index(theirs.format(s=s) if s else theirs)]
+                out.append(float(np.linalg.norm(world[f, sk.names.index(ours.format(s=s) if s else ours), :3, 3] - truth)))
+    return out
+
+
 @pytest.mark.slow
 def test_humanoid_rig_on_a_tracked_walk():
     """The figure's walk (12 frames): the template bound to frame 0 and skinned with fixed lengths keeps its 19
@@ -865,14 +881,7 @@ def test_humanoid_rig_on_a_tracked_walk():
     assert len(sk.names) == 19 and "elbow_l" in sk.names and not any(n.endswith("_end") for n in sk.names)
     assert err["bone_length_spread"] < 1e-9 and max(err["residual"]["rmse"]) < 0.002, err["residual"]["rmse"]
     world = formats.world_transforms(np.asarray(sk.joints), np.asarray(sk.rotations), np.asarray(sk.translations))
-    errors = []
-    for f in frames:
-        _, pos = scenes.figure_pose(f)
-        for ours, theirs in HUMANOID_TRUTH.items():
-            for s in ("l", "r") if "{s}" in ours else (None,):
-                n = ours.format(s=s) if s else ours
-                truth = pos[scenes.NAMES.index(theirs.format(s=s) if s else theirs)]
-                errors.append(np.linalg.norm(world[f, sk.names.index(n), :3, 3] - truth))
+    errors = _posed_joint_errors(sk, frames)
     assert max(errors) < 0.12 and np.median(errors) <= 0.05, (np.median(errors), max(errors))
     files = run_node("skeleton.export", {"skeleton": sk, "rest": b["rest"]},
                      {"name": "walk", "formats": "usd,gltf,bvh"})["files"]
@@ -1053,14 +1062,7 @@ def test_skin_hold_keeps_posed_joints_near_the_truth():
         b = run_node("skin", {"meshes": meshes, "skeleton": a["skeleton"]},
                      {"iterations": 6, "pivots": False, "rest_pose": "T", "hold": hold}, frames=frames)
         sk, err = b["skeleton"], b["error"]
-        world = formats.world_transforms(np.asarray(sk.joints), np.asarray(sk.rotations), np.asarray(sk.translations))
-        e = []
-        for f in frames:
-            _, pos = scenes.figure_pose(f)
-            for ours, theirs in HUMANOID_TRUTH.items():
-                for s in ("l", "r") if "{s}" in ours else (None,):
-                    truth = pos[scenes.NAMES.index(theirs.format(s=s) if s else theirs)]
-                    e.append(np.linalg.norm(world[f, sk.names.index(ours.format(s=s) if s else ours), :3, 3] - truth))
+        e = _posed_joint_errors(sk, frames)
         errs[hold] = (np.median(e), np.max(e))
         assert err["rmse"] < 0.002 and err["joints_outside"]["beyond_2cm"] == 0, (hold, err["rmse"],
                                                                                   err["joints_outside"])
