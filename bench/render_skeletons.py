@@ -7,8 +7,11 @@
   tree from the hull volume. Checks by eye that the five extremities are the head, the hands and the feet.
 - skeleton_humanoid_<dataset>.jpg (argument humanoid:<dataset>, thu_wd_human / inria_dancer / pose2sim_single):
   the named template (skeleton.humanoid) of graphs/skeleton/<dataset>.yaml over the photos of frame 0, red right,
-  blue left; where the graph triangulates MediaPipe's body landmarks (pose2sim_single) they are drawn too (white
-  crosses) and each joint's distance to its landmark printed: an independent check of the joints where limbs meet.
+  blue left; where the graph triangulates MediaPipe's body landmarks (pose2sim_single, thu_wd_human) they are
+  drawn too (white crosses) and each joint's distance to its landmark printed: an independent check of the joints
+  where limbs meet for the shape's fit (not for joints placed at the landmarks: there it is the landmark's distance
+  from the limb's centre line). Where the graph also fits with the landmarks (node `marked`, thu_wd_human), that
+  fit is the second row.
 - skeleton_figure.png: the synth walking figure over 100 frames: skeletonize.sequence + skin (10 bones,
   fixed bone lengths) on its true meshes; the rig drawn over the mesh at four frames (front view), the
   part of each vertex in colour, and the LBS error per frame.
@@ -151,6 +154,7 @@ def humanoid_picture(name: str):
     sk, rep = vals[("humanoid", "skeleton")], vals[("humanoid", "report")]
     j = dict(zip(sk.names, np.asarray(sk.joints)))
     marks = {}
+    rows = [sk]           # one row of pictures per fit: the shape's, and the landmarks' where the graph has one
     if has_points:
         pts = vals[("points", "points")]
         marks = {n: np.asarray(p) for n, p in zip(pts["landmarks"], pts["points"]) if p is not None}
@@ -162,28 +166,40 @@ def humanoid_picture(name: str):
         print(f"{name}: humanoid joint to landmark, cm: " + ", ".join(f"{k} {v:.1f}" for k, v in dist.items())
               + f"; median {np.median(list(dist.values())):.1f}, max {max(dist.values()):.1f}")
         if "marked" in load_graph(graph).nodes:      # the shape's fit above, the landmarks-named one beside it
-            m = dict(zip(*(lambda k: (k.names, np.asarray(k.joints)))(run_graph_outputs(graph, [("marked", "skeleton")])[("marked", "skeleton")])))
+            msk = run_graph_outputs(graph, [("marked", "skeleton"), ("marked", "report")])
+            mrep = msk[("marked", "report")]
+            msk = msk[("marked", "skeleton")]
+            m = dict(zip(msk.names, np.asarray(msk.joints)))
             d2 = [100 * float(np.linalg.norm(m[o.format(s=s)] - marks[t.format(side=side)])) for o, t in LANDMARK_OF.items()
                   for s, side in (("l", "left"), ("r", "right")) if t.format(side=side) in marks]
-            print(f"{name}: with the landmarks naming extremities and sides: median {np.median(d2):.1f}, max {max(d2):.1f} cm")
+            print(f"{name}: with the landmarks naming extremities and sides and placing "
+                  f"{', '.join(mrep.get('joints_from_landmarks', [])) or 'no joint'}: median {np.median(d2):.1f}, "
+                  f"max {max(d2):.1f} cm")
+            rows.append(msk)
     n_views = min(4, len(cams.cameras))
     views = [int(v) for v in np.linspace(0, len(cams.cameras), n_views, endpoint=False)]
     tiles = []
     for v in views:
-        img = images.images[v].copy()
-        uv, _ = cams.project(np.asarray(sk.joints), v)
-        draw_sides(img, uv, sk.parents, sk.names, thick=4)
-        if marks:
-            muv, _ = cams.project(np.array(list(marks.values())), v)
-            for x, y in muv:
-                cv2.drawMarker(img, (int(x), int(y)), (255, 255, 255), cv2.MARKER_CROSS, 14, 2)
-        lo = np.maximum(uv.min(0) - 120, 0).astype(int)
-        hi = np.minimum(uv.max(0) + 120, [img.shape[1], img.shape[0]]).astype(int)
-        tile = img[lo[1]:hi[1], lo[0]:hi[0]]
-        tile = cv2.resize(tile, (int(tile.shape[1] * 520 / tile.shape[0]), 520), interpolation=cv2.INTER_AREA)
-        cv2.putText(tile, cams.names[v], (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (0, 0, 0), 4, cv2.LINE_AA)
-        cv2.putText(tile, cams.names[v], (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (255, 255, 255), 1, cv2.LINE_AA)
-        tiles.append(tile)
+        img0 = images.images[v]
+        uvs = [cams.project(np.asarray(k.joints), v)[0] for k in rows]
+        allu = np.vstack(uvs)
+        lo = np.maximum(allu.min(0) - 120, 0).astype(int)
+        hi = np.minimum(allu.max(0) + 120, [img0.shape[1], img0.shape[0]]).astype(int)
+        column = []
+        for k, uv, label in zip(rows, uvs, ("shape", "landmarks")):
+            img = img0.copy()
+            draw_sides(img, uv, k.parents, k.names, thick=4)
+            if marks:
+                muv, _ = cams.project(np.array(list(marks.values())), v)
+                for x, y in muv:
+                    cv2.drawMarker(img, (int(x), int(y)), (255, 255, 255), cv2.MARKER_CROSS, 14, 2)
+            tile = img[lo[1]:hi[1], lo[0]:hi[0]]
+            tile = cv2.resize(tile, (int(tile.shape[1] * 520 / tile.shape[0]), 520), interpolation=cv2.INTER_AREA)
+            text = cams.names[v] + (f" ({label})" if len(rows) > 1 else "")
+            cv2.putText(tile, text, (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (0, 0, 0), 4, cv2.LINE_AA)
+            cv2.putText(tile, text, (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (255, 255, 255), 1, cv2.LINE_AA)
+            column.append(tile)
+        tiles.append(np.vstack(column))
     sheet = np.hstack(tiles)
     out = ROOT / "docs" / f"skeleton_humanoid_{name}.jpg"
     cv2.imwrite(str(out), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 80])

@@ -25,7 +25,9 @@ sign of its offset along right (measured at the upper arm and the thigh: hands a
 when the right arm and the right leg come out on opposite sides, the pair less aligned with right is flipped. Names map to the ones other tools retarget from (``RETARGET``: Mixamo, the
 Unreal mannequin, SMPL). Fractions: the median place of each joint of the synth figure along its fitted path over a walk
 cycle, checked against adult proportions (the synth figure has no hands: its wrist is the arm's end, a real
-one ~0.8 of it; 0.92 between): wrists and the spine's joints are placed by proportion, not found.
+one ~0.8 of it; 0.92 between): wrists and the spine's joints are placed by proportion, not found. Given body
+landmarks (``marks``, MediaPipe's), they name the extremities and the sides, and the shoulders, elbows, wrists,
+knees and ankles go where their landmarks lie along the limb's centre line (``_place_at_marks``).
 """
 from __future__ import annotations
 
@@ -132,6 +134,17 @@ def _spine_share(pts, spine_path, v) -> float:
     return _length(pts[spine_path[:spine_path.index(v) + 1]]) / max(_length(pts[spine_path]), 1e-12)
 
 
+def _nearest_arc(points: np.ndarray, p: np.ndarray) -> tuple[float, float]:
+    """(fraction of the arc, distance) of the point of a polyline nearest ``p``."""
+    a, d = points[:-1], np.diff(points, axis=0)
+    dd = np.einsum("ij,ij->i", d, d)
+    t = np.clip(np.einsum("ij,ij->i", p - a, d) / np.where(dd > 0, dd, 1.0), 0.0, 1.0)
+    gap = np.linalg.norm(a + t[:, None] * d - p, axis=1)
+    i = int(np.argmin(gap))
+    s = np.concatenate([[0.0], np.cumsum(np.sqrt(dd))])
+    return float((s[i] + t[i] * np.sqrt(dd[i])) / max(s[-1], 1e-12)), float(gap[i])
+
+
 def _length(points: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(points, axis=0), axis=1).sum())
 
@@ -214,6 +227,10 @@ def _tip_thickness(raw, point: np.ndarray, arc: float) -> float:
 
 
 MARK_REACH = 0.3        # a landmark names the tree's extremity nearest it within this distance (metres)
+# limb joints placed where their landmark lies along the limb's centre line (not the hips: MediaPipe's sit high, on
+# thu_wd_human 8-10 cm above where the legs' paths meet), when the landmark is within JOINT_REACH of that line
+MARKED_JOINTS = ("shoulder", "elbow", "wrist", "knee", "ankle")
+JOINT_REACH = 0.08
 
 
 def body_marks(points: dict) -> dict | None:
@@ -231,6 +248,8 @@ def body_marks(points: dict) -> dict | None:
     if any(v is None for v in out.values()) or any(a is None or b is None for a, b in pairs):
         return None
     out["right"] = sum(a - b for a, b in pairs)
+    out["joints"] = {f"{k}_{s}": first(f"{side}_{k}") for k in MARKED_JOINTS for s, side in (("l", "left"), ("r", "right"))
+                     if first(f"{side}_{k}") is not None}
     return out
 
 
@@ -294,6 +313,35 @@ def _extremities(tree, u: np.ndarray, floor: float, height: float, node: str, ra
     named = {"head": head, "hand_0": hands[0], "hand_1": hands[1]}
     named.update({f"foot_{k}": j for k, j in enumerate(feet)})
     return tree, named
+
+
+def _place_at_marks(joints, names, fracs, limbs, side, marked: dict, node: str) -> list[str]:
+    """Limb joints moved (in place in ``joints``) to where their landmark lies along the limb's centre line, when
+    the landmark is within JOINT_REACH of it; a limb whose joints would then be out of order (an elbow past the
+    wrist) keeps the template's places. The names moved."""
+    moved = []
+    for which, chain, start in (("arm", ("shoulder", "elbow", "wrist"), "clavicle"), ("leg", ("knee", "ankle"), "hip")):
+        for s in SIDES:
+            poly = limbs[(which, side[(which, s)])]
+            fr = {k: fracs[f"{k}_{s}"] for k in chain}
+            at = {}
+            for k in chain:
+                p = marked.get(f"{k}_{s}")
+                if p is not None:
+                    f, gap = _nearest_arc(poly, np.asarray(p, np.float64))
+                    if gap <= JOINT_REACH:
+                        fr[k] = at[k] = f
+            seq = [fracs[f"{start}_{s}"]] + [fr[k] for k in chain] + [1.0]
+            if not at:
+                continue
+            if any(b <= a for a, b in zip(seq, seq[1:])):
+                LOG.warning("%s: the %s_%s landmarks lie out of order along the limb: its joints from the template",
+                            node, which, s)
+                continue
+            for k, f in at.items():
+                joints[names.index(f"{k}_{s}")] = _at(poly, f)
+                moved.append(f"{k}_{s}")
+    return sorted(moved)
 
 
 def _elbow_between(shoulder, wrist, up_len: float, fore_len: float, cells: np.ndarray, spine: np.ndarray,
@@ -461,6 +509,7 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
     joints = np.zeros((len(names), 3))
     parents = []
     bends = {}
+    fracs = {}
     for name in names:
         key = next(t for t in TEMPLATE if t == name or ("{s}" in t and any(t.format(s=s) == name for s in SIDES)))
         par, which, frac = TEMPLATE[key]
@@ -474,7 +523,10 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
             if ang > BEND_DEG:
                 frac = f
         joints[names.index(name)] = _at(poly, frac)
+        fracs[name] = frac
         parents.append(-1 if par is None else names.index(par.format(s=s) if s else par))
+    if marked and marks.get("joints"):
+        report["joints_from_landmarks"] = _place_at_marks(joints, names, fracs, limbs, side, marks["joints"], node)
     for s in SIDES:     # the hip on its thigh's centre line, raised to about where the legs' paths meet
         j_h, j_k = names.index(f"hip_{s}"), names.index(f"knee_{s}")
         top, knee = joints[j_h], joints[j_k]

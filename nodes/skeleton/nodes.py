@@ -88,11 +88,12 @@ class Humanoid(Node):
     feet, which point forwards. Names as ours or as Mixamo, the Unreal mannequin or SMPL name them."""
 
     type_name = "skeleton.humanoid"
-    version = 1
+    version = 2     # 2: the landmarks place the limb joints
     inputs = {"mesh": Input(Mesh, optional=True, doc="a closed body mesh"),
               "volume": Input(Volume, optional=True, doc="or its occupancy"),
               "points": Input(Table, optional=True, doc="body landmarks in 3D (skeleton.keypoints): they name the "
-                              "head, hands and feet and tell left from right (a person's face does)")}
+                              "head, hands and feet, tell left from right (a person's face does) and place the "
+                              "shoulders, elbows, wrists, knees and ankles along the limbs' centre lines")}
     outputs = {"skeleton": Output(Skeleton, "the named joint tree (rest pose = this body)"),
                "report": Output(Table, "where the sides came from, elbow/knee bends, bone lengths, height")}
     params = {
