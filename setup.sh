@@ -10,6 +10,12 @@
 set -euo pipefail
 cd "$(dirname "$0")"
 python3 -m pip install --quiet --disable-pip-version-check -c constraints.txt -e ".[test]"
+# the project's bytecode, written once: where the environment turns writing it off (PYTHONDONTWRITEBYTECODE: usual in
+# containers, and set on the machines this project is developed on) every process start (the CLI, each worker of -j N or Dask)
+# compiled the ~105 project modules again. bench/cli.py's graph (cached stage), three alternated pairs without / with,
+# Intel Xeon 2 cores, load 0.7-1.4: 1 frame 1.32-1.49 -> 1.10-1.21 s, 20 frames -j 1 2.21-2.55 -> 2.09-2.26 s,
+# -j 2 (three processes start) 2.70-3.30 -> 2.17-2.63 s
+python3 -m compileall -q -j 0 app.py nodegraph nodes bench >/dev/null
 # key.person (nodes/key/person.py): mediapipe 0.10.14 ships its pose models inside the wheel (later wheels download
 # them at run time), installed without its declared dependencies: opencv-contrib-python would shadow the project's
 # opencv-python-headless, and jax is not used by these models. Pinned here, not in constraints.txt (which holds
