@@ -24,8 +24,9 @@ joint (the path leaves the crotch's branch point sideways and down): the hip is 
 sign of its offset along right (measured at the upper arm and the thigh: hands and feet may cross the midline);
 when the right arm and the right leg come out on opposite sides, the pair less aligned with right is flipped. Names map to the ones other tools retarget from (``RETARGET``: Mixamo, the
 Unreal mannequin, SMPL). Fractions: the median place of each joint of the synth figure along its fitted path over a walk
-cycle, checked against adult proportions (the synth figure has no hands: its wrist is the arm's end, a real
-one ~0.8 of it; 0.92 between): wrists and the spine's joints are placed by proportion, not found. Given body
+cycle, checked against adult proportions; the wrists ``HAND`` of the height back from the arm's end (real people's
+hands; ``hand`` 0 for a body without them, such as the synth figure, whose arms end at the wrists: the wrist at the
+path's end, hand_end past it): wrists and the spine's joints are placed by proportion, not found. Given body
 landmarks (``marks``, MediaPipe's), they name the extremities and the sides, and the shoulders, elbows, wrists,
 knees and ankles go where their landmarks lie along the limb's centre line (``_place_at_marks``).
 """
@@ -55,13 +56,18 @@ HEAD_ARC = 0.12          # a head's thickness is measured this share of the heig
 # 0.9 / 1.2 / 3.2 % per segment, LBS and correctives no worse)
 LIMB_QUANTILE = {"shoulder": 0.5, "elbow": 0.5, "wrist": 0.5, "hand_end": 0.5, "knee": 0.75, "ankle": 0.75, "toe": 0.75}
 LIMB_BONES = tuple(LIMB_QUANTILE)  # the limbs' bones, by the joint they end at
+# the wrist this share of the body's height back from the hand's end of the arm's centre line (the curve skeleton's
+# extremity, inside the hand). Real people: MediaPipe's wrists lie 12.4-17.7 cm back from it on thu_wd_human,
+# pose2sim_single and inria_dancer (0.075-0.107 of the height, median 0.085), where a fixed 0.92 of the arm's path put
+# them 4-7.5 cm too far out, in the hand. 0: a body without hands (the synth figure: its arms end at the wrists)
+HAND = 0.085
 HEAD_THICKER = 1.5       # ... and must be this many times a hand's     # legs together: where the legs meet, this share of the height above the floor
 # name: (parent, path, fraction of the path's arc); "{s}" is the side
 TEMPLATE = {
     "pelvis": (None, "spine", 0.09), "spine": ("pelvis", "spine", 0.26), "chest": ("spine", "spine", 0.44),
     "neck": ("chest", "spine", 0.71), "head": ("neck", "spine", 0.87), "head_end": ("head", "spine", 1.0),
     "clavicle_{s}": ("chest", "arm", 0.0), "shoulder_{s}": ("clavicle_{s}", "arm", 0.26),
-    "elbow_{s}": ("shoulder_{s}", "arm", 0.60), "wrist_{s}": ("elbow_{s}", "arm", 0.92),
+    "elbow_{s}": ("shoulder_{s}", "arm", 0.60), "wrist_{s}": ("elbow_{s}", "arm", None),   # None: HAND
     "hand_end_{s}": ("wrist_{s}", "arm", 1.0),
     "hip_{s}": ("pelvis", "leg", 0.14), "knee_{s}": ("hip_{s}", "leg", 0.50), "ankle_{s}": ("knee_{s}", "leg", 0.88),
     "toe_{s}": ("ankle_{s}", "leg", 1.0),
@@ -143,6 +149,11 @@ def _nearest_arc(points: np.ndarray, p: np.ndarray) -> tuple[float, float]:
     i = int(np.argmin(gap))
     s = np.concatenate([[0.0], np.cumsum(np.sqrt(dd))])
     return float((s[i] + t[i] * np.sqrt(dd[i])) / max(s[-1], 1e-12)), float(gap[i])
+
+
+def _solid(occ: np.ndarray, origin, spacing, point: np.ndarray) -> bool:
+    ijk = np.floor((np.asarray(point) - origin) / spacing).astype(int)
+    return bool(np.all(ijk >= 0) and np.all(ijk < occ.shape) and occ[tuple(ijk)])
 
 
 def _length(points: np.ndarray) -> float:
@@ -394,7 +405,7 @@ def _split_leg(poly: np.ndarray, cells: np.ndarray, u, right, forward, step: flo
 
 
 def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str = "skeleton.humanoid",
-                 marks: dict | None = None):
+                 marks: dict | None = None, hand: float = HAND):
     """(joints (J, 3), parents, names, report) of the template fitted to a solid (module docstring). ``marks``
     (head, hand_l, hand_r, foot_l, foot_r: 3D points, e.g. triangulated body landmarks; right: the body's left
     to right direction): the extremities they
@@ -517,6 +528,20 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
         poly = polys["spine"] if which == "spine" else limbs[(which, side[(which, s)])]
         if which == "leg":     # measured from the foot with the mean leg length: the legs may meet off-centre
             frac = max(0.0, 1.0 - (1.0 - frac) * leg_length / _length(poly))
+        if key == "wrist_{s}":     # HAND back from the arm's end, past its elbow
+            frac = float(np.clip(1.0 - hand * height / max(_length(poly), 1e-12), fracs[f"elbow_{s}"] + 0.05, 1.0))
+        if key == "hand_end_{s}" and hand == 0:   # no hand: the wrist is the path's end, the end marker past it
+            tip = end[f"hand_{side[('arm', s)]}"]
+            back = _at(poly, max(0.0, 1.0 - 0.05 * height / max(_length(poly), 1e-12)))
+            d = poly[-1] - back
+            d = d / (np.linalg.norm(d) or 1.0)
+            reach = 0.5 * float(raw.radius[tip])        # half the end's radius out, shortened while it leaves the body
+            while reach > 0.5 * step and not _solid(occ, origin, spacing, poly[-1] + reach * d):
+                reach *= 0.5
+            joints[names.index(name)] = poly[-1] + max(reach, 0.5 * step) * d
+            fracs[name] = 1.0
+            parents.append(names.index(par.format(s=s)))
+            continue
         if key in BENDS:
             f, ang = _bend(poly, frac)
             bends[name] = round(ang, 1)
@@ -559,7 +584,7 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
 
 
 def bind_humanoid(frames: np.ndarray, faces, resolution: int, up=(0.0, 0.0, 1.0), node: str = "skeletonize.humanoid",
-                  tries: int = 40, lengths: dict | None = None):
+                  tries: int = 40, lengths: dict | None = None, hand: float = HAND):
     """The template fitted to one frame of a dynamic mesh and set moving with it, ready for ``skin``:
     (joints, parents, names, one-hot weights (V, J), rotations (F, J, 3, 3), translations (F, J, 3), report),
     rest = the first frame. The fit is tried on up to ``tries`` frames spread over the segment (a child's arms
@@ -589,7 +614,7 @@ def bind_humanoid(frames: np.ndarray, faces, resolution: int, up=(0.0, 0.0, 1.0)
     for r in order:
         occ, origin, spacing = voxelize(frames[r], np.asarray(faces), resolution)
         try:
-            fit = fit_humanoid(occ, origin, spacing, up, node)
+            fit = fit_humanoid(occ, origin, spacing, up, node, hand=hand)
         except NodeError as exc:
             errors.append(f"frame index {r}: {str(exc).split(': ', 1)[-1]}")
             continue

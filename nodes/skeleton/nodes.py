@@ -12,7 +12,7 @@ from nodegraph import Files, InPath, Input, Node, NodeError, Output, Param, Tabl
 from nodes.common.types import (FPS_PARAM, CameraSet, Mesh, MeshSequence, Skeleton, SkeletonData, Volume,
                                sequence_segments)
 
-from .humanoid import REST_POSES, TOOLS
+from .humanoid import HAND, REST_POSES, TOOLS
 
 # ---------------------------------------------------------------- per frame
 
@@ -88,7 +88,7 @@ class Humanoid(Node):
     feet, which point forwards. Names as ours or as Mixamo, the Unreal mannequin or SMPL name them."""
 
     type_name = "skeleton.humanoid"
-    version = 2     # 2: the landmarks place the limb joints
+    version = 3     # 2: the landmarks place the limb joints; 3: the wrists from ``hand``
     inputs = {"mesh": Input(Mesh, optional=True, doc="a closed body mesh"),
               "volume": Input(Volume, optional=True, doc="or its occupancy"),
               "points": Input(Table, optional=True, doc="body landmarks in 3D (skeleton.keypoints): they name the "
@@ -101,9 +101,12 @@ class Humanoid(Node):
         "up": Param(list, [0.0, 0.0, 1.0], item=float, length=3, doc="world up (the world frame's +Z)"),
         "naming": Param(str, "volcap", choices=("volcap",) + TOOLS, doc="joint names: ours, or a retargeting "
                         "tool's (joints it has no name for keep ours)"),
+        "hand": Param(float, HAND, range=(0.0, 0.2), doc="the wrist this share of the body's height back from the "
+                      "hand's end of the arm's centre line (people: MediaPipe's wrists on three real captures, "
+                      "0.075-0.107); 0: a body without hands (the synthetic figure: its arms end at the wrists)"),
     }
 
-    def run(self, mesh=None, volume=None, points=None, *, resolution, up, naming):
+    def run(self, mesh=None, volume=None, points=None, *, resolution, up, naming, hand):
         from .curve import voxelize
         from .humanoid import body_marks, fit_humanoid, retarget_names
 
@@ -127,7 +130,7 @@ class Humanoid(Node):
             origin, spacing = volume.bbox_min, volume.voxel_size
         if not occ.any():
             raise NodeError("skeleton.humanoid: the body encloses no voxel")
-        joints, parents, names, report = fit_humanoid(occ, origin, spacing, up, marks=marks)
+        joints, parents, names, report = fit_humanoid(occ, origin, spacing, up, marks=marks, hand=hand)
         if naming != "volcap":
             table = retarget_names(naming)
             names = [table.get(n, n) for n in names]
@@ -292,7 +295,7 @@ class SkeletonizeHumanoid(Node):
     put it."""
 
     type_name = "skeletonize.humanoid"
-    version = 2
+    version = 3     # 3: the wrists from ``hand``
     per = "sequence"
     inputs = {
         "meshes": Input(Mesh, optional=True, doc="per-frame meshes with one connectivity (arrive as a list)"),
@@ -309,9 +312,12 @@ class SkeletonizeHumanoid(Node):
         "up": Param(list, [0.0, 0.0, 1.0], item=float, length=3, doc="world up (the world frame's +Z)"),
         "naming": Param(str, "volcap", choices=("volcap",) + TOOLS, doc="joint names: ours, or a retargeting tool's"),
         "segment": Param(int, -1, range=(-1, None), doc="which constant-connectivity segment; -1 = the longest"),
+        "hand": Param(float, HAND, range=(0.0, 0.2), doc="the wrist this share of the body's height back from the "
+                      "hand's end of the arm's centre line (people: MediaPipe's wrists on three real captures, "
+                      "0.075-0.107); 0: a body without hands (the synthetic figure: its arms end at the wrists)"),
     }
 
-    def run(self, meshes=None, sequence=None, lengths=None, *, resolution, up, naming, segment):
+    def run(self, meshes=None, sequence=None, lengths=None, *, resolution, up, naming, segment, hand):
         import trimesh
 
         from .humanoid import bind_humanoid, retarget_names, skeleton_lengths
@@ -323,7 +329,8 @@ class SkeletonizeHumanoid(Node):
             if not given:
                 raise NodeError(f"skeletonize.humanoid: input 'lengths' names none of the template's joints "
                                 f"({', '.join(lengths.names[:4])}, ...): give a template rig's skeleton")
-        joints, parents, names, weights, rot, tr, report = bind_humanoid(frames, faces, resolution, up, lengths=given)
+        joints, parents, names, weights, rot, tr, report = bind_humanoid(frames, faces, resolution, up, lengths=given,
+                                                                         hand=hand)
         if given:
             report["lengths_given"] = sorted(given)
         if naming != "volcap":
