@@ -58,7 +58,7 @@ def synth(a):
 
     frames = list(range(a.frames))
     meshes = [scenes.build("figure", f).mesh for f in frames]
-    h = run_node("skeletonize.humanoid", {"meshes": meshes}, {"resolution": 96, "hand": 0}, frames=frames)
+    h = run_node("skeletonize.humanoid", {"meshes": meshes}, {"resolution": 96, "hand": 0, "foot": 0.08}, frames=frames)
     c = run_node("skin", {"meshes": meshes, "skeleton": h["skeleton"]}, {"pivots": False, "rest_pose": "T"},
                  frames=frames)
     table("synth walk, the character (humanoid, T pose)", c["skeleton"], c["rest"], meshes, frames)

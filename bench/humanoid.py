@@ -51,7 +51,7 @@ def main():
     for f in range(a.frames):
         scene = scenes.build("figure", f)
         t0 = time.perf_counter()
-        sk = run_node("skeleton.humanoid", {"mesh": scene.mesh}, {"resolution": a.resolution, "hand": 0})["skeleton"]   # no hands
+        sk = run_node("skeleton.humanoid", {"mesh": scene.mesh}, {"resolution": a.resolution, "hand": 0, "foot": 0.08})["skeleton"]   # no hands, short feet
         t_h.append(time.perf_counter() - t0)
         t0 = time.perf_counter()
         run_node("skeletonize", {"mesh": scene.mesh}, {"resolution": a.resolution})

@@ -26,7 +26,9 @@ when the right arm and the right leg come out on opposite sides, the pair less a
 Unreal mannequin, SMPL). Fractions: the median place of each joint of the synth figure along its fitted path over a walk
 cycle, checked against adult proportions; the wrists ``HAND`` of the height back from the arm's end (real people's
 hands; ``hand`` 0 for a body without them, such as the synth figure, whose arms end at the wrists: the wrist at the
-path's end, hand_end past it): wrists and the spine's joints are placed by proportion, not found. Given body
+path's end, hand_end past it), the ankles ``FOOT`` back from the leg's end and the knees halfway between hips and
+ankles (``foot``: the synth figure's feet are short, 0.08): wrists and the spine's joints are placed by proportion,
+not found. Given body
 landmarks (``marks``, MediaPipe's), they name the extremities and the sides, and the shoulders, elbows, wrists,
 knees and ankles go where their landmarks lie along the limb's centre line (``_place_at_marks``).
 """
@@ -61,6 +63,16 @@ LIMB_BONES = tuple(LIMB_QUANTILE)  # the limbs' bones, by the joint they end at
 # pose2sim_single and inria_dancer (0.075-0.107 of the height, median 0.085), where a fixed 0.92 of the arm's path put
 # them 4-7.5 cm too far out, in the hand. 0: a body without hands (the synth figure: its arms end at the wrists)
 HAND = 0.085
+# the ankle this share of the height back from the foot's end of the leg's centre line (the toe's tip): MediaPipe's
+# ankles lie 19-24.5 cm back on thu_wd_human, pose2sim_single and inria_dancer (0.113-0.148 of the height; one leg
+# whose path ends off the foot 0.069; median of the six 0.123), where 0.88 of the leg's path put five of the six 8-12
+# cm towards the toes. The synth figure's feet are short: 0.072-0.091 (``foot`` 0.08 in its graphs). The knee then
+# lies halfway between hip and ankle along the path (MediaPipe's: 0.46-0.53 of the way; the synth figure's 0.48-0.50),
+# or at the leg's sharpest bend near there
+FOOT = 0.12
+SIDES_ANKLE = 0.88       # left and right: the foot's cells below this share of the leg's path (the ankle's place before
+                         # FOOT; the ankle's new place widened the foot's cells into the other leg of a legs-together
+                         # column and turned child_rope's segment 0 round)
 HEAD_THICKER = 1.5       # ... and must be this many times a hand's     # legs together: where the legs meet, this share of the height above the floor
 # name: (parent, path, fraction of the path's arc); "{s}" is the side
 TEMPLATE = {
@@ -69,7 +81,7 @@ TEMPLATE = {
     "clavicle_{s}": ("chest", "arm", 0.0), "shoulder_{s}": ("clavicle_{s}", "arm", 0.26),
     "elbow_{s}": ("shoulder_{s}", "arm", 0.60), "wrist_{s}": ("elbow_{s}", "arm", None),   # None: HAND
     "hand_end_{s}": ("wrist_{s}", "arm", 1.0),
-    "hip_{s}": ("pelvis", "leg", 0.14), "knee_{s}": ("hip_{s}", "leg", 0.50), "ankle_{s}": ("knee_{s}", "leg", 0.88),
+    "hip_{s}": ("pelvis", "leg", 0.14), "knee_{s}": ("hip_{s}", "leg", None), "ankle_{s}": ("knee_{s}", "leg", None),
     "toe_{s}": ("ankle_{s}", "leg", 1.0),
 }
 BENDS = {"elbow_{s}", "knee_{s}"}
@@ -405,7 +417,7 @@ def _split_leg(poly: np.ndarray, cells: np.ndarray, u, right, forward, step: flo
 
 
 def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str = "skeleton.humanoid",
-                 marks: dict | None = None, hand: float = HAND):
+                 marks: dict | None = None, hand: float = HAND, foot: float = FOOT):
     """(joints (J, 3), parents, names, report) of the template fitted to a solid (module docstring). ``marks``
     (head, hand_l, hand_r, foot_l, foot_r: 3D points, e.g. triangulated body landmarks; right: the body's left
     to right direction): the extremities they
@@ -413,6 +425,7 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
     4-view hull, feet that point nowhere); when one has no extremity near it, the shape decides."""
     from .curve import joint_tree, teasar
 
+    foot_share = float(foot)     # (``foot`` names a foot's tree node below)
     step = float(np.min(spacing))
     raw = teasar(occ, origin, spacing)
     u = np.asarray(up, np.float64) / (np.linalg.norm(up) or 1.0)
@@ -468,7 +481,7 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
     # sides: the part of each foot below its ankle lies in front of the ankle
     forward = np.zeros(3)
     for k in ((0,) if together else (0, 1)):
-        ankle = _at(limbs[("leg", k)], TEMPLATE["ankle_{s}"][2])
+        ankle = _at(limbs[("leg", k)], SIDES_ANKLE)
         h = (cells - ankle) @ u
         near = np.linalg.norm((cells - ankle) - h[:, None] * u, axis=1) < 0.5 * np.linalg.norm(limbs[("leg", k)][-1] - ankle) + 3 * step
         foot = cells[(h < 0) & near]
@@ -526,8 +539,11 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
         par, which, frac = TEMPLATE[key]
         s = name.rsplit("_", 1)[1] if "{s}" in key else None
         poly = polys["spine"] if which == "spine" else limbs[(which, side[(which, s)])]
-        if which == "leg":     # measured from the foot with the mean leg length: the legs may meet off-centre
+        if key == "hip_{s}":   # measured from the foot with the mean leg length: the legs may meet off-centre
             frac = max(0.0, 1.0 - (1.0 - frac) * leg_length / _length(poly))
+        if key in ("knee_{s}", "ankle_{s}"):   # the ankle FOOT back from the toe's end, the knee halfway up from it
+            ankle = float(np.clip(1.0 - foot_share * height / max(_length(poly), 1e-12), fracs[f"hip_{s}"] + 0.2, 0.97))
+            frac = ankle if key == "ankle_{s}" else 0.5 * (fracs[f"hip_{s}"] + ankle)
         if key == "wrist_{s}":     # HAND back from the arm's end, past its elbow
             frac = float(np.clip(1.0 - hand * height / max(_length(poly), 1e-12), fracs[f"elbow_{s}"] + 0.05, 1.0))
         if key == "hand_end_{s}" and hand == 0:   # no hand: the wrist is the path's end, the end marker past it
@@ -584,7 +600,7 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
 
 
 def bind_humanoid(frames: np.ndarray, faces, resolution: int, up=(0.0, 0.0, 1.0), node: str = "skeletonize.humanoid",
-                  tries: int = 40, lengths: dict | None = None, hand: float = HAND):
+                  tries: int = 40, lengths: dict | None = None, hand: float = HAND, foot: float = FOOT):
     """The template fitted to one frame of a dynamic mesh and set moving with it, ready for ``skin``:
     (joints, parents, names, one-hot weights (V, J), rotations (F, J, 3, 3), translations (F, J, 3), report),
     rest = the first frame. The fit is tried on up to ``tries`` frames spread over the segment (a child's arms
@@ -614,7 +630,7 @@ def bind_humanoid(frames: np.ndarray, faces, resolution: int, up=(0.0, 0.0, 1.0)
     for r in order:
         occ, origin, spacing = voxelize(frames[r], np.asarray(faces), resolution)
         try:
-            fit = fit_humanoid(occ, origin, spacing, up, node, hand=hand)
+            fit = fit_humanoid(occ, origin, spacing, up, node, hand=hand, foot=foot)
         except NodeError as exc:
             errors.append(f"frame index {r}: {str(exc).split(': ', 1)[-1]}")
             continue

@@ -12,7 +12,7 @@ from nodegraph import Files, InPath, Input, Node, NodeError, Output, Param, Tabl
 from nodes.common.types import (FPS_PARAM, CameraSet, Mesh, MeshSequence, Skeleton, SkeletonData, Volume,
                                sequence_segments)
 
-from .humanoid import HAND, REST_POSES, TOOLS
+from .humanoid import FOOT, HAND, REST_POSES, TOOLS
 
 # ---------------------------------------------------------------- per frame
 
@@ -88,7 +88,7 @@ class Humanoid(Node):
     feet, which point forwards. Names as ours or as Mixamo, the Unreal mannequin or SMPL name them."""
 
     type_name = "skeleton.humanoid"
-    version = 3     # 2: the landmarks place the limb joints; 3: the wrists from ``hand``
+    version = 3     # 2: the landmarks place the limb joints; 3: wrists, ankles and knees from ``hand`` and ``foot``
     inputs = {"mesh": Input(Mesh, optional=True, doc="a closed body mesh"),
               "volume": Input(Volume, optional=True, doc="or its occupancy"),
               "points": Input(Table, optional=True, doc="body landmarks in 3D (skeleton.keypoints): they name the "
@@ -104,9 +104,12 @@ class Humanoid(Node):
         "hand": Param(float, HAND, range=(0.0, 0.2), doc="the wrist this share of the body's height back from the "
                       "hand's end of the arm's centre line (people: MediaPipe's wrists on three real captures, "
                       "0.075-0.107); 0: a body without hands (the synthetic figure: its arms end at the wrists)"),
+        "foot": Param(float, FOOT, range=(0.02, 0.3), doc="the ankle this share of the body's height back from the toe's "
+                      "end of the leg's centre line, the knee halfway up from it to the hip (people: MediaPipe's ankles on "
+                      "three real captures, 0.113-0.148; the synthetic figure's short feet: 0.08)"),
     }
 
-    def run(self, mesh=None, volume=None, points=None, *, resolution, up, naming, hand):
+    def run(self, mesh=None, volume=None, points=None, *, resolution, up, naming, hand, foot):
         from .curve import voxelize
         from .humanoid import body_marks, fit_humanoid, retarget_names
 
@@ -130,7 +133,7 @@ class Humanoid(Node):
             origin, spacing = volume.bbox_min, volume.voxel_size
         if not occ.any():
             raise NodeError("skeleton.humanoid: the body encloses no voxel")
-        joints, parents, names, report = fit_humanoid(occ, origin, spacing, up, marks=marks, hand=hand)
+        joints, parents, names, report = fit_humanoid(occ, origin, spacing, up, marks=marks, hand=hand, foot=foot)
         if naming != "volcap":
             table = retarget_names(naming)
             names = [table.get(n, n) for n in names]
@@ -295,7 +298,7 @@ class SkeletonizeHumanoid(Node):
     put it."""
 
     type_name = "skeletonize.humanoid"
-    version = 3     # 3: the wrists from ``hand``
+    version = 3     # 3: wrists, ankles and knees from ``hand`` and ``foot``
     per = "sequence"
     inputs = {
         "meshes": Input(Mesh, optional=True, doc="per-frame meshes with one connectivity (arrive as a list)"),
@@ -315,9 +318,12 @@ class SkeletonizeHumanoid(Node):
         "hand": Param(float, HAND, range=(0.0, 0.2), doc="the wrist this share of the body's height back from the "
                       "hand's end of the arm's centre line (people: MediaPipe's wrists on three real captures, "
                       "0.075-0.107); 0: a body without hands (the synthetic figure: its arms end at the wrists)"),
+        "foot": Param(float, FOOT, range=(0.02, 0.3), doc="the ankle this share of the body's height back from the toe's "
+                      "end of the leg's centre line, the knee halfway up from it to the hip (people: MediaPipe's ankles on "
+                      "three real captures, 0.113-0.148; the synthetic figure's short feet: 0.08)"),
     }
 
-    def run(self, meshes=None, sequence=None, lengths=None, *, resolution, up, naming, segment, hand):
+    def run(self, meshes=None, sequence=None, lengths=None, *, resolution, up, naming, segment, hand, foot):
         import trimesh
 
         from .humanoid import bind_humanoid, retarget_names, skeleton_lengths
@@ -330,7 +336,7 @@ class SkeletonizeHumanoid(Node):
                 raise NodeError(f"skeletonize.humanoid: input 'lengths' names none of the template's joints "
                                 f"({', '.join(lengths.names[:4])}, ...): give a template rig's skeleton")
         joints, parents, names, weights, rot, tr, report = bind_humanoid(frames, faces, resolution, up, lengths=given,
-                                                                         hand=hand)
+                                                                         hand=hand, foot=foot)
         if given:
             report["lengths_given"] = sorted(given)
         if naming != "volcap":
