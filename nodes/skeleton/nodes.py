@@ -14,6 +14,14 @@ from nodes.common.types import (FPS_PARAM, CameraSet, Mesh, MeshSequence, Skelet
 
 from .humanoid import FOOT, HAND, REST_POSES, TOOLS
 
+# the template's hands and feet (skeleton.humanoid, skeletonize.humanoid)
+HAND_PARAM = Param(float, HAND, range=(0.0, 0.2), doc="the wrist this share of the body's height back from the hand's "
+                   "end of the arm's centre line (people: MediaPipe's wrists on three real captures, 0.075-0.107); 0: a "
+                   "body without hands (the synthetic figure: its arms end at the wrists)")
+FOOT_PARAM = Param(float, FOOT, range=(0.02, 0.3), doc="the ankle this share of the body's height back from the toe's "
+                   "end of the leg's centre line, the knee halfway up from it to the hip (people: MediaPipe's ankles on "
+                   "three real captures, 0.113-0.148; the synthetic figure's short feet: 0.08)")
+
 # ---------------------------------------------------------------- per frame
 
 PERSON_HEIGHT_M = (0.3, 2.5)       # a skeleton named as a person outside: a warning (units? up?)
@@ -101,12 +109,8 @@ class Humanoid(Node):
         "up": Param(list, [0.0, 0.0, 1.0], item=float, length=3, doc="world up (the world frame's +Z)"),
         "naming": Param(str, "volcap", choices=("volcap",) + TOOLS, doc="joint names: ours, or a retargeting "
                         "tool's (joints it has no name for keep ours)"),
-        "hand": Param(float, HAND, range=(0.0, 0.2), doc="the wrist this share of the body's height back from the "
-                      "hand's end of the arm's centre line (people: MediaPipe's wrists on three real captures, "
-                      "0.075-0.107); 0: a body without hands (the synthetic figure: its arms end at the wrists)"),
-        "foot": Param(float, FOOT, range=(0.02, 0.3), doc="the ankle this share of the body's height back from the toe's "
-                      "end of the leg's centre line, the knee halfway up from it to the hip (people: MediaPipe's ankles on "
-                      "three real captures, 0.113-0.148; the synthetic figure's short feet: 0.08)"),
+        "hand": HAND_PARAM,
+        "foot": FOOT_PARAM,
     }
 
     def run(self, mesh=None, volume=None, points=None, *, resolution, up, naming, hand, foot):
@@ -315,12 +319,8 @@ class SkeletonizeHumanoid(Node):
         "up": Param(list, [0.0, 0.0, 1.0], item=float, length=3, doc="world up (the world frame's +Z)"),
         "naming": Param(str, "volcap", choices=("volcap",) + TOOLS, doc="joint names: ours, or a retargeting tool's"),
         "segment": Param(int, -1, range=(-1, None), doc="which constant-connectivity segment; -1 = the longest"),
-        "hand": Param(float, HAND, range=(0.0, 0.2), doc="the wrist this share of the body's height back from the "
-                      "hand's end of the arm's centre line (people: MediaPipe's wrists on three real captures, "
-                      "0.075-0.107); 0: a body without hands (the synthetic figure: its arms end at the wrists)"),
-        "foot": Param(float, FOOT, range=(0.02, 0.3), doc="the ankle this share of the body's height back from the toe's "
-                      "end of the leg's centre line, the knee halfway up from it to the hip (people: MediaPipe's ankles on "
-                      "three real captures, 0.113-0.148; the synthetic figure's short feet: 0.08)"),
+        "hand": HAND_PARAM,
+        "foot": FOOT_PARAM,
     }
 
     def run(self, meshes=None, sequence=None, lengths=None, *, resolution, up, naming, segment, hand, foot):
