@@ -109,7 +109,7 @@ def main():
             if walls[-1] == min(walls):     # where the best run's time went: each node's items (median, ms)
                 per_node = {}
                 for it in doc["items"]:
-                    if it["status"] == "done" and it["node"] in ("key", "hull", "mc"):
+                    if it["status"] == "done" and it["node"] in ("key", "hull", "mesh"):     # mesh: the mc node
                         per_node.setdefault(it["node"], []).append(it["seconds"])
                 split[jobs] = ({n: 1e3 * float(np.median(v)) for n, v in per_node.items()},
                                1e3 * sum(map(sum, per_node.values())) / a.frames)

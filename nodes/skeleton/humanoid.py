@@ -70,6 +70,7 @@ HAND = 0.085
 # lies halfway between hip and ankle along the path (MediaPipe's: 0.46-0.53 of the way; the synth figure's 0.48-0.50),
 # or at the leg's sharpest bend near there
 FOOT = 0.12
+MIN_BONE = 0.05          # no limb bone shorter than this share of the height from a bend or a landmark
 SIDES_ANKLE = 0.88       # left and right: the foot's cells below this share of the leg's path (the ankle's place before
                          # FOOT; the ankle's new place widened the foot's cells into the other leg of a legs-together
                          # column and turned child_rope's segment 0 round)
@@ -338,29 +339,37 @@ def _extremities(tree, u: np.ndarray, floor: float, height: float, node: str, ra
     return tree, named
 
 
-def _place_at_marks(joints, names, fracs, limbs, side, marked: dict, node: str) -> list[str]:
+def _place_at_marks(joints, names, fracs, limbs, side, marked: dict, node: str, height: float) -> list[str]:
     """Limb joints moved (in place in ``joints``) to where their landmark lies along the limb's centre line, when
-    the landmark is within JOINT_REACH of it; a limb whose joints would then be out of order (an elbow past the
-    wrist) keeps the template's places. The names moved."""
+    the landmark is within JOINT_REACH of it and keeps the limb's joints in order, each bone at least MIN_BONE of
+    the height (else that landmark is not taken, with a warning); the joints without a landmark keep their
+    places. The names moved."""
     moved = []
     for which, chain, start in (("arm", ("shoulder", "elbow", "wrist"), "clavicle"), ("leg", ("knee", "ankle"), "hip")):
         for s in SIDES:
             poly = limbs[(which, side[(which, s)])]
-            fr = {k: fracs[f"{k}_{s}"] for k in chain}
+            gap = MIN_BONE * height / max(_length(poly), 1e-12)
             at = {}
             for k in chain:
                 p = marked.get(f"{k}_{s}")
                 if p is not None:
-                    f, gap = _nearest_arc(poly, np.asarray(p, np.float64))
-                    if gap <= JOINT_REACH:
-                        fr[k] = at[k] = f
-            seq = [fracs[f"{start}_{s}"]] + [fr[k] for k in chain] + [1.0]
-            if not at:
-                continue
-            if any(b <= a for a, b in zip(seq, seq[1:])):
-                LOG.warning("%s: the %s_%s landmarks lie out of order along the limb: its joints from the template",
-                            node, which, s)
-                continue
+                    f, off = _nearest_arc(poly, np.asarray(p, np.float64))
+                    if off <= JOINT_REACH:
+                        at[k] = f
+            last = fracs[f"{chain[-1]}_{s}"]       # the limb's end lies past its last joint (1.0: the path's end)
+            end = 1.0 + gap if last >= 1.0 else 1.0
+            while at:
+                seq = [(None, fracs[f"{start}_{s}"])] + [(k, at.get(k, fracs[f"{k}_{s}"])) for k in chain] + [(None, end)]
+                bad = next((i for i in range(len(seq) - 1) if seq[i + 1][1] - seq[i][1] < gap - 1e-9), None)
+                if bad is None:
+                    break
+                drop = seq[bad + 1][0] if seq[bad + 1][0] in at else seq[bad][0]
+                if drop not in at:        # the template's own joints too close: leave the limb as it is
+                    at = {}
+                    break
+                LOG.warning("%s: the %s_%s landmark lies out of order along the limb (or too near a neighbour): "
+                            "not taken", node, drop, s)
+                del at[drop]
             for k, f in at.items():
                 joints[names.index(f"{k}_{s}")] = _at(poly, f)
                 moved.append(f"{k}_{s}")
@@ -541,11 +550,17 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
         poly = polys["spine"] if which == "spine" else limbs[(which, side[(which, s)])]
         if key == "hip_{s}":   # measured from the foot with the mean leg length: the legs may meet off-centre
             frac = max(0.0, 1.0 - (1.0 - frac) * leg_length / _length(poly))
+        arc = max(_length(poly), 1e-12)
+        gap = MIN_BONE * height / arc            # the shortest bone, as a share of this path
+        bounds = (0.0, 1.0)                      # where a bend may move the joint
         if key in ("knee_{s}", "ankle_{s}"):   # the ankle FOOT back from the toe's end, the knee halfway up from it
-            ankle = float(np.clip(1.0 - foot_share * height / max(_length(poly), 1e-12), fracs[f"hip_{s}"] + 0.2, 0.97))
+            ankle = float(np.clip(1.0 - foot_share * height / arc, fracs[f"hip_{s}"] + 0.2, 0.97))
             frac = ankle if key == "ankle_{s}" else 0.5 * (fracs[f"hip_{s}"] + ankle)
+            bounds = (fracs[f"hip_{s}"] + gap, ankle - gap)
         if key == "wrist_{s}":     # HAND back from the arm's end, past its elbow
-            frac = float(np.clip(1.0 - hand * height / max(_length(poly), 1e-12), fracs[f"elbow_{s}"] + 0.05, 1.0))
+            top = 1.0 if hand == 0 else 1.0 - max(hand * height, 2 * step) / arc
+            lo = fracs[f"elbow_{s}"] + 0.05           # past the elbow, however large ``hand`` is
+            frac = float(np.clip(1.0 - hand * height / arc, lo, max(top, lo)))
         if key == "hand_end_{s}" and hand == 0:   # no hand: the wrist is the path's end, the end marker past it
             tip = end[f"hand_{side[('arm', s)]}"]
             back = _at(poly, max(0.0, 1.0 - 0.05 * height / max(_length(poly), 1e-12)))
@@ -561,13 +576,14 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
         if key in BENDS:
             f, ang = _bend(poly, frac)
             bends[name] = round(ang, 1)
-            if ang > BEND_DEG:
+            if ang > BEND_DEG and bounds[0] < f < bounds[1]:     # (a knee's bend is not the hip's corner)
                 frac = f
         joints[names.index(name)] = _at(poly, frac)
         fracs[name] = frac
         parents.append(-1 if par is None else names.index(par.format(s=s) if s else par))
     if marked and marks.get("joints"):
-        report["joints_from_landmarks"] = _place_at_marks(joints, names, fracs, limbs, side, marks["joints"], node)
+        report["joints_from_landmarks"] = _place_at_marks(joints, names, fracs, limbs, side, marks["joints"], node,
+                                                          height)
     for s in SIDES:     # the hip on its thigh's centre line, raised to about where the legs' paths meet
         j_h, j_k = names.index(f"hip_{s}"), names.index(f"knee_{s}")
         top, knee = joints[j_h], joints[j_k]
@@ -590,6 +606,9 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
         joints[J[f"elbow_{sb}"]] = _elbow_between(joints[J[f"shoulder_{sb}"]], joints[J[f"wrist_{sb}"]], up_len,
                                                   fore_len, cells, polys["spine"], step)
         report["arm_from_hip"] = sb
+        if "joints_from_landmarks" in report:     # that arm's shoulder and elbow are the repair's now
+            report["joints_from_landmarks"] = [n for n in report["joints_from_landmarks"]
+                                               if n not in (f"shoulder_{sb}", f"elbow_{sb}")]
         LOG.warning("%s: arm '%s' meets the body at the hip (its hand against it): its shoulder mirrored from "
                     "the other, its elbow between shoulder and wrist at the other arm's bone lengths", node, sb)
     lengths = {n: round(float(np.linalg.norm(joints[j] - joints[p])), 4) for j, (n, p) in enumerate(zip(names, parents))

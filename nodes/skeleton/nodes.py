@@ -15,10 +15,10 @@ from nodes.common.types import (FPS_PARAM, CameraSet, Mesh, MeshSequence, Skelet
 from .humanoid import FOOT, HAND, REST_POSES, TOOLS
 
 # the template's hands and feet (skeleton.humanoid, skeletonize.humanoid)
-HAND_PARAM = Param(float, HAND, range=(0.0, 0.2), doc="the wrist this share of the body's height back from the hand's "
+HAND_PARAM = Param(float, HAND, range=(0.0, 0.15), doc="the wrist this share of the body's height back from the hand's "
                    "end of the arm's centre line (people: MediaPipe's wrists on three real captures, 0.075-0.107); 0: a "
                    "body without hands (the synthetic figure: its arms end at the wrists)")
-FOOT_PARAM = Param(float, FOOT, range=(0.02, 0.3), doc="the ankle this share of the body's height back from the toe's "
+FOOT_PARAM = Param(float, FOOT, range=(0.04, 0.2), doc="the ankle this share of the body's height back from the toe's "
                    "end of the leg's centre line, the knee halfway up from it to the hip (people: MediaPipe's ankles on "
                    "three real captures, 0.113-0.148; the synthetic figure's short feet: 0.08)")
 

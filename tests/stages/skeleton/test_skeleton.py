@@ -763,24 +763,46 @@ def test_humanoid_named_by_landmarks(caplog):
 
 def test_humanoid_landmarks_off_the_limb_or_out_of_order_are_not_taken(caplog):
     """A limb joint's landmark more than JOINT_REACH from the limb's centre line (a knee 20 cm beside the leg) is
-    not used; a limb whose landmarks lie out of order along it (elbow and wrist swapped) keeps the template's
-    joints, with a warning; the hips are never taken from landmarks (MediaPipe's sit high)."""
+    not used; landmarks out of order along a limb (elbow and wrist swapped) or making a bone shorter than MIN_BONE
+    of the height (a knee 5 cm below the hip) are not taken, each with a warning, while the limb's other landmarks
+    are (the swapped arm's shoulder); with ``hand`` 0 and no wrist landmark the shoulder and elbow are still
+    taken; the hips are never taken from landmarks (MediaPipe's sit high): hip landmarks 10 cm higher leave them
+    where they were."""
     from nodes.synth import scenes
 
     truth = scenes.build("figure", 0)
     t = dict(zip(truth.skeleton.names, np.asarray(truth.skeleton.joints)))
-    pts = {"nose": t["head"] + [0, 0, 0.1]}
+
+    def fit(pts):
+        out = run_node("skeleton.humanoid", {"mesh": truth.mesh, "points": {"landmarks": list(pts), "points": [
+            p.tolist() for p in pts.values()]}}, {"hand": 0, "foot": 0.08, "resolution": 64})
+        return out["report"], dict(zip(out["skeleton"].names, out["skeleton"].joints))
+
+    base = {"nose": t["head"] + [0, 0, 0.1]}
     for s, side in (("l", "left"), ("r", "right")):
-        pts.update({f"{side}_{k}": t[f"{s}_{k}"] for k in ("wrist", "elbow", "ankle", "knee", "hip", "shoulder")})
+        base.update({f"{side}_{k}": t[f"{s}_{k}"] for k in ("wrist", "elbow", "ankle", "knee", "hip", "shoulder")})
+    pts = dict(base)
     pts["left_knee"] = pts["left_knee"] + [0, -0.2, 0]
     pts["right_elbow"], pts["right_wrist"] = pts["right_wrist"], pts["right_elbow"]
     caplog.set_level("WARNING")
-    rep = run_node("skeleton.humanoid", {"mesh": truth.mesh, "points": {"landmarks": list(pts), "points": [
-        p.tolist() for p in pts.values()]}}, {"hand": 0, "foot": 0.08, "resolution": 64})["report"]
+    rep, j = fit(pts)
     moved = set(rep["joints_from_landmarks"])
     assert "knee_l" not in moved and "knee_r" in moved and "ankle_l" in moved
-    assert not moved & {"shoulder_r", "elbow_r", "wrist_r"} and {"shoulder_l", "elbow_l", "wrist_l"} <= moved
-    assert not moved & {"hip_l", "hip_r"} and "arm_r landmarks lie out of order" in caplog.text
+    assert "shoulder_r" in moved and not moved & {"elbow_r", "wrist_r"} and {"shoulder_l", "elbow_l", "wrist_l"} <= moved
+    assert "wrist_r landmark lies out of order" in caplog.text
+    near = dict(base)           # a knee 5 cm below the hip, on the thigh
+    near["right_knee"] = t["r_hip"] + (t["r_knee"] - t["r_hip"]) * 0.05 / np.linalg.norm(t["r_knee"] - t["r_hip"])
+    rep_near, _ = fit(near)
+    assert "knee_r" not in rep_near["joints_from_landmarks"] and "ankle_r" in rep_near["joints_from_landmarks"]
+    no_wrist = {k: v for k, v in base.items() if not k.endswith("_wrist")}
+    no_wrist.update(left_index=t["l_wrist"], right_index=t["r_wrist"])      # the hands named by the index fingers
+    rep_nw, _ = fit(no_wrist)
+    assert {"shoulder_l", "elbow_l", "shoulder_r", "elbow_r"} <= set(rep_nw["joints_from_landmarks"])
+    up = dict(base, left_hip=base["left_hip"] + [0, 0, 0.1], right_hip=base["right_hip"] + [0, 0, 0.1])
+    _, j_base = fit(base)
+    _, j_up = fit(up)
+    for s in "lr":
+        np.testing.assert_array_equal(j_up[f"hip_{s}"], j_base[f"hip_{s}"])
 
 
 def test_humanoid_wrists_a_hand_back_from_the_arms_end():
@@ -807,6 +829,24 @@ def test_humanoid_wrists_a_hand_back_from_the_arms_end():
         assert abs(back - HAND * height) < 2 * voxel, (back, HAND * height)
     ends = np.array([a[f"hand_end_{s}"] for s in "lr"])
     assert inside_body(truth.mesh, ends, 0.01).all()
+
+
+def test_humanoid_hand_and_foot_at_their_ranges_ends_keep_the_limbs_in_order():
+    """``hand`` and ``foot`` at the ends of their ranges (walk frames 0, 20, 40 at 64^3): every limb bone at least
+    1 cm (a hand 0.2 put a wrist before its elbow, a foot 0.3 a knee on its hip, before the clamps), hips above
+    knees above ankles."""
+    from nodes.synth import scenes
+
+    for f in (0, 20, 40):
+        mesh = scenes.build("figure", f).mesh
+        for hand, foot in ((0.15, 0.2), (0.0, 0.04), (0.001, 0.2)):
+            sk = run_node("skeleton.humanoid", {"mesh": mesh}, {"resolution": 64, "hand": hand, "foot": foot})["skeleton"]
+            j = dict(zip(sk.names, sk.joints))
+            for s in "lr":
+                for a, b in (("hip", "knee"), ("knee", "ankle"), ("ankle", "toe"), ("shoulder", "elbow"),
+                             ("elbow", "wrist"), ("wrist", "hand_end")):
+                    assert np.linalg.norm(j[f"{b}_{s}"] - j[f"{a}_{s}"]) > 0.01, (f, hand, foot, a, b, s)
+                assert j[f"hip_{s}"][2] > j[f"knee_{s}"][2] > j[f"ankle_{s}"][2], (f, hand, foot, s)
 
 
 def test_humanoid_refuses_a_body_without_five_extremities():
@@ -889,7 +929,8 @@ def test_humanoid_with_landmarks_on_inria(dataset_run):
     """inria_dancer frame 0 (8 colour views, a dancer in a dress): from the shape alone the sides come out crossed
     (each wrist 1.2 m from its landmark: the other side's); with MediaPipe's landmarks the sides are theirs and
     every limb joint placed at its landmark lies within 4 cm of it (measured max 3.4 at a knee; the right
-    shoulder's landmark is 12.7 cm from the arm's line: not taken), joints to landmarks median <= 3 cm (1.7). The
+    shoulder's landmark is 12.7 cm from the arm's line, the left knee's 7 cm from the hip along the leg: not taken),
+    joints to landmarks median <= 3 cm (1.8). The
     hips stay 29-33 cm from MediaPipe's: the dress joins the legs' centre lines at its hem."""
     from pathlib import Path
 
