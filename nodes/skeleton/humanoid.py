@@ -4,8 +4,8 @@ The template (``TEMPLATE``) is a joint tree with standard names and each joint's
 body's curve skeleton, as a fraction of that path's arc length:
 
     spine   pelvis -> the head's tip:   spine, chest, neck, head; head_end at the tip
-    arms    where the arm's path leaves the spine -> the hand's tip: clavicle at the branch, shoulder, elbow,
-            wrist; hand_end at the tip
+    arms    where the arm's path leaves the spine -> the hand's tip: shoulder, elbow, wrist; hand_end at the
+            tip (the clavicle on the spine, ``CLAVICLE``)
     legs    pelvis -> the foot's tip: hip, knee, ankle; toe at the tip
 Fitting (``fit_humanoid``): TEASAR centre lines of the solid (curve.py, not simplified); its extremities within
 20 % of the height above the floor are the feet (two; one when the legs touch and make one column), of the others
@@ -26,9 +26,11 @@ when the right arm and the right leg come out on opposite sides, the pair less a
 Unreal mannequin, SMPL). Fractions: the median place of each joint of the synth figure along its fitted path over a walk
 cycle, checked against adult proportions; the wrists ``HAND`` of the height back from the arm's end (real people's
 hands; ``hand`` 0 for a body without them, such as the synth figure, whose arms end at the wrists: the wrist at the
-path's end, hand_end past it), the ankles ``FOOT`` back from the leg's end and the knees halfway between hips and
-ankles (``foot``: the synth figure's feet are short, 0.08): wrists and the spine's joints are placed by proportion,
-not found. Given body
+path's end, hand_end past it), the elbows ``FOREARM`` back from the wrists along the path, the ankles ``FOOT``
+back from the leg's end and the knees halfway between the (raised) hips and the ankles (``foot``: the synth figure's
+feet are short, 0.08); the shoulders where the arm's path reaches ``SHOULDER_OUT`` of the height across from the
+spine's axis, lifted onto the upper arm's centre line there (the path's corner into the body runs under the joint):
+wrists, elbows, shoulders and the spine's joints are placed by proportion, not found. Given body
 landmarks (``marks``, MediaPipe's), they name the extremities and the sides, and the shoulders, elbows, wrists,
 knees and ankles go where their landmarks lie along the limb's centre line (``_place_at_marks``).
 """
@@ -51,6 +53,20 @@ CROTCH_HEIGHT = 0.47
 HIP_DROP = 0.02          # the hips this share of the leg's path below where the legs' paths meet (on the thigh's line)
 MIN_LEG = 0.15           # a leg's path from the pelvis shorter than this share of the height: no fit
 HEAD_ARC = 0.12          # a head's thickness is measured this share of the height below its tip
+# the shoulder joints this share of the height out from the spine's axis (across it), on the upper arm's centre line:
+# the arm's path leaves the spine low and its corner runs under the joint (synth walk at 128^3: shoulders 2.0-3.4
+# voxels off along the path, 1.4-2.8 cm below the joint). Adults' shoulder joint centres lie about 0.2 of the height
+# apart (the shoulders' breadth, ~0.23, less the acromions); the synth figure's 0.104
+SHOULDER_OUT = 0.10
+# the clavicles' joint on the spine, this share of its arc (between chest 0.44 and neck 0.71: the synth figure's
+# shoulders' height). Where the arm's path leaves the spine moves from fit to fit (synth walk: 1.32-1.39 m), and the
+# clavicle-to-shoulder lengths measured from there made the rig's shoulders 2-4 cm too close to the spine
+CLAVICLE = 0.62
+# the elbow this share of the height back from the wrist along the arm's path. The template's 0.60 of the path missed
+# by up to 0.09 of it as the path's start at the spine moves (synth walk at 128^3: elbows up to 4.7 voxels off);
+# MediaPipe's elbows on thu_wd_human, pose2sim_single and inria_dancer lie 0.149-0.182 of the height back from their
+# wrists along the path (median 0.154; straight forearms 0.135-0.162), the synth figure's forearm 0.143
+FOREARM = 0.15
 # each limb bone's length: this quantile of the fits' lengths of it, by the joint it ends at. A crouch's bent legs' centre
 # lines cut the corners and measure short: the legs' 75th percentile. The arms' median: a misplaced joint measures
 # long as often (child_rope: the 75th percentile put the forearm at 20 cm, the wrist at 0.92 of the arm's path, and
@@ -78,9 +94,9 @@ HEAD_THICKER = 1.5       # ... and must be this many times a hand's     # legs t
 # name: (parent, path, fraction of the path's arc); "{s}" is the side
 TEMPLATE = {
     "pelvis": (None, "spine", 0.09), "spine": ("pelvis", "spine", 0.26), "chest": ("spine", "spine", 0.44),
-    "neck": ("chest", "spine", 0.71), "head": ("neck", "spine", 0.87), "head_end": ("head", "spine", 1.0),
+    "neck": ("chest", "spine", 0.71), "head": ("neck", "spine", 0.90), "head_end": ("head", "spine", 1.0),
     "clavicle_{s}": ("chest", "arm", 0.0), "shoulder_{s}": ("clavicle_{s}", "arm", 0.26),
-    "elbow_{s}": ("shoulder_{s}", "arm", 0.60), "wrist_{s}": ("elbow_{s}", "arm", None),   # None: HAND
+    "elbow_{s}": ("shoulder_{s}", "arm", None), "wrist_{s}": ("elbow_{s}", "arm", None),   # None: FOREARM, HAND
     "hand_end_{s}": ("wrist_{s}", "arm", 1.0),
     "hip_{s}": ("pelvis", "leg", 0.14), "knee_{s}": ("hip_{s}", "leg", None), "ankle_{s}": ("knee_{s}", "leg", None),
     "toe_{s}": ("ankle_{s}", "leg", 1.0),
@@ -162,6 +178,37 @@ def _nearest_arc(points: np.ndarray, p: np.ndarray) -> tuple[float, float]:
     i = int(np.argmin(gap))
     s = np.concatenate([[0.0], np.cumsum(np.sqrt(dd))])
     return float((s[i] + t[i] * np.sqrt(dd[i])) / max(s[-1], 1e-12)), float(gap[i])
+
+
+def _line(poly: np.ndarray, span) -> tuple[np.ndarray, np.ndarray]:
+    """(centre, unit direction towards the span's end) of the line fitted to a polyline between two fractions of
+    its arc."""
+    q = np.array([_at(poly, f) for f in np.linspace(span[0], span[1], 9)])
+    c = q.mean(axis=0)
+    d = np.linalg.svd(q - c)[2][0]
+    return c, d if d @ (q[-1] - q[0]) >= 0 else -d
+
+
+def _shoulder(arm: np.ndarray, frac: float, axis: np.ndarray, up: np.ndarray, out: float) -> tuple[float, np.ndarray]:
+    """(fraction of the arm's path, point) of the shoulder joint: where the path first reaches ``out`` across from
+    the spine's axis (the vertical line through ``axis``; ``frac`` if it does not by ``frac`` + 0.1 of its arc: an
+    arm close along the body), then on the upper arm's centre line (fitted to the path 0.12-0.3 of its arc further
+    on, clear of the corner where the path turns into the body) at ``out`` from the axis, the crossing nearer the
+    path's point; an upper arm along the axis (a raised arm) gives the path point's projection on the line."""
+    flat = lambda x: x - (x @ up) * up
+    grid = np.linspace(0.0, frac + 0.1, 41)
+    reach = np.array([np.linalg.norm(flat(_at(arm, f) - axis)) for f in grid])
+    if (reach >= out).any():
+        frac = float(grid[int(np.argmax(reach >= out))])
+    c, d = _line(arm, (frac + 0.12, min(frac + 0.3, 1.0)))
+    p = _at(arm, frac)
+    w, dh = flat(c - axis), flat(d)
+    t = float((p - c) @ d)
+    a, b, k = dh @ dh, 2.0 * float(w @ dh), float(w @ w) - out * out
+    disc = b * b - 4 * a * k
+    if a > 0.25 and disc >= 0:     # |w + t dh| = out
+        t = min(((-b - np.sqrt(disc)) / (2 * a), (-b + np.sqrt(disc)) / (2 * a)), key=lambda x: abs(x - t))
+    return frac, c + t * d
 
 
 def _solid(occ: np.ndarray, origin, spacing, point: np.ndarray) -> bool:
@@ -426,8 +473,11 @@ def _split_leg(poly: np.ndarray, cells: np.ndarray, u, right, forward, step: flo
 
 
 def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str = "skeleton.humanoid",
-                 marks: dict | None = None, hand: float = HAND, foot: float = FOOT):
-    """(joints (J, 3), parents, names, report) of the template fitted to a solid (module docstring). ``marks``
+                 marks: dict | None = None, hand: float = HAND, foot: float = FOOT, stature: float | None = None):
+    """(joints (J, 3), parents, names, report) of the template fitted to a solid (module docstring). The
+    proportions (hand, foot, forearm, shoulders, the shortest bone) are shares of ``stature``, the body's standing
+    height, when given (a crouched frame of a sequence is lower than the body is tall), else of this solid's
+    height. ``marks``
     (head, hand_l, hand_r, foot_l, foot_r: 3D points, e.g. triangulated body landmarks; right: the body's left
     to right direction): the extremities they
     name and their sides are taken from them instead of from the shape (a head on a short neck, spurs of a
@@ -441,6 +491,7 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
     cells = origin + (np.argwhere(occ) + 0.5) * spacing
     ch = cells @ u
     floor, height = float(ch.min()), float(np.ptp(ch))
+    size = float(stature) if stature else height    # the body's proportions: of its standing height
     tree0 = joint_tree(raw, prune=2.0, prune_min=step, bend=2.0 * step, smooth=step, up=up)
     marked = _marked_extremities(tree0, marks) if marks else None
     if marks and marked is None:
@@ -543,6 +594,7 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
     parents = []
     bends = {}
     fracs = {}
+    bent = set()        # elbows and knees placed at their limb's bend
     for name in names:
         key = next(t for t in TEMPLATE if t == name or ("{s}" in t and any(t.format(s=s) == name for s in SIDES)))
         par, which, frac = TEMPLATE[key]
@@ -551,19 +603,23 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
         if key == "hip_{s}":   # measured from the foot with the mean leg length: the legs may meet off-centre
             frac = max(0.0, 1.0 - (1.0 - frac) * leg_length / _length(poly))
         arc = max(_length(poly), 1e-12)
-        gap = MIN_BONE * height / arc            # the shortest bone, as a share of this path
+        gap = MIN_BONE * size / arc            # the shortest bone, as a share of this path
         bounds = (0.0, 1.0)                      # where a bend may move the joint
         if key in ("knee_{s}", "ankle_{s}"):   # the ankle FOOT back from the toe's end, the knee halfway up from it
-            ankle = float(np.clip(1.0 - foot_share * height / arc, fracs[f"hip_{s}"] + 0.2, 0.97))
+            ankle = float(np.clip(1.0 - foot_share * size / arc, fracs[f"hip_{s}"] + 0.2, 0.97))
             frac = ankle if key == "ankle_{s}" else 0.5 * (fracs[f"hip_{s}"] + ankle)
             bounds = (fracs[f"hip_{s}"] + gap, ankle - gap)
+        if key == "elbow_{s}":     # FOREARM back from the wrist along the path
+            wrist = 1.0 if hand == 0 else float(np.clip(1.0 - hand * size / arc, fracs[f"shoulder_{s}"] + 0.1, 1.0))
+            frac = float(np.clip(wrist - FOREARM * size / arc, fracs[f"shoulder_{s}"] + gap, wrist - gap))
+            bounds = (fracs[f"shoulder_{s}"] + gap, wrist - gap)
         if key == "wrist_{s}":     # HAND back from the arm's end, past its elbow
-            top = 1.0 if hand == 0 else 1.0 - max(hand * height, 2 * step) / arc
+            top = 1.0 if hand == 0 else 1.0 - max(hand * size, 2 * step) / arc
             lo = fracs[f"elbow_{s}"] + 0.05           # past the elbow, however large ``hand`` is
-            frac = float(np.clip(1.0 - hand * height / arc, lo, max(top, lo)))
+            frac = float(np.clip(1.0 - hand * size / arc, lo, max(top, lo)))
         if key == "hand_end_{s}" and hand == 0:   # no hand: the wrist is the path's end, the end marker past it
             tip = end[f"hand_{side[('arm', s)]}"]
-            back = _at(poly, max(0.0, 1.0 - 0.05 * height / max(_length(poly), 1e-12)))
+            back = _at(poly, max(0.0, 1.0 - 0.05 * size / max(_length(poly), 1e-12)))
             d = poly[-1] - back
             d = d / (np.linalg.norm(d) or 1.0)
             reach = 0.5 * float(raw.radius[tip])        # half the end's radius out, shortened while it leaves the body
@@ -578,20 +634,38 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
             bends[name] = round(ang, 1)
             if ang > BEND_DEG and bounds[0] < f < bounds[1]:     # (a knee's bend is not the hip's corner)
                 frac = f
+                bent.add(name)
         joints[names.index(name)] = _at(poly, frac)
         fracs[name] = frac
+        if key == "clavicle_{s}":      # on the spine (its path's fraction stays the arm path's start)
+            joints[names.index(name)] = _at(polys["spine"], CLAVICLE)
+        if key == "shoulder_{s}":
+            f, q = _shoulder(poly, frac, joints[names.index("neck")], u, SHOULDER_OUT * size)
+            if np.linalg.norm(q - _at(poly, f)) < 0.06 * size and _solid(occ, origin, spacing, q):
+                joints[names.index(name)] = q
+                fracs[name] = f
         parents.append(-1 if par is None else names.index(par.format(s=s) if s else par))
     if marked and marks.get("joints"):
         report["joints_from_landmarks"] = _place_at_marks(joints, names, fracs, limbs, side, marks["joints"], node,
-                                                          height)
+                                                          size)
     for s in SIDES:     # the hip on its thigh's centre line, raised to about where the legs' paths meet
         j_h, j_k = names.index(f"hip_{s}"), names.index(f"knee_{s}")
-        top, knee = joints[j_h], joints[j_k]
+        top, knee = joints[j_h].copy(), joints[j_k]
         d = top - knee
         du = float(d @ u)
         z = float(pts[pelvis] @ u) - HIP_DROP * leg_length
         if du > 1e-6 and z > float(top @ u):
             joints[j_h] = top + d * ((z - float(top @ u)) / du)
+            name = f"knee_{s}"
+            if name not in bent and name not in report.get("joints_from_landmarks", ()):
+                # halfway between the raised hip and the ankle: the rise lengthens the thigh (synth walk at 128^3:
+                # knees 1.5-3.1 voxels below the true ones, halfway from the hip's place on the path)
+                leg = limbs[("leg", side[("leg", s)])]
+                arc = max(_length(leg), 1e-12)
+                lo, hi = fracs[f"hip_{s}"], fracs[f"ankle_{s}"]
+                gap = MIN_BONE * size / arc
+                fracs[name] = float(np.clip(0.5 * (lo - np.linalg.norm(joints[j_h] - top) / arc + hi), lo + gap, hi - gap))
+                joints[j_k] = _at(leg, fracs[name])
     low = [k for k in (0, 1) if at_spine[k] < LOW_ARM]
     if len(low) == 1:   # a hand against the hip: that arm's path enters the body there, not at the shoulder
         bad = low[0]
@@ -645,11 +719,14 @@ def bind_humanoid(frames: np.ndarray, faces, resolution: int, up=(0.0, 0.0, 1.0)
 
     frames = np.asarray(frames, np.float64)
     order = sorted(set(np.linspace(0, len(frames) - 1, min(tries, len(frames))).round().astype(int).tolist()))
+    u = np.asarray(up, np.float64) / (np.linalg.norm(up) or 1.0)
+    h = frames @ u
+    stature = float(np.percentile(h.max(axis=1) - h.min(axis=1), 95))  # standing height: most frames stand lower
     fits, errors, tried = [], [], {}
     for r in order:
         occ, origin, spacing = voxelize(frames[r], np.asarray(faces), resolution)
         try:
-            fit = fit_humanoid(occ, origin, spacing, up, node, hand=hand, foot=foot)
+            fit = fit_humanoid(occ, origin, spacing, up, node, hand=hand, foot=foot, stature=stature)
         except NodeError as exc:
             errors.append(f"frame index {r}: {str(exc).split(': ', 1)[-1]}")
             continue
@@ -686,6 +763,7 @@ def bind_humanoid(frames: np.ndarray, faces, resolution: int, up=(0.0, 0.0, 1.0)
     tr[:, has] = carried[:, has] - np.einsum("fjab,jb->fja", rot[:, has], rest_joints[has])
     report["vertices_per_joint"] = dict(zip([names[j] for j in keep], counts.tolist()))
     report["fitted_on_index"] = int(r)
+    report["stature"] = round(stature, 4)
     report["frames_refused"] = errors
     report["rigid_rms_mm_by_index"] = tried
     report["bone_lengths_used"] = {n: round(v, 4) for n, v in own.items()}

@@ -96,7 +96,8 @@ class Humanoid(Node):
     feet, which point forwards. Names as ours or as Mixamo, the Unreal mannequin or SMPL name them."""
 
     type_name = "skeleton.humanoid"
-    version = 3     # 2: the landmarks place the limb joints; 3: wrists, ankles and knees from ``hand`` and ``foot``
+    version = 4     # 2: the landmarks place the limb joints; 3: wrists, ankles and knees from ``hand`` and ``foot``;
+                    # 4: shoulders, elbows, knees, head and clavicles placed anew (stop 44)
     inputs = {"mesh": Input(Mesh, optional=True, doc="a closed body mesh"),
               "volume": Input(Volume, optional=True, doc="or its occupancy"),
               "points": Input(Table, optional=True, doc="body landmarks in 3D (skeleton.keypoints): they name the "
@@ -302,7 +303,8 @@ class SkeletonizeHumanoid(Node):
     put it."""
 
     type_name = "skeletonize.humanoid"
-    version = 3     # 3: wrists, ankles and knees from ``hand`` and ``foot``
+    version = 4     # 3: wrists, ankles and knees from ``hand`` and ``foot``; 4: the new shoulders, elbows, knees, head,
+                    # clavicles, proportions of the segment's stature
     per = "sequence"
     inputs = {
         "meshes": Input(Mesh, optional=True, doc="per-frame meshes with one connectivity (arrive as a list)"),
