@@ -686,8 +686,9 @@ def inside_body(mesh, points, tolerance: float) -> np.ndarray:
 
 def test_humanoid_template_finds_the_figures_joints_left_and_right():
     """The synth figure walking (frames 0, 6, 12, 18 at 96^3, voxel 1.9 cm): every template joint named, left
-    and right right (a swap would put the limbs 20-40 cm off), each within 11 cm of the truth, median <= 4 cm;
-    joints inside the body; the names a retargeting tool reads."""
+    and right right (a swap would put the limbs 20-40 cm off), each within 5 cm of the truth, median <= 2 cm
+    (measured 3.8 and 1.6; before stop 44's shoulders, elbows, knees and head up to 11 and 4); joints inside the
+    body; the names a retargeting tool reads."""
     from nodes.skeleton.humanoid import retarget_names, template_names
     from nodes.synth import scenes
 
@@ -705,12 +706,36 @@ def test_humanoid_template_finds_the_figures_joints_left_and_right():
         inner = [n for n in sk.names if not n.endswith("_end") and not n.startswith("toe")]
         inside = inside_body(truth.mesh, sk.joints[[sk.names.index(n) for n in inner]], 0.01)
         assert inside.all(), [n for n, ok in zip(inner, inside) if not ok]       # inside (or within 1 cm)
-    assert max(errors) < 0.11 and np.median(errors) <= 0.04, (np.median(errors), max(errors))
+    assert max(errors) < 0.05 and np.median(errors) <= 0.02, (np.median(errors), max(errors))
     mixamo = retarget_names("mixamo")
     assert mixamo["pelvis"] == "mixamorig:Hips" and mixamo["elbow_l"] == "mixamorig:LeftForeArm"
     assert retarget_names("unreal")["knee_r"] == "calf_r" and retarget_names("smpl")["wrist_l"] == "left_wrist"
     named = run_node("skeleton.humanoid", {"mesh": scenes.build("figure", 0).mesh}, {"hand": 0, "foot": 0.08, "resolution": 64, "naming": "unreal"})
     assert "upperarm_l" in named["skeleton"].names and "thigh_r" in named["skeleton"].names
+
+
+def test_humanoid_joints_within_two_voxels_at_128():
+    """The issue's bar on the synth walk, per frame (8 frames over the cycle, 128^3, voxel 1.4 cm): the head,
+    shoulders, elbows and wrists within 2.5 voxels of the truth's (measured 2.3 at most, an elbow; the template's
+    0.87 head, 0.26-of-the-path shoulders and 0.60 elbows were 2.6, 3.4 and 4.7 off), at most 12 % of the (frame,
+    joint) pairs beyond 2 voxels (measured 8 %: the pelvis and hips of the two stride frames; 33 % before)."""
+    from nodes.synth import scenes
+
+    upper, beyond, pairs = [], 0, 0
+    for frame in range(0, 24, 3):
+        truth = scenes.build("figure", frame)
+        sk = run_node("skeleton.humanoid", {"mesh": truth.mesh}, {"hand": 0, "foot": 0.08, "resolution": 128})["skeleton"]
+        voxel = float(np.ptp(np.asarray(truth.mesh.vertices), axis=0).max()) / 128
+        for ours, theirs in HUMANOID_TRUTH.items():
+            for s in ("l", "r") if "{s}" in ours else (None,):
+                a = sk.joints[sk.names.index(ours.format(s=s) if s else ours)]
+                b = truth.skeleton.joints[truth.skeleton.names.index(theirs.format(s=s) if s else theirs)]
+                e = float(np.linalg.norm(a - b)) / voxel
+                pairs += 1
+                beyond += e > 2
+                if ours.split("_")[0] in ("head", "shoulder", "elbow", "wrist"):
+                    upper.append(e)
+    assert max(upper) < 2.5 and beyond <= 0.12 * pairs, (max(upper), beyond, pairs)
 
 
 def test_humanoid_named_by_landmarks(caplog):
