@@ -30,7 +30,8 @@ path's end, hand_end past it), the elbows ``FOREARM`` back from the wrists along
 back from the leg's end and the knees halfway between the (raised) hips and the ankles (``foot``: the synth figure's
 feet are short, 0.08); the shoulders where the arm's path reaches ``SHOULDER_OUT`` of the height across from the
 spine's axis, lifted onto the upper arm's centre line there (the path's corner into the body runs under the joint):
-wrists, elbows, shoulders and the spine's joints are placed by proportion, not found. Given body
+wrists, elbows, shoulders and the spine's joints are placed by proportion, not found. "The height" in these shares
+is the body's stature where a sequence gives it (``bind_humanoid``), else the solid's own height. Given body
 landmarks (``marks``, MediaPipe's), they name the extremities and the sides, and the shoulders, elbows, wrists,
 knees and ankles go where their landmarks lie along the limb's centre line (``_place_at_marks``).
 """
@@ -53,11 +54,12 @@ CROTCH_HEIGHT = 0.47
 HIP_DROP = 0.02          # the hips this share of the leg's path below where the legs' paths meet (on the thigh's line)
 MIN_LEG = 0.15           # a leg's path from the pelvis shorter than this share of the height: no fit
 HEAD_ARC = 0.12          # a head's thickness is measured this share of the height below its tip
-# the shoulder joints this share of the height out from the spine's axis (across it), on the upper arm's centre line:
+# the shoulder joints this share of the height out from the spine's axis, on the upper arm's centre line:
 # the arm's path leaves the spine low and its corner runs under the joint (synth walk at 128^3: shoulders 2.0-3.4
 # voxels off along the path, 1.4-2.8 cm below the joint). Adults' shoulder joint centres lie about 0.2 of the height
 # apart (the shoulders' breadth, ~0.23, less the acromions); the synth figure's 0.104
 SHOULDER_OUT = 0.10
+SIDEWAYS = 0.3           # ... lifted onto the upper arm's line only where that line runs at least this much sideways
 # the clavicles' joint on the spine, this share of its arc (between chest 0.44 and neck 0.71: the synth figure's
 # shoulders' height). Where the arm's path leaves the spine moves from fit to fit (synth walk: 1.32-1.39 m), and the
 # clavicle-to-shoulder lengths measured from there made the rig's shoulders 2-4 cm too close to the spine
@@ -86,7 +88,7 @@ HAND = 0.085
 # lies halfway between hip and ankle along the path (MediaPipe's: 0.46-0.53 of the way; the synth figure's 0.48-0.50),
 # or at the leg's sharpest bend near there
 FOOT = 0.12
-MIN_BONE = 0.05          # no limb bone shorter than this share of the height from a bend or a landmark
+MIN_BONE = 0.05          # no limb bone shorter than this share of the height (the stature) from a bend or a landmark
 SIDES_ANKLE = 0.88       # left and right: the foot's cells below this share of the leg's path (the ankle's place before
                          # FOOT; the ankle's new place widened the foot's cells into the other leg of a legs-together
                          # column and turned child_rope's segment 0 round)
@@ -189,25 +191,30 @@ def _line(poly: np.ndarray, span) -> tuple[np.ndarray, np.ndarray]:
     return c, d if d @ (q[-1] - q[0]) >= 0 else -d
 
 
-def _shoulder(arm: np.ndarray, frac: float, axis: np.ndarray, up: np.ndarray, out: float) -> tuple[float, np.ndarray]:
-    """(fraction of the arm's path, point) of the shoulder joint: where the path first reaches ``out`` across from
-    the spine's axis (the vertical line through ``axis``; ``frac`` if it does not by ``frac`` + 0.1 of its arc: an
+def _shoulder(arm: np.ndarray, frac: float, axis: np.ndarray, up: np.ndarray, right: np.ndarray,
+              out: float) -> tuple[float, np.ndarray]:
+    """(fraction of the arm's path, point) of the shoulder joint: where the path first reaches ``out`` from the
+    spine's axis (the vertical line through ``axis``; ``frac`` if the path does not by ``frac`` + 0.1 of its arc: an
     arm close along the body), then on the upper arm's centre line (fitted to the path 0.12-0.3 of its arc further
     on, clear of the corner where the path turns into the body) at ``out`` from the axis, the crossing nearer the
-    path's point; an upper arm along the axis (a raised arm) gives the path point's projection on the line."""
+    path's point. An upper arm that runs less than SIDEWAYS along ``right`` (forward, or down along the body) meets
+    that distance far from the joint, if at all: there the path's point (also when the line never reaches it)."""
     flat = lambda x: x - (x @ up) * up
     grid = np.linspace(0.0, frac + 0.1, 41)
     reach = np.array([np.linalg.norm(flat(_at(arm, f) - axis)) for f in grid])
     if (reach >= out).any():
         frac = float(grid[int(np.argmax(reach >= out))])
-    c, d = _line(arm, (frac + 0.12, min(frac + 0.3, 1.0)))
     p = _at(arm, frac)
+    c, d = _line(arm, (frac + 0.12, min(frac + 0.3, 1.0)))
+    if abs(float(d @ right)) < SIDEWAYS:
+        return frac, p
     w, dh = flat(c - axis), flat(d)
     t = float((p - c) @ d)
     a, b, k = dh @ dh, 2.0 * float(w @ dh), float(w @ w) - out * out
     disc = b * b - 4 * a * k
-    if a > 0.25 and disc >= 0:     # |w + t dh| = out
-        t = min(((-b - np.sqrt(disc)) / (2 * a), (-b + np.sqrt(disc)) / (2 * a)), key=lambda x: abs(x - t))
+    if disc < 0:
+        return frac, p
+    t = min(((-b - np.sqrt(disc)) / (2 * a), (-b + np.sqrt(disc)) / (2 * a)), key=lambda x: abs(x - t))   # |w + t dh| = out
     return frac, c + t * d
 
 
@@ -390,7 +397,7 @@ def _place_at_marks(joints, names, fracs, limbs, side, marked: dict, node: str, 
     """Limb joints moved (in place in ``joints``) to where their landmark lies along the limb's centre line, when
     the landmark is within JOINT_REACH of it and keeps the limb's joints in order, each bone at least MIN_BONE of
     the height (else that landmark is not taken, with a warning); the joints without a landmark keep their
-    places. The names moved."""
+    places; ``fracs`` follows the moved joints. The names moved."""
     moved = []
     for which, chain, start in (("arm", ("shoulder", "elbow", "wrist"), "clavicle"), ("leg", ("knee", "ankle"), "hip")):
         for s in SIDES:
@@ -419,6 +426,7 @@ def _place_at_marks(joints, names, fracs, limbs, side, marked: dict, node: str, 
                 del at[drop]
             for k, f in at.items():
                 joints[names.index(f"{k}_{s}")] = _at(poly, f)
+                fracs[f"{k}_{s}"] = f            # (a knee halfway to its ankle reads the landmark's)
                 moved.append(f"{k}_{s}")
     return sorted(moved)
 
@@ -611,7 +619,8 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
             bounds = (fracs[f"hip_{s}"] + gap, ankle - gap)
         if key == "elbow_{s}":     # FOREARM back from the wrist along the path
             wrist = 1.0 if hand == 0 else float(np.clip(1.0 - hand * size / arc, fracs[f"shoulder_{s}"] + 0.1, 1.0))
-            frac = float(np.clip(wrist - FOREARM * size / arc, fracs[f"shoulder_{s}"] + gap, wrist - gap))
+            lo, hi = fracs[f"shoulder_{s}"] + gap, wrist - gap
+            frac = float(np.clip(wrist - FOREARM * size / arc, lo, hi)) if lo <= hi else 0.5 * (lo - gap + wrist)
             bounds = (fracs[f"shoulder_{s}"] + gap, wrist - gap)
         if key == "wrist_{s}":     # HAND back from the arm's end, past its elbow
             top = 1.0 if hand == 0 else 1.0 - max(hand * size, 2 * step) / arc
@@ -640,7 +649,7 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
         if key == "clavicle_{s}":      # on the spine (its path's fraction stays the arm path's start)
             joints[names.index(name)] = _at(polys["spine"], CLAVICLE)
         if key == "shoulder_{s}":
-            f, q = _shoulder(poly, frac, joints[names.index("neck")], u, SHOULDER_OUT * size)
+            f, q = _shoulder(poly, frac, joints[names.index("neck")], u, right, SHOULDER_OUT * size)
             if np.linalg.norm(q - _at(poly, f)) < 0.06 * size and _solid(occ, origin, spacing, q):
                 joints[names.index(name)] = q
                 fracs[name] = f
@@ -664,7 +673,8 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
                 arc = max(_length(leg), 1e-12)
                 lo, hi = fracs[f"hip_{s}"], fracs[f"ankle_{s}"]
                 gap = MIN_BONE * size / arc
-                fracs[name] = float(np.clip(0.5 * (lo - np.linalg.norm(joints[j_h] - top) / arc + hi), lo + gap, hi - gap))
+                mid = 0.5 * (lo - np.linalg.norm(joints[j_h] - top) / arc + hi)
+                fracs[name] = float(np.clip(mid, lo + gap, hi - gap)) if lo + gap <= hi - gap else 0.5 * (lo + hi)
                 joints[j_k] = _at(leg, fracs[name])
     low = [k for k in (0, 1) if at_spine[k] < LOW_ARM]
     if len(low) == 1:   # a hand against the hip: that arm's path enters the body there, not at the shoulder
@@ -721,7 +731,9 @@ def bind_humanoid(frames: np.ndarray, faces, resolution: int, up=(0.0, 0.0, 1.0)
     order = sorted(set(np.linspace(0, len(frames) - 1, min(tries, len(frames))).round().astype(int).tolist()))
     u = np.asarray(up, np.float64) / (np.linalg.norm(up) or 1.0)
     h = frames @ u
-    stature = float(np.percentile(h.max(axis=1) - h.min(axis=1), 95))  # standing height: most frames stand lower
+    # the standing height: most frames stand lower (crouches); a body with its arms over its head in more than
+    # 5 % of the frames measures taller than it is
+    stature = float(np.percentile(h.max(axis=1) - h.min(axis=1), 95))
     fits, errors, tried = [], [], {}
     for r in order:
         occ, origin, spacing = voxelize(frames[r], np.asarray(faces), resolution)
