@@ -12,6 +12,9 @@
   where limbs meet for the shape's fit (not for joints placed at the landmarks: there it is the landmark's distance
   from the limb's centre line). Where the graph also fits with the landmarks (node `marked`, thu_wd_human), that
   fit is the second row.
+- skeleton_humanoid_figure.jpg (argument humanoid:figure): skeleton.humanoid on the synth walking figure at 128^3
+  (``hand: 0, foot: 0.08``), frames 0, 6, 12, 18, over a front and a side view of the rendered frame, red right,
+  blue left, the figure's true joints as white crosses; each frame's median and worst joint error printed.
 - skeleton_figure.png: the synth walking figure over 100 frames: skeletonize.sequence + skin (10 bones,
   fixed bone lengths) on its true meshes; the rig drawn over the mesh at four frames (front view), the
   part of each vertex in colour, and the LBS error per frame.
@@ -206,6 +209,56 @@ def humanoid_picture(name: str):
     print(out, {k: rep[k] for k in ("sides_from", "legs", "height") if k in rep})
 
 
+def humanoid_figure_picture(resolution: int = 128):
+    import cv2
+
+    from nodegraph.testing import run_node
+    from nodes.synth import scenes
+
+    truth_of = {"pelvis": "pelvis", "chest": "chest", "neck": "neck", "head": "head", "shoulder_{s}": "{s}_shoulder",
+                "elbow_{s}": "{s}_elbow", "wrist_{s}": "{s}_wrist", "hip_{s}": "{s}_hip", "knee_{s}": "{s}_knee",
+                "ankle_{s}": "{s}_ankle"}
+    tiles = []
+    for f in (0, 6, 12, 18):
+        shot = run_node("synth", {}, {"scene": "figure", "cameras": 8, "width": 640, "height": 480}, frame=f)
+        truth = scenes.build("figure", f)
+        sk = run_node("skeleton.humanoid", {"mesh": shot["mesh"]}, {"hand": 0, "foot": 0.08,
+                                                                   "resolution": resolution})["skeleton"]
+        voxel = float(np.ptp(np.asarray(shot["mesh"].vertices), axis=0).max()) / resolution
+        ours, theirs = [], []
+        for o, t in truth_of.items():
+            for s in ("l", "r") if "{s}" in o else (None,):
+                ours.append(np.asarray(sk.joints)[sk.names.index(o.format(s=s) if s else o)])
+                theirs.append(truth.skeleton.joints[truth.skeleton.names.index(t.format(s=s) if s else t)])
+        err = np.linalg.norm(np.array(ours) - np.array(theirs), axis=1) / voxel
+        print(f"figure frame {f}: joint error median {np.median(err):.2f}, max {err.max():.2f} voxels at {resolution}^3")
+        cams = shot["cameras"]
+        column = []
+        for v in (0, 2):
+            img = np.ascontiguousarray(shot["images"].images[v][..., :3]).copy()
+            uv, _ = cams.project(np.asarray(sk.joints), v)
+            draw_sides(img, uv, sk.parents, sk.names, thick=2)
+            tuv, _ = cams.project(np.array(theirs), v)
+            for x, y in tuv:
+                cv2.drawMarker(img, (int(round(x)), int(round(y))), (255, 255, 255), cv2.MARKER_CROSS, 10, 1)
+            lo = np.maximum(uv.min(0) - 40, 0).astype(int)
+            hi = np.minimum(uv.max(0) + 40, [img.shape[1], img.shape[0]]).astype(int)
+            tile = cv2.resize(img[lo[1]:hi[1], lo[0]:hi[0]], None, fx=1.5, fy=1.5, interpolation=cv2.INTER_CUBIC)
+            cv2.putText(tile, f"frame {f}, {cams.names[v]}", (6, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (0, 0, 0), 3,
+                        cv2.LINE_AA)
+            cv2.putText(tile, f"frame {f}, {cams.names[v]}", (6, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (255, 255, 255),
+                        1, cv2.LINE_AA)
+            column.append(tile)
+        width = max(t.shape[1] for t in column)
+        column = [cv2.copyMakeBorder(t, 0, 0, 0, width - t.shape[1], cv2.BORDER_CONSTANT) for t in column]
+        tiles.append(np.vstack(column))
+    height = max(t.shape[0] for t in tiles)
+    sheet = np.hstack([cv2.copyMakeBorder(t, 0, height - t.shape[0], 0, 0, cv2.BORDER_CONSTANT) for t in tiles])
+    out = ROOT / "docs" / "skeleton_humanoid_figure.jpg"
+    cv2.imwrite(str(out), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 80])
+    print(out)
+
+
 def figure_picture(frames: int = 100):
     import matplotlib
 
@@ -269,6 +322,8 @@ if __name__ == "__main__":
     for n in names:
         if n == "figure":
             figure_picture()
+        elif n == "humanoid:figure":
+            humanoid_figure_picture()
         elif n.startswith("humanoid:"):
             humanoid_picture(n.split(":", 1)[1])
         else:
