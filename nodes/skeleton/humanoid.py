@@ -38,6 +38,7 @@ knees and ankles go where their landmarks lie along the limb's centre line (``_p
 from __future__ import annotations
 
 import logging
+import warnings
 
 import numpy as np
 
@@ -64,6 +65,11 @@ SIDEWAYS = 0.3           # ... lifted onto the upper arm's line only where that 
 # shoulders' height). Where the arm's path leaves the spine moves from fit to fit (synth walk: 1.32-1.39 m), and the
 # clavicle-to-shoulder lengths measured from there made the rig's shoulders 2-4 cm too close to the spine
 CLAVICLE = 0.62
+# skeletonize.humanoid: a joint where the fits agree (the median distance of each fit's joint, carried by the surface to
+# the kept fit's frame, from their median under this share of the stature) is placed at that median, not at the kept
+# fit's (synth walk: spreads 0.3-2.1 cm, every joint; the kept fit, a stride frame's, had its hips 3-3.6 voxels low
+# at 128^3. child_rope: spreads 2-22 cm, 0-3 joints a segment)
+AGREE = 0.02
 # the elbow this share of the height back from the wrist along the arm's path. The template's 0.60 of the path missed
 # by up to 0.09 of it as the path's start at the spine moves (synth walk at 128^3: elbows up to 4.7 voxels off);
 # MediaPipe's elbows on thu_wd_human, pose2sim_single and inria_dancer lie 0.149-0.182 of the height back from their
@@ -723,7 +729,9 @@ def bind_humanoid(frames: np.ndarray, faces, resolution: int, up=(0.0, 0.0, 1.0)
     7-16 cm against 19-26 upright; the segment's lengths 24/11 cm -> 25/22 thigh/shin: the legs' 75th percentile,
     the arms' median), the others the kept fit's;
     or ``lengths`` (joint name -> length of the bone ending at it) as given; each fit is given them
-    (with_lengths), and the rest joints again once carried to the first frame."""
+    (with_lengths), and the rest joints again once carried to the first frame. With three fits or more, each fit's
+    joints are carried by the surface to the kept fit's frame, and a joint on which they agree (``AGREE``) takes
+    their median (``joints_from_fits`` and ``fits_spread_cm`` in the report)."""
     from .curve import voxelize
     from .motion import Trajectories, carry_joints
 
@@ -764,6 +772,23 @@ def bind_humanoid(frames: np.ndarray, faces, resolution: int, up=(0.0, 0.0, 1.0)
             best = (fit, _bind(frames, r, *fit[:3]), r, raw)
         best[0][3]["limb_lengths_from_index"] = source
     (_, _, names, report, own), (keep, rest_joints, sub_parents, weights, rot, tr, counts, _), r, raw = best
+    if len(fits) >= 3:      # where the fits agree, their median joint (AGREE)
+        carried_all = []
+        for _, bound_i, r_i, raw_i in fits:
+            keep_i, _, sub_i, w_i = bound_i[:4]
+            pos, has_i = carry_joints(Trajectories(frames[r_i], frames[[r]]), raw_i[keep_i], sub_i, np.argmax(w_i, axis=1))
+            carried_all.append(np.where(has_i[:, None], pos[0], np.nan))
+        stack = np.stack(carried_all)
+        with warnings.catch_warnings():      # a joint no fit's surface carries: all NaN, not taken
+            warnings.simplefilter("ignore", RuntimeWarning)
+            cons = np.nanmedian(stack, axis=0)
+            spread = np.nanmedian(np.linalg.norm(stack - cons[None], axis=2), axis=0)
+        ok = ~np.isnan(cons).any(axis=1) & ~np.isnan(spread) & (spread < AGREE * stature)
+        raw = raw.copy()
+        raw[np.asarray(keep)[ok]] = cons[ok]
+        report["joints_from_fits"] = [names[j] for j, o in zip(keep, ok) if o]
+        report["fits_spread_cm"] = {names[j]: (None if np.isnan(d) else round(100 * float(d), 1))
+                                    for j, d in zip(keep, spread)}
     # the fitted joints (inside the body there, before any length was imposed) carried to every frame by the surface
     # around each (motion.carry_joints); a part's own motion carries its joint poorly where the part holds vertices
     # far from it (child_rope: an arm's part reaching into the torso it lies against put the wrists 8-14 cm outside
