@@ -315,7 +315,7 @@ def figure_picture(frames: int = 100):
 
 if __name__ == "__main__":
     sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from machine import describe
+    from machine import describe, load_average
 
     print(describe())
     names = sys.argv[1:] or ["thu_wd_human", "inria_dancer", "figure"]
@@ -328,3 +328,4 @@ if __name__ == "__main__":
             humanoid_picture(n.split(":", 1)[1])
         else:
             dataset_picture(n)
+    print(f"load average at the end: {load_average()}")
