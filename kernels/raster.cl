@@ -1,6 +1,7 @@
 // Z-buffer triangle rasterizer (NumPy reference: nodes/raster.py).
 //
 // Pipeline for one view:  project_vertices -> raster_triangles -> resolve | coverage | shade
+//                     or  project_bounds -> raster_depth (depths alone, on the mesh's box)
 // Conventions: pixel (u, v) has its centre at integer coordinates (as Cameras.project); a pixel is covered
 // when its centre lies inside or on the edge of the projected triangle. Lens distortion is applied per
 // vertex, so triangle edges stay straight in the distorted image (fine for small triangles).
@@ -9,18 +10,16 @@
 // ties by the lower face id: the result does not depend on execution order.
 #pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable
 #pragma OPENCL EXTENSION cl_khr_int64_extended_atomics : enable
+#pragma OPENCL EXTENSION cl_khr_global_int32_base_atomics : enable
+#pragma OPENCL EXTENSION cl_khr_global_int32_extended_atomics : enable
 #include "camera.h"
 
 #define EMPTY 0xFFFFFFFFFFFFFFFFUL
 
-// Camera layout and projection: kernels/camera.h (Cameras.pack()).
-__kernel void project_vertices(__global const float *verts, __global const float *cams, int view, int nverts,
-                               float near, __global float4 *out)
+// Camera layout and projection: kernels/camera.h (Cameras.pack()). (u, v, depth, 1 if imaged else 0)
+inline float4 project_one(__global const float *cam, float3 x, float near)
 {
-    int i = get_global_id(0);
-    if (i >= nverts) return;
-    __global const float *cam = cams + CAM_FLOATS * view;
-    float3 xc = camera_point(cam, (float3)(verts[3 * i], verts[3 * i + 1], verts[3 * i + 2]));
+    float3 xc = camera_point(cam, x);
     float2 n = xc.xy / xc.z;
     float2 uv = pixel_point(cam, distort_point(cam, n));
     float depth = xc.z * cam[24];
@@ -28,7 +27,38 @@ __kernel void project_vertices(__global const float *verts, __global const float
     float k1 = cam[17], k2 = cam[18], k3 = cam[21];
     float r2 = n.x * n.x + n.y * n.y;
     float slope = 1.0f + r2 * (3.0f * k1 + r2 * (5.0f * k2 + r2 * 7.0f * k3));
-    out[i] = (float4)(uv.x, uv.y, depth, (depth > near && slope > 0.0f) ? 1.0f : 0.0f);
+    return (float4)(uv.x, uv.y, depth, (depth > near && slope > 0.0f) ? 1.0f : 0.0f);
+}
+
+__kernel void project_vertices(__global const float *verts, __global const float *cams, int view, int nverts,
+                               float near, __global float4 *out)
+{
+    int i = get_global_id(0);
+    if (i >= nverts) return;
+    out[i] = project_one(cams + CAM_FLOATS * view, (float3)(verts[3 * i], verts[3 * i + 1], verts[3 * i + 2]), near);
+}
+
+// project_vertices, and the pixel box the projections span as raster_triangles clips a face's box (ceil / floor
+// of the coordinates clamped to the image), over the imaged vertices with finite coordinates: every pixel a
+// face can cover lies in it. ``bounds`` (x0, y0, x1, y1) must hold (INT_MAX, INT_MAX, INT_MIN, INT_MIN); a
+// vertex widens it with an atomic only where it lies beyond what it reads there (the bounds only grow, so a
+// stale read costs an atomic, never a pixel).
+__kernel void project_bounds(__global const float *verts, __global const float *cams, int view, int nverts,
+                             float near, __global float4 *out, __global int *bounds)
+{
+    int i = get_global_id(0);
+    if (i >= nverts) return;
+    __global const float *cam = cams + CAM_FLOATS * view;
+    float4 p = project_one(cam, (float3)(verts[3 * i], verts[3 * i + 1], verts[3 * i + 2]), near);
+    out[i] = p;
+    if (p.w == 0.0f || !isfinite(p.x) || !isfinite(p.y)) return;
+    int width = (int)cam[22], height = (int)cam[23];
+    int x0 = (int)ceil(clamp(p.x, 0.0f, (float)width)), x1 = (int)floor(clamp(p.x, -1.0f, (float)(width - 1)));
+    int y0 = (int)ceil(clamp(p.y, 0.0f, (float)height)), y1 = (int)floor(clamp(p.y, -1.0f, (float)(height - 1)));
+    if (x0 < bounds[0]) atomic_min(&bounds[0], x0);
+    if (y0 < bounds[1]) atomic_min(&bounds[1], y0);
+    if (x1 > bounds[2]) atomic_max(&bounds[2], x1);
+    if (y1 > bounds[3]) atomic_max(&bounds[3], y1);
 }
 
 inline float edge(float2 a, float2 b, float2 p)
@@ -64,6 +94,42 @@ __kernel void raster_triangles(__global const int *faces, __global const float4 
             float z = 1.0f / (w0 * iz0 + w1 * iz1 + w2 * iz2);
             ulong key = ((ulong)as_uint(z) << 32) | (ulong)(uint)f;
             atom_min(&zbuf[y * width + x], key);
+        }
+    }
+}
+
+// raster_triangles' depths alone, for readers of depth that never need the face: camera z as its float bits
+// (positive floats order as their bits, so a 32-bit atomic_min keeps the nearest; the same depths as the keys'
+// upper halves), into a z-buffer of the pixels of ``box`` (x0, y0, width, height; project_bounds': every covered
+// pixel lies in it) only, row after row. Empty pixels keep 0xFFFFFFFF. ``cull``: faces whose projection turns
+// clockwise on the screen (x right, y down: they face away from a camera with positive focal lengths and a
+// proper rotation) are skipped; for a closed, outward-oriented surface seen from outside, the nearest face at
+// every pixel faces the camera, so the depths are the same at half the work (the caller decides: MeshRaster).
+__kernel void raster_depth(__global const int *faces, __global const float4 *proj, int nfaces,
+                           int width, int height, int4 box, int cull, __global uint *zbuf)
+{
+    int f = get_global_id(0);
+    if (f >= nfaces) return;
+    float4 a = proj[faces[3 * f]], b = proj[faces[3 * f + 1]], c = proj[faces[3 * f + 2]];
+    if (a.w == 0.0f || b.w == 0.0f || c.w == 0.0f) return;
+    float2 p0 = a.xy, p1 = b.xy, p2 = c.xy;
+    float area = edge(p0, p1, p2);
+    if (area == 0.0f || !isfinite(area) || (cull && area > 0.0f)) return;
+    float inv_area = 1.0f / area;
+    int x0 = (int)ceil(clamp(fmin(p0.x, fmin(p1.x, p2.x)), 0.0f, (float)width));
+    int x1 = (int)floor(clamp(fmax(p0.x, fmax(p1.x, p2.x)), -1.0f, (float)(width - 1)));
+    int y0 = (int)ceil(clamp(fmin(p0.y, fmin(p1.y, p2.y)), 0.0f, (float)height));
+    int y1 = (int)floor(clamp(fmax(p0.y, fmax(p1.y, p2.y)), -1.0f, (float)(height - 1)));
+    float iz0 = 1.0f / a.z, iz1 = 1.0f / b.z, iz2 = 1.0f / c.z;
+    for (int y = y0; y <= y1; y++) {
+        for (int x = x0; x <= x1; x++) {
+            float2 p = (float2)((float)x, (float)y);
+            float w0 = edge(p1, p2, p) * inv_area;
+            float w1 = edge(p2, p0, p) * inv_area;
+            float w2 = edge(p0, p1, p) * inv_area;
+            if (w0 < 0.0f || w1 < 0.0f || w2 < 0.0f) continue;
+            float z = 1.0f / (w0 * iz0 + w1 * iz1 + w2 * iz2);
+            atomic_min(&zbuf[(y - box.y) * box.z + (x - box.x)], as_uint(z));
         }
     }
 }

@@ -17,7 +17,6 @@
 #pragma OPENCL EXTENSION cl_khr_global_int32_base_atomics : enable
 #include "camera.h"
 
-#define EMPTY_KEY 0xFFFFFFFFFFFFFFFFUL
 #define NEAR_Z 1e-6f
 
 inline float3 vertex3(__global const float *v, int i)
@@ -25,10 +24,15 @@ inline float3 vertex3(__global const float *v, int i)
     return (float3)(v[3 * i], v[3 * i + 1], v[3 * i + 2]);
 }
 
-inline float zbuf_depth(__global const ulong *zbuf, int idx)
+// The depth at pixel (x, y) of a z-buffer over ``box`` (x0, y0, width, height) alone (raster.cl's raster_depth):
+// INFINITY where no face was drawn, inside the box or outside it.
+inline float box_depth(__global const uint *zbuf, int4 box, int x, int y)
 {
-    ulong key = zbuf[idx];
-    return key == EMPTY_KEY ? INFINITY : as_float((uint)(key >> 32));
+    x -= box.x;
+    y -= box.y;
+    if (x < 0 || y < 0 || x >= box.z || y >= box.w) return INFINITY;
+    uint d = zbuf[y * box.z + x];
+    return d == 0xFFFFFFFFu ? INFINITY : as_float(d);
 }
 
 // Bilinear RGB sample (0..255 floats) at pixel coordinates p (clamped to the image).
@@ -64,7 +68,7 @@ inline int pixel_ok(__global const uchar *valid, int w, int h, float2 p, int *id
 // quality, relaxed (V, F) and colour (V, F, 3) hold all views; this launch writes row ``view``.
 __kernel void face_views(__global const float *verts, __global const int *faces, int nfaces,
                          __global const float *cams, int view, float4 centre,
-                         __global const ulong *zbuf, __global const uchar *valid_all, __global const uchar *img_all,
+                         __global const uint *zbuf, int4 box, __global const uchar *valid_all, __global const uchar *img_all,
                          long img_off, float depth_tol, float edge_tol, int edge_px,
                          __global float *quality, __global float *relaxed, __global float *colour)
 {
@@ -91,7 +95,7 @@ __kernel void face_views(__global const float *verts, __global const int *faces,
     float zg;
     float2 pg = project_point(cam, G, &zg);
     int ig;
-    if (zg <= NEAR_Z || !pixel_ok(valid, w, h, pg, &ig) || zg > zbuf_depth(zbuf, ig) + depth_tol) return;
+    if (zg <= NEAR_Z || !pixel_ok(valid, w, h, pg, &ig) || zg > box_depth(zbuf, box, ig % w, ig / w) + depth_tol) return;
     float za, zb, zc;
     float2 pa = project_point(cam, A, &za), pb = project_point(cam, B, &zb), pc = project_point(cam, C, &zc);
     if (za <= NEAR_Z || zb <= NEAR_Z || zc <= NEAR_Z) return;
@@ -106,7 +110,7 @@ __kernel void face_views(__global const float *verts, __global const int *faces,
             float3 X = s == 1 ? G + 0.8f * (A - G) : (s == 2 ? G + 0.8f * (B - G) : G + 0.8f * (C - G));
             p = project_point(cam, X, &z);
         }
-        if (s > 0 && (z <= NEAR_Z || !pixel_ok(valid, w, h, p, &idx) || z > zbuf_depth(zbuf, idx) + depth_tol)) {
+        if (s > 0 && (z <= NEAR_Z || !pixel_ok(valid, w, h, p, &idx) || z > box_depth(zbuf, box, idx % w, idx / w) + depth_tol)) {
             strict = 0;
             break;
         }
@@ -119,7 +123,7 @@ __kernel void face_views(__global const float *verts, __global const int *faces,
         for (int k = 0; k < 4 && strict; k++) {
             int xx = x + (k == 0 ? edge_px : (k == 1 ? -edge_px : 0));
             int yy = y + (k == 2 ? edge_px : (k == 3 ? -edge_px : 0));
-            if (xx < 0 || yy < 0 || xx >= w || yy >= h || fabs(zbuf_depth(zbuf, yy * w + xx) - z) > edge_tol)
+            if (xx < 0 || yy < 0 || xx >= w || yy >= h || fabs(box_depth(zbuf, box, xx, yy) - z) > edge_tol)
                 strict = 0;                                                // near a depth edge or the outline
         }
         if (!strict) break;

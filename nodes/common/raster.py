@@ -177,7 +177,7 @@ class MeshRaster:
         self.d_faces = clrt.to_device(self.f if len(self.f) else np.zeros((1, 3), np.int32))
         self.d_cams = clrt.to_device(cameras.pack())
         self.d_proj = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, 16 * max(1, len(self.v)))
-        self._zbuf = {}
+        self._zbuf, self._zdepth = {}, {}
 
     def zbuffer(self, view: int):
         """Rasterize all faces into ``view``; returns the device z-buffer (uint64 keys per pixel)."""
@@ -196,6 +196,53 @@ class MeshRaster:
         self.run.launch("raster_triangles", len(self.f), g, self.d_faces, self.d_proj, np.int32(len(self.f)),
                         np.int32(cam.width), np.int32(cam.height), zbuf)
         return zbuf
+
+    def depth_box(self, view: int, cull: bool = False):
+        """The depths alone, on the box of the mesh's projection: (device uint32 buffer, box (x0, y0, width,
+        height)). Pixel (x, y) of the box is item (y - y0) * width + (x - x0), holding the nearest depth's float
+        bits (0xFFFFFFFF: no face), the depth of ``zbuffer``'s key there; every pixel outside the box is empty
+        (the depth of ``rasterize_reference``). Only the box is cleared: a person's box is a fifth of an HD frame or
+        less. ``cull``: skip the faces turned away from the camera (kernel raster_depth), only where the caller
+        knows the depths stay the same (``culls``)."""
+        cl = self._cl
+        cam = self.cameras[view]
+        n = cam.width * cam.height
+        zbuf = self._zdepth.get(n)
+        if zbuf is None:
+            zbuf = self._zdepth[n] = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, 4 * n)
+        box = (0, 0, 1, 1)
+        if len(self.f):
+            g = self.run.GROUP
+            bounds = self.run.upload("proj_bounds", np.array([2**31 - 1, 2**31 - 1, -2**31, -2**31], np.int32))
+            self.run.launch("project_bounds", len(self.v), g, self.d_verts, self.d_cams, np.int32(view),
+                            np.int32(len(self.v)), np.float32(NEAR), self.d_proj, bounds)
+            x0, y0, x1, y1 = (int(b) for b in self.run.read(bounds, 4, np.int32))
+            if x1 >= x0 and y1 >= y0:
+                box = (x0, y0, x1 - x0 + 1, y1 - y0 + 1)
+        cl.enqueue_fill_buffer(self.queue, zbuf, np.uint32(0xFFFFFFFF), 0, 4 * box[2] * box[3])
+        if len(self.f):
+            self.run.launch("raster_depth", len(self.f), self.run.GROUP, self.d_faces, self.d_proj, np.int32(len(self.f)),
+                            np.int32(cam.width), np.int32(cam.height), cl.cltypes.make_int4(*box), np.int32(bool(cull)), zbuf)
+        return zbuf, box
+
+    def culls(self, parts) -> list[bool]:
+        """Per view whether culling the faces turned away from it keeps every depth (``depth_box(cull=True)``):
+        ``parts`` (per face, ``Topology.closed_parts``; None for a mesh that is not closed and consistently
+        oriented) each enclose a positive volume (outward faces), and the camera is metric with a proper rotation
+        (its screen keeps the turn of what faces it) and outside the mesh's bounding box (seen from outside, the
+        nearest surface along any ray faces the camera)."""
+        if parts is None or len(self.f) == 0:
+            return [False] * len(self.cameras)
+        v = self.v.astype(np.float64)
+        v -= v.mean(axis=0)
+        a, b, c = v[self.f[:, 0]], v[self.f[:, 1]], v[self.f[:, 2]]
+        if np.any(np.bincount(parts, np.einsum("ij,ij->i", a, np.cross(b, c))) <= 0):
+            return [False] * len(self.cameras)
+        lo, hi = self.v.min(axis=0), self.v.max(axis=0)
+        pad = 1e-6 * float(np.linalg.norm(hi - lo)) + 1e-9
+        return [bool(cam.metric and np.linalg.det(cam.Rt[:, :3]) > 0
+                     and np.any((centre < lo - pad) | (centre > hi + pad)))
+                for cam, centre in zip(self.cameras, self.cameras.centers)]
 
     def resolve(self, view: int, zbuf):
         """Device buffers (tri_id int32, depth float32, bary float32 x3) for the z-buffer of ``view``."""

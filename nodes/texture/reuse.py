@@ -64,6 +64,24 @@ class Topology:
         return unique_edges(self.faces)[0]
 
     @cached_property
+    def closed_parts(self) -> np.ndarray | None:
+        """Per face the index of its connected part, where the faces form closed, consistently oriented surfaces
+        (every directed edge once and its reverse once: a marching-cubes or tracked mesh); None where they do not
+        (an open or non-manifold mesh, or one with a flipped face)."""
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import connected_components
+
+        f, n = self.faces, self.n_vertices
+        if len(f) == 0:
+            return None
+        a, b = f.ravel(), f[:, [1, 2, 0]].ravel()
+        fwd, rev = np.sort(a * n + b), np.sort(b * n + a)
+        if np.any(fwd[1:] == fwd[:-1]) or not np.array_equal(fwd, rev):
+            return None
+        _, label = connected_components(coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(n, n)), directed=False)
+        return label[f[:, 0]]
+
+    @cached_property
     def adjacency(self):
         """Row-normalised sparse (V, V) averaging over each vertex and its umbrella neighbours."""
         from nodes.common.meshops import ring_average

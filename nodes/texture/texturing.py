@@ -98,7 +98,8 @@ def prepare(vertices, faces, images, masks, cameras, s: Settings, timings: dict)
     # the layers' frame: the same images, masks eroded by layer_margin (their visibility: FaceViews.seen)
     layer_frame = frame.with_margin(masks, s.layer_margin) if s.layers > 0 else None
     stats = V.face_view_stats(vertices, faces, cameras, frame, depth_tol=s.depth_tol, edge_tol=s.edge_tol,
-                              edge_px=s.edge_px, seen_frame=layer_frame)
+                              edge_px=s.edge_px, seen_frame=layer_frame,
+                              closed_parts=Topology.of(faces, len(vertices)).closed_parts)
     timings["visibility"] = time.perf_counter() - t
     return frame, stats, layer_frame
 

@@ -148,10 +148,12 @@ def _tolerances(vertices, depth_tol, edge_tol):
 
 
 def face_view_stats(vertices, faces, cameras: Cameras, frame: FrameImages, *, depth_tol=0.01, edge_tol=0.02,
-                    edge_px=2, seen_frame: FrameImages | None = None) -> FaceViews:
+                    edge_px=2, seen_frame: FrameImages | None = None, closed_parts=None) -> FaceViews:
     """Per view and face: quality and mean colour (kernel ``face_views`` over the z-buffer of kernels/raster.cl).
     ``depth_tol`` and ``edge_tol`` are fractions of the mesh's bounding-box diagonal. With ``seen_frame`` (the
-    same images, other valid masks) also ``seen``: the relaxed test against its masks, over the same z-buffer."""
+    same images, other valid masks) also ``seen``: the relaxed test against its masks, over the same z-buffer.
+    ``closed_parts`` (``Topology.closed_parts``): the z-buffers skip the faces turned away from a view where
+    that keeps their depths (``MeshRaster.culls``: half the rasterizing on a closed mesh)."""
     import pyopencl as cl
 
     from nodes.common.raster import MeshRaster
@@ -177,15 +179,17 @@ def face_view_stats(vertices, faces, cameras: Cameras, frame: FrameImages, *, de
         seen = np.zeros((nv, nf), np.float32)
         d_seen_valid = seen_frame.device_valid(tcl)
         d_s = [tcl.buffer(role, n * nf * nv) for role, n in (("fv_seen_q", 4), ("fv_seen", 4), ("fv_seen_c", 12))]
+    culls = r.culls(closed_parts)
     for view in range(nv):
-        zbuf = r.zbuffer(view)
+        zbuf, box = r.depth_box(view, culls[view])  # depths only, on the mesh's box: what the tests read
+        box = cl.cltypes.make_int4(*box)
         off = int(frame.offsets[view])
         tcl.launch("face_views", (nf,), (64,), r.d_verts, r.d_faces, np.int32(nf), r.d_cams, np.int32(view),
-                   cl.cltypes.make_float4(*centres[view], 0), zbuf, d_valid, d_img, np.int64(off), np.float32(dt), np.float32(et),
-                   np.int32(edge_px), d_q, d_r, d_c)
+                   cl.cltypes.make_float4(*centres[view], 0), zbuf, box, d_valid, d_img, np.int64(off), np.float32(dt),
+                   np.float32(et), np.int32(edge_px), d_q, d_r, d_c)
         if seen_frame is not None:                 # same z-buffer, the other masks: its relaxed output is ``seen``
             tcl.launch("face_views", (nf,), (64,), r.d_verts, r.d_faces, np.int32(nf), r.d_cams, np.int32(view),
-                       cl.cltypes.make_float4(*centres[view], 0), zbuf, d_seen_valid, d_img, np.int64(off),
+                       cl.cltypes.make_float4(*centres[view], 0), zbuf, box, d_seen_valid, d_img, np.int64(off),
                        np.float32(dt), np.float32(et), np.int32(0), *d_s)
     cl.enqueue_copy(tcl.queue, quality, d_q, is_blocking=False)
     cl.enqueue_copy(tcl.queue, relaxed, d_r, is_blocking=False)

@@ -66,6 +66,46 @@ def test_kernel_matches_reference():
         assert np.isinf(d_cl[~cov_cl]).all() and (t_cl[~cov_cl] == -1).all()
 
 
+def _box_depth(r, view, cull):
+    """``MeshRaster.depth_box`` as a whole image of depths (inf: no face)."""
+    zb, (x0, y0, w, h) = r.depth_box(view, cull)
+    cam = r.cameras[view]
+    out = np.full((cam.height, cam.width), np.inf, np.float32)
+    box = r.run.read(zb, (h, w), np.uint32)
+    out[y0:y0 + h, x0:x0 + w] = np.where(box == 0xFFFFFFFF, np.float32(np.inf), box.view(np.float32))
+    return out
+
+
+def test_depth_box_is_the_zbuffers_depth_and_culling_keeps_it():
+    """raster_depth's depths, on the box of the mesh's projection only, are the 64-bit z-buffer's at every pixel
+    (none outside the box); skipping the faces turned away keeps every depth on closed outward meshes seen from
+    outside (two overlapping spheres with a distorted view, a concave cup), and ``MeshRaster.culls`` allows it
+    only there: not for an open mesh, an inside-out one, or a camera inside the mesh's box."""
+    from nodes.texture.reuse import Topology
+
+    for m, cams in ((two_spheres(), small_rig(k1=-0.15)), (scenes.build("cup").mesh, small_rig(160, 120))):
+        r = raster.MeshRaster(m.vertices, m.faces, cams)
+        parts = Topology.of(m.faces, len(m.vertices)).closed_parts
+        assert parts is not None and r.culls(parts) == [True] * len(cams)
+        for view in range(len(cams)):
+            full = r.rasterize(view)[1]
+            assert np.isfinite(full).sum() > 500
+            for cull in (False, True):
+                assert np.array_equal(_box_depth(r, view, cull), full), (view, cull)
+        # where culling is refused, and where it would be wrong
+        f = np.asarray(m.faces)
+        assert Topology.of(f[1:], len(m.vertices)).closed_parts is None                  # open
+        inside_out = Topology.of(f[:, ::-1], len(m.vertices)).closed_parts
+        assert inside_out is not None
+        flipped = raster.MeshRaster(m.vertices, f[:, ::-1], cams)
+        assert flipped.culls(inside_out) == [False] * len(cams)
+        assert not np.array_equal(_box_depth(flipped, 0, True), flipped.rasterize(0)[1])   # culled: the far side
+    inside = Cameras([look_at((0, 0, 0.3), (1, 0, 0.3), (0, 0, 1), 60, 40, 30, "in"), *small_rig(160, 120)])
+    cup = scenes.build("cup").mesh
+    r = raster.MeshRaster(cup.vertices, cup.faces, inside)
+    assert r.culls(Topology.of(cup.faces, len(cup.vertices)).closed_parts) == [False, True, True, True]
+
+
 def test_shade_kernel_matches_reference():
     sc = scenes.build("figure", 3)
     cams = small_rig(96, 72, n=2)
