@@ -62,6 +62,39 @@ class _Lazy:
             self._set(*produce())
 
 
+def image_block(shapes) -> list[np.ndarray]:
+    """Zeroed uint8 arrays of ``shapes`` lying one after the other in one block of memory (its pages cost nothing
+    until written or read): a reader that wants them all in one buffer (the texture's kernels,
+    ``views.FrameImages``) takes the block as it is (``one_block``) instead of copying 24 HD images."""
+    sizes = [int(np.prod(s)) for s in shapes]
+    block = np.zeros(sum(sizes), np.uint8)
+    starts = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
+    return [block[a:a + n].reshape(shape) for a, n, shape in zip(starts, sizes, shapes)]
+
+
+def one_block(arrays) -> np.ndarray | None:
+    """The bytes of uint8 ``arrays`` as one 1-D array, without a copy, where they lie one after the other in one
+    block of memory (``image_block``'s); None where they do not."""
+    def root(a):
+        while isinstance(a.base, np.ndarray):
+            a = a.base
+        return a
+
+    if not arrays:
+        return None
+    first = root(arrays[0])
+    if first.dtype != np.uint8 or first.ndim != 1 or not first.flags.c_contiguous:
+        return None
+    start = at = arrays[0].__array_interface__["data"][0]
+    for a in arrays:
+        if (not isinstance(a, np.ndarray) or a.dtype != np.uint8 or not a.flags.c_contiguous or root(a) is not first
+                or a.__array_interface__["data"][0] != at):
+            return None
+        at += a.nbytes
+    off = start - first.__array_interface__["data"][0]
+    return first[off:off + (at - start)]
+
+
 class ImageSet(_Lazy):
     """One frame of a capture: an RGB uint8 image (H, W, 3) per camera, in camera order.
     ``ImageSet(images, names)``, or ``ImageSet.lazy(produce, names)`` (``produce() -> images`` or
@@ -336,6 +369,9 @@ class Images(DataType):
             return ImageSet(arrays, names)
         doc = json.loads((folder / "windows.json").read_text())
         images = []
+        # the windowed images in one block (untouched pages cost nothing until read; a texture takes the block as
+        # it is), the others memory-mapped
+        blank = iter(image_block([shape for shape, w in zip(doc["shapes"], doc["windows"]) if w is not None]))
         for i, (a, shape, w) in enumerate(zip(arrays, doc["shapes"], doc["windows"])):
             if w is None:
                 images.append(a)
@@ -343,7 +379,7 @@ class Images(DataType):
             x0, y0, x1, y1 = w
             if a.shape != (y1 - y0, x1 - x0, 3) or not (0 <= x0 <= x1 <= shape[1] and 0 <= y0 <= y1 <= shape[0]):
                 raise DataError(f"{folder / f'{i:04d}.npy'}: {a.shape} does not fill its window {w} of {shape}")
-            im = np.zeros(shape, np.uint8)        # untouched pages cost nothing until read
+            im = next(blank)
             im[y0:y1, x0:x1] = a
             im.flags.writeable = False            # as the memory-mapped images are
             images.append(im)

@@ -216,18 +216,19 @@ def alpha_window(alpha: np.ndarray, margin: int) -> tuple[int, int, int, int]:
 
 
 def chroma_key_windowed(rgb, key, *, margin=16, side=1.0, luma_floor=16.0, inner=0.05, outer=0.2, black=0.0,
-                        spill=1.0, edges=None):
+                        spill=1.0, edges=None, out=None):
     """``chroma_key_cl`` with the despilled image made only inside the window of the alpha (``alpha_window``:
     its box grown by ``margin`` pixels) and black outside: (alpha, despilled, window). Inside the window the
     bytes are ``chroma_key_cl``'s; the despill runs and is read back on the window alone (24 HD views of the
-    synthetic figure: a fifth of the pixels)."""
+    synthetic figure: a fifth of the pixels). ``out``: a zeroed (H, W, 3) uint8 array to write the despilled
+    image into (one of ``types.image_block``'s)."""
     from pyopencl import cltypes
 
     alpha, _ = chroma_key_cl(rgb, key, side=side, luma_floor=luma_floor, inner=inner, outer=outer, black=black,
                              spill=spill, edges=edges, despill=False)
     h, w = alpha.shape
     x0, y0, x1, y1 = alpha_window(alpha, margin)
-    out = np.zeros((h, w, 3), np.uint8)
+    out = np.zeros((h, w, 3), np.uint8) if out is None else out
     bw, rows = x1 - x0, y1 - y0
     if bw > 0 and rows > 0:
         import pyopencl as cl

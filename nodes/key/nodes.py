@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from nodegraph import Input, Node, NodeError, Output, Param, Table
-from nodes.common.types import Bounds, CameraSet, Images, ImageSet, Masks, MaskSet, PlateModel, Volume
+from nodes.common.types import Bounds, CameraSet, Images, ImageSet, Masks, MaskSet, PlateModel, Volume, image_block
 from nodes.common.views import map_views
 
 from .keying import (KERNELS, check_views, chroma_key_bits, chroma_key_cl, chroma_key_windowed, clean_mask, cleaned_alpha, difference_key_cl,
@@ -65,10 +65,12 @@ class ChromaKey(Node):
             if not full:
                 alphas, despilled, windows = [], [], []
                 kw = dict(side=side, luma_floor=luma_floor, inner=inner, outer=outer, black=black, spill=spill)
+                windowed = spill > 0 and window_margin >= 0   # despilled inside the alpha's window only, black beyond
+                blank = image_block([im.shape for im in frames]) if windowed else None   # one block: a texture's
                 for v, im in enumerate(frames):
                     e = None if edges is None else edges[v]
-                    if spill > 0 and window_margin >= 0:  # despilled inside the alpha's window only, black beyond
-                        a, d, win = chroma_key_windowed(im, keys[v], margin=window_margin, edges=e, **kw)
+                    if windowed:
+                        a, d, win = chroma_key_windowed(im, keys[v], margin=window_margin, edges=e, out=blank[v], **kw)
                     else:
                         (a, d), win = chroma_key_cl(im, keys[v], edges=e, despill=spill > 0, **kw), None
                     alphas.append(a)

@@ -52,19 +52,26 @@ class FrameImages:
     @classmethod
     def build(cls, images, masks=None, margin: int = 2) -> "FrameImages":
         """(Per view on a few threads, nodes.common.views: the masks' erosion and the copies into the packed
-        arrays release the GIL.)"""
+        arrays release the GIL.) Images that lie one after the other in one block (a key's despilled images,
+        ``types.image_block``) are taken as they are, not copied; the valid masks are made in place, in a block
+        whose untouched pages (outside each mask's box) cost nothing."""
+        from nodes.common.types import one_block
         from nodes.common.views import map_views
 
         sizes = np.array([im.size for im in images], np.int64)
         offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
-        packed = np.empty(int(sizes.sum()), np.uint8)
-        packed_valid = np.empty(int(sizes.sum()) // 3, np.uint8)
+        packed = one_block(images)
+        copy = packed is None
+        if copy:
+            packed = np.empty(int(sizes.sum()), np.uint8)
+        packed_valid = np.zeros(int(sizes.sum()) // 3, np.uint8)
 
         def one(i, im):
-            v = valid_mask(im.shape[:2], None if masks is None else masks[i], margin)
             a, n = int(offsets[i]), int(sizes[i])
-            packed[a:a + n] = np.asarray(im).reshape(-1)
-            packed_valid[a // 3:(a + n) // 3] = v.reshape(-1)
+            v = packed_valid[a // 3:(a + n) // 3].reshape(im.shape[:2])
+            valid_mask(im.shape[:2], None if masks is None else masks[i], margin, out=v)
+            if copy:
+                packed[a:a + n] = np.asarray(im).reshape(-1)
             return v
 
         valid = map_views(one, range(len(images)), images)
@@ -73,10 +80,13 @@ class FrameImages:
     def with_margin(self, masks, margin: int) -> "FrameImages":
         """The same images with valid masks eroded by ``margin`` instead (the view-dependent layers' own
         pictures: a camera paints its layer up to its mask's edge)."""
-        valid = [valid_mask(im.shape[:2], None if masks is None else masks[i], margin)
-                 for i, im in enumerate(self.images)]
-        out = FrameImages(self.images, valid, self.packed, np.concatenate([v.reshape(-1) for v in valid]),
-                          self.offsets)
+        packed_valid = np.zeros(len(self.packed_valid), np.uint8)
+        valid = []
+        for i, im in enumerate(self.images):
+            a = int(self.offsets[i]) // 3
+            v = packed_valid[a:a + im.shape[0] * im.shape[1]].reshape(im.shape[:2])
+            valid.append(valid_mask(im.shape[:2], None if masks is None else masks[i], margin, out=v))
+        out = FrameImages(self.images, valid, self.packed, packed_valid, self.offsets)
         out._d_img = getattr(self, "_d_img", None)
         return out
 
@@ -92,23 +102,27 @@ class FrameImages:
         return self._d_valid
 
 
-def valid_mask(shape, mask, margin: int) -> np.ndarray:
+def valid_mask(shape, mask, margin: int, out: np.ndarray | None = None) -> np.ndarray:
     """uint8 1 where a pixel may be sampled: inside the mask eroded by ``margin`` pixels (all pixels without a
     mask). (Eroded on the mask's bounding box: outside it the mask is 0, as the erosion's border is, so the box
-    gives the same pixels as the whole image, ``valid_mask_reference``.)"""
+    gives the same pixels as the whole image, ``valid_mask_reference``.) ``out``: a zeroed uint8 array of
+    ``shape`` to write into (only the mask's box is written where ``margin`` > 0)."""
     import cv2
 
+    if out is None:
+        out = np.zeros(shape, np.uint8)
     if mask is None:
-        return np.ones(shape, np.uint8)
+        out[...] = 1
+        return out
     m = np.greater(np.asarray(mask), 127).view(np.uint8)       # the comparison's bytes are 0 / 1
     if margin > 0:
         x, y, w, h = cv2.boundingRect(m)
-        out = np.zeros(m.shape, np.uint8)
         if w and h:
             kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin + 1, 2 * margin + 1))
             out[y:y + h, x:x + w] = cv2.erode(m[y:y + h, x:x + w], kernel, borderValue=0)
-        m = out
-    return m
+        return out
+    out[...] = m
+    return out
 
 
 def valid_mask_reference(shape, mask, margin: int) -> np.ndarray:
