@@ -278,6 +278,38 @@ __kernel void despill_box(__global const uchar *rgb, int width, int x0, int y0, 
     despill_store48(y, cb, cr, along, key, spill, out + 3 * ((size_t)r * bw + c0), 3 * n);
 }
 
+// chroma_key's alpha (no despill) on the box (x0, y0, bw, rows) of the garbage matte's spans alone, into a
+// box-sized alpha (row after row): the pixels of the image outside the box are outside the matte (alpha 0).
+// The same operations as chroma_key, so the same bytes. Work item (i, r): pixels 16 i .. 16 i + 15 of box row r.
+__kernel void chroma_key_box(__global const uchar *rgb, int width, int x0, int y0, int bw, float2 key, float side,
+                             float luma_floor, float inner, float inv_ramp, float black,
+                             __global const int2 *spans, __global uchar *alpha_out)
+{
+    int c0 = get_global_id(0) * PIX, r = get_global_id(1);
+    if (c0 >= bw)
+        return;
+    int n = min(PIX, bw - c0);
+    size_t src = (size_t)(y0 + r) * width + x0 + c0;
+    uchar16 a0, a1, a2;
+    load_bytes48(rgb + 3 * src, 3 * n, &a0, &a1, &a2);
+    float16 rf, gf, bf, y, cb, cr, along;
+    rgb_planes16(a0, a1, a2, &rf, &gf, &bf);
+    float16 a = chroma_alpha16(rf, gf, bf, key, side, luma_floor, inner, inv_ramp, black, &y, &cb, &cr, &along);
+    int2 s = spans[y0 + r];
+    int16 x = (int16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15) + (x0 + c0);
+    a = select((float16)0.0f, a, (x >= (int16)s.x) & (x < (int16)s.y));
+    uchar16 au = to_u8x16(a * 255.0f);
+    __global uchar *dst = alpha_out + (size_t)r * bw + c0;
+    if (n == PIX) {
+        vstore16(au, 0, dst);
+    } else {
+        uchar t[PIX];
+        vstore16(au, 0, t);
+        for (int k = 0; k < n; ++k)
+            dst[k] = t[k];
+    }
+}
+
 // 16 lanes of -1 / 0 (a comparison's result) to a 16-bit mask, lane i in bit i
 inline uint lanes_to_bits16(int16 m)
 {

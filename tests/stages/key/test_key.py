@@ -93,6 +93,30 @@ def test_windowed_chroma_key_is_the_whole_images_despill_inside_the_window():
     assert win == [0, 0, 0, 0]                                        # the empty alpha: all black
 
 
+def test_chroma_key_on_the_mattes_box_is_the_whole_images_alpha():
+    """With a garbage matte the windowed key keys the matte's box alone (kernel chroma_key_box): its alpha is
+    chroma_key_cl's byte for byte (random colours, widths that are no multiple of 16, a matte reaching the
+    border, one cutting a corner, one outside the image), so are the window and the despilled image."""
+    rng = np.random.default_rng(5)
+    img = rng.integers(0, 256, (45, 71, 3), dtype=np.uint8)
+    img[10:30, 20:50] = green_scene(disc(20, 30, 10, 15, 8), seed=4)
+    key = K.key_direction_from_rgb(GREEN)
+    mattes = (np.array([[1, 0, -5, 0], [0, 1, -3, 0], [-0.6, -0.8, 40, 0]], np.float32),
+              np.array([[1, 0, 0, 0]], np.float32),
+              np.array([[1, 1, -60, 0]], np.float32),
+              np.array([[1, 0, -500, 0]], np.float32))
+    for edges in mattes:
+        a_full, d_full = K.chroma_key_cl(img, key, edges=edges)
+        a_box, ((x0, x1), (y0, y1)) = K.chroma_key_box(img, key, edges)
+        assert np.array_equal(a_box, a_full)
+        assert not a_full[:y0].any() and not a_full[y1:].any() and not a_full[:, :x0].any() and not a_full[:, x1:].any()
+        a, d, win = K.chroma_key_windowed(img, key, margin=3, edges=edges)
+        assert np.array_equal(a, a_full) and win == list(K.alpha_window(a_full, 3))
+        wx0, wy0, wx1, wy1 = win
+        assert np.array_equal(d[wy0:wy1, wx0:wx1], d_full[wy0:wy1, wx0:wx1])
+    assert not a_full.any() and win == [0, 0, 0, 0]                  # the matte outside the image: nothing
+
+
 def test_difference_kernel_matches_reference():
     rng = np.random.default_rng(2)
     plate = plate_scene(h=29, w=41)[0]
@@ -378,6 +402,9 @@ def test_cleanup_on_the_foreground_box_equals_the_whole_image():
         alpha = rng.random((h, w)).astype(np.float32)
         a = K.cleaned_alpha(got, m, alpha)
         assert a.dtype == np.float32 and np.array_equal(a, K.cleaned_alpha_reference(got, m, alpha))
+        levels = rng.integers(0, 256, (h, w)).astype(np.uint8)             # 8-bit alpha: by bitwise operations
+        a8 = K.cleaned_alpha(got, m, levels)
+        assert a8.dtype == np.uint8 and np.array_equal(a8, K.cleaned_alpha_reference(got, m, levels))
     assert not K.clean_mask(np.zeros((7, 9), np.uint8)).any()
 
 
