@@ -22,6 +22,7 @@ from .cameras import Cameras
 
 
 KERNELS = source("raster.cl")
+_EMPTY_BOUNDS = np.array([2**31 - 1, 2**31 - 1, -2**31, -2**31], np.int32)   # x0 y0 x1 y1 of nothing
 NEAR = 1e-6          # camera z below which a vertex counts as behind the camera
 MATERIAL_FLOATS = 12  # colour A (3), colour B (3), pattern, period, lit, receives shadow, pad, pad
 PLAIN, CHECKER, STRIPES = 0.0, 1.0, 2.0
@@ -213,7 +214,8 @@ class MeshRaster:
         box = (0, 0, 1, 1)
         if len(self.f):
             g = self.run.GROUP
-            bounds = self.run.upload("proj_bounds", np.array([2**31 - 1, 2**31 - 1, -2**31, -2**31], np.int32))
+            bounds = self.run.buffer("proj_bounds", 16)
+            cl.enqueue_fill_buffer(self.queue, bounds, _EMPTY_BOUNDS, 0, 16)   # a fill: no wait for the queue
             self.run.launch("project_bounds", len(self.v), g, self.d_verts, self.d_cams, np.int32(view),
                             np.int32(len(self.v)), np.float32(NEAR), self.d_proj, bounds)
             x0, y0, x1, y1 = (int(b) for b in self.run.read(bounds, 4, np.int32))
