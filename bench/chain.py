@@ -20,7 +20,8 @@ held in memory, in the plan's order; no cache, no units), so each stage's CLI / 
 engine adds (loading inputs, keeping outputs); and it times the fused path of the first stages (bench/e2e.py's: chroma key straight into the hull's
 device silhouettes, hull, marching cubes, images in memory) on the same rendered frames (read back from the
 run's cache) and box, for the CLI/fused ratio of key+hull+mc. Hours per minute = seconds per frame x 1800 / 3600;
-4DViews ~ 8 h and Fraunhofer HHI / Volucap ~ 12 h per minute of footage (issue 26).
+4DViews ~ 8 h and Fraunhofer HHI / Volucap ~ 12 h per minute of footage (issue 26). Last, where each chain stage's
+CLI seconds went (run.json's per-item phases: inputs loaded, run(), lazy outputs made for keeping, kept ones written).
 """
 from __future__ import annotations
 
@@ -276,6 +277,16 @@ def main():
     print(f"projected hours per minute of 30 fps footage: {hours(per - sums.get(RENDER, 0)):.2f} h (wall less the "
           f"render), {hours(per):.2f} h (wall with it), {hours(chain):.2f} h (sum of chain items); "
           + ", ".join(f"{name} ~{h:.0f} h" for name, h in INDUSTRY))
+
+    # where the CLI's seconds of each chain stage went (run.json's phases, median per-frame item, ms): inputs loaded,
+    # run(), lazy outputs made for keeping, kept ones written (and hashed); the rest is the item's bookkeeping
+    rows = []
+    for n in sorted(chain_nodes, key=lambda n: (named.index(group[n]), n)):
+        recs = [r for r in by_node[n] if r.get("phases")]
+        if recs:
+            med = {ph: 1e3 * float(np.median([r["phases"][ph] for r in recs])) for ph in ("load", "run", "make", "write")}
+            rows.append(f"{n} " + " / ".join(f"{med[ph]:.0f}" for ph in med))
+    print("engine phases, load / run / make / write, median item, ms: " + "; ".join(rows))
 
     k = ("key", "hull", "mc")
     khm = sum(sums.get(x, 0) for x in k)

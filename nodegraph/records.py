@@ -124,3 +124,5 @@ class Result:
     warnings: list[str] = field(default_factory=list)
     corrupt: str | None = None
     node: str = ""                    # the item's node name (what a skipped reader names as the failure)
+    phases: dict = field(default_factory=dict)   # seconds of a run item: load (inputs), run (the node's run()),
+                                                 # make (lazy outputs produced for keeping), write (to the cache)

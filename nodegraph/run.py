@@ -297,7 +297,8 @@ def run_graph(graph: Graph, cache: Cache, out_dir: Path, executor, progress: boo
         res = results.get(key, Result("skipped", error="not run"))
         rec = {"node": node, "type": it.type_name, "frame": frame, **({"frames": [it.frames[0], it.frames[-1]]} if it.window else {}),
                "status": res.status,
-               "cache_hit": res.status == "cached", "seconds": round(res.seconds, 4), "key": key,
+               "cache_hit": res.status == "cached", "seconds": round(res.seconds, 4),
+               **({"phases": {k: round(v, 4) for k, v in res.phases.items()}} if res.phases else {}), "key": key,
                "cache_dir": str(cache.object_dir(key)) if stored.get(key) is not None or (res.status == "done" and it.kept) else None,
                "log": specs[key].log if key in specs else None, "published": [], "kept": list(it.kept),
                "in_memory": [p for p in graph.nodes[node].cls.outputs if p not in it.kept]}

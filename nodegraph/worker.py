@@ -239,14 +239,24 @@ def call_node(cls, inputs: dict, params: dict, *, frame: int | None, frames: lis
     return outputs
 
 
-def keep(cache: Cache, spec: ItemSpec, outputs: dict, seconds: float) -> set[str]:
+def keep(cache: Cache, spec: ItemSpec, outputs: dict, seconds: float, phases: dict | None = None) -> set[str]:
     """Write the ports ``spec`` keeps (and those an earlier entry of its key held) into the cache, atomically.
-    Returns the ports written."""
+    Returns the ports written. ``phases`` gets the seconds of making the kept values that a node produces lazily
+    ("make") and of writing them ("write")."""
     kept = set(spec.kept) | (cache.stored(spec.key) or set())
+    t = time.perf_counter()
+    if kept:
+        for p in kept:
+            made = getattr(outputs.get(p, (None, None))[1], "materialise", None)
+            if callable(made):
+                made()
+    t1 = time.perf_counter()
     if kept:
         cache.write(spec.key, {p: v for p, v in outputs.items() if p in kept},
                     {"node": spec.node, "type": spec.type, "frame": spec.frame, "components": spec.components,
                      "seconds": seconds, "in_memory": sorted(set(outputs) - kept)})
+    if phases is not None:
+        phases.update(make=t1 - t, write=time.perf_counter() - t1)
     return kept
 
 
@@ -336,14 +346,16 @@ def execute(spec: ItemSpec, cache_root: str, memory: Values | None = None, cache
             if inputs[port] is None and ref is not None and not cls.inputs[port].optional:
                 raise NodeError(f"input '{port}' received nothing: its source produced no value for this frame")
         log.info("running %s with params %s", where, spec.params)
+        phases = {"load": time.perf_counter() - t0}
         outputs = call_node(cls, inputs, spec.params, frame=spec.frame, frames=spec.frames, log=log,
                             progress=_progress_writer(spec))
+        phases["run"] = time.perf_counter() - t0 - phases["load"]
         if memory is not None:
             for port, (dtype, value) in outputs.items():
                 memory.put(Ref(spec.key, port, type_name(dtype)), value)
-        kept = keep(cache, spec, outputs, time.perf_counter() - t0)
+        kept = keep(cache, spec, outputs, time.perf_counter() - t0, phases)
         log.info("done in %.3f s (kept: %s)", time.perf_counter() - t0, ", ".join(sorted(kept)) or "nothing")
-        return Result("done", time.perf_counter() - t0, warnings=warnings, node=spec.node)
+        return Result("done", time.perf_counter() - t0, warnings=warnings, node=spec.node, phases=phases)
     except CorruptInput as exc:
         log.error("%s failed: %s", where, exc)
         return failed(str(exc), exc.key)

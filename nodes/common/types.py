@@ -61,6 +61,10 @@ class _Lazy:
             produce, self._produce = self._produce, None
             self._set(*produce())
 
+    def materialise(self):
+        """Produce the arrays now (the engine does before keeping them, to time making apart from writing)."""
+        self._materialise()
+
 
 def image_block(shapes) -> list[np.ndarray]:
     """Zeroed uint8 arrays of ``shapes`` lying one after the other in one block of memory (its pages cost nothing

@@ -331,6 +331,12 @@ def test_run_outputs_publish_and_run_record(tmp_path):
     np.testing.assert_array_equal(total, [16.0, 28.0, 40.0])
     assert rec[("write", 2)]["published"] == [str(tmp_path / "out" / "sum_002.txt")]
     assert Path(rec[("scale", 1)]["log"]).is_file()
+    # where an item's seconds went: inputs loaded, run(), lazy outputs made, the kept ones written
+    for r in doc["items"]:
+        ph = r["phases"]
+        assert set(ph) == {"load", "run", "make", "write"} and min(ph.values()) >= 0
+        assert sum(ph.values()) <= r["seconds"] + 1e-3
+    assert rec[("total", None)]["phases"]["write"] > 0          # kept: written to the cache
 
 
 def test_twenty_frame_rerun_is_all_cache_hits(tmp_path):
