@@ -309,11 +309,31 @@ def _mask_of_levels(levels: np.ndarray) -> np.ndarray:
 
 
 def _nonzero_box(a: np.ndarray) -> tuple[np.ndarray, list]:
-    """(the box of ``a``'s non-zero pixels cut out of it, [height, width, x0, y0, x1, y1])."""
+    """(the box of uint8 ``a``'s non-zero pixels cut out of it, [height, width, x0, y0, x1, y1])."""
     import cv2
 
-    x, y, w, h = cv2.boundingRect(np.greater(a, 0).view(np.uint8))
+    x, y, w, h = cv2.boundingRect(np.ascontiguousarray(a))   # an 8-bit image: the box of its non-zero pixels
     return a[y:y + h, x:x + w], [int(a.shape[0]), int(a.shape[1]), x, y, x + w, y + h]
+
+
+def _is_mask_of_levels(mask, cut: np.ndarray, box) -> bool:
+    """Whether ``mask`` is ``_mask_of_levels`` of the levels whose non-zero box ``box`` holds ``cut`` (0 outside
+    it): its own non-zero pixels inside that box, and there the threshold of the cut. (The two boxes, not two
+    whole images: an HD frame's 24 views 53-70 -> a few ms.)"""
+    import cv2
+
+    h, w, x0, y0, x1, y1 = box
+    m = np.asarray(mask)
+    if m.shape != (h, w):
+        return False
+    if m.dtype != np.uint8:          # the whole images
+        full = np.zeros((h, w), np.uint8)
+        full[y0:y1, x0:x1] = cut
+        return bool(np.array_equal(m, _mask_of_levels(full)))
+    mx, my, mw, mh = cv2.boundingRect(np.ascontiguousarray(m))
+    if mw and mh and not (x0 <= mx and y0 <= my and mx + mw <= x1 and my + mh <= y1):
+        return False
+    return bool(np.array_equal(m[y0:y1, x0:x1], _mask_of_levels(cut)))
 
 
 def _paste(a: np.ndarray, box, path: Path) -> np.ndarray:
@@ -427,14 +447,16 @@ class Masks(DataType):
     @classmethod
     def save(cls, v: MaskSet, folder: Path):
         levels = v.alpha8   # 8-bit alpha stays 8-bit on disk: (H, W) uint8 per camera, .alpha8.npy
+        # the levels' box only (0 outside it): the same levels come back
+        cuts = None if levels is None else [_nonzero_box(np.asarray(a, np.uint8)) for a in levels]
         # masks that are the levels' alpha >= 128 (the keys' and their clean-up's) are not stored: read back from them
-        derived = levels is not None and all(np.array_equal(m, _mask_of_levels(a)) for m, a in zip(v.masks, levels))
+        derived = cuts is not None and all(_is_mask_of_levels(m, cut, box) for m, (cut, box) in zip(v.masks, cuts))
         boxes = []
         for i, m in enumerate(v.masks):
             if not derived:
                 _save_array(folder / f"{i:04d}.npy", m)
-            if levels is not None:   # the levels' box only (0 outside it): the same levels come back
-                a, box = _nonzero_box(np.asarray(levels[i], np.uint8))
+            if cuts is not None:
+                a, box = cuts[i]
                 _save_array(folder / f"{i:04d}.alpha8.npy", a)
                 boxes.append(box)
             elif v.alpha is not None:

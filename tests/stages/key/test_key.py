@@ -442,6 +442,14 @@ def test_eight_bit_alpha_is_stored_as_levels_and_reads_back_as_the_same_floats(t
     again = Masks.load(other)
     assert (other / "0001.npy").is_file() and all(np.array_equal(a, b) for a, b in zip(again.masks, edited))
     assert all(np.array_equal(a, b) for a, b in zip(again.alpha, ref.alpha))
+    ys, xs = np.nonzero(levels[1])   # an edit inside the levels' box (the check reads the boxes only) is found too
+    for y, x in ((ys.min(), xs.min()), (ys.max(), xs.max()), ((ys.min() + ys.max()) // 2, (xs.min() + xs.max()) // 2)):
+        inside = [m.copy() for m in ms.masks]
+        inside[1][y, x] = 255 - inside[1][y, x]
+        folder = tmp_path / f"inside_{y}_{x}"
+        folder.mkdir()
+        Masks.save(MaskSet(inside, None, ms.names, alpha8=levels), folder)
+        assert np.array_equal(Masks.load(folder).masks[1], inside[1])
     as_levels = run_node("key.cleanup", {"masks": back})["masks"]
     as_floats = run_node("key.cleanup", {"masks": ref})["masks"]
     assert as_levels.alpha8 is not None and as_floats.alpha8 is None
