@@ -259,6 +259,15 @@ __kernel void chroma_key(__global const uchar *rgb, int npix, float2 key, float 
     despill_store48(y, cb, cr, along, key, spill, despilled + 3 * i0, 3 * n);
 }
 
+// The RGB planes of pixels c0 .. c0 + n - 1 of row r of a box whose corner is pixel (x0, y0) of an image ``width`` wide.
+inline void box_planes16(__global const uchar *rgb, int width, int x0, int y0, int c0, int r, int n, float16 *rf,
+                         float16 *gf, float16 *bf)
+{
+    uchar16 a0, a1, a2;
+    load_bytes48(rgb + 3 * ((size_t)(y0 + r) * width + x0 + c0), 3 * n, &a0, &a1, &a2);
+    rgb_planes16(a0, a1, a2, rf, gf, bf);
+}
+
 // The despilled RGB of the box [x0, x0 + bw) x [y0, y0 + rows) of a packed RGB image `width` pixels wide, written
 // packed as (rows, bw, 3): chroma_key's despill, bit for bit, for the pixels a reader keeps (key.chroma's window
 // around the alpha; the rest of the image is black). Work item (i, r): PIX pixels of the box's row r from column 16 i.
@@ -269,11 +278,8 @@ __kernel void despill_box(__global const uchar *rgb, int width, int x0, int y0, 
     if (c0 >= bw)
         return;
     int n = min(PIX, bw - c0);
-    size_t src = (size_t)(y0 + r) * width + x0 + c0;
-    uchar16 a0, a1, a2;
-    load_bytes48(rgb + 3 * src, 3 * n, &a0, &a1, &a2);
     float16 rf, gf, bf, y, cb, cr, along;
-    rgb_planes16(a0, a1, a2, &rf, &gf, &bf);
+    box_planes16(rgb, width, x0, y0, c0, r, n, &rf, &gf, &bf);
     chroma_alpha16(rf, gf, bf, key, 0.0f, 1.0f, 0.0f, 1.0f, 0.0f, &y, &cb, &cr, &along);
     despill_store48(y, cb, cr, along, key, spill, out + 3 * ((size_t)r * bw + c0), 3 * n);
 }
@@ -289,11 +295,8 @@ __kernel void chroma_key_box(__global const uchar *rgb, int width, int x0, int y
     if (c0 >= bw)
         return;
     int n = min(PIX, bw - c0);
-    size_t src = (size_t)(y0 + r) * width + x0 + c0;
-    uchar16 a0, a1, a2;
-    load_bytes48(rgb + 3 * src, 3 * n, &a0, &a1, &a2);
     float16 rf, gf, bf, y, cb, cr, along;
-    rgb_planes16(a0, a1, a2, &rf, &gf, &bf);
+    box_planes16(rgb, width, x0, y0, c0, r, n, &rf, &gf, &bf);
     float16 a = chroma_alpha16(rf, gf, bf, key, side, luma_floor, inner, inv_ramp, black, &y, &cb, &cr, &along);
     int2 s = spans[y0 + r];
     int16 x = (int16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15) + (x0 + c0);

@@ -66,72 +66,81 @@ inline float edge(float2 a, float2 b, float2 p)
     return (b.x - a.x) * (p.y - a.y) - (b.y - a.y) * (p.x - a.x);
 }
 
+// A face on the screen: its corners, 1 / area, its corners' inverse depths and the pixel centres of its clipped box.
+typedef struct {
+    float2 p0, p1, p2;
+    float inv_area, iz0, iz1, iz2;
+    int x0, x1, y0, y1;
+} FaceScreen;
+
+// Face f's screen setup: 0 when it is not drawn (a corner behind the near plane, no area, or, with ``cull``,
+// turned clockwise on the screen: x right, y down, so away from a camera with positive focal lengths and a proper
+// rotation).
+inline int face_screen(__global const int *faces, __global const float4 *proj, int f, int width, int height,
+                       int cull, FaceScreen *s)
+{
+    float4 a = proj[faces[3 * f]], b = proj[faces[3 * f + 1]], c = proj[faces[3 * f + 2]];
+    if (a.w == 0.0f || b.w == 0.0f || c.w == 0.0f) return 0;        // behind the near plane: dropped
+    s->p0 = a.xy;
+    s->p1 = b.xy;
+    s->p2 = c.xy;
+    float area = edge(s->p0, s->p1, s->p2);
+    if (area == 0.0f || !isfinite(area) || (cull && area > 0.0f)) return 0;
+    s->inv_area = 1.0f / area;
+    // clamp in float first: vertices close to the camera plane project very far away
+    s->x0 = (int)ceil(clamp(fmin(s->p0.x, fmin(s->p1.x, s->p2.x)), 0.0f, (float)width));
+    s->x1 = (int)floor(clamp(fmax(s->p0.x, fmax(s->p1.x, s->p2.x)), -1.0f, (float)(width - 1)));
+    s->y0 = (int)ceil(clamp(fmin(s->p0.y, fmin(s->p1.y, s->p2.y)), 0.0f, (float)height));
+    s->y1 = (int)floor(clamp(fmax(s->p0.y, fmax(s->p1.y, s->p2.y)), -1.0f, (float)(height - 1)));
+    s->iz0 = 1.0f / a.z;
+    s->iz1 = 1.0f / b.z;
+    s->iz2 = 1.0f / c.z;
+    return 1;
+}
+
+// Whether the centre of pixel (x, y) lies in the face (edges included), and its perspective-correct depth there.
+inline int face_depth(const FaceScreen *s, int x, int y, float *z)
+{
+    float2 p = (float2)((float)x, (float)y);
+    float w0 = edge(s->p1, s->p2, p) * s->inv_area;
+    float w1 = edge(s->p2, s->p0, p) * s->inv_area;
+    float w2 = edge(s->p0, s->p1, p) * s->inv_area;
+    if (w0 < 0.0f || w1 < 0.0f || w2 < 0.0f) return 0;
+    *z = 1.0f / (w0 * s->iz0 + w1 * s->iz1 + w2 * s->iz2);
+    return 1;
+}
+
 // One work item per face: walk the pixel centres of its clipped bounding box.
 __kernel void raster_triangles(__global const int *faces, __global const float4 *proj, int nfaces,
                                int width, int height, __global ulong *zbuf)
 {
     int f = get_global_id(0);
-    if (f >= nfaces) return;
-    float4 a = proj[faces[3 * f]], b = proj[faces[3 * f + 1]], c = proj[faces[3 * f + 2]];
-    if (a.w == 0.0f || b.w == 0.0f || c.w == 0.0f) return;        // behind the near plane: dropped
-    float2 p0 = a.xy, p1 = b.xy, p2 = c.xy;
-    float area = edge(p0, p1, p2);
-    if (area == 0.0f || !isfinite(area)) return;
-    float inv_area = 1.0f / area;
-    // clamp in float first: vertices close to the camera plane project very far away
-    int x0 = (int)ceil(clamp(fmin(p0.x, fmin(p1.x, p2.x)), 0.0f, (float)width));
-    int x1 = (int)floor(clamp(fmax(p0.x, fmax(p1.x, p2.x)), -1.0f, (float)(width - 1)));
-    int y0 = (int)ceil(clamp(fmin(p0.y, fmin(p1.y, p2.y)), 0.0f, (float)height));
-    int y1 = (int)floor(clamp(fmax(p0.y, fmax(p1.y, p2.y)), -1.0f, (float)(height - 1)));
-    float iz0 = 1.0f / a.z, iz1 = 1.0f / b.z, iz2 = 1.0f / c.z;
-    for (int y = y0; y <= y1; y++) {
-        for (int x = x0; x <= x1; x++) {
-            float2 p = (float2)((float)x, (float)y);
-            float w0 = edge(p1, p2, p) * inv_area;
-            float w1 = edge(p2, p0, p) * inv_area;
-            float w2 = edge(p0, p1, p) * inv_area;
-            if (w0 < 0.0f || w1 < 0.0f || w2 < 0.0f) continue;
-            float z = 1.0f / (w0 * iz0 + w1 * iz1 + w2 * iz2);
-            ulong key = ((ulong)as_uint(z) << 32) | (ulong)(uint)f;
-            atom_min(&zbuf[y * width + x], key);
-        }
-    }
+    FaceScreen s;
+    float z;
+    if (f >= nfaces || !face_screen(faces, proj, f, width, height, 0, &s)) return;
+    for (int y = s.y0; y <= s.y1; y++)
+        for (int x = s.x0; x <= s.x1; x++)
+            if (face_depth(&s, x, y, &z))
+                atom_min(&zbuf[y * width + x], ((ulong)as_uint(z) << 32) | (ulong)(uint)f);
 }
 
 // raster_triangles' depths alone, for readers of depth that never need the face: camera z as its float bits
 // (positive floats order as their bits, so a 32-bit atomic_min keeps the nearest; the same depths as the keys'
 // upper halves), into a z-buffer of the pixels of ``box`` (x0, y0, width, height; project_bounds': every covered
-// pixel lies in it) only, row after row. Empty pixels keep 0xFFFFFFFF. ``cull``: faces whose projection turns
-// clockwise on the screen (x right, y down: they face away from a camera with positive focal lengths and a
-// proper rotation) are skipped; for a closed, outward-oriented surface seen from outside, the nearest face at
-// every pixel faces the camera, so the depths are the same at half the work (the caller decides: MeshRaster).
+// pixel lies in it) only, row after row. Empty pixels keep 0xFFFFFFFF. ``cull``: the faces turned away
+// (face_screen) are skipped; for a closed, outward-oriented surface seen from outside, the nearest face at every
+// pixel faces the camera, so the depths are the same at half the work (the caller decides: MeshRaster.culls).
 __kernel void raster_depth(__global const int *faces, __global const float4 *proj, int nfaces,
                            int width, int height, int4 box, int cull, __global uint *zbuf)
 {
     int f = get_global_id(0);
-    if (f >= nfaces) return;
-    float4 a = proj[faces[3 * f]], b = proj[faces[3 * f + 1]], c = proj[faces[3 * f + 2]];
-    if (a.w == 0.0f || b.w == 0.0f || c.w == 0.0f) return;
-    float2 p0 = a.xy, p1 = b.xy, p2 = c.xy;
-    float area = edge(p0, p1, p2);
-    if (area == 0.0f || !isfinite(area) || (cull && area > 0.0f)) return;
-    float inv_area = 1.0f / area;
-    int x0 = (int)ceil(clamp(fmin(p0.x, fmin(p1.x, p2.x)), 0.0f, (float)width));
-    int x1 = (int)floor(clamp(fmax(p0.x, fmax(p1.x, p2.x)), -1.0f, (float)(width - 1)));
-    int y0 = (int)ceil(clamp(fmin(p0.y, fmin(p1.y, p2.y)), 0.0f, (float)height));
-    int y1 = (int)floor(clamp(fmax(p0.y, fmax(p1.y, p2.y)), -1.0f, (float)(height - 1)));
-    float iz0 = 1.0f / a.z, iz1 = 1.0f / b.z, iz2 = 1.0f / c.z;
-    for (int y = y0; y <= y1; y++) {
-        for (int x = x0; x <= x1; x++) {
-            float2 p = (float2)((float)x, (float)y);
-            float w0 = edge(p1, p2, p) * inv_area;
-            float w1 = edge(p2, p0, p) * inv_area;
-            float w2 = edge(p0, p1, p) * inv_area;
-            if (w0 < 0.0f || w1 < 0.0f || w2 < 0.0f) continue;
-            float z = 1.0f / (w0 * iz0 + w1 * iz1 + w2 * iz2);
-            atomic_min(&zbuf[(y - box.y) * box.z + (x - box.x)], as_uint(z));
-        }
-    }
+    FaceScreen s;
+    float z;
+    if (f >= nfaces || !face_screen(faces, proj, f, width, height, cull, &s)) return;
+    for (int y = s.y0; y <= s.y1; y++)
+        for (int x = s.x0; x <= s.x1; x++)
+            if (face_depth(&s, x, y, &z))
+                atomic_min(&zbuf[(y - box.y) * box.z + (x - box.x)], as_uint(z));
 }
 
 // Per pixel: face id (-1 = empty), depth (INFINITY = empty), perspective-correct barycentrics.

@@ -178,16 +178,21 @@ class MeshRaster:
         self.d_faces = clrt.to_device(self.f if len(self.f) else np.zeros((1, 3), np.int32))
         self.d_cams = clrt.to_device(cameras.pack())
         self.d_proj = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, 16 * max(1, len(self.v)))
-        self._zbuf, self._zdepth = {}, {}
+        self._zbuf = {}
+
+    def _pixels(self, role: str, n: int, nbytes: int):
+        """The device buffer of ``n`` pixels of ``nbytes`` each for ``role``, made once per image size."""
+        buf = self._zbuf.get((role, n))
+        if buf is None:
+            buf = self._zbuf[(role, n)] = self._cl.Buffer(self.ctx, self._cl.mem_flags.READ_WRITE, nbytes * n)
+        return buf
 
     def zbuffer(self, view: int):
         """Rasterize all faces into ``view``; returns the device z-buffer (uint64 keys per pixel)."""
         cl = self._cl
         cam = self.cameras[view]
         n = cam.width * cam.height
-        zbuf = self._zbuf.get(n)
-        if zbuf is None:
-            zbuf = self._zbuf[n] = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, 8 * n)
+        zbuf = self._pixels("keys", n, 8)
         cl.enqueue_fill_buffer(self.queue, zbuf, np.uint64(0xFFFFFFFFFFFFFFFF), 0, 8 * n)
         if len(self.f) == 0:
             return zbuf
@@ -207,10 +212,7 @@ class MeshRaster:
         knows the depths stay the same (``culls``)."""
         cl = self._cl
         cam = self.cameras[view]
-        n = cam.width * cam.height
-        zbuf = self._zdepth.get(n)
-        if zbuf is None:
-            zbuf = self._zdepth[n] = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, 4 * n)
+        zbuf = self._pixels("depths", cam.width * cam.height, 4)
         box = (0, 0, 1, 1)
         if len(self.f):
             g = self.run.GROUP
