@@ -173,6 +173,8 @@ class KeyCL(clrt.Runner):
 CHROMA_PIX = 16  # pixels per work item of the chroma_key and difference_key kernels
 CHROMA_GROUP = 64  # work-group size (PoCL's own choice was slower)
 BITS_GROUP = 8  # work-group size of chroma_key_bits (PoCL's own choice ran the ~136 rows on one thread)
+BOX_GROUP = (16, 1)  # work-group of the box kernels: fixed, so PoCL builds them once (left to PoCL, every new box size
+                     # got a work-group of its own, and each such variant is compiled: ~0.1-0.25 s, once per cache)
 
 
 def chroma_key_cl(rgb, key, *, side=1.0, luma_floor=16.0, inner=0.05, outer=0.2, black=0.0, spill=1.0, edges=None,
@@ -243,7 +245,7 @@ def chroma_key_windowed(rgb, key, *, margin=16, side=1.0, luma_floor=16.0, inner
 
         run = KeyCL.get()
         box = run.buffer("despill_box", rows * bw * 3)
-        run.launch("despill_box", (-(-bw // CHROMA_PIX), rows), None, run.host(rgb), np.int32(w), np.int32(x0),
+        run.launch("despill_box", (-(-bw // CHROMA_PIX), rows), BOX_GROUP, run.host(rgb), np.int32(w), np.int32(x0),
                    np.int32(y0), np.int32(bw), cltypes.make_float2(*map(float, key)), np.float32(spill), box)
         cl.enqueue_copy(run.queue, out, box, buffer_origin=(0, 0), host_origin=(3 * x0, y0), region=(3 * bw, rows),
                         buffer_pitches=(3 * bw,), host_pitches=(3 * w,), is_blocking=True)
@@ -272,7 +274,7 @@ def chroma_key_box(rgb, key, edges, *, side=1.0, luma_floor=16.0, inner=0.05, ou
     bw, rows = x1 - x0, y1 - y0
     box = run.buffer("alpha_box", rows * bw)
     f = np.float32
-    run.launch("chroma_key_box", (-(-bw // CHROMA_PIX), rows), None, run.host(rgb), np.int32(w), np.int32(x0),
+    run.launch("chroma_key_box", (-(-bw // CHROMA_PIX), rows), BOX_GROUP, run.host(rgb), np.int32(w), np.int32(x0),
                np.int32(y0), np.int32(bw), cltypes.make_float2(*map(float, key)), f(side), f(luma_floor), f(inner),
                f(1.0 / (outer - inner)), f(black), spans, box)
     cl.enqueue_copy(run.queue, alpha, box, buffer_origin=(0, 0), host_origin=(x0, y0), region=(bw, rows),

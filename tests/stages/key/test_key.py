@@ -117,6 +117,53 @@ def test_chroma_key_on_the_mattes_box_is_the_whole_images_alpha():
     assert not a_full.any() and win == [0, 0, 0, 0]                  # the matte outside the image: nothing
 
 
+BOX_BUILDS = """
+import json, sys
+import numpy as np
+sys.path.insert(0, sys.argv[1])
+from nodegraph import clrt
+from nodes.key import keying as K
+seen = {}
+launch = clrt.Runner.launch
+def record(self, name, global_size, local_size, *args, **kw):
+    seen.setdefault(name, set()).add(str(local_size))
+    return launch(self, name, global_size, local_size, *args, **kw)
+clrt.Runner.launch = record
+rng = np.random.default_rng(7)
+img = rng.integers(0, 256, (120, 160, 3), dtype=np.uint8)
+img[30:90, 50:110] = (40, 200, 60)
+for _ in range(6):   # boxes of other sizes each time, as a moving person's
+    x0, x1, y0, y1 = (int(v) for v in (rng.integers(0, 40), rng.integers(100, 160), rng.integers(0, 20), rng.integers(90, 120)))
+    edges = np.array([[1, 0, -x0, 0], [-1, 0, x1, 0], [0, 1, -y0, 0], [0, -1, y1, 0]], np.float32)
+    K.chroma_key_windowed(img, K.key_direction_from_rgb([40, 200, 60]), edges=edges, margin=3)
+print(json.dumps({"platform": K.KeyCL.get().queue.device.platform.name, "local": {k: sorted(v) for k, v in seen.items()}}))
+"""
+
+
+def test_box_kernels_are_built_once_whatever_the_boxes_size(tmp_path):
+    """The key's box kernels (the matte's box, the despill window) change size every frame. Launched with PoCL's own
+    work-group, each new size got a work-group of its own, and PoCL compiles a kernel per work-group (0.1-0.25 s
+    each, the key item 0.3-1.2 s a frame until its cache had seen every size). They name their work-group: over six
+    boxes each is launched with one, and on PoCL (a fresh kernel cache) each is compiled once."""
+    import json
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[3]
+    env = dict(os.environ, POCL_CACHE_DIR=str(tmp_path / "pocl"))
+    out = subprocess.run([sys.executable, "-c", BOX_BUILDS, str(root)], env=env, capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    for kernel in ("chroma_key_box", "despill_box"):
+        assert got["local"][kernel] == [str(K.BOX_GROUP)], got["local"]
+        if "Portable Computing Language" in got["platform"]:
+            built = [d for d in (tmp_path / "pocl").glob(f"*/*/{kernel}/*") if d.is_dir()]
+            assert len(built) == 1, [d.name for d in built]
+
+
 def test_difference_kernel_matches_reference():
     rng = np.random.default_rng(2)
     plate = plate_scene(h=29, w=41)[0]
