@@ -83,7 +83,7 @@ class Result:
         return out.reshape(self.layout.size, self.layout.size)
 
 
-def prepare(vertices, faces, images, masks, cameras, s: Settings, timings: dict):
+def prepare(vertices, faces, images, masks, cameras, s: Settings, timings: dict, topo: Topology | None = None):
     if len(images) != len(cameras):
         raise NodeError(f"{len(images)} images for {len(cameras)} cameras")
     if masks is not None and len(masks) != len(cameras):
@@ -99,7 +99,7 @@ def prepare(vertices, faces, images, masks, cameras, s: Settings, timings: dict)
     layer_frame = frame.with_margin(masks, s.layer_margin) if s.layers > 0 else None
     stats = V.face_view_stats(vertices, faces, cameras, frame, depth_tol=s.depth_tol, edge_tol=s.edge_tol,
                               edge_px=s.edge_px, seen_frame=layer_frame,
-                              closed_parts=Topology.of(faces, len(vertices)).closed_parts)
+                              closed_parts=(topo or Topology.of(faces, len(vertices))).closed_parts)
     timings["visibility"] = time.perf_counter() - t
     return frame, stats, layer_frame
 
@@ -133,8 +133,8 @@ def texture_mesh(vertices, faces, images, masks, cameras, s: Settings = Settings
     vertices = np.asarray(vertices, np.float64)
     faces = np.asarray(faces, np.int32)
     timings: dict = {}
-    frame, stats, layer_frame = prepare(vertices, faces, images, masks, cameras, s, timings)
     topo = Topology.of(faces, len(vertices))
+    frame, stats, layer_frame = prepare(vertices, faces, images, masks, cameras, s, timings, topo)
     labels, blend, quality, sharp = choose(vertices, faces, cameras, frame, stats, s, topo, timings)
 
     def fallback():
