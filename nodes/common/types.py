@@ -331,6 +331,8 @@ def _is_mask_of_levels(mask, cut: np.ndarray, box) -> bool:
         full[y0:y1, x0:x1] = cut
         return bool(np.array_equal(m, _mask_of_levels(full)))
     mx, my, mw, mh = cv2.boundingRect(np.ascontiguousarray(m))
+    if cut.size == 0:                # no level above 0: the mask must be empty too
+        return not (mw and mh)
     if mw and mh and not (x0 <= mx and y0 <= my and mx + mw <= x1 and my + mh <= y1):
         return False
     return bool(np.array_equal(m[y0:y1, x0:x1], _mask_of_levels(cut)))

@@ -65,9 +65,10 @@ class Topology:
 
     @cached_property
     def closed_parts(self) -> np.ndarray | None:
-        """Per face the index of its connected part, where the faces form closed, consistently oriented surfaces
-        (every directed edge once and its reverse once: a marching-cubes or tracked mesh); None where they do not
-        (an open or non-manifold mesh, or one with a flipped face)."""
+        """Per face the index of its part (faces joined across edges), where the faces form closed, consistently
+        oriented surfaces (every directed edge once and its reverse once: a marching-cubes or tracked mesh); None
+        where they do not (an open or non-manifold mesh, or one with a flipped face). Parts are joined by edges, not
+        vertices: two surfaces touching at a vertex are two parts, each oriented in itself."""
         from scipy.sparse import coo_matrix
         from scipy.sparse.csgraph import connected_components
 
@@ -78,8 +79,12 @@ class Topology:
         fwd, rev = np.sort(a * n + b), np.sort(b * n + a)
         if np.any(fwd[1:] == fwd[:-1]) or not np.array_equal(fwd, rev):
             return None
-        _, label = connected_components(coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(n, n)), directed=False)
-        return label[f[:, 0]]
+        nb = self.nbr.ravel()
+        own = np.repeat(np.arange(len(f)), 3)
+        ok = nb >= 0
+        _, label = connected_components(coo_matrix((np.ones(int(ok.sum()), np.int8), (own[ok], nb[ok])),
+                                                   shape=(len(f), len(f))), directed=False)
+        return label
 
     @cached_property
     def adjacency(self):

@@ -121,7 +121,7 @@ def valid_mask(shape, mask, margin: int, out: np.ndarray | None = None) -> np.nd
             kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin + 1, 2 * margin + 1))
             out[y:y + h, x:x + w] = cv2.erode(m[y:y + h, x:x + w], kernel, borderValue=0)
         return out
-    out[...] = m
+    out[...] = m.reshape(out.shape)
     return out
 
 

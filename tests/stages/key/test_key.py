@@ -480,6 +480,7 @@ def test_eight_bit_alpha_is_stored_as_levels_and_reads_back_as_the_same_floats(t
     Masks.save(MaskSet([np.zeros((h, w), np.uint8)], None, ["a"], alpha8=[np.zeros((h, w), np.uint8)]), empty)
     none = Masks.load(empty)
     assert none.alpha8[0].shape == (h, w) and not none.alpha8[0].any() and not none.masks[0].any()
+    assert not (empty / "0000.npy").exists()   # an empty mask is its empty levels' threshold: not stored either
     assert all(a.dtype == np.uint8 and np.array_equal(a, b) for a, b in zip(back.masks, ref.masks))
     other = tmp_path / "other"   # masks that are not their levels' threshold are stored as they are
     other.mkdir()

@@ -104,6 +104,27 @@ def test_depth_box_is_the_zbuffers_depth_and_culling_keeps_it():
     cup = scenes.build("cup").mesh
     r = raster.MeshRaster(cup.vertices, cup.faces, inside)
     assert r.culls(Topology.of(cup.faces, len(cup.vertices)).closed_parts) == [False, True, True, True]
+    # a camera with the mesh behind it (faces dropped at the near plane), one whose lens folds back over the mesh
+    away = look_at((2.0, 0, 0.3), (3.0, 0, 0.3), (0, 0, 1), 60, 40, 30, "away")
+    folded = small_rig(160, 120)[1]
+    folded.dist[0] = -40.0
+    r = raster.MeshRaster(cup.vertices, cup.faces, Cameras([away, folded, small_rig(160, 120)[0]]))
+    assert r.culls(Topology.of(cup.faces, len(cup.vertices)).closed_parts) == [False, False, True]
+    # an inside-out sphere touching an outward one at a vertex (every edge still once each way, the volume in all
+    # positive): two parts, one inside out, so no culling; an unused vertex changes nothing
+    big = trimesh.creation.icosphere(2, radius=1.0)
+    small = trimesh.creation.icosphere(2, radius=0.3)
+    tip = int(np.argmax(big.vertices[:, 0]))
+    sv = small.vertices + (big.vertices[tip] - small.vertices[int(np.argmin(small.vertices[:, 0]))])
+    sf = small.faces[:, ::-1] + len(big.vertices)
+    sf = np.where(sf == int(np.argmin(small.vertices[:, 0])) + len(big.vertices), tip, sf)
+    v = np.vstack([big.vertices, sv, [[9.0, 9.0, 9.0]]])
+    f = np.vstack([big.faces, sf])
+    parts = Topology.of(f, len(v)).closed_parts
+    assert parts is not None and len(np.unique(parts)) == 2
+    cams = small_rig()
+    assert raster.MeshRaster(v, f, cams).culls(parts) == [False] * len(cams)
+    assert raster.MeshRaster(v, big.faces, cams).culls(Topology.of(big.faces, len(v)).closed_parts) == [True] * len(cams)
 
 
 def test_shade_kernel_matches_reference():
