@@ -109,6 +109,7 @@ def test_chroma_key_on_the_mattes_box_is_the_whole_images_alpha():
         a_full, d_full = K.chroma_key_cl(img, key, edges=edges)
         a_box, ((x0, x1), (y0, y1)) = K.chroma_key_box(img, key, edges)
         assert np.array_equal(a_box, a_full)
+        assert np.abs(a_box.astype(int) - K.chroma_key_reference(img, key, edges=edges)[0]).max() <= 1   # NumPy's
         assert not a_full[:y0].any() and not a_full[y1:].any() and not a_full[:, :x0].any() and not a_full[:, x1:].any()
         a, d, win = K.chroma_key_windowed(img, key, margin=3, edges=edges)
         assert np.array_equal(a, a_full) and win == list(K.alpha_window(a_full, 3))

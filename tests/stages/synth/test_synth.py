@@ -92,6 +92,11 @@ def test_depth_box_is_the_zbuffers_depth_and_culling_keeps_it():
             assert np.isfinite(full).sum() > 500
             for cull in (False, True):
                 assert np.array_equal(_box_depth(r, view, cull), full), (view, cull)
+            ref = raster.rasterize_reference(m.vertices, m.faces, cams, view)[1]   # and the NumPy reference's
+            got = _box_depth(r, view, True)
+            both = np.isfinite(ref) & np.isfinite(got)
+            assert (np.isfinite(ref) != np.isfinite(got)).sum() <= 3          # exact edge ties only
+            np.testing.assert_allclose(got[both], ref[both], rtol=1e-4)
         # where culling is refused, and where it would be wrong
         f = np.asarray(m.faces)
         assert Topology.of(f[1:], len(m.vertices)).closed_parts is None                  # open
