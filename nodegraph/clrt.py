@@ -37,7 +37,7 @@ class OpenCLUnavailable(VolcapError):
 
 
 NO_DEVICE_HELP = ("install a working OpenCL device: on Debian/Ubuntu `apt-get install pocl-opencl-icd` (./setup.sh does "
-                  "this), or your GPU vendor's OpenCL driver; `volcap devices` lists what works")
+                  "this), or your GPU vendor's OpenCL driver; `volcap devices` lists what works (`--refresh`: probe them again)")
 
 
 # ---------------------------------------------------------------- device ranking
@@ -102,27 +102,41 @@ def device_id(dev) -> str:
     return f"{p.name} {p.version} | {dev.name} | {dev.driver_version}"
 
 
+PROBE_FAILED = 3     # the probe child's exit status when the device failed the probes (anything else: the child's fault)
+
+
 def probe_ms(pi: int, di: int) -> float | None:
     """The probes' milliseconds on device PLATFORM:DEVICE, measured in a child process; None when it cannot
-    build or run them, gives wrong results, crashes or takes longer than PROBE_TIMEOUT_S."""
+    build or run them, gives wrong results, crashes or takes longer than PROBE_TIMEOUT_S. The child runs from the
+    project's folder with it first on the path, so a run started from anywhere probes the same code; a child
+    that fails before it reaches the device (no Python module to run, a broken install) raises OpenCLUnavailable
+    with its message and leaves no verdict (it would be kept for the machine: a run from another folder once
+    marked this machine's only device unusable for every later run)."""
     import json
     import subprocess
     import sys
 
-    env = dict(os.environ, VOLCAP_CL_DEVICE=f"{pi}:{di}")
+    root = Path(__file__).resolve().parents[1]
+    path = os.pathsep.join(p for p in (str(root), os.environ.get("PYTHONPATH", "")) if p)
+    env = dict(os.environ, VOLCAP_CL_DEVICE=f"{pi}:{di}", PYTHONPATH=path)
     try:
         res = subprocess.run([sys.executable, "-m", "nodegraph.clrt", "--probe"], env=env, capture_output=True,
-                             text=True, timeout=PROBE_TIMEOUT_S)
+                             text=True, timeout=PROBE_TIMEOUT_S, cwd=root)
     except subprocess.TimeoutExpired:
         return None
-    try:
-        return float(json.loads(res.stdout.strip().splitlines()[-1])["ms"]) if res.returncode == 0 else None
-    except (ValueError, KeyError, IndexError, TypeError):
+    if res.returncode == 0:
+        try:
+            return float(json.loads(res.stdout.strip().splitlines()[-1])["ms"])
+        except (ValueError, KeyError, IndexError, TypeError):
+            return None
+    if res.returncode == PROBE_FAILED or res.returncode < 0:      # the probes failed, or the device crashed the child
         return None
+    tail = (res.stderr or res.stdout).strip().splitlines()[-1:] or [f"exit status {res.returncode}"]
+    raise OpenCLUnavailable(f"the OpenCL probe of device {pi}:{di} could not start ({tail[0]}); nothing was ranked")
 
 
 def _probes_version() -> str:
-    """A digest of the probes' sources (their modules and the generic kernel): new probes rank anew."""
+    """A digest of the probes' sources (their modules, this one and the generic kernel): new probes rank anew."""
     import hashlib
     import inspect
 
@@ -130,6 +144,7 @@ def _probes_version() -> str:
 
     registry()
     h = hashlib.sha256(GENERIC_PROBE.encode())
+    h.update(Path(__file__).read_bytes())       # how probes run and are judged: a change ranks anew
     for fn in _PROBES:
         try:
             h.update(Path(inspect.getsourcefile(fn)).read_bytes())
@@ -490,11 +505,14 @@ if __name__ == "__main__":  # python -m nodegraph.clrt [--rank | --probe]
     import json
 
     if "--probe" in sys.argv:  # the child of probe_ms: run the probes on the device VOLCAP_CL_DEVICE names
+        from nodegraph.node import registry
+
+        registry()  # the probes register on import: a failure here is the code's, not the device's (exit 1)
         try:
             print(json.dumps({"ms": probe_here()}))
         except Exception as exc:  # noqa: BLE001 - any failure means: not this device
             print(f"probe failed: {type(exc).__name__}: {exc}", file=sys.stderr)
-            sys.exit(1)
+            sys.exit(PROBE_FAILED)
         sys.exit(0)
     try:
         if "--rank" in sys.argv:

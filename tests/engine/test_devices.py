@@ -47,3 +47,28 @@ def test_a_device_that_fails_its_probe_is_unusable(monkeypatch):
 
     monkeypatch.setattr(subprocess, "run", broken)
     assert clrt.probe_ms(0, 0) is None
+
+
+def test_the_probe_runs_the_project_from_any_folder(tmp_path, monkeypatch):
+    """The child runs ``-m nodegraph.clrt`` from the project with it on the path: started from another folder
+    (no PYTHONPATH), it found no module, and that failure was kept as 'this device is unusable' for every later
+    run on the machine."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("PYTHONPATH", raising=False)
+    ms = clrt.probe_ms(0, 0)
+    assert ms is not None and ms > 0
+
+
+def test_a_probe_that_cannot_start_is_an_error_and_ranks_nothing(tmp_path, monkeypatch):
+    import pytest
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    monkeypatch.setattr(subprocess, "run", lambda *a, **kw: subprocess.CompletedProcess(
+        a, 1, "", "/usr/bin/python3: No module named nodegraph.clrt"))
+    with pytest.raises(clrt.OpenCLUnavailable, match="No module named nodegraph.clrt"):
+        clrt.ranking(refresh=True)
+    assert not (tmp_path / "volcap" / "opencl-devices.json").exists()
+    # the device's own failure (the child's PROBE_FAILED, or a crash) is a verdict: kept as unusable
+    for code in (clrt.PROBE_FAILED, -11):
+        monkeypatch.setattr(subprocess, "run", lambda *a, code=code, **kw: subprocess.CompletedProcess(a, code, "", ""))
+        assert clrt.probe_ms(0, 0) is None
