@@ -360,6 +360,8 @@ class Skin(Node):
     of the body. With ``pivots`` off (a given skeleton, skeletonize.humanoid) ``hold`` keeps each posed joint near
     where its input motion takes it (the fit's joint carried by the surface around it): on child_rope the LBS fit
     alone put 17-22 % of the (frame, joint) pairs more than 2 cm outside the tracked body, wrists up to 19 cm.
+    ``twist`` keeps each joint's turn about its own bone against its parent within ``twist_range`` (the vertices
+    alone, following what slides over the body, twisted child_rope's elbows and spine half round).
     Stops when an iteration improves the error by less than ``tol``; logs each iteration. Reports the LBS
     reconstruction error per frame, the iterations used and the posed joints outside the tracked body."""
 
@@ -396,11 +398,17 @@ class Skin(Node):
                       "posed joint near where the input skeleton's motion takes it (skeletonize.humanoid: where the "
                       "surface around the fitted joint goes) against the LBS error; the joints together weigh this "
                       "many times the vertices; 0: the vertices alone"),
+        "twist": Param(float, 1.0, range=(0.0, 1000.0), doc="lengths fixed: how strongly each joint's twist against "
+                       "its parent (its turn about its own bone) is kept within twist_range: a radian beyond it weighs "
+                       "as much as the bone's vertices each a twentieth of the body's size off; 0: the vertices alone (on "
+                       "child_rope they twisted 8-20 % of the (frame, joint) pairs more than 90 degrees against their "
+                       "parents, elbows and spine flipping half round from one frame to the next)"),
+        "twist_range": Param(float, 45.0, range=(0.0, 180.0), doc="degrees of twist against the parent that cost nothing"),
         "segment": Param(int, -1, range=(-1, None), doc="which constant-connectivity segment; -1 = the longest"),
     }
 
     def run(self, skeleton, meshes=None, sequence=None, *, influences, iterations, tol, smooth, lengths, rest_fit, pivots,
-            rest_pose, rest_rounds, hold, segment):
+            rest_pose, rest_rounds, hold, twist, twist_range, segment):
         import trimesh
 
         from .motion import Rig, Trajectories
@@ -425,12 +433,12 @@ class Skin(Node):
                        fixed_lengths=lengths == "fixed", rest=rest_fit, pivots=pivots, tol=tol, merge=pivots,
                        hold=0.0 if pivots else hold,
                        targets=np.einsum("fjab,jb->fja", rig.rotations, rig.joints) + rig.translations,
-                       log=self.log.info, progress=self.progress)
+                       twist=twist, twist_range=np.radians(twist_range), log=self.log.info, progress=self.progress)
         names = [skeleton.names[b] for b in fit.kept]
         if rest_pose != "captured":
             targets = np.einsum("fjab,jb->fja", rig.rotations, rig.joints) + rig.translations
             fit = self._reposed(traj.with_rest(fit.rest), faces, fit, names, rest_pose, lengths, influences, smooth,
-                                rest_rounds, 0.0 if pivots else hold, targets[:, fit.kept])
+                                rest_rounds, 0.0 if pivots else hold, targets[:, fit.kept], twist, np.radians(twist_range))
         seconds = time.perf_counter() - t0
         diag = float(np.linalg.norm(np.ptp(frames[0], axis=0)))
         removed = [n for b, n in enumerate(skeleton.names) if b not in set(fit.kept)]
@@ -448,7 +456,8 @@ class Skin(Node):
         table.update(removed=removed, weightless=weightless, pivot_moves_refused=fit.refused)
         return {"skeleton": sk, "rest": trimesh.Trimesh(fit.rest, faces, process=False), "error": table}
 
-    def _reposed(self, traj, faces, fit, names, pose, lengths, influences, smooth, refits, hold, targets):
+    def _reposed(self, traj, faces, fit, names, pose, lengths, influences, smooth, refits, hold, targets, twist,
+                 twist_range):
         """``fit`` about a T or A rest pose (humanoid.rest_pose, skinning.repose), its errors measured again."""
         import dataclasses
 
@@ -463,7 +472,7 @@ class Skin(Node):
             raise NodeError(f"skin: rest_pose {pose}: {exc}") from None
         traj, weights, rot, tr = repose(traj, faces, fit.parents, fit.weights, fit.rotations, fit.translations, fit.joints,
                                         turns, joints, influences=influences, smooth=smooth, refits=refits, hold=hold,
-                                        targets=targets)
+                                        targets=targets, twist=twist, twist_range=twist_range)
         rmse, mx = errors(traj, weights, rot, tr)
         self.log.info("skin: rest pose %s: LBS rms %.4g -> %.4g mm", pose, 1000 * np.sqrt((fit.rmse ** 2).mean()),
                       1000 * np.sqrt((rmse ** 2).mean()))

@@ -41,6 +41,10 @@ from nodes.common.meshops import edge_length_graph
 
 from .motion import Rig, Trajectories, label_adjacency
 
+TWIST_SCALE = 0.05             # the pose step's twist term: a radian beyond TWIST_RANGE weighs ``twist`` times a bone's
+                               # vertices each off by this share of the body's size
+TWIST_RANGE = np.radians(45)   # twist of a joint against its parent that costs nothing (beyond: the term)
+
 
 @dataclass
 class SkinFit:
@@ -355,7 +359,7 @@ def _pose_moments(rest, frames, weights, parents):
     }
 
 
-def _pose_frames(mom, rot, tr, joints, parents, order, steps, hold=None):
+def _pose_frames(mom, rot, tr, joints, parents, order, steps, hold=None, twist=None):
     """Gauss-Newton (Levenberg-damped) on the joint rotations (and root translation) of every frame at once,
     pivots fixed, from the vertex sums of _pose_moments; each frame is its own problem with its own damping,
     accepted or refused steps and stop (the per-frame arithmetic in stacked small products; einsum's own
@@ -367,7 +371,15 @@ def _pose_frames(mom, rot, tr, joints, parents, order, steps, hold=None):
 
     ``hold`` (targets (F, J, 3), lam (J,)) adds sum_k lam_k |c_k - target_k|^2 (skin: its input skeleton's posed
     joints): joint k's pivot moves by delta_d x (c_k - c_d) under each ancestor d's increment and by the root
-    translation (_hold_normal_equations)."""
+    translation (_hold_normal_equations).
+
+    ``twist`` (axes (J, 3), lam (J,)) adds sum_k lam_k tau_k^2, tau_k the twist of joint k against its parent (its
+    rotation relative to the parent's, about its bone's rest axis: ``twists``). The data leave a bone's turn
+    about its own axis nearly open (a limb is close to a cylinder), and the frames are fitted one by one: without
+    it, the fit turned child_rope's bones about their axes by up to 178 degrees from one frame to the next (a
+    knee twisted half round, blends collapsing where two such bones meet). Joint k's relative rotation moves
+    with its own increment alone (its parent's turns the whole subtree), by b_k . delta_k to first order, b_k
+    = R_k a_k the bone's axis in the world."""
     n_f, j = rot.shape[:2]
     n = 3 * j + 3
     eye3 = np.eye(3)
@@ -386,6 +398,9 @@ def _pose_frames(mom, rot, tr, joints, parents, order, steps, hold=None):
         if hold is not None:
             off = np.einsum("pjab,jb->pja", rot, joints) + tr - hold[0][f]
             out = out + np.einsum("pja,pja,j->p", off, off, hold[1])
+        if twist is not None:
+            tw = _beyond(twists(rot, parents, twist[0]), twist[2])
+            out = out + np.einsum("pj,pj,j->p", tw, tw, twist[1])
         return out
 
     rot, tr = rot.copy(), tr.copy()
@@ -425,6 +440,13 @@ def _pose_frames(mom, rot, tr, joints, parents, order, steps, hold=None):
         jtr[:, 3 * j:] = mom["sq"][live] - np.einsum("pjac,jc->pa", x, mom["lsum"])
         if hold is not None:
             _hold_normal_equations(jtj, jtr, pivots, hold[0][live] - pivots, hold[1], parents)
+        if twist is not None:
+            tw = _beyond(twists(rl, parents, twist[0]), twist[2])              # (P, J), 0 within the range
+            lam = twist[1][None, :] * (tw != 0)
+            b = np.einsum("pjab,jb->pja", rl, twist[0])                         # the bones' world axes
+            for k in np.flatnonzero(twist[1] > 0):
+                jtj[:, 3 * k:3 * k + 3, 3 * k:3 * k + 3] += lam[:, k, None, None] * b[:, k, :, None] * b[:, k, None, :]
+                jtr[:, 3 * k:3 * k + 3] -= (lam[:, k] * tw[:, k])[:, None] * b[:, k]
         if mu is None:
             mu = 1e-6 * np.trace(jtj, axis1=1, axis2=2) / n + 1e-12
         improved = np.zeros(m_f, bool)
@@ -463,6 +485,50 @@ def _pose_frames(mom, rot, tr, joints, parents, order, steps, hold=None):
     return rot, tr
 
 
+def bone_axes(joints, parents) -> np.ndarray:
+    """(J, 3) unit rest axis of each joint's bone: towards its child (of several, the one heading the largest
+    subtree: a chest's neck, not its clavicles); a leaf's continues its parent's; zero for a root without children."""
+    joints = np.asarray(joints, np.float64)
+    size = subtree_matrix(parents).sum(axis=0)                   # joints in each joint's subtree
+    axes = np.zeros_like(joints)
+    for k, p in enumerate(parents):
+        kids = [c for c in range(len(parents)) if parents[c] == k]
+        if kids:
+            d = joints[max(kids, key=lambda c: (size[c], -c))] - joints[k]
+        elif p >= 0:
+            d = joints[k] - joints[p]
+        else:
+            continue
+        n = np.linalg.norm(d)
+        axes[k] = d / n if n > 0 else 0.0
+    return axes
+
+
+def twists(rot, parents, axes) -> np.ndarray:
+    """(F, J) radians in (-pi, pi]: each joint's twist against its parent, the part of its relative rotation
+    R_parent^T R_k about its bone's rest axis (swing-twist: 2 atan2(q_v . a, q_w) of the relative rotation's
+    quaternion); 0 for a root. ``rot`` (F, J, 3, 3) rest -> frame, ``axes`` (J, 3) (``bone_axes``)."""
+    from scipy.spatial.transform import Rotation
+
+    rot = np.asarray(rot, np.float64)
+    f, j = rot.shape[:2]
+    out = np.zeros((f, j))
+    kids = [k for k, p in enumerate(parents) if p >= 0]
+    if not kids or not f:
+        return out
+    par = [parents[k] for k in kids]
+    rel = np.einsum("fkba,fkbc->fkac", rot[:, par], rot[:, kids])                # R_p^T R_k
+    q = Rotation.from_matrix(rel.reshape(-1, 3, 3)).as_quat().reshape(f, len(kids), 4)   # (x, y, z, w)
+    t = 2 * np.arctan2(np.einsum("fka,ka->fk", q[..., :3], np.asarray(axes, np.float64)[kids]), q[..., 3])
+    out[:, kids] = np.angle(np.exp(1j * t))                                        # wrapped to (-pi, pi]
+    return out
+
+
+def _beyond(t, free):
+    """The part of twists ``t`` beyond +-``free`` (0 within)."""
+    return np.sign(t) * np.maximum(np.abs(t) - free, 0.0)
+
+
 def _hold_normal_equations(jtj, jtr, pivots, res, lam, parents):
     """Add the joint term of _pose_frames to its Gauss-Newton system (in place): per frame p, joint k with
     residual r = target - c_k and a_d = c_k - c_d for each proper ancestor d, the Jacobian is -[a_d]x for
@@ -490,21 +556,31 @@ def _hold_normal_equations(jtj, jtr, pivots, res, lam, parents):
 
 
 def fit_poses_fixed(traj, weights, rot, tr, joints, parents, influences, steps: int = 2, samples: int = 4000,
-                    hold: float = 0.0, targets: np.ndarray | None = None):
+                    hold: float = 0.0, targets: np.ndarray | None = None, twist: float = 0.0,
+                    twist_range: float = TWIST_RANGE):
     """The bone-motion step with fixed bone lengths (module docstring), every frame, on ``samples``
     vertices spread evenly over the vertex order (every vertex when fewer; 3J + 3 unknowns per frame need
     far fewer equations than a mesh has). ``hold`` > 0 with ``targets`` (F, J, 3) also pulls each posed joint
-    towards its target: the joints together weigh ``hold`` times the sampled vertices."""
+    towards its target: the joints together weigh ``hold`` times the sampled vertices. ``twist`` > 0 keeps each
+    joint's twist against its parent within +-``twist_range`` (radians; _pose_frames): a radian of twist beyond
+    it weighs ``twist`` times a bone's share of the sampled vertices each TWIST_SCALE of the body's size (its
+    bounding-box diagonal) off."""
     held = None
     if hold > 0 and targets is not None:
         held = (targets, np.full(len(parents), hold * min(samples, len(weights)) / len(parents)))
+    turn = None
+    if twist > 0:
+        size = TWIST_SCALE * float(np.linalg.norm(np.ptp(traj.rest, axis=0)))
+        lam = np.full(len(parents), twist * min(samples, len(weights)) / len(parents) * size * size)
+        lam[[k for k, p in enumerate(parents) if p < 0]] = 0.0
+        turn = (bone_axes(joints, parents), lam, float(twist_range))
     sel = np.unique(np.linspace(0, len(weights) - 1, min(samples, len(weights))).astype(np.int64))
     weights = weights[sel]
     idx = np.argsort(-weights, axis=1, kind="stable")[:, :influences]
     top = np.zeros_like(weights)                                         # the ``influences`` largest
     np.put_along_axis(top, idx, np.take_along_axis(weights, idx, axis=1), axis=1)
     mom = _pose_moments(traj.rest[sel], traj.frames[:, sel], top, parents)
-    rot, tr = _pose_frames(mom, rot, tr, joints, parents, topological(parents), steps, held)
+    rot, tr = _pose_frames(mom, rot, tr, joints, parents, topological(parents), steps, held, turn)
     # re-orthonormalise (numerical drift) and restore the exact pivot chain
     u, _, vt = np.linalg.svd(rot)
     rot = u @ vt
@@ -578,7 +654,8 @@ def fit_rest(traj: Trajectories, weights, rot, tr, anchor: np.ndarray, reg: floa
 
 
 def repose(traj: Trajectories, faces, parents, weights, rot, tr, joints, turns, new_joints, *, influences: int,
-           smooth: float, rounds: int = 2, refits: int = 0, hold: float = 0.0, targets=None):
+           smooth: float, rounds: int = 2, refits: int = 0, hold: float = 0.0, targets=None, twist: float = 0.0,
+           twist_range: float = TWIST_RANGE):
     """The same skinned motion about another rest pose: each bone j turned about its joint,
     A_j: x -> G_j (x - p_j) + p'_j (``turns`` G (J, 3, 3), ``new_joints`` p'), so its motion becomes
     M_tj A_j^-1 (the joint still goes where it went: rotation-only joints stay so, bone lengths unchanged).
@@ -608,7 +685,7 @@ def repose(traj: Trajectories, faces, parents, weights, rot, tr, joints, turns, 
     for k in range(rounds + refits):
         if k >= rounds:
             rot2, tr2 = fit_poses_fixed(moved, weights, rot2, tr2, new_joints, parents, influences, hold=hold,
-                                        targets=targets)
+                                        targets=targets, twist=twist, twist_range=twist_range)
         cand = candidates(moved.rest, np.argmax(weights, 1), edges, parents, len(new_joints), 0.03 * diag)
         weights = fit_weights(moved, rot2, tr2, cand, weights, nbr, influences=influences, smooth=smooth)
         moved = moved.with_rest(fit_rest(moved, weights, rot2, tr2, moved.rest))
@@ -779,15 +856,16 @@ FLOOR = 1e-5    # converged also when an iteration lowers the rms by less than t
 
 def fit_skin(traj: Trajectories, faces: np.ndarray, rig: Rig, *, influences: int = 4, iterations: int = 15,
              smooth: float = 1e-6, fixed_lengths: bool = True, pivots: bool = True, rest: bool = True,
-             tol: float = 1e-3, merge: bool = True, hold: float = 0.0, targets: np.ndarray | None = None, log=None,
-             progress=None) -> SkinFit:
+             tol: float = 1e-3, merge: bool = True, hold: float = 0.0, targets: np.ndarray | None = None,
+             twist: float = 0.0, twist_range: float = TWIST_RANGE, log=None, progress=None) -> SkinFit:
     """Alternate the weights and bone-motion steps (module docstring) from the rig's rigid parts; with
     fixed lengths, ``pivots`` also moves the rest-pose joints (fit_pivots) after each bone-motion step,
     refusing a joint's move that takes it out of the body (joint_clearance); ``rest`` refits the rest shape
     (fit_rest) after it. Bones that skin no vertex are merged into their parents (drop_weightless), from
     the start and after each weights step, unless ``merge`` is off (a template's joints, kept where the body put
     them: the tree stays whole, its names complete). ``hold`` (fixed lengths) keeps the posed joints near ``targets``
-    (F, J, 3) (fit_poses_fixed). Stops when an iteration lowers the total rms by less than
+    (F, J, 3) and ``twist`` each joint's twist against its parent within ``twist_range`` (fit_poses_fixed). Stops when
+    an iteration lowers the total rms by less than
     ``tol`` of its previous value or by less than ``FLOOR`` of the bounding-box diagonal (``tol`` 0: every
     iteration runs; an iteration that raises it is undone). ``log(str)`` gets a line per iteration."""
     from nodes.common.meshops import vertex_neighbours
@@ -823,7 +901,8 @@ def fit_skin(traj: Trajectories, faces: np.ndarray, rig: Rig, *, influences: int
     if fixed_lengths:
         rot, tr = constrain(rot, tr, joints, parents)
         rot, tr = fit_poses_fixed(traj, weights, rot, tr, joints, parents, influences, steps=4, hold=hold,
-                                  targets=None if targets is None else targets[:, kept])
+                                  targets=None if targets is None else targets[:, kept], twist=twist,
+                                  twist_range=twist_range)
     history = []
     refused = 0
     prev, best = np.inf, None
@@ -836,7 +915,8 @@ def fit_skin(traj: Trajectories, faces: np.ndarray, rig: Rig, *, influences: int
             prev, best = np.inf, None           # another model: no comparison with the last iteration
         if fixed_lengths:
             rot, tr = fit_poses_fixed(traj, weights, rot, tr, joints, parents, influences, hold=hold,
-                                      targets=None if targets is None else targets[:, kept])
+                                      targets=None if targets is None else targets[:, kept], twist=twist,
+                                      twist_range=twist_range)
             if pivots:
                 moved, rot, tr = fit_pivots(traj, weights, rot, tr, joints, parents, anchor_joints)
                 outside, limit = joint_clearance(traj.rest, faces, weights, moved, parents, lazy=True)

@@ -1284,3 +1284,52 @@ def test_humanoid_arms_from_a_second_trunk_beside_the_spine():
                     n = ours.format(s=s) if s else ours
                     truth = pos[scenes.NAMES.index(theirs.format(s=s) if s else theirs)]
                     assert np.linalg.norm(sk.joints[sk.names.index(n)] - truth) < 0.10, (res, f, n)
+
+
+def test_twists_are_the_swing_twist_angle_about_each_bone():
+    """skinning.twists: a relative rotation made of a twist theta about the bone's rest axis, then any swing
+    (about an axis across the bone, up to 80 degrees), reads theta; the root reads 0."""
+    rng = np.random.default_rng(4)
+    parents = [-1, 0, 1]
+    axes = skinning.bone_axes(TUBE_JOINTS, parents)
+    assert np.allclose(axes, [[0, 0, 1]] * 3)
+    theta = rng.uniform(-3.1, 3.1, (20, 2))
+    rot = np.tile(np.eye(3), (20, 3, 1, 1))
+    rot[:, 0] = skinning._rodrigues(rng.normal(0, 1, (20, 3)))                   # any root
+    for k in (1, 2):
+        across = np.c_[rng.normal(0, 1, (20, 2)), np.zeros(20)]
+        across *= rng.uniform(0, np.radians(80), (20, 1)) / np.linalg.norm(across, axis=1, keepdims=True)
+        rel = skinning._rodrigues(across) @ skinning._rodrigues(theta[:, k - 1, None] * axes[k])   # swing after twist
+        rot[:, k] = rot[:, k - 1] @ rel
+    got = skinning.twists(rot, parents, axes)
+    assert np.all(got[:, 0] == 0)
+    np.testing.assert_allclose(got[:, 1:], theta, atol=1e-9)
+
+
+def test_twist_beyond_its_range_is_limited_within_it_free():
+    """The pose step's twist term (fit_poses_fixed ``twist``): the tube's last bone, its vertices slid round its
+    axis in the tracked frames (as tracked vertices slide over a limb in loose clothes), pulls its fitted
+    rotation round with them. Slid 30 degrees (within TWIST_RANGE, 45) the fit follows, with or without the term;
+    slid 120 degrees the fit follows without it, and with it keeps less than two thirds as far beyond the range."""
+    pts, f, w, rs, ts = tube_sequence(6)
+    v0 = pts[0]
+    parents = [-1, 0, 1]
+    last = np.argmax(w, axis=1) == 2
+    hard = np.eye(3)[np.argmax(w, axis=1)]                                       # each vertex on one bone
+    axes = skinning.bone_axes(TUBE_JOINTS, parents)
+    edge = np.degrees(skinning.TWIST_RANGE)
+    for slide in (30, 120):
+        turn = skinning._rodrigues(np.radians(slide) * axes[2])
+        rest_slid = np.where(last[:, None], (v0 - TUBE_JOINTS[2]) @ turn.T + TUBE_JOINTS[2], v0)
+        frames = np.einsum("vj,fjab,vb->fva", hard, rs, rest_slid) + np.einsum("vj,fja->fva", hard, ts)
+        traj = motion.Trajectories(v0, frames)
+        rot, tr = skinning.constrain(rs, ts, TUBE_JOINTS, parents)
+        got = {}
+        for twist in (0.0, 1.0):
+            r2, _ = skinning.fit_poses_fixed(traj, hard, rot, tr, TUBE_JOINTS, parents, 1, steps=12, twist=twist)
+            got[twist] = np.degrees(np.abs(skinning.twists(r2, parents, axes)[:, 2]))
+        assert np.abs(got[0.0] - slide).max() < 1.0, (slide, got)
+        if slide < edge:
+            assert np.abs(got[1.0] - slide).max() < 1.0, (slide, got)
+        else:
+            assert (got[1.0] - edge).max() < 2 / 3 * (slide - edge) and got[1.0].min() > edge, (slide, got)
