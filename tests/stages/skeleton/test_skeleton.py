@@ -1333,3 +1333,43 @@ def test_twist_beyond_its_range_is_limited_within_it_free():
             assert np.abs(got[1.0] - slide).max() < 1.0, (slide, got)
         else:
             assert (got[1.0] - edge).max() < 2 / 3 * (slide - edge) and got[1.0].min() > edge, (slide, got)
+
+
+def test_rotation_keys_turn_the_short_way(tmp_path):
+    """A bone spinning once round over 36 frames (10 degrees a frame): the quaternion conversion alone picks q or
+    -q by its largest component, so some neighbouring keys had opposite signs, and a player interpolating the four
+    numbers (Blender's quaternion curves) turns through a near-zero quaternion between them. The glTF and USD keys
+    are sign-continuous (q . q_prev > 0) and still put every vertex where the rig does."""
+    import pygltflib
+
+    from nodes.common.gltf import read_accessor
+
+    v, f, w = tube()
+    joints, parents = TUBE_JOINTS, [-1, 0, 1]
+    angles = np.radians(10.0 * np.arange(36))
+    spin = skinning._rodrigues(angles[:, None] * np.array([0.0, 0.0, 1.0]))
+    rot = np.tile(np.eye(3), (36, 3, 1, 1))
+    rot[:, 1] = rot[:, 2] = spin                                   # the middle bone (and its child) spin about z
+    rot, tr = skinning.constrain(rot, np.zeros((36, 3, 3)), joints, parents)
+    local = formats.local_transforms(formats.world_transforms(joints, rot, tr), parents)
+    raw = formats.quaternions(local[..., :3, :3])
+    assert (np.einsum("fjc,fjc->fj", raw[1:], raw[:-1]) < 0).any()  # the conversion alone flips
+    data = formats.gltf_bytes(v, f, joints, parents, ["a", "b", "c"], w, rot, tr, list(range(36)))
+    gltf = pygltflib.GLTF2.load_from_bytes(data)
+    anim = gltf.animations[0]
+    for ch in anim.channels:
+        if ch.target.path == "rotation":
+            q = read_accessor(gltf, gltf.binary_blob(), anim.samplers[ch.sampler].output).reshape(-1, 4)
+            assert (np.einsum("fc,fc->f", q[1:], q[:-1]) > 0).all(), ch.target.node
+    ours = skinning.lbs(v, w, rot, tr)
+    assert np.abs(formats.read_gltf(data)["skinned"][:36] - ours).max() < 1e-5
+    (tmp_path / "spin.usd").write_bytes(formats.usd_bytes(v, f, joints, parents, ["a", "b", "c"], w, rot, tr,
+                                                          list(range(36))))
+    from pxr import Usd, UsdSkel
+
+    stage = Usd.Stage.Open(str(tmp_path / "spin.usd"))
+    anim = UsdSkel.Animation(next(p for p in stage.Traverse() if p.IsA(UsdSkel.Animation)))
+    keys = np.array([[[q.GetImaginary()[0], q.GetImaginary()[1], q.GetImaginary()[2], q.GetReal()]
+                      for q in anim.GetRotationsAttr().Get(t)] for t in range(36)])
+    assert (np.einsum("fjc,fjc->fj", keys[1:], keys[:-1]) > 0).all()
+    assert np.abs(formats.read_usd(tmp_path / "spin.usd")["skinned"] - ours).max() < 1e-5
