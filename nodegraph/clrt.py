@@ -103,19 +103,27 @@ def device_id(dev) -> str:
 
 
 PROBE_FAILED = 3     # the probe child's exit status when the device failed the probes (anything else: the child's fault)
+_NOT_RANKED: list[str] = []   # this process's probes that did not run (not kept: the next run probes again)
+
+
+class ProbeNotRun(OpenCLUnavailable):
+    """The probe child failed before it could judge the device (no module to run, other probes than ours)."""
 
 
 def probe_ms(pi: int, di: int) -> float | None:
     """The probes' milliseconds on device PLATFORM:DEVICE, measured in a child process; None when it cannot
     build or run them, gives wrong results, crashes or takes longer than PROBE_TIMEOUT_S. The child runs from the
     project's folder with it first on the path, so a run started from anywhere probes the same code; a child
-    that fails before it reaches the device (no Python module to run, a broken install) raises OpenCLUnavailable
-    with its message and leaves no verdict (it would be kept for the machine: a run from another folder once
-    marked this machine's only device unusable for every later run)."""
+    that fails before it reaches the device (no Python module to run, a broken install) or that ran other probes
+    than this process has raises ProbeNotRun: no verdict (one would be kept for the machine: a run from another
+    folder once marked this machine's only device unusable for every later run)."""
     import json
     import subprocess
     import sys
 
+    from .node import registry
+
+    registry()
     root = Path(__file__).resolve().parents[1]
     path = os.pathsep.join(p for p in (str(root), os.environ.get("PYTHONPATH", "")) if p)
     env = dict(os.environ, VOLCAP_CL_DEVICE=f"{pi}:{di}", PYTHONPATH=path)
@@ -126,13 +134,18 @@ def probe_ms(pi: int, di: int) -> float | None:
         return None
     if res.returncode == 0:
         try:
-            return float(json.loads(res.stdout.strip().splitlines()[-1])["ms"])
+            out = json.loads(res.stdout.strip().splitlines()[-1])
+            ms, ran = float(out["ms"]), out.get("probes")
         except (ValueError, KeyError, IndexError, TypeError):
             return None
+        if ran != len(_PROBES):
+            raise ProbeNotRun(f"the OpenCL probe of device {pi}:{di} ran {ran} probes, this process has "
+                              f"{len(_PROBES)} (another installation?); nothing was ranked")
+        return ms
     if res.returncode == PROBE_FAILED or res.returncode < 0:      # the probes failed, or the device crashed the child
         return None
     tail = (res.stderr or res.stdout).strip().splitlines()[-1:] or [f"exit status {res.returncode}"]
-    raise OpenCLUnavailable(f"the OpenCL probe of device {pi}:{di} could not start ({tail[0]}); nothing was ranked")
+    raise ProbeNotRun(f"the OpenCL probe of device {pi}:{di} could not start ({tail[0]}); nothing was ranked")
 
 
 def _probes_version() -> str:
@@ -177,7 +190,12 @@ def ranking(refresh: bool = False) -> list[tuple[float | None, int, int, object]
         for di, d in enumerate(p.get_devices()):
             did = f"{device_id(d)} | probes {version}"
             if did not in known:
-                known[did] = probe_ms(pi, di)
+                try:
+                    known[did] = probe_ms(pi, di)
+                except ProbeNotRun as exc:      # no verdict: unusable for this run, probed again by the next
+                    _NOT_RANKED.append(str(exc))
+                    rows.append((None, pi, di, d))
+                    continue
                 changed = True
             rows.append((known[did], pi, di, d))
     if changed:
@@ -216,7 +234,9 @@ def _choose_device():
     working = [r for r in rows if r[0] is not None]
     if not working:
         scope = f"no {want} device" if want else "no OpenCL device"
-        raise OpenCLUnavailable(f"{scope} can build kernels (" + ", ".join(d.name for *_, d in devices) + f"); {NO_DEVICE_HELP}")
+        why = f" ({'; '.join(dict.fromkeys(_NOT_RANKED))})" if _NOT_RANKED else ""
+        raise OpenCLUnavailable(f"{scope} can build kernels (" + ", ".join(d.name for *_, d in devices) + f"){why}; "
+                                f"{NO_DEVICE_HELP}")
     return pick(working)[3]
 
 
@@ -505,11 +525,14 @@ if __name__ == "__main__":  # python -m nodegraph.clrt [--rank | --probe]
     import json
 
     if "--probe" in sys.argv:  # the child of probe_ms: run the probes on the device VOLCAP_CL_DEVICE names
+        # this file runs as __main__: the stages register their probes in the module nodegraph.clrt, not here (until
+        # stop 46 the child ran its own empty list, so the generic kernel alone ranked every device)
+        from nodegraph import clrt as module
         from nodegraph.node import registry
 
         registry()  # the probes register on import: a failure here is the code's, not the device's (exit 1)
         try:
-            print(json.dumps({"ms": probe_here()}))
+            print(json.dumps({"ms": module.probe_here(), "probes": len(module._PROBES)}))
         except Exception as exc:  # noqa: BLE001 - any failure means: not this device
             print(f"probe failed: {type(exc).__name__}: {exc}", file=sys.stderr)
             sys.exit(PROBE_FAILED)

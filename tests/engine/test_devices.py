@@ -36,9 +36,15 @@ def test_gpus_come_first():
 
 
 def test_probe_child_reports_milliseconds_for_the_device_in_use():
+    """The child runs the probes the stages register (the key kernels against their NumPy reference): it runs as
+    __main__, and until stop 46 it read its own empty probe list, so the generic kernel alone ranked devices."""
+    from nodegraph.node import registry
+
+    registry()
     res = subprocess.run([sys.executable, "-m", "nodegraph.clrt", "--probe"], capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr
-    assert json.loads(res.stdout.strip().splitlines()[-1])["ms"] > 0
+    out = json.loads(res.stdout.strip().splitlines()[-1])
+    assert out["ms"] > 0 and out["probes"] == len(clrt._PROBES) >= 1
 
 
 def test_a_device_that_fails_its_probe_is_unusable(monkeypatch):
@@ -59,15 +65,24 @@ def test_the_probe_runs_the_project_from_any_folder(tmp_path, monkeypatch):
     assert ms is not None and ms > 0
 
 
-def test_a_probe_that_cannot_start_is_an_error_and_ranks_nothing(tmp_path, monkeypatch):
+def test_a_probe_that_cannot_start_ranks_nothing_and_says_why(tmp_path, monkeypatch):
+    """A probe child that fails before it reaches the device (no module to run) or that ran other probes than this
+    process has gives no verdict: the device is unusable for this run (the error names the child's message) and
+    nothing is kept, so the next run probes again."""
     import pytest
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    monkeypatch.setattr(clrt, "_NOT_RANKED", [])
     monkeypatch.setattr(subprocess, "run", lambda *a, **kw: subprocess.CompletedProcess(
         a, 1, "", "/usr/bin/python3: No module named nodegraph.clrt"))
-    with pytest.raises(clrt.OpenCLUnavailable, match="No module named nodegraph.clrt"):
-        clrt.ranking(refresh=True)
+    assert all(r[0] is None for r in clrt.ranking(refresh=True))
     assert not (tmp_path / "volcap" / "opencl-devices.json").exists()
+    monkeypatch.delenv("VOLCAP_CL_DEVICE", raising=False)
+    with pytest.raises(clrt.OpenCLUnavailable, match="No module named nodegraph.clrt"):
+        clrt._choose_device()
+    monkeypatch.setattr(subprocess, "run", lambda *a, **kw: subprocess.CompletedProcess(a, 0, '{"ms": 5.0, "probes": -1}', ""))
+    with pytest.raises(clrt.ProbeNotRun, match="ran -1 probes"):
+        clrt.probe_ms(0, 0)
     # the device's own failure (the child's PROBE_FAILED, or a crash) is a verdict: kept as unusable
     for code in (clrt.PROBE_FAILED, -11):
         monkeypatch.setattr(subprocess, "run", lambda *a, code=code, **kw: subprocess.CompletedProcess(a, code, "", ""))
