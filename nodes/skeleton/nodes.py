@@ -398,11 +398,11 @@ class Skin(Node):
                       "posed joint near where the input skeleton's motion takes it (skeletonize.humanoid: where the "
                       "surface around the fitted joint goes) against the LBS error; the joints together weigh this "
                       "many times the vertices; 0: the vertices alone"),
-        "twist": Param(float, 1.0, range=(0.0, 1000.0), doc="lengths fixed: how strongly each joint's twist against "
+        "twist": Param(float, 0.3, range=(0.0, 1000.0), doc="lengths fixed: how strongly each joint's twist against "
                        "its parent (its turn about its own bone) is kept within twist_range: a radian beyond it weighs "
-                       "as much as the bone's vertices each a twentieth of the body's size off; 0: the vertices alone (on "
-                       "child_rope they twisted 8-20 % of the (frame, joint) pairs more than 90 degrees against their "
-                       "parents, elbows and spine flipping half round from one frame to the next)"),
+                       "this many times the bone's vertices each a twentieth of the body's size off; 0: the vertices "
+                       "alone (on child_rope they twisted 8-20 % of the (frame, joint) pairs more than 90 degrees "
+                       "against their parents, elbows and spine flipping half round from one frame to the next)"),
         "twist_range": Param(float, 45.0, range=(0.0, 180.0), doc="degrees of twist against the parent that cost nothing"),
         "segment": Param(int, -1, range=(-1, None), doc="which constant-connectivity segment; -1 = the longest"),
     }

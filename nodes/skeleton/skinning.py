@@ -378,8 +378,9 @@ def _pose_frames(mom, rot, tr, joints, parents, order, steps, hold=None, twist=N
     about its own axis nearly open (a limb is close to a cylinder), and the frames are fitted one by one: without
     it, the fit turned child_rope's bones about their axes by up to 178 degrees from one frame to the next (a
     knee twisted half round, blends collapsing where two such bones meet). Joint k's relative rotation moves
-    with its own increment alone (its parent's turns the whole subtree), by b_k . delta_k to first order, b_k
-    = R_k a_k the bone's axis in the world."""
+    with its own increment alone (its parent's turns the whole subtree: R_p^T exp([delta_k]) R_k), its twist by
+    b_k . delta_k to first order, b_k = R_k g_k (``_twist_terms``: the bone's world axis where the joint is
+    straight, tilted across it as the joint bends)."""
     n_f, j = rot.shape[:2]
     n = 3 * j + 3
     eye3 = np.eye(3)
@@ -441,9 +442,10 @@ def _pose_frames(mom, rot, tr, joints, parents, order, steps, hold=None, twist=N
         if hold is not None:
             _hold_normal_equations(jtj, jtr, pivots, hold[0][live] - pivots, hold[1], parents)
         if twist is not None:
-            tw = _beyond(twists(rl, parents, twist[0]), twist[2])              # (P, J), 0 within the range
+            tw, g = _twist_terms(rl, parents, twist[0])
+            tw = _beyond(tw, twist[2])                                         # (P, J), 0 within the range
             lam = twist[1][None, :] * (tw != 0)
-            b = np.einsum("pjab,jb->pja", rl, twist[0])                         # the bones' world axes
+            b = np.einsum("pjab,pjb->pja", rl, g)                               # d twist = b . delta
             for k in np.flatnonzero(twist[1] > 0):
                 jtj[:, 3 * k:3 * k + 3, 3 * k:3 * k + 3] += lam[:, k, None, None] * b[:, k, :, None] * b[:, k, None, :]
                 jtr[:, 3 * k:3 * k + 3] -= (lam[:, k] * tw[:, k])[:, None] * b[:, k]
@@ -487,7 +489,8 @@ def _pose_frames(mom, rot, tr, joints, parents, order, steps, hold=None, twist=N
 
 def bone_axes(joints, parents) -> np.ndarray:
     """(J, 3) unit rest axis of each joint's bone: towards its child (of several, the one heading the largest
-    subtree: a chest's neck, not its clavicles); a leaf's continues its parent's; zero for a root without children."""
+    subtree: a chest's neck, not its clavicles); a leaf's from its parent's joint to its own; zero for a root without
+    children or a bone of zero length (no twist term there)."""
     joints = np.asarray(joints, np.float64)
     size = subtree_matrix(parents).sum(axis=0)                   # joints in each joint's subtree
     axes = np.zeros_like(joints)
@@ -508,20 +511,33 @@ def twists(rot, parents, axes) -> np.ndarray:
     """(F, J) radians in (-pi, pi]: each joint's twist against its parent, the part of its relative rotation
     R_parent^T R_k about its bone's rest axis (swing-twist: 2 atan2(q_v . a, q_w) of the relative rotation's
     quaternion); 0 for a root. ``rot`` (F, J, 3, 3) rest -> frame, ``axes`` (J, 3) (``bone_axes``)."""
+    return _twist_terms(rot, parents, axes)[0]
+
+
+def _twist_terms(rot, parents, axes) -> tuple[np.ndarray, np.ndarray]:
+    """(``twists`` (F, J), g (F, J, 3)): with the relative rotation's quaternion (w, v) and s = a . v, turning the
+    relative rotation by a small local rotation e (R_rel exp([e])) changes the twist by g . e,
+    g = (w^2 a + w (a x v) + s v) / (w^2 + s^2): a itself where the joint is straight, tilted across the bone as
+    it bends (|g| = 1 / cos(swing / 2)). Zero for roots."""
     from scipy.spatial.transform import Rotation
 
     rot = np.asarray(rot, np.float64)
     f, j = rot.shape[:2]
-    out = np.zeros((f, j))
+    out, grad = np.zeros((f, j)), np.zeros((f, j, 3))
     kids = [k for k, p in enumerate(parents) if p >= 0]
     if not kids or not f:
-        return out
+        return out, grad
     par = [parents[k] for k in kids]
+    a = np.broadcast_to(np.asarray(axes, np.float64)[kids], (f, len(kids), 3))
     rel = np.einsum("fkba,fkbc->fkac", rot[:, par], rot[:, kids])                # R_p^T R_k
     q = Rotation.from_matrix(rel.reshape(-1, 3, 3)).as_quat().reshape(f, len(kids), 4)   # (x, y, z, w)
-    t = 2 * np.arctan2(np.einsum("fka,ka->fk", q[..., :3], np.asarray(axes, np.float64)[kids]), q[..., 3])
+    v, w = q[..., :3], q[..., 3:]
+    s = np.einsum("fka,fka->fk", v, a)[..., None]
+    t = 2 * np.arctan2(s[..., 0], w[..., 0])
     out[:, kids] = np.angle(np.exp(1j * t))                                        # wrapped to (-pi, pi]
-    return out
+    den = np.maximum(w * w + s * s, 1e-12)                                         # 0 only at a half-turn swing
+    grad[:, kids] = (w * w * a + w * np.cross(a, v) + s * v) / den
+    return out, grad
 
 
 def _beyond(t, free):
@@ -864,7 +880,8 @@ def fit_skin(traj: Trajectories, faces: np.ndarray, rig: Rig, *, influences: int
     (fit_rest) after it. Bones that skin no vertex are merged into their parents (drop_weightless), from
     the start and after each weights step, unless ``merge`` is off (a template's joints, kept where the body put
     them: the tree stays whole, its names complete). ``hold`` (fixed lengths) keeps the posed joints near ``targets``
-    (F, J, 3) and ``twist`` each joint's twist against its parent within ``twist_range`` (fit_poses_fixed). Stops when
+    (F, J, 3) and ``twist`` each joint's twist against its parent within ``twist_range`` (fit_poses_fixed; like
+    ``hold``, a trade against the LBS error, which alone judges the iterations below). Stops when
     an iteration lowers the total rms by less than
     ``tol`` of its previous value or by less than ``FLOOR`` of the bounding-box diagonal (``tol`` 0: every
     iteration runs; an iteration that raises it is undone). ``log(str)`` gets a line per iteration."""
