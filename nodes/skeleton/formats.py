@@ -353,12 +353,35 @@ def bvh_text(joints, parents, names, rotations, translations, frames, fps: float
 
     walk(roots[0])
     r = roots[0]
+    euler = continuous_euler(Rotation.from_matrix(local[:, channel_order, :3, :3].reshape(-1, 3, 3)).as_euler(
+        "ZXY", degrees=True).reshape(len(frames), len(channel_order), 3))
     for f in range(len(frames)):
         vals = list(local[f, r, :3, 3])                                   # the root's position (replaces its offset)
-        for j in channel_order:
-            vals += list(Rotation.from_matrix(local[f, j, :3, :3]).as_euler("ZXY", degrees=True))
+        for k in range(len(channel_order)):
+            vals += list(euler[f, k])
         lines.append(" ".join(f"{v:.6f}" for v in vals))
     return "\n".join(lines) + "\n"
+
+
+def continuous_euler(e: np.ndarray) -> np.ndarray:
+    """(F, J, 3) Tait-Bryan angles in degrees, each frame's the same rotations written nearest the frame before:
+    of the two equivalent triples (a, b, c) and (a + 180, 180 - b, c + 180), each angle shifted by whole turns, the
+    one closest to the last frame's. Written frame by frame in (-180, 180], a joint turning past 180 degrees jumps
+    by 360 between two keys, and an importer that interpolates the channels spins it once round in between
+    (Blender's BVH importer makes them continuous by itself; not every tool does)."""
+    out = np.array(e, np.float64)
+    for f in range(1, len(out)):
+        prev = out[f - 1]
+        alt = out[f] + np.array([180.0, 0.0, 180.0])
+        alt[:, 1] = 180.0 - out[f, :, 1]
+        best, cost = None, None
+        for cand in (out[f], alt):
+            cand = cand + 360.0 * np.round((prev - cand) / 360.0)
+            c = np.abs(cand - prev).sum(axis=1)
+            best = cand if best is None else np.where((c < cost)[:, None], cand, best)
+            cost = c if cost is None else np.minimum(c, cost)
+        out[f] = best
+    return out
 
 
 def read_bvh(text: str) -> dict:

@@ -1394,3 +1394,22 @@ def test_twist_gradient_matches_numeric_derivatives_at_bent_joints():
                 r[0, 1] = skinning._rodrigues(sign * 1e-6 * np.eye(3)[i]) @ rot[0, 1]
                 turned.append(skinning.twists(r, parents, axes)[0, 1])
             assert abs(np.angle(np.exp(1j * (turned[0] - turned[1]))) / 2e-6 - b[i]) < 1e-6
+
+
+def test_bvh_angles_do_not_jump_a_turn_between_frames():
+    """A bone spinning once round (10 degrees a frame) and tilted: the BVH's ZXY angles change by at most 12 degrees
+    between frames (written per frame in (-180, 180] they jumped by 360: an importer interpolating the channels
+    spins the bone once round between those keys), and read back (forward kinematics) every joint is where the rig
+    puts it."""
+    angles = np.radians(10.0 * np.arange(36))
+    spin = skinning._rodrigues(angles[:, None] * np.array([0.0, 0.0, 1.0]))
+    rot = np.tile(np.eye(3), (36, 3, 1, 1))
+    rot[:, 1] = spin
+    rot[:, 2] = spin @ skinning._rodrigues(np.array([0.4, 0.0, 0.0]))
+    rot, tr = skinning.constrain(rot, np.zeros((36, 3, 3)), TUBE_JOINTS, [-1, 0, 1])
+    text = formats.bvh_text(TUBE_JOINTS, [-1, 0, 1], ["a", "b", "c"], rot, tr, list(range(36)))
+    rows = np.array([[float(x) for x in line.split()] for line in text.split("Frame Time:")[1].splitlines()[1:] if line])
+    assert rows.shape == (36, 12) and np.abs(np.diff(rows[:, 3:], axis=0)).max() < 12.0
+    back = formats.read_bvh(text)
+    world = formats.world_transforms(TUBE_JOINTS, rot, tr)
+    np.testing.assert_allclose(back["positions"], world[..., :3, 3], atol=1e-5)
