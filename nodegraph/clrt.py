@@ -103,7 +103,7 @@ def device_id(dev) -> str:
 
 
 PROBE_FAILED = 3     # the probe child's exit status when the device failed the probes (anything else: the child's fault)
-_NOT_RANKED: list[str] = []   # this process's probes that did not run (not kept: the next run probes again)
+_NOT_RANKED: dict[str, str] = {}   # device id -> why its probe gave no verdict in this process (not kept on disk)
 
 
 class ProbeNotRun(OpenCLUnavailable):
@@ -180,6 +180,8 @@ def ranking(refresh: bool = False) -> list[tuple[float | None, int, int, object]
     import pyopencl as cl
 
     path = _ranking_file()
+    if refresh:
+        _NOT_RANKED.clear()
     try:
         known = {} if refresh else json.loads(path.read_text())
     except (OSError, ValueError):
@@ -190,13 +192,15 @@ def ranking(refresh: bool = False) -> list[tuple[float | None, int, int, object]
         for di, d in enumerate(p.get_devices()):
             did = f"{device_id(d)} | probes {version}"
             if did not in known:
-                try:
-                    known[did] = probe_ms(pi, di)
-                except ProbeNotRun as exc:      # no verdict: unusable for this run, probed again by the next
-                    _NOT_RANKED.append(str(exc))
+                if device_id(d) not in _NOT_RANKED:
+                    try:
+                        known[did] = probe_ms(pi, di)
+                        changed = True
+                    except ProbeNotRun as exc:   # no verdict: unusable in this process, probed again by the next
+                        _NOT_RANKED[device_id(d)] = str(exc)
+                if did not in known:
                     rows.append((None, pi, di, d))
                     continue
-                changed = True
             rows.append((known[did], pi, di, d))
     if changed:
         try:
@@ -234,7 +238,8 @@ def _choose_device():
     working = [r for r in rows if r[0] is not None]
     if not working:
         scope = f"no {want} device" if want else "no OpenCL device"
-        why = f" ({'; '.join(dict.fromkeys(_NOT_RANKED))})" if _NOT_RANKED else ""
+        reasons = [_NOT_RANKED[device_id(r[3])] for r in rows if device_id(r[3]) in _NOT_RANKED]
+        why = f" ({'; '.join(reasons)})" if reasons else ""
         raise OpenCLUnavailable(f"{scope} can build kernels (" + ", ".join(d.name for *_, d in devices) + f"){why}; "
                                 f"{NO_DEVICE_HELP}")
     return pick(working)[3]
@@ -494,13 +499,15 @@ def devices_table(refresh: bool = False) -> list[str]:
     import pyopencl as cl
 
     chosen = None
+    ranked = ranking(refresh)
     try:
         chosen = device_id(_choose_device())
     except OpenCLUnavailable:
         pass
     rows = []
-    for ms, pi, di, d in ranking(refresh):
-        speed = f"{ms:8.1f} ms" if ms is not None else "unusable (fails, hangs or disagrees)"
+    for ms, pi, di, d in ranked:
+        speed = (f"{ms:8.1f} ms" if ms is not None else f"not probed: {_NOT_RANKED[device_id(d)]}"
+                 if device_id(d) in _NOT_RANKED else "unusable (fails, hangs or disagrees)")
         mark = "*" if device_id(d) == chosen else " "
         rows.append(f"{mark} {pi}:{di}  {cl.device_type.to_string(d.type):4s}  {speed}  {d.name}  "
                     f"({d.platform.name} {d.platform.version}, {d.max_compute_units} units)")
@@ -524,10 +531,12 @@ def device_name() -> str:
 if __name__ == "__main__":  # python -m nodegraph.clrt [--rank | --probe]
     import json
 
+    # this file runs as __main__: the stages register their probes in the module nodegraph.clrt, not here, so
+    # both branches use that module (until stop 46 the child ran this file's own empty list: the generic kernel
+    # alone ranked every device, and --rank kept its verdicts under a version no run looks up)
+    from nodegraph import clrt as module
+
     if "--probe" in sys.argv:  # the child of probe_ms: run the probes on the device VOLCAP_CL_DEVICE names
-        # this file runs as __main__: the stages register their probes in the module nodegraph.clrt, not here (until
-        # stop 46 the child ran its own empty list, so the generic kernel alone ranked every device)
-        from nodegraph import clrt as module
         from nodegraph.node import registry
 
         registry()  # the probes register on import: a failure here is the code's, not the device's (exit 1)
@@ -539,9 +548,9 @@ if __name__ == "__main__":  # python -m nodegraph.clrt [--rank | --probe]
         sys.exit(0)
     try:
         if "--rank" in sys.argv:
-            for row in devices_table(refresh="--refresh" in sys.argv):
+            for row in module.devices_table(refresh="--refresh" in sys.argv):
                 print(row)
-        print("OpenCL device:", device_name())
-    except OpenCLUnavailable as exc:
+        print("OpenCL device:", module.device_name())
+    except module.OpenCLUnavailable as exc:
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(1)

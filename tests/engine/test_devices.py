@@ -72,11 +72,12 @@ def test_a_probe_that_cannot_start_ranks_nothing_and_says_why(tmp_path, monkeypa
     import pytest
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
-    monkeypatch.setattr(clrt, "_NOT_RANKED", [])
+    monkeypatch.setattr(clrt, "_NOT_RANKED", {})
     monkeypatch.setattr(subprocess, "run", lambda *a, **kw: subprocess.CompletedProcess(
         a, 1, "", "/usr/bin/python3: No module named nodegraph.clrt"))
     assert all(r[0] is None for r in clrt.ranking(refresh=True))
     assert not (tmp_path / "volcap" / "opencl-devices.json").exists()
+    assert all("not probed: " in row and "No module named" in row for row in clrt.devices_table())
     monkeypatch.delenv("VOLCAP_CL_DEVICE", raising=False)
     with pytest.raises(clrt.OpenCLUnavailable, match="No module named nodegraph.clrt"):
         clrt._choose_device()
@@ -87,3 +88,20 @@ def test_a_probe_that_cannot_start_ranks_nothing_and_says_why(tmp_path, monkeypa
     for code in (clrt.PROBE_FAILED, -11):
         monkeypatch.setattr(subprocess, "run", lambda *a, code=code, **kw: subprocess.CompletedProcess(a, code, "", ""))
         assert clrt.probe_ms(0, 0) is None
+
+
+def test_setup_ranks_the_devices_with_the_stages_probes(tmp_path):
+    """setup.sh runs ``python -m nodegraph.clrt --rank``: there this file is __main__ too, so it must rank with the
+    probes the stages register in the module (it compared the child's count with its own empty list and ranked
+    nothing), and keep the verdict where a run finds it."""
+    import os
+
+    env = dict(os.environ, XDG_CACHE_HOME=str(tmp_path))
+    env.pop("VOLCAP_CL_DEVICE", None)
+    res = subprocess.run([sys.executable, "-m", "nodegraph.clrt", "--rank"], capture_output=True, text=True, timeout=300,
+                         env=env)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.splitlines()[0].startswith("* ") and " ms " in res.stdout.splitlines()[0]
+    kept = json.loads((tmp_path / "volcap" / "opencl-devices.json").read_text())
+    version = clrt._probes_version()
+    assert any(k.endswith(f"probes {version}") and v is not None for k, v in kept.items())
