@@ -448,6 +448,7 @@ class Skin(Node):
         sk = SkeletonData(fit.joints, fit.parents, names, fit.weights, fit.rotations, fit.translations, numbers)
         table = error_table(fit, numbers, diag, seconds, lengths)
         table["joints_outside"] = joints_outside(frames, faces, fit, names, numbers)
+        table["twist"] = twist_table(fit, names, numbers, twist_range)
         weightless = [names[b] for b in np.flatnonzero(np.bincount(np.argmax(fit.weights, axis=1),
                                                                   minlength=len(names)) == 0)]
         if weightless:
@@ -478,6 +479,25 @@ class Skin(Node):
                       1000 * np.sqrt((rmse ** 2).mean()))
         return dataclasses.replace(fit, rest=traj.rest, weights=weights, rotations=rot, translations=tr, joints=joints,
                                    rmse=rmse, max_error=mx)
+
+
+def twist_table(fit, names, numbers, twist_range: float) -> dict:
+    """Each joint's twist against its parent over the frames (skinning.twists, degrees): the share of (frame, joint)
+    pairs beyond ``twist_range`` and beyond 90 degrees, the 95th percentile, the worst (joint, frame), and the share
+    of (frame, joint) steps that change the twist by more than 45 degrees from one frame to the next."""
+    from .skinning import bone_axes, twists
+
+    tw = np.degrees(twists(fit.rotations, fit.parents, bone_axes(fit.joints, fit.parents)))
+    kids = [k for k, p in enumerate(fit.parents) if p >= 0]
+    if not kids or not len(tw):
+        return {"pairs": 0}
+    a = np.abs(tw[:, kids])
+    f, k = np.unravel_index(int(np.argmax(a)), a.shape)
+    step = np.abs(np.angle(np.exp(1j * np.radians(np.diff(tw[:, kids], axis=0)))))
+    return {"pairs": int(a.size), "range_deg": float(twist_range), "beyond_range": round(float(np.mean(a > twist_range)), 4),
+            "over_90": round(float(np.mean(a > 90)), 4), "p95_deg": round(float(np.percentile(a, 95)), 1),
+            "max_deg": round(float(a.max()), 1), "worst_joint": names[kids[k]], "worst_frame": int(numbers[f]),
+            "jumps_over_45": round(float(np.mean(step > np.radians(45))), 4) if len(step) else 0.0}
 
 
 def bone_lengths(joints, parents, rotations, translations) -> np.ndarray:
