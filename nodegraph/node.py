@@ -83,7 +83,7 @@ class Param:
     type: type
     default: Any = REQUIRED
     doc: str = ""
-    range: tuple | None = None          # inclusive (lo, hi); None on either side = open
+    range: tuple | None = None          # inclusive (lo, hi); None on either side = open (type=list: each item's)
     choices: tuple | None = None
     item: type | None = None            # for type=list: the element type
     length: int | None = None           # for type=list: exact length
@@ -107,15 +107,21 @@ class Param:
                 raise ValueError(f"expects a list of {self.length} items, got {len(value)}")
             if self.item is not None:
                 value = [_coerce_scalar(self.item, v) for v in value]
+            if self.range is not None:
+                for i, v in enumerate(value):
+                    self._in_range(v, f"item {i + 1} ")
             return list(value)
         value = _coerce_scalar(self.type, value)
         if self.choices is not None and value not in self.choices:
             raise ValueError(f"must be one of {', '.join(map(str, self.choices))}; got {show(value)}")
         if self.range is not None:
-            lo, hi = self.range
-            if (lo is not None and value < lo) or (hi is not None and value > hi):
-                raise ValueError(f"must be in [{'' if lo is None else lo}, {'' if hi is None else hi}]; got {show(value)}")
+            self._in_range(value)
         return value
+
+    def _in_range(self, value, what: str = "") -> None:
+        lo, hi = self.range
+        if (lo is not None and value < lo) or (hi is not None and value > hi):
+            raise ValueError(f"{what}must be in [{'' if lo is None else lo}, {'' if hi is None else hi}]; got {show(value)}")
 
 
 def _coerce_scalar(t: type, v: Any) -> Any:

@@ -554,11 +554,11 @@ class Export(Node):
     rotation channel per joint) and/or BVH (the motion: hierarchy, offsets, ZXY rotations per frame). Joint
     transforms at frame k reproduce the skinned mesh. Given the tracked frames the rig was fitted to, it reports
     the LBS error per frame, and with ``correctives`` keeps what LBS misses as K corrective blend shapes
-    (correctives.py: per-frame rest-space residuals, truncated SVD) with their weights per frame: glTF morph
-    targets + a weights channel, UsdSkel BlendShapes + blendShapeWeights."""
+    (correctives.py: fitted in the posed space, towards a per-frame ``goal``) with their weights per frame: glTF
+    morph targets + a weights channel, UsdSkel BlendShapes + blendShapeWeights."""
 
     type_name = "skeleton.export"
-    version = 2
+    version = 3     # 3: correctives fitted towards ``goal``
     per = "sequence"
     publishes = True
     inputs = {
@@ -579,9 +579,13 @@ class Export(Node):
         "influences": Param(int, 4, range=(1, 8), doc="joint influences per vertex in USD (glTF: 4)"),
         "correctives": Param(int, 0, range=(0, 1024), doc="corrective blend shapes (glTF morph targets, UsdSkel "
                              "BlendShapes) fitted to the tracked frames; 0 = none; at least the frame count: exact"),
+        "goal": Param(list, [0.01, 0.05], item=float, length=2, range=(0.0, 1.0), doc="with correctives: the error each frame should "
+                      "stay within, rms and max, as shares of the subject's height (the tracked frames' extent along "
+                      "+Z, 95th percentile); frames and vertices beyond it weigh more in up to 5 further rounds of the "
+                      "fit, the round with the most frames within kept; a 0: the least-squares fit alone"),
     }
 
-    def run(self, skeleton, rest, meshes=None, sequence=None, *, name, formats, fps, influences, correctives):
+    def run(self, skeleton, rest, meshes=None, sequence=None, *, name, formats, fps, influences, correctives, goal):
         from . import formats as fmt
 
         formats = [f.strip() for f in formats.split(",") if f.strip()]
@@ -613,8 +617,10 @@ class Export(Node):
                 from .correctives import fit_correctives
 
                 idx, w = fmt.sparse_influences(rig["weights"], k)
+                height = float(np.percentile(np.ptp(targets[..., 2], axis=1), 95))
+                aim = (goal[0] * height, goal[1] * height) if min(goal) > 0 else None
                 fits[k] = fit_correctives(rig["vertices"], idx, w, rig["rotations"], rig["translations"], targets,
-                                          correctives)
+                                          correctives, goal=aim)
             c = fits[k]
             report[file] = c.table()
             self.log.info("skeleton.export: %s: LBS rms %.3g mm (max %.3g) -> %d corrective shape(s): rms %.3g mm "

@@ -93,6 +93,19 @@ def test_validation_reports_all_problems_at_once(tmp_path):
     assert len(found) == 3, found  # unknown type, unknown param, unconnected input
 
 
+def test_a_list_parameters_range_applies_to_each_item(tmp_path):
+    """A list parameter's range holds for each item (skeleton.export's ``goal``: two shares of the height in
+    [0, 1]); an item out of range is named with the graph file's line."""
+    from nodegraph import Param
+
+    assert Param(list, [0.5], item=float, length=1, range=(0.0, 1.0)).coerce([1]) == [1.0]
+    with pytest.raises(ValueError, match=r"item 2 must be in \[0.0, 1.0\]; got -0.05"):
+        Param(list, [0.5, 0.5], item=float, length=2, range=(0.0, 1.0)).coerce([0.01, -0.05])
+    found = problems(tmp_path, "nodes:\n  e:\n    type: skeleton.export\n    params: {goal: [0.01, -0.05]}\n")
+    assert any(p.startswith(f"{tmp_path / 'g.yaml'}:4") and "parameter 'goal' item 2 must be in [0.0, 1.0]; got -0.05"
+               in p for p in found), found
+
+
 def test_set_overrides_and_their_errors(tmp_path):
     p = write(tmp_path, CHAIN)
     g = load_graph(p, overrides=["scale.factor=5", "src.size=2"])

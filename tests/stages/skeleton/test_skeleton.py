@@ -504,6 +504,9 @@ what that truncation leaves, the blended rotations do not grow it) and,
         if k == 4:
             assert max(table["corrected_rms"]) < max(table["lbs_rms"]) and table["corrected_rms_total"] < 0.8 * \
                 table["lbs_rms_total"], (table["corrected_rms_total"], table["lbs_rms_total"])
+            height = float(np.percentile(np.ptp(tracked[..., 2], axis=1), 95))      # the goal: shares of the height
+            np.testing.assert_allclose(table["goal_m"], [0.01 * height, 0.05 * height], rtol=1e-5)
+            assert table["frames_within_goal"]["corrected"] >= table["frames_within_goal"]["lbs"]
     with pytest.raises(NodeError, match="correctives need the tracked frames"):
         run_node("skeleton.export", {"skeleton": sk, "rest": rest}, {"name": "t", "correctives": 4})
     with pytest.raises(NodeError, match="no segment of the tracked frames is the rig's"):
@@ -549,6 +552,42 @@ def test_correctives_fitted_in_the_posed_space_where_blended_joints_nearly_cance
         assert ours < (0.7 if k == 2 else 1.02) * svd_rms, (k, ours, svd_rms)      # 4 shapes: 3.18 vs 3.16 mm
     exact = fit_correctives(x, idx, wts, rot, tr, targets, f)
     assert exact.max.max() < 1e-6
+
+
+def test_correctives_towards_a_goal_bring_the_frames_least_squares_leaves_beyond_it_within():
+    """``goal`` (rms, max per frame): least squares spends its 3 shapes on two strong patterns and a weak one
+    (1.5 mm rms in every frame), leaving one vertex 24-36 mm off in the last three frames, beyond a 20 mm max
+    (9 of 12 frames within); reweighted rounds trade the weak pattern (within the 2 mm rms) for that vertex: all
+    12 within, no frame above plain LBS. A goal the least-squares fit already meets, or none, changes nothing."""
+    from nodes.skeleton.correctives import fit_correctives
+
+    rng = np.random.default_rng(2)
+    f, v, k = 12, 200, 3
+    x = 0.1 * rng.standard_normal((v, 3))
+    idx, wts = np.zeros((v, 1), int), np.ones((v, 1))
+    rot, tr = np.tile(np.eye(3), (f, 1, 1, 1)), np.zeros((f, 1, 3))
+    patterns = np.linalg.qr(rng.standard_normal((3 * v, 3)))[0].T * np.sqrt(v)      # 1 m rms per vertex each
+    coef = np.c_[0.003 * rng.standard_normal((f, 2)), np.where(np.arange(f) % 2, 1.0, -1.0) * 0.0015]
+    r = (coef @ patterns).reshape(f, v, 3)
+    r[9:, 7, 2] += 0.03 * np.array([1.0, 0.8, 1.2])
+    targets = x[None] + r
+    goal = (0.002, 0.02)
+
+    def within(c):
+        return int(np.sum((c.rms <= goal[0]) & (c.max <= goal[1])))
+
+    plain = fit_correctives(x, idx, wts, rot, tr, targets, k)
+    aimed = fit_correctives(x, idx, wts, rot, tr, targets, k, goal=goal)
+    assert within(plain) == 9 and plain.max[9:].max() > goal[1]
+    assert within(aimed) == f and aimed.goal_rounds >= 1, (aimed.rms, aimed.max)
+    assert (aimed.rms <= aimed.lbs_rms + 1e-12).all()
+    table = aimed.table()
+    assert table["goal_m"] == [0.002, 0.02] and table["frames_within_goal"] == {"lbs": 0, "corrected": f}
+    loose = fit_correctives(x, idx, wts, rot, tr, targets, k, goal=(0.01, 0.1))      # met by least squares
+    assert loose.goal_rounds == 0
+    np.testing.assert_array_equal(loose.shapes, plain.shapes)
+    np.testing.assert_array_equal(loose.weights, plain.weights)
+    assert "goal_m" not in plain.table()
 
 
 def test_sequence_nodes_pick_the_longest_segment_and_explain_errors(tube_nodes):
