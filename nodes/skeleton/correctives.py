@@ -143,10 +143,11 @@ def fit_correctives(vertices, indices, weights, rotations, translations, targets
     y = np.asarray(targets, np.float64)
     a, b = blended_transforms(indices, weights, rotations, translations)
     lbs = np.einsum("fvab,vb->fva", a, x) + b
-    err0 = np.linalg.norm(lbs - y, axis=2)
     f, v = y.shape[:2]
     k = int(min(k, f))
     rounds = 0
+    if goal is not None and not (goal[0] > 0 and goal[1] > 0):
+        goal = None
     if k == f:
         d = rest_residuals(x, indices, weights, rotations, translations, y)
         u, s, vt = np.linalg.svd(d.reshape(f, -1), full_matrices=False)
@@ -162,17 +163,18 @@ def fit_correctives(vertices, indices, weights, rotations, translations, targets
         for _ in range(ROUNDS):
             shapes = _posed_shapes(ata, atr, w)
             w = _posed_weights(a, r, shapes)
-        if goal is not None and goal[0] > 0 and goal[1] > 0:
-            w, shapes, rounds = _towards_goal(a, r, ata, atr, w, shapes, err0, goal)
+        if goal is not None:
+            w, shapes, rounds = _towards_goal(a, r, ata, atr, w, shapes, np.linalg.norm(r, axis=2), goal)
     else:
         w, shapes = np.zeros((f, 0)), np.zeros((0, v, 3))
     w, shapes = _non_negative(w, shapes)
-    # the error of what the files hold (float32): a vertex whose blended transform is singular needs a huge rest
-    # displacement to be exact (child_rope, K = frames: 238 km at sigma_min 6e-8), which float32 cannot carry
+    # the errors of the rest points and shapes as the files hold them (float32; the joints' transforms as computed):
+    # a vertex whose blended transform is singular needs a huge rest displacement to be exact (child_rope, K =
+    # frames: 238 km at sigma_min 6e-8), which float32 cannot carry
     f32 = lambda z: np.asarray(z, np.float32).astype(np.float64)  # noqa: E731
-    approx = np.einsum("fk,kva->fva", f32(w), f32(shapes))
-    posed = np.einsum("fvab,fvb->fva", a, f32(x)[None] + approx) + b
-    err = np.linalg.norm(posed - y, axis=2)
+    rest = np.einsum("fvab,vb->fva", a, f32(x)) + b
+    err0 = np.linalg.norm(rest - y, axis=2)
+    err = np.linalg.norm(rest + np.einsum("fvab,fvb->fva", a, np.einsum("fk,kva->fva", f32(w), f32(shapes))) - y, axis=2)
     return Correctives(shapes, w, np.sqrt((err0 ** 2).mean(1)), err0.max(1), np.sqrt((err ** 2).mean(1)), err.max(1),
                        fitted=k, goal=goal, goal_rounds=rounds)
 
@@ -180,10 +182,10 @@ def fit_correctives(vertices, indices, weights, rotations, translations, targets
 def _towards_goal(a, r, ata, atr, w, shapes, err0, goal):
     """Up to ``GOAL_ROUNDS`` more rounds (shapes, then weights) on a reweighted posed error, while some frame is
     beyond ``goal`` (rms, max): the least-squares fit spends its shapes on the bulk of the frames and leaves a few
-    just beyond a goal (child_rope: 25 of 200 frames at 32 shapes, most 12.3-13.5 mm rms for a 12.1 mm goal, the
+    just beyond a goal (child_rope: 28 of 200 frames at 32 shapes, most 12.3-13.5 mm rms for a ~12 mm goal, the
     rest a vertex or two past the max, at near-singular blended transforms). Each round multiplies the weight of
-    a frame whose rms is beyond ``GOAL_MARGIN[0]`` of the goal's by rms / that, and of a vertex of a frame beyond
-    ``GOAL_MARGIN[1]`` of the goal's max by its error / that (weights that accumulate over the rounds, as in
+    a frame whose rms is beyond ``GOAL_MARGIN[0]`` of the goal's by rms / that, and of a (frame, vertex) whose error
+    is beyond ``GOAL_MARGIN[1]`` of the goal's max by its error / that (weights that accumulate over the rounds, as in
     Lawson's minimax iteration: recomputed from one round's errors alone they oscillated). The round with the most
     frames within the goal is kept (then the lowest total rms; the least-squares fit is round 0), and two rounds
     without a frame more within end it; a frame whose
@@ -197,10 +199,10 @@ def _towards_goal(a, r, ata, atr, w, shapes, err0, goal):
         return e, rms, (int(np.sum((rms <= t_rms) & (e.max(1) <= t_max))), -float(np.sqrt((rms ** 2).mean())))
 
     e, rms, sc = score(w, shapes)
-    best, used = (sc, w, shapes), 0
+    best, used, gained = (sc, w, shapes), 0, 0
     omega = np.ones((f, v))
     for it in range(GOAL_ROUNDS):
-        if best[0][0] == f:
+        if best[0][0] == f or it - gained >= 2:       # all within, or two rounds without a frame more within
             break
         omega *= (np.maximum(1.0, rms / (GOAL_MARGIN[0] * t_rms))[:, None]
                   * np.maximum(1.0, e / (GOAL_MARGIN[1] * t_max)))
@@ -212,8 +214,8 @@ def _towards_goal(a, r, ata, atr, w, shapes, err0, goal):
         if len(worse):
             w[worse] = _posed_weights(a, r, shapes, frames=worse)[worse]
             e, rms, sc = score(w, shapes)
+        if sc[0] > best[0][0]:
+            gained = it + 1
         if sc > best[0]:
             best, used = (sc, w, shapes), it + 1
-        elif it + 1 - used >= 2 and sc[0] <= best[0][0]:   # two rounds without a frame more within: done
-            break
     return best[1], best[2], used

@@ -507,6 +507,10 @@ what that truncation leaves, the blended rotations do not grow it) and,
             height = float(np.percentile(np.ptp(tracked[..., 2], axis=1), 95))      # the goal: shares of the height
             np.testing.assert_allclose(table["goal_m"], [0.01 * height, 0.05 * height], rtol=1e-5)
             assert table["frames_within_goal"]["corrected"] >= table["frames_within_goal"]["lbs"]
+    lsq = run_node("skeleton.export", {"skeleton": sk, "rest": rest, "sequence": ms}, {"name": "t", "correctives": 4,
+                   "goal": [0, 0]})                    # least squares alone: the tube meets the goal without rounds
+    assert lsq["files"] == out[4]["files"] and "goal_m" not in lsq["report"]["files"]["t.glb"]
+    assert out[4]["report"]["files"]["t.glb"]["goal_rounds"] == 0
     with pytest.raises(NodeError, match="correctives need the tracked frames"):
         run_node("skeleton.export", {"skeleton": sk, "rest": rest}, {"name": "t", "correctives": 4})
     with pytest.raises(NodeError, match="no segment of the tracked frames is the rig's"):
@@ -544,7 +548,7 @@ def test_correctives_fitted_in_the_posed_space_where_blended_joints_nearly_cance
     u, sv, vt = np.linalg.svd(d, full_matrices=False)
     for k in (2, 4):
         cr = fit_correctives(x, idx, wts, rot, tr, targets, k)
-        assert (cr.rms <= cr.lbs_rms + 1e-12).all()
+        assert (cr.rms <= cr.lbs_rms + 1e-8).all()          # no frame above plain LBS (float32 shapes: 10 nm)
         trunc = (u[:, :k] * sv[:k]) @ vt[:k]
         posed = np.einsum("fvab,fvb->fva", a, x[None] + trunc.reshape(f, v, 3)) + b
         svd_rms = np.sqrt((np.linalg.norm(posed - targets, axis=2) ** 2).mean())
@@ -552,6 +556,17 @@ def test_correctives_fitted_in_the_posed_space_where_blended_joints_nearly_cance
         assert ours < (0.7 if k == 2 else 1.02) * svd_rms, (k, ours, svd_rms)      # 4 shapes: 3.18 vs 3.16 mm
     exact = fit_correctives(x, idx, wts, rot, tr, targets, f)
     assert exact.max.max() < 1e-6
+    # towards a goal (4 shapes; the least-squares fit's 70th percentiles of rms and max: 3.35 / 7.87 mm): its rounds
+    # bring 10 -> 15 of 20 frames within (the second round; the two after it fall back to 13 and 10: the best is kept)
+    plain = fit_correctives(x, idx, wts, rot, tr, targets, 4)
+    goal = (float(np.percentile(plain.rms, 70)), float(np.percentile(plain.max, 70)))
+    aimed = fit_correctives(x, idx, wts, rot, tr, targets, 4, goal=goal)
+
+    def within(c):
+        return int(np.sum((c.rms <= goal[0]) & (c.max <= goal[1])))
+
+    assert within(aimed) >= within(plain) + 4 and aimed.goal_rounds >= 2, (within(plain), within(aimed), aimed.goal_rounds)
+    assert (aimed.rms <= aimed.lbs_rms + 1e-8).all()      # (float32 shapes: within 10 nm of plain LBS at worst)
 
 
 def test_correctives_towards_a_goal_bring_the_frames_least_squares_leaves_beyond_it_within():
@@ -580,7 +595,7 @@ def test_correctives_towards_a_goal_bring_the_frames_least_squares_leaves_beyond
     aimed = fit_correctives(x, idx, wts, rot, tr, targets, k, goal=goal)
     assert within(plain) == 9 and plain.max[9:].max() > goal[1]
     assert within(aimed) == f and aimed.goal_rounds >= 1, (aimed.rms, aimed.max)
-    assert (aimed.rms <= aimed.lbs_rms + 1e-12).all()
+    assert (aimed.rms <= aimed.lbs_rms + 1e-8).all()
     table = aimed.table()
     assert table["goal_m"] == [0.002, 0.02] and table["frames_within_goal"] == {"lbs": 0, "corrected": f}
     loose = fit_correctives(x, idx, wts, rot, tr, targets, k, goal=(0.01, 0.1))      # met by least squares
