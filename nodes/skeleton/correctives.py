@@ -86,8 +86,9 @@ def _posed_weights(a, r, shapes, omega=None, frames=None) -> np.ndarray:
     (each vertex's term times ``omega`` (F, V) where given); ``frames``: only these rows are solved (others 0)."""
     f, k = len(r), len(shapes)
     w = np.zeros((f, k))
+    by_vertex = np.ascontiguousarray(np.transpose(shapes, (1, 2, 0)))          # (V, 3, K)
     for i in range(f) if frames is None else frames:
-        s = np.einsum("vab,kvb->vak", a[i], shapes)
+        s = np.matmul(a[i], by_vertex)                                        # (V, 3, K): A_v D_v per shape
         rhs = r[i]
         if omega is not None:
             root = np.sqrt(omega[i])[:, None]
@@ -99,13 +100,19 @@ def _posed_weights(a, r, shapes, omega=None, frames=None) -> np.ndarray:
     return w
 
 
+def _posed(a, w, shapes) -> np.ndarray:
+    """(F, V, 3) the shapes' displacement A_fv (sum_k w_fk D_kv) in the posed space (one product, then batched 3x3)."""
+    d = (w @ shapes.reshape(len(shapes), 3 * shapes.shape[1])).reshape(len(w), shapes.shape[1], 3, 1)
+    return np.matmul(a, d)[..., 0]
+
+
 def _posed_shapes(ata, atr, w) -> np.ndarray:
     """(K, V, 3) the shapes that minimise the posed error for weights ``w`` (F, K): per vertex the normal
     equations sum_f (w_f w_f^T) kron (A_fv^T A_fv) over its 3K unknowns, in chunks of vertices (~200 MB)."""
     f, v = atr.shape[:2]
     k = w.shape[1]
     outer = np.einsum("fk,fl->fkl", w, w).reshape(f, k * k)
-    rhs = np.einsum("fk,fva->vka", w, atr).reshape(v, 3 * k)
+    rhs = (w.T @ atr.reshape(f, -1)).reshape(k, v, 3).transpose(1, 0, 2).reshape(v, 3 * k)   # sum_f w_fk atr_fv
     out = np.zeros((v, k, 3))
     step = max(1, int(2e8 / (k * k * 9 * 8)))
     for s in range(0, v, step):
@@ -174,7 +181,7 @@ def fit_correctives(vertices, indices, weights, rotations, translations, targets
     f32 = lambda z: np.asarray(z, np.float32).astype(np.float64)  # noqa: E731
     rest = np.einsum("fvab,vb->fva", a, f32(x)) + b
     err0 = np.linalg.norm(rest - y, axis=2)
-    err = np.linalg.norm(rest + np.einsum("fvab,fvb->fva", a, np.einsum("fk,kva->fva", f32(w), f32(shapes))) - y, axis=2)
+    err = np.linalg.norm(rest + _posed(a, f32(w), f32(shapes)) - y, axis=2)
     return Correctives(shapes, w, np.sqrt((err0 ** 2).mean(1)), err0.max(1), np.sqrt((err ** 2).mean(1)), err.max(1),
                        fitted=k, goal=goal, goal_rounds=rounds)
 
@@ -194,7 +201,7 @@ def _towards_goal(a, r, ata, atr, w, shapes, err0, goal):
     t_rms, t_max = goal
 
     def score(w, shapes):
-        e = np.linalg.norm(np.einsum("fvab,fvb->fva", a, np.einsum("fk,kva->fva", w, shapes)) - r, axis=2)
+        e = np.linalg.norm(_posed(a, w, shapes) - r, axis=2)
         rms = np.sqrt((e ** 2).mean(1))
         return e, rms, (int(np.sum((rms <= t_rms) & (e.max(1) <= t_max))), -float(np.sqrt((rms ** 2).mean())))
 
