@@ -24,9 +24,12 @@ against 6.3 read by us. The error after correction is measured in the posed (ski
 """
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
+
+LOG = logging.getLogger("volcap.skeleton")
 
 DAMPING = 0.01     # the start's rest residuals: (A^T A + DAMPING I)^-1 A^T r (A ~ a rotation: 1 on its diagonal)
 ROUNDS = 1         # alternating least squares rounds (shapes, then weights) after the start
@@ -206,7 +209,7 @@ def _towards_goal(a, r, ata, atr, w, shapes, err0, goal):
         return e, rms, (int(np.sum((rms <= t_rms) & (e.max(1) <= t_max))), -float(np.sqrt((rms ** 2).mean())))
 
     e, rms, sc = score(w, shapes)
-    best, used, gained = (sc, w, shapes), 0, 0
+    best, used, gained, first = (sc, w, shapes), 0, 0, sc[0]
     omega = np.ones((f, v))
     for it in range(GOAL_ROUNDS):
         if best[0][0] == f or it - gained >= 2:       # all within, or two rounds without a frame more within
@@ -221,6 +224,8 @@ def _towards_goal(a, r, ata, atr, w, shapes, err0, goal):
         if len(worse):
             w[worse] = _posed_weights(a, r, shapes, frames=worse)[worse]
             e, rms, sc = score(w, shapes)
+        LOG.info("correctives towards the goal (rms %.1f mm, max %.1f mm): round %d: %d of %d frames within (least "
+                 "squares: %d)", 1000 * t_rms, 1000 * t_max, it + 1, sc[0], f, first)
         if sc[0] > best[0][0]:
             gained = it + 1
         if sc > best[0]:

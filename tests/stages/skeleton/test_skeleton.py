@@ -569,11 +569,12 @@ def test_correctives_fitted_in_the_posed_space_where_blended_joints_nearly_cance
     assert (aimed.rms <= aimed.lbs_rms + 1e-8).all()      # (float32 shapes: within 10 nm of plain LBS at worst)
 
 
-def test_correctives_towards_a_goal_bring_the_frames_least_squares_leaves_beyond_it_within():
+def test_correctives_towards_a_goal_bring_the_frames_least_squares_leaves_beyond_it_within(caplog):
     """``goal`` (rms, max per frame): least squares spends its 3 shapes on two strong patterns and a weak one
     (1.5 mm rms in every frame), leaving one vertex 24-36 mm off in the last three frames, beyond a 20 mm max
     (9 of 12 frames within); reweighted rounds trade the weak pattern (within the 2 mm rms) for that vertex: all
-    12 within, no frame above plain LBS. A goal the least-squares fit already meets, or none, changes nothing."""
+    12 within, no frame above plain LBS, each round logged. A goal the least-squares fit already meets, or none,
+    changes nothing."""
     from nodes.skeleton.correctives import fit_correctives
 
     rng = np.random.default_rng(2)
@@ -592,7 +593,9 @@ def test_correctives_towards_a_goal_bring_the_frames_least_squares_leaves_beyond
         return int(np.sum((c.rms <= goal[0]) & (c.max <= goal[1])))
 
     plain = fit_correctives(x, idx, wts, rot, tr, targets, k)
+    caplog.set_level("INFO", logger="volcap.skeleton")
     aimed = fit_correctives(x, idx, wts, rot, tr, targets, k, goal=goal)
+    assert "(rms 2.0 mm, max 20.0 mm): round 1: 12 of 12 frames within (least squares: 9)" in caplog.text   # progress
     assert within(plain) == 9 and plain.max[9:].max() > goal[1]
     assert within(aimed) == f and aimed.goal_rounds >= 1, (aimed.rms, aimed.max)
     assert (aimed.rms <= aimed.lbs_rms + 1e-8).all()
