@@ -248,7 +248,7 @@ class Node:
         for name, p in cls.params.items():
             extra = []
             if p.range:
-                extra.append(f"range {list(p.range)}")
+                extra.append(f"{'each item in' if p.type is list else 'range'} {list(p.range)}")
             if p.choices:
                 extra.append("one of " + ", ".join(map(str, p.choices)))
             default = "required" if p.default is REQUIRED else repr(p.default)

@@ -101,6 +101,9 @@ def test_a_list_parameters_range_applies_to_each_item(tmp_path):
     assert Param(list, [0.5], item=float, length=1, range=(0.0, 1.0)).coerce([1]) == [1.0]
     with pytest.raises(ValueError, match=r"item 2 must be in \[0.0, 1.0\]; got -0.05"):
         Param(list, [0.5, 0.5], item=float, length=2, range=(0.0, 1.0)).coerce([0.01, -0.05])
+    from nodes.skeleton.nodes import Export
+
+    assert "goal: list[float] (length 2) = [0.01, 0.05] (each item in [0.0, 1.0])" in Export.describe()   # describe
     found = problems(tmp_path, "nodes:\n  e:\n    type: skeleton.export\n    params: {goal: [0.01, -0.05]}\n")
     assert any(p.startswith(f"{tmp_path / 'g.yaml'}:4") and "parameter 'goal' item 2 must be in [0.0, 1.0]; got -0.05"
                in p for p in found), found
