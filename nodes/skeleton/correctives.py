@@ -148,7 +148,7 @@ def fit_correctives(vertices, indices, weights, rotations, translations, targets
     frame count, else fitted in the posed space), with the posed error per frame before and after
     (``Correctives``); k is capped at the frame count. Each comes out as one or two shapes with weights in
     [0, 1] (its two sides), so up to 2k. ``goal`` (rms, max; metres): what each frame's corrected error should
-    stay within (``_towards_goal``); None or a frame count of shapes: the least-squares fit alone."""
+    stay within (``_towards_goal``); None, a 0 in it or a frame count of shapes: the least-squares fit alone."""
     x = np.asarray(vertices, np.float64)
     y = np.asarray(targets, np.float64)
     a, b = blended_transforms(indices, weights, rotations, translations)
