@@ -31,6 +31,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from machine import describe, load_average  # noqa: E402
 from nodegraph.testing import run_node  # noqa: E402
+from nodes.skeleton.humanoid import body_stature  # noqa: E402
 
 
 def table(label, sk, rest, meshes, frames, ks=(0, 4, 8, 16)):
@@ -38,7 +39,7 @@ def table(label, sk, rest, meshes, frames, ks=(0, 4, 8, 16)):
 
     tracked = np.stack([np.asarray(m.vertices) for m in meshes])
     print(f"\n{label}: {len(frames)} frames, {len(rest.vertices)} vertices, {len(sk.parents)} joints")
-    height = float(np.percentile(np.ptp(tracked[..., 2], axis=1), 95))
+    height = body_stature(tracked)                              # as skeleton.export measures it
     print(f"goal (skeleton.export's default): rms <= {10 * height:.1f} mm, max <= {50 * height:.1f} mm per frame (1 % / 5 % "
           f"of the height, {height:.3f} m); fit 'goal' = towards it, 'lsq' = least squares alone (goal: [0, 0])")
     print(f"{'K':>4} {'fit':>4} {'rms med':>8} {'rms worst':>9} {'max med':>8} {'max worst':>9} {'within':>7} {'GLB max':>8} "

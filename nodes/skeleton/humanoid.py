@@ -738,10 +738,7 @@ def bind_humanoid(frames: np.ndarray, faces, resolution: int, up=(0.0, 0.0, 1.0)
     frames = np.asarray(frames, np.float64)
     order = sorted(set(np.linspace(0, len(frames) - 1, min(tries, len(frames))).round().astype(int).tolist()))
     u = np.asarray(up, np.float64) / (np.linalg.norm(up) or 1.0)
-    h = frames @ u
-    # the standing height: most frames stand lower (crouches); a body with its arms over its head in more than
-    # 5 % of the frames measures taller than it is
-    stature = float(np.percentile(h.max(axis=1) - h.min(axis=1), 95))
+    stature = body_stature(frames, u)
     fits, errors, tried = [], [], {}
     for r in order:
         occ, origin, spacing = voxelize(frames[r], np.asarray(faces), resolution)
@@ -805,6 +802,15 @@ def bind_humanoid(frames: np.ndarray, faces, resolution: int, up=(0.0, 0.0, 1.0)
     report["rigid_rms_mm_by_index"] = tried
     report["bone_lengths_used"] = {n: round(v, 4) for n, v in own.items()}
     return rest_joints, sub_parents, [names[j] for j in keep], weights, rot, tr, report
+
+
+def body_stature(frames: np.ndarray, up=(0.0, 0.0, 1.0)) -> float:
+    """The subject's standing height over a sequence (F, V, 3): the 95th percentile over frames of its extent along
+    ``up``: most frames stand lower (crouches); a body with its arms over its head in more than 5 % of the
+    frames measures taller than it is."""
+    u = np.asarray(up, np.float64) / (np.linalg.norm(up) or 1.0)
+    h = np.asarray(frames, np.float64) @ u
+    return float(np.percentile(h.max(axis=1) - h.min(axis=1), 95)) if h.size else 0.0
 
 
 def with_lengths(joints: np.ndarray, parents: list[int], names: list[str], lengths: dict) -> np.ndarray:

@@ -617,7 +617,9 @@ class Export(Node):
                 from .correctives import fit_correctives
 
                 idx, w = fmt.sparse_influences(rig["weights"], k)
-                height = float(np.percentile(np.ptp(targets[..., 2], axis=1), 95))
+                from .humanoid import body_stature
+
+                height = body_stature(targets)
                 aim = (goal[0] * height, goal[1] * height) if min(goal) > 0 else None
                 fits[k] = fit_correctives(rig["vertices"], idx, w, rig["rotations"], rig["translations"], targets,
                                           correctives, goal=aim)
