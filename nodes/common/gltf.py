@@ -7,7 +7,9 @@
                  min/max where the specification requires them (POSITION, morph-target POSITION, animation input)
     mesh         one triangle primitive: POSITION, indices, and any of NORMAL, TEXCOORD_0, COLOR_0,
                  JOINTS_0/WEIGHTS_0, morph targets; ``material`` may be given now or set later (``set_material``)
-    material     metallic-roughness with a base-colour texture embedded as PNG
+    material     metallic-roughness with a base-colour texture embedded as PNG; a primitive without one gets a plain
+                 white, non-metallic material when the file is written (glTF's default is fully metallic: black in
+                 a viewer with lights and no environment)
     node / skin  scene nodes (roots listed in the scene), joint hierarchies, inverse bind matrices
     animate      channels of named animations; identical key times share one input accessor
     glb          the file, with optional ``extras``
@@ -262,7 +264,16 @@ class GltfBuilder:
 
     # ------------------------------------------------------------ file
     def glb(self, extras: dict | None = None) -> bytes:
-        """The binary glTF file."""
+        """The binary glTF file. A primitive left without a material gets a plain one (white, metallic 0, roughness
+        1): glTF's default material is fully metallic, which a viewer without an environment map (three.js with
+        its lights alone) draws black; white keeps vertex colours as they are."""
+        bare = [p for m in self.gltf.meshes for p in m.primitives if p.material is None]
+        if bare:
+            G = self._G
+            pbr = G.PbrMetallicRoughness(baseColorFactor=[1.0, 1.0, 1.0, 1.0], metallicFactor=0.0, roughnessFactor=1.0)
+            self.gltf.materials.append(G.Material(name="plain", pbrMetallicRoughness=pbr))
+            for p in bare:
+                p.material = len(self.gltf.materials) - 1
         self.gltf.buffers = [self._G.Buffer(byteLength=len(self._blob))]
         self.gltf.set_binary_blob(bytes(self._blob))
         if extras is not None:

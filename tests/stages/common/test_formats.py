@@ -65,6 +65,25 @@ def test_gltf_mesh_with_normals_uv_morphs_skin_and_texture(box):
     np.testing.assert_allclose(tm.visual.uv, uv, atol=1e-6)                  # another reader: trimesh's UVs again
 
 
+def test_gltf_mesh_without_a_material_gets_a_plain_one(box):
+    """A primitive left without a material (a rig, a dynamic mesh) is written with a plain white, non-metallic one:
+    glTF's default material is fully metallic, and three.js with lights and no environment drew child_rope's
+    character black; a textured primitive keeps its own."""
+    import pygltflib as G
+
+    v, f, _ = box
+    b = GltfBuilder("test")
+    b.node("bare", mesh=b.mesh(v, f))
+    tex = b.mesh(v, f, uv=texture_uv(v[:, :2].astype(np.float32)))
+    b.set_material(tex, b.texture_material(PNG))
+    b.node("textured", mesh=tex)
+    g = G.GLTF2.load_from_bytes(b.glb())
+    bare, textured = (g.meshes[i].primitives[0] for i in (0, 1))
+    assert textured.material == 0 and g.materials[0].pbrMetallicRoughness.baseColorTexture.index == 0
+    plain = g.materials[bare.material].pbrMetallicRoughness
+    assert bare.material == 1 and plain.metallicFactor == 0.0 and plain.baseColorFactor == [1.0, 1.0, 1.0, 1.0]
+
+
 def test_one_usd_stage_holds_a_tracked_textured_skinned_mesh(box, tmp_path):
     from pxr import Usd, UsdGeom, UsdShade, UsdSkel
 
