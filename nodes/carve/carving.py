@@ -105,6 +105,8 @@ class Grid:
 def make_views(images, masks, bits, cameras: Cameras, origin, gain: bool) -> Views:
     """``masks``: host masks (or None when only device silhouettes ``bits`` are given); ``bits``: device
     silhouettes (or None: made from the masks on demand by the OpenCL backend)."""
+    import cv2
+
     f = np.float32
     cams = cameras.pack(origin=origin)
     centres = np.zeros((len(cameras), 4), f)
@@ -116,11 +118,10 @@ def make_views(images, masks, bits, cameras: Cameras, origin, gain: bool) -> Vie
         wins = np.array([mask_window(m) for m in masks], np.int32).reshape(-1, 4)
     else:
         wins = silhouette_windows(bits)
-    crops = []
+    crops = []      # r g b 0 per pixel of the window (cv2.merge: 4x faster than NumPy's strided channel copy)
     for im, (x0, y0, w, h) in zip(images, wins):
-        crop = np.zeros((h, w, 4), np.uint8)
-        crop[:, :, :3] = im[y0:y0 + h, x0:x0 + w]
-        crops.append(crop)
+        crops.append(cv2.merge([*cv2.split(im[y0:y0 + h, x0:x0 + w]), np.zeros((h, w), np.uint8)]) if h and w
+                     else np.zeros((h, w, 4), np.uint8))
     sizes = wins[:, 2].astype(np.int64) * wins[:, 3]
     offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
     if offsets[-1] + sizes[-1] >= 2**31 // 8:
@@ -141,9 +142,28 @@ def surface_mask(occ: np.ndarray) -> np.ndarray:
     return inner & ~full
 
 
-def sweep_lists(occ: np.ndarray) -> dict:
+def sweep_lists(occ: np.ndarray, flat: np.ndarray | None = None) -> dict:
     """The sweeps' lists: the occupied voxels (flat indices) grouped by plane along x, then y, then z
-    (``lists``); ``offs`` the plane offsets into it, axis a's n_a + 1 of them from ``base[a]``."""
+    (``lists``); ``offs`` the plane offsets into it, axis a's n_a + 1 of them from ``base[a]``. Within a plane
+    the voxels keep the order of a nonzero of the grid with that axis first (``sweep_lists_reference``): the
+    flat indices (``flat``: np.flatnonzero(occ), given or made) are in (i, j, k) order, so a stable sort by j,
+    or by k, gives (j, i, k) and (k, i, j) (a radix sort of 16-bit keys: 19 -> 6 ms at 128^3)."""
+    nx, ny, nz = occ.shape
+    flat = np.flatnonzero(occ) if flat is None else np.asarray(flat)
+    i, rest = np.divmod(flat.astype(np.int64), ny * nz)
+    j, k = np.divmod(rest, nz)
+    lists, offs, base = [flat], [], []
+    for a, (key, n) in enumerate(((i, nx), (j, ny), (k, nz))):
+        if a:
+            lists.append(flat[np.argsort(key.astype(np.int16), kind="stable")])
+        base.append(sum(len(o) for o in offs))
+        offs.append(a * len(flat) + np.concatenate([[0], np.cumsum(np.bincount(key, minlength=n))]))
+    return {"lists": np.concatenate(lists).astype(np.uint32), "offs": np.concatenate(offs).astype(np.int32),
+            "base": np.array([*base, 0], np.int32)}
+
+
+def sweep_lists_reference(occ: np.ndarray) -> dict:
+    """``sweep_lists`` from a nonzero of the grid turned each way (the plain version it is tested against)."""
     nx, ny, nz = occ.shape
     lists, offs, base = [], [], []
     total = 0
@@ -543,7 +563,51 @@ def surface_count(occ: np.ndarray) -> int:
 
 def fill_colours(occ: np.ndarray, colors: np.ndarray, views: np.ndarray, rounds: int = 8) -> np.ndarray:
     """Surface voxels no view sees (views == 0) take the mean colour of their coloured 26-neighbours, repeated
-    ``rounds`` times outwards from the coloured ones; what is still uncoloured stays mid-grey."""
+    ``rounds`` times outwards from the coloured ones; what is still uncoloured stays mid-grey. Only the unseen
+    voxels are visited: on a grid padded by one voxel, flat, their 26 neighbours are fixed index steps (the
+    same sums in the same order as ``fill_colours_reference``: the same colours; 74 -> 16 ms on the temple's
+    photo hull at 128^3)."""
+    occ = occ.astype(bool)
+    known = views > 0
+    todo = surface_mask(occ) & ~known
+    colors = colors.copy()
+    colors[todo] = 128
+    if not todo.any() or not known.any():
+        return colors
+    padded = np.array(occ.shape) + 2
+    kn = np.pad(known, 1).ravel()
+    acc = np.zeros((kn.size, 3))
+    seen = np.flatnonzero(kn)
+    acc[seen] = np.pad(colors, ((1, 1), (1, 1), (1, 1), (0, 0))).reshape(-1, 3)[seen]
+    offs = np.argwhere(np.ones((3, 3, 3), bool)) - 1                   # the reference's order
+    steps = (offs[:, 0] * padded[1] + offs[:, 1]) * padded[2] + offs[:, 2]
+    t = np.flatnonzero(np.pad(todo, 1).ravel())
+    out = colors.reshape(-1, 3)
+    for _ in range(rounds):
+        if len(t) == 0:
+            break
+        s = np.zeros((len(t), 3))
+        n = np.zeros(len(t))
+        for d in steps:
+            q = t + d
+            rows = np.flatnonzero(kn[q])
+            s[rows] += acc[q[rows]]
+            n[rows] += 1
+        got = n > 0
+        if not got.any():
+            break
+        sel = t[got]
+        mean = s[got] / n[got, None]
+        i, j, k = np.unravel_index(sel, tuple(padded))
+        out[np.ravel_multi_index((i - 1, j - 1, k - 1), occ.shape)] = np.rint(mean).astype(np.uint8)
+        acc[sel] = mean
+        kn[sel] = True
+        t = t[~got]
+    return colors
+
+
+def fill_colours_reference(occ: np.ndarray, colors: np.ndarray, views: np.ndarray, rounds: int = 8) -> np.ndarray:
+    """``fill_colours`` on the whole grid, per round (the plain version it is tested against)."""
     from scipy import ndimage
 
     occ = occ.astype(bool)
@@ -646,7 +710,7 @@ def carve(volume: VoxelGrid, images, masks, cameras: Cameras, params: CarveParam
     if algorithm == "voxel_coloring":
         grid.lists["layers"] = layer_list(occ, vs, views.centres, node)
     else:
-        grid.lists["sweep"] = sweep_lists(occ)
+        grid.lists["sweep"] = sweep_lists(occ, flat)
     if method == "opencl":
         backend = CarveCL.get()
     else:

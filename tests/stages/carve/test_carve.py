@@ -9,7 +9,8 @@ import pytest
 
 from nodegraph import NodeError
 from nodegraph.testing import run_node
-from nodes.carve.carving import CarveParams, carve, hull_distance, layer_list
+from nodes.carve.carving import (CarveParams, carve, fill_colours, fill_colours_reference, hull_distance,
+                                 layer_list, sweep_lists, sweep_lists_reference)
 from nodes.common import raster
 from nodes.common.types import ImageSet, Volume, VoxelGrid
 
@@ -212,6 +213,31 @@ def test_colours_reach_the_mesh_and_survive_refine_and_relax(small_cup):
         assert len(after) == len(relaxed.vertices) and {tuple(c) for c in after} <= {tuple(c) for c in before}
     for m in (refined, relaxed):  # whatever collapsed, the faces index the vertices there are
         assert m.faces.max() < len(m.vertices) and m.is_watertight
+
+
+def test_fill_colours_matches_its_reference():
+    """The unseen surface voxels' colours from their coloured neighbours: the same bytes as the whole-grid version,
+    on a blob at the grid's border with unseen patches several rounds deep, and with nothing seen."""
+    rng = np.random.default_rng(3)
+    z, y, x = np.mgrid[:20, :18, :16]
+    occ = ((x - 7.5) ** 2 + (y - 9) ** 2 + (z - 4) ** 2 < 60).astype(np.uint8)     # cut by the grid's z = 0 face
+    views = (rng.random(occ.shape) < 0.5).astype(np.uint8) * occ
+    views[:, :, :6] = 0                                                         # unseen more than a ring deep
+    colors = (rng.integers(0, 256, occ.shape + (3,)) * occ[..., None]).astype(np.uint8)
+    for v in (views, np.zeros_like(views)):
+        got, want = fill_colours(occ, colors, v), fill_colours_reference(occ, colors, v)
+        assert np.array_equal(got, want)
+    filled = fill_colours(occ, colors, views, rounds=2)
+    assert not np.array_equal(filled, colors) and np.array_equal(filled, fill_colours_reference(occ, colors, views, 2))
+
+
+def test_sweep_lists_match_their_reference(small_cup):
+    occ = (np.asarray(small_cup["hull"].occupancy) > 0).astype(np.uint8)
+    occ[0, 3, 2] = 1          # a voxel on the grid's border
+    got, want = sweep_lists(occ), sweep_lists_reference(occ)
+    assert got.keys() == want.keys()
+    for k in got:
+        assert got[k].dtype == want[k].dtype and np.array_equal(got[k], want[k]), k
 
 
 def test_golden_space_carving(small_cup, golden):
