@@ -135,6 +135,60 @@ def test_video_frames_and_star_patterns(tmp_path):
         load_capture(tmp_path, 4, images="{name}/still_*.png", calibration=".")
 
 
+def test_video_frames_in_any_order_are_the_frames_decoded_front_to_back(tmp_path, monkeypatch):
+    """A video stays open and decodes on from where it stopped (one decode per frame of a run, not a seek from the
+    keyframe): frames asked in any order (on, back, far ahead: a seek) are exactly those of one front-to-back
+    decode; a rewritten file is opened again; frames past the end name the file."""
+    from nodes.capture import load as L
+
+    path = tmp_path / "take.avi"
+
+    def write(offset):
+        vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10, (W, H))
+        for f in range(12):
+            img = np.zeros((H, W, 3), np.uint8)
+            img[:, : 4 * f + 4] = 20 * f + offset          # a bar as wide as the frame number
+            vw.write(img)
+        vw.release()
+
+    def decoded():
+        cap, out = cv2.VideoCapture(str(path)), []
+        while True:
+            ok, img = cap.read()
+            if not ok:
+                return out
+            out.append(np.ascontiguousarray(img[:, :, ::-1]))
+
+    write(10)
+    ref = decoded()
+    assert len(ref) == 12
+    monkeypatch.setattr(L, "FORWARD", 3)
+    seeks = []
+    real = cv2.VideoCapture
+
+    class Counting:
+        def __init__(self, *a):
+            self.cap = real(*a)
+
+        def set(self, prop, value):
+            seeks.append(value)
+            return self.cap.set(prop, value)
+
+        def __getattr__(self, name):
+            return getattr(self.cap, name)
+
+    monkeypatch.setattr(cv2, "VideoCapture", Counting)
+    for f in (0, 1, 2, 5, 6, 3, 11, 10, 4):                 # on, on, on (+2), on, back, far (+5), back, back
+        assert np.array_equal(L.read_image(path, f), ref[f]), f
+    assert seeks == [3, 11, 10, 4]
+    write(30)                                                # the same name, new content
+    import os
+    os.utime(path, ns=(1, 10**18))
+    assert np.array_equal(L.read_image(path, 5), decoded()[5]) and not np.array_equal(decoded()[5], ref[5])
+    with pytest.raises(DataError, match=r"take.avi: frame 12 out of range \(the video has 12 frames\)"):
+        L.read_image(path, 12)
+
+
 def test_bounds_node_auto_and_explicit():
     cams = sphere_rig(6)
     from nodes.common.types import MaskSet
