@@ -109,22 +109,29 @@ def _expand(root: Path, pattern: str, cam: int, name: str, frame: int, extra: di
 
 
 
-OPEN_VIDEOS = 32     # video readers kept open per process (the least recently used closed first)
+OPEN_VIDEOS = 64     # video readers kept open per process (the least recently used closed first; ~18 MiB each)
 FORWARD = 64         # a frame at most this many frames after a reader's position is reached by decoding on
 
 
 class _VideoReader:
-    """An open video and the index of the frame it decodes next."""
+    """An open video (one decoding thread: 18 instead of 29 MiB per reader at 1080p, no threads left waiting, and
+    as fast here, since frames are decoded one at a time) and the index of the frame it decodes next."""
 
     def __init__(self, path: Path):
         import cv2
 
-        self.cap = cv2.VideoCapture(str(path))
+        self.cap = cv2.VideoCapture(str(path), cv2.CAP_ANY, [cv2.CAP_PROP_N_THREADS, 1])
         if not self.cap.isOpened():
             raise DataError(f"{path}: unreadable video")
         self.count = int(self.cap.get(cv2.CAP_PROP_FRAME_COUNT))
         self.next = 0
+        self.closed = False
         self.lock = threading.Lock()
+
+    def close(self):
+        with self.lock:
+            self.closed = True
+            self.cap.release()
 
 
 _readers: "OrderedDict[tuple, _VideoReader]" = OrderedDict()
@@ -132,16 +139,25 @@ _readers_lock = threading.Lock()
 
 
 def _video_reader(path: Path) -> _VideoReader:
-    """This process's open reader of the file as it is now (path, size, mtime), opened when there is none."""
-    st = os.stat(path)
+    """This process's open reader of the file as it is now (path, size, mtime), opened when there is none (the
+    file is opened, and the evicted readers closed, outside the lock of the table)."""
+    try:
+        st = os.stat(path)
+    except OSError as exc:
+        raise DataError(f"{path}: unreadable video ({exc.strerror})") from None
     key = (str(path), st.st_size, st.st_mtime_ns)
     with _readers_lock:
-        reader = _readers.pop(key, None) or _VideoReader(path)
-        _readers[key] = reader
-        while len(_readers) > OPEN_VIDEOS:
-            _, old = _readers.popitem(last=False)
-            with old.lock:
-                old.cap.release()
+        reader = _readers.get(key)
+        if reader is not None:
+            _readers.move_to_end(key)
+            return reader
+    opened = _VideoReader(path)
+    with _readers_lock:
+        reader = _readers.setdefault(key, opened)         # another thread may have opened it meanwhile
+        _readers.move_to_end(key)
+        evicted = [_readers.popitem(last=False)[1] for _ in range(len(_readers) - OPEN_VIDEOS)]
+    for old in evicted + ([opened] if reader is not opened else []):
+        old.close()
     return reader
 
 
@@ -151,28 +167,34 @@ def video_frame(path: Path, frame: int) -> np.ndarray:
     another cost one decode each. A seek (cv2's CAP_PROP_POS_FRAMES) decodes from the keyframe before the frame:
     opening and seeking per frame cost 2.8 ms more per frame of the position on pose2sim_single's videos (343 ms
     for frame 99 of a camera, 6.6 ms decoding on), so a minute of footage grew quadratically. A frame before the
-    position, or more than FORWARD frames after it, is sought."""
+    position, or more than FORWARD frames after it, is sought. (More videos per frame than OPEN_VIDEOS, e.g. 33
+    cameras with image and mask videos, reopen and seek every frame again.)"""
     import cv2
 
-    reader = _video_reader(path)
-    with reader.lock:
-        n = reader.count
-        if n > 0 and frame >= n:
-            raise DataError(f"{path}: frame {frame} out of range (the video has {n} frames)")
-        if not 0 <= frame - reader.next <= FORWARD:
-            reader.cap.set(cv2.CAP_PROP_POS_FRAMES, frame)
-            reader.next = frame
-        ok = True
-        while ok and reader.next < frame:
-            ok = reader.cap.grab()
+    if frame < 0:
+        raise DataError(f"{path}: frame {frame} out of range (frames count from 0)")
+    while True:
+        reader = _video_reader(path)
+        with reader.lock:
+            if reader.closed:                              # evicted by another thread meanwhile: open it again
+                continue
+            n = reader.count
+            if n > 0 and frame >= n:
+                raise DataError(f"{path}: frame {frame} out of range (the video has {n} frames)")
+            if not 0 <= frame - reader.next <= FORWARD:
+                reader.cap.set(cv2.CAP_PROP_POS_FRAMES, frame)
+                reader.next = frame
+            ok = True
+            while ok and reader.next < frame:
+                ok = reader.cap.grab()
+                reader.next += 1
+            if ok:
+                ok, img = reader.cap.read()
             reader.next += 1
-        if ok:
-            ok, img = reader.cap.read()
-        reader.next += 1
-        if not ok:
-            reader.next = -FORWARD - 1            # the position is unknown: the next frame is sought
-            raise DataError(f"{path}: frame {frame} could not be decoded")
-    return img
+            if not ok:
+                reader.next = -FORWARD - 1            # the position is unknown: the next frame is sought
+                raise DataError(f"{path}: frame {frame} could not be decoded")
+            return img
 
 
 def video_fps(path: Path) -> float | None:
@@ -181,10 +203,10 @@ def video_fps(path: Path) -> float | None:
 
     try:
         reader = _video_reader(path)
+        with reader.lock:
+            fps = 0.0 if reader.closed else float(reader.cap.get(cv2.CAP_PROP_FPS))
     except DataError:
         return None
-    with reader.lock:
-        fps = float(reader.cap.get(cv2.CAP_PROP_FPS))
     return fps if fps > 0 else None
 
 

@@ -1,5 +1,6 @@
 """The capture node on a synthetic dataset written in the test, its errors, video frames, the bounds node,
 and a golden check on the INRIA dancer."""
+import os
 import re
 
 import cv2
@@ -135,35 +136,35 @@ def test_video_frames_and_star_patterns(tmp_path):
         load_capture(tmp_path, 4, images="{name}/still_*.png", calibration=".")
 
 
+def _bar_video(path, frames=30, offset=10):
+    """An MPEG-4 video (keyframes 12 apart: the frames between are predicted) whose frame f shows a bar f + 1
+    blocks wide."""
+    vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 10, (W, H))
+    for f in range(frames):
+        img = np.zeros((H, W, 3), np.uint8)
+        img[:, : 2 * f + 2] = (7 * f + offset) % 256
+        vw.write(img)
+    vw.release()
+    cap, out = cv2.VideoCapture(str(path)), []
+    while True:
+        ok, img = cap.read()
+        if not ok:
+            return out
+        out.append(np.ascontiguousarray(img[:, :, ::-1]))
+
+
 def test_video_frames_in_any_order_are_the_frames_decoded_front_to_back(tmp_path, monkeypatch):
     """A video stays open and decodes on from where it stopped (one decode per frame of a run, not a seek from the
     keyframe): frames asked in any order (on, back, far ahead: a seek) are exactly those of one front-to-back
-    decode; a rewritten file is opened again; frames past the end name the file."""
+    decode, also between keyframes; after a frame that fails to decode the next one is sought; a rewritten file
+    is opened again; frames outside the video name the file."""
     from nodes.capture import load as L
 
-    path = tmp_path / "take.avi"
-
-    def write(offset):
-        vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10, (W, H))
-        for f in range(12):
-            img = np.zeros((H, W, 3), np.uint8)
-            img[:, : 4 * f + 4] = 20 * f + offset          # a bar as wide as the frame number
-            vw.write(img)
-        vw.release()
-
-    def decoded():
-        cap, out = cv2.VideoCapture(str(path)), []
-        while True:
-            ok, img = cap.read()
-            if not ok:
-                return out
-            out.append(np.ascontiguousarray(img[:, :, ::-1]))
-
-    write(10)
-    ref = decoded()
-    assert len(ref) == 12
+    path = tmp_path / "take.mp4"
+    ref = _bar_video(path)
+    assert len(ref) == 30 and len({r.tobytes() for r in ref}) == 30
     monkeypatch.setattr(L, "FORWARD", 3)
-    seeks = []
+    seeks, fail = [], []
     real = cv2.VideoCapture
 
     class Counting:
@@ -174,19 +175,50 @@ def test_video_frames_in_any_order_are_the_frames_decoded_front_to_back(tmp_path
             seeks.append(value)
             return self.cap.set(prop, value)
 
+        def grab(self):
+            return False if fail and not fail.pop() else self.cap.grab()
+
         def __getattr__(self, name):
             return getattr(self.cap, name)
 
     monkeypatch.setattr(cv2, "VideoCapture", Counting)
-    for f in (0, 1, 2, 5, 6, 3, 11, 10, 4):                 # on, on, on (+2), on, back, far (+5), back, back
+    for f in (0, 1, 2, 5, 6, 3, 17, 16, 4, 29):       # on, on, on (+2), on, back, far (+10), back, back, far
         assert np.array_equal(L.read_image(path, f), ref[f]), f
-    assert seeks == [3, 11, 10, 4]
-    write(30)                                                # the same name, new content
-    import os
+    assert seeks == [3, 17, 16, 4, 29]
+    fail.append(False)                                 # the next grab fails: frame 27 is not decoded ...
+    L.read_image(path, 20)
+    with pytest.raises(DataError, match="take.mp4: frame 23 could not be decoded"):
+        L.read_image(path, 23)
+    assert np.array_equal(L.read_image(path, 24), ref[24]) and seeks[-1] == 24     # ... and the next is sought
+    _bar_video(path, offset=90)                        # the same name, new content (a new mtime: another version)
     os.utime(path, ns=(1, 10**18))
-    assert np.array_equal(L.read_image(path, 5), decoded()[5]) and not np.array_equal(decoded()[5], ref[5])
-    with pytest.raises(DataError, match=r"take.avi: frame 12 out of range \(the video has 12 frames\)"):
-        L.read_image(path, 12)
+    assert np.array_equal(L.read_image(path, 5), _bar_video(tmp_path / "again.mp4", offset=90)[5])
+    with pytest.raises(DataError, match=r"take.mp4: frame 30 out of range \(the video has 30 frames\)"):
+        L.read_image(path, 30)
+    with pytest.raises(DataError, match=r"take.mp4: frame -1 out of range"):
+        L.read_image(path, -1)
+    with pytest.raises(DataError, match="gone.mp4: unreadable video"):
+        L.read_image(tmp_path / "gone.mp4", 0)
+
+
+def test_video_readers_shared_by_threads_and_evicted(tmp_path, monkeypatch):
+    """Threads reading frames of two videos while each lookup evicts the other's reader (one kept open): every
+    frame is the right one (an evicted reader is opened again, not read closed)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from nodes.capture import load as L
+
+    refs = {name: _bar_video(tmp_path / name, offset=k * 100) for k, name in enumerate(("a.mp4", "b.mp4"))}
+    monkeypatch.setattr(L, "OPEN_VIDEOS", 1)
+    rng = np.random.default_rng(5)
+    asks = [(name, int(f)) for name, f in zip(rng.choice(list(refs), 200), rng.integers(0, 30, 200))]
+
+    def read(ask):
+        return np.array_equal(L.read_image(tmp_path / ask[0], ask[1]), refs[ask[0]][ask[1]])
+
+    with ThreadPoolExecutor(4) as pool:
+        assert all(pool.map(read, asks))
+    assert len(L._readers) == 1
 
 
 def test_bounds_node_auto_and_explicit():
