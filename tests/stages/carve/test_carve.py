@@ -234,10 +234,12 @@ def test_fill_colours_matches_its_reference():
 def test_sweep_lists_match_their_reference(small_cup):
     occ = (np.asarray(small_cup["hull"].occupancy) > 0).astype(np.uint8)
     occ[0, 3, 2] = 1          # a voxel on the grid's border
-    got, want = sweep_lists(occ), sweep_lists_reference(occ)
-    assert got.keys() == want.keys()
-    for k in got:
-        assert got[k].dtype == want[k].dtype and np.array_equal(got[k], want[k]), k
+    long = (np.random.default_rng(4).random((3, 300, 2)) < 0.5).astype(np.uint8)   # planes beyond an 8-bit key
+    for grid in (occ, long, np.zeros((2, 1, 3), np.uint8)):
+        got, want = sweep_lists(grid), sweep_lists_reference(grid)
+        assert got.keys() == want.keys()
+        for k in got:
+            assert got[k].dtype == want[k].dtype and np.array_equal(got[k], want[k]), k
 
 
 def test_golden_space_carving(small_cup, golden):
