@@ -78,7 +78,8 @@ def test_dataset_graph_runs(path, dataset_run, data_dir, monkeypatch):
 def test_real_footage_becomes_a_textured_volumetric_video(dataset_run):
     """pose2sim_single's four colour videos (no green screen, no plate), frames 0-2, through the whole chain: one
     tracked segment whose GLB plays the three frames at the videos' 60 fps, upright in glTF's +Y as tall as a
-    person, its meshes on the mattes (IoU), its atlas rendering the photos back (in sample: no camera is left)."""
+    person, its meshes keeping the mattes' outline (IoU), its atlas rendering the photos back: in sample (no camera
+    is left), the error against each photo's pixels under the render well below that of their best single colour."""
     import pygltflib as G
 
     from nodes.common.gltf import read_accessor, world_points
@@ -103,7 +104,7 @@ def test_real_footage_becomes_a_textured_volumetric_video(dataset_run):
     import cv2
 
     atlas = cv2.imdecode(np.frombuffer(blob[png.byteOffset:png.byteOffset + png.byteLength], np.uint8), 1)[:, :, ::-1]
-    psnr = []
+    gain = []
     for k in range(3):
         gl = base + sum(w * read(t["POSITION"]) for w, t in zip(weights[k], prim.targets))   # glTF: +Y up
         height = gl[:, 1].max() - gl[:, 1].min()
@@ -113,9 +114,11 @@ def test_real_footage_becomes_a_textured_volumetric_video(dataset_run):
         photos = dataset_run.output(res, "capture", "images", frame=k).images
         for v in range(len(cams)):
             render, hit = render_texture(x, faces, np.ascontiguousarray(uv[faces]), np.ascontiguousarray(atlas), cams, v)
-            err = render[hit].astype(float) - photos[v][hit]
-            psnr.append(10 * np.log10(255.0 ** 2 / np.mean(err ** 2)))
-    assert np.median(psnr) > 19 and min(psnr) > 17, np.round(psnr, 2)       # 19.6 and 18.0 (wrong UVs: ~12)
+            photo = photos[v][hit].astype(float)
+            flat = photo - photo.mean(axis=0)          # the best single colour for those pixels
+            gain.append(10 * np.log10(np.mean(flat ** 2) / np.mean((render[hit] - photo) ** 2)))   # dB over it
+    # measured: 4.0-10.9 dB, median 4.6 (the atlas read with its v axis unflipped: -3.7 to -1.2)
+    assert np.median(gain) > 3 and min(gain) > 2, np.round(gain, 2)
     for k in range(3):
         table = dataset_run.output(res, "silhouettes", "report", frame=k)
         assert table["mean_iou"] >= 0.92, (k, table["mean_iou"])
