@@ -959,11 +959,11 @@ def test_humanoid_on_real_people(dataset_run, name):
 @pytest.mark.realdata
 def test_humanoid_named_by_body_landmarks_on_pose2sim(dataset_run):
     """pose2sim_single frame 0 (4 colour views, a 4-view hull with spurs): from the shape alone the template is
-    refused (the spurs outnumber the limbs, the head is cut); with skeleton.keypoints' landmarks naming head, hands,
+    refused (no extremity stands out as the head); with skeleton.keypoints' landmarks naming head, hands,
     feet and sides it fits: each shoulder, elbow, wrist, hip, knee and ankle within 25 cm of its MediaPipe landmark,
-    median <= 3 cm (measured 1.7; 7.3 when only the extremities came from the landmarks; max 19.7 at the left hip:
+    median <= 3 cm (measured 1.7; 7.3 when only the extremities came from the landmarks; max 11.1 at the left hip:
     MediaPipe's hips sit high and are not taken), elbows, wrists, knees and ankles placed at their landmarks along
-    the limbs' centre lines within 4 cm of them (measured max 2.9), and every left joint nearer its own side's
+    the limbs' centre lines within 4 cm of them (measured max 3.6), and every left joint nearer its own side's
     landmark than the other side's. Picture: docs/skeleton_humanoid_pose2sim_single.jpg."""
     from pathlib import Path
 
