@@ -259,6 +259,29 @@ def test_matte_edges_contain_projected_box():
     assert 3 <= len(edges) <= 20
 
 
+def test_matte_edges_are_kept_per_camera_box_and_margin():
+    """A static rig's garbage matte is made once per process: the kept edges equal fresh ones for the same camera,
+    box and margin (a caller changing its copy changes nothing kept); a camera moved, another box or margin
+    give their own matte."""
+    from nodes.common.cameras import Camera, Cameras
+
+    cams = ring_rig(3)
+    bounds = np.array([[-0.5, -0.3, -0.4], [0.6, 0.5, 0.3]])
+    first = K.matte_edges(cams, 1, bounds, 2.0)
+    first[:] = 0
+    again = K.matte_edges(cams, 1, bounds, 2.0)
+    np.testing.assert_array_equal(again, K._matte_edges(cams, 1, bounds, 2.0))
+    assert not np.array_equal(again, first)
+    c = cams.cameras[1]
+    moved = Cameras([cams.cameras[0], Camera(c.name, c.width, c.height, c.K, c.Rt + [[0, 0, 0, 0.05], [0] * 4, [0] * 4],
+                                              c.dist, c.metric, c.zsign)])
+    for edges, want in ((K.matte_edges(moved, 1, bounds, 2.0), K._matte_edges(moved, 1, bounds, 2.0)),
+                        (K.matte_edges(cams, 1, bounds * 0.9, 2.0), K._matte_edges(cams, 1, bounds * 0.9, 2.0)),
+                        (K.matte_edges(cams, 1, bounds, 5.0), K._matte_edges(cams, 1, bounds, 5.0))):
+        np.testing.assert_array_equal(edges, want)
+        assert not np.array_equal(edges, again)
+
+
 # ---------------------------------------------------------------- chroma key straight into hull silhouettes
 def test_matte_spans_equal_the_per_pixel_matte():
     """chroma_key_bits finds each row's matte span by bisection: on an all-foreground image its bits are the
