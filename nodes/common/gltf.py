@@ -245,9 +245,15 @@ class GltfBuilder:
     def animate(self, node: int, path: str, times, values, interpolation: str = "LINEAR",
                 animation: str = "animation") -> None:
         """A channel animating ``path`` (translation, rotation, scale, weights) of ``node``: key ``times`` in
-        seconds, ``values`` one row per key (weights: all targets' weights of a key, flattened)."""
+        seconds, ``values`` one row per key (weights: all targets' weights of a key, flattened). Key times are
+        the float32 at or below each time: a player sampling at frame k / fps (three.js's ``mixer.setTime``) gets
+        key k, where the nearest float32 lies above it for some k (10 / 60) and a STEP clip showed frame k - 1."""
         G = self._G
-        t = np.ascontiguousarray(times, np.float32)
+        exact = np.asarray(times, np.float64).ravel()
+        t = exact.astype(np.float32)
+        above = t.astype(np.float64) > exact
+        t[above] = np.nextafter(t[above], np.float32(-np.inf))
+        t = np.ascontiguousarray(t)
         if t.tobytes() not in self._times:
             self._times[t.tobytes()] = self.accessor(t, minmax=True)
         anim = self._animations.get(animation)

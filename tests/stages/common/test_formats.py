@@ -84,6 +84,26 @@ def test_gltf_mesh_without_a_material_gets_a_plain_one(box):
     assert bare.material == 1 and plain.metallicFactor == 0.0 and plain.baseColorFactor == [1.0, 1.0, 1.0, 1.0]
 
 
+@pytest.mark.parametrize("fps", [24, 25, 30, 50, 60])
+def test_gltf_key_times_never_lie_after_their_frame(box, fps):
+    """A player sampling a STEP clip at frame k / fps (three.js's mixer.setTime) gets key k: key times are the
+    float32 at or below k / fps (the nearest float32 of 10 / 60 lies above it, and three.js showed pose2sim's
+    frame 9 at frame 10), increasing, each within one float32 step of its frame."""
+    import pygltflib as G
+
+    v, f, _ = box
+    b = GltfBuilder("test")
+    n = 300
+    node = b.node("morphing", mesh=b.mesh(v, f, targets=[{"POSITION": v * 0.1}]))
+    b.animate(node, "weights", np.arange(n) / fps, np.linspace(0, 1, n), "STEP")
+    g = G.GLTF2.load_from_bytes(b.glb())
+    times = read_accessor(g, g.binary_blob(), g.animations[0].samplers[0].input).astype(np.float64)
+    exact = np.arange(n) / fps
+    assert np.all(times <= exact) and np.all(np.diff(times) > 0)
+    assert np.all(exact - times <= np.spacing(exact.astype(np.float32)))
+    assert np.array_equal(np.searchsorted(times, exact, side="right") - 1, np.arange(n))
+
+
 def test_one_usd_stage_holds_a_tracked_textured_skinned_mesh(box, tmp_path):
     from pxr import Usd, UsdGeom, UsdShade, UsdSkel
 
