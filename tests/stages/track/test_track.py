@@ -163,6 +163,40 @@ def test_rotation_kernel_matches_its_svd_reference():
     assert len(deform.nearest_rotations(S[:0])) == 0
 
 
+def test_silhouette_term_kernel_matches_its_numpy_reference():
+    # kernels/outline.cl against silhouette_rows_reference, bit for bit: binary masks (the distance outline) and
+    # soft alpha, lens distortion, a camera that sees the points from behind and points off the image; rows
+    # outside every silhouette are found and point inwards
+    from nodes.common import raster
+    from nodes.common.silhouettes import Silhouettes
+
+    cams = ring_rig(5, 160, 120, radius=3.0, z=0.5, target=(0, 0, 0.5),
+                    dist=lambda i: [0.0, 0.0, 0.0, 0.0, 0.0] if i % 2 else [-0.2, 0.05, 0.001, -0.002, 0.01])
+    cams[4].Rt = cams[4].Rt.copy()
+    cams[4].Rt[:, 3] += [0.0, 0.0, -3.5]               # camera 4 moved forward past the points: some behind it
+    sphere = trimesh.creation.icosphere(3, radius=0.4).apply_translation([0, 0, 0.5])
+    sil = raster.silhouette(sphere.vertices, sphere.faces, cams)
+    binary = MaskSet([np.where(s > 0, 255, 0).astype(np.uint8) for s in sil])
+    rng = np.random.default_rng(3)
+    soft = MaskSet(binary.masks, alpha=[np.clip(s.astype(np.float32) + rng.normal(0, 0.1, s.shape).astype(np.float32), 0, 1)
+                                        for s in sil])
+    voxel = 0.02
+    x = (sphere.vertices[rng.integers(0, len(sphere.vertices), 3000)] * rng.uniform(0.8, 2.5, (3000, 1))
+         + rng.normal(0, 0.05, (3000, 3)) - [0.0, 0.0, 0.5]) / voxel
+    for masks in (binary, soft):
+        views = Silhouettes.from_inputs(masks, cams, node="track").distance_outline()
+        target = deform.Target(sphere.vertices, sphere.faces, np.array([0.0, 0.0, 0.5]), voxel, views)
+        got, ref = deform.silhouette_rows(x, target), deform.silhouette_rows_reference(x, target)
+        assert len(got[0]) > 1000 and all(np.array_equal(a, b) for a, b in zip(got, ref))
+        i, g, d = got
+        assert np.all(d > 0) and np.allclose(np.linalg.norm(g, axis=1), 1)
+        if masks is binary:          # the distance outline rises towards the sphere (soft alpha: flat, noise)
+            inward = np.einsum("ij,ij->i", g, -x[i] / np.linalg.norm(x[i], axis=1, keepdims=True))
+            assert np.percentile(inward, 10) > 0.5          # 0.66 / 0.91 / 0.99 at the 10th / 50th / 90th
+    empty = deform.silhouette_rows(x[:0], target)
+    assert [len(a) for a in empty] == [0, 0, 0]
+
+
 def test_graph_nodes_are_the_sequential_greedy_picks():
     # sample_nodes searches 16 candidates per Dijkstra call: the picks are those of the greedy one source at a time
     from scipy.sparse.csgraph import dijkstra
