@@ -149,8 +149,9 @@ class Track(Node):
     type_name = "track"
     version = 1
     per = "sequence"
-    kernels = [source("closest.cl"), source("rotations.cl"), source("raster.cl"), source("outline.cl")]
-    # closest points (nodes.common.closest), ARAP rotations, silhouette IoU, the silhouette term
+    kernels = [source("closest.cl"), source("rotations.cl"), source("raster.cl"), source("outline.cl"),
+               source("silhouette.cl")]
+    # closest points (nodes.common.closest), ARAP rotations, silhouette IoU, the silhouette term and its distance outline
     inputs = {
         "meshes": Input(Mesh, doc="each frame's reconstruction (arrive as a list)"),
         "masks": Input(Masks, optional=True, doc="silhouettes per frame (track.crop keeps them small)"),

@@ -24,6 +24,30 @@ def test_distance_outline_values_symmetry_and_repeats():
     assert bilinear == 0.5                                    # >= 0.5 from the pixel edge on
 
 
+def test_outline_kernel_matches_scipy_bit_for_bit():
+    # kernels/silhouette.cl (Meijster's transform in integers) against scipy's exact transform on random masks:
+    # speckle of every density, discs, noise, single rows and columns, one-pixel and one-row images
+    from nodes.common.silhouettes import outline_field, outline_field_reference
+
+    rng = np.random.default_rng(0)
+    for trial in range(160):
+        h, w = (1, int(rng.integers(1, 90))) if trial % 16 == 0 else (int(rng.integers(1, 90)), int(rng.integers(1, 90)))
+        kind = trial % 4
+        if kind == 0:
+            m = (rng.random((h, w)) < rng.choice([0.001, 0.01, 0.3, 0.9, 0.999])) * 255
+        elif kind == 1:
+            yy, xx = np.mgrid[:h, :w]
+            m = ((yy - h / 2) ** 2 + (xx - w / 3) ** 2 < (min(h, w) * rng.uniform(0.1, 0.6)) ** 2) * 200
+        elif kind == 2:
+            m = rng.integers(0, 256, (h, w))
+        else:
+            m = np.zeros((h, w))
+            m[rng.integers(0, h), :] = 255
+            m[:, rng.integers(0, w)] = 128
+        m = m.astype(np.uint8)
+        assert np.array_equal(outline_field(m), outline_field_reference(m)), (trial, h, w)
+
+
 def test_distance_outline_empty_and_full_masks():
     empty, full = outline(np.zeros((8, 9), np.uint8), np.full((8, 9), 255, np.uint8))
     assert np.all(np.isfinite(empty)) and empty.max() < 0.5   # nothing inside
