@@ -328,18 +328,17 @@ class OutlineCL(clrt.Runner):
     GROUP = 64
 
 
-def _outline_fields(views):
-    """The views' outline fields packed for the device once per frame's silhouettes (kept on them): (buffer over
-    the packed float32 fields, element offsets, widths, heights, the packed array kept alive)."""
+def _outline_device(views, cl: OutlineCL):
+    """The views' cameras and outline fields on the device (packed: fields, element offsets, widths, heights),
+    made once per frame's silhouettes and kept on them with the host arrays the buffers use."""
     kept = getattr(views, "_outline_device", None)
-    if kept is None:
+    if kept is None or kept[0] is not cl:
         fields = [np.ascontiguousarray(a, np.float32) for a in views.alpha]
-        off = np.r_[0, np.cumsum([a.size for a in fields])].astype(np.int64)
-        packed = np.concatenate([a.ravel() for a in fields]) if fields else np.zeros(1, np.float32)
-        kept = (packed, off[:-1].copy(), np.array([a.shape[1] for a in fields], np.int32),
-                np.array([a.shape[0] for a in fields], np.int32), np.ascontiguousarray(views.cams, np.float32))
-        views._outline_device = kept
-    return kept
+        host = (np.ascontiguousarray(views.cams, np.float32), np.concatenate([a.ravel() for a in fields]),
+                np.cumsum([0] + [a.size for a in fields[:-1]]).astype(np.int64),
+                np.array([a.shape[1] for a in fields], np.int32), np.array([a.shape[0] for a in fields], np.int32))
+        kept = views._outline_device = (cl, host, [cl.host(a) for a in host])
+    return kept[2]
 
 
 def silhouette_rows(x: np.ndarray, target: Target, step: float = 0.5):
@@ -354,14 +353,10 @@ def silhouette_rows(x: np.ndarray, target: Target, step: float = 0.5):
     n, nv = len(X), len(views.cams)
     if n == 0 or nv == 0:
         return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0)
-    packed, off, w, h, cams = _outline_fields(views)
     cl = OutlineCL.get()
     keep_b, g_b, d_b = cl.buffer("keep", nv * n), cl.buffer("g", 24 * nv * n), cl.buffer("d", 8 * nv * n)
-    dev = getattr(views, "_outline_buffers", None)
-    if dev is None or dev[0] is not cl:
-        dev = views._outline_buffers = (cl, cl.host(packed), cl.host(off), cl.host(w), cl.host(h), cl.host(cams))
-    cl.launch("outline_pull", (n, nv), (OutlineCL.GROUP, 1), cl.upload("outline_points", X), np.int32(n), dev[5],
-              dev[1], dev[2], dev[3], dev[4], np.float64(step * target.voxel), np.float64(step), keep_b, g_b, d_b)
+    cl.launch("outline_pull", (n, nv), (OutlineCL.GROUP, 1), cl.upload("outline_points", X), np.int32(n),
+              *_outline_device(views, cl), np.float64(step * target.voxel), np.float64(step), keep_b, g_b, d_b)
     keep = cl.read(keep_b, (nv, n), np.uint8)
     pv, pi = np.nonzero(keep)                                   # by view, then point: the reference's order
     if len(pv) == 0:
