@@ -46,10 +46,11 @@ __kernel void outline_pull(__global const double* X, int n, __global const float
     __global const float* cam = cams + v * CAM_FLOATS;
     __global const float* field = fields + field_off[v];
     int W = field_w[v], H = field_h[v];
+    keep[o] = 0;
+    if (W < 2 || H < 2) return;                 // a view that sees nothing (track.crop keeps 1 x 1 of an empty mask)
     double3 x = (double3)(X[3 * i], X[3 * i + 1], X[3 * i + 2]);
     double a0;
     int ok = outline_sample(cam, field, W, H, x, &a0);
-    keep[o] = 0;
     if (!(ok && a0 < 0.5)) return;
     double gr[3];
     for (int axis = 0; axis < 3; axis++) {

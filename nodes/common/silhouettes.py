@@ -95,6 +95,13 @@ class SilhouetteCL(clrt.Runner):
     source = source("silhouette.cl")
 
 
+class OutlineFieldCL(clrt.Runner):
+    """kernels/edt.cl: the distance outline (double precision: a file of its own, so the silhouette bits that
+    the hull builds need no fp64)."""
+
+    source = source("edt.cl")
+
+
 class SilhouetteBits:
     """Silhouettes on the OpenCL device in the layout of kernels/silhouette.h, one per view: one bit per pixel
     (rows of Wb = ceil(W/8) bytes, pixel x in bit x % 8 of byte x // 8) and the (Hb+1) x (Wb+1) int32
@@ -297,7 +304,7 @@ class Silhouettes:
 
 def outline_field(mask: np.ndarray) -> np.ndarray:
     """``distance_outline``'s field of one uint8 mask (inside > 127): float32 0.5 + the signed distance between
-    pixel centres to the other class minus half a pixel. On the OpenCL device (kernels/silhouette.cl edt_columns,
+    pixel centres to the other class minus half a pixel. On the OpenCL device (kernels/edt.cl edt_columns,
     edt_rows: Meijster's linear-time transform in integers), bit for bit ``outline_field_reference`` (scipy's exact
     transform); child_rope's ten 0.17 Mpx crops 175 ms a frame with scipy. A mask of one class: the reference's."""
     m = np.ascontiguousarray(mask, np.uint8)
@@ -305,7 +312,7 @@ def outline_field(mask: np.ndarray) -> np.ndarray:
     if inside.all() or not inside.any():
         return outline_field_reference(m)
     H, W = m.shape
-    run = SilhouetteCL.get()
+    run = OutlineFieldCL.get()
     n = H * W
     g_in, g_out = run.buffer("edt_g_in", 4 * n), run.buffer("edt_g_out", 4 * n)
     dev_mask = run.upload("edt_mask", m)

@@ -373,12 +373,14 @@ def silhouette_rows_reference(x: np.ndarray, target: Target, step: float = 0.5):
 
     views = target.views
     out_i, out_g, out_d = [], [], []
-    X = target.world(x)
+    X = target.world(np.asarray(x, np.float64))
     h = step * target.voxel
     for v in range(len(views.cams)):
         cam = views.cams[v]
         field_ = views.alpha[v]
         H, W_ = field_.shape
+        if W_ < 2 or H < 2:                          # a view that sees nothing (track.crop: 1 x 1 of an empty mask)
+            continue
 
         def sample(P):
             u, w, front = project_packed_f32(cam, P.astype(np.float32))

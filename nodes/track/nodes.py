@@ -150,7 +150,7 @@ class Track(Node):
     version = 1
     per = "sequence"
     kernels = [source("closest.cl"), source("rotations.cl"), source("raster.cl"), source("outline.cl"),
-               source("silhouette.cl")]
+               source("edt.cl")]
     # closest points (nodes.common.closest), ARAP rotations, silhouette IoU, the silhouette term and its distance outline
     inputs = {
         "meshes": Input(Mesh, doc="each frame's reconstruction (arrive as a list)"),

@@ -46,6 +46,11 @@ def test_outline_kernel_matches_scipy_bit_for_bit():
             m[:, rng.integers(0, w)] = 128
         m = m.astype(np.uint8)
         assert np.array_equal(outline_field(m), outline_field_reference(m)), (trial, h, w)
+    for h, w, y, x in ((200, 210, 0, 0), (180, 230, 179, 229), (7, 300, 3, 0)):      # one pixel far from the rest:
+        for value in (255, 0):                                                       # columns without the other class
+            m = np.full((h, w), 255 - value, np.uint8)
+            m[y, x] = value
+            assert np.array_equal(outline_field(m), outline_field_reference(m)), (h, w, value)
 
 
 def test_distance_outline_empty_and_full_masks():

@@ -195,6 +195,14 @@ def test_silhouette_term_kernel_matches_its_numpy_reference():
             assert np.percentile(inward, 10) > 0.5          # 0.66 / 0.91 / 0.99 at the 10th / 50th / 90th
     empty = deform.silhouette_rows(x[:0], target)
     assert [len(a) for a in empty] == [0, 0, 0]
+    # a view with an empty mask, cropped by track.crop to 1 x 1 pixel, pulls nothing (it read past its field)
+    blind = binary.masks[:4] + [np.zeros((120, 160), np.uint8)]
+    crop = run_node("track.crop", {"masks": MaskSet(blind), "cameras": cams}, {"margin": 4})
+    assert crop["masks"].masks[4].shape == (1, 1)
+    views = Silhouettes.from_inputs(crop["masks"], crop["cameras"], node="track").distance_outline()
+    target = deform.Target(sphere.vertices, sphere.faces, np.array([0.0, 0.0, 0.5]), voxel, views)
+    got, ref = deform.silhouette_rows(x, target), deform.silhouette_rows_reference(x, target)
+    assert len(got[0]) > 1000 and all(np.array_equal(a, b) for a, b in zip(got, ref))
 
 
 def test_graph_nodes_are_the_sequential_greedy_picks():
