@@ -7,6 +7,7 @@ meshes to out/: that data may not be published with the project).
     python bench/track.py synth --set stage.scene=touch --frames 0:24   # arms held against the hips: sliding
     python bench/track.py speed [--resolution 164]    # ~20k vertices (hull 164^3), ours per frame vs nricp_amberg
     python bench/track.py child_rope                  # graphs/track_child_rope.yaml, 200 frames
+    python bench/track.py silhouettes [--frames 27:37]   # child_rope: the silhouette term's kernels vs NumPy / scipy
     options: --cache DIR (default ./.volcap-cache), --frames A:B, --no-pictures, --set NODE.PARAM=VALUE (synth, child_rope)
 
 The per-frame reconstructions come from the graphs through the engine and its cache (the first run computes
@@ -265,6 +266,50 @@ def bench_speed(args):
     print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
 
 
+# ---------------------------------------------------------------- the silhouette term's kernels
+def bench_silhouettes(args):
+    """child_rope frames (10 views, binary masks cropped by track.crop): the distance outline of each frame's masks
+    (kernels/edt.cl vs scipy's exact transform) and the silhouette term's rows for 6000 samples of the previous
+    frame's surface (kernels/outline.cl vs NumPy), the same results asserted, medians of 5 calls each."""
+    from nodes.common.silhouettes import Silhouettes, outline_field, outline_field_reference
+    from nodes.track import deform
+
+    graph = ROOT / "graphs/track_child_rope.yaml"
+    frames = args.frames or "27:37"
+    crop = run(graph, args.cache, frames, upto="crop")
+    meshes, _ = outputs(run(graph, args.cache, frames, upto="relax"), "relax", "mesh", T.Mesh)
+    masks, _ = outputs(crop, "crop", "masks", T.Masks)
+    cams, _ = outputs(crop, "crop", "cameras", T.CameraSet)
+
+    def best(f, *a):
+        ts = []
+        for _ in range(5):
+            t0 = time.perf_counter()
+            out = f(*a)
+            ts.append(time.perf_counter() - t0)
+        return float(np.median(ts)), out
+
+    rng = np.random.default_rng(0)
+    rows = []
+    for i in range(1, len(meshes)):
+        fields = [best(f, m) for m in masks[i].masks for f in (outline_field, outline_field_reference)]
+        assert all(np.array_equal(a[1], b[1]) for a, b in zip(fields[::2], fields[1::2]))
+        views = Silhouettes.from_inputs(masks[i], cams[i], min_views=9, node="track").distance_outline()
+        target = deform.Target(meshes[i].vertices, meshes[i].faces, np.asarray(meshes[0].vertices).min(axis=0), 0.0122, views)
+        prev = (np.asarray(meshes[i - 1].vertices) - target.origin) / target.voxel
+        x = prev[rng.choice(len(prev), min(6000, len(prev)), replace=False)]
+        new, ref = best(deform.silhouette_rows, x, target), best(deform.silhouette_rows_reference, x, target)
+        assert all(np.array_equal(a, b) for a, b in zip(new[1], ref[1]))
+        rows.append((sum(t for t, _ in fields[::2]), sum(t for t, _ in fields[1::2]), new[0], ref[0], len(new[1][0])))
+    r = np.array(rows)
+    print(f"\nchild_rope frames {frames}, {len(masks[1].masks)} views, masks {sum(m.size for m in masks[1].masks) / 1e6:.2f} Mpx "
+          f"a frame; the same results asserted")
+    print(f"distance outline of a frame's masks: device {1e3 * np.median(r[:, 0]):.1f} ms, scipy {1e3 * np.median(r[:, 1]):.1f} ms "
+          f"({np.median(r[:, 1] / r[:, 0]):.1f}x)")
+    print(f"silhouette rows, 6000 samples x views ({np.median(r[:, 4]):.0f} rows): device {1e3 * np.median(r[:, 2]):.1f} ms, "
+          f"NumPy {1e3 * np.median(r[:, 3]):.1f} ms ({np.median(r[:, 3] / r[:, 2]):.1f}x); 15 calls a fit")
+
+
 # ---------------------------------------------------------------- child_rope
 def bench_child_rope(args):
     graph = ROOT / "graphs/track_child_rope.yaml"
@@ -383,7 +428,7 @@ def plot_residuals(table, path: Path, title: str, extra=None):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("what", choices=("synth", "speed", "child_rope"))
+    ap.add_argument("what", choices=("synth", "speed", "child_rope", "silhouettes"))
     ap.add_argument("--cache", type=Path, default=ROOT / ".volcap-cache")
     ap.add_argument("--frames", default=None)
     ap.add_argument("--nricp-frames", type=int, default=3)
@@ -392,7 +437,7 @@ def main():
     ap.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", help="synth, child_rope: graph overrides")
     args = ap.parse_args()
     header()
-    {"synth": bench_synth, "speed": bench_speed, "child_rope": bench_child_rope}[args.what](args)
+    {"synth": bench_synth, "speed": bench_speed, "child_rope": bench_child_rope, "silhouettes": bench_silhouettes}[args.what](args)
     print(f"load average at the end: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
 
 
