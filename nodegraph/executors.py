@@ -151,7 +151,9 @@ class LocalExecutor:
                     key = tracker.ready.pop(0)
                     with _sigint_ignored():  # workers start ignoring Ctrl-C: this process handles it
                         running[pool.submit(execute_unit, tracker.launch(key), cache_root)] = key
-                done, _ = wait(running, return_when=FIRST_COMPLETED, timeout=0.5 if on_progress else None)
+                # never an endless wait: a Ctrl-C that another thread of this process took is only flagged for
+                # the main thread, which acts on it when it wakes (a quiet run without a timeout went on)
+                done, _ = wait(running, return_when=FIRST_COMPLETED, timeout=0.5)
                 if on_progress:
                     poll()
                 broken = False
