@@ -236,7 +236,7 @@ class Target:
 
 @dataclass
 class FitParams:
-    iterations: int = 10          # ICP iterations per frame
+    iterations: int = 6           # ICP iterations per frame (the schedule below spans them; fast motion: 15)
     inner: int = 4                # local/global ARAP steps per ICP iteration (one factorisation)
     arap: float = 1.0             # ARAP weight at the last iteration (relative to the data terms)
     arap_start: float = 4.0       # ... at the first (the stiffness is relaxed geometrically)

@@ -164,7 +164,8 @@ class Track(Node):
     params = {
         "voxel": Param(float, 0.0, range=(0.0, None), doc="metres per voxel (distances are in voxels); 0 = 2 x median edge length"),
         "spacing": Param(float, 4.0, range=(1.0, 100.0), doc="deformation graph node spacing, voxels"),
-        "iterations": Param(int, 10, range=(1, 100), doc="ICP iterations per frame"),
+        "iterations": Param(int, 6, range=(1, 100), doc="ICP iterations per frame (limbs that move "
+                            "several voxels a frame: 15, as graphs/track_child_rope.yaml)"),
         "arap": Param(float, 1.0, range=(0.0, None), doc="ARAP stiffness at the last iteration (starts 4x higher)"),
         "coverage": Param(float, 6.0, range=(0.0, None), doc="weight of the reconstruction -> tracked term (limbs that moved are reached)"),
         "silhouette": Param(float, 4.0, range=(0.0, None), doc="silhouette term weight (with masks and cameras)"),
