@@ -150,6 +150,17 @@ class SlowWriter(Node):
         return {"out": b"data"}
 
 
+class SlowFrameWriter(Node):
+    """SlowWriter per frame: each frame its own work item, each stalling in its write."""
+
+    type_name = "t.slowwrite.frame"
+    uses_frame = True
+    outputs = {"out": SlowType}
+
+    def run(self, *, frame):
+        return {"out": b"data"}
+
+
 class Crash(Node):
     """Fault injection: kills its own process the first time it runs on frame ``on_frame`` (a marker file
     remembers that it happened), like a worker lost to the OOM killer; marker "always" crashes every time."""

@@ -488,6 +488,38 @@ def test_ctrl_c_with_a_process_pool_is_one_line_and_stops_the_workers(tmp_path):
     assert err.strip() == "interrupted: finished work items are cached; rerun to continue"
 
 
+@pytest.mark.slow
+def test_ctrl_c_taken_by_another_thread_stops_a_quiet_pool_run(tmp_path):
+    # Linux may hand a process-directed SIGINT to any thread (one that has no signal pending); Python's handler then
+    # only flags it for the main thread, which acts on it when it next runs. A main thread blocked in the pool's
+    # wait without a timeout (`-q`: no progress to poll) never ran again until an item finished (CI's fresh clone:
+    # the test above timed out once). Deterministic here: two frames' items that each write for 60 s (nothing
+    # finishes earlier: no other item wakes the main thread), and the SIGINT sent to another thread of the run's process.
+    p = write(tmp_path, "frames: 0:2\nnodes:\n  s: {type: t.slowwrite.frame}\n")
+    signal_file = tmp_path / "signal"
+    env = dict(os.environ, VOLCAP_TEST_SIGNAL=str(signal_file), PYTHONPATH=os.pathsep.join(sys.path))
+    code = ("import os, signal, sys, threading, time, enginenodes; from nodegraph.cli import main\n"
+            "def other():\n"
+            f"    while not os.path.exists(r'{signal_file}'): time.sleep(0.05)\n"
+            "    time.sleep(1.0)\n"
+            "    signal.pthread_kill(threading.get_ident(), signal.SIGINT)\n"
+            "threading.Thread(target=other, daemon=True).start()\n"
+            f"sys.exit(main(['--cache', r'{tmp_path / 'cache'}', 'run', r'{p}', '--out', r'{tmp_path / 'out'}', '-j', '2', '-q']))")
+    proc = subprocess.Popen([sys.executable, "-c", code], env=env, cwd=Path(__file__).parent, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True)
+    try:
+        t0 = time.monotonic()
+        _, err = proc.communicate(timeout=40)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.communicate()
+        pytest.fail("the run did not stop on a SIGINT taken by another thread")
+    finally:
+        proc.kill()
+    assert proc.returncode == 130 and time.monotonic() - t0 < 30, err
+    assert err.strip() == "interrupted: finished work items are cached; rerun to continue"
+
+
 def test_cache_commands(tmp_path, capsys):
     p = write(tmp_path, CHAIN)
     cache = ["--cache", str(tmp_path / "cache")]
