@@ -463,15 +463,22 @@ def test_killed_writer_leaves_no_artifact(tmp_path):
     assert not explain(g, cache)[0]["cached"]
 
 
-@pytest.mark.slow
-def test_ctrl_c_with_a_process_pool_is_one_line_and_stops_the_workers(tmp_path):
-    p = write(tmp_path, "frames: 0:3\nnodes:\n  s: {type: t.slowwrite}\n  src: {type: t.source}\n")
+def start_pool_run(tmp_path, graph: str, prelude: str = ""):
+    """``volcap run -j 2 -q`` of ``graph`` in a child process of its own session, ``prelude`` run first in it;
+    returns (the process, the file the slow writers create when they start writing)."""
+    p = write(tmp_path, graph)
     signal_file = tmp_path / "signal"
     env = dict(os.environ, VOLCAP_TEST_SIGNAL=str(signal_file), PYTHONPATH=os.pathsep.join(sys.path))
-    code = ("import sys, enginenodes; from nodegraph.cli import main; "
+    code = ("import os, signal, sys, threading, time, enginenodes; from nodegraph.cli import main\n" + prelude +
             f"sys.exit(main(['--cache', r'{tmp_path / 'cache'}', 'run', r'{p}', '--out', r'{tmp_path / 'out'}', '-j', '2', '-q']))")
     proc = subprocess.Popen([sys.executable, "-c", code], env=env, cwd=Path(__file__).parent, stderr=subprocess.PIPE,
                             text=True, start_new_session=True)
+    return proc, signal_file
+
+
+@pytest.mark.slow
+def test_ctrl_c_with_a_process_pool_is_one_line_and_stops_the_workers(tmp_path):
+    proc, signal_file = start_pool_run(tmp_path, "frames: 0:3\nnodes:\n  s: {type: t.slowwrite}\n  src: {type: t.source}\n")
     try:
         for _ in range(600):
             if signal_file.exists():
@@ -495,18 +502,12 @@ def test_ctrl_c_taken_by_another_thread_stops_a_quiet_pool_run(tmp_path):
     # wait without a timeout (`-q`: no progress to poll) never ran again until an item finished (CI's fresh clone:
     # the test above timed out once). Deterministic here: two frames' items that each write for 60 s (nothing
     # finishes earlier: no other item wakes the main thread), and the SIGINT sent to another thread of the run's process.
-    p = write(tmp_path, "frames: 0:2\nnodes:\n  s: {type: t.slowwrite.frame}\n")
-    signal_file = tmp_path / "signal"
-    env = dict(os.environ, VOLCAP_TEST_SIGNAL=str(signal_file), PYTHONPATH=os.pathsep.join(sys.path))
-    code = ("import os, signal, sys, threading, time, enginenodes; from nodegraph.cli import main\n"
-            "def other():\n"
-            f"    while not os.path.exists(r'{signal_file}'): time.sleep(0.05)\n"
-            "    time.sleep(1.0)\n"
-            "    signal.pthread_kill(threading.get_ident(), signal.SIGINT)\n"
-            "threading.Thread(target=other, daemon=True).start()\n"
-            f"sys.exit(main(['--cache', r'{tmp_path / 'cache'}', 'run', r'{p}', '--out', r'{tmp_path / 'out'}', '-j', '2', '-q']))")
-    proc = subprocess.Popen([sys.executable, "-c", code], env=env, cwd=Path(__file__).parent, stderr=subprocess.PIPE,
-                            text=True, start_new_session=True)
+    other = ("def other():\n"
+             f"    while not os.path.exists(r'{tmp_path / 'signal'}'): time.sleep(0.05)\n"
+             "    time.sleep(1.0)\n"
+             "    signal.pthread_kill(threading.get_ident(), signal.SIGINT)\n"
+             "threading.Thread(target=other, daemon=True).start()\n")
+    proc, _ = start_pool_run(tmp_path, "frames: 0:2\nnodes:\n  s: {type: t.slowwrite.frame}\n", other)
     try:
         t0 = time.monotonic()
         _, err = proc.communicate(timeout=40)
