@@ -152,8 +152,8 @@ class LocalExecutor:
                     with _sigint_ignored():  # workers start ignoring Ctrl-C: this process handles it
                         running[pool.submit(execute_unit, tracker.launch(key), cache_root)] = key
                 # never an endless wait: a Ctrl-C that another thread of this process took is only flagged for
-                # the main thread, which acts on it when it wakes (the likely cause of one CI timeout of the
-                # Ctrl-C test; not reproduced deterministically)
+                # the main thread, which acts on it when it wakes (the cause of one CI timeout of the Ctrl-C test;
+                # test_ctrl_c_taken_by_another_thread_stops_a_quiet_pool_run hangs without the timeout)
                 done, _ = wait(running, return_when=FIRST_COMPLETED, timeout=0.5)
                 if on_progress:
                     poll()
