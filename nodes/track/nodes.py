@@ -15,6 +15,8 @@ from .deform import FitParams
 from .topology import classify_sequence, mesh_topology, sequence_class
 from .tracking import Frames, TrackParams, track_sequence
 
+_TRACK, _FIT = TrackParams(), FitParams()
+
 
 class Classify(Node):
     """The class of a mesh sequence after the seed chapter's Table 8.1 (Arcila 2011), per frame range: dynamic
@@ -161,24 +163,26 @@ class Track(Node):
         "sequence": Output(MeshSequence, "tracked meshes, metadata segment / keyframe / frame"),
         "residuals": Output(Table, "per-frame residuals (voxels), segments, keyframes"),
     }
+    # the defaults are the library's (TrackParams, FitParams): the benches that call track_sequence directly
+    # measure what a graph gets
     params = {
-        "voxel": Param(float, 0.0, range=(0.0, None), doc="metres per voxel (distances are in voxels); 0 = 2 x median edge length"),
-        "spacing": Param(float, 4.0, range=(1.0, 100.0), doc="deformation graph node spacing, voxels"),
-        "iterations": Param(int, 6, range=(1, 100), doc="ICP iterations per frame (limbs that move "
+        "voxel": Param(float, _TRACK.voxel, range=(0.0, None), doc="metres per voxel (distances are in voxels); 0 = 2 x median edge length"),
+        "spacing": Param(float, _TRACK.spacing, range=(1.0, 100.0), doc="deformation graph node spacing, voxels"),
+        "iterations": Param(int, _FIT.iterations, range=(1, 100), doc="ICP iterations per frame (limbs that move "
                             "several voxels a frame: 15, as graphs/track_child_rope.yaml)"),
-        "arap": Param(float, 1.0, range=(0.0, None), doc="ARAP stiffness at the last iteration (starts 4x higher)"),
-        "coverage": Param(float, 6.0, range=(0.0, None), doc="weight of the reconstruction -> tracked term (limbs that moved are reached)"),
-        "silhouette": Param(float, 4.0, range=(0.0, None), doc="silhouette term weight (with masks and cameras)"),
-        "samples": Param(int, 6000, range=(100, None), doc="vertices sampled per surface for the fit"),
-        "fail_mean": Param(float, 1.0, range=(0.0, None), doc="a fit fails beyond this mean surface distance, voxels"),
-        "fail_p95": Param(float, 3.0, range=(0.0, None), doc="... or this 95th percentile distance, either direction"),
-        "max_iou_drop": Param(float, 0.01, range=(0.0, 1.0), doc="... or this silhouette IoU below the reconstruction's"),
+        "arap": Param(float, _FIT.arap, range=(0.0, None), doc="ARAP stiffness at the last iteration (starts 4x higher)"),
+        "coverage": Param(float, _FIT.coverage, range=(0.0, None), doc="weight of the reconstruction -> tracked term (limbs that moved are reached)"),
+        "silhouette": Param(float, _FIT.silhouette, range=(0.0, None), doc="silhouette term weight (with masks and cameras)"),
+        "samples": Param(int, _FIT.samples, range=(100, None), doc="vertices sampled per surface for the fit"),
+        "fail_mean": Param(float, _TRACK.fail_mean, range=(0.0, None), doc="a fit fails beyond this mean surface distance, voxels"),
+        "fail_p95": Param(float, _TRACK.fail_p95, range=(0.0, None), doc="... or this 95th percentile distance, either direction"),
+        "max_iou_drop": Param(float, _TRACK.max_iou_drop, range=(0.0, 1.0), doc="... or this silhouette IoU below the reconstruction's"),
         "min_views": Param(int, 0, range=(0, None), doc="silhouette vote: 0 = all views; k = inside at least k"),
-        "extrapolate": Param(float, 0.7, range=(0.0, 1.0), doc="each frame starts from the last state plus this share of the last motion"),
-        "tries": Param(int, 3, range=(1, 100), doc="keyframe candidates tracked per round; the longest segment is kept"),
-        "retry": Param(int, 2, range=(0, 100), doc="a failed fit is tried again from the previous frame's state (no motion "
+        "extrapolate": Param(float, _TRACK.extrapolate, range=(0.0, 1.0), doc="each frame starts from the last state plus this share of the last motion"),
+        "tries": Param(int, _TRACK.tries, range=(1, 100), doc="keyframe candidates tracked per round; the longest segment is kept"),
+        "retry": Param(int, _TRACK.retry, range=(0, 100), doc="a failed fit is tried again from the previous frame's state (no motion "
                        "prediction) with this many times the iterations (0, 1: no second try)"),
-        "bridge": Param(int, 8, range=(0, 1000), doc="after a failed fit, frames tracked on to one that fits, then filled "
+        "bridge": Param(int, _TRACK.bridge, range=(0, 1000), doc="after a failed fit, frames tracked on to one that fits, then filled "
                         "backwards from it (0: a failed fit ends the segment)"),
     }
 
@@ -195,7 +199,7 @@ class Track(Node):
         t0 = time.perf_counter()
         data = Frames(meshes, masks, cameras, voxel, min_views, numbers=frames)
         params = TrackParams(spacing, data.voxel, fail_mean, fail_p95, max_iou_drop, extrapolate,
-                             FitParams(iterations=iterations, arap=arap, arap_start=4.0 * arap, coverage=coverage, silhouette=silhouette,
+                             FitParams(iterations=iterations, arap=arap, arap_start=_FIT.arap_start / _FIT.arap * arap, coverage=coverage, silhouette=silhouette,
                                        samples=samples), tries, bridge, retry)
         results, segments = track_sequence(data, params, progress=self.progress)
         seconds = time.perf_counter() - t0
