@@ -733,8 +733,10 @@ class MeshSequence(DataType):
     """Meshes over frames: a list of trimesh.Trimesh. A dynamic mesh (constant connectivity) is a sequence
     whose meshes all share one face array; a tracked sequence is a run of such segments, each mesh carrying
     ``metadata["segment"]`` (and "keyframe", "frame" when known; see ``sequence_segments``). Stored per
-    segment: one PLY (its first frame, with the faces) and the float64 vertices of all its frames
-    (segment_NNNN.npy, (frames, V, 3)); sequence.json lists the segments and frames."""
+    segment: the float64 vertices of all its frames (segment_NNNN.npy, (frames, V, 3)), its faces
+    (segment_NNNN.faces.npy, int32) and a PLY of its first frame (to look at: loading reads the arrays, memory-mapped
+    and read-only like images, so a frame's reader of a long take does not parse every segment's PLY: pose2sim's
+    13 segments cost each frame's ``track.frame`` 0.19 s); sequence.json lists the segments and frames."""
 
     name = "MeshSequence"
 
@@ -773,8 +775,9 @@ class MeshSequence(DataType):
         segments = []
         for s, (start, stop) in enumerate(sequence_segments(v)):
             v[start].export(folder / f"segment_{s:04d}.ply")
-            # every segment's vertices exactly (the PLY holds the faces and float32 vertices)
-            np.save(folder / f"segment_{s:04d}.npy", np.stack([np.asarray(m.vertices, np.float64) for m in v[start:stop]]))
+            # every segment's vertices exactly (the PLY holds float32 vertices) and its faces
+            _save_array(folder / f"segment_{s:04d}.npy", np.stack([np.asarray(m.vertices, np.float64) for m in v[start:stop]]))
+            _save_array(folder / f"segment_{s:04d}.faces.npy", np.asarray(v[start].faces, np.int32))
             segments.append({"start": start, "stop": stop, "segment": v[start].metadata.get("segment"),
                              "keyframe": v[start].metadata.get("keyframe")})
         frames = [m.metadata.get("frame") for m in v]
@@ -788,11 +791,17 @@ class MeshSequence(DataType):
         doc = json.loads((folder / "sequence.json").read_text())
         out = []
         for s, seg in enumerate(doc["segments"]):
-            first = trimesh.load(folder / f"segment_{s:04d}.ply", process=False, force="mesh")
+            stored = folder / f"segment_{s:04d}.faces.npy"
+            if stored.is_file():
+                faces = np.asarray(_load_array(stored), np.int64)
+            else:            # written before the faces were stored as an array
+                faces = trimesh.load(folder / f"segment_{s:04d}.ply", process=False, force="mesh").faces
             n = seg["stop"] - seg["start"]
-            points = np.load(folder / f"segment_{s:04d}.npy")
+            points = _load_array(folder / f"segment_{s:04d}.npy")
+            if points.shape[:1] != (n,) or points.ndim != 3 or points.shape[2] != 3:
+                raise DataError(f"{folder}: segment {s} holds {points.shape} vertices for {n} frames")
             for k in range(n):
-                m = trimesh.Trimesh(points[k], first.faces, process=False)
+                m = trimesh.Trimesh(points[k], faces, process=False)
                 for key in ("segment", "keyframe"):
                     if seg.get(key) is not None:
                         m.metadata[key] = seg[key]

@@ -9,7 +9,7 @@ import pytest
 import trimesh
 from rig import ring_rig, two_segments
 
-from nodegraph import NodeError, Table
+from nodegraph import DataError, NodeError, Table
 from nodegraph.graphfile import load_graph
 from nodegraph.testing import run_node
 from nodes.common import closest
@@ -404,6 +404,17 @@ def test_mesh_sequence_roundtrip_keeps_segments(tracked_pair, tmp_path):
     assert [m.metadata for m in back] == [m.metadata for m in tracked_pair]
     assert all(np.array_equal(a.vertices, b.vertices) and np.array_equal(a.faces, b.faces) for a, b in zip(back, tracked_pair))
     assert len(list(tmp_path.glob("*.ply"))) == 2                                # one PLY per segment
+    # read from the arrays, memory-mapped: a reader cannot edit the stored frames in place
+    assert len(list(tmp_path.glob("*.faces.npy"))) == 2 and not back[0].vertices.flags.writeable
+    with pytest.raises(ValueError, match="read-only"):
+        back[0].vertices[0] = 0.0
+    for f in tmp_path.glob("*.faces.npy"):      # an entry written before the faces were stored: from its PLYs
+        f.unlink()
+    old = MeshSequence.load(tmp_path)
+    assert all(np.array_equal(a.faces, b.faces) and np.array_equal(a.vertices, b.vertices) for a, b in zip(old, back))
+    (tmp_path / "segment_0001.npy").write_bytes(b"not an array")
+    with pytest.raises(DataError, match="unreadable array"):
+        MeshSequence.load(tmp_path)
     bad = list(tracked_pair)
     bad[1] = trimesh.Trimesh(bad[3].vertices, bad[3].faces, process=False, metadata={"segment": 0})
     assert "do not share their faces" in MeshSequence.check(bad)
