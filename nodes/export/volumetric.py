@@ -28,6 +28,7 @@ from nodegraph import NodeError
 from nodes.common.gltf import GltfBuilder, png_bytes, texture_image, texture_uv
 from nodes.common.meshops import smooth_vertex_normals
 from nodes.common.types import sequence_segments
+from nodes.common.views import map_views
 
 
 def seam_split(faces, textured, frame: int) -> np.ndarray:
@@ -151,8 +152,7 @@ def volumetric_files(meshes, textured, frames, name: str, fps: float, formats, c
         faces = np.asarray(textured[a].faces)
         stem = f"{name}_{s:04d}"
         tex_names = [f"{name}_tex/{int(frames[k]):05d}.png" for k in range(a, c)]
-        for tn, img in zip(tex_names, atlases):
-            files[tn] = png_bytes(img)
+        files.update(zip(tex_names, map_views(png_bytes, atlases)))   # zlib frees the GIL: on every core
         video = f"{stem}.mp4" if "video" in formats else None
         if video:
             files[video] = atlas_video(atlases, fps, crf)
