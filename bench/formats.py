@@ -2,7 +2,7 @@
 images (a synthetic green-screen frame rendered by the synth node), and the bytes, for PNG (OpenCV, level 1),
 raw .npy (read by memory map), .npy compressed with LZ4 and with zstd (level 1), and .npz (zip deflate). Then
 a tracked take's ``MeshSequence`` as every per-frame reader of it (``track.frame``) loads it: its stored arrays,
-memory-mapped, against the segments' PLYs (how it was read before stop 51, still the route for older entries).
+memory-mapped copy-on-write, against the segments' PLYs (how it was read before stop 51, still the route for older entries).
 Prints the machine (CPU, load average, OpenCL device unused here) and the tables.
 
     python bench/formats.py [--cameras 24] [--repeats 3] [--segments 13]

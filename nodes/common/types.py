@@ -301,6 +301,15 @@ def _load_array(path: Path) -> np.ndarray:
         raise DataError(f"{path}: unreadable array ({exc})") from None
 
 
+def _read_array(path: Path) -> np.ndarray:
+    """A stored array memory-mapped copy-on-write: read where used, writable (for values that bindings take as
+    buffers), a write never reaching the file."""
+    try:
+        return np.load(path, mmap_mode="c", allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise DataError(f"{path}: unreadable array ({exc})") from None
+
+
 def _mask_of_levels(levels: np.ndarray) -> np.ndarray:
     """The binary mask (0 / 255) of 8-bit alpha levels: alpha >= 128, as the keys make it (cv2.threshold: one pass)."""
     import cv2
@@ -734,9 +743,11 @@ class MeshSequence(DataType):
     whose meshes all share one face array; a tracked sequence is a run of such segments, each mesh carrying
     ``metadata["segment"]`` (and "keyframe", "frame" when known; see ``sequence_segments``). Stored per
     segment: the float64 vertices of all its frames (segment_NNNN.npy, (frames, V, 3)), its faces
-    (segment_NNNN.faces.npy, int32) and a PLY of its first frame (to look at: loading reads the arrays, memory-mapped
-    and read-only like images, so a frame's reader of a long take does not parse every segment's PLY: pose2sim's
-    13 segments cost each frame's ``track.frame`` 0.19 s); sequence.json lists the segments and frames."""
+    (segment_NNNN.faces.npy, int32) and a PLY of its first frame (to look at: loading reads the arrays, so a frame's
+    reader of a long take does not parse every segment's PLY: pose2sim's 13 segments cost each frame's
+    ``track.frame`` 0.19 s); sequence.json lists the segments and frames. The arrays are memory-mapped copy-on-write:
+    read only where used, and writable (a read-only map, as images get, is refused by bindings that want writable
+    buffers: fast_simplification in track.simplify); a write stays in the reader's memory."""
 
     name = "MeshSequence"
 
@@ -793,11 +804,11 @@ class MeshSequence(DataType):
         for s, seg in enumerate(doc["segments"]):
             stored = folder / f"segment_{s:04d}.faces.npy"
             if stored.is_file():
-                faces = np.asarray(_load_array(stored), np.int64)
+                faces = _read_array(stored).astype(np.int64)
             else:            # written before the faces were stored as an array
                 faces = trimesh.load(folder / f"segment_{s:04d}.ply", process=False, force="mesh").faces
             n = seg["stop"] - seg["start"]
-            points = _load_array(folder / f"segment_{s:04d}.npy")
+            points = _read_array(folder / f"segment_{s:04d}.npy")
             if points.shape[:1] != (n,) or points.ndim != 3 or points.shape[2] != 3:
                 raise DataError(f"{folder}: segment {s} holds {points.shape} vertices for {n} frames")
             for k in range(n):
