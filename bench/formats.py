@@ -2,7 +2,7 @@
 images (a synthetic green-screen frame rendered by the synth node), and the bytes, for PNG (OpenCV, level 1),
 raw .npy (read by memory map), .npy compressed with LZ4 and with zstd (level 1), and .npz (zip deflate). Then
 a tracked take's ``MeshSequence`` as every per-frame reader of it (``track.frame``) loads it: its stored arrays,
-memory-mapped copy-on-write, against the segments' PLYs (how it was read before stop 51, still the route for older entries).
+against the segments' PLYs for the faces (how it was read before stop 51, still the route for older entries).
 Prints the machine (CPU, load average, OpenCL device unused here) and the tables.
 
     python bench/formats.py [--cameras 24] [--repeats 3] [--segments 13]
@@ -84,13 +84,13 @@ def formats():
 
 
 def sequence_read(segments: int, repeats: int):
-    """Load seconds of a take of ``segments`` segments x 8 frames, ~20k and ~40k vertices, both routes."""
+    """Load seconds of a take of ``segments`` segments x 8 frames of 10k and 41k vertices, both routes."""
     import trimesh
 
     from nodes.common.types import MeshSequence
 
     print(f"\nMeshSequence, {segments} segments x 8 frames: load ms, best of {repeats}")
-    print(f"{'vertices':>9} {'arrays (mmap)':>14} {'PLYs':>9} {'ratio':>6}")
+    print(f"{'vertices':>9} {'arrays':>14} {'PLYs':>9} {'ratio':>6}")
     for sub in (5, 6):
         base = trimesh.creation.icosphere(sub)
         seq = [trimesh.Trimesh(base.vertices * (1 + 0.01 * k) + s, base.faces, process=False,

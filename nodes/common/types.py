@@ -302,10 +302,9 @@ def _load_array(path: Path) -> np.ndarray:
 
 
 def _read_array(path: Path) -> np.ndarray:
-    """A stored array memory-mapped copy-on-write: read where used, writable (for values that bindings take as
-    buffers), a write never reaching the file."""
+    """A stored array read whole into memory (writable, for values that bindings take as buffers)."""
     try:
-        return np.load(path, mmap_mode="c", allow_pickle=False)
+        return np.load(path, allow_pickle=False)
     except (OSError, ValueError) as exc:
         raise DataError(f"{path}: unreadable array ({exc})") from None
 
@@ -745,9 +744,10 @@ class MeshSequence(DataType):
     segment: the float64 vertices of all its frames (segment_NNNN.npy, (frames, V, 3)), its faces
     (segment_NNNN.faces.npy, int32) and a PLY of its first frame (to look at: loading reads the arrays, so a frame's
     reader of a long take does not parse every segment's PLY: pose2sim's 13 segments cost each frame's
-    ``track.frame`` 0.19 s); sequence.json lists the segments and frames. The arrays are memory-mapped copy-on-write:
-    read only where used, and writable (a read-only map, as images get, is refused by bindings that want writable
-    buffers: fast_simplification in track.simplify); a write stays in the reader's memory."""
+    ``track.frame`` 0.19 s); sequence.json lists the segments and frames. The arrays are read whole, not
+    memory-mapped: writable (a read-only map, as images get, is refused by bindings that want writable buffers:
+    fast_simplification in track.simplify), and no open file per segment held while the value lives (a take joined
+    from many windows has hundreds of segments)."""
 
     name = "MeshSequence"
 

@@ -405,7 +405,7 @@ def test_mesh_sequence_roundtrip_keeps_segments(tracked_pair, tmp_path):
     assert all(np.array_equal(a.vertices, b.vertices) and np.array_equal(a.faces, b.faces) for a, b in zip(back, tracked_pair))
     assert len(list(tmp_path.glob("*.ply"))) == 2                                # one PLY per segment
     # read from the arrays (no PLY parsed), writable (bindings that take buffers refuse read-only ones), and a
-    # write stays in the reader's copy
+    # write stays in the reader's copy, not in the stored file
     assert len(list(tmp_path.glob("*.faces.npy"))) == 2 and back[0].vertices.flags.writeable
     back[0].vertices[0] = 7.0
     assert np.array_equal(MeshSequence.load(tmp_path)[0].vertices, tracked_pair[0].vertices)
@@ -418,7 +418,9 @@ def test_mesh_sequence_roundtrip_keeps_segments(tracked_pair, tmp_path):
         f.unlink()
     old = MeshSequence.load(tmp_path)
     assert all(np.array_equal(a.faces, b.faces) and np.array_equal(a.vertices, b.vertices) for a, b in zip(old, tracked_pair))
-    (tmp_path / "segment_0001.npy").write_bytes(b"not an array")
+    del back, old
+    (tmp_path / "bad.npy").write_bytes(b"not an array")
+    (tmp_path / "bad.npy").replace(tmp_path / "segment_0001.npy")
     with pytest.raises(DataError, match="unreadable array"):
         MeshSequence.load(tmp_path)
     bad = list(tracked_pair)
