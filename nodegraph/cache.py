@@ -29,6 +29,7 @@ unchanged inode) is the file system's to catch; `cache verify` hashes every file
 """
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
@@ -39,7 +40,7 @@ import time
 import uuid
 from pathlib import Path
 
-from .errors import DataError
+from .errors import DataError, VolcapError
 
 
 def _umask() -> int:
@@ -51,6 +52,13 @@ def _umask() -> int:
         mask = os.umask(0o022)
         os.umask(mask)
         return mask
+
+
+def _short_of(exc: BaseException) -> bool:
+    """Whether a read failed for want of memory or file handles (MemoryError, EMFILE, ENFILE, ENOMEM), which
+    says nothing about the file."""
+    return isinstance(exc, MemoryError) or (isinstance(exc, OSError) and exc.errno in (errno.EMFILE, errno.ENFILE,
+                                                                                        errno.ENOMEM))
 
 
 def atomic_write_bytes(path: Path, data: bytes):
@@ -249,6 +257,9 @@ class Cache:
         except DataError:
             raise
         except Exception as exc:
+            if _short_of(exc):   # the machine's limit, not the entry's damage: a DataError would have it evicted
+                raise VolcapError(f"cache entry {key}/{port} ({dtype.name}) cannot be read now: {type(exc).__name__}: "
+                                  f"{exc} (this machine ran short; the entry is kept, rerun when it has room)") from None
             raise DataError(f"cache entry {key}/{port} ({dtype.name}) cannot be read: {type(exc).__name__}: {exc}") from None
 
     def write(self, key: str, outputs: dict, meta: dict) -> Path:

@@ -106,6 +106,42 @@ def test_damage_found_while_loading_is_reported_and_evicted(tmp_path):
         assert "damaged" in str(exc) and "out/array.npy" in str(exc), exc
 
 
+def test_a_read_short_of_memory_or_file_handles_keeps_the_entry(tmp_path, monkeypatch):
+    """A load that fails for the machine's want of file handles or memory is reported as such and the entry is kept
+    (only damage evicts: the run's on_result evicts for a CorruptInput); a damaged file still is damage."""
+    import errno
+
+    from nodegraph import DataError, VolcapError
+    from nodegraph.records import Ref, type_name
+    from nodegraph.types import Array
+    from nodegraph.worker import CorruptInput, _load_input
+
+    first = run(tmp_path, graph(tmp_path))
+    s0 = record(first, "src", 0)
+    cache = Cache(tmp_path / "cache")
+    ref = Ref(s0["key"], "out", type_name(Array))
+    for short in (OSError(errno.EMFILE, "Too many open files"), MemoryError("Unable to allocate 48.0 MiB")):
+        def load(folder, short=short):
+            raise short
+        monkeypatch.setattr(Array, "load", load)
+        try:
+            _load_input(cache, "x", ref, None)
+            raise AssertionError("a failed load returned a value")
+        except CorruptInput:
+            raise AssertionError("a machine's shortage was taken for a damaged entry")
+        except DataError:
+            raise AssertionError("a machine's shortage was taken for a damaged entry")
+        except VolcapError as exc:
+            assert "cannot be read now" in str(exc) and "the entry is kept" in str(exc), exc
+        assert cache.has(s0["key"])
+    monkeypatch.setattr(Array, "load", lambda folder: (_ for _ in ()).throw(ValueError("bad header")))
+    try:
+        _load_input(cache, "x", ref, None)
+        raise AssertionError("a failed load returned a value")
+    except CorruptInput as exc:
+        assert "cannot be read" in str(exc) and "bad header" in str(exc), exc
+
+
 def test_garbage_meta_json_is_not_a_hit(tmp_path):
     p = graph(tmp_path)
     first = run(tmp_path, p)
