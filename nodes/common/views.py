@@ -18,10 +18,10 @@ def threads() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def map_views(fn, *iterables) -> list:
-    """``[fn(*args) for args in zip(*iterables)]``, in order, on ``threads()`` threads (in this thread when one);
-    the first exception raised is raised here."""
-    n = threads()
+def map_views(fn, *iterables, count: int | None = None) -> list:
+    """``[fn(*args) for args in zip(*iterables)]``, in order, on ``threads()`` threads (``count`` when given; in
+    this thread when one); the first exception raised is raised here."""
+    n = threads() if count is None else max(1, int(count))
     if n == 1:
         return [fn(*args) for args in zip(*iterables)]
     if not _POOL or _POOL[0][0] != n:

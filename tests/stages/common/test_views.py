@@ -22,3 +22,15 @@ def test_map_views_keeps_order_and_raises(monkeypatch, threads):
 
     with pytest.raises(ValueError, match="view 5"):
         views.map_views(boom, range(9))
+
+
+def test_map_views_count_overrides_the_workers_share(monkeypatch):
+    """``count``: that many threads whatever the worker's share (export.volumetric runs last, on every core)."""
+    import threading
+
+    monkeypatch.setenv("VOLCAP_CV_THREADS", "1")
+    names = views.map_views(lambda i: threading.current_thread().name, range(4))
+    assert all(n == threading.current_thread().name for n in names)           # one: in this thread
+    barrier = threading.Barrier(2, timeout=10)                                  # two at once, or it times out
+    got = views.map_views(lambda i: (barrier.wait() if i < 2 else 0, i)[1], range(6), count=2)
+    assert got == list(range(6))
