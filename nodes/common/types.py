@@ -811,6 +811,8 @@ class MeshSequence(DataType):
             points = _read_array(folder / f"segment_{s:04d}.npy")
             if points.shape[:1] != (n,) or points.ndim != 3 or points.shape[2] != 3:
                 raise DataError(f"{folder}: segment {s} holds {points.shape} vertices for {n} frames")
+            if faces.ndim != 2 or faces.shape[1] != 3 or (faces.size and not 0 <= faces.min() <= faces.max() < points.shape[1]):
+                raise DataError(f"{folder}: segment {s}'s faces {faces.shape} do not index its {points.shape[1]} vertices")
             for k in range(n):
                 m = trimesh.Trimesh(points[k], faces, process=False)
                 for key in ("segment", "keyframe"):

@@ -419,6 +419,12 @@ def test_mesh_sequence_roundtrip_keeps_segments(tracked_pair, tmp_path):
     old = MeshSequence.load(tmp_path)
     assert all(np.array_equal(a.faces, b.faces) and np.array_equal(a.vertices, b.vertices) for a, b in zip(old, tracked_pair))
     del back, old
+    MeshSequence.save(tracked_pair, tmp_path)
+    np.save(tmp_path / "bad.npy", np.asarray(tracked_pair[0].faces, np.int32) + len(tracked_pair[0].vertices))
+    (tmp_path / "bad.npy").replace(tmp_path / "segment_0000.faces.npy")
+    with pytest.raises(DataError, match="do not index its"):
+        MeshSequence.load(tmp_path)
+    MeshSequence.save(tracked_pair, tmp_path)
     (tmp_path / "bad.npy").write_bytes(b"not an array")
     (tmp_path / "bad.npy").replace(tmp_path / "segment_0001.npy")
     with pytest.raises(DataError, match="unreadable array"):
