@@ -291,20 +291,13 @@ def _save_array(path: Path, arr: np.ndarray):
     np.save(path, np.ascontiguousarray(arr), allow_pickle=False)
 
 
-def _load_array(path: Path) -> np.ndarray:
+def _load_array(path: Path, mapped: bool = True) -> np.ndarray:
     """A stored array, memory-mapped read-only: no read until used, and half the page-fault cost of a private
     (copy-on-write) map (24 HD images: 17 vs 36-44 ms). A node must not edit its inputs in place anyway (a
-    frame unit hands the same value to every consumer); one that tries gets numpy's read-only error."""
+    frame unit hands the same value to every consumer); one that tries gets numpy's read-only error. ``mapped``
+    False: read whole into memory, writable (values that bindings take as buffers: MeshSequence)."""
     try:
-        return np.load(path, mmap_mode="r", allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise DataError(f"{path}: unreadable array ({exc})") from None
-
-
-def _read_array(path: Path) -> np.ndarray:
-    """A stored array read whole into memory (writable, for values that bindings take as buffers)."""
-    try:
-        return np.load(path, allow_pickle=False)
+        return np.load(path, mmap_mode="r" if mapped else None, allow_pickle=False)
     except (OSError, ValueError) as exc:
         raise DataError(f"{path}: unreadable array ({exc})") from None
 
@@ -804,11 +797,11 @@ class MeshSequence(DataType):
         for s, seg in enumerate(doc["segments"]):
             stored = folder / f"segment_{s:04d}.faces.npy"
             if stored.is_file():
-                faces = _read_array(stored).astype(np.int64)
+                faces = _load_array(stored).astype(np.int64)           # a copy: no map kept
             else:            # written before the faces were stored as an array
                 faces = trimesh.load(folder / f"segment_{s:04d}.ply", process=False, force="mesh").faces
             n = seg["stop"] - seg["start"]
-            points = _read_array(folder / f"segment_{s:04d}.npy")
+            points = _load_array(folder / f"segment_{s:04d}.npy", mapped=False)
             if points.shape[:1] != (n,) or points.ndim != 3 or points.shape[2] != 3:
                 raise DataError(f"{folder}: segment {s} holds {points.shape} vertices for {n} frames")
             if faces.ndim != 2 or faces.shape[1] != 3 or (faces.size and not 0 <= faces.min() <= faces.max() < points.shape[1]):
