@@ -147,25 +147,35 @@ def chart_uv(vertices, faces, chart, chart_dir) -> np.ndarray:
 
 def _chart_masks(local_uv, chart, order, scale, cell, pad):
     """Per chart: occupancy on a grid of ``cell`` texels (its triangles rasterised at ``scale`` texels per world
-    unit, dilated by ``pad`` cells for the gutter)."""
+    unit, dilated by ``pad`` cells for the gutter). Every chart's triangles are scaled and their covering cells
+    found in one pass over all faces; only the drawing is per chart."""
     import cv2
 
-    masks = []
+    if not order:
+        return []
+    idx = np.concatenate([i for _, i in order])
+    start = np.cumsum([0] + [len(i) for _, i in order])
+    pts = local_uv[idx] * (scale / cell)                         # (n, 3, 2) every chart's triangles, in cells
+    top = np.maximum.reduceat(pts.max(axis=1), start[:-1], axis=0)       # (charts, 2) largest x, y per chart
+    w = np.ceil(top[:, 0]).astype(np.int64) + 1 + 2 * pad
+    h = np.ceil(top[:, 1]).astype(np.int64) + 1 + 2 * pad
+    big = np.ptp(pts, axis=1).max(axis=1) > 2                    # triangles over two cells wide are filled ...
+    q = np.round((pts + pad) * 16).astype(np.int32)
+    # ... smaller ones are covered by the cells of their corners, edge midpoints and centroid
+    p7 = np.concatenate([pts, 0.5 * (pts + np.roll(pts, 1, axis=1)), pts.mean(axis=1, keepdims=True)], axis=1)
+    counts = np.diff(start)
+    limit = np.repeat(np.stack([w - 1, h - 1], axis=1), counts * 7, axis=0)
+    cor = np.clip(np.floor(p7.reshape(-1, 2) + pad).astype(np.int64), 0, limit)
     kernel = np.ones((2 * pad + 1, 2 * pad + 1), np.uint8) if pad > 0 else None
-    for c, idx in order:
-        pts = local_uv[idx] * (scale / cell)
-        w = int(np.ceil(pts[..., 0].max())) + 1 + 2 * pad
-        h = int(np.ceil(pts[..., 1].max())) + 1 + 2 * pad
-        m = np.zeros((h, w), np.uint8)
-        ext = np.ptp(pts, axis=1).max(axis=1)
-        big = ext > 2                                       # triangles over two cells wide are filled ...
-        if np.any(big):
-            q = np.round((pts[big] + pad) * 16).astype(np.int32)
-            cv2.fillPoly(m, list(q), 1, lineType=cv2.LINE_8, shift=4)
-        # ... smaller ones are covered by the cells of their corners, edge midpoints and centroid
-        p7 = np.concatenate([pts, 0.5 * (pts + np.roll(pts, 1, axis=1)), pts.mean(axis=1, keepdims=True)], axis=1)
-        cor = np.clip(np.floor(p7.reshape(-1, 2) + pad).astype(np.int64), 0, [w - 1, h - 1])
-        m[cor[:, 1], cor[:, 0]] = 1
+    masks = []
+    for c in range(len(order)):
+        a, b = start[c], start[c + 1]
+        m = np.zeros((h[c], w[c]), np.uint8)
+        fill = np.flatnonzero(big[a:b])
+        if len(fill):
+            cv2.fillPoly(m, list(q[a + fill]), 1, lineType=cv2.LINE_8, shift=4)
+        cc = cor[7 * a:7 * b]
+        m[cc[:, 1], cc[:, 0]] = 1
         if kernel is not None:
             m = cv2.dilate(m, kernel)
         masks.append(m)

@@ -140,6 +140,51 @@ def test_bake_layout_and_compact_fill_match_the_full_image_path():
     assert flat.shape == (200, 200, 3) and np.all(flat == [40, 120, 210])
 
 
+def _chart_masks_per_chart(local_uv, order, scale, cell, pad):
+    """The packer's chart masks drawn one chart at a time (the form atlas._chart_masks had before it found every
+    chart's covering cells in one pass): the reference it must equal."""
+    import cv2
+
+    masks = []
+    kernel = np.ones((2 * pad + 1, 2 * pad + 1), np.uint8) if pad > 0 else None
+    for _, idx in order:
+        pts = local_uv[idx] * (scale / cell)
+        w = int(np.ceil(pts[..., 0].max())) + 1 + 2 * pad
+        h = int(np.ceil(pts[..., 1].max())) + 1 + 2 * pad
+        m = np.zeros((h, w), np.uint8)
+        big = np.ptp(pts, axis=1).max(axis=1) > 2
+        if np.any(big):
+            cv2.fillPoly(m, list(np.round((pts[big] + pad) * 16).astype(np.int32)), 1, lineType=cv2.LINE_8, shift=4)
+        p7 = np.concatenate([pts, 0.5 * (pts + np.roll(pts, 1, axis=1)), pts.mean(axis=1, keepdims=True)], axis=1)
+        cor = np.clip(np.floor(p7.reshape(-1, 2) + pad).astype(np.int64), 0, [w - 1, h - 1])
+        m[cor[:, 1], cor[:, 0]] = 1
+        masks.append(cv2.dilate(m, kernel) if kernel is not None else m)
+    return masks
+
+
+def test_chart_masks_equal_the_per_chart_reference():
+    from nodes.texture.atlas import _chart_masks, chart_uv, make_charts
+
+    for m in (scene("sphere", 4, 160, 120)["mesh"], scene("figure", 4, 160, 120)["mesh"]):
+        nbr = face_neighbours(m.faces)
+        chart, cdir = make_charts(m.vertices, m.faces, nbr)
+        local = chart_uv(m.vertices, m.faces, chart, cdir)
+        srt = np.argsort(chart, kind="stable")
+        b = np.searchsorted(chart[srt], np.arange(chart.max() + 2))
+        order = [(c, srt[b[c]:b[c + 1]]) for c in range(chart.max() + 1)]
+        np.random.default_rng(1).shuffle(order)                 # the packer's order: any, largest first there
+        assert len(order) > 5
+        for scale in (3.0, 40.0, 700.0):
+            for cell, pad in ((4, 1), (2, 1), (8, 3), (4, 0)):
+                got = _chart_masks(local, chart, order, scale, cell, pad)
+                want = _chart_masks_per_chart(local, order, scale, cell, pad)
+                assert len(got) == len(want)
+                for g, w in zip(got, want):
+                    assert g.shape == w.shape and np.array_equal(g, w), (scale, cell, pad)
+                if scale == 700.0:
+                    assert sum(int(w.sum()) for w in want) > 1000     # charts drawn, not just corner cells
+
+
 # ---------------------------------------------------------------- selection, gains, levelling
 def _disagreeing_stats(s):
     """The figure's visibility with colours made to disagree: on a third of the faces one of their views shows
