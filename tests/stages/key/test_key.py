@@ -2,6 +2,8 @@
 and (realdata) the green dome, the blue-screen dino and the background-plate room."""
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -528,6 +530,43 @@ def test_eight_bit_alpha_is_stored_as_levels_and_reads_back_as_the_same_floats(t
     assert all(np.array_equal(a, b) for a, b in zip(as_levels.masks, as_floats.masks))
     assert all(np.array_equal(a, b) for a, b in zip(as_levels.alpha, as_floats.alpha))
     assert ms.device is not None and ms._make_device is None
+
+
+def test_masks_and_float_alpha_are_stored_as_their_boxes_and_read_back_bit_for_bit(tmp_path):
+    """A float alpha (key.person's, zero outside the hull's footprint after key.consensus) and binary masks are
+    stored as the boxes of their non-zero pixels: the same arrays come back (dtype, every bit), an empty plane is an
+    empty box, entries written before as whole images still load, and a box that does not fit its file is a
+    DataError naming the file."""
+    from nodegraph.errors import DataError
+
+    h, w = 60, 80
+    rng = np.random.default_rng(3)
+    alpha = np.zeros((h, w), np.float32)
+    alpha[10:31, 25:52] = rng.random((21, 27), np.float32)            # soft values, some exactly 0 inside
+    alpha[12, 30] = 0.0
+    mask = np.where(alpha > 0.5, 255, 0).astype(np.uint8)
+    ms = MaskSet([mask, np.zeros((h, w), np.uint8)], [alpha, np.zeros((h, w), np.float32)], ["a", "b"])
+    Masks.save(ms, tmp_path)
+    ys, xs = np.nonzero(mask)
+    assert np.load(tmp_path / "0000.npy").shape == (ys.max() + 1 - ys.min(), xs.max() + 1 - xs.min())
+    assert np.load(tmp_path / "0000.alpha.npy").shape == (21, 27) and np.load(tmp_path / "0001.alpha.npy").size == 0
+    back = Masks.load(tmp_path)
+    for got, want in zip(back.masks + back.alpha, [mask, ms.masks[1], alpha, ms.alpha[1]]):
+        assert got.dtype == want.dtype and got.shape == want.shape and got.tobytes() == want.tobytes()
+    old = tmp_path / "old"            # the former layout: whole images, no boxes in names.json
+    old.mkdir()
+    for i in range(2):
+        np.save(old / f"{i:04d}.npy", ms.masks[i])
+        np.save(old / f"{i:04d}.alpha.npy", ms.alpha[i])
+    (old / "names.json").write_text(json.dumps({"names": ["a", "b"], "alpha": True, "alpha8": False,
+                                                "masks_from_alpha8": False}))
+    again = Masks.load(old)
+    assert all(np.array_equal(a, b) for a, b in zip(again.masks + again.alpha, ms.masks + ms.alpha))
+    meta = json.loads((tmp_path / "names.json").read_text())
+    meta["alpha_boxes"][0][4] += 1    # the box one pixel wider than its file
+    (tmp_path / "names.json").write_text(json.dumps(meta))
+    with pytest.raises(DataError, match="0000.alpha.npy"):
+        Masks.load(tmp_path)
 
 
 # ---------------------------------------------------------------- GrabCut at the boundary
