@@ -35,14 +35,24 @@ def repair_folds(vertices, faces, rounds: int = 6) -> tuple[np.ndarray, np.ndarr
     f = np.asarray(faces, np.int64).copy()
     keep = np.ones(len(f), bool)
     gone = np.zeros(len(v), bool)
+    left = None
     for _ in range(rounds):
         f = f[keep]
         keep = np.ones(len(f), bool)
         bad, (edges, fe, pair, _) = folded(v, f)
         if not len(bad):
+            left = 0                     # the faces as they stand were just tested
             break
         used, touched = set(), set()
-        have = set(map(tuple, edges.tolist()))
+        # the round's edges, looked up by their sorted-pair code (the table lists them in that order; a set of
+        # 54k tuples took 87 ms of a 0.19 s repair on a pose2sim frame), and the diagonals flipped in since
+        codes, added = edges[:, 0] * len(v) + edges[:, 1], set()
+
+        def have(p, q):
+            k = int(min(p, q)) * len(v) + int(max(p, q))
+            i = int(np.searchsorted(codes, k))
+            return k in added or (i < len(codes) and int(codes[i]) == k)
+
         changed = 0
         for e in bad:
             fa, fb = pair[e]
@@ -53,12 +63,12 @@ def repair_folds(vertices, faces, rounds: int = 6) -> tuple[np.ndarray, np.ndarr
             ka = int(np.flatnonzero((ta != a) & (ta != b))[0])  # side k of face fa runs x -> y, c opposite
             x, y, c = ta[(ka + 1) % 3], ta[(ka + 2) % 3], ta[ka]
             d = tb[np.flatnonzero((tb != a) & (tb != b))[0]]
-            if c != d and (min(c, d), max(c, d)) not in have:
+            if c != d and not have(c, d):
                 new = np.array([[c, x, d], [d, y, c]])
                 n = face_normals(v, new)
                 if np.dot(n[0], n[1]) >= 0.5:
                     f[fa], f[fb] = new
-                    have.add((min(c, d), max(c, d)))
+                    added.add(int(min(c, d)) * len(v) + int(max(c, d)))
                     used.update((fa, fb))
                     changed += 1
                     continue
@@ -76,7 +86,8 @@ def repair_folds(vertices, faces, rounds: int = 6) -> tuple[np.ndarray, np.ndarr
         if not changed:
             break
     f = f[keep]
-    left = len(folded(v, f)[0])
+    if left is None:
+        left = len(folded(v, f)[0])
     if gone.any():
         index = np.cumsum(~gone) - 1
         v, f = v[~gone], index[f]

@@ -179,5 +179,17 @@ def test_repair_folds_flips_or_collapses():
     v2, f2, left = repair_folds(v, f)
     out = trimesh.Trimesh(v2, f2, process=False)
     assert left == 0 and mesh_health(out)["folded_edges"] == 0 and out.is_watertight
+    # a vertex of three faces pulled far across one of its corners: the flips its folded edges offer lead onto
+    # diagonals that are edges of the round's mesh, so none is taken; both edges collapse (with the diagonal test
+    # left out, one would flip: 320 faces) and the mesh stays closed
+    v, f = m.vertices.copy(), m.faces.copy()
+    p, q, r = f[18]
+    cen = v[[p, q, r]].mean(axis=0)
+    v3 = np.vstack([v, cen + 4.0 * (v[p] - cen)])
+    f3 = np.vstack([np.delete(f, 18, axis=0), [[len(v), p, q], [len(v), q, r], [len(v), r, p]]])
+    assert len(folded(v3, f3)[0]) > 0
+    v4, f4, left = repair_folds(v3, f3)
+    out = trimesh.Trimesh(v4, f4, process=False)
+    assert left == 0 and len(f4) == len(f3) - 4 and out.is_watertight and mesh_health(out)["folded_edges"] == 0
     doubled = np.vstack([f, f[:1, ::-1]])
     assert len(drop_duplicate_faces(doubled)) == len(f) - 1
