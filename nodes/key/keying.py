@@ -517,22 +517,32 @@ def cleaned_alpha_reference(cleaned: np.ndarray, mask: np.ndarray, alpha: np.nda
     return np.where(cleaned > 0, np.where(mask > 127, alpha, 1.0), 0.0).astype(np.float32)
 
 
-def hull_footprint(volume, cameras: Cameras, view: int, dilate_px: int = 1) -> np.ndarray:
-    """uint8 (H, W) 0/255: the projection of the occupied voxels of ``volume`` into ``view``. Surface voxel
-    centres are splatted, then dilated by the largest projected voxel radius (half the voxel diagonal) plus
-    ``dilate_px``."""
-    import cv2
+def surface_centres(volume) -> np.ndarray:
+    """(N, 3) centres of the occupied voxels of ``volume`` that touch an empty one or the grid's border."""
     from scipy import ndimage
 
-    cam = cameras[view]
     occ = volume.occupancy > (0.5 if volume.occupancy.dtype.kind == "f" else 0)
-    out = np.zeros((cam.height, cam.width), np.uint8)
     if not occ.any():
-        return out
+        return np.zeros((0, 3))
     surface = occ & ~ndimage.binary_erosion(occ, border_value=0)
-    idx = np.argwhere(surface)
+    return volume.bbox_min + (np.argwhere(surface) + 0.5) * volume.voxel_size
+
+
+def hull_footprint(volume, cameras: Cameras, view: int, dilate_px: int = 1, centres: np.ndarray | None = None
+                   ) -> np.ndarray:
+    """uint8 (H, W) 0/255: the projection of the occupied voxels of ``volume`` into ``view``. Surface voxel
+    centres (``surface_centres``, or ``centres`` made by it once for every view) are splatted, then dilated by
+    the largest projected voxel radius (half the voxel diagonal) plus ``dilate_px``. The dilation and the hole
+    filling run on the splat's box grown by the dilation's reach and a pixel (the same pixels: farther out the
+    image stays background, and that ring joins the box's border to the image's)."""
+    import cv2
+
+    cam = cameras[view]
+    out = np.zeros((cam.height, cam.width), np.uint8)
+    centres = surface_centres(volume) if centres is None else centres
+    if len(centres) == 0:
+        return out
     vs = volume.voxel_size
-    centres = volume.bbox_min + (idx + 0.5) * vs
     uv, depth = cameras.project(centres, view)
     front = (depth > 0) & np.all(np.isfinite(uv), axis=1)
     uv, centres = uv[front], centres[front]
@@ -547,10 +557,40 @@ def hull_footprint(volume, cameras: Cameras, view: int, dilate_px: int = 1) -> n
         radius = max(radius, float(np.nanmax(np.linalg.norm(uv2 - uv, axis=1))))
     px = np.rint(uv).astype(np.int64)
     ok = (px[:, 0] >= 0) & (px[:, 0] < cam.width) & (px[:, 1] >= 0) & (px[:, 1] < cam.height)
+    if not ok.any():
+        return out
     out[px[ok, 1], px[ok, 0]] = 255
     r = int(np.ceil(radius)) + dilate_px
-    out = cv2.dilate(out, disc(r))
+    reach = r + 1
+    y0, y1 = max(int(px[ok, 1].min()) - reach, 0), min(int(px[ok, 1].max()) + reach + 1, cam.height)
+    x0, x1 = max(int(px[ok, 0].min()) - reach, 0), min(int(px[ok, 0].max()) + reach + 1, cam.width)
+    box = cv2.dilate(out[y0:y1, x0:x1], disc(r))
     # the splat of surface centres is hollow where the surface is far from the centre line: fill it
+    out[y0:y1, x0:x1] = clean_mask(box, open_px=0, close_px=0, keep=0, fill_holes=True)
+    return out
+
+
+def hull_footprint_reference(volume, cameras: Cameras, view: int, dilate_px: int = 1) -> np.ndarray:
+    """What ``hull_footprint`` must equal: the splat dilated and filled on the whole image."""
+    import cv2
+
+    cam = cameras[view]
+    out = np.zeros((cam.height, cam.width), np.uint8)
+    centres = surface_centres(volume)
+    if len(centres) == 0:
+        return out
+    uv, depth = cameras.project(centres, view)
+    front = (depth > 0) & np.all(np.isfinite(uv), axis=1)
+    uv, centres = uv[front], centres[front]
+    if len(uv) == 0:
+        return out
+    half = 0.5 * float(np.linalg.norm(volume.voxel_size))
+    radius = max(float(np.nanmax(np.linalg.norm(cameras.project(centres + np.eye(3)[a] * half, view)[0] - uv, axis=1)))
+                 for a in range(3))
+    px = np.rint(uv).astype(np.int64)
+    ok = (px[:, 0] >= 0) & (px[:, 0] < cam.width) & (px[:, 1] >= 0) & (px[:, 1] < cam.height)
+    out[px[ok, 1], px[ok, 0]] = 255
+    out = cv2.dilate(out, disc(int(np.ceil(radius)) + dilate_px))
     return clean_mask(out, open_px=0, close_px=0, keep=0, fill_holes=True)
 
 

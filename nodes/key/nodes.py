@@ -11,7 +11,7 @@ from nodes.common.views import map_views
 from .keying import (KERNELS, check_views, chroma_key_bits, chroma_key_cl, chroma_key_windowed, clean_mask, cleaned_alpha, difference_key_cl,
                      difference_key_mixture_cl, estimate_key_direction,
                      grabcut_band, grey_threshold_cl, hull_footprint, key_direction_from_rgb, maskset, matte_edges,
-                     plate_model, disc)
+                     plate_model, disc, surface_centres)
 
 
 class ChromaKey(Node):
@@ -297,8 +297,9 @@ class Consensus(Node):
     def run(self, masks, cameras, volume, *, dilate):
         check_views("key.consensus", masks.masks, cameras, kind="mask")
         out, alphas = [], []
+        centres = surface_centres(volume)     # the hull's surface voxels, projected into every view
         for v, m in enumerate(masks.masks):
-            keep = hull_footprint(volume, cameras, v, dilate) > 0
+            keep = hull_footprint(volume, cameras, v, dilate, centres) > 0
             out.append(np.where(keep, m, 0).astype(np.uint8))
             if masks.alpha is not None:
                 alphas.append(np.where(keep, masks.alpha[v], 0).astype(np.float32))

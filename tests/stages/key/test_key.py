@@ -646,6 +646,28 @@ def test_consensus_rejects_single_view_foreground():
     assert out["masks"].masks[2][2:10, 2:12].max() == 0 and out["masks"].masks[4][40:46, 50:60].max() == 0
 
 
+def test_hull_footprint_equals_the_whole_image_reference():
+    """The footprint dilated and filled on the splat's box equals the whole image's, also where it runs off the
+    image (a hull shifted half out of view) and for a hollow hull; no voxel gives no footprint."""
+    from nodes.key.keying import hull_footprint, hull_footprint_reference, surface_centres
+
+    cams, _, keyed, volume = consensus_scene()
+    shifted = VoxelGrid(volume.occupancy, volume.bbox_min + [0.9, 0.0, 0.3], volume.bbox_max + [0.9, 0.0, 0.3])
+    hollow = VoxelGrid(volume.occupancy.copy(), volume.bbox_min, volume.bbox_max)
+    hollow.occupancy[12:20, 12:20, 12:20] = 0
+    empty = VoxelGrid(np.zeros_like(volume.occupancy), volume.bbox_min, volume.bbox_max)
+    edge = 0
+    for vol in (volume, shifted, hollow, empty):
+        centres = surface_centres(vol)
+        for v in range(len(cams)):
+            for d in (0, 1, 3):
+                ref = hull_footprint_reference(vol, cams, v, d)
+                assert np.array_equal(hull_footprint(vol, cams, v, d), ref)
+                assert np.array_equal(hull_footprint(vol, cams, v, d, centres), ref)
+                edge += int(ref[:, 0].any() or ref[:, -1].any() or ref[0].any() or ref[-1].any())
+    assert edge > 0 and not hull_footprint(empty, cams, 0).any()
+
+
 def test_consensus_checks_cameras():
     cams, _, keyed, volume = consensus_scene()
     with pytest.raises(NodeError, match="6 masks for 5 cameras"):
