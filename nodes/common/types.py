@@ -311,11 +311,14 @@ def _mask_of_levels(levels: np.ndarray) -> np.ndarray:
 
 def _nonzero_box(a: np.ndarray) -> tuple[np.ndarray, list]:
     """(the box of ``a``'s non-zero pixels cut out of it, [height, width, x0, y0, x1, y1]); ``a`` (H, W) of any
-    dtype (a float alpha's box: its pixels != 0)."""
+    dtype (a float alpha's box: its pixels != 0, and any -0.0)."""
     import cv2
 
     a = np.asarray(a)
-    flags = a if a.dtype == np.uint8 else np.ascontiguousarray(a != 0).view(np.uint8)
+    if a.dtype == np.uint8:
+        flags = a
+    else:                           # a float's -0.0 is inside the box too: every bit comes back
+        flags = np.ascontiguousarray((a != 0) | np.signbit(a) if a.dtype.kind == "f" else a != 0).view(np.uint8)
     x, y, w, h = cv2.boundingRect(np.ascontiguousarray(flags))   # an 8-bit image: the box of its non-zero pixels
     return a[y:y + h, x:x + w], [int(a.shape[0]), int(a.shape[1]), x, y, x + w, y + h]
 
@@ -447,8 +450,12 @@ class Masks(DataType):
             for i, (a, m) in enumerate(zip(v.alpha8, v.masks)):
                 if not (isinstance(a, np.ndarray) and a.dtype == np.uint8 and a.shape == m.shape):
                     return f"alpha8 {i} must be a uint8 array the shape of its mask"
-        elif v.alpha is not None and len(v.alpha) != len(v.masks):
-            return "alpha must have one image per mask"
+        elif v.alpha is not None:
+            if len(v.alpha) != len(v.masks):
+                return "alpha must have one image per mask"
+            for i, (a, m) in enumerate(zip(v.alpha, v.masks)):
+                if np.shape(a) != m.shape:
+                    return f"alpha {i} must be an array the shape of its mask {m.shape}, got {np.shape(a)}"
         return None
 
     @classmethod

@@ -535,8 +535,8 @@ def test_eight_bit_alpha_is_stored_as_levels_and_reads_back_as_the_same_floats(t
 def test_masks_and_float_alpha_are_stored_as_their_boxes_and_read_back_bit_for_bit(tmp_path):
     """A float alpha (key.person's, zero outside the hull's footprint after key.consensus) and binary masks are
     stored as the boxes of their non-zero pixels: the same arrays come back (dtype, every bit), an empty plane is an
-    empty box, entries written before as whole images still load, and a box that does not fit its file is a
-    DataError naming the file."""
+    empty box (a -0.0 is kept in the box), entries written before as whole images still load, an alpha not the
+    shape of its mask is refused, and a box that does not fit its file is a DataError naming the file."""
     from nodegraph.errors import DataError
 
     h, w = 60, 80
@@ -544,12 +544,13 @@ def test_masks_and_float_alpha_are_stored_as_their_boxes_and_read_back_bit_for_b
     alpha = np.zeros((h, w), np.float32)
     alpha[10:31, 25:52] = rng.random((21, 27), np.float32)            # soft values, some exactly 0 inside
     alpha[12, 30] = 0.0
+    alpha[55, 2] = -0.0                                              # outside the soft box: its sign comes back too
     mask = np.where(alpha > 0.5, 255, 0).astype(np.uint8)
     ms = MaskSet([mask, np.zeros((h, w), np.uint8)], [alpha, np.zeros((h, w), np.float32)], ["a", "b"])
     Masks.save(ms, tmp_path)
     ys, xs = np.nonzero(mask)
     assert np.load(tmp_path / "0000.npy").shape == (ys.max() + 1 - ys.min(), xs.max() + 1 - xs.min())
-    assert np.load(tmp_path / "0000.alpha.npy").shape == (21, 27) and np.load(tmp_path / "0001.alpha.npy").size == 0
+    assert np.load(tmp_path / "0000.alpha.npy").shape == (46, 50) and np.load(tmp_path / "0001.alpha.npy").size == 0
     back = Masks.load(tmp_path)
     for got, want in zip(back.masks + back.alpha, [mask, ms.masks[1], alpha, ms.alpha[1]]):
         assert got.dtype == want.dtype and got.shape == want.shape and got.tobytes() == want.tobytes()
@@ -562,6 +563,7 @@ def test_masks_and_float_alpha_are_stored_as_their_boxes_and_read_back_bit_for_b
                                                 "masks_from_alpha8": False}))
     again = Masks.load(old)
     assert all(np.array_equal(a, b) for a, b in zip(again.masks + again.alpha, ms.masks + ms.alpha))
+    assert "alpha 0 must be an array the shape of its mask" in Masks.check(MaskSet([mask], [alpha[..., None]], ["a"]))
     meta = json.loads((tmp_path / "names.json").read_text())
     meta["alpha_boxes"][0][4] += 1    # the box one pixel wider than its file
     (tmp_path / "names.json").write_text(json.dumps(meta))
