@@ -47,16 +47,22 @@ def _occupied_box(occ: np.ndarray, box: np.ndarray):
 
 def initial_box(masks: list[np.ndarray], cameras: Cameras) -> np.ndarray:
     """A box around the point nearest to all rays through the silhouette centroids, sized by the
-    silhouettes' extents at that distance."""
+    silhouettes' extents at that distance. ``masks``: (H, W) uint8, foreground = non-zero."""
+    import cv2
+
     origins, dirs, extents = [], [], []
     for v, m in enumerate(masks):
-        ys, xs = np.nonzero(m)
-        if len(xs) == 0:
+        # the centroid and box of the non-zero pixels by OpenCV's integer sums (np.nonzero's coordinates took 8 ms
+        # an HD view): the same numbers, the sums being exact in float64
+        m = np.ascontiguousarray(m, np.uint8)
+        mom = cv2.moments(m, binaryImage=True)
+        if mom["m00"] == 0:
             continue
-        o, d = cameras.rays(v, [[xs.mean(), ys.mean()]])
+        _, _, w, h = cv2.boundingRect(m)
+        o, d = cameras.rays(v, [[mom["m10"] / mom["m00"], mom["m01"] / mom["m00"]]])
         origins.append(o[0])
         dirs.append(d[0])
-        extents.append(np.hypot(xs.max() - xs.min(), ys.max() - ys.min()) / 2)
+        extents.append(np.hypot(w - 1, h - 1) / 2)
     if len(origins) < 2:
         raise NodeError("bounds: fewer than two views have a non-empty silhouette; give the bbox param")
     # least squares: sum over rays of |(I - d d^T)(p - o)|^2

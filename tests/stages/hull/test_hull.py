@@ -272,3 +272,45 @@ def test_silhouettes_cut_by_the_border_in_most_views_warn_with_carve():
     assert msg in hull_warnings(on_device, cams)
     assert not any("image border" in w for w in hull_warnings(cut([0, 1, 2, 4]), cams, outside="ignore"))
     assert not any("image border" in w for w in hull_warnings(cut([0, 3, 5]), cams))  # half the views: not most
+
+
+def test_initial_box_equals_the_pixel_list_reference():
+    """bounds' first box from OpenCV's moments and box of each silhouette: the same floats as from the list of its
+    pixels (np.nonzero: centroid = their mean, extent = the box's diagonal), bit for bit; masks of any non-zero
+    level count, an empty view is left out."""
+    from nodes.common.bounds import initial_box
+
+    cams = ring_rig(4, 64, 48)
+
+    def reference(masks):
+        origins, dirs, extents = [], [], []
+        for v, m in enumerate(masks):
+            ys, xs = np.nonzero(m)
+            if len(xs) == 0:
+                continue
+            o, d = cams.rays(v, [[xs.mean(), ys.mean()]])
+            origins.append(o[0])
+            dirs.append(d[0])
+            extents.append(np.hypot(xs.max() - xs.min(), ys.max() - ys.min()) / 2)
+        A = sum(np.eye(3) - np.outer(d, d) for d in dirs)
+        b = sum((np.eye(3) - np.outer(d, d)) @ o for o, d in zip(origins, dirs))
+        p0 = np.linalg.lstsq(A, b, rcond=None)[0]
+        radius = 0.0
+        for v, (o, ext) in enumerate(zip(origins, extents)):
+            eps = 1e-4 * np.linalg.norm(p0 - o)
+            J = np.stack([(cams.project(p0 + eps * e, v)[0] - cams.project(p0 - eps * e, v)[0])[0] / (2 * eps)
+                          for e in np.eye(3)], axis=1)
+            radius = max(radius, ext / np.linalg.svd(J, compute_uv=False)[1])
+        return np.array([p0 - 1.5 * radius, p0 + 1.5 * radius])
+
+    rng = np.random.default_rng(4)
+    for k in range(12):
+        masks = []
+        for v in range(4):
+            m = np.zeros((cams[v].height, cams[v].width), np.uint8)
+            if v or k % 3:                           # every third case: camera 0 sees nothing
+                y0, x0 = rng.integers(0, 30), rng.integers(0, 40)
+                m[y0:y0 + rng.integers(1, 18), x0:x0 + rng.integers(1, 24)] = rng.choice([1, 128, 255])
+                m[rng.integers(0, m.shape[0], 5), rng.integers(0, m.shape[1], 5)] = 255
+            masks.append(m)
+        assert initial_box(masks, cams).tobytes() == reference(masks).tobytes()
