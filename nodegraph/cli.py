@@ -47,10 +47,8 @@ def cmd_run(args) -> int:
         print(line)
     for w in result.warnings:
         print(f"warning: {w}", file=sys.stderr)
-    for r in result.records:
-        for w in r.get("warnings", []):
-            frame = "" if frames_of(r) == "all" else f" frame{'s' * ('frames' in r)} {frames_of(r)}"
-            print(f"warning: node '{r['node']}' ({r['type']}){frame}: {w}", file=sys.stderr)
+    for line in warning_lines(result.records):
+        print(line, file=sys.stderr)
     for f in result.failures:
         frame = "" if frames_of(f) == "all" else f" frame{'s' * ('frames' in f)} {frames_of(f)}"
         print(f"FAILED node '{f['node']}' ({f['type']}){frame}: {f['error']}\n  log: {f['log']}", file=sys.stderr)
@@ -59,6 +57,53 @@ def cmd_run(args) -> int:
 
         print(f"report: {write_report(result.out_dir)}")
     return 1 if result.failures else 0
+
+
+def warning_lines(records: list[dict]) -> list[str]:
+    """The items' warnings as the summary prints them: one line per node and message, naming every frame that gave
+    it (a camera's calibration note on each of a take's 100 frames is one line, not 100). Messages that differ only
+    in their figures ("9186 of 36378 faces ...", one per frame) are one line too, the first frame's standing for
+    the others; two messages one item gave (camera 'cam01' and 'cam02') stay two lines. Each item's own text stays
+    in run.json."""
+    import re
+
+    exact: dict[tuple, list] = {}
+    for r in records:
+        for w in r.get("warnings", []):
+            exact.setdefault((r["node"], r["type"], w), []).append(r)
+    alike: dict[tuple, list] = {}                    # (node, type, message with its figures blanked) -> exact keys
+    for key in exact:
+        alike.setdefault((key[0], key[1], re.sub(r"\d+(\.\d+)?", "#", key[2])), []).append(key)
+    groups = []
+    for keys in alike.values():
+        items = [id(r) for k in keys for r in exact[k]]
+        if len(keys) > 1 and len(items) == len(set(items)):      # one such message per item: figures per frame
+            groups.append((keys[0], [r for k in keys for r in exact[k]], True))
+        else:
+            groups.extend((k, exact[k], False) for k in keys)
+    lines = []
+    for (node, type_name, w), found, merged in groups:
+        labels = [frames_of(r) for r in found]
+        if len(found) == 1:
+            frame = "" if labels[0] == "all" else f" frame{'s' * ('frames' in found[0])} {labels[0]}"
+            lines.append(f"warning: node '{node}' ({type_name}){frame}: {w}")
+            continue
+        note = f" (frame {labels[0]}; the others with their own figures in run.json)" if merged else ""
+        lines.append(f"warning: node '{node}' ({type_name}) frames {_frame_list(labels)} ({len(found)} items): {w}{note}")
+    return lines
+
+
+def _frame_list(labels: list[str]) -> str:
+    """"0-49, 60-99" from frame labels (numbers as runs of consecutive frames; window and "all" labels as they are)."""
+    nums = sorted({int(x) for x in labels if x.isdigit()})
+    parts, start = [], None
+    for i, n in enumerate(nums):
+        if start is None:
+            start = n
+        if i + 1 == len(nums) or nums[i + 1] != n + 1:
+            parts.append(str(start) if start == n else f"{start}-{n}")
+            start = None
+    return ", ".join(parts + [x for x in dict.fromkeys(labels) if not x.isdigit()])
 
 
 def _check_device(spec: str):

@@ -643,9 +643,31 @@ def test_node_warnings_reach_the_summary_and_run_record(tmp_path, capsys):
     p = write(tmp_path, CHAIN)
     args = ["--cache", str(tmp_path / "cache"), "run", str(p), "--out", str(tmp_path / "out"), "-j", "1", "-q", "--set", "scale.factor=0"]
     assert cli(args) == 0
-    assert "warning: node 'scale' (t.scale) frame 2: factor 0 gives zeros" in capsys.readouterr().err
+    err = capsys.readouterr().err   # the same warning on every frame: one line naming the frames
+    assert "warning: node 'scale' (t.scale) frames 0-2 (3 items): factor 0 gives zeros" in err and err.count("factor 0") == 1
     doc = json.loads((tmp_path / "out" / "run.json").read_text())
     assert [r["warnings"] for r in doc["items"] if r["node"] == "scale"] == [["factor 0 gives zeros"]] * 3
+
+
+def test_warning_lines_group_frames_and_keep_distinct_messages_apart():
+    """The summary's warnings: a message every frame gives is one line with its frames as runs; messages that
+    differ only in their figures (one per item) are one line, the first standing for the others; two messages one
+    item gives stay two lines; a single item's line is as before; windows are named by their ranges."""
+    from nodegraph.cli import warning_lines
+
+    recs = [{"node": "cap", "type": "capture", "frame": f, "warnings": ["camera 'cam01': crop", "camera 'cam02': crop"]}
+            for f in [*range(0, 5), *range(8, 10)]]
+    recs += [{"node": "tex", "type": "texture", "frame": f, "warnings": [f"{90 + f} of 360 faces unseen"]} for f in range(3)]
+    recs += [{"node": "one", "type": "t.one", "frame": 4, "warnings": ["alone 3"]}, {"node": "seq", "type": "t.seq", "frame": None, "warnings": ["whole"]}]
+    recs += [{"node": "trk", "type": "track", "frame": None, "frames": [a, b], "warnings": ["held"]} for a, b in ((0, 49), (50, 99))]
+    assert warning_lines(recs) == [
+        "warning: node 'cap' (capture) frames 0-4, 8-9 (7 items): camera 'cam01': crop",
+        "warning: node 'cap' (capture) frames 0-4, 8-9 (7 items): camera 'cam02': crop",
+        "warning: node 'tex' (texture) frames 0-2 (3 items): 90 of 360 faces unseen (frame 0; the others with their own "
+        "figures in run.json)",
+        "warning: node 'one' (t.one) frame 4: alone 3",
+        "warning: node 'seq' (t.seq): whole",
+        "warning: node 'trk' (track) frames 0-49, 50-99 (2 items): held"]
 
 
 SEQ_THEN_FRAMES = """\
