@@ -69,7 +69,7 @@ def warning_lines(records: list[dict]) -> list[str]:
 
     exact: dict[tuple, list] = {}
     for r in records:
-        for w in r.get("warnings", []):
+        for w in dict.fromkeys(r.get("warnings", [])):     # a message an item logged twice counts once
             exact.setdefault((r["node"], r["type"], w), []).append(r)
     alike: dict[tuple, list] = {}                    # (node, type, message with its figures blanked) -> exact keys
     for key in exact:

@@ -657,6 +657,7 @@ def test_warning_lines_group_frames_and_keep_distinct_messages_apart():
 
     recs = [{"node": "cap", "type": "capture", "frame": f, "warnings": ["camera 'cam01': crop", "camera 'cam02': crop"]}
             for f in [*range(0, 5), *range(8, 10)]]
+    recs[1]["warnings"] = recs[1]["warnings"] * 2                    # one item logged them twice: still 7 items
     recs += [{"node": "tex", "type": "texture", "frame": f, "warnings": [f"{90 + f} of 360 faces unseen"]} for f in range(3)]
     recs += [{"node": "one", "type": "t.one", "frame": 4, "warnings": ["alone 3"]}, {"node": "seq", "type": "t.seq", "frame": None, "warnings": ["whole"]}]
     recs += [{"node": "trk", "type": "track", "frame": None, "frames": [a, b], "warnings": ["held"]} for a, b in ((0, 49), (50, 99))]
