@@ -2,13 +2,15 @@
 sizes on the same meshes, photos and mattes, read from a finished run's cache (`volcap run GRAPH` first, same code);
 per size: texels on the surface (mm per texel) next to the mattes' pixels in all views, the in-sample PSNR of the
 textured mesh rendered into every camera against its photo (render and matte pixels; and on the sharpest fifth of
-those by the photo's gradient, where a coarser atlas would blur first), and the per-frame seconds on a reused atlas.
+those by the photo's gradient, where a coarser atlas would blur first), and the node's seconds per frame on its reused
+atlas, with their ratio to the last size's. Starts with the OpenCL device, the CPU and the load average.
 
     volcap run graphs/datasets/pose2sim_single_volumetric.yaml [--frames 0:23]
     python bench/texture_size.py graphs/datasets/pose2sim_single_volumetric.yaml [--frames 0:23] --sizes 1024,2048
 
 Stop 52 (pose2sim_single, 2-core AMD EPYC): 1024 / 2048 texels per side, 22.955 / 22.962 dB in sample (10 frames),
-19.709 / 19.735 on the sharpest fifth, 0.26 / 0.43 s per frame: the graph takes 1024.
+19.709 / 19.735 on the sharpest fifth; frames 0, 11, 22 through the node 0.261 / 0.565 s (0.46x): the
+graph takes 1024.
 """
 from __future__ import annotations
 
@@ -75,8 +77,10 @@ def main():
     from nodegraph.graphfile import load_graph
     from nodes.common.meshops import face_areas
     from nodes.common.raster import render_texture
-    from nodes.texture.reuse import BakeLayout, reference_atlas
-    from nodes.texture.texturing import Settings, texture_mesh
+    from nodegraph.worker import call_node
+    from nodes.common.gltf import texture_image
+    from nodes.texture.reuse import BakeLayout
+    from nodes.texture.texturing import Settings
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("graph")
@@ -90,29 +94,30 @@ def main():
     graph = load_graph(Path(args.graph), frames=args.frames)
     cache = Cache(Path(args.cache))
     sizes = [int(s) for s in args.sizes.split(",")]
+    cls, log = graph.nodes[args.node].cls, logging.getLogger("bench.texture_size")
     frames = list(graph.frames)[::args.every]
     rows = {s: {"psnr": [], "sharp": [], "seconds": [], "mm": [], "texels": []} for s in sizes}
     pixels = []
     for fr in frames:
         inp, p = item_inputs(graph, cache, args.node, fr)
-        mesh, ref, imgs, cams, masks = inp["mesh"], inp["reference"] or inp["mesh"], inp["images"], inp["cameras"], inp["masks"]
+        mesh, imgs, cams, masks = inp["mesh"], inp["images"], inp["cameras"], inp["masks"]
         area = float(face_areas(mesh.vertices, mesh.faces).sum())
         pixels.append(sum(int((m > 127).sum()) for m in masks.masks))
         line = [f"frame {fr}: {pixels[-1]} matte pixels in {len(cams)} views, surface {area:.2f} m2"]
         for s in sizes:
-            st = Settings(size=s, margin=p["margin"], edge_px=p["edge_px"], smoothness=p["smoothness"],
-                          feather=p["feather"], balance=p["balance"], level=p["level"], directions=p["directions"])
-            atlas = reference_atlas(ref.vertices, ref.faces, s, p["directions"])
-            texture_mesh(mesh.vertices, mesh.faces, imgs.images, masks.masks, cams, st, atlas=atlas)   # the layout made
+            # the graph's own node at each size (its params otherwise): once to make the segment's atlas, then timed
+            params = {**p, "size": s}
+            call_node(cls, inp, params, frame=fr, frames=None, log=log)
             t = time.perf_counter()
-            r = texture_mesh(mesh.vertices, mesh.faces, imgs.images, masks.masks, cams, st, atlas=atlas)
+            out = call_node(cls, inp, params, frame=fr, frames=None, log=log)
             rows[s]["seconds"].append(time.perf_counter() - t)
-            texels = int(BakeLayout.of(atlas, 2).inner.sum())
+            atlas, texture = out["atlas"][1], texture_image(out["mesh"][1])
+            texels = int(BakeLayout.of(atlas, max(1, Settings.gutter)).inner.sum())
             rows[s]["texels"].append(texels)
             rows[s]["mm"].append(1000 * np.sqrt(area / texels))
             d_all, d_sharp = [], []
             for v in range(len(cams)):
-                rend, hit = render_texture(mesh.vertices, mesh.faces, r.atlas.uv01(), r.texture, cams, v)
+                rend, hit = render_texture(mesh.vertices, mesh.faces, atlas.uv01(), texture, cams, v)
                 sel = hit & (masks.masks[v] > 127)
                 photo = np.asarray(imgs.images[v])
                 d_all.append(rend[sel].astype(np.float64) - photo[sel])
@@ -125,11 +130,13 @@ def main():
                         f"sharp {rows[s]['sharp'][-1]:.2f}, {rows[s]['seconds'][-1]:.3f} s")
         print("; ".join(line), flush=True)
     print(f"\n{len(frames)} frames, matte pixels (all views) median {int(np.median(pixels))}")
-    print("size  texels (median)  mm/texel  in sample dB (mean)  sharpest fifth dB  s/frame (median)")
+    base = sizes[-1]                                  # ratios to the last size listed (the former default: 2048)
+    print(f"size  texels (median)  mm/texel  in sample dB (mean)  sharpest fifth dB  s/frame (median)  time / {base}'s")
     for s in sizes:
         r = rows[s]
         print(f"{s:5d}  {int(np.median(r['texels'])):14d}  {np.median(r['mm']):8.2f}  {np.mean(r['psnr']):19.3f}  "
-              f"{np.mean(r['sharp']):17.3f}  {np.median(r['seconds']):16.3f}")
+              f"{np.mean(r['sharp']):17.3f}  {np.median(r['seconds']):16.3f}  "
+              f"{np.median(r['seconds']) / np.median(rows[base]['seconds']):12.2f}")
     print(f"load average at the end: {load_average()}")
 
 
