@@ -2,6 +2,7 @@
 //
 // Pipeline for one view:  project_vertices -> raster_triangles -> resolve | coverage | shade
 //                     or  project_bounds -> raster_depth (depths alone, on the mesh's box)
+//                     or  project_bounds -> raster_cover (coverage alone, on the mesh's box)
 // Conventions: pixel (u, v) has its centre at integer coordinates (as Cameras.project); a pixel is covered
 // when its centre lies inside or on the edge of the projected triangle. Lens distortion is applied per
 // vertex, so triangle edges stay straight in the distorted image (fine for small triangles).
@@ -141,6 +142,22 @@ __kernel void raster_depth(__global const int *faces, __global const float4 *pro
         for (int x = s.x0; x <= s.x1; x++)
             if (face_depth(&s, x, y, &z))
                 atomic_min(&zbuf[(y - box.y) * box.z + (x - box.x)], as_uint(z));
+}
+
+// raster_triangles' coverage alone (what kernel coverage reads from its z-buffer: some face's inside test held
+// there), into the pixels of ``box`` (as raster_depth's, cleared to 0 by the caller): 255 where a face covers the
+// pixel centre. No depth and no atomics: every writer of a pixel writes the same byte.
+__kernel void raster_cover(__global const int *faces, __global const float4 *proj, int nfaces,
+                           int width, int height, int4 box, __global uchar *mask)
+{
+    int f = get_global_id(0);
+    FaceScreen s;
+    float z;
+    if (f >= nfaces || !face_screen(faces, proj, f, width, height, 0, &s)) return;
+    for (int y = s.y0; y <= s.y1; y++)
+        for (int x = s.x0; x <= s.x1; x++)
+            if (face_depth(&s, x, y, &z))
+                mask[(y - box.y) * box.z + (x - box.x)] = 255;
 }
 
 // Per pixel: face id (-1 = empty), depth (INFINITY = empty), perspective-correct barycentrics.

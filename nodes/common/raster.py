@@ -213,21 +213,38 @@ class MeshRaster:
         cl = self._cl
         cam = self.cameras[view]
         zbuf = self._pixels("depths", cam.width * cam.height, 4)
-        box = (0, 0, 1, 1)
-        if len(self.f):
-            g = self.run.GROUP
-            bounds = self.run.buffer("proj_bounds", 16)
-            cl.enqueue_fill_buffer(self.queue, bounds, _EMPTY_BOUNDS, 0, 16)   # a fill: no wait for the queue
-            self.run.launch("project_bounds", len(self.v), g, self.d_verts, self.d_cams, np.int32(view),
-                            np.int32(len(self.v)), np.float32(NEAR), self.d_proj, bounds)
-            x0, y0, x1, y1 = (int(b) for b in self.run.read(bounds, 4, np.int32))
-            if x1 >= x0 and y1 >= y0:
-                box = (x0, y0, x1 - x0 + 1, y1 - y0 + 1)
+        box = self._box(view)
         cl.enqueue_fill_buffer(self.queue, zbuf, np.uint32(0xFFFFFFFF), 0, 4 * box[2] * box[3])
         if len(self.f):
             self.run.launch("raster_depth", len(self.f), self.run.GROUP, self.d_faces, self.d_proj, np.int32(len(self.f)),
                             np.int32(cam.width), np.int32(cam.height), cl.cltypes.make_int4(*box), np.int32(bool(cull)), zbuf)
         return zbuf, box
+
+    def _box(self, view: int) -> tuple[int, int, int, int]:
+        """(x0, y0, width, height) of the pixels the faces can cover in ``view`` (kernel project_bounds, which also
+        projects the vertices); (0, 0, 1, 1) when there are none."""
+        if len(self.f) == 0:
+            return (0, 0, 1, 1)
+        bounds = self.run.buffer("proj_bounds", 16)
+        self._cl.enqueue_fill_buffer(self.queue, bounds, _EMPTY_BOUNDS, 0, 16)   # a fill: no wait for the queue
+        self.run.launch("project_bounds", len(self.v), self.run.GROUP, self.d_verts, self.d_cams, np.int32(view),
+                        np.int32(len(self.v)), np.float32(NEAR), self.d_proj, bounds)
+        x0, y0, x1, y1 = (int(b) for b in self.run.read(bounds, 4, np.int32))
+        return (x0, y0, x1 - x0 + 1, y1 - y0 + 1) if x1 >= x0 and y1 >= y0 else (0, 0, 1, 1)
+
+    def cover_box(self, view: int) -> tuple[np.ndarray, tuple[int, int, int, int]]:
+        """``coverage`` on the box of the mesh's projection only: (uint8 (height, width) 0/255 of the box's pixels,
+        box (x0, y0, width, height)); every pixel outside the box is uncovered. The same pixels as ``coverage``
+        (the same inside test per face), without a z-buffer: no full-image fill, no atomics, the box read back."""
+        cam = self.cameras[view]
+        box = self._box(view)
+        n = box[2] * box[3]
+        mask = self._pixels("cover", cam.width * cam.height, 1)
+        self._cl.enqueue_fill_buffer(self.queue, mask, np.uint8(0), 0, n)
+        if len(self.f):
+            self.run.launch("raster_cover", len(self.f), self.run.GROUP, self.d_faces, self.d_proj, np.int32(len(self.f)),
+                            np.int32(cam.width), np.int32(cam.height), self._cl.cltypes.make_int4(*box), mask)
+        return self.run.read(mask, (box[3], box[2]), np.uint8), box
 
     def culls(self, parts) -> list[bool]:
         """Per view whether culling the faces turned away from it keeps every depth (``depth_box(cull=True)``):
@@ -303,8 +320,36 @@ def rasterize(mesh_vertices, faces, cameras: Cameras, view: int):
 
 def silhouette(vertices, faces, cameras: Cameras) -> list[np.ndarray]:
     """Binary silhouette (uint8 0/255) of a mesh in every view."""
+    out = []
+    for cam, (box, (x0, y0, w, h)) in zip(cameras, silhouette_boxes(vertices, faces, cameras)):
+        full = np.zeros((cam.height, cam.width), np.uint8)
+        full[y0:y0 + h, x0:x0 + w] = box
+        out.append(full)
+    return out
+
+
+def silhouette_boxes(vertices, faces, cameras: Cameras) -> list[tuple[np.ndarray, tuple[int, int, int, int]]]:
+    """``silhouette`` per view as (uint8 0/255 of the mesh's box, box (x0, y0, width, height)): nothing is covered
+    outside the box (``MeshRaster.cover_box``)."""
     r = MeshRaster(vertices, faces, cameras)
-    return [r.coverage(i) for i in range(len(cameras))]
+    return [r.cover_box(i) for i in range(len(cameras))]
+
+
+def silhouette_iou(vertices, faces, cameras: Cameras, masks) -> list[dict]:
+    """Per view the mesh's silhouette against a mask (> 127): {"iou", "mesh_outside_mask", "mask_not_covered"}
+    (IoU 1 where both are empty), counted on the mesh's box and the mask's pixel count (no full-image
+    silhouette)."""
+    out = []
+    for (sil, (x0, y0, w, h)), m in zip(silhouette_boxes(vertices, faces, cameras), masks):
+        m = np.asarray(m)
+        a = sil > 0
+        mask_count = int(np.count_nonzero(m > 127))
+        both = int(np.count_nonzero(a & (m[y0:y0 + h, x0:x0 + w] > 127))) if a.any() else 0
+        mesh_count = int(np.count_nonzero(a))
+        union = mask_count + mesh_count - both
+        out.append({"iou": 1.0 if union == 0 else both / union, "mesh_outside_mask": mesh_count - both,
+                    "mask_not_covered": mask_count - both})
+    return out
 
 
 def render(vertices, faces, normals, texcoords, face_material, materials, cameras: Cameras, *, n_object: int,

@@ -19,16 +19,7 @@ def silhouette_report(vertices, faces, cameras: Cameras, masks: MaskSet) -> dict
     """Per view: IoU of the mesh's silhouette with the mask (> 127), mesh pixels outside the mask and mask
     pixels the mesh does not cover; plus mean / min IoU and the error sums over views."""
     check_sizes(masks.masks, cameras, "eval.silhouette")
-    views = []
-    for cam, sil, m in zip(cameras, raster.silhouette(vertices, faces, cameras), masks.masks):
-        a, b = sil > 0, m > 127
-        union = int(np.logical_or(a, b).sum())
-        views.append({
-            "name": cam.name,
-            "iou": 1.0 if union == 0 else float(np.logical_and(a, b).sum() / union),
-            "mesh_outside_mask": int((a & ~b).sum()),
-            "mask_not_covered": int((b & ~a).sum()),
-        })
+    views = [{"name": cam.name, **v} for cam, v in zip(cameras, raster.silhouette_iou(vertices, faces, cameras, masks.masks))]
     ious = [v["iou"] for v in views]
     return {
         "views": views,

@@ -132,12 +132,8 @@ def silhouette_iou(vertices, faces, cameras, masks) -> float:
     """Mean over views of the IoU between the mesh's silhouette (OpenCL rasterizer) and the mask (> 127)."""
     from nodes.common import raster
 
-    ious = []
-    for sil, m in zip(raster.silhouette(np.asarray(vertices, np.float64), np.asarray(faces, np.int64), cameras), masks):
-        a, b = sil > 0, m > 127
-        union = np.logical_or(a, b).sum()
-        ious.append(1.0 if union == 0 else np.logical_and(a, b).sum() / union)
-    return float(np.mean(ious))
+    views = raster.silhouette_iou(np.asarray(vertices, np.float64), np.asarray(faces, np.int64), cameras, masks)
+    return float(np.mean([v["iou"] for v in views]))
 
 
 class Frames:

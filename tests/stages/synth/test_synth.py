@@ -132,6 +132,42 @@ def test_depth_box_is_the_zbuffers_depth_and_culling_keeps_it():
     assert raster.MeshRaster(v, big.faces, cams).culls(Topology.of(big.faces, len(v)).closed_parts) == [True] * len(cams)
 
 
+def test_cover_box_is_the_zbuffers_coverage_and_silhouette_iou_its_counts():
+    """raster_cover's coverage on the mesh's box is the z-buffer's (kernel coverage) at every pixel, nothing
+    outside the box: two overlapping spheres in a distorted view, the cup, a mesh partly outside the image, one
+    partly behind the camera, one wholly behind it, no faces; ``silhouette_iou``'s counts on the box are the
+    full-image counts against masks (an empty mask, a mask of soft levels)."""
+    cup = scenes.build("cup").mesh
+    near = look_at((0.9, 0.0, 0.3), (0.0, 0.0, 0.3), (0, 0, 1), 50, 80, 60, "near")       # the cup fills and leaves it
+    through = look_at((0.0, 0.0, 0.3), (1.0, 0.0, 0.3), (0, 0, 1), 70, 80, 60, "through")  # inside: faces behind it
+    away = look_at((2.0, 0, 0.3), (3.0, 0, 0.3), (0, 0, 1), 60, 40, 30, "away")
+    rng = np.random.default_rng(3)
+    cases = [(two_spheres(), small_rig(k1=-0.15)), (cup, Cameras([*small_rig(160, 120), near, through, away])),
+             (trimesh.Trimesh(cup.vertices, np.zeros((0, 3), np.int64), process=False), small_rig())]
+    checked = 0
+    for m, cams in cases:
+        r = raster.MeshRaster(m.vertices, m.faces, cams)
+        sil = raster.silhouette(m.vertices, m.faces, cams)
+        masks = []
+        for view in range(len(cams)):
+            full = r.coverage(view)
+            box, (x0, y0, w, h) = r.cover_box(view)
+            assert box.shape == (h, w) and box.dtype == np.uint8
+            assert np.array_equal(sil[view], full), view
+            outside = full.copy()
+            outside[y0:y0 + h, x0:x0 + w] = 0
+            assert not outside.any() and np.array_equal(full[y0:y0 + h, x0:x0 + w], box)
+            checked += int(full.any())
+            mask = np.roll(full, (3, -2), axis=(0, 1)) if view % 3 else rng.integers(0, 256, full.shape, dtype=np.uint8)
+            masks.append(np.zeros_like(full) if view == 1 else mask)
+        for view, (got, m_) in enumerate(zip(raster.silhouette_iou(m.vertices, m.faces, cams, masks), masks)):
+            a, b = sil[view] > 0, m_ > 127
+            union = np.logical_or(a, b).sum()
+            assert got == {"iou": 1.0 if union == 0 else np.logical_and(a, b).sum() / union,
+                           "mesh_outside_mask": int((a & ~b).sum()), "mask_not_covered": int((b & ~a).sum())}, view
+    assert checked == 3 + 5          # views with a silhouette: the spheres' three, the cup's five (not "away")
+
+
 def test_shade_kernel_matches_reference():
     sc = scenes.build("figure", 3)
     cams = small_rig(96, 72, n=2)
