@@ -114,6 +114,22 @@ def test_mask_size_error_names_both_files(tmp_path):
         load_capture(tmp_path, 0, **patterns)
 
 
+def test_image_files_come_back_rgb(tmp_path):
+    """read_image turns the file's BGR / BGRA into RGB / RGBA (16-bit to its high byte), grey stays grey."""
+    from nodes.capture import load as L
+
+    rng = np.random.default_rng(1)
+    for name, img in (("c3.png", rng.integers(0, 256, (37, 53, 3), dtype=np.uint8)),
+                      ("c4.png", rng.integers(0, 256, (37, 53, 4), dtype=np.uint8)),
+                      ("g.png", rng.integers(0, 256, (37, 53), dtype=np.uint8)),
+                      ("w16.png", rng.integers(0, 65536, (9, 11, 3), dtype=np.uint16))):
+        assert cv2.imwrite(str(tmp_path / name), img)
+        got = L.read_image(tmp_path / name)
+        want = (img >> 8).astype(np.uint8) if img.dtype == np.uint16 else img
+        want = want if want.ndim == 2 else want[:, :, [2, 1, 0, 3][: want.shape[2]]]
+        assert got.dtype == np.uint8 and got.flags["C_CONTIGUOUS"] and np.array_equal(got, want), name
+
+
 def test_video_frames_and_star_patterns(tmp_path):
     """Frame N of a video pattern is the N-th frame; '*' patterns index sorted files."""
     cams = sphere_rig(2)
