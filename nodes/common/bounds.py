@@ -55,11 +55,12 @@ def initial_box(masks: list[np.ndarray], cameras: Cameras) -> np.ndarray:
         # the centroid and box of the non-zero pixels by OpenCV's integer sums (np.nonzero's coordinates took 8 ms
         # an HD view): the same numbers, the sums being exact in float64
         m = np.ascontiguousarray(m, np.uint8)
-        mom = cv2.moments(m, binaryImage=True)
-        if mom["m00"] == 0:
+        x0, y0, w, h = cv2.boundingRect(m)
+        if w == 0:
             continue
-        _, _, w, h = cv2.boundingRect(m)
-        o, d = cameras.rays(v, [[mom["m10"] / mom["m00"], mom["m01"] / mom["m00"]]])
+        mom = cv2.moments(m[y0:y0 + h, x0:x0 + w], binaryImage=True)   # on the box: the whole image's sums less
+        n = mom["m00"]                                                  # the box's offset times the count, exactly
+        o, d = cameras.rays(v, [[(mom["m10"] + x0 * n) / n, (mom["m01"] + y0 * n) / n]])
         origins.append(o[0])
         dirs.append(d[0])
         extents.append(np.hypot(w - 1, h - 1) / 2)

@@ -73,15 +73,17 @@ class CropViews(Node):
         from nodes.common.cameras import Cameras
         from nodes.common.silhouettes import check_masks
 
+        import cv2
+
         binary = check_masks(masks, cameras, "track.crop")
         out_m, out_a, out_c = [], [], []
         for i, (cam, m) in enumerate(zip(cameras, binary)):
-            ys, xs = np.nonzero(m > 127)
-            if len(xs) == 0:
+            bx, by, bw, bh = cv2.boundingRect((m > 127).view(np.uint8))   # the box of the pixels > 127 (np.nonzero's: 5x slower)
+            if bw == 0:
                 x0, y0, x1, y1 = 0, 0, 1, 1
             else:
-                x0, y0 = max(0, int(xs.min()) - margin), max(0, int(ys.min()) - margin)
-                x1, y1 = min(m.shape[1], int(xs.max()) + 1 + margin), min(m.shape[0], int(ys.max()) + 1 + margin)
+                x0, y0 = max(0, bx - margin), max(0, by - margin)
+                x1, y1 = min(m.shape[1], bx + bw + margin), min(m.shape[0], by + bh + margin)
             out_m.append(np.ascontiguousarray(m[y0:y1, x0:x1]))
             if masks.alpha is not None:
                 out_a.append(np.ascontiguousarray(masks.alpha[i][y0:y1, x0:x1]))

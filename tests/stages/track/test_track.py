@@ -465,6 +465,19 @@ def test_crop_keeps_the_point_test():
     uv_c, _ = out["cameras"].project(p, 0)
     c0 = out["cameras"][0]
     assert np.allclose(uv - uv_c, [cams[0].K[0, 2] - c0.K[0, 2], cams[0].K[1, 2] - c0.K[1, 2]])
+    # each crop is the box of the mask's pixels > 127 grown by the margin, clipped to the image (one view's mask
+    # touches the image's corner, one is empty: 1 x 1)
+    masks.masks[1][:5, :3] = 200
+    masks.masks[2][:] = 0
+    out = run_node("track.crop", {"masks": masks, "cameras": cams}, {"margin": 4})
+    for m, got, cam in zip(masks.masks, out["masks"].masks, out["cameras"]):
+        ys, xs = np.nonzero(m > 127)
+        if len(xs) == 0:
+            assert got.shape == (1, 1) and cam.width == cam.height == 1
+            continue
+        x0, y0 = max(0, xs.min() - 4), max(0, ys.min() - 4)
+        x1, y1 = min(m.shape[1], xs.max() + 5), min(m.shape[0], ys.max() + 5)
+        assert np.array_equal(got, m[y0:y1, x0:x1]) and (cam.width, cam.height) == (x1 - x0, y1 - y0)
 
 
 # ---------------------------------------------------------------- graphs
