@@ -104,9 +104,14 @@ __kernel void nearest_in_grid(__global const double* p, int n, __global const do
     long bj = -1;
     // rings nearer than this hold no cell of the grid (a query outside it)
     int near = max(max(max(0, -cx), cx - (nx - 1)), max(max(max(0, -cy), cy - (ny - 1)), max(max(0, -cz), cz - (nz - 1))));
+    // ring r lies beyond the (2r - 1)^3 cells around the query's, (r - 1 + m) h away at least, m the query's least
+    // distance to a face of its own cell (cells); less 1e-9 of a cell for rounding, and a ring is left out only when
+    // that bound exceeds the best found by more than its rounding (so a point it holds could neither win nor tie)
+    double fx = (x.x - lox) / h - gx, fy = (x.y - loy) / h - gy, fz = (x.z - loz) / h - gz;
+    double m = fmax(fmin(fmin(fmin(fx, 1.0 - fx), fmin(fy, 1.0 - fy)), fmin(fz, 1.0 - fz)) - 1.0e-9, 0.0);
     for (int r = near; r <= far; r++) {
-        double lb = (r - 1) * h;
-        if (r > 0 && lb * lb >= best) break;
+        double lb = (r - 1) * h, lbm = (r - 1 + m) * h;
+        if (r > 0 && (lb * lb >= best || lbm * lbm > best * (1.0 + 1.0e-9))) break;
         for (int z = max(cz - r, 0); z <= min(cz + r, nz - 1); z++) {
             int az = abs(z - cz);
             for (int y = max(cy - r, 0); y <= min(cy + r, ny - 1); y++) {
