@@ -142,6 +142,19 @@ def test_point_grid_matches_a_kd_tree():
             if pts is v:
                 assert np.array_equal(j, rj)
     assert len(closest.PointGrid(v).nearest(v[:0])[0]) == 0
+    # exact ties (points and queries on lattices, duplicated points) with coarse and fine grids: the search leaves
+    # out a ring only when its bound exceeds the best distance, so the distances are cKDTree's and another index
+    # only where two points are equally near
+    lattice = rng.integers(0, 12, (3000, 3)) * 0.5
+    for pts, q in ((lattice, rng.integers(0, 24, (4000, 3)) * 0.25), (np.vstack([v, v]), v[::7] + rng.normal(0, 0.3, (len(v[::7]), 3)))):
+        for cells in (1.0, 8.0, 30.0):
+            grid = closest.PointGrid(pts, cells_per_point=cells)
+            for upper in (np.inf, 0.6):
+                d, j = grid.nearest(q, upper)
+                rd, rj = grid.nearest_reference(q, upper)
+                assert np.array_equal(d, rd) and np.array_equal(j >= 0, rj >= 0), (cells, upper)
+                ok = j >= 0
+                assert np.array_equal(np.linalg.norm(pts[j[ok]] - q[ok], axis=1), np.linalg.norm(pts[rj[ok]] - q[ok], axis=1))
 
 
 def test_rotation_kernel_matches_its_svd_reference():
