@@ -339,9 +339,13 @@ def silhouette_iou(vertices, faces, cameras: Cameras, masks) -> list[dict]:
     """Per view the mesh's silhouette against a mask (> 127): {"iou", "mesh_outside_mask", "mask_not_covered"}
     (IoU 1 where both are empty), counted on the mesh's box and the mask's pixel count (no full-image
     silhouette)."""
+    masks = [np.asarray(m) for m in masks]
+    for cam, m in zip(cameras, masks):
+        if m.shape != (cam.height, cam.width):
+            raise NodeError(f"camera '{cam.name}': mask {m.shape[1]}x{m.shape[0]} is not its image's "
+                            f"{cam.width}x{cam.height}")
     out = []
     for (sil, (x0, y0, w, h)), m in zip(silhouette_boxes(vertices, faces, cameras), masks):
-        m = np.asarray(m)
         a = sil > 0
         mask_count = int(np.count_nonzero(m > 127))
         both = int(np.count_nonzero(a & (m[y0:y0 + h, x0:x0 + w] > 127))) if a.any() else 0

@@ -128,6 +128,15 @@ def test_image_files_come_back_rgb(tmp_path):
         want = (img >> 8).astype(np.uint8) if img.dtype == np.uint16 else img
         want = want if want.ndim == 2 else want[:, :, [2, 1, 0, 3][: want.shape[2]]]
         assert got.dtype == np.uint8 and got.flags["C_CONTIGUOUS"] and np.array_equal(got, want), name
+    # a colour video, read a frame at a time and as plate frames (decoded front to back): red stays red
+    vw = cv2.VideoWriter(str(tmp_path / "red.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 10, (64, 48))
+    for _ in range(4):
+        vw.write(np.full((48, 64, 3), (20, 60, 230), np.uint8))        # BGR: a red with a little green and blue
+    vw.release()
+    plates, picked = L._plates(tmp_path, "red.mp4", [(0, "c")], {}, 2)
+    for im in (L.read_image(tmp_path / "red.mp4", 1), plates[0].images[0]):
+        mean = im.reshape(-1, 3).mean(axis=0)
+        assert np.all(np.abs(mean - (230, 60, 20)) < 12), mean
 
 
 def test_video_frames_and_star_patterns(tmp_path):

@@ -6,6 +6,7 @@ import trimesh
 
 from nodes.common.cameras import Cameras, look_at
 from rig import ring_rig
+from nodegraph import NodeError
 from nodegraph.testing import run_node
 from nodegraph.types import Array
 from nodes.common.types import Masks
@@ -166,6 +167,11 @@ def test_cover_box_is_the_zbuffers_coverage_and_silhouette_iou_its_counts():
             assert got == {"iou": 1.0 if union == 0 else np.logical_and(a, b).sum() / union,
                            "mesh_outside_mask": int((a & ~b).sum()), "mask_not_covered": int((b & ~a).sum())}, view
     assert checked == 3 + 5          # views with a silhouette: the spheres' three, the cup's five (not "away")
+    m, cams = cases[0]
+    wrong = [np.zeros((cam.height, cam.width), np.uint8) for cam in cams]
+    wrong[1] = np.zeros((cams[1].height + 2, cams[1].width), np.uint8)
+    with pytest.raises(NodeError, match="camera 'c1': mask 80x62 is not its image's 80x60"):
+        raster.silhouette_iou(m.vertices, m.faces, cams, wrong)
 
 
 def test_shade_kernel_matches_reference():
