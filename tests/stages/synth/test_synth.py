@@ -159,6 +159,8 @@ def test_cover_box_is_the_zbuffers_coverage_and_silhouette_iou_its_counts():
             outside[y0:y0 + h, x0:x0 + w] = 0
             assert not outside.any() and np.array_equal(full[y0:y0 + h, x0:x0 + w], box)
             checked += int(full.any())
+            ref = raster.rasterize_reference(m.vertices, m.faces, cams, view)[0] >= 0     # the NumPy reference's
+            assert (ref != (sil[view] > 0)).sum() <= 3, view                              # exact edge ties only
             mask = np.roll(full, (3, -2), axis=(0, 1)) if view % 3 else rng.integers(0, 256, full.shape, dtype=np.uint8)
             masks.append(np.zeros_like(full) if view == 1 else mask)
         for view, (got, m_) in enumerate(zip(raster.silhouette_iou(m.vertices, m.faces, cams, masks), masks)):
