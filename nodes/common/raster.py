@@ -47,10 +47,10 @@ def project_vertices_reference(vertices, cameras: Cameras, view: int) -> np.ndar
     cam = cameras[view]
     X = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
     xc = X @ cam.Rt[:, :3].T + cam.Rt[:, 3]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        r2 = (xc[:, 0] ** 2 + xc[:, 1] ** 2) / xc[:, 2] ** 2
     k1, k2, _, _, k3 = cam.dist
-    slope = 1 + r2 * (3 * k1 + r2 * (5 * k2 + r2 * 7 * k3))
+    with np.errstate(divide="ignore", invalid="ignore"):      # a vertex on the camera's plane: not imaged
+        r2 = (xc[:, 0] ** 2 + xc[:, 1] ** 2) / xc[:, 2] ** 2
+        slope = 1 + r2 * (3 * k1 + r2 * (5 * k2 + r2 * 7 * k3))
     return np.column_stack([uv, z, ((z > NEAR) & (slope > 0)).astype(np.float64)])
 
 
