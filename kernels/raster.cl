@@ -111,6 +111,13 @@ inline int face_depth(const FaceScreen *s, int x, int y, float *z)
     return 1;
 }
 
+// The pixel centres (x, y) of face screen s's clipped box that its inside test holds for, with the depth z there:
+// the one walk of the three raster kernels below (each a work item per face).
+#define EACH_COVERED_PIXEL(s, x, y, z) \
+    for (int y = (s).y0; y <= (s).y1; y++) \
+        for (int x = (s).x0; x <= (s).x1; x++) \
+            if (face_depth(&(s), x, y, &(z)))
+
 // One work item per face: walk the pixel centres of its clipped bounding box.
 __kernel void raster_triangles(__global const int *faces, __global const float4 *proj, int nfaces,
                                int width, int height, __global ulong *zbuf)
@@ -119,10 +126,8 @@ __kernel void raster_triangles(__global const int *faces, __global const float4 
     FaceScreen s;
     float z;
     if (f >= nfaces || !face_screen(faces, proj, f, width, height, 0, &s)) return;
-    for (int y = s.y0; y <= s.y1; y++)
-        for (int x = s.x0; x <= s.x1; x++)
-            if (face_depth(&s, x, y, &z))
-                atom_min(&zbuf[y * width + x], ((ulong)as_uint(z) << 32) | (ulong)(uint)f);
+    EACH_COVERED_PIXEL(s, x, y, z)
+        atom_min(&zbuf[y * width + x], ((ulong)as_uint(z) << 32) | (ulong)(uint)f);
 }
 
 // raster_triangles' depths alone, for readers of depth that never need the face: camera z as its float bits
@@ -138,10 +143,8 @@ __kernel void raster_depth(__global const int *faces, __global const float4 *pro
     FaceScreen s;
     float z;
     if (f >= nfaces || !face_screen(faces, proj, f, width, height, cull, &s)) return;
-    for (int y = s.y0; y <= s.y1; y++)
-        for (int x = s.x0; x <= s.x1; x++)
-            if (face_depth(&s, x, y, &z))
-                atomic_min(&zbuf[(y - box.y) * box.z + (x - box.x)], as_uint(z));
+    EACH_COVERED_PIXEL(s, x, y, z)
+        atomic_min(&zbuf[(y - box.y) * box.z + (x - box.x)], as_uint(z));
 }
 
 // raster_triangles' coverage alone (what kernel coverage reads from its z-buffer: some face's inside test held
@@ -154,10 +157,8 @@ __kernel void raster_cover(__global const int *faces, __global const float4 *pro
     FaceScreen s;
     float z;
     if (f >= nfaces || !face_screen(faces, proj, f, width, height, 0, &s)) return;
-    for (int y = s.y0; y <= s.y1; y++)
-        for (int x = s.x0; x <= s.x1; x++)
-            if (face_depth(&s, x, y, &z))
-                mask[(y - box.y) * box.z + (x - box.x)] = 255;
+    EACH_COVERED_PIXEL(s, x, y, z)
+        mask[(y - box.y) * box.z + (x - box.x)] = 255;
 }
 
 // Per pixel: face id (-1 = empty), depth (INFINITY = empty), perspective-correct barycentrics.
