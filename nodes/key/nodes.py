@@ -300,10 +300,18 @@ class Consensus(Node):
         centres = surface_centres(volume)     # the hull's surface voxels, projected into every view
         for v, m in enumerate(masks.masks):
             keep = hull_footprint(volume, cameras, v, dilate, centres) > 0
-            out.append(np.where(keep, m, 0).astype(np.uint8))
+            out.append(_kept(m, keep, np.uint8))
             if masks.alpha is not None:
-                alphas.append(np.where(keep, masks.alpha[v], 0).astype(np.float32))
+                alphas.append(_kept(masks.alpha[v], keep, np.float32))
         return {"masks": MaskSet(out, alphas if masks.alpha is not None else None, list(masks.names))}
+
+
+def _kept(a, keep, dtype):
+    """``a`` where ``keep``, 0 elsewhere, as ``dtype``: np.where(keep, a, 0).astype(dtype)'s values (a float's -0.0
+    kept) in one pass instead of three (an HD view 8.5 -> 1.5 ms)."""
+    out = np.zeros(np.shape(a), dtype)
+    np.copyto(out, a, casting="unsafe", where=keep)
+    return out
 
 
 class GrabCut(Node):

@@ -648,6 +648,22 @@ def test_consensus_rejects_single_view_foreground():
     assert out["masks"].masks[2][2:10, 2:12].max() == 0 and out["masks"].masks[4][40:46, 50:60].max() == 0
 
 
+def test_consensus_keeps_masks_and_alpha_inside_the_footprint_bit_for_bit():
+    """key.consensus's masks and float alpha are the inputs where the hull's footprint is, 0 elsewhere: the
+    np.where form's bytes (a soft alpha's -0.0 inside kept, +0.0 outside)."""
+    from nodes.key.keying import hull_footprint
+
+    cams, _, keyed, volume = consensus_scene()
+    rng = np.random.default_rng(8)
+    alpha = [np.where(rng.random(m.shape) < 0.2, -0.0, rng.random(m.shape) * (m > 0)).astype(np.float32) for m in keyed]
+    out = run_node("key.consensus", {"masks": MaskSet(keyed, alpha), "cameras": cams, "volume": volume})["masks"]
+    for v, (m, a) in enumerate(zip(keyed, alpha)):
+        keep = hull_footprint(volume, cams, v, 2) > 0
+        assert 0 < keep.sum() < keep.size
+        assert out.masks[v].dtype == np.uint8 and np.array_equal(out.masks[v], np.where(keep, m, 0).astype(np.uint8))
+        assert out.alpha[v].dtype == np.float32 and out.alpha[v].tobytes() == np.where(keep, a, 0).astype(np.float32).tobytes()
+
+
 def test_hull_footprint_equals_the_whole_image_reference():
     """The footprint dilated and filled on the splat's box equals the whole image's, also where it runs off the
     image (a hull shifted half out of view) and for a hollow hull; no voxel gives no footprint."""
