@@ -237,7 +237,7 @@ def _rgb(img: np.ndarray) -> np.ndarray:
 
 def _mask(img: np.ndarray, threshold: int) -> np.ndarray:
     grey = img if img.ndim == 2 else img[:, :, :3].max(axis=2)
-    return np.where(grey > threshold, 255, 0).astype(np.uint8)
+    return (grey > threshold).view(np.uint8) * np.uint8(255)      # np.where(.., 255, 0).astype(np.uint8)'s bytes
 
 
 # ------------------------------------------------------------------ layout detection
