@@ -70,10 +70,10 @@ class CropViews(Node):
     params = {"margin": Param(int, 48, range=(0, 100000), doc="pixels kept around each silhouette's box")}
 
     def run(self, masks, cameras, *, margin):
+        import cv2
+
         from nodes.common.cameras import Cameras
         from nodes.common.silhouettes import check_masks
-
-        import cv2
 
         binary = check_masks(masks, cameras, "track.crop")
         out_m, out_a, out_c = [], [], []
