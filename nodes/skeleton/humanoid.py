@@ -70,13 +70,6 @@ CLAVICLE = 0.62
 # fit's (synth walk: spreads 0.3-2.1 cm, every joint; the kept fit, a stride frame's, had its hips 3-3.6 voxels low
 # at 128^3. child_rope: spreads 2-22 cm, 0-3 joints a segment)
 AGREE = 0.02
-# skeletonize.humanoid: where the fits agree on the pelvis and both hips (CROTCH, AGREE), those are raised to the height
-# of the highest fit's pelvis (each carried to the kept fit's frame), at most CROTCH_RISE of the stature above their
-# median: a visual hull's fill between thighs held together only ever lowers where the legs' paths meet, and a stride
-# frame shows the crotch (the demo's walk on its hull at 128^3: 3 of 4 frames' pelvises 2-4 cm low, the rig's hips
-# 2.1-2.4 voxels low with the median). child_rope's fits do not agree there (hips 6-10 cm apart): left as they were
-CROTCH_RISE = 0.025
-CROTCH = ("pelvis", "hip_l", "hip_r")
 # the elbow this share of the height back from the wrist along the arm's path. The template's 0.60 of the path missed
 # by up to 0.09 of it as the path's start at the spine moves (synth walk at 128^3: elbows up to 4.7 voxels off);
 # MediaPipe's elbows on thu_wd_human, pose2sim_single and inria_dancer lie 0.149-0.182 of the height back from their
@@ -783,21 +776,11 @@ def bind_humanoid(frames: np.ndarray, faces, resolution: int, up=(0.0, 0.0, 1.0)
             pos, has_i = carry_joints(Trajectories(frames[r_i], frames[[r]]), raw_i[keep_i], sub_i, np.argmax(w_i, axis=1))
             carried_all.append(np.where(has_i[:, None], pos[0], np.nan))
         stack = np.stack(carried_all)
-        keep_names = [names[j] for j in keep]
         with warnings.catch_warnings():      # a joint no fit's surface carries: all NaN, not taken
             warnings.simplefilter("ignore", RuntimeWarning)
             cons = np.nanmedian(stack, axis=0)
             spread = np.nanmedian(np.linalg.norm(stack - cons[None], axis=2), axis=0)
         ok = ~np.isnan(cons).any(axis=1) & ~np.isnan(spread) & (spread < AGREE * stature)
-        # the crotch raised: where the fits agree on the pelvis and both hips, those go up along ``up`` only (their
-        # layout stays the median's) to where the highest fit's pelvis stands, at most CROTCH_RISE of the stature
-        crotch = [keep_names.index(n) for n in CROTCH if n in keep_names]
-        if len(crotch) == len(CROTCH) and ok[crotch].all():
-            jp = keep_names.index("pelvis")
-            rise = min(float(np.nanmax(stack[:, jp] @ u) - cons[jp] @ u), CROTCH_RISE * stature)
-            if rise > 0:
-                cons[crotch] += rise * u
-            report["crotch_raised_cm"] = round(100 * max(rise, 0.0), 2)
         raw = raw.copy()
         raw[np.asarray(keep)[ok]] = cons[ok]
         report["joints_from_fits"] = [names[j] for j, o in zip(keep, ok) if o]

@@ -1168,54 +1168,6 @@ def test_humanoid_limb_bones_as_long_as_most_fits_measure_them(monkeypatch):
         assert abs(d - used[f"ankle_{s}"]) < 1e-4, (d, used[f"ankle_{s}"])
 
 
-def test_humanoid_crotch_raised_to_the_highest_fit(monkeypatch):
-    """bind_humanoid: a visual hull fills the crotch between thighs held together, so the legs' paths meet low and
-    those fits' pelvis and hips lie low (the demo's walk on its hull: 3 of 4 frames 2-4 cm); the rig raises the
-    pelvis and hips, along up only, to the highest fit's pelvis, at most CROTCH_RISE of the stature. Six fits of one
-    body (the figure's frame 0 six times: the surface carries nothing), the pelvis and hips 3 cm low in four, 2 cm in
-    one, right in the most rigid: the rig's pelvis and hips where six right fits put them (the median is 3 cm lower).
-    One fit 20 cm too high instead: the rise stops at CROTCH_RISE of the stature. Fits that do not agree on the crotch
-    (its joints 2.5-12.5 cm from their median; AGREE): nothing raised, the most rigid fit's crotch kept."""
-    from nodes.skeleton import humanoid as H
-    from nodes.synth import scenes
-
-    mesh = scenes.build("figure", 0).mesh
-    frames = np.array([np.asarray(mesh.vertices)] * 6)
-    real = H.fit_humanoid(*curve.voxelize(frames[0], np.asarray(mesh.faces), 64), hand=0, foot=0.08)
-    names = real[2]
-    crotch = [names.index(n) for n in H.CROTCH]
-    bind = H._bind
-    monkeypatch.setattr(H, "_bind", lambda fr, r, *a: (*bind(fr, r, *a)[:-1], 0.01 * (1 + r)))   # frame 0 most rigid
-    stature = H.body_stature(frames)
-    placed = {}
-    for drops, rise in (([0.0] * 6, 0.0), ([0.0, 0.03, 0.03, 0.02, 0.03, 0.03], 0.03),
-                        ([0.03, 0.03, 0.03, -0.2, 0.03, 0.03], None), ([0.0, 0.15, 0.05, 0.1, 0.2, 0.02], "apart")):
-        calls = []
-
-        def fit(occ, origin, spacing, up, node, hand=None, foot=None, stature=None):
-            joints = np.array(real[0])
-            joints[crotch, 2] -= drops[len(calls)]
-            calls.append(1)
-            return joints, real[1], names, dict(real[3])
-
-        monkeypatch.setattr(H, "fit_humanoid", fit)
-        joints, parents, kept, *_, report = H.bind_humanoid(frames, mesh.faces, 64, hand=0, foot=0.08)
-        assert len(calls) == 6
-        if rise == "apart":
-            assert "crotch_raised_cm" not in report and not set(H.CROTCH) & set(report["joints_from_fits"])
-            for j in H.CROTCH:
-                np.testing.assert_allclose(joints[kept.index(j)], placed[j], atol=1e-6, err_msg=j)
-            continue
-        expect = rise if rise is not None else H.CROTCH_RISE * stature
-        assert report["crotch_raised_cm"] == round(100 * expect, 2), (report["crotch_raised_cm"], expect)
-        if not any(drops):
-            placed = {j: joints[kept.index(j)] for j in H.CROTCH}     # six right fits
-            continue
-        for j in H.CROTCH:
-            want = placed[j] - [0, 0, 0.03 - expect]                    # the median's place (3 cm low), raised
-            np.testing.assert_allclose(joints[kept.index(j)], want, atol=1e-6, err_msg=j)
-
-
 def test_humanoid_rest_pose_t_and_a(tmp_path):
     """skin's rest_pose: the same motion about a T or an A pose. The walk's template rig (6 frames) skinned as
     captured and with rest_pose T: every posed joint goes where it went (1e-9 m: the motion is unchanged), bone
