@@ -347,8 +347,9 @@ def silhouette_iou(vertices, faces, cameras: Cameras, masks) -> list[dict]:
     out = []
     for (sil, (x0, y0, w, h)), m in zip(silhouette_boxes(vertices, faces, cameras), masks):
         a = sil > 0
-        mask_count = int(np.count_nonzero(m > 127))
-        both = int(np.count_nonzero(a & (m[y0:y0 + h, x0:x0 + w] > 127))) if a.any() else 0
+        inside = m > 127                                  # thresholded once: counted whole, then read on the box
+        mask_count = int(np.count_nonzero(inside))
+        both = int(np.count_nonzero(a & inside[y0:y0 + h, x0:x0 + w])) if a.any() else 0
         mesh_count = int(np.count_nonzero(a))
         union = mask_count + mesh_count - both
         out.append({"iou": 1.0 if union == 0 else both / union, "mesh_outside_mask": mesh_count - both,
