@@ -21,8 +21,8 @@ disagree), then with the rotations fixed every term is linear in the translation
                                    and pulling it to the nearest outline crushes it onto the body)
          + w_arap sum_(j, k) |(g_k + t_k) - (g_j + t_j) - R_j (g_k - g_j)|^2
 
-solved with a sparse Cholesky-like factorisation (scipy SuperLU, in a fill-reducing order found once per
-keyframe, diagonal pivots) of the 3N x 3N normal equations; the rotations then follow from the ARAP local step
+solved by a sparse Cholesky factorisation (CHOLMOD's supernodal one, its order and symbolic analysis found
+once per keyframe: nodes/common/cholesky.py) of the 3N x 3N normal equations; the rotations then follow from the ARAP local step
 (Procrustes per node, on the OpenCL device: kernels/rotations.cl). Everything is computed in voxel units (coordinates divided by ``voxel``), so
 the weights are dimensionless. Nearest vertices and closest points on a surface (the matches, the detail, the
 snap, the unfold, the residuals) are searched on the OpenCL device (kernels/closest.cl): ``PointGrid`` and
@@ -49,6 +49,7 @@ from nodes.common.meshops import (edge_length_graph, face_normals, folded_edges,
                                   ring_operator, vertex_normals)
 
 
+from nodes.common.cholesky import SparseCholesky
 from nodes.common.closest import PointGrid, SurfaceQuery, used_vertices
 
 
@@ -422,11 +423,10 @@ class Registration:
     Everything that depends only on the keyframe is prepared once: the sampled source vertices and their
     nodes and weights, and the sparsity pattern of the 3N x 3N normal equations (node pairs sharing a sample
     vertex or a graph edge) with its fill-reducing order, so each ICP iteration only accumulates values into it
-    (np.bincount) and factorises (scipy SuperLU)."""
+    (np.bincount) and factorises (CHOLMOD, nodes/common/cholesky.py)."""
 
     def __init__(self, graph: DeformationGraph, faces: np.ndarray, params: FitParams):
         from scipy.sparse import coo_matrix, csr_matrix
-        from scipy.sparse.linalg import splu
 
         self.graph, self.faces, self.params = graph, np.asarray(faces, np.int64), params
         used = used_vertices(self.faces, len(graph.rest))
@@ -455,21 +455,17 @@ class Registration:
         a_b = np.arange(9)
         rows = self.pair_j[:, None] * 3 + a_b[None, :] // 3          # value (pair, a * 3 + b) sits at (3j + a, 3k + b)
         cols = self.pair_k[:, None] * 3 + a_b[None, :] % 3
-        # a fill-reducing ordering of the pattern, found once: SuperLU's minimum degree on A + A^T (structural, so
-        # a diagonally dominant matrix of the same pattern gives it); every iteration factorises the matrix permuted
-        # into that order with diagonal pivots (A is symmetric positive definite): half the time of ordering and
-        # pivoting each time, the same factors
+        # the pattern's lower triangle (A is symmetric positive definite), CSC: built with values 1..P*9 to find the
+        # slot of every (pair, a, b) value; CHOLMOD finds its fill-reducing order and symbolic factorisation once
+        # here, so each ICP iteration only gathers the values and refactorises (SparseCholesky)
         self.n3 = 3 * n
         rows, cols = rows.ravel(), cols.ravel()
-        dominant = coo_matrix((np.where(rows == cols, 9.0 * P, -1.0), (rows, cols)), shape=(self.n3, self.n3)).tocsc()
-        self.position = splu(dominant, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True}).perm_c
-        self.order = np.argsort(self.position)                                        # position -> unknown
-        # position of every (pair, a, b) value in the permuted matrix's CSC data array: built with values 1..P*9
-        probe = coo_matrix((np.arange(1, P * 9 + 1, dtype=np.float64), (self.position[rows], self.position[cols])),
+        low = rows >= cols
+        probe = coo_matrix((np.arange(1, P * 9 + 1, dtype=np.float64)[low], (rows[low], cols[low])),
                            shape=(self.n3, self.n3)).tocsc()
         probe.sort_indices()
-        self.pattern = probe
         self.gather = probe.data.astype(np.int64) - 1                                 # CSC slot -> (pair, a, b)
+        self.cholesky = SparseCholesky(probe)
         # the sampled vertices as linear maps of the state, built once: p = Mp vec(R) + p0 (translation-free
         # position), normals before normalising = Mn vec(R), and the skinning weights Wt (3N x 3S) whose
         # transpose blends the translations (x = p + Wt^T t) and which scatters per-sample rows to the nodes
@@ -532,8 +528,6 @@ class Registration:
         depends on the rotations)."""
         import time
 
-        from scipy.sparse.linalg import splu
-
         prm = self.params
         graph = self.graph
         info = FitInfo()
@@ -590,13 +584,11 @@ class Registration:
             w_a = arap / max(1, len(graph.directed))
             A_pairs += w_a * self.arap_blocks
             A_pairs[self.diag_pair] += 1e-8 * eye9
-            A = self.pattern.copy()
-            A.data = A_pairs.ravel()[self.gather]
             clock["assemble"] += time.perf_counter() - t0
             t0 = time.perf_counter()
-            lu = splu(A, permc_spec="NATURAL", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+            self.cholesky.factor(A_pairs.ravel()[self.gather])
             for _ in range(max(1, prm.inner)):
-                state.t = lu.solve(self._rhs(h, Q, state, w_a)[self.order])[self.position].reshape(-1, 3)
+                state.t = self.cholesky.solve(self._rhs(h, Q, state, w_a)).reshape(-1, 3)
                 state.R = arap_rotations(graph, state.t)
             clock["solve"] += time.perf_counter() - t0
             info.matched_source = float(ok.mean()) if S else 0.0

@@ -264,6 +264,30 @@ def test_graph_is_geodesic_and_fit_recovers_a_bend():
     assert np.allclose(np.einsum("nab,nac->nbc", R, R), np.eye(3), atol=1e-9) and np.allclose(np.linalg.det(R), 1)
 
 
+def test_normal_equations_cholesky_matches_superlu(caplog):
+    # the fit's factorisation (CHOLMOD) against scipy's SuperLU on the registration's own pattern: a positive
+    # definite matrix of it (the ARAP blocks plus a data term's diagonal) solves to the same answer; an indefinite
+    # one (a negative diagonal entry) falls back to SuperLU with a warning instead of failing
+    cap = trimesh.creation.capsule(height=2.0, radius=0.3, count=[24, 24])
+    graph = deform.build_graph(cap.vertices / 0.05, cap.faces, spacing=4.0)
+    reg = deform.Registration(graph, cap.faces, deform.FitParams())
+    rng = np.random.default_rng(3)
+    pairs = reg.arap_blocks + 0.0
+    pairs[reg.diag_pair] += rng.uniform(0.5, 2.0, (len(reg.diag_pair), 1)) * np.eye(3).ravel()
+    values = pairs.ravel()[reg.gather]
+    b = rng.normal(size=reg.n3)
+    chol = reg.cholesky
+    chol.factor(values)
+    x = chol.solve(b)
+    assert np.abs(x - chol.reference(values, b)).max() < 1e-10 * np.abs(x).max()
+    assert np.abs(chol.full(values) @ x - b).max() < 1e-10
+    values[0] = -5.0                                   # (0, 0) is the pattern's first lower-triangle slot
+    assert chol.full(values)[0, 0] == -5.0
+    chol.factor(values)
+    assert "not positive definite" in caplog.text
+    assert np.abs(chol.full(values) @ chol.solve(b) - b).max() < 1e-8
+
+
 # ---------------------------------------------------------------- tracking
 def correspondence_error(seq, data, frames) -> np.ndarray:
     """Per frame: mean distance (voxels) between each tracked vertex and where its body point truly is.
