@@ -125,12 +125,19 @@ def _face_cross(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
     return (e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0])
 
 
+def row_norms(x: np.ndarray) -> np.ndarray:
+    """Lengths of the rows of an (N, 3) array: ``np.linalg.norm(x, axis=1)``'s values bit for bit (the same sum,
+    x0^2 + x1^2 then + x2^2), 5-6x faster (NumPy reduces along a length-3 axis slowly)."""
+    q = x * x
+    return np.sqrt(q[:, 0] + q[:, 1] + q[:, 2])
+
+
 def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Unit face normals (F, 3) float64, right-handed in the corner order; zero for a degenerate face."""
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces, np.int64).reshape(-1, 3)
     n = np.stack(_face_cross(v, f), axis=1)
-    length = np.linalg.norm(n, axis=1, keepdims=True)
+    length = row_norms(n)[:, None]
     return np.divide(n, length, out=np.zeros_like(n), where=length > 0)
 
 
@@ -151,7 +158,7 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     for a in range(3):
         for c in range(3):
             n[:, a] += np.bincount(f[:, c], fn[a], minlength=len(v))
-    norm = np.linalg.norm(n, axis=1, keepdims=True)
+    norm = row_norms(n)[:, None]
     return np.divide(n, norm, out=np.zeros_like(n), where=norm > 0)
 
 

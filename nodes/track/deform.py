@@ -46,7 +46,7 @@ import numpy as np
 from kernels import source
 from nodegraph import clrt
 from nodes.common.meshops import (edge_length_graph, face_normals, folded_edges, neighbour_mean, ring_degree,
-                                  ring_operator, vertex_normals)
+                                  ring_operator, row_norms, vertex_normals)
 
 
 from nodes.common.cholesky import SparseCholesky
@@ -510,7 +510,7 @@ class Registration:
         p = (self.Mp @ r).reshape(-1, 3) + self.p0
         x = p + (self.WtT @ state.t.reshape(-1)).reshape(-1, 3)
         nr = (self.Mn @ r).reshape(-1, 3)
-        nr /= np.maximum(np.linalg.norm(nr, axis=1, keepdims=True), 1e-12)
+        nr /= np.maximum(row_norms(nr), 1e-12)[:, None]
         return x, nr, p
 
     def _rhs(self, h: np.ndarray, Q: np.ndarray, state: GraphState, w_a: float) -> np.ndarray:
@@ -705,7 +705,7 @@ def unfold(x: np.ndarray, faces: np.ndarray, pairs, S, rounds: int, target: "Tar
         move = np.flatnonzero((S @ mark) > 0)                  # the fold's vertices and their one-ring
         moved = np.zeros(len(x), bool)
         moved[move] = True
-        face_moved = moved[f].any(axis=1)
+        face_moved = moved[f[:, 0]] | moved[f[:, 1]] | moved[f[:, 2]]      # (any(axis=1): 10x as long)
         touched = np.flatnonzero(face_moved[pair[:, 0]] | face_moved[pair[:, 1]])
         # only the moving rows: the umbrella means of S's rows of ``move`` and the normals from the faces around
         # them (each the same sums in the same order as over the whole mesh: the same values)

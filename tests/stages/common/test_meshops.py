@@ -6,7 +6,8 @@ import trimesh
 
 from nodes.common.meshops import (FOLD_COS, FOLD_DEG, edge_face_pairs, edge_faces, edge_length_graph, face_areas,
                                   face_neighbours, face_normals, folded_edges, neighbour_mean, padded_rows, ring_average,
-                                  ring_operator, unique_edges, vertex_faces, vertex_neighbours, vertex_normals)
+                                  ring_operator, row_norms, unique_edges, vertex_faces, vertex_neighbours,
+                                  vertex_normals)
 
 TET_V = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
 TET_F = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])      # outward
@@ -105,6 +106,14 @@ def test_face_and_vertex_normals():
     assert vertex_normals(np.zeros((4, 3)), TRI_F)[3].tolist() == [0, 0, 0]    # unused: zero
     # vertex 0 of the tetrahedron: its three axis faces have equal areas, weights equal
     np.testing.assert_allclose(vertex_normals(TET_V, TET_F)[0], -np.ones(3) / np.sqrt(3), rtol=1e-15)
+
+
+def test_row_norms_are_numpys_bit_for_bit():
+    rng = np.random.default_rng(5)
+    x = np.vstack([rng.normal(size=(5000, 3)) * 10.0 ** rng.integers(-8, 8, (5000, 1)), np.zeros((1, 3)),
+                   [[np.inf, 0, 1]], [[3.0, 4.0, 0.0]]])
+    ours = row_norms(x)
+    assert np.array_equal(ours, np.linalg.norm(x, axis=1)) and ours[-1] == 5.0 and ours[-3] == 0.0
 
 
 @pytest.mark.parametrize("turn, folded", [(179.0, True), (FOLD_DEG + 0.01, True), (FOLD_DEG - 0.01, False), (90.0, False)])
