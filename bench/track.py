@@ -5,7 +5,8 @@ meshes to out/: that data may not be published with the project).
 
     python bench/track.py synth [--nricp-frames 3]    # graphs/track_synth.yaml, 100 frames at 128^3
     python bench/track.py synth --set stage.scene=touch --frames 0:24   # arms held against the hips: sliding
-    python bench/track.py speed [--resolution 164]    # ~20k vertices (hull 164^3), ours per frame vs nricp_amberg
+    python bench/track.py speed [--resolution 164]    # ~20k vertices (hull 164^3), ours per frame vs nricp_amberg;
+                                                      # the fit's factorisation, CHOLMOD vs SuperLU
     python bench/track.py child_rope                  # graphs/track_child_rope.yaml, 200 frames
     python bench/track.py silhouettes [--frames 27:37]   # child_rope: the silhouette term's kernels vs NumPy / scipy
     options: --cache DIR (default ./.volcap-cache), --frames A:B, --no-pictures, --set NODE.PARAM=VALUE (synth, child_rope)
@@ -280,7 +281,53 @@ def bench_speed(args):
     nricp_amberg(recon[0], recon[1])
     tn = time.perf_counter() - t0
     print(f"nricp_amberg (default steps), frame 0 -> 1: {tn:.1f} s; ratio {tn / np.median(per):.0f}x")
+    factor_speed(fr, voxel)
     print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+
+
+def factor_speed(frames: Frames, voxel: float, reps: int = 20):
+    """The fit's normal equations on the keyframe's graph (assembled as an ICP iteration assembles them, random
+    normals for the matches): CHOLMOD's numeric factorisation and a solve, as the fit runs
+    them (nodes/common/cholesky.py), against scipy's SuperLU in a fill-reducing order found once with diagonal
+    pivots (the fit's method before stop 55), the same matrix; medians of ``reps``."""
+    from scipy.sparse.linalg import splu
+
+    from nodes.track import deform
+
+    key = frames.meshes[0]
+    target = frames.target(0)
+    graph = deform.build_graph(target.vertices, np.asarray(key.faces, np.int64), TrackParams().spacing)
+    reg = deform.Registration(graph, key.faces, deform.FitParams())
+    # assembled as the fit assembles it: point-to-plane blocks n n^T of the sampled vertices (random normals), the
+    # ARAP blocks at the fit's final weight, the tiny diagonal
+    n = np.random.default_rng(0).normal(size=(len(reg.src), 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    pairs = reg.pair_of_sample @ ((n[:, :, None] * n[:, None, :]).reshape(-1, 9) / len(n))
+    pairs += reg.params.arap / max(1, len(graph.directed)) * reg.arap_blocks
+    pairs[reg.diag_pair] += 1e-8 * np.eye(3).ravel()
+    values = pairs.ravel()[reg.gather]
+    b = np.random.default_rng(1).normal(size=reg.n3)
+    A = reg.cholesky.full(values).tocsc()
+    position = splu(A, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True}).perm_c   # unknown -> position
+    order = np.argsort(position)
+    P = A[order][:, order].tocsc()
+
+    def timed(f):
+        ts = []
+        for _ in range(reps):
+            t0 = time.perf_counter()
+            out = f()
+            ts.append(time.perf_counter() - t0)
+        return 1e3 * float(np.median(ts)), out
+
+    t_chol, _ = timed(lambda: reg.cholesky.factor(values))
+    t_csolve, x = timed(lambda: reg.cholesky.solve(b))
+    t_lu, lu = timed(lambda: splu(P, permc_spec="NATURAL", diag_pivot_thresh=0.0, options={"SymmetricMode": True}))
+    t_lsolve, y = timed(lambda: lu.solve(b[order])[position])
+    assert np.abs(x - y).max() < 1e-9 * np.abs(x).max()
+    print(f"the fit's normal equations ({reg.n3} unknowns, {A.nnz} nonzeros): CHOLMOD factorisation {t_chol:.2f} ms, "
+          f"solve {t_csolve:.2f} ms; SuperLU (MMD order found once, diagonal pivots) {t_lu:.2f} ms, solve "
+          f"{t_lsolve:.2f} ms ({t_lu / t_chol:.1f}x, {t_lsolve / t_csolve:.1f}x); the same solution (1e-9)")
 
 
 # ---------------------------------------------------------------- the silhouette term's kernels
