@@ -31,8 +31,11 @@ class SparseCholesky:
         cols = np.repeat(np.arange(n), np.diff(pattern.indptr))
         if np.any(pattern.indices < cols):
             raise ValueError("SparseCholesky: the pattern must be the lower triangle (row >= column)")
-        # values 1..nnz: the cvxopt matrix keeps CSC order, so its values line up with pattern.data
-        self.A = spmatrix(np.arange(1.0, len(pattern.indices) + 1), pattern.indices.tolist(), cols.tolist(), (n, n))
+        # values 1..nnz: the cvxopt matrix stores its values in CSC order, so they line up with pattern.data (checked)
+        slots = np.arange(1.0, len(pattern.indices) + 1)
+        self.A = spmatrix(slots, pattern.indices.tolist(), cols.tolist(), (n, n))
+        if not np.array_equal(np.asarray(self.A.V).ravel(), slots):
+            raise ValueError("SparseCholesky: the pattern must have sorted indices and no duplicates")
         self.symbolic = cholmod.symbolic(self.A)
         self.lu = None
 

@@ -286,6 +286,13 @@ def test_normal_equations_cholesky_matches_superlu(caplog):
     chol.factor(values)
     assert "not positive definite" in caplog.text
     assert np.abs(chol.full(values) @ chol.solve(b) - b).max() < 1e-8
+    from scipy.sparse import csc_matrix
+
+    from nodes.common.cholesky import SparseCholesky
+    with pytest.raises(ValueError, match="sorted indices"):        # column 0's rows 1, 0: out of order
+        SparseCholesky(csc_matrix((np.ones(3), [1, 0, 2], [0, 2, 3, 3]), shape=(3, 3)))
+    with pytest.raises(ValueError, match="lower triangle"):
+        SparseCholesky(csc_matrix((np.ones(2), [0, 0], [0, 1, 2, 2]), shape=(3, 3)))
 
 
 # ---------------------------------------------------------------- tracking
