@@ -325,7 +325,8 @@ def factor_speed(frames: Frames, voxel: float, reps: int = 20):
     t_lu, lu = timed(lambda: splu(P, permc_spec="NATURAL", diag_pivot_thresh=0.0, options={"SymmetricMode": True}))
     t_lsolve, y = timed(lambda: lu.solve(b[order])[position])
     assert np.abs(x - y).max() < 1e-9 * np.abs(x).max()
-    print(f"the fit's normal equations ({reg.n3} unknowns, {A.nnz} nonzeros): CHOLMOD factorisation {t_chol:.2f} ms, "
+    route = {"cholmod": "CHOLMOD", "superlu": "SuperLU (no cvxopt)"}[reg.cholesky.route]
+    print(f"the fit's normal equations ({reg.n3} unknowns, {A.nnz} nonzeros): {route} factorisation {t_chol:.2f} ms, "
           f"solve {t_csolve:.2f} ms; SuperLU (MMD order found once, diagonal pivots) {t_lu:.2f} ms, solve "
           f"{t_lsolve:.2f} ms ({t_lu / t_chol:.1f}x, {t_lsolve / t_csolve:.1f}x); the same solution (1e-9)")
 

@@ -33,6 +33,7 @@ LIBRARIES: dict[str, tuple[str, ...]] = {
     "DracoPy": ("DracoPy",),
     "Pillow": ("Pillow",),
     "OpenEXR": ("OpenEXR",),
+    "cvxopt": ("cvxopt",),          # CHOLMOD for track's normal equations, optional (nodes/common/cholesky.py)
 }
 
 

@@ -128,6 +128,7 @@ def _face_cross(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
 def row_norms(x: np.ndarray) -> np.ndarray:
     """Lengths of the rows of an (N, 3) array: ``np.linalg.norm(x, axis=1)``'s values bit for bit (the same sum,
     x0^2 + x1^2 then + x2^2), 5-6x faster (NumPy reduces along a length-3 axis slowly)."""
+    x = np.asarray(x, np.float64)
     q = x * x
     return np.sqrt(q[:, 0] + q[:, 1] + q[:, 2])
 

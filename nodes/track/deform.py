@@ -21,8 +21,8 @@ disagree), then with the rotations fixed every term is linear in the translation
                                    and pulling it to the nearest outline crushes it onto the body)
          + w_arap sum_(j, k) |(g_k + t_k) - (g_j + t_j) - R_j (g_k - g_j)|^2
 
-solved by a sparse Cholesky factorisation (CHOLMOD's supernodal one, its order and symbolic analysis found
-once per keyframe: nodes/common/cholesky.py) of the 3N x 3N normal equations; the rotations then follow from the ARAP local step
+solved by a sparse Cholesky factorisation (CHOLMOD's supernodal one where cvxopt is installed, else SuperLU in a
+minimum-degree order; its order found once per keyframe: nodes/common/cholesky.py) of the 3N x 3N normal equations; the rotations then follow from the ARAP local step
 (Procrustes per node, on the OpenCL device: kernels/rotations.cl). Everything is computed in voxel units (coordinates divided by ``voxel``), so
 the weights are dimensionless. Nearest vertices and closest points on a surface (the matches, the detail, the
 snap, the unfold, the residuals) are searched on the OpenCL device (kernels/closest.cl): ``PointGrid`` and
@@ -45,12 +45,10 @@ import numpy as np
 
 from kernels import source
 from nodegraph import clrt
-from nodes.common.meshops import (edge_length_graph, face_normals, folded_edges, neighbour_mean, ring_degree,
-                                  ring_operator, row_norms, vertex_normals)
-
-
 from nodes.common.cholesky import SparseCholesky
 from nodes.common.closest import PointGrid, SurfaceQuery, used_vertices
+from nodes.common.meshops import (edge_length_graph, face_normals, folded_edges, neighbour_mean, ring_degree,
+                                  ring_operator, row_norms, vertex_normals)
 
 
 # ---------------------------------------------------------------- deformation graph
@@ -422,8 +420,8 @@ class Registration:
 
     Everything that depends only on the keyframe is prepared once: the sampled source vertices and their
     nodes and weights, and the sparsity pattern of the 3N x 3N normal equations (node pairs sharing a sample
-    vertex or a graph edge) with its fill-reducing order, so each ICP iteration only accumulates values into it
-    (np.bincount) and factorises (CHOLMOD, nodes/common/cholesky.py)."""
+    vertex or a graph edge) with its symbolic factorisation, so each ICP iteration only accumulates values into
+    it (np.bincount) and factorises (nodes/common/cholesky.py: CHOLMOD, or SuperLU without cvxopt)."""
 
     def __init__(self, graph: DeformationGraph, faces: np.ndarray, params: FitParams):
         from scipy.sparse import coo_matrix, csr_matrix

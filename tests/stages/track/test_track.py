@@ -235,9 +235,13 @@ def test_graph_nodes_are_the_sequential_greedy_picks():
     assert np.array_equal(deform.sample_nodes(v, f, 4.0, seed=0), picks) and len(picks) > 20
 
 
-def test_graph_is_geodesic_and_fit_recovers_a_bend():
+@pytest.mark.parametrize("route", ["cholmod", "superlu"])
+def test_graph_is_geodesic_and_fit_recovers_a_bend(route, monkeypatch):
     # a capsule bent by 20 degrees in one step (its tip moves 9 voxels): the fit (same connectivity, so the
-    # truth is vertex for vertex) lands on it
+    # truth is vertex for vertex) lands on it, by either route of the factorisation (nodes/common/cholesky.py)
+    from nodes.common import cholesky
+
+    monkeypatch.setattr(cholesky, "ROUTE", route)
     cap = trimesh.creation.capsule(height=2.0, radius=0.3, count=[24, 24])
     rest = cap.vertices
     angle = np.radians(20) * np.clip((rest[:, 2] + 0.2) / 1.3, 0, 1)
@@ -251,6 +255,7 @@ def test_graph_is_geodesic_and_fit_recovers_a_bend():
     assert 10 < len(graph.nodes) < len(rest) / 4
     assert np.allclose(graph.vertex_weights.sum(axis=1), 1)
     reg = deform.Registration(graph, cap.faces, deform.FitParams())
+    assert reg.cholesky.route == route
     state, info = reg.fit(deform.GraphState.identity(graph), tgt)
     S = ring_operator(cap.faces, len(rest))
     x = deform.detail(graph.deform(state), cap.faces, tgt, reg.params, S, offsets=deform.laplacian_offsets(graph, state, S))
@@ -264,35 +269,46 @@ def test_graph_is_geodesic_and_fit_recovers_a_bend():
     assert np.allclose(np.einsum("nab,nac->nbc", R, R), np.eye(3), atol=1e-9) and np.allclose(np.linalg.det(R), 1)
 
 
-def test_normal_equations_cholesky_matches_superlu(caplog):
-    # the fit's factorisation (CHOLMOD) against scipy's SuperLU on the registration's own pattern: a positive
-    # definite matrix of it (the ARAP blocks plus a data term's diagonal) solves to the same answer; an indefinite
-    # one (a negative diagonal entry) falls back to SuperLU with a warning instead of failing
+@pytest.mark.parametrize("route", ["cholmod", "superlu"])
+def test_normal_equations_factorisation_matches_superlu(route, caplog):
+    # the fit's factorisation (CHOLMOD, or SuperLU in a once-found order without cvxopt) on the registration's own
+    # pattern, assembled as an ICP iteration assembles it: the lower triangle holds the whole matrix (built here
+    # independently from every (pair, a, b) value) and the solve is scipy's SuperLU's; with CHOLMOD an indefinite
+    # matrix (a negative diagonal entry) falls back to SuperLU with a warning instead of failing
+    from scipy.sparse import coo_matrix, csc_matrix
+
+    from nodes.common.cholesky import SparseCholesky
+
     cap = trimesh.creation.capsule(height=2.0, radius=0.3, count=[24, 24])
     graph = deform.build_graph(cap.vertices / 0.05, cap.faces, spacing=4.0)
     reg = deform.Registration(graph, cap.faces, deform.FitParams())
     rng = np.random.default_rng(3)
-    pairs = reg.arap_blocks + 0.0
-    pairs[reg.diag_pair] += rng.uniform(0.5, 2.0, (len(reg.diag_pair), 1)) * np.eye(3).ravel()
+    n = rng.normal(size=(len(reg.src), 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    pairs = reg.pair_of_sample @ ((n[:, :, None] * n[:, None, :]).reshape(-1, 9) / len(n)) + 0.1 * reg.arap_blocks
+    pairs[reg.diag_pair] += 1e-8 * np.eye(3).ravel()
+    ab = np.arange(9)
+    rows = (reg.pair_j[:, None] * 3 + ab // 3).ravel()
+    cols = (reg.pair_k[:, None] * 3 + ab % 3).ravel()
+    whole = coo_matrix((pairs.ravel(), (rows, cols)), shape=(reg.n3, reg.n3)).tocsr()
     values = pairs.ravel()[reg.gather]
+    chol = SparseCholesky(reg.cholesky.pattern, route=route)
+    assert abs(chol.full(values) - whole).max() == 0 and abs(whole - whole.T).max() == 0
     b = rng.normal(size=reg.n3)
-    chol = reg.cholesky
     chol.factor(values)
     x = chol.solve(b)
-    assert np.abs(x - chol.reference(values, b)).max() < 1e-10 * np.abs(x).max()
-    assert np.abs(chol.full(values) @ x - b).max() < 1e-10
-    values[0] = -5.0                                   # (0, 0) is the pattern's first lower-triangle slot
-    assert chol.full(values)[0, 0] == -5.0
-    chol.factor(values)
-    assert "not positive definite" in caplog.text
-    assert np.abs(chol.full(values) @ chol.solve(b) - b).max() < 1e-8
-    from scipy.sparse import csc_matrix
-
-    from nodes.common.cholesky import SparseCholesky
+    assert np.abs(x - chol.reference(values, b)).max() < 1e-9 * np.abs(x).max()
+    assert np.abs(whole @ x - b).max() < 1e-9 * np.abs(b).max()
+    if route == "cholmod":
+        values[0] = -5.0                                   # (0, 0) is the pattern's first lower-triangle slot
+        assert chol.full(values)[0, 0] == -5.0
+        chol.factor(values)
+        assert "not positive definite" in caplog.text
+        assert np.abs(chol.full(values) @ chol.solve(b) - b).max() < 1e-8 * np.abs(b).max()
     with pytest.raises(ValueError, match="sorted indices"):        # column 0's rows 1, 0: out of order
-        SparseCholesky(csc_matrix((np.ones(3), [1, 0, 2], [0, 2, 3, 3]), shape=(3, 3)))
+        SparseCholesky(csc_matrix((np.ones(3), [1, 0, 2], [0, 2, 3, 3]), shape=(3, 3)), route=route)
     with pytest.raises(ValueError, match="lower triangle"):
-        SparseCholesky(csc_matrix((np.ones(2), [0, 0], [0, 1, 2, 2]), shape=(3, 3)))
+        SparseCholesky(csc_matrix((np.ones(2), [0, 0], [0, 1, 2, 2]), shape=(3, 3)), route=route)
 
 
 # ---------------------------------------------------------------- tracking
