@@ -1,0 +1,65 @@
+"""Stored arrays (nodes.common.types._load_array): the cache's .npy files read back memory-mapped, read-only, as
+NumPy's own np.load(mmap_mode="r") reads them, the header np.save writes parsed directly and every other one by
+NumPy; a damaged file is one clear DataError naming it."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from nodegraph import DataError
+from nodes.common.types import _load_array
+
+CASES = {
+    "hd_image": np.arange(1080 * 1920 * 3, dtype=np.uint64).astype(np.uint8).reshape(1080, 1920, 3),
+    "float32": np.linspace(-1, 1, 12, dtype=np.float32).reshape(3, 4),
+    "fortran": np.asfortranarray(np.arange(24, dtype=np.float64).reshape(2, 3, 4)),
+    "scalar": np.array(5.25),
+    "empty": np.zeros((0, 3), np.float32),
+    "one_d_bool": np.array([True, False, True]),
+    "big_endian": np.arange(7, dtype=">i4"),
+    "unicode": np.array(["ab", "c"]),
+    "structured": np.array([(1.5, 2)], dtype=[("a", "<f4"), ("b", "<i2")]),
+    "complex": np.array([[1 + 2j, 3j]]),
+    "datetime": np.array(["2026-12-07"], dtype="datetime64[D]"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_stored_arrays_read_back_as_numpy_reads_them(tmp_path, name):
+    a = CASES[name]
+    p = tmp_path / f"{name}.npy"
+    np.save(p, a, allow_pickle=False)
+    ref = np.load(p, mmap_mode="r" if a.size else None, allow_pickle=False)
+    got = _load_array(p)
+    assert got.dtype == ref.dtype and got.shape == ref.shape
+    assert np.array_equal(np.asarray(got), np.asarray(ref))
+    assert got.flags.f_contiguous == ref.flags.f_contiguous and got.flags.c_contiguous == ref.flags.c_contiguous
+    assert not got.flags.writeable                 # nodes must not edit their inputs in place
+    whole = _load_array(p, mapped=False)
+    assert whole.flags.writeable and np.array_equal(whole, a)
+
+
+def test_a_version_2_header_is_read(tmp_path):
+    a = np.arange(30, dtype=np.int16).reshape(5, 6)
+    p = tmp_path / "v2.npy"
+    with open(p, "wb") as f:
+        np.lib.format.write_array(f, a, version=(2, 0))
+    got = _load_array(p)
+    assert got.dtype == a.dtype and np.array_equal(got, a) and not got.flags.writeable
+
+
+def test_damaged_arrays_are_one_clear_error(tmp_path):
+    p = tmp_path / "cut.npy"
+    np.save(p, np.zeros((100, 100)))
+    with open(p, "r+b") as f:
+        f.truncate(1000)                            # the header survives, the data does not
+    with pytest.raises(DataError, match="cut.npy: unreadable array"):
+        _load_array(p)
+    q = tmp_path / "objects.npy"
+    np.save(q, np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    with pytest.raises(DataError, match="objects.npy: unreadable array"):
+        _load_array(q)
+    r = tmp_path / "garbage.npy"
+    r.write_bytes(b"not an array at all")
+    with pytest.raises(DataError, match="garbage.npy: unreadable array"):
+        _load_array(r)
