@@ -114,28 +114,34 @@ def matte_edges(cameras: Cameras, view: int, bounds: np.ndarray, margin: float =
     return edges.copy()
 
 
+# the capture box's corners (0 = its low, 1 = its high value per axis), its 12 edges as corner pairs, 9 samples each
+_BOX_CORNERS = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)])
+_BOX_EDGES = np.array([(i, j) for i in range(8) for j in range(i + 1, 8) if bin(i ^ j).count("1") == 1])
+_BOX_T = np.linspace(0, 1, 9)[:, None]
+
+
 def _matte_edges(cameras: Cameras, view: int, bounds: np.ndarray, margin: float) -> np.ndarray:
     import cv2
 
-    lo, hi = bounds
-    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-    pairs = [(i, j) for i in range(8) for j in range(i + 1, 8) if bin(i ^ j).count("1") == 1]
-    t = np.linspace(0, 1, 9)[:, None]
-    pts = np.concatenate([corners[i] + t * (corners[j] - corners[i]) for i, j in pairs])
+    lo, hi = np.asarray(bounds, np.float64)
+    corners = np.where(_BOX_CORNERS == 0, lo, hi)
+    a, b = corners[_BOX_EDGES[:, 0]], corners[_BOX_EDGES[:, 1]]
+    pts = (a[:, None, :] + _BOX_T[None] * (b - a)[:, None, :]).reshape(-1, 3)
     uv, depth = cameras.project(pts, view)
     if np.any(depth <= 0) or not np.all(np.isfinite(uv)):
         return np.zeros((0, 4), np.float32)
     hull = cv2.convexHull(uv.astype(np.float32), clockwise=False)[:, 0, :].astype(np.float64)
     if len(hull) < 3:
         return np.zeros((0, 4), np.float32)
-    area2 = np.sum(hull[:, 0] * np.roll(hull[:, 1], -1) - np.roll(hull[:, 0], -1) * hull[:, 1])
-    edges = []
-    for p, q in zip(hull, np.roll(hull, -1, axis=0)):
-        d = q - p
-        n = np.array([-d[1], d[0]]) * np.sign(area2)  # inward normal
-        n /= np.linalg.norm(n) + 1e-12
-        edges.append([n[0], n[1], -n @ p + margin, 0.0])
-    return np.asarray(edges, np.float32)
+    nxt = np.roll(hull, -1, axis=0)
+    area2 = np.sum(hull[:, 0] * nxt[:, 1] - nxt[:, 0] * hull[:, 1])
+    d = nxt - hull
+    n = np.stack([-d[:, 1], d[:, 0]], axis=1) * np.sign(area2)      # inward normals
+    n /= np.sqrt(n[:, 0] * n[:, 0] + n[:, 1] * n[:, 1])[:, None] + 1e-12
+    edges = np.zeros((len(hull), 4))
+    edges[:, :2] = n
+    edges[:, 2] = -(n[:, 0] * hull[:, 0] + n[:, 1] * hull[:, 1]) + margin
+    return edges.astype(np.float32)
 
 
 def matte_reference(edges: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
