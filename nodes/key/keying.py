@@ -123,7 +123,7 @@ _BOX_T = np.linspace(0, 1, 9)[:, None]
 def _matte_edges(cameras: Cameras, view: int, bounds: np.ndarray, margin: float) -> np.ndarray:
     import cv2
 
-    lo, hi = np.asarray(bounds, np.float64)
+    lo, hi = np.asarray(bounds)                       # in the box's own type, as the reference's corners
     corners = np.where(_BOX_CORNERS == 0, lo, hi)
     a, b = corners[_BOX_EDGES[:, 0]], corners[_BOX_EDGES[:, 1]]
     pts = (a[:, None, :] + _BOX_T[None] * (b - a)[:, None, :]).reshape(-1, 3)
@@ -142,6 +142,31 @@ def _matte_edges(cameras: Cameras, view: int, bounds: np.ndarray, margin: float)
     edges[:, :2] = n
     edges[:, 2] = -(n[:, 0] * hull[:, 0] + n[:, 1] * hull[:, 1]) + margin
     return edges.astype(np.float32)
+
+
+def _matte_edges_reference(cameras: Cameras, view: int, bounds: np.ndarray, margin: float) -> np.ndarray:
+    """``_matte_edges`` with Python loops (the plain version it is tested against)."""
+    import cv2
+
+    lo, hi = bounds
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    pairs = [(i, j) for i in range(8) for j in range(i + 1, 8) if bin(i ^ j).count("1") == 1]
+    t = np.linspace(0, 1, 9)[:, None]
+    pts = np.concatenate([corners[i] + t * (corners[j] - corners[i]) for i, j in pairs])
+    uv, depth = cameras.project(pts, view)
+    if np.any(depth <= 0) or not np.all(np.isfinite(uv)):
+        return np.zeros((0, 4), np.float32)
+    hull = cv2.convexHull(uv.astype(np.float32), clockwise=False)[:, 0, :].astype(np.float64)
+    if len(hull) < 3:
+        return np.zeros((0, 4), np.float32)
+    area2 = np.sum(hull[:, 0] * np.roll(hull[:, 1], -1) - np.roll(hull[:, 0], -1) * hull[:, 1])
+    edges = []
+    for p, q in zip(hull, np.roll(hull, -1, axis=0)):
+        d = q - p
+        n = np.array([-d[1], d[0]]) * np.sign(area2)  # inward normal
+        n /= np.linalg.norm(n) + 1e-12
+        edges.append([n[0], n[1], -n @ p + margin, 0.0])
+    return np.asarray(edges, np.float32)
 
 
 def matte_reference(edges: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
