@@ -120,18 +120,24 @@ _BOX_EDGES = np.array([(i, j) for i in range(8) for j in range(i + 1, 8) if bin(
 _BOX_T = np.linspace(0, 1, 9)[:, None]
 
 
-def _matte_edges(cameras: Cameras, view: int, bounds: np.ndarray, margin: float) -> np.ndarray:
+def _outline(cameras: Cameras, view: int, pts: np.ndarray) -> np.ndarray | None:
+    """The convex hull (K, 2) float64 of points' projections into ``view``; None when a point lies behind the
+    camera or does not project, or the hull has no area."""
     import cv2
 
+    uv, depth = cameras.project(pts, view)
+    if np.any(depth <= 0) or not np.all(np.isfinite(uv)):
+        return None
+    hull = cv2.convexHull(uv.astype(np.float32), clockwise=False)[:, 0, :].astype(np.float64)
+    return hull if len(hull) >= 3 else None
+
+
+def _matte_edges(cameras: Cameras, view: int, bounds: np.ndarray, margin: float) -> np.ndarray:
     lo, hi = np.asarray(bounds)                       # in the box's own type, as the reference's corners
     corners = np.where(_BOX_CORNERS == 0, lo, hi)
     a, b = corners[_BOX_EDGES[:, 0]], corners[_BOX_EDGES[:, 1]]
-    pts = (a[:, None, :] + _BOX_T[None] * (b - a)[:, None, :]).reshape(-1, 3)
-    uv, depth = cameras.project(pts, view)
-    if np.any(depth <= 0) or not np.all(np.isfinite(uv)):
-        return np.zeros((0, 4), np.float32)
-    hull = cv2.convexHull(uv.astype(np.float32), clockwise=False)[:, 0, :].astype(np.float64)
-    if len(hull) < 3:
+    hull = _outline(cameras, view, (a[:, None, :] + _BOX_T[None] * (b - a)[:, None, :]).reshape(-1, 3))
+    if hull is None:
         return np.zeros((0, 4), np.float32)
     nxt = np.roll(hull, -1, axis=0)
     area2 = np.sum(hull[:, 0] * nxt[:, 1] - nxt[:, 0] * hull[:, 1])
@@ -145,19 +151,13 @@ def _matte_edges(cameras: Cameras, view: int, bounds: np.ndarray, margin: float)
 
 
 def _matte_edges_reference(cameras: Cameras, view: int, bounds: np.ndarray, margin: float) -> np.ndarray:
-    """``_matte_edges`` with Python loops (the plain version it is tested against)."""
-    import cv2
-
+    """``_matte_edges`` with Python loops (the plain version it is tested against; the projection and hull shared)."""
     lo, hi = bounds
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
     pairs = [(i, j) for i in range(8) for j in range(i + 1, 8) if bin(i ^ j).count("1") == 1]
     t = np.linspace(0, 1, 9)[:, None]
-    pts = np.concatenate([corners[i] + t * (corners[j] - corners[i]) for i, j in pairs])
-    uv, depth = cameras.project(pts, view)
-    if np.any(depth <= 0) or not np.all(np.isfinite(uv)):
-        return np.zeros((0, 4), np.float32)
-    hull = cv2.convexHull(uv.astype(np.float32), clockwise=False)[:, 0, :].astype(np.float64)
-    if len(hull) < 3:
+    hull = _outline(cameras, view, np.concatenate([corners[i] + t * (corners[j] - corners[i]) for i, j in pairs]))
+    if hull is None:
         return np.zeros((0, 4), np.float32)
     area2 = np.sum(hull[:, 0] * np.roll(hull[:, 1], -1) - np.roll(hull[:, 0], -1) * hull[:, 1])
     edges = []
