@@ -156,13 +156,16 @@ def _chart_masks(local_uv, chart, order, scale, cell, pad):
     idx = np.concatenate([i for _, i in order])
     start = np.cumsum([0] + [len(i) for _, i in order])
     pts = local_uv[idx] * (scale / cell)                         # (n, 3, 2) every chart's triangles, in cells
-    top = np.maximum.reduceat(pts.max(axis=1), start[:-1], axis=0)       # (charts, 2) largest x, y per chart
+    p0, p1, p2 = pts[:, 0], pts[:, 1], pts[:, 2]                # (corner by corner: NumPy's reductions over an
+    hi = np.maximum(np.maximum(p0, p1), p2)                      # axis of 3 are several times slower; the same values)
+    top = np.maximum.reduceat(hi, start[:-1], axis=0)           # (charts, 2) largest x, y per chart
     w = np.ceil(top[:, 0]).astype(np.int64) + 1 + 2 * pad
     h = np.ceil(top[:, 1]).astype(np.int64) + 1 + 2 * pad
-    big = np.ptp(pts, axis=1).max(axis=1) > 2                    # triangles over two cells wide are filled ...
+    span = hi - np.minimum(np.minimum(p0, p1), p2)
+    big = np.maximum(span[:, 0], span[:, 1]) > 2                 # triangles over two cells wide are filled ...
     q = np.round((pts + pad) * 16).astype(np.int32)
     # ... smaller ones are covered by the cells of their corners, edge midpoints and centroid
-    p7 = np.concatenate([pts, 0.5 * (pts + np.roll(pts, 1, axis=1)), pts.mean(axis=1, keepdims=True)], axis=1)
+    p7 = np.concatenate([pts, 0.5 * (pts + pts[:, [2, 0, 1]]), ((p0 + p1 + p2) / 3)[:, None]], axis=1)
     counts = np.diff(start)
     limit = np.repeat(np.stack([w - 1, h - 1], axis=1), counts * 7, axis=0)
     cor = np.clip(np.floor(p7.reshape(-1, 2) + pad).astype(np.int64), 0, limit)
@@ -185,8 +188,6 @@ def _chart_masks(local_uv, chart, order, scale, cell, pad):
 def _skyline_place(masks, width_cells, height_cells):
     """Tetris packing: each mask (largest first) drops to the lowest place over the current skyline, tried
     upright and turned 90 degrees. Returns per mask (x, y, turned) in cells, or None when it does not fit."""
-    from numpy.lib.stride_tricks import sliding_window_view
-
     sky = np.zeros(width_cells, np.int64)
     out = []
     for m in masks:
@@ -198,10 +199,11 @@ def _skyline_place(masks, width_cells, height_cells):
             filled = mm.any(axis=0)
             bottom = np.where(filled, np.argmax(mm, axis=0), h)          # first occupied row from the top
             top = np.where(filled, h - np.argmax(mm[::-1], axis=0), 0)   # one past the last occupied row
-            win = sliding_window_view(sky, w)                           # (W - w + 1, w)
-            y = np.max(np.where(filled, win - bottom, -h), axis=1)
+            win = np.ndarray((width_cells - w + 1, w), sky.dtype, sky, 0, sky.strides * 2)   # (W - w + 1, w) windows
+            y = np.max(win - bottom if filled.all() else np.where(filled, win - bottom, -h), axis=1)
             y = np.maximum(y, 0)
-            peak = np.max(np.where(filled, y[:, None] + top, 0), axis=1)
+            # the highest cell the mask reaches, y + its tallest column (y >= 0, top >= 1 where filled)
+            peak = y + int(top.max()) if filled.any() else np.zeros_like(y)
             x = int(np.argmin(peak))
             if best is None or peak[x] < best[0]:
                 best = (int(peak[x]), x, int(y[x]), turned, top, filled)

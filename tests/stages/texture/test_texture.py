@@ -185,6 +185,62 @@ def test_chart_masks_equal_the_per_chart_reference():
                     assert sum(int(w.sum()) for w in want) > 1000     # charts drawn, not just corner cells
 
 
+def _skyline_place_plain(masks, width_cells, height_cells):
+    """The packer's skyline placement as first written (every window's offsets and peaks by np.where over a
+    sliding window view): the reference atlas._skyline_place must equal."""
+    from numpy.lib.stride_tricks import sliding_window_view
+
+    sky = np.zeros(width_cells, np.int64)
+    out = []
+    for m in masks:
+        best = None
+        for turned, mm in ((False, m), (True, np.ascontiguousarray(m.T[::-1]))):
+            h, w = mm.shape
+            if w > width_cells:
+                continue
+            filled = mm.any(axis=0)
+            bottom = np.where(filled, np.argmax(mm, axis=0), h)
+            top = np.where(filled, h - np.argmax(mm[::-1], axis=0), 0)
+            win = sliding_window_view(sky, w)
+            y = np.maximum(np.max(np.where(filled, win - bottom, -h), axis=1), 0)
+            peak = np.max(np.where(filled, y[:, None] + top, 0), axis=1)
+            x = int(np.argmin(peak))
+            if best is None or peak[x] < best[0]:
+                best = (int(peak[x]), x, int(y[x]), turned, top, filled)
+        if best is None or best[0] > height_cells:
+            return None
+        peak, x, y, turned, top, filled = best
+        sky[x:x + len(top)] = np.where(filled, y + top, sky[x:x + len(top)])
+        out.append((x, y, turned))
+    return out
+
+
+def test_skyline_place_equals_the_plain_reference():
+    """Placements (x, y, turned) for the figure's and the sphere's chart masks at several scales, and for random
+    masks with empty columns and rows (the branches the charts never take), until the atlas is full."""
+    from nodes.texture.atlas import _chart_masks, _skyline_place, chart_uv, make_charts
+
+    sets = []
+    for m in (scene("sphere", 4, 160, 120)["mesh"], scene("figure", 4, 160, 120)["mesh"]):
+        nbr = face_neighbours(m.faces)
+        chart, cdir = make_charts(m.vertices, m.faces, nbr)
+        local = chart_uv(m.vertices, m.faces, chart, cdir)
+        srt = np.argsort(chart, kind="stable")
+        b = np.searchsorted(chart[srt], np.arange(chart.max() + 2))
+        order = [(c, srt[b[c]:b[c + 1]]) for c in range(chart.max() + 1)]
+        sets += [_chart_masks(local, chart, order, scale, 4, 1) for scale in (40.0, 300.0, 700.0)]
+    rng = np.random.default_rng(3)
+    sets.append([(rng.random((int(rng.integers(1, 12)), int(rng.integers(1, 12)))) < 0.3).astype(np.uint8)
+                 for _ in range(60)])
+    placed = 0
+    for masks in sets:
+        for width, height in ((64, 64), (128, 96), (16, 16)):
+            got, want = _skyline_place(masks, width, height), _skyline_place_plain(masks, width, height)
+            assert got == want, (width, height)
+            placed += want is not None
+    assert 0 < placed < 3 * len(sets)          # some sets fit, some do not (the packer's failure path)
+
+
 # ---------------------------------------------------------------- selection, gains, levelling
 def _disagreeing_stats(s):
     """The figure's visibility with colours made to disagree: on a third of the faces one of their views shows
