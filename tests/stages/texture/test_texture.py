@@ -162,16 +162,24 @@ def _chart_masks_per_chart(local_uv, order, scale, cell, pad):
     return masks
 
 
-def test_chart_masks_equal_the_per_chart_reference():
-    from nodes.texture.atlas import _chart_masks, chart_uv, make_charts
+def _charted():
+    """(local chart coordinates, chart per face, [(chart, its faces)]) of the sphere's and the figure's atlases."""
+    from nodes.texture.atlas import chart_uv, make_charts
 
+    out = []
     for m in (scene("sphere", 4, 160, 120)["mesh"], scene("figure", 4, 160, 120)["mesh"]):
-        nbr = face_neighbours(m.faces)
-        chart, cdir = make_charts(m.vertices, m.faces, nbr)
-        local = chart_uv(m.vertices, m.faces, chart, cdir)
+        chart, cdir = make_charts(m.vertices, m.faces, face_neighbours(m.faces))
         srt = np.argsort(chart, kind="stable")
         b = np.searchsorted(chart[srt], np.arange(chart.max() + 2))
-        order = [(c, srt[b[c]:b[c + 1]]) for c in range(chart.max() + 1)]
+        out.append((chart_uv(m.vertices, m.faces, chart, cdir), chart,
+                    [(c, srt[b[c]:b[c + 1]]) for c in range(chart.max() + 1)]))
+    return out
+
+
+def test_chart_masks_equal_the_per_chart_reference():
+    from nodes.texture.atlas import _chart_masks
+
+    for local, chart, order in _charted():
         np.random.default_rng(1).shuffle(order)                 # the packer's order: any, largest first there
         assert len(order) > 5
         for scale in (3.0, 40.0, 700.0):
@@ -218,17 +226,10 @@ def _skyline_place_plain(masks, width_cells, height_cells):
 def test_skyline_place_equals_the_plain_reference():
     """Placements (x, y, turned) for the figure's and the sphere's chart masks at several scales, and for random
     masks with empty columns and rows (the branches the charts never take), until the atlas is full."""
-    from nodes.texture.atlas import _chart_masks, _skyline_place, chart_uv, make_charts
+    from nodes.texture.atlas import _chart_masks, _skyline_place
 
-    sets = []
-    for m in (scene("sphere", 4, 160, 120)["mesh"], scene("figure", 4, 160, 120)["mesh"]):
-        nbr = face_neighbours(m.faces)
-        chart, cdir = make_charts(m.vertices, m.faces, nbr)
-        local = chart_uv(m.vertices, m.faces, chart, cdir)
-        srt = np.argsort(chart, kind="stable")
-        b = np.searchsorted(chart[srt], np.arange(chart.max() + 2))
-        order = [(c, srt[b[c]:b[c + 1]]) for c in range(chart.max() + 1)]
-        sets += [_chart_masks(local, chart, order, scale, 4, 1) for scale in (40.0, 300.0, 700.0)]
+    sets = [_chart_masks(local, chart, order, scale, 4, 1) for local, chart, order in _charted()
+            for scale in (40.0, 300.0, 700.0)]
     rng = np.random.default_rng(3)
     sets.append([(rng.random((int(rng.integers(1, 12)), int(rng.integers(1, 12)))) < 0.3).astype(np.uint8)
                  for _ in range(60)])
