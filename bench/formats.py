@@ -1,6 +1,7 @@
 """On-disk forms for full-resolution images in the cache: write and read seconds per frame of 24 x 1920x1080 RGB
 images (a synthetic green-screen frame rendered by the synth node), and the bytes, for PNG (OpenCV, level 1),
-raw .npy (read by memory map), .npy compressed with LZ4 and with zstd (level 1), and .npz (zip deflate). Then
+raw .npy (read by memory map: np.load's, and the cache's own reader ``nodes.common.types._load_array``, which maps
+the file without np.memmap), .npy compressed with LZ4 and with zstd (level 1), and .npz (zip deflate). Then
 a tracked take's ``MeshSequence`` as every per-frame reader of it (``track.frame``) loads it: its stored arrays,
 against the segments' PLYs for the faces (how it was read before stop 51, still the route for older entries).
 Prints the machine (CPU, load average, OpenCL device unused here) and the tables.
@@ -19,11 +20,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-
-def machine() -> str:
-    cpu = next((ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name")), "?")
-    return f"CPU {cpu} x{os.cpu_count()}, load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}"
+from machine import describe, load_average  # noqa: E402
 
 
 def formats():
@@ -41,8 +40,14 @@ def formats():
     def npy_r(p):
         return np.load(str(p) + ".npy", mmap_mode="r")
 
+    def npy_cache(p):                     # the product's reader: the same read-only array
+        from nodes.common.types import _load_array
+
+        return _load_array(Path(str(p) + ".npy"))
+
     def npy_read_all(p):
-        return np.ascontiguousarray(np.load(str(p) + ".npy", mmap_mode="r"))
+        return np.array(np.load(str(p) + ".npy", mmap_mode="r"))   # a copy: every page read (ascontiguousarray of
+                                                                   # a contiguous map is the map itself)
 
     out = {}
     try:
@@ -80,6 +85,7 @@ def formats():
             return z["im"]
 
     return {"png level 1": (png_w, png_r, ".png"), "npy (memory map)": (npy_w, npy_r, ".npy"),
+            "npy (cache reader)": (npy_w, npy_cache, ".npy"),
             "npy (read all)": (npy_w, npy_read_all, ".npy"), **out, "npz (deflate)": (npz_w, npz_r, ".npz")}
 
 
@@ -122,7 +128,7 @@ def main():
     from nodegraph.testing import run_node
 
     images = run_node("synth", params={"scene": "figure", "cameras": a.cameras, "width": 1920, "height": 1080})["images"].images
-    print(machine())
+    print(describe())
     print(f"{a.cameras} images of 1920x1080 RGB ({sum(im.nbytes for im in images) / 1e6:.0f} MB raw)")
     print(f"{'format':>18} {'write ms':>9} {'read ms':>9} {'MB':>7}")
     with tempfile.TemporaryDirectory(dir=os.environ.get("VOLCAP_BENCH_TMP")) as d:
@@ -142,6 +148,7 @@ def main():
             size = sum(f.stat().st_size for f in Path(d).glob(f"{name[:3]}*{ext}"))
             print(f"{name:>18} {tw * 1e3:9.0f} {tr * 1e3:9.1f} {size / 1e6:7.1f}", flush=True)
     sequence_read(a.segments, a.repeats)
+    print(f"load average now {load_average()}")
 
 
 if __name__ == "__main__":
