@@ -180,11 +180,13 @@ def test_meta_records_a_content_hash_per_file(tmp_path):
 
 
 
-def test_entries_hashed_with_blake2b_are_still_checked(tmp_path):
-    """New entries record SHA-256 (first 128 bits, ``hash``: sha256-128); an entry an older version wrote with
-    BLAKE2b-128 is checked with BLAKE2b (unchanged: a hit; a flipped byte: damaged); a hash this version does not
-    know makes the entry damaged (recomputed), not a crash."""
+def test_entries_hashed_with_older_hashes_are_still_checked(tmp_path):
+    """New entries record XXH3-128 (``hash``: xxh3-128); an entry an older version wrote with SHA-256 (first 128
+    bits) or BLAKE2b-128 is checked with that hash (unchanged: a hit; a flipped byte: damaged); a hash this version
+    does not know makes the entry damaged (recomputed), not a crash."""
     import hashlib
+
+    import xxhash
 
     import nodegraph.cache as C
 
@@ -193,15 +195,18 @@ def test_entries_hashed_with_blake2b_are_still_checked(tmp_path):
     entry = Path(s0["cache_dir"])
     meta = json.loads((entry / "meta.json").read_text())
     npy = entry / "out" / "array.npy"
-    assert meta["hash"] == "sha256-128"
-    assert meta["hashes"]["out/array.npy"] == hashlib.sha256(npy.read_bytes()).hexdigest()[:32]
-    old = dict(meta, hash="blake2b-128", hashes={f: hashlib.blake2b((entry / f).read_bytes(), digest_size=16).hexdigest()
-                                                 for f in meta["hashes"]})
-    (entry / "meta.json").write_text(json.dumps(old))
-    (entry / C.CHECKED).unlink(missing_ok=True)
-    assert Cache(tmp_path / "cache").verify(s0["key"], full=True) is None
-    flip_bytes(npy)
-    assert "does not match" in Cache(tmp_path / "cache").verify(s0["key"], full=True)
+    assert meta["hash"] == "xxh3-128"
+    assert meta["hashes"]["out/array.npy"] == xxhash.xxh3_128_hexdigest(npy.read_bytes())
+    good = npy.read_bytes()
+    for name, digest in (("sha256-128", lambda b: hashlib.sha256(b).hexdigest()[:32]),
+                         ("blake2b-128", lambda b: hashlib.blake2b(b, digest_size=16).hexdigest())):
+        npy.write_bytes(good)
+        old = dict(meta, hash=name, hashes={f: digest((entry / f).read_bytes()) for f in meta["hashes"]})
+        (entry / "meta.json").write_text(json.dumps(old))
+        (entry / C.CHECKED).unlink(missing_ok=True)
+        assert Cache(tmp_path / "cache").verify(s0["key"], full=True) is None, name
+        flip_bytes(npy)
+        assert "does not match" in Cache(tmp_path / "cache").verify(s0["key"], full=True), name
     (entry / "meta.json").write_text(json.dumps(dict(old, hash="md4-9")))
     assert "md4-9" in Cache(tmp_path / "cache").verify(s0["key"], full=True)
 
