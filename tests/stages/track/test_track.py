@@ -157,6 +157,28 @@ def test_point_grid_matches_a_kd_tree():
                 assert np.array_equal(np.linalg.norm(pts[j[ok]] - q[ok], axis=1), np.linalg.norm(pts[rj[ok]] - q[ok], axis=1))
 
 
+def test_closest_point_queries_refuse_points_that_are_not_finite():
+    """NaN or infinite points (grid points, queries) and a surface without faces are a ValueError naming them, not
+    cell indices made from NaN that send the kernels outside their buffers (a worker's segmentation fault)."""
+    m = trimesh.creation.icosphere(2)
+    query = closest.SurfaceQuery(m.vertices, m.faces)
+    p = np.array(m.vertices[:10]) * 1.1
+    for bad in (np.nan, np.inf, -np.inf):
+        q = p.copy()
+        q[4, 2] = bad
+        with pytest.raises(ValueError, match="1 of 10 of the query points are not finite.*row 4"):
+            query.closest(q)
+        with pytest.raises(ValueError, match="grid's points are not finite"):
+            closest.PointGrid(q)
+    v = np.array(m.vertices)
+    v[3] = np.nan
+    with pytest.raises(ValueError, match="not finite"):
+        closest.SurfaceQuery(v, m.faces)
+    with pytest.raises(ValueError, match="without faces"):
+        closest.SurfaceQuery(m.vertices, np.zeros((0, 3), np.int64)).closest(p)
+    assert np.isfinite(query.closest(p)[1]).all()
+
+
 def test_rotation_kernel_matches_its_svd_reference():
     # kernels/rotations.cl (one-sided Jacobi) against LAPACK's SVD: general matrices, near rotations, near
     # reflections (det < 0: the rotation, not the reflection), rank 2 (coplanar edges), and every result a rotation
@@ -685,3 +707,63 @@ def test_a_failed_fit_is_tried_again_then_bridged_and_kept_only_if_it_fits(monke
         assert bridged == [] and fitted[:7] == [0, 1, 2, 3, 3, 4, 5]          # frame 3 twice, then on
     else:
         assert bridged == [3, 4] and fitted[:6] == [0, 1, 2, 3, 4, 3]        # on to 4 (fits), back to 3
+
+
+def test_simplify_replaces_replayed_vertices_that_are_not_finite_or_far():
+    """track.simplify replays the keyframe's collapses on every frame, and the replay solves each merged vertex's
+    quadric whenever its determinant is not exactly 0: a nearly singular one gave NaN (the demo's stage at 6 cameras,
+    pose2sim_single) or a point far off. Such a vertex takes the keyframe's place of it moved by the mean motion of
+    the vertices merged into it; every other vertex is the replay's, bit for bit; the report counts them."""
+    import fast_simplification
+
+    from nodes.track import simplify as S
+
+    base = trimesh.creation.icosphere(subdivisions=3)
+    frames = []
+    for k, (shift, scale) in enumerate(((0.0, 1.0), (0.05, 1.02), (0.1, 1.05))):
+        m = trimesh.Trimesh(base.vertices * scale + [shift, 0, 0], base.faces, process=False)
+        m.metadata.update(segment=0, keyframe=0, frame=k)
+        frames.append(m)
+    plain, _ = S.simplify_sequence(frames, 0.25)                       # the library's replay, nothing refused
+    faces = np.asarray(base.faces, np.int64)
+    _, _, collapses = fast_simplification.simplify(np.asarray(base.vertices, np.float64), faces,
+                                                   target_reduction=0.75, return_collapses=True)
+    _, _, mapping = fast_simplification.replay_simplification(np.asarray(base.vertices, np.float64), faces, collapses)
+    real = fast_simplification.replay_simplification
+
+    def broken(points, triangles, col):                                # frame 2: one NaN and one point 1 km away
+        p, f, mp = real(points, triangles, col)
+        if points[0, 0] > frames[1].vertices[0, 0] + 0.01:
+            p = p.copy()
+            p[5] = np.nan
+            p[9] += 1000.0
+        return p, f, mp
+
+    original = fast_simplification.replay_simplification
+    fast_simplification.replay_simplification = broken
+    try:
+        got, report = S.simplify_sequence(frames, 0.25)
+    finally:
+        fast_simplification.replay_simplification = original
+    assert report["segments"][0]["vertices_replaced"] == 2
+    assert all(np.isfinite(np.asarray(m.vertices)).all() for m in got)
+    for k in (0, 1):
+        assert np.array_equal(np.asarray(got[k].vertices), np.asarray(plain[k].vertices))
+    keep = np.setdiff1d(np.arange(len(got[2].vertices)), [5, 9])
+    assert np.array_equal(np.asarray(got[2].vertices)[keep], np.asarray(plain[2].vertices)[keep])
+    x0, x2 = np.asarray(frames[0].vertices), np.asarray(frames[2].vertices)
+    for j in (5, 9):
+        motion = (x2[mapping == j] - x0[mapping == j]).mean(axis=0)
+        assert np.allclose(np.asarray(got[2].vertices)[j], np.asarray(got[0].vertices)[j] + motion, atol=1e-12)
+
+
+def test_meshes_with_vertices_that_are_not_finite_are_refused_as_outputs():
+    """A node whose output mesh (or a frame of its sequence) has a NaN or infinite vertex fails there, named, with
+    the type's message: its readers (texture.transfer's kernels, the stream's quantiser) cannot use it."""
+    m = trimesh.creation.icosphere(1)
+    assert Mesh.check(m) is None and MeshSequence.check([m, m]) is None
+    bad = trimesh.Trimesh(np.array(m.vertices), m.faces, process=False)
+    bad.vertices[2] = [0.0, np.inf, 0.0]
+    bad.metadata["frame"] = 41
+    assert "1 of its 42 vertices are not finite" in Mesh.check(bad)
+    assert MeshSequence.check([m, bad]).startswith("mesh 1 (frame 41): 1 of its 42 vertices are not finite")
