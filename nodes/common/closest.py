@@ -53,13 +53,25 @@ def closest_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndar
 FAR_CELLS = 4          # PointGrid: queries farther than this many cells outside the grid go to a k-d tree
 
 
+def _finite(points: np.ndarray, what: str) -> np.ndarray:
+    """``points``, or ValueError when one is NaN or infinite: the kernels would index cells (and the faces around
+    a nearest vertex) from it and read outside their buffers (a simplified sequence's NaN vertices made
+    texture.transfer's worker die of a segmentation fault)."""
+    bad = ~np.isfinite(points)
+    if bad.any():
+        rows = np.flatnonzero(bad.any(axis=1))
+        raise ValueError(f"{len(rows)} of {len(points)} of {what} are not finite (NaN or infinite; the first: "
+                         f"row {rows[0]}, {points[rows[0]].tolist()})")
+    return points
+
+
 class PointGrid:
     """Nearest points by a uniform grid of cells searched on the OpenCL device (kernels/closest.cl,
     nearest_in_grid: exact, the same answers as a k-d tree up to ties); ``nearest_reference`` is scipy's cKDTree.
     Cells: about ``cells_per_point`` per point in the points' bounding box (on a surface a few points per occupied cell)."""
 
     def __init__(self, points: np.ndarray, cells_per_point: float = 8.0):
-        self.points = np.ascontiguousarray(points, np.float64).reshape(-1, 3)
+        self.points = _finite(np.ascontiguousarray(points, np.float64).reshape(-1, 3), "the grid's points")
         m = len(self.points)
         self.lo = self.points.min(axis=0) if m else np.zeros(3)
         extent = np.maximum((self.points.max(axis=0) if m else np.ones(3)) - self.lo, 1e-9)
@@ -78,7 +90,7 @@ class PointGrid:
 
     def nearest(self, points: np.ndarray, upper: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
         """(distance, index) of the nearest point closer than ``upper`` (inf and -1 where none is)."""
-        points = np.ascontiguousarray(points, np.float64).reshape(-1, 3)
+        points = _finite(np.ascontiguousarray(points, np.float64).reshape(-1, 3), "the query points")
         n = len(points)
         d, j = np.full(n, np.inf), np.full(n, -1, np.int64)
         if n == 0 or len(self.points) == 0:
@@ -139,13 +151,15 @@ class SurfaceQuery:
     def nearest_vertex(self, points: np.ndarray, upper: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
         """(distance, vertex index) of the nearest used vertex (index -1 beyond ``upper``)."""
         d, j = self.grid.nearest(points, upper)
-        return d, np.where(j >= 0, self.used[np.maximum(j, 0)], -1)
+        return d, (np.where(j >= 0, self.used[np.maximum(j, 0)], -1) if len(self.used) else j)
 
     def closest(self, points: np.ndarray, with_faces: bool = False):
         """(closest points (P, 3), distances (P,)) on the surface, and their faces (P,) when ``with_faces``: the
         nearest vertex here, the faces around it on the OpenCL device (kernels/closest.cl, the same operations
         as ``closest_reference``, float64)."""
         points = np.ascontiguousarray(points, np.float64)
+        if len(points) and not len(self.used):
+            raise ValueError("closest points on a surface without faces")
         _, j = self.nearest_vertex(points)
         cl = ClosestCL.get()
         if self.device is None:                             # the mesh on the device once: corners and vertex -> faces

@@ -604,6 +604,18 @@ class Volume(DataType):
         return previews.draw_volume(value, size, companions)
 
 
+def _unfinite(mesh) -> str | None:
+    """What is wrong when a mesh has vertices that are not finite (NaN, infinite): nothing downstream can use them
+    (texture.transfer's closest-point kernels read outside their buffers from a NaN vertex), so the node that made
+    them fails, named, instead of its readers."""
+    v = np.asarray(mesh.vertices)
+    ok = np.isfinite(v)
+    if ok.all():
+        return None
+    rows = np.flatnonzero(~ok.all(axis=1))
+    return f"{len(rows)} of its {len(v)} vertices are not finite (NaN or infinite; the first: vertex {rows[0]})"
+
+
 class Mesh(DataType):
     """A triangle mesh (trimesh.Trimesh), stored as binary PLY (vertex order preserved)."""
 
@@ -615,7 +627,9 @@ class Mesh(DataType):
     def check(cls, v):
         import trimesh
 
-        return None if isinstance(v, trimesh.Trimesh) else f"expected a trimesh.Trimesh, got {type(v).__name__}"
+        if not isinstance(v, trimesh.Trimesh):
+            return f"expected a trimesh.Trimesh, got {type(v).__name__}"
+        return _unfinite(v)
 
     @classmethod
     def canonical(cls, v):
@@ -815,6 +829,10 @@ class MeshSequence(DataType):
 
         if not (isinstance(v, list) and all(isinstance(m, trimesh.Trimesh) for m in v)):
             return "expected a list of trimesh.Trimesh"
+        for i, m in enumerate(v):
+            problem = _unfinite(m)
+            if problem:
+                return f"mesh {i} (frame {m.metadata.get('frame', i)}): {problem}"
         for start, stop in sequence_segments(v):
             for i in range(start + 1, stop):
                 if len(v[i].vertices) != len(v[start].vertices) or not np.array_equal(v[i].faces, v[start].faces):

@@ -67,6 +67,18 @@ def test_transfer_uses_the_reference_layout_and_checks_its_inputs():
         run_node("texture.transfer", {"mesh": low, "reference": full, "source": source}, {"size": 256})
 
 
+def test_transfer_refuses_a_mesh_with_vertices_that_are_not_finite():
+    """A NaN vertex (track.simplify's replay made two on the demo's stage at 6 cameras) made the closest-point
+    kernels index outside their buffers: the worker died of a segmentation fault. Now one clear NodeError."""
+    full, low = trimesh.creation.icosphere(4), trimesh.creation.icosphere(2)
+    source = painted(full, 256)
+    bad = np.array(low.vertices)
+    bad[7] = np.nan
+    with pytest.raises(NodeError, match="not finite"):
+        run_node("texture.transfer", {"mesh": trimesh.Trimesh(bad, low.faces, process=False), "source": source},
+                 {"size": 256})
+
+
 def test_welded_merges_the_vertices_a_texture_splits_at_chart_seams():
     sphere = trimesh.creation.icosphere(3)
     source = painted(sphere, 256)
