@@ -13,9 +13,11 @@ from .errors import DataError
 
 RACY_NS = 2_000_000_000  # see FileHasher.file
 MAX_INPUT_FILES = 500_000  # an input folder with more files is not a dataset but a file system
-KEY_SCHEMA = 3  # bump when the key recipe or the form of entries changes; old entries then simply stop matching
+KEY_SCHEMA = 4  # bump when the key recipe or the form of entries changes; old entries then simply stop matching
 # 2: images and masks stored as raw .npy (were PNG + EXR); entries hold only the kept ports
 # 3: the environment (library versions, OpenCL device: nodegraph/environment.py) is part of every key
+# 4: entries' files hashed with XXH3-128 (an older version sharing the cache would find the hash unknown, evict the
+#    entry and write it again, and the two would take turns)
 
 
 def digest(obj) -> str:

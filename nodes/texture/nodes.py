@@ -198,8 +198,9 @@ class TextureTransfer(Node):
 
         if len(mesh.faces) == 0:
             raise NodeError("the mesh has no faces: nothing to texture")
-        if not np.isfinite(np.asarray(mesh.vertices)).all():
-            raise NodeError("input 'mesh' has vertices that are not finite (NaN or infinite)")
+        for name, m in (("mesh", mesh), ("source", source)):
+            if not np.isfinite(np.asarray(m.vertices)).all():
+                raise NodeError(f"input '{name}' has vertices that are not finite (NaN or infinite)")
         atlas = given_atlas(mesh, atlas, reference, size, directions)
         if atlas is None:
             atlas = reference_atlas(mesh.vertices, mesh.faces, size, directions)

@@ -9,7 +9,8 @@ when it cancels out, NaN (the demo's stage at 6 cameras: 2 vertices of frame 4; 
 cast to garbage in the stream. Such a vertex (not finite, or farther from the mean of the vertices merged into it
 than ``SPREAD`` times their spread plus an edge: the largest seen elsewhere on three sequences was 3.9) takes the
 keyframe's place of it moved by the mean motion of those vertices since the keyframe (on the keyframe: their
-mean)."""
+mean). The report's ``vertices_replaced`` counts them per segment over its frames (a vertex refused on three frames
+counts three times)."""
 from __future__ import annotations
 
 import numpy as np
@@ -22,7 +23,9 @@ SPREAD = 8.0     # a replayed vertex this many times (its merged vertices' sprea
 
 def _clusters(x: np.ndarray, mapping: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
     """(mean, spread) per simplified vertex of the original vertices ``x`` merged into it (``mapping``: the replay's
-    original -> simplified index, -1 for none): their centroid and their largest distance from it."""
+    original -> simplified index, -1 for none): their centroid and their largest distance from it. (fast-simplification
+    0.2.0 drops isolated points left by edge-only chains and shifts the indices after them, so a rare original vertex
+    may count towards its neighbour's cluster: that moves a mean and a spread, not which vertices are replaced.)"""
     ok = mapping >= 0
     m, xs = mapping[ok], x[ok]
     n = np.maximum(np.bincount(m, minlength=count), 1)[:, None]

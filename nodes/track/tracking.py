@@ -290,8 +290,13 @@ def grow_segment(frames: Frames, params: TrackParams, k: int, done: np.ndarray, 
         t0 = time.perf_counter()
         target = frames.target(i)
         new_state, _ = reg.fit(init, target)
+        x = graph.deform(new_state)
+        if not np.isfinite(x).all():        # a diverged fit: a failure like any other (the closest points refuse NaN)
+            inf = float("inf")
+            return new_state, FrameResult(target.world(x), -1, k, inf, inf, inf, inf,
+                                          seconds=time.perf_counter() - t0), "the fit diverged (vertices not finite)"
         offsets = deform.laplacian_offsets(graph, new_state, rings)
-        x = deform.detail(graph.deform(new_state), faces, target, fit_p, rings, offsets=offsets)
+        x = deform.detail(x, faces, target, fit_p, rings, offsets=offsets)
         x = deform.snap(x, faces, target, fit_p, rings, offsets=offsets)
         x = deform.unfold(x, faces, pairs, rings, fit_p.unfold, target, fit_p.snap_reach)
         res = surface_residuals(x, faces, target, vf)
