@@ -21,7 +21,11 @@ engine adds (loading inputs, keeping outputs); and it times the fused path of th
 device silhouettes, hull, marching cubes, images in memory) on the same rendered frames (read back from the
 run's cache) and box, for the CLI/fused ratio of key+hull+mc. Hours per minute = seconds per frame x 1800 / 3600;
 4DViews ~ 8 h and Fraunhofer HHI / Volucap ~ 12 h per minute of footage (issue 26). Last, where each chain stage's
-CLI seconds went (run.json's per-item phases: inputs loaded, run(), lazy outputs made for keeping, kept ones written).
+CLI seconds went (run.json's per-item phases: inputs loaded, run(), lazy outputs made for keeping, kept ones written),
+and how busy the workers were (the items' seconds over run.json's seconds x jobs): near 100 %, only shorter items
+shorten the wall. A few frames are mostly first-frame costs (kernels loaded, libraries imported, encoders started, one
+track window): for the rate of a long take, run ~48 frames with windows, e.g. ``--frames 0:48 -j 2 --set
+track.window=12``.
 """
 from __future__ import annotations
 
@@ -263,6 +267,11 @@ def main():
           f"({wall:.1f} s: start-up, planning, {'(the render cached: --prerender) ' if a.prerender else 'render and '}chain; "
           f"run.json says {doc['seconds']:.1f} s)")
     print(f"{'':>22} {'':>14} {'wall less the render':>22} {'':>5} {per - sums.get(RENDER, 0):8.3f}")
+    # how busy the workers were: when they are (near 100 %) only shorter items shorten the wall; when not, the run
+    # waited on something (a serial step, the start, the tail of sequence nodes)
+    busy = sum(r["seconds"] for r in records if not r.get("cache_hit"))
+    print(f"{'workers busy':>22} {'':>14} {'items / (run x jobs)':>22} {'':>5} {busy / (doc['seconds'] * a.jobs):8.1%}   "
+          f"({busy:.1f} s of items in run.json's {doc['seconds']:.1f} s x {a.jobs} worker{'s' if a.jobs > 1 else ''})")
 
     def hours(s):
         return s * 1800 / 3600
