@@ -604,7 +604,7 @@ class Volume(DataType):
         return previews.draw_volume(value, size, companions)
 
 
-def _unfinite(mesh) -> str | None:
+def nonfinite_vertices(mesh) -> str | None:
     """What is wrong when a mesh has vertices that are not finite (NaN, infinite): nothing downstream can use them
     (texture.transfer's closest-point kernels read outside their buffers from a NaN vertex), so the node that made
     them fails, named, instead of its readers."""
@@ -629,7 +629,7 @@ class Mesh(DataType):
 
         if not isinstance(v, trimesh.Trimesh):
             return f"expected a trimesh.Trimesh, got {type(v).__name__}"
-        return _unfinite(v)
+        return nonfinite_vertices(v)
 
     @classmethod
     def canonical(cls, v):
@@ -830,7 +830,7 @@ class MeshSequence(DataType):
         if not (isinstance(v, list) and all(isinstance(m, trimesh.Trimesh) for m in v)):
             return "expected a list of trimesh.Trimesh"
         for i, m in enumerate(v):
-            problem = _unfinite(m)
+            problem = nonfinite_vertices(m)
             if problem:
                 return f"mesh {i} (frame {m.metadata.get('frame', i)}): {problem}"
         for start, stop in sequence_segments(v):

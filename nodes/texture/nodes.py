@@ -12,7 +12,7 @@ from kernels import source
 from nodegraph import DataType, Input, Node, NodeError, Output, Param
 from nodes.common import raster
 from nodes.common.meshops import face_neighbours
-from nodes.common.types import CameraSet, Images, Masks, Mesh, TexturedMesh, ViewTextures
+from nodes.common.types import CameraSet, Images, Masks, Mesh, TexturedMesh, ViewTextures, nonfinite_vertices
 
 from . import views
 from .atlas import Atlas, make_atlas
@@ -199,8 +199,9 @@ class TextureTransfer(Node):
         if len(mesh.faces) == 0:
             raise NodeError("the mesh has no faces: nothing to texture")
         for name, m in (("mesh", mesh), ("source", source)):
-            if not np.isfinite(np.asarray(m.vertices)).all():
-                raise NodeError(f"input '{name}' has vertices that are not finite (NaN or infinite)")
+            problem = nonfinite_vertices(m)
+            if problem:
+                raise NodeError(f"input '{name}': {problem}")
         atlas = given_atlas(mesh, atlas, reference, size, directions)
         if atlas is None:
             atlas = reference_atlas(mesh.vertices, mesh.faces, size, directions)

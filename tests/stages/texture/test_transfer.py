@@ -74,7 +74,7 @@ def test_transfer_refuses_a_mesh_with_vertices_that_are_not_finite():
     source = painted(full, 256)
     bad = np.array(low.vertices)
     bad[7] = np.nan
-    with pytest.raises(NodeError, match="input 'mesh' has vertices that are not finite"):
+    with pytest.raises(NodeError, match="input 'mesh': 1 of its .* vertices are not finite"):
         run_node("texture.transfer", {"mesh": trimesh.Trimesh(bad, low.faces, process=False), "source": source},
                  {"size": 256})
 
