@@ -50,14 +50,21 @@ class Correctives:
     fitted: int = 0          # the shapes fitted (each one or two of ``shapes``: its sides)
     goal: tuple | None = None   # (rms, max) metres each frame was fitted towards, or None
     goal_rounds: int = 0     # the reweighted rounds of the kept fit (0: the least-squares fit)
+    own: tuple = ()          # rows (frames of the fit) that got a shape of their own (``frame_shapes``), the last shapes
+    beyond: tuple = ()       # per row still beyond the goal: (row, worst vertex, its blended transform's smallest
+                             # singular value: near 0 where two of its bones turn apart, which no shape can undo)
 
-    def table(self) -> dict:
+    def table(self, frames=None) -> dict:
+        """The report's record; ``frames``: the frame number of each row (for ``frame_shapes``; default the rows)."""
         r = lambda a: [round(float(x), 7) for x in a]  # noqa: E731
         return {"shapes": int(len(self.shapes)), "fitted": int(self.fitted), "lbs_rms": r(self.lbs_rms), "lbs_max": r(self.lbs_max),
                 "corrected_rms": r(self.rms), "corrected_max": r(self.max),
                 "lbs_rms_total": float(np.sqrt((self.lbs_rms ** 2).mean())),
                 "corrected_rms_total": float(np.sqrt((self.rms ** 2).mean())),
                 "corrected_max_total": float(self.max.max()) if len(self.max) else 0.0,
+                **({"frame_shapes": [int(i if frames is None else frames[i]) for i in self.own]} if len(self.own) else {}),
+                **({"beyond_goal": [{"frame": int(i if frames is None else frames[i]), "vertex": int(v),
+                                     "sigma_min": round(float(sv), 4)} for i, v, sv in self.beyond]} if self.goal is not None else {}),
                 **({} if self.goal is None else {
                     "goal_m": [round(float(g), 7) for g in self.goal], "goal_rounds": int(self.goal_rounds),
                     "frames_within_goal": {"lbs": int(np.sum((self.lbs_rms <= self.goal[0]) & (self.lbs_max <= self.goal[1]))),
@@ -143,12 +150,14 @@ def _non_negative(w, shapes):
 
 
 def fit_correctives(vertices, indices, weights, rotations, translations, targets, k: int,
-                    goal: tuple[float, float] | None = None) -> Correctives:
+                    goal: tuple[float, float] | None = None, frame_shapes: int = 0) -> Correctives:
     """``k`` corrective shapes and their weights per frame (the module docstring: exact per frame when k >= the
     frame count, else fitted in the posed space), with the posed error per frame before and after
     (``Correctives``); k is capped at the frame count. Each comes out as one or two shapes with weights in
     [0, 1] (its two sides), so up to 2k. ``goal`` (rms, max; metres): what each frame's corrected error should
-    stay within (``_towards_goal``); None, a 0 in it or a frame count of shapes: the least-squares fit alone."""
+    stay within (``_towards_goal``); None, a 0 in it or a frame count of shapes: the least-squares fit alone.
+    ``frame_shapes`` (with a goal): up to that many frames still beyond it after the fit, the farthest first, get
+    one more shape each (``_own_shapes``), weighing 1 in that frame and 0 in every other."""
     x = np.asarray(vertices, np.float64)
     y = np.asarray(targets, np.float64)
     a, b = blended_transforms(indices, weights, rotations, translations)
@@ -184,9 +193,46 @@ def fit_correctives(vertices, indices, weights, rotations, translations, targets
     f32 = lambda z: np.asarray(z, np.float32).astype(np.float64)  # noqa: E731
     rest = np.einsum("fvab,vb->fva", a, f32(x)) + b
     err0 = np.linalg.norm(rest - y, axis=2)
-    err = np.linalg.norm(rest + _posed(a, f32(w), f32(shapes)) - y, axis=2)
-    return Correctives(shapes, w, np.sqrt((err0 ** 2).mean(1)), err0.max(1), np.sqrt((err ** 2).mean(1)), err.max(1),
-                       fitted=k, goal=goal, goal_rounds=rounds)
+    off = rest + _posed(a, f32(w), f32(shapes)) - y
+    own: list[int] = []
+    if goal is not None and frame_shapes > 0 and k < f:
+        w, shapes, own = _own_shapes(a, -off, w, shapes, goal, frame_shapes)
+        off = rest + _posed(a, f32(w), f32(shapes)) - y
+    err = np.linalg.norm(off, axis=2)
+    rms, top = np.sqrt((err ** 2).mean(1)), err.max(1)
+    beyond = ()
+    if goal is not None:   # what is left beyond the goal, and whether a shape could reach it (the worst vertex's
+        rows = np.flatnonzero((rms > goal[0]) | (top > goal[1]))   # blended transform; see the module docstring)
+        worst = err[rows].argmax(1)
+        beyond = tuple((int(i), int(v), float(np.linalg.svd(a[i, v], compute_uv=False)[-1])) for i, v in zip(rows, worst))
+    return Correctives(shapes, w, np.sqrt((err0 ** 2).mean(1)), err0.max(1), rms, top,
+                       fitted=k, goal=goal, goal_rounds=rounds, own=tuple(own), beyond=beyond)
+
+
+def _own_shapes(a, left, w, shapes, goal, most: int):
+    """The frames whose posed error ``left`` (F, V, 3) is beyond ``goal`` (rms, max), the farthest (by the larger
+    of rms / goal's and max / goal's) first, up to ``most``: each gets one more shape, what is left of it taken back
+    to the rest space as the fit's start takes its residuals, (A^T A + DAMPING I)^-1 A^T left, twice (the second on
+    what the first left: a vertex whose blended transform is a rotation comes within 1e-4 of exact, one whose
+    transform is nearly singular gets a bounded displacement, at most 1 / sqrt(DAMPING) = 10x its error, not the
+    huge exact one), weighing 1 in that frame and 0 in every other: the weights stay in [0, 1] and no other frame
+    changes. Returns (weights (F, K + n), shapes (K + n, V, 3), the frames' rows)."""
+    e = np.linalg.norm(left, axis=2)
+    far = np.maximum(np.sqrt((e ** 2).mean(1)) / goal[0], e.max(1) / goal[1])
+    rows = [int(i) for i in np.argsort(-far, kind="stable") if far[i] > 1.0][:most]
+    if not rows:
+        return w, shapes, []
+    ar, rest = a[rows], left[rows]
+    damped = np.einsum("fvca,fvcb->fvab", ar, ar) + DAMPING * np.eye(3)
+    extra = np.zeros(rest.shape)
+    for _ in range(2):       # once more on what the damping left: a well-conditioned vertex to 1e-4 of its error
+        step = np.linalg.solve(damped, np.einsum("fvca,fvc->fva", ar, rest)[..., None])[..., 0]         # (n, V, 3)
+        extra += step
+        rest = rest - np.matmul(ar, step[..., None])[..., 0]
+    ew = np.zeros((len(w), len(rows)))
+    ew[rows, np.arange(len(rows))] = 1.0
+    LOG.info("correctives: %d frame(s) beyond the goal after the fit get a shape of their own (rows %s)", len(rows), rows)
+    return np.hstack([w, ew]), np.concatenate([shapes, extra]), rows
 
 
 def _towards_goal(a, r, ata, atr, w, shapes, err0, goal):

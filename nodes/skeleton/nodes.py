@@ -570,7 +570,9 @@ class Export(Node):
     }
     outputs = {"files": Files,
                "report": Output(Table, "with the tracked frames: per file the LBS error per frame (rms, max; metres) "
-                                "with 0 and with the corrective shapes")}
+                                "with 0 and with the corrective shapes; with a goal, the frames still beyond it, each "
+                                "with its worst vertex and that vertex's blended transform's smallest singular value "
+                                "(near 0: two of its bones turned apart, where LBS collapses and no shape can reach)")}
     params = {
         "name": Param(str, "rig", doc="file name stem"),
         "formats": Param(str, "usd,gltf", doc="which files, comma-separated: usd, gltf, bvh (the motion alone, "
@@ -583,9 +585,13 @@ class Export(Node):
                       "stay within, rms and max, as shares of the subject's height (the tracked frames' extent along "
                       "+Z, 95th percentile); frames and vertices beyond it weigh more in up to 5 further rounds of the "
                       "fit, the round with the most frames within kept; a 0: the least-squares fit alone"),
+        "frame_shapes": Param(int, 0, range=(0, 1024), doc="with correctives and a goal: up to this many frames the fit "
+                              "leaves beyond the goal (the farthest first) get one more shape each, what is left of "
+                              "that frame, weighing 1 in it and 0 in every other (the report lists them)"),
     }
 
-    def run(self, skeleton, rest, meshes=None, sequence=None, *, name, formats, fps, influences, correctives, goal):
+    def run(self, skeleton, rest, meshes=None, sequence=None, *, name, formats, fps, influences, correctives, goal,
+            frame_shapes):
         from . import formats as fmt
 
         formats = [f.strip() for f in formats.split(",") if f.strip()]
@@ -607,6 +613,9 @@ class Export(Node):
         if correctives and targets is None:
             raise NodeError("skeleton.export: correctives need the tracked frames: connect skin's 'sequence' (or "
                             "'meshes') to this node's")
+        if frame_shapes and not (correctives and min(goal) > 0):
+            raise NodeError("skeleton.export: param 'frame_shapes' adds shapes for frames beyond the goal: it needs "
+                            "'correctives' > 0 and a 'goal' without a 0")
         fits, report = {}, {}
 
         def fitted(k: int, file: str):
@@ -622,9 +631,9 @@ class Export(Node):
                 height = body_stature(targets)
                 aim = (goal[0] * height, goal[1] * height) if min(goal) > 0 else None
                 fits[k] = fit_correctives(rig["vertices"], idx, w, rig["rotations"], rig["translations"], targets,
-                                          correctives, goal=aim)
+                                          correctives, goal=aim, frame_shapes=frame_shapes)
             c = fits[k]
-            report[file] = c.table()
+            report[file] = c.table(frames)
             self.log.info("skeleton.export: %s: LBS rms %.3g mm (max %.3g) -> %d corrective shape(s): rms %.3g mm "
                           "(max %.3g)", file, 1000 * report[file]["lbs_rms_total"], 1000 * c.lbs_max.max(),
                           len(c.shapes), 1000 * report[file]["corrected_rms_total"], 1000 * c.max.max())

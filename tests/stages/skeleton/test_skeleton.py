@@ -608,6 +608,108 @@ def test_correctives_towards_a_goal_bring_the_frames_least_squares_leaves_beyond
     assert "goal_m" not in plain.table()
 
 
+def test_correctives_give_the_frames_left_beyond_the_goal_a_shape_of_their_own():
+    """``frame_shapes``: one shape (3 patterns, a vertex 3 cm off in the last three frames; goal 2 mm rms, 20 mm max)
+    leaves 9 of 12 frames beyond the goal after the reweighted rounds; frame_shapes=4 gives the four farthest one
+    shape each, weighing 1 in that frame alone: those four come within the goal (to ~1 um on identity transforms),
+    every other frame's error is bit for bit the fit's, the weights stay in [0, 1]. On the helix whose blended
+    transforms are nearly singular a frame's own shape stays bounded (at most 10x its error per vertex) and
+    its error does not grow."""
+    from nodes.skeleton.correctives import fit_correctives
+
+    rng = np.random.default_rng(2)
+    f, v = 12, 200
+    x = 0.1 * rng.standard_normal((v, 3))
+    idx, wts = np.zeros((v, 1), int), np.ones((v, 1))
+    rot, tr = np.tile(np.eye(3), (f, 1, 1, 1)), np.zeros((f, 1, 3))
+    patterns = np.linalg.qr(rng.standard_normal((3 * v, 3)))[0].T * np.sqrt(v)
+    coef = np.c_[0.003 * rng.standard_normal((f, 2)), np.where(np.arange(f) % 2, 1.0, -1.0) * 0.0015]
+    r = (coef @ patterns).reshape(f, v, 3)
+    r[9:, 7, 2] += 0.03 * np.array([1.0, 0.8, 1.2])
+    targets = x[None] + r
+    goal = (0.002, 0.02)
+
+    def beyond(c):
+        return np.flatnonzero((c.rms > goal[0]) | (c.max > goal[1]))
+
+    fit = fit_correctives(x, idx, wts, rot, tr, targets, 1, goal=goal)
+    own = fit_correctives(x, idx, wts, rot, tr, targets, 1, goal=goal, frame_shapes=4)
+    assert len(beyond(fit)) == 9 and len(own.own) == 4, (beyond(fit), own.own)
+    far = np.maximum(fit.rms / goal[0], fit.max / goal[1])
+    assert sorted(own.own) == sorted(np.argsort(-far)[:4].tolist())          # the farthest first
+    assert set(beyond(own)) == set(beyond(fit)) - set(own.own)
+    assert [i for i, _, _ in own.beyond] == sorted(beyond(own)) and all(abs(sv - 1) < 1e-9 for _, _, sv in own.beyond)
+    assert own.max[list(own.own)].max() < 1e-5
+    rest = [i for i in range(f) if i not in own.own]
+    np.testing.assert_array_equal(own.rms[rest], fit.rms[rest])
+    np.testing.assert_array_equal(own.max[rest], fit.max[rest])
+    n = len(fit.shapes)
+    assert own.shapes.shape == (n + 4, v, 3)
+    np.testing.assert_array_equal(own.weights[:, :n], fit.weights)
+    np.testing.assert_array_equal(own.weights[:, n:], np.eye(f)[:, list(own.own)])
+    assert own.table(frames=list(range(100, 112)))["frame_shapes"] == [100 + i for i in own.own]
+    assert "frame_shapes" not in fit.table()
+    # no goal, or as many shapes as frames: nothing added
+    assert fit_correctives(x, idx, wts, rot, tr, targets, 1, frame_shapes=4).own == ()
+    assert fit_correctives(x, idx, wts, rot, tr, targets, f, goal=goal, frame_shapes=4).own == ()
+
+    # nearly singular blends (the helix above): bounded shapes, no frame worse
+    z = np.linspace(0, 1, 400)
+    hx = np.stack([0.05 * np.cos(40 * z), 0.05 * np.sin(40 * z), z], 1)
+    w1 = np.clip((z - 0.35) / 0.3, 0, 1)
+    hidx, hw = np.stack([np.zeros(400, int), np.ones(400, int)], 1), np.stack([1 - w1, w1], 1)
+    ang = np.radians(np.linspace(0, 179.9, 20))
+    hrot = np.tile(np.eye(3), (20, 2, 1, 1))
+    hrot[:, 1, 1, 1], hrot[:, 1, 1, 2], hrot[:, 1, 2, 1], hrot[:, 1, 2, 2] = np.cos(ang), -np.sin(ang), np.sin(ang), np.cos(ang)
+    htr = np.zeros((20, 2, 3))
+    htr[:, 1] = np.array([0, 0, 0.5]) - hrot[:, 1] @ np.array([0, 0, 0.5])
+    ht = np.where(z[None, :, None] < 0.5, hx[None], np.einsum("fab,vb->fva", hrot[:, 1], hx) + htr[:, 1][:, None])
+    ht = ht + 0.002 * np.random.default_rng(3).standard_normal(ht.shape)
+    base = fit_correctives(hx, hidx, hw, hrot, htr, ht, 2)
+    hgoal = (float(np.percentile(base.rms, 30)), float(np.percentile(base.max, 30)))
+    hfit = fit_correctives(hx, hidx, hw, hrot, htr, ht, 2, goal=hgoal)
+    hown = fit_correctives(hx, hidx, hw, hrot, htr, ht, 2, goal=hgoal, frame_shapes=20)
+    rows = list(hown.own)
+    assert len(rows) >= 5 and len(hfit.beyond) == len(rows)
+    # all of them come within but the last frame (179.9 degrees), whose worst vertex's blend has collapsed: the
+    # report says so (its blended transform's smallest singular value), no bounded shape reaches it
+    assert [(i, round(sv, 3)) for i, _, sv in hown.beyond] == [(19, 0.008)], hown.beyond
+    assert hown.table()["beyond_goal"] == [{"frame": 19, "vertex": hown.beyond[0][1], "sigma_min": 0.0084}]
+    assert (hown.rms[rows] <= hfit.rms[rows] + 1e-9).all() and (hown.max[rows] <= hfit.max[rows] + 1e-9).all()
+    m = len(hfit.shapes)
+    a = np.einsum("vk,fvkab->fvab", hw, hrot[:, hidx])
+    b = np.einsum("vk,fvka->fva", hw, htr[:, hidx])
+    posed = np.einsum("fvab,fvb->fva", a, hx[None] + np.einsum("fk,kvc->fvc", hfit.weights, hfit.shapes)) + b
+    before = np.linalg.norm(posed - ht, axis=2)[rows]                     # each own frame's error per vertex
+    assert (np.linalg.norm(hown.shapes[m:], axis=2) <= 10 * before + 1e-6).all()
+
+
+def test_export_frame_shapes_named_by_frame_number(tube_nodes):
+    """skeleton.export ``frame_shapes``: with a goal two shapes cannot meet on the noisy tube (0.1 % / 0.5 % of the
+    height), the farthest frames get their own shape; the report names them by frame number, the glTF's weights
+    are 1 there alone, the files' error is the report's. Without correctives it is refused, naming the param."""
+    ms = tube_meshes(12, noise=0.002)
+    a = run_node("skeletonize.sequence", {"sequence": ms}, {"bones": 3})
+    b = run_node("skin", {"sequence": ms, "skeleton": a["skeleton"]}, {})
+    sk, rest = b["skeleton"], b["rest"]
+    params = {"name": "t", "correctives": 2, "goal": [0.001, 0.005]}
+    fit = run_node("skeleton.export", {"skeleton": sk, "rest": rest, "sequence": ms}, params)["report"]["files"]["t.glb"]
+    out = run_node("skeleton.export", {"skeleton": sk, "rest": rest, "sequence": ms}, {**params, "frame_shapes": 3},
+                   roundtrip=True)
+    table = out["report"]["files"]["t.glb"]
+    assert fit["frames_within_goal"]["corrected"] <= 9 and len(table["frame_shapes"]) == 3, (fit, table.get("frame_shapes"))
+    assert table["frames_within_goal"]["corrected"] == fit["frames_within_goal"]["corrected"] + 3
+    assert table["shapes"] == fit["shapes"] + 3
+    gl = formats.read_gltf(out["files"]["t.glb"])
+    own = np.asarray(gl["morph_weights"])[:12, fit["shapes"]:]
+    np.testing.assert_array_equal(own, np.eye(12)[:, table["frame_shapes"]])     # frames 0..11: numbers = rows here
+    tracked = np.stack([m.vertices for m in ms])
+    err = np.linalg.norm(gl["skinned"][:12] - tracked, axis=2)
+    np.testing.assert_allclose(np.sqrt((err ** 2).mean(1)), table["corrected_rms"], atol=2e-6)
+    with pytest.raises(NodeError, match="'frame_shapes'.*'correctives' > 0"):
+        run_node("skeleton.export", {"skeleton": sk, "rest": rest, "sequence": ms}, {"name": "t", "frame_shapes": 3})
+
+
 def test_sequence_nodes_pick_the_longest_segment_and_explain_errors(tube_nodes):
     import trimesh
 
