@@ -608,6 +608,57 @@ def test_correctives_towards_a_goal_bring_the_frames_least_squares_leaves_beyond
     assert "goal_m" not in plain.table()
 
 
+def test_weights_never_blend_bones_turned_apart():
+    """The weights step keeps no two bones on a vertex that some frame turns more than APART (165 degrees) from
+    each other: on the helix whose second bone turns to 179.9 degrees, tracked exactly by a soft blend, the free
+    fit reproduces it (120 vertices on both bones, their blend collapsing to a smallest singular value of 0.008), the
+    guarded one puts each vertex on one bone (no collapse: every blended transform a rotation) at ~13 mm rms.
+    ``_not_apart`` alone: the heaviest bones first, one that clashes with a heavier kept one skipped, the influence
+    count kept; without the test the ``influences`` heaviest."""
+    from nodes.skeleton import motion
+
+    z = np.linspace(0, 1, 400)
+    x = np.stack([0.05 * np.cos(40 * z), 0.05 * np.sin(40 * z), z], 1)
+    f = 20
+    ang = np.radians(np.linspace(0, 179.9, f))
+    rot = np.tile(np.eye(3), (f, 2, 1, 1))
+    rot[:, 1, 1, 1], rot[:, 1, 1, 2], rot[:, 1, 2, 1], rot[:, 1, 2, 2] = np.cos(ang), -np.sin(ang), np.sin(ang), np.cos(ang)
+    tr = np.zeros((f, 2, 3))
+    tr[:, 1] = np.array([0, 0, 0.5]) - rot[:, 1] @ np.array([0, 0, 0.5])
+    w1 = np.clip((z - 0.35) / 0.3, 0, 1)
+    soft = np.stack([1 - w1, w1], 1)
+    tracked = skinning.lbs(x, soft, rot, tr)
+    traj = motion.Trajectories(x, tracked)
+    cand = np.tile(np.array([0, 1]), (400, 1))
+    offsets = np.r_[0, np.cumsum([1] + [2] * 398 + [1])]
+    nbr = (offsets, np.concatenate([[1]] + [[i - 1, i + 1] for i in range(1, 399)] + [[398]]).astype(np.int64))
+    out = {}
+    for apart in (None, skinning.APART):
+        w = skinning.fit_weights(traj, rot, tr, cand, soft.copy(), nbr, influences=4, smooth=1e-6, apart=apart)
+        blend = np.einsum("vk,fvkab->fvab", w, rot[:, cand])
+        err = np.linalg.norm(skinning.lbs(x, w, rot, tr) - tracked, axis=2)
+        out[apart] = (int(np.sum(np.minimum(w[:, 0], w[:, 1]) > 1e-6)), np.linalg.svd(blend, compute_uv=False)[..., -1].min(),
+                      float(np.sqrt((err ** 2).mean())))
+    shared, sigma, rms = out[None]
+    assert shared > 50 and sigma < 0.02 and rms < 1e-6, out[None]
+    shared, sigma, rms = out[skinning.APART]
+    assert shared == 0 and sigma > 0.999 and rms < 0.03, out[skinning.APART]
+
+    # three bones: 1 turns 170 degrees from 0 in frame 2, 2 turns 30 degrees
+    r3 = np.tile(np.eye(3), (3, 3, 1, 1))
+    for b, deg in ((1, 170.0), (2, 30.0)):
+        a = np.radians(deg)
+        r3[2, b] = [[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]]
+    w = np.array([[0.5, 0.3, 0.2], [0.2, 0.5, 0.3], [0.4, 0.35, 0.25]])
+    cs = np.tile(np.arange(3), (3, 1))
+    keep = np.ones((3, 3), bool)
+    got = skinning._not_apart(w, cs, keep, r3, 4, skinning.APART)
+    np.testing.assert_array_equal(got, [[1, 0, 1], [0, 1, 1], [1, 0, 1]])
+    np.testing.assert_array_equal(skinning._not_apart(w, cs, keep, r3, 2, skinning.APART), [[1, 0, 1], [0, 1, 1], [1, 0, 1]])
+    np.testing.assert_array_equal(skinning._not_apart(w, cs, keep, r3, 1, skinning.APART), [[1, 0, 0], [0, 1, 0], [1, 0, 0]])
+    np.testing.assert_array_equal(skinning._not_apart(w, cs, keep, r3, 2, None), [[1, 1, 0], [0, 1, 1], [1, 1, 0]])
+
+
 def test_correctives_give_the_frames_left_beyond_the_goal_a_shape_of_their_own():
     """``frame_shapes``: one shape (3 patterns, a vertex 3 cm off in the last three frames; goal 2 mm rms, 20 mm max)
     leaves 9 of 12 frames beyond the goal after the reweighted rounds; frame_shapes=4 gives the four farthest one
