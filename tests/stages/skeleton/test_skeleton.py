@@ -517,17 +517,10 @@ what that truncation leaves, the blended rotations do not grow it) and,
         run_node("skeleton.export", {"skeleton": sk, "rest": rest, "sequence": tube_meshes(6)}, {"correctives": 4})
 
 
-def test_correctives_fitted_in_the_posed_space_where_blended_joints_nearly_cancel():
-    """Two bones blended across a helix's middle, the second turning up to 179.9 degrees: there the blended
-    transform (I + R) / 2 is nearly singular, the exact rest-space residuals blow up, and their truncated SVD (the
-    first version) spends its shapes on them. The posed-space fit (damped start, alternating least squares,
-    weights last) leaves no frame above plain LBS and, with 2 shapes, under 0.7x the posed rms of that SVD
-    truncation (measured 4.0 vs 6.9 mm; with 4 shapes both reach the noise, within 2 %); with as many shapes as
-    frames every frame exactly."""
-    from nodes.skeleton.correctives import fit_correctives, rest_residuals
-
-    rng = np.random.default_rng(3)
-    f, v = 20, 400
+def _helix_rig(f: int = 20, v: int = 400):
+    """A helix of ``v`` points up z in [0, 1] and two bones: the second (pivot z = 0.5) turns about x up to 179.9
+    degrees over ``f`` frames, where the blended transform (R_0 + R_1) / 2 nearly collapses. Returns (points, influence
+    indices (V, 2), soft weights (V, 2) blending across z 0.35..0.65, rotations (F, 2, 3, 3), translations (F, 2, 3))."""
     z = np.linspace(0, 1, v)
     x = np.stack([0.05 * np.cos(40 * z), 0.05 * np.sin(40 * z), z], 1)
     w1 = np.clip((z - 0.35) / 0.3, 0, 1)
@@ -539,8 +532,44 @@ def test_correctives_fitted_in_the_posed_space_where_blended_joints_nearly_cance
     pivot = np.array([0.0, 0.0, 0.5])
     tr = np.zeros((f, 2, 3))
     tr[:, 1] = pivot - rot[:, 1] @ pivot
+    return x, idx, wts, rot, tr
+
+
+def _helix_rigid(x, rot, tr, noise: float = 0.002, seed: int = 3):
+    """The helix moved rigidly in two parts (z < 0.5 with bone 0, the rest with bone 1), plus noise (metres)."""
+    z = x[:, 2]
     rigid = np.where(z[None, :, None] < 0.5, x[None], np.einsum("fab,vb->fva", rot[:, 1], x) + tr[:, 1][:, None])
-    targets = rigid + 0.002 * rng.standard_normal((f, v, 3))
+    return rigid + noise * np.random.default_rng(seed).standard_normal(rigid.shape)
+
+
+def _pattern_case():
+    """12 frames of 200 points on one fixed bone whose residual is two strong patterns and a weak one (1.5 mm rms)
+    plus one vertex 24-36 mm off in the last three frames; goal 2 mm rms / 20 mm max. Returns (points, indices,
+    weights, rotations, translations, targets, goal)."""
+    rng = np.random.default_rng(2)
+    f, v = 12, 200
+    x = 0.1 * rng.standard_normal((v, 3))
+    idx, wts = np.zeros((v, 1), int), np.ones((v, 1))
+    rot, tr = np.tile(np.eye(3), (f, 1, 1, 1)), np.zeros((f, 1, 3))
+    patterns = np.linalg.qr(rng.standard_normal((3 * v, 3)))[0].T * np.sqrt(v)      # 1 m rms per vertex each
+    coef = np.c_[0.003 * rng.standard_normal((f, 2)), np.where(np.arange(f) % 2, 1.0, -1.0) * 0.0015]
+    r = (coef @ patterns).reshape(f, v, 3)
+    r[9:, 7, 2] += 0.03 * np.array([1.0, 0.8, 1.2])
+    return x, idx, wts, rot, tr, x[None] + r, (0.002, 0.02)
+
+
+def test_correctives_fitted_in_the_posed_space_where_blended_joints_nearly_cancel():
+    """Two bones blended across a helix's middle, the second turning up to 179.9 degrees: there the blended
+    transform (I + R) / 2 is nearly singular, the exact rest-space residuals blow up, and their truncated SVD (the
+    first version) spends its shapes on them. The posed-space fit (damped start, alternating least squares,
+    weights last) leaves no frame above plain LBS and, with 2 shapes, under 0.7x the posed rms of that SVD
+    truncation (measured 4.0 vs 6.9 mm; with 4 shapes both reach the noise, within 2 %); with as many shapes as
+    frames every frame exactly."""
+    from nodes.skeleton.correctives import fit_correctives, rest_residuals
+
+    f, v = 20, 400
+    x, idx, wts, rot, tr = _helix_rig(f, v)
+    targets = _helix_rigid(x, rot, tr)
     a = np.einsum("vk,fvkab->fvab", wts, rot[:, idx])
     b = np.einsum("vk,fvka->fva", wts, tr[:, idx])
     assert np.linalg.det(a).min() < 0.01                              # nearly singular blends
@@ -577,17 +606,8 @@ def test_correctives_towards_a_goal_bring_the_frames_least_squares_leaves_beyond
     changes nothing."""
     from nodes.skeleton.correctives import fit_correctives
 
-    rng = np.random.default_rng(2)
-    f, v, k = 12, 200, 3
-    x = 0.1 * rng.standard_normal((v, 3))
-    idx, wts = np.zeros((v, 1), int), np.ones((v, 1))
-    rot, tr = np.tile(np.eye(3), (f, 1, 1, 1)), np.zeros((f, 1, 3))
-    patterns = np.linalg.qr(rng.standard_normal((3 * v, 3)))[0].T * np.sqrt(v)      # 1 m rms per vertex each
-    coef = np.c_[0.003 * rng.standard_normal((f, 2)), np.where(np.arange(f) % 2, 1.0, -1.0) * 0.0015]
-    r = (coef @ patterns).reshape(f, v, 3)
-    r[9:, 7, 2] += 0.03 * np.array([1.0, 0.8, 1.2])
-    targets = x[None] + r
-    goal = (0.002, 0.02)
+    x, idx, wts, rot, tr, targets, goal = _pattern_case()
+    f, k = len(targets), 3
 
     def within(c):
         return int(np.sum((c.rms <= goal[0]) & (c.max <= goal[1])))
@@ -617,19 +637,9 @@ def test_weights_never_blend_bones_turned_apart():
     count kept; without the test the ``influences`` heaviest."""
     from nodes.skeleton import motion
 
-    z = np.linspace(0, 1, 400)
-    x = np.stack([0.05 * np.cos(40 * z), 0.05 * np.sin(40 * z), z], 1)
-    f = 20
-    ang = np.radians(np.linspace(0, 179.9, f))
-    rot = np.tile(np.eye(3), (f, 2, 1, 1))
-    rot[:, 1, 1, 1], rot[:, 1, 1, 2], rot[:, 1, 2, 1], rot[:, 1, 2, 2] = np.cos(ang), -np.sin(ang), np.sin(ang), np.cos(ang)
-    tr = np.zeros((f, 2, 3))
-    tr[:, 1] = np.array([0, 0, 0.5]) - rot[:, 1] @ np.array([0, 0, 0.5])
-    w1 = np.clip((z - 0.35) / 0.3, 0, 1)
-    soft = np.stack([1 - w1, w1], 1)
+    x, cand, soft, rot, tr = _helix_rig()
     tracked = skinning.lbs(x, soft, rot, tr)
     traj = motion.Trajectories(x, tracked)
-    cand = np.tile(np.array([0, 1]), (400, 1))
     offsets = np.r_[0, np.cumsum([1] + [2] * 398 + [1])]
     nbr = (offsets, np.concatenate([[1]] + [[i - 1, i + 1] for i in range(1, 399)] + [[398]]).astype(np.int64))
     out = {}
@@ -668,17 +678,8 @@ def test_correctives_give_the_frames_left_beyond_the_goal_a_shape_of_their_own()
     its error does not grow."""
     from nodes.skeleton.correctives import fit_correctives
 
-    rng = np.random.default_rng(2)
-    f, v = 12, 200
-    x = 0.1 * rng.standard_normal((v, 3))
-    idx, wts = np.zeros((v, 1), int), np.ones((v, 1))
-    rot, tr = np.tile(np.eye(3), (f, 1, 1, 1)), np.zeros((f, 1, 3))
-    patterns = np.linalg.qr(rng.standard_normal((3 * v, 3)))[0].T * np.sqrt(v)
-    coef = np.c_[0.003 * rng.standard_normal((f, 2)), np.where(np.arange(f) % 2, 1.0, -1.0) * 0.0015]
-    r = (coef @ patterns).reshape(f, v, 3)
-    r[9:, 7, 2] += 0.03 * np.array([1.0, 0.8, 1.2])
-    targets = x[None] + r
-    goal = (0.002, 0.02)
+    x, idx, wts, rot, tr, targets, goal = _pattern_case()
+    f, v = targets.shape[:2]
 
     def beyond(c):
         return np.flatnonzero((c.rms > goal[0]) | (c.max > goal[1]))
@@ -705,17 +706,8 @@ def test_correctives_give_the_frames_left_beyond_the_goal_a_shape_of_their_own()
     assert fit_correctives(x, idx, wts, rot, tr, targets, f, goal=goal, frame_shapes=4).own == ()
 
     # nearly singular blends (the helix above): bounded shapes, no frame worse
-    z = np.linspace(0, 1, 400)
-    hx = np.stack([0.05 * np.cos(40 * z), 0.05 * np.sin(40 * z), z], 1)
-    w1 = np.clip((z - 0.35) / 0.3, 0, 1)
-    hidx, hw = np.stack([np.zeros(400, int), np.ones(400, int)], 1), np.stack([1 - w1, w1], 1)
-    ang = np.radians(np.linspace(0, 179.9, 20))
-    hrot = np.tile(np.eye(3), (20, 2, 1, 1))
-    hrot[:, 1, 1, 1], hrot[:, 1, 1, 2], hrot[:, 1, 2, 1], hrot[:, 1, 2, 2] = np.cos(ang), -np.sin(ang), np.sin(ang), np.cos(ang)
-    htr = np.zeros((20, 2, 3))
-    htr[:, 1] = np.array([0, 0, 0.5]) - hrot[:, 1] @ np.array([0, 0, 0.5])
-    ht = np.where(z[None, :, None] < 0.5, hx[None], np.einsum("fab,vb->fva", hrot[:, 1], hx) + htr[:, 1][:, None])
-    ht = ht + 0.002 * np.random.default_rng(3).standard_normal(ht.shape)
+    hx, hidx, hw, hrot, htr = _helix_rig()
+    ht = _helix_rigid(hx, hrot, htr)
     base = fit_correctives(hx, hidx, hw, hrot, htr, ht, 2)
     hgoal = (float(np.percentile(base.rms, 30)), float(np.percentile(base.max, 30)))
     hfit = fit_correctives(hx, hidx, hw, hrot, htr, ht, 2, goal=hgoal)
