@@ -51,6 +51,7 @@ class Correctives:
     goal: tuple | None = None   # (rms, max) metres each frame was fitted towards, or None
     goal_rounds: int = 0     # the reweighted rounds of the kept fit (0: the least-squares fit)
     own: tuple = ()          # rows (frames of the fit) that got a shape of their own (``frame_shapes``), the last shapes
+    asked: bool = False      # frame shapes were asked for (the report then lists them, also none)
     beyond: tuple = ()       # per row still beyond the goal: (row, worst vertex, its blended transform's smallest
                              # singular value: near 0 where two of its bones turn apart, which no shape can undo)
 
@@ -62,9 +63,10 @@ class Correctives:
                 "lbs_rms_total": float(np.sqrt((self.lbs_rms ** 2).mean())),
                 "corrected_rms_total": float(np.sqrt((self.rms ** 2).mean())),
                 "corrected_max_total": float(self.max.max()) if len(self.max) else 0.0,
-                **({"frame_shapes": [int(i if frames is None else frames[i]) for i in self.own]} if len(self.own) else {}),
+                **({"frame_shapes": [int(i if frames is None else frames[i]) for i in self.own]} if self.asked else {}),
                 **({"beyond_goal": [{"frame": int(i if frames is None else frames[i]), "vertex": int(v),
-                                     "sigma_min": round(float(sv), 4)} for i, v, sv in self.beyond]} if self.goal is not None else {}),
+                                     "sigma_min": round(float(sv), 4)} for i, v, sv in self.beyond]}
+                   if self.goal is not None and self.fitted else {}),
                 **({} if self.goal is None else {
                     "goal_m": [round(float(g), 7) for g in self.goal], "goal_rounds": int(self.goal_rounds),
                     "frames_within_goal": {"lbs": int(np.sum((self.lbs_rms <= self.goal[0]) & (self.lbs_max <= self.goal[1]))),
@@ -157,7 +159,8 @@ def fit_correctives(vertices, indices, weights, rotations, translations, targets
     [0, 1] (its two sides), so up to 2k. ``goal`` (rms, max; metres): what each frame's corrected error should
     stay within (``_towards_goal``); None, a 0 in it or a frame count of shapes: the least-squares fit alone.
     ``frame_shapes`` (with a goal): up to that many frames still beyond it after the fit, the farthest first, get
-    one more shape each (``_own_shapes``), weighing 1 in that frame and 0 in every other."""
+    one more shape each (``_own_shapes``), weighing 1 in that frame and 0 in every other (nothing to add where k >=
+    the frame count: exact)."""
     x = np.asarray(vertices, np.float64)
     y = np.asarray(targets, np.float64)
     a, b = blended_transforms(indices, weights, rotations, translations)
@@ -197,16 +200,18 @@ def fit_correctives(vertices, indices, weights, rotations, translations, targets
     own: list[int] = []
     if goal is not None and frame_shapes > 0 and k < f:
         w, shapes, own = _own_shapes(a, -off, w, shapes, goal, frame_shapes)
-        off = rest + _posed(a, f32(w), f32(shapes)) - y
+        if own:          # only those frames change (every other one's extra weights are 0: its error as it was)
+            off[own] = rest[own] + _posed(a[own], f32(w[own]), f32(shapes)) - y[own]
     err = np.linalg.norm(off, axis=2)
     rms, top = np.sqrt((err ** 2).mean(1)), err.max(1)
     beyond = ()
-    if goal is not None:   # what is left beyond the goal, and whether a shape could reach it (the worst vertex's
+    if goal is not None and k:   # what is left beyond the goal, and whether a shape could reach it (the worst vertex's
         rows = np.flatnonzero((rms > goal[0]) | (top > goal[1]))   # blended transform; see the module docstring)
         worst = err[rows].argmax(1)
         beyond = tuple((int(i), int(v), float(np.linalg.svd(a[i, v], compute_uv=False)[-1])) for i, v in zip(rows, worst))
     return Correctives(shapes, w, np.sqrt((err0 ** 2).mean(1)), err0.max(1), rms, top,
-                       fitted=k, goal=goal, goal_rounds=rounds, own=tuple(own), beyond=beyond)
+                       fitted=k, goal=goal, goal_rounds=rounds, own=tuple(own), beyond=beyond,
+                       asked=goal is not None and frame_shapes > 0 and k > 0)
 
 
 def _own_shapes(a, left, w, shapes, goal, most: int):
@@ -216,7 +221,8 @@ def _own_shapes(a, left, w, shapes, goal, most: int):
     what the first left: a vertex whose blended transform is a rotation comes within 1e-4 of exact, one whose
     transform is nearly singular gets a bounded displacement, at most 1 / sqrt(DAMPING) = 10x its error, not the
     huge exact one), weighing 1 in that frame and 0 in every other: the weights stay in [0, 1] and no other frame
-    changes. Returns (weights (F, K + n), shapes (K + n, V, 3), the frames' rows)."""
+    changes. (Between keys a player ramps such a weight 0 -> 1 against a transform that has not collapsed: there a
+    large displacement can show for an instant.) Returns (weights (F, K + n), shapes (K + n, V, 3), the frames' rows)."""
     e = np.linalg.norm(left, axis=2)
     far = np.maximum(np.sqrt((e ** 2).mean(1)) / goal[0], e.max(1) / goal[1])
     rows = [int(i) for i in np.argsort(-far, kind="stable") if far[i] > 1.0][:most]
@@ -231,7 +237,7 @@ def _own_shapes(a, left, w, shapes, goal, most: int):
         rest = rest - np.matmul(ar, step[..., None])[..., 0]
     ew = np.zeros((len(w), len(rows)))
     ew[rows, np.arange(len(rows))] = 1.0
-    LOG.info("correctives: %d frame(s) beyond the goal after the fit get a shape of their own (rows %s)", len(rows), rows)
+    LOG.info("correctives: %d frame(s) beyond the goal after the fit get a shape of their own", len(rows))
     return np.hstack([w, ew]), np.concatenate([shapes, extra]), rows
 
 

@@ -587,7 +587,8 @@ class Export(Node):
                       "fit, the round with the most frames within kept; a 0: the least-squares fit alone"),
         "frame_shapes": Param(int, 0, range=(0, 1024), doc="with correctives and a goal: up to this many frames the fit "
                               "leaves beyond the goal (the farthest first) get one more shape each, what is left of "
-                              "that frame, weighing 1 in it and 0 in every other (the report lists them)"),
+                              "that frame, weighing 1 in it and 0 in every other (the report lists them; with "
+                              "correctives >= the frame count every frame is exact: none)"),
     }
 
     def run(self, skeleton, rest, meshes=None, sequence=None, *, name, formats, fps, influences, correctives, goal,
@@ -634,6 +635,9 @@ class Export(Node):
                                           correctives, goal=aim, frame_shapes=frame_shapes)
             c = fits[k]
             report[file] = c.table(frames)
+            if c.own:
+                self.log.info("skeleton.export: %s: frame(s) %s got a corrective shape of their own", file,
+                              ", ".join(str(n) for n in report[file]["frame_shapes"]))
             self.log.info("skeleton.export: %s: LBS rms %.3g mm (max %.3g) -> %d corrective shape(s): rms %.3g mm "
                           "(max %.3g)", file, 1000 * report[file]["lbs_rms_total"], 1000 * c.lbs_max.max(),
                           len(c.shapes), 1000 * report[file]["corrected_rms_total"], 1000 * c.max.max())

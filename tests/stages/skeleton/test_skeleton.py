@@ -688,7 +688,7 @@ def test_correctives_give_the_frames_left_beyond_the_goal_a_shape_of_their_own()
     own = fit_correctives(x, idx, wts, rot, tr, targets, 1, goal=goal, frame_shapes=4)
     assert len(beyond(fit)) == 9 and len(own.own) == 4, (beyond(fit), own.own)
     far = np.maximum(fit.rms / goal[0], fit.max / goal[1])
-    assert sorted(own.own) == sorted(np.argsort(-far)[:4].tolist())          # the farthest first
+    assert list(own.own) == np.argsort(-far, kind="stable")[:4].tolist()      # the farthest first
     assert set(beyond(own)) == set(beyond(fit)) - set(own.own)
     assert [i for i, _, _ in own.beyond] == sorted(beyond(own)) and all(abs(sv - 1) < 1e-9 for _, _, sv in own.beyond)
     assert own.max[list(own.own)].max() < 1e-5
@@ -730,8 +730,11 @@ def test_correctives_give_the_frames_left_beyond_the_goal_a_shape_of_their_own()
 def test_export_frame_shapes_named_by_frame_number(tube_nodes):
     """skeleton.export ``frame_shapes``: with a goal two shapes cannot meet on the noisy tube (0.1 % / 0.5 % of the
     height), the farthest frames get their own shape; the report names them by frame number, the glTF's weights
-    are 1 there alone, the files' error is the report's. Without correctives it is refused, naming the param."""
+    are 1 there alone, the files' error is the report's (the take starts at frame 40: numbers, not rows). With a
+    goal met, the list is there and empty; without correctives the param is refused, naming it."""
     ms = tube_meshes(12, noise=0.002)
+    for m in ms:
+        m.metadata["frame"] += 40
     a = run_node("skeletonize.sequence", {"sequence": ms}, {"bones": 3})
     b = run_node("skin", {"sequence": ms, "skeleton": a["skeleton"]}, {})
     sk, rest = b["skeleton"], b["rest"]
@@ -744,8 +747,14 @@ def test_export_frame_shapes_named_by_frame_number(tube_nodes):
     assert table["frames_within_goal"]["corrected"] == fit["frames_within_goal"]["corrected"] + 3
     assert table["shapes"] == fit["shapes"] + 3
     gl = formats.read_gltf(out["files"]["t.glb"])
+    assert out["report"]["frames"] == list(range(40, 52)) and all(40 <= n < 52 for n in table["frame_shapes"])
     own = np.asarray(gl["morph_weights"])[:12, fit["shapes"]:]
-    np.testing.assert_array_equal(own, np.eye(12)[:, table["frame_shapes"]])     # frames 0..11: numbers = rows here
+    np.testing.assert_array_equal(own, np.eye(12)[:, [n - 40 for n in table["frame_shapes"]]])
+    beyond = {b["frame"] for b in fit["beyond_goal"]}
+    assert set(table["frame_shapes"]) <= beyond and {b["frame"] for b in table["beyond_goal"]} == beyond - set(table["frame_shapes"])
+    met = run_node("skeleton.export", {"skeleton": sk, "rest": rest, "sequence": ms},
+                   {"name": "t", "correctives": 4, "frame_shapes": 3})["report"]["files"]["t.glb"]   # the default goal: met
+    assert met["frame_shapes"] == [] and met["beyond_goal"] == [] and met["frames_within_goal"]["corrected"] == 12
     tracked = np.stack([m.vertices for m in ms])
     err = np.linalg.norm(gl["skinned"][:12] - tracked, axis=2)
     np.testing.assert_allclose(np.sqrt((err ** 2).mean(1)), table["corrected_rms"], atol=2e-6)
