@@ -79,6 +79,23 @@ def image_block(shapes) -> list[np.ndarray]:
     return [block[a:a + n].reshape(shape) for a, n, shape in zip(starts, sizes, shapes)]
 
 
+def _pasted(crops, shapes, windows) -> list[np.ndarray]:
+    """Whole images from their windows' pixels: the windowed ones in one zeroed block (untouched pages cost nothing
+    until read; a texture takes the block as it is), read-only; a camera without a window is its crop itself."""
+    blank = iter(image_block([tuple(sh) for sh, w in zip(shapes, windows) if w is not None]))
+    images = []
+    for a, w in zip(crops, windows):
+        if w is None:
+            images.append(a)
+            continue
+        x0, y0, x1, y1 = w
+        im = next(blank)
+        im[y0:y1, x0:x1] = a
+        im.flags.writeable = False            # as the memory-mapped images are
+        images.append(im)
+    return images
+
+
 def one_block(arrays) -> np.ndarray | None:
     """The bytes of uint8 ``arrays`` as one 1-D array, without a copy, where they lie one after the other in one
     block of memory (``image_block``'s); None where they do not."""
@@ -109,12 +126,18 @@ class ImageSet(_Lazy):
 
     ``windows``: per camera (x0, y0, x1, y1) or None, the producer's promise that the image is black (0) outside
     that box (a key's despilled images: nothing is sampled far from the matte). The cache then stores the boxes'
-    pixels only (24 HD views of the synthetic figure: ~30 % of the bytes to write, hash and read back)."""
+    pixels only (24 HD views of the synthetic figure: ~30 % of the bytes to write, hash and read back).
+    ``ImageSet.cropped(crops, shapes, windows, names)`` holds such images as their windows' pixels alone (``crops``:
+    per camera the (y1 - y0, x1 - x0, 3) box, or the whole image where its window is None); the whole images are
+    made (one ``image_block``) only when a reader asks for ``images``: a key whose despilled images go to the cache
+    alone (a texture after tracking reads them in another unit) writes no 149 MB block of 24 HD frames. A lazy
+    set's ``produce()`` may return ``("crops", crops, shapes, windows)``."""
 
     def __init__(self, images: list[np.ndarray], names: list[str] | None = None, windows=None):
         super().__init__(None, names or [f"cam{i:03d}" for i in range(len(images))])
         self._images = list(images)
         self._windows = None if windows is None else list(windows)
+        self._crops = self._shapes = None
 
     @classmethod
     def lazy(cls, produce, names: list[str]) -> "ImageSet":
@@ -126,9 +149,20 @@ class ImageSet(_Lazy):
         s._produce = made
         return s
 
-    def _set(self, images, windows=None):
+    @classmethod
+    def cropped(cls, crops, shapes, windows, names: list[str]) -> "ImageSet":
+        s = cls([], names)
+        s._set("crops", crops, shapes, windows)
+        return s
+
+    def _set(self, images, windows=None, shapes=None, crop_windows=None):
+        if isinstance(images, str):   # ("crops", crops, shapes, windows)
+            self._images, self._crops, self._shapes = None, list(windows), [tuple(x) for x in shapes]
+            self._windows = list(crop_windows)
+            return
         self._images = list(images)
         self._windows = None if windows is None else list(windows)
+        self._crops = self._shapes = None
 
     @property
     def windows(self) -> list | None:
@@ -136,8 +170,16 @@ class ImageSet(_Lazy):
         return self._windows
 
     @property
+    def crops(self) -> tuple[list[np.ndarray], list[tuple]] | None:
+        """(crops, shapes) where the set holds its windowed images as their windows' pixels, else None."""
+        self._materialise()
+        return None if self._crops is None else (self._crops, self._shapes)
+
+    @property
     def images(self) -> list[np.ndarray]:
         self._materialise()
+        if self._images is None:      # windows' pixels pasted into one zeroed block (as the cache's reader does)
+            self._images = _pasted(self._crops, self._shapes, self._windows)
         return self._images
 
     def __len__(self):
@@ -414,6 +456,16 @@ class Images(DataType):
             return f"expected an ImageSet, got {type(v).__name__}"
         if not v.ready:
             return None  # produced later by its own node's code, checked when it is
+        if v.crops is not None:   # windows' pixels: checked as they are (the whole images are not made for it)
+            crops, shapes = v.crops
+            if not (len(crops) == len(shapes) == len(v.windows) == len(v.names)):
+                return f"{len(crops)} crops, {len(shapes)} shapes and {len(v.windows)} windows for {len(v.names)} names"
+            for i, (c, sh, w) in enumerate(zip(crops, shapes, v.windows)):
+                want = tuple(sh) if w is None else (w[3] - w[1], w[2] - w[0], 3)
+                if not (isinstance(c, np.ndarray) and c.dtype == np.uint8 and c.shape == want and len(sh) == 3
+                        and sh[2] == 3 and (w is None or (0 <= w[0] <= w[2] <= sh[1] and 0 <= w[1] <= w[3] <= sh[0]))):
+                    return f"image {i}: its pixels {getattr(c, 'shape', None)} do not fill window {w} of {tuple(sh)}"
+            return None
         for i, im in enumerate(v.images):
             if not (isinstance(im, np.ndarray) and im.dtype == np.uint8 and im.ndim == 3 and im.shape[2] == 3):
                 return f"image {i} must be an (H, W, 3) uint8 array"
@@ -430,12 +482,18 @@ class Images(DataType):
     @classmethod
     def save(cls, v: ImageSet, folder: Path):
         windows = v.windows
-        for i, im in enumerate(v.images):   # files by position: any camera name (a path, a dot) is a name
-            w = windows[i] if windows else None
-            _save_array(folder / f"{i:04d}.npy", im if w is None else im[w[1]:w[3], w[0]:w[2]])
+        held = v.crops
+        if held is not None:   # the windows' pixels as they are: the same files as cut from the whole images
+            crops, shapes = held
+        else:
+            crops = [im if not windows or windows[i] is None else im[windows[i][1]:windows[i][3], windows[i][0]:windows[i][2]]
+                     for i, im in enumerate(v.images)]
+            shapes = [im.shape for im in v.images]
+        for i, c in enumerate(crops):   # files by position: any camera name (a path, a dot) is a name
+            _save_array(folder / f"{i:04d}.npy", c)
         (folder / "names.json").write_text(json.dumps(v.names))
         if windows:   # the images' sizes and the boxes whose pixels were stored (black outside them)
-            (folder / "windows.json").write_text(json.dumps({"shapes": [list(im.shape) for im in v.images],
+            (folder / "windows.json").write_text(json.dumps({"shapes": [list(x) for x in shapes],
                                                              "windows": [None if w is None else [int(x) for x in w]
                                                                          for w in windows]}))
 
@@ -446,22 +504,13 @@ class Images(DataType):
         if not (folder / "windows.json").is_file():
             return ImageSet(arrays, names)
         doc = json.loads((folder / "windows.json").read_text())
-        images = []
-        # the windowed images in one block (untouched pages cost nothing until read; a texture takes the block as
-        # it is), the others memory-mapped
-        blank = iter(image_block([shape for shape, w in zip(doc["shapes"], doc["windows"]) if w is not None]))
         for i, (a, shape, w) in enumerate(zip(arrays, doc["shapes"], doc["windows"])):
             if w is None:
-                images.append(a)
                 continue
             x0, y0, x1, y1 = w
             if a.shape != (y1 - y0, x1 - x0, 3) or not (0 <= x0 <= x1 <= shape[1] and 0 <= y0 <= y1 <= shape[0]):
                 raise DataError(f"{folder / f'{i:04d}.npy'}: {a.shape} does not fill its window {w} of {shape}")
-            im = next(blank)
-            im[y0:y1, x0:x1] = a
-            im.flags.writeable = False            # as the memory-mapped images are
-            images.append(im)
-        return ImageSet(images, names, doc["windows"])
+        return ImageSet(_pasted(arrays, doc["shapes"], doc["windows"]), names, doc["windows"])
 
     @classmethod
     def preview(cls, value, size, companions):

@@ -278,13 +278,14 @@ def alpha_window(alpha: np.ndarray, margin: int, offset=(0, 0), size=None) -> tu
 
 
 def chroma_key_windowed(rgb, key, *, margin=16, side=1.0, luma_floor=16.0, inner=0.05, outer=0.2, black=0.0,
-                        spill=1.0, edges=None, out=None):
+                        spill=1.0, edges=None, out=None, crop=False):
     """``chroma_key_cl`` with the despilled image made only inside the window of the alpha (``alpha_window``:
     its box grown by ``margin`` pixels) and black outside: (alpha, despilled, window). Inside the window the
     bytes are ``chroma_key_cl``'s; the despill runs and is read back on the window alone (24 HD views of the
     synthetic figure: a fifth of the pixels). With a garbage matte (``edges``) the alpha is keyed on the box of
     the matte alone (``chroma_key_box``: a third of the demo's HD pixels), the same bytes. ``out``: a zeroed
-    (H, W, 3) uint8 array to write the despilled image into (one of ``types.image_block``'s)."""
+    (H, W, 3) uint8 array to write the despilled image into (one of ``types.image_block``'s). ``crop``: the
+    despilled window's pixels alone, (y1 - y0, x1 - x0, 3), instead of a whole image."""
     from pyopencl import cltypes
 
     h, w = rgb.shape[:2]
@@ -296,8 +297,11 @@ def chroma_key_windowed(rgb, key, *, margin=16, side=1.0, luma_floor=16.0, inner
         alpha, _ = chroma_key_cl(rgb, key, side=side, luma_floor=luma_floor, inner=inner, outer=outer, black=black,
                                  spill=spill, edges=edges, despill=False)
         x0, y0, x1, y1 = alpha_window(alpha, margin)
-    out = np.zeros((h, w, 3), np.uint8) if out is None else out
     bw, rows = x1 - x0, y1 - y0
+    if crop:
+        out = np.empty((rows, bw, 3), np.uint8)
+    elif out is None:
+        out = np.zeros((h, w, 3), np.uint8)
     if bw > 0 and rows > 0:
         import pyopencl as cl
 
@@ -305,8 +309,11 @@ def chroma_key_windowed(rgb, key, *, margin=16, side=1.0, luma_floor=16.0, inner
         box = run.buffer("despill_box", rows * bw * 3)
         run.launch("despill_box", (-(-bw // CHROMA_PIX), rows), BOX_GROUP, run.host(rgb), np.int32(w), np.int32(x0),
                    np.int32(y0), np.int32(bw), cltypes.make_float2(*map(float, key)), np.float32(spill), box)
-        cl.enqueue_copy(run.queue, out, box, buffer_origin=(0, 0), host_origin=(3 * x0, y0), region=(3 * bw, rows),
-                        buffer_pitches=(3 * bw,), host_pitches=(3 * w,), is_blocking=True)
+        if crop:
+            cl.enqueue_copy(run.queue, out, box, is_blocking=True)
+        else:
+            cl.enqueue_copy(run.queue, out, box, buffer_origin=(0, 0), host_origin=(3 * x0, y0), region=(3 * bw, rows),
+                            buffer_pitches=(3 * bw,), host_pitches=(3 * w,), is_blocking=True)
     return alpha, out, [x0, y0, x1, y1]
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from nodegraph import Input, Node, NodeError, Output, Param, Table
-from nodes.common.types import Bounds, CameraSet, Images, ImageSet, Masks, MaskSet, PlateModel, Volume, image_block
+from nodes.common.types import Bounds, CameraSet, Images, ImageSet, Masks, MaskSet, PlateModel, Volume
 from nodes.common.views import map_views
 
 from .keying import (KERNELS, check_views, chroma_key_bits, chroma_key_cl, chroma_key_windowed, clean_mask, cleaned_alpha, difference_key_cl,
@@ -66,24 +66,28 @@ class ChromaKey(Node):
                 alphas, despilled, windows = [], [], []
                 kw = dict(side=side, luma_floor=luma_floor, inner=inner, outer=outer, black=black, spill=spill)
                 windowed = spill > 0 and window_margin >= 0   # despilled inside the alpha's window only, black beyond
-                blank = image_block([im.shape for im in frames]) if windowed else None   # one block: a texture's
                 for v, im in enumerate(frames):
                     e = None if edges is None else edges[v]
-                    if windowed:
-                        a, d, win = chroma_key_windowed(im, keys[v], margin=window_margin, edges=e, out=blank[v], **kw)
+                    if windowed:   # the window's pixels alone: whole images only if a reader in the unit asks
+                        a, d, win = chroma_key_windowed(im, keys[v], margin=window_margin, edges=e, crop=True, **kw)
                     else:
                         (a, d), win = chroma_key_cl(im, keys[v], edges=e, despill=spill > 0, **kw), None
                     alphas.append(a)
                     despilled.append(d if spill > 0 else im)
                     windows.append(win)
-                full.update(masks=maskset(alphas, images.names), images=despilled,
-                            windows=windows if any(w is not None for w in windows) else None)
+                full.update(masks=maskset(alphas, images.names), images=despilled, windows=windows if windowed else None)
             return full
+
+        def despilled():
+            k = key_frames()
+            if k["windows"] is None:
+                return k["images"], None
+            return "crops", k["images"], [im.shape for im in frames], k["windows"]
 
         names = list(images.names)
         masks = MaskSet.lazy(lambda: (key_frames()["masks"].masks, None, key_frames()["masks"].alpha8), names,
                              make_device=bits)
-        return {"masks": masks, "images": ImageSet.lazy(lambda: (key_frames()["images"], key_frames()["windows"]), names)}
+        return {"masks": masks, "images": ImageSet.lazy(despilled, names)}
 
 
 class Plate(Node):

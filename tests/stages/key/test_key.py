@@ -791,7 +791,9 @@ def test_plate_golden(golden):
 def test_chroma_key_images_black_outside_the_alpha_window_and_stored_as_the_window(tmp_path):
     """key.chroma's despilled images are black beyond `window_margin` pixels around the box of the alpha, and say
     so (ImageSet.windows); Images stores the windows' pixels only and gives the same images back. -1 keeps the
-    whole images (the despill inside the box is the same)."""
+    whole images (the despill inside the box is the same). The key holds the windows' pixels alone
+    (``ImageSet.crops``) until a reader asks for whole images; stored, they are the same files as the whole images'
+    windows."""
     from nodes.common.types import Images
 
     h, w = 120, 160
@@ -800,7 +802,14 @@ def test_chroma_key_images_black_outside_the_alpha_window_and_stored_as_the_wind
     out = run_node("key.chroma", {"images": ImageSet([img, img[:, ::-1].copy()])}, params={"window_margin": 8})
     whole = run_node("key.chroma", {"images": ImageSet([img, img[:, ::-1].copy()])}, params={"window_margin": -1})
     s = out["images"]
-    assert whole["images"].windows is None
+    assert whole["images"].windows is None and whole["images"].crops is None
+    crops, shapes = s.crops
+    assert s._images is None and shapes == [(h, w, 3)] * 2          # no whole image made yet
+    assert [c.shape for c in crops] == [(y1 - y0, x1 - x0, 3) for x0, y0, x1, y1 in s.windows]
+    (tmp_path / "crops").mkdir()
+    Images.save(s, tmp_path / "crops")
+    assert s._images is None                                         # saving does not make them either
+    assert Images.check(ImageSet.cropped([crops[0][1:], crops[1]], shapes, s.windows, s.names)).startswith("image 0")
     for k, (im, win, full, alpha) in enumerate(zip(s.images, s.windows, whole["images"].images, out["masks"].alpha8)):
         ys, xs = np.nonzero(alpha)
         assert win == [xs.min() - 8, ys.min() - 8, xs.max() + 1 + 8, ys.max() + 1 + 8], (k, win)
@@ -809,7 +818,9 @@ def test_chroma_key_images_black_outside_the_alpha_window_and_stored_as_the_wind
         inside[y0:y1, x0:x1] = True
         assert not im[~inside].any() and full[~inside].any()          # black outside; the whole image is not
         assert np.array_equal(im[inside], full[inside])
-    Images.save(s, tmp_path)
+    Images.save(ImageSet(s.images, s.names, s.windows), tmp_path)   # the same images given whole
+    for f in ("0000.npy", "0001.npy", "names.json", "windows.json"):
+        assert (tmp_path / f).read_bytes() == (tmp_path / "crops" / f).read_bytes(), f
     assert sum(p.stat().st_size for p in tmp_path.glob("*.npy")) < 0.25 * 2 * img.nbytes
     back = Images.load(tmp_path)
     assert back.windows == s.windows and all(np.array_equal(a, b) for a, b in zip(back.images, s.images))
