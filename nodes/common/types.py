@@ -199,9 +199,9 @@ class MaskSet(_Lazy):
     until a reader asks for ``device``."""
 
     def __init__(self, masks: list[np.ndarray], alpha: list[np.ndarray] | None = None, names: list[str] | None = None,
-                 device=None, alpha8: list[np.ndarray] | None = None):
+                 device=None, alpha8: list[np.ndarray] | None = None, boxes: list | None = None):
         super().__init__(None, names or [f"cam{i:03d}" for i in range(len(masks))])
-        self._set(masks, alpha, alpha8)
+        self._set(masks, alpha, alpha8, boxes)
         self._device, self._make_device = device, None
 
     @classmethod
@@ -211,11 +211,20 @@ class MaskSet(_Lazy):
         s._make_device = make_device
         return s
 
-    def _set(self, masks, alpha, alpha8=None):
+    def _set(self, masks, alpha, alpha8=None, boxes=None):
         if alpha is not None and alpha8 is not None:
             raise ValueError("MaskSet: give alpha or alpha8, not both")
         self._masks, self._alpha = list(masks), (list(alpha) if alpha is not None else None)
         self._alpha8 = list(alpha8) if alpha8 is not None else None
+        self._boxes = None if boxes is None else list(boxes)
+
+    @property
+    def boxes(self) -> list | None:
+        """Per camera (x0, y0, x1, y1) or None: the producer's promise that the mask and its alpha are 0 outside
+        that box (a key's alpha window, the clean-up's working box), so readers look at the box alone: the cache's
+        writer finds each plane's non-zero box there, not in the whole HD frame. None: not known."""
+        self._materialise()
+        return self._boxes
 
     @property
     def device(self):
@@ -396,21 +405,31 @@ def _mask_of_levels(levels: np.ndarray) -> np.ndarray:
     return cv2.threshold(np.asarray(levels, np.uint8), 127, 255, cv2.THRESH_BINARY)[1]
 
 
-def _nonzero_box(a: np.ndarray) -> tuple[np.ndarray, list]:
-    """(the box of ``a``'s non-zero pixels cut out of it, [height, width, x0, y0, x1, y1]); ``a`` (H, W) of any
-    dtype (a float alpha's box: its pixels != 0, and any -0.0)."""
+def _bounding_rect(flags: np.ndarray, hint=None) -> tuple[int, int, int, int]:
+    """cv2.boundingRect of an 8-bit image (x, y, w, h of its non-zero pixels; all 0 when none), looked for inside
+    the box ``hint`` (x0, y0, x1, y1) alone when given: the promise that nothing outside it is non-zero."""
     import cv2
 
+    if hint is None:
+        return cv2.boundingRect(np.ascontiguousarray(flags))
+    x0, y0, x1, y1 = (int(v) for v in hint)
+    x, y, w, h = cv2.boundingRect(np.ascontiguousarray(flags[y0:y1, x0:x1]))
+    return (x + x0, y + y0, w, h) if w and h else (0, 0, 0, 0)
+
+
+def _nonzero_box(a: np.ndarray, hint=None) -> tuple[np.ndarray, list]:
+    """(the box of ``a``'s non-zero pixels cut out of it, [height, width, x0, y0, x1, y1]); ``a`` (H, W) of any
+    dtype (a float alpha's box: its pixels != 0, and any -0.0); ``hint``: a box nothing outside of is non-zero."""
     a = np.asarray(a)
     if a.dtype == np.uint8:
         flags = a
     else:                           # a float's -0.0 is inside the box too: every bit comes back
         flags = np.ascontiguousarray((a != 0) | np.signbit(a) if a.dtype.kind == "f" else a != 0).view(np.uint8)
-    x, y, w, h = cv2.boundingRect(np.ascontiguousarray(flags))   # an 8-bit image: the box of its non-zero pixels
+    x, y, w, h = _bounding_rect(flags, hint)   # an 8-bit image: the box of its non-zero pixels
     return a[y:y + h, x:x + w], [int(a.shape[0]), int(a.shape[1]), x, y, x + w, y + h]
 
 
-def _is_mask_of_levels(mask, cut: np.ndarray, box) -> bool:
+def _is_mask_of_levels(mask, cut: np.ndarray, box, hint=None) -> bool:
     """Whether ``mask`` is ``_mask_of_levels`` of the levels whose non-zero box ``box`` holds ``cut`` (0 outside
     it): its own non-zero pixels inside that box, and there the threshold of the cut. (The two boxes, not two
     whole images: an HD frame's 24 views 53-70 -> a few ms.)"""
@@ -424,7 +443,7 @@ def _is_mask_of_levels(mask, cut: np.ndarray, box) -> bool:
         full = np.zeros((h, w), np.uint8)
         full[y0:y1, x0:x1] = cut
         return bool(np.array_equal(m, _mask_of_levels(full)))
-    mx, my, mw, mh = cv2.boundingRect(np.ascontiguousarray(m))
+    mx, my, mw, mh = _bounding_rect(m, hint)
     if cut.size == 0:                # no level above 0: the mask must be empty too
         return not (mw and mh)
     if mw and mh and not (x0 <= mx and y0 <= my and mx + mw <= x1 and my + mh <= y1):
@@ -550,32 +569,40 @@ class Masks(DataType):
             for i, (a, m) in enumerate(zip(v.alpha, v.masks)):
                 if np.shape(a) != m.shape:
                     return f"alpha {i} must be an array the shape of its mask {m.shape}, got {np.shape(a)}"
+        if v.boxes is not None:
+            if len(v.boxes) != len(v.masks):
+                return f"{len(v.boxes)} boxes for {len(v.masks)} masks"
+            for i, (b, m) in enumerate(zip(v.boxes, v.masks)):
+                if b is not None and not (len(b) == 4 and 0 <= b[0] <= b[2] <= m.shape[1] and 0 <= b[1] <= b[3] <= m.shape[0]):
+                    return f"mask {i}: box {b} is not a box (x0, y0, x1, y1) inside its {m.shape[1]}x{m.shape[0]}"
         return None
 
     @classmethod
     def save(cls, v: MaskSet, folder: Path):
         levels = v.alpha8   # 8-bit alpha stays 8-bit on disk: (H, W) uint8 per camera, .alpha8.npy
+        hints = v.boxes or [None] * len(v.masks)   # where the producer says the planes are 0 outside: looked at alone
         # every plane is stored as the box of its non-zero pixels (0 outside it): the same arrays come back. A person's
         # masks and float alpha after key.consensus (pose2sim_single, 4 x 1080p): 41.6 -> 8.0 MB per frame to write and hash
-        cuts = None if levels is None else [_nonzero_box(np.asarray(a, np.uint8)) for a in levels]
+        cuts = None if levels is None else [_nonzero_box(np.asarray(a, np.uint8), h) for a, h in zip(levels, hints)]
         # masks that are the levels' alpha >= 128 (the keys' and their clean-up's) are not stored: read back from them
-        derived = cuts is not None and all(_is_mask_of_levels(m, cut, box) for m, (cut, box) in zip(v.masks, cuts))
+        derived = cuts is not None and all(_is_mask_of_levels(m, cut, box, h)
+                                           for m, (cut, box), h in zip(v.masks, cuts, hints))
         boxes = {"mask_boxes": [], "alpha8_boxes": [], "alpha_boxes": []}
 
-        def put(name, kind, a):
-            cut, box = _nonzero_box(a)
+        def put(name, kind, a, hint):
+            cut, box = _nonzero_box(a, hint)
             _save_array(folder / name, cut)
             boxes[kind].append(box)
 
         for i, m in enumerate(v.masks):
             if not derived:
-                put(f"{i:04d}.npy", "mask_boxes", m)
+                put(f"{i:04d}.npy", "mask_boxes", m, hints[i])
             if cuts is not None:
                 a, box = cuts[i]
                 _save_array(folder / f"{i:04d}.alpha8.npy", a)
                 boxes["alpha8_boxes"].append(box)
             elif v.alpha is not None:
-                put(f"{i:04d}.alpha.npy", "alpha_boxes", np.asarray(v.alpha[i], np.float32))
+                put(f"{i:04d}.alpha.npy", "alpha_boxes", np.asarray(v.alpha[i], np.float32), hints[i])
         has = levels is not None or v.alpha is not None
         (folder / "names.json").write_text(json.dumps({"names": v.names, "alpha": has, "alpha8": levels is not None,
                                                        "masks_from_alpha8": derived,

@@ -439,6 +439,11 @@ def disc(radius: int) -> np.ndarray:
 
 
 def clean_mask(mask: np.ndarray, *, open_px=1, close_px=2, keep=1, fill_holes=True) -> np.ndarray:
+    """``clean_mask_box``'s mask alone."""
+    return clean_mask_box(mask, open_px=open_px, close_px=close_px, keep=keep, fill_holes=fill_holes)[0]
+
+
+def clean_mask_box(mask: np.ndarray, *, open_px=1, close_px=2, keep=1, fill_holes=True, hint=None):
     """Binary (0/255) mask after opening, closing, keeping the ``keep`` largest 8-connected components
     (0 = all) and filling holes (background regions not connected to the image border).
 
@@ -451,31 +456,49 @@ def clean_mask(mask: np.ndarray, *, open_px=1, close_px=2, keep=1, fill_holes=Tr
     its 2x2-block scan): when the ``keep``-th and the next largest have the same area, the whole image is
     cleaned instead. A figure filling a tenth of a 640x480 view: ~5x less work; the areas counted from the
     labels, not OpenCV's statistics: 12 crops' labelling ~8 -> ~3 ms; none counted where no more components than
-    kept are found (an HD view: clean-up 5.6 -> 1.9 ms)."""
+    kept are found (an HD view: clean-up 5.6 -> 1.9 ms).
+
+    Returns (mask, box): ``box`` (x0, y0, x1, y1) the region worked on, 0 outside it (None: the whole image).
+    ``hint`` (x0, y0, x1, y1): a box the input's foreground lies in (a key's alpha window): the threshold and the
+    foreground's box are taken there alone, not over the whole frame (the same result)."""
     import cv2
 
     mask = np.asarray(mask)
-    m = cv2.threshold(mask, 127, 1, cv2.THRESH_BINARY)[1] if mask.dtype == np.uint8 else (mask > 127).astype(np.uint8)
-    box = _foreground_box(m, open_px + close_px + 1)
+    h, w = mask.shape[:2]
+    hx0, hy0, hx1, hy1 = (0, 0, w, h) if hint is None else (int(v) for v in hint)
+    sub = mask[hy0:hy1, hx0:hx1]
+    m = cv2.threshold(sub, 127, 1, cv2.THRESH_BINARY)[1] if sub.dtype == np.uint8 else (sub > 127).astype(np.uint8)
+    box = _foreground_box(m, open_px + close_px + 1, offset=(hx0, hy0), size=(w, h))
     if box is None:   # no foreground: nothing to keep or fill
-        return np.zeros_like(m)
+        return np.zeros((h, w), np.uint8), (0, 0, 0, 0)
     (y0, y1), (x0, x1) = box
-    part = _clean_binary(m[y0:y1, x0:x1], open_px, close_px, keep, fill_holes, ties=False)
+    if hint is not None and (y0 < hy0 or x0 < hx0 or y1 > hy1 or x1 > hx1):   # the margin reaches out of the hint
+        full = np.zeros((h, w), np.uint8)
+        full[hy0:hy1, hx0:hx1] = m
+        m, hx0, hy0 = full, 0, 0
+    part = _clean_binary(m[y0 - hy0:y1 - hy0, x0 - hx0:x1 - hx0], open_px, close_px, keep, fill_holes, ties=False)
     if part is None:
-        return _clean_binary(m, open_px, close_px, keep, fill_holes) * np.uint8(255)
-    out = np.zeros_like(m)
+        if hint is not None and m.shape != (h, w):
+            full = np.zeros((h, w), np.uint8)
+            full[hy0:hy1, hx0:hx1] = m
+            m = full
+        return _clean_binary(m, open_px, close_px, keep, fill_holes) * np.uint8(255), None
+    out = np.zeros((h, w), np.uint8)
     out[y0:y1, x0:x1] = part * np.uint8(255)
-    return out
+    return out, (x0, y0, x1, y1)
 
 
-def _foreground_box(m: np.ndarray, margin: int):
-    """((y0, y1), (x0, x1)) of the nonzero pixels of ``m`` grown by ``margin`` and clipped to it, or None."""
+def _foreground_box(m: np.ndarray, margin: int, offset=(0, 0), size=None):
+    """((y0, y1), (x0, x1)) of the nonzero pixels of ``m`` grown by ``margin`` and clipped to the image, or None.
+    ``m`` may be a part of the image: at ``offset`` (x, y) of an image of ``size`` (w, h)."""
     import cv2
 
     x, y, w, h = cv2.boundingRect(m)
     if w == 0 or h == 0:
         return None
-    return ((max(y - margin, 0), min(y + h + margin, m.shape[0])), (max(x - margin, 0), min(x + w + margin, m.shape[1])))
+    x, y = x + offset[0], y + offset[1]
+    W, H = (m.shape[1], m.shape[0]) if size is None else size
+    return ((max(y - margin, 0), min(y + h + margin, H)), (max(x - margin, 0), min(x + w + margin, W)))
 
 
 def _clean_binary(m: np.ndarray, open_px: int, close_px: int, keep: int, fill_holes: bool, ties: bool = True):
@@ -528,16 +551,18 @@ def clean_mask_reference(mask: np.ndarray, *, open_px=1, close_px=2, keep=1, fil
     return m * 255
 
 
-def cleaned_alpha(cleaned: np.ndarray, mask: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+def cleaned_alpha(cleaned: np.ndarray, mask: np.ndarray, alpha: np.ndarray, hint=None) -> np.ndarray:
     """The soft alpha that goes with a cleaned mask: ``alpha`` where the mask was kept as it was, opaque where the
     clean-up added foreground (filled holes, closed cracks), 0 where it removed it or there was none; computed
     on the cleaned mask's bounding box (outside it all 0). Same as ``cleaned_alpha_reference``. A uint8 ``alpha``
     (8-bit levels) gives levels (opaque = 255), a float alpha float32 (opaque = 1): levels / 255 are the float's."""
     import cv2
 
+    from nodes.common.types import _bounding_rect
+
     levels = alpha.dtype == np.uint8
     out = np.zeros(cleaned.shape, np.uint8 if levels else np.float32)
-    x, y, w, h = cv2.boundingRect(cleaned)
+    x, y, w, h = _bounding_rect(cleaned, hint)      # ``hint``: a box the cleaned mask lies in (its clean-up's)
     if w and h:
         box = np.s_[y:y + h, x:x + w]
         if levels:   # bytes: cleaned (0 / 255) AND (alpha OR NOT mask): alpha where kept, 255 where added, 0 elsewhere
@@ -669,13 +694,14 @@ def check_views(what: str, images, cameras: Cameras | None, kind: str = "image")
         check_sizes(images, cameras, what, kind)
 
 
-def maskset(alphas: list[np.ndarray], names: list[str]) -> MaskSet:
+def maskset(alphas: list[np.ndarray], names: list[str], boxes=None) -> MaskSet:
     """The MaskSet of uint8 alphas: masks alpha >= 128 (cv2.threshold: one pass), the alpha kept as its levels
-    (``MaskSet.alpha8``: the float alpha is alpha / 255 when a reader asks)."""
+    (``MaskSet.alpha8``: the float alpha is alpha / 255 when a reader asks); ``boxes``: per alpha a box it is 0
+    outside of (``MaskSet.boxes``), or None."""
     import cv2
 
     masks = [cv2.threshold(a, 127, 255, cv2.THRESH_BINARY)[1] for a in alphas]
-    return MaskSet(masks, None, list(names), alpha8=alphas)
+    return MaskSet(masks, None, list(names), alpha8=alphas, boxes=boxes)
 
 
 def maskset_reference(alphas: list[np.ndarray], names: list[str]) -> MaskSet:

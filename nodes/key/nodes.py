@@ -8,7 +8,7 @@ from nodegraph import Input, Node, NodeError, Output, Param, Table
 from nodes.common.types import Bounds, CameraSet, Images, ImageSet, Masks, MaskSet, PlateModel, Volume
 from nodes.common.views import map_views
 
-from .keying import (KERNELS, check_views, chroma_key_bits, chroma_key_cl, chroma_key_windowed, clean_mask, cleaned_alpha, difference_key_cl,
+from .keying import (KERNELS, check_views, chroma_key_bits, chroma_key_cl, chroma_key_windowed, clean_mask_box, cleaned_alpha, difference_key_cl,
                      difference_key_mixture_cl, estimate_key_direction,
                      grabcut_band, grey_threshold_cl, hull_footprint, key_direction_from_rgb, maskset, matte_edges,
                      plate_model, disc, surface_centres)
@@ -75,7 +75,8 @@ class ChromaKey(Node):
                     alphas.append(a)
                     despilled.append(d if spill > 0 else im)
                     windows.append(win)
-                full.update(masks=maskset(alphas, images.names), images=despilled, windows=windows if windowed else None)
+                full.update(masks=maskset(alphas, images.names, boxes=windows if windowed else None), images=despilled,
+                            windows=windows if windowed else None)   # the alpha is 0 outside its window
             return full
 
         def despilled():
@@ -85,8 +86,8 @@ class ChromaKey(Node):
             return "crops", k["images"], [im.shape for im in frames], k["windows"]
 
         names = list(images.names)
-        masks = MaskSet.lazy(lambda: (key_frames()["masks"].masks, None, key_frames()["masks"].alpha8), names,
-                             make_device=bits)
+        masks = MaskSet.lazy(lambda: (key_frames()["masks"].masks, None, key_frames()["masks"].alpha8,
+                                      key_frames()["masks"].boxes), names, make_device=bits)
         return {"masks": masks, "images": ImageSet.lazy(despilled, names)}
 
 
@@ -276,15 +277,16 @@ class Cleanup(Node):
     def run(self, masks, *, open, close, keep, fill_holes):
         soft = masks.alpha8 if masks.alpha8 is not None else masks.alpha
 
-        def clean(m, a):
-            c = clean_mask(m, open_px=open, close_px=close, keep=keep, fill_holes=fill_holes)
-            return c, (None if a is None else cleaned_alpha(c, m, a))
+        def clean(m, a, hint):   # hint: where the key says the mask lies (its alpha window); the result's own box
+            c, box = clean_mask_box(m, open_px=open, close_px=close, keep=keep, fill_holes=fill_holes, hint=hint)
+            return c, (None if a is None else cleaned_alpha(c, m, a, hint=box)), box
 
-        done = map_views(clean, masks.masks, soft if soft is not None else [None] * len(masks))
-        out, alphas = [c for c, _ in done], [a for _, a in done]
+        done = map_views(clean, masks.masks, soft if soft is not None else [None] * len(masks),
+                         masks.boxes or [None] * len(masks))
+        out, alphas, boxes = [c for c, _, _ in done], [a for _, a, _ in done], [b for _, _, b in done]
         if masks.alpha8 is not None:   # 8-bit alpha in, 8-bit out (the same float alpha)
-            return {"masks": MaskSet(out, None, list(masks.names), alpha8=alphas)}
-        return {"masks": MaskSet(out, alphas if soft is not None else None, list(masks.names))}
+            return {"masks": MaskSet(out, None, list(masks.names), alpha8=alphas, boxes=boxes)}
+        return {"masks": MaskSet(out, alphas if soft is not None else None, list(masks.names), boxes=boxes)}
 
 
 class Consensus(Node):

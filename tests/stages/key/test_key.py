@@ -468,17 +468,62 @@ def test_cleanup_on_the_foreground_box_equals_the_whole_image():
             m[rng.integers(0, h, 8), rng.integers(0, w, 8)] = 255
         else:   # soft values around the threshold
             m = rng.integers(120, 135, (h, w)).astype(np.uint8)
+        # a hint: a box the mask is 0 outside of (its non-zero box grown by 0-3 pixels, as a key's window)
+        x, y, bw, bh = cv2.boundingRect(m)
+        g = int(rng.integers(0, 4))
+        hint = (max(x - g, 0), max(y - g, 0), min(x + bw + g, w), min(y + bh + g, h)) if bw else (0, 0, 0, 0)
         for op, cl, keep, fill in ((1, 2, 1, True), (0, 0, 2, True), (2, 3, 0, False), (0, 1, 3, True), (3, 0, 1, False)):
             got = K.clean_mask(m, open_px=op, close_px=cl, keep=keep, fill_holes=fill)
             want = K.clean_mask_reference(m, open_px=op, close_px=cl, keep=keep, fill_holes=fill)
             assert got.dtype == np.uint8 and np.array_equal(got, want), (trial, op, cl, keep, fill)
+            hinted, box = K.clean_mask_box(m, open_px=op, close_px=cl, keep=keep, fill_holes=fill, hint=hint)
+            assert np.array_equal(hinted, want), (trial, op, cl, keep, fill, hint)
+            if box is not None:      # the result is 0 outside its box
+                inside = np.zeros((h, w), bool)
+                inside[box[1]:box[3], box[0]:box[2]] = True
+                assert not hinted[~inside].any(), (trial, box)
         alpha = rng.random((h, w)).astype(np.float32)
         a = K.cleaned_alpha(got, m, alpha)
         assert a.dtype == np.float32 and np.array_equal(a, K.cleaned_alpha_reference(got, m, alpha))
+        assert np.array_equal(K.cleaned_alpha(got, m, alpha, hint=box), a)
         levels = rng.integers(0, 256, (h, w)).astype(np.uint8)             # 8-bit alpha: by bitwise operations
         a8 = K.cleaned_alpha(got, m, levels)
         assert a8.dtype == np.uint8 and np.array_equal(a8, K.cleaned_alpha_reference(got, m, levels))
     assert not K.clean_mask(np.zeros((7, 9), np.uint8)).any()
+
+
+def test_mask_boxes_from_the_key_and_the_cleanup_change_no_stored_byte(tmp_path):
+    """key.chroma's masks carry their alpha window as ``MaskSet.boxes`` (0 outside it), key.cleanup works there and
+    hands on its own working box; the cache's writer looks for each plane's non-zero box inside them: the files are
+    byte for byte those of the same masks without boxes, the clean-up's masks and alpha those of a clean-up
+    without the key's boxes. A box that is not one is refused by the type's check."""
+    from nodes.common.types import Masks
+
+    h, w = 120, 160
+    img = green_scene(np.maximum(disc(h, w, 60, 70, 15), disc(h, w, 20, 130, 4)))
+    key = run_node("key.chroma", {"images": ImageSet([img, img[::-1].copy()])})["masks"]
+    assert key.boxes is not None and len(key.boxes) == 2
+    for m, a, (x0, y0, x1, y1) in zip(key.masks, key.alpha8, key.boxes):
+        inside = np.zeros((h, w), bool)
+        inside[y0:y1, x0:x1] = True
+        assert a[inside].any() and not a[~inside].any() and not m[~inside].any()
+    plain = MaskSet(key.masks, None, key.names, alpha8=key.alpha8)
+    clean = run_node("key.cleanup", {"masks": key})["masks"]
+    clean_plain = run_node("key.cleanup", {"masks": plain})["masks"]
+    assert clean.boxes is not None
+    assert all(np.array_equal(a, b) for a, b in zip(clean.masks, clean_plain.masks))
+    assert all(np.array_equal(a, b) for a, b in zip(clean.alpha8, clean_plain.alpha8))
+    for name, (with_boxes, without) in {"key": (key, plain), "clean": (clean, clean_plain)}.items():
+        (tmp_path / name / "a").mkdir(parents=True)
+        (tmp_path / name / "b").mkdir()
+        Masks.save(with_boxes, tmp_path / name / "a")
+        Masks.save(MaskSet(without.masks, None, without.names, alpha8=without.alpha8), tmp_path / name / "b")
+        files = sorted(p.name for p in (tmp_path / name / "b").iterdir())
+        assert files == sorted(p.name for p in (tmp_path / name / "a").iterdir())
+        for f in files:
+            assert (tmp_path / name / "a" / f).read_bytes() == (tmp_path / name / "b" / f).read_bytes(), (name, f)
+    bad = MaskSet(key.masks, None, key.names, alpha8=key.alpha8, boxes=[[0, 0, w + 1, h], None])
+    assert "box" in Masks.check(bad)
 
 
 def test_eight_bit_alpha_is_stored_as_levels_and_reads_back_as_the_same_floats(tmp_path):
