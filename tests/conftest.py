@@ -21,6 +21,9 @@ import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+# every box a producer promises (MaskSet.boxes, ImageSet.windows: 0 outside) is verified when a set is made, also in
+# the workers the tests' runs spawn (nodes.common.types.CHECK_PROMISES)
+os.environ["VOLCAP_CHECK_PROMISES"] = "1"
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from golden import Golden  # noqa: E402

@@ -135,9 +135,7 @@ class ImageSet(_Lazy):
 
     def __init__(self, images: list[np.ndarray], names: list[str] | None = None, windows=None):
         super().__init__(None, names or [f"cam{i:03d}" for i in range(len(images))])
-        self._images = list(images)
-        self._windows = None if windows is None else list(windows)
-        self._crops = self._shapes = None
+        self._set(images, windows)
 
     @classmethod
     def lazy(cls, produce, names: list[str]) -> "ImageSet":
@@ -155,14 +153,20 @@ class ImageSet(_Lazy):
         s._set("crops", crops, shapes, windows)
         return s
 
-    def _set(self, images, windows=None, shapes=None, crop_windows=None):
-        if isinstance(images, str):   # ("crops", crops, shapes, windows)
-            self._images, self._crops, self._shapes = None, list(windows), [tuple(x) for x in shapes]
-            self._windows = list(crop_windows)
+    def _set(self, images, windows=None, *crops_form):
+        if isinstance(images, str) and images == "crops":   # ("crops", crops, shapes, windows): see the class
+            crops, (shapes, windows) = windows, crops_form
+            self._images, self._crops, self._shapes = None, list(crops), [tuple(x) for x in shapes]
+            self._windows = [None if w is None else list(w) for w in windows]
             return
         self._images = list(images)
         self._windows = None if windows is None else list(windows)
         self._crops = self._shapes = None
+        if CHECK_PROMISES and self._windows is not None and all(
+                w is None or _is_box(w, im.shape[1], im.shape[0]) for im, w in zip(self._images, self._windows)):
+            problem = _outside(self._images, self._windows)
+            if problem:
+                raise AssertionError(f"ImageSet.windows: {problem}")
 
     @property
     def windows(self) -> list | None:
@@ -216,12 +220,18 @@ class MaskSet(_Lazy):
             raise ValueError("MaskSet: give alpha or alpha8, not both")
         self._masks, self._alpha = list(masks), (list(alpha) if alpha is not None else None)
         self._alpha8 = list(alpha8) if alpha8 is not None else None
-        self._boxes = None if boxes is None else list(boxes)
+        self._boxes = None if boxes is None else [None if b is None else tuple(b) for b in boxes]
+        if CHECK_PROMISES and self._boxes is not None and all(
+                b is None or _is_box(b, m.shape[1], m.shape[0]) for m, b in zip(self._masks, self._boxes)):
+            for planes in (self._masks, self._alpha8, self._alpha):
+                problem = None if planes is None else _outside(planes, self._boxes)
+                if problem:
+                    raise AssertionError(f"MaskSet.boxes: {problem}")
 
     @property
     def boxes(self) -> list | None:
-        """Per camera (x0, y0, x1, y1) or None: the producer's promise that the mask and its alpha are 0 outside
-        that box (a key's alpha window, the clean-up's working box), so readers look at the box alone: the cache's
+        """Per camera (x0, y0, x1, y1) or None: the producer's promise that the mask and its alpha are 0 (every bit:
+        no -0.0) outside that box (a key's alpha window, the clean-up's working box), so readers look at the box alone: the cache's
         writer finds each plane's non-zero box there, not in the whole HD frame. None: not known."""
         self._materialise()
         return self._boxes
@@ -413,8 +423,32 @@ def _bounding_rect(flags: np.ndarray, hint=None) -> tuple[int, int, int, int]:
     if hint is None:
         return cv2.boundingRect(np.ascontiguousarray(flags))
     x0, y0, x1, y1 = (int(v) for v in hint)
+    if x1 <= x0 or y1 <= y0:
+        return (0, 0, 0, 0)
     x, y, w, h = cv2.boundingRect(np.ascontiguousarray(flags[y0:y1, x0:x1]))
     return (x + x0, y + y0, w, h) if w and h else (0, 0, 0, 0)
+
+
+def _is_box(b, width: int, height: int) -> bool:
+    """(x0, y0, x1, y1) of whole numbers with 0 <= x0 <= x1 <= width, 0 <= y0 <= y1 <= height."""
+    return (isinstance(b, (list, tuple)) and len(b) == 4 and all(isinstance(v, (int, np.integer)) for v in b)
+            and 0 <= b[0] <= b[2] <= width and 0 <= b[1] <= b[3] <= height)
+
+
+def _outside(planes, boxes) -> str | None:
+    """Where a promised box is broken: the first plane with a bit set outside its box (-0.0 counts), or None."""
+    for i, (a, b) in enumerate(zip(planes, boxes)):
+        if b is None or a is None:
+            continue
+        flags = np.asarray(a).view(np.uint8).reshape(np.shape(a)[0], np.shape(a)[1], -1).any(axis=2)
+        x0, y0, x1, y1 = b
+        flags[y0:y1, x0:x1] = False
+        if flags.any():
+            return f"plane {i} is not 0 outside its box {list(b)}"
+    return None
+
+
+CHECK_PROMISES = os.environ.get("VOLCAP_CHECK_PROMISES") == "1"   # the tests set it: every box promise is verified
 
 
 def _nonzero_box(a: np.ndarray, hint=None) -> tuple[np.ndarray, list]:
@@ -480,9 +514,10 @@ class Images(DataType):
             if not (len(crops) == len(shapes) == len(v.windows) == len(v.names)):
                 return f"{len(crops)} crops, {len(shapes)} shapes and {len(v.windows)} windows for {len(v.names)} names"
             for i, (c, sh, w) in enumerate(zip(crops, shapes, v.windows)):
+                if len(sh) != 3 or sh[2] != 3 or not (w is None or _is_box(w, sh[1], sh[0])):
+                    return f"image {i}: window {w} is not a box (x0, y0, x1, y1) inside its {tuple(sh)}"
                 want = tuple(sh) if w is None else (w[3] - w[1], w[2] - w[0], 3)
-                if not (isinstance(c, np.ndarray) and c.dtype == np.uint8 and c.shape == want and len(sh) == 3
-                        and sh[2] == 3 and (w is None or (0 <= w[0] <= w[2] <= sh[1] and 0 <= w[1] <= w[3] <= sh[0]))):
+                if not (isinstance(c, np.ndarray) and c.dtype == np.uint8 and c.shape == want):
                     return f"image {i}: its pixels {getattr(c, 'shape', None)} do not fill window {w} of {tuple(sh)}"
             return None
         for i, im in enumerate(v.images):
@@ -494,7 +529,7 @@ class Images(DataType):
             if len(v.windows) != len(v.images):
                 return f"{len(v.windows)} windows for {len(v.images)} images"
             for i, (im, w) in enumerate(zip(v.images, v.windows)):
-                if w is not None and not (len(w) == 4 and 0 <= w[0] <= w[2] <= im.shape[1] and 0 <= w[1] <= w[3] <= im.shape[0]):
+                if w is not None and not _is_box(w, im.shape[1], im.shape[0]):
                     return f"image {i}: window {w} is not a box (x0, y0, x1, y1) inside its {im.shape[1]}x{im.shape[0]}"
         return None
 
@@ -573,8 +608,8 @@ class Masks(DataType):
             if len(v.boxes) != len(v.masks):
                 return f"{len(v.boxes)} boxes for {len(v.masks)} masks"
             for i, (b, m) in enumerate(zip(v.boxes, v.masks)):
-                if b is not None and not (len(b) == 4 and 0 <= b[0] <= b[2] <= m.shape[1] and 0 <= b[1] <= b[3] <= m.shape[0]):
-                    return f"mask {i}: box {b} is not a box (x0, y0, x1, y1) inside its {m.shape[1]}x{m.shape[0]}"
+                if b is not None and not _is_box(b, m.shape[1], m.shape[0]):
+                    return f"mask {i}: box {b} is not a box (x0, y0, x1, y1) of whole numbers inside its {m.shape[1]}x{m.shape[0]}"
         return None
 
     @classmethod

@@ -466,6 +466,8 @@ def clean_mask_box(mask: np.ndarray, *, open_px=1, close_px=2, keep=1, fill_hole
     mask = np.asarray(mask)
     h, w = mask.shape[:2]
     hx0, hy0, hx1, hy1 = (0, 0, w, h) if hint is None else (int(v) for v in hint)
+    if hx1 <= hx0 or hy1 <= hy0:   # an empty hint: no foreground
+        return np.zeros((h, w), np.uint8), (0, 0, 0, 0)
     sub = mask[hy0:hy1, hx0:hx1]
     m = cv2.threshold(sub, 127, 1, cv2.THRESH_BINARY)[1] if sub.dtype == np.uint8 else (sub > 127).astype(np.uint8)
     box = _foreground_box(m, open_px + close_px + 1, offset=(hx0, hy0), size=(w, h))

@@ -75,7 +75,8 @@ class ChromaKey(Node):
                     alphas.append(a)
                     despilled.append(d if spill > 0 else im)
                     windows.append(win)
-                full.update(masks=maskset(alphas, images.names, boxes=windows if windowed else None), images=despilled,
+                full.update(masks=maskset(alphas, images.names, boxes=[tuple(b) for b in windows] if windowed else None),
+                            images=despilled,
                             windows=windows if windowed else None)   # the alpha is 0 outside its window
             return full
 

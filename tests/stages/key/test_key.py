@@ -501,12 +501,16 @@ def test_mask_boxes_from_the_key_and_the_cleanup_change_no_stored_byte(tmp_path)
 
     h, w = 120, 160
     img = green_scene(np.maximum(disc(h, w, 60, 70, 15), disc(h, w, 20, 130, 4)))
-    key = run_node("key.chroma", {"images": ImageSet([img, img[::-1].copy()])})["masks"]
-    assert key.boxes is not None and len(key.boxes) == 2
+    views = [img, img[::-1].copy(),
+             green_scene(np.zeros((h, w), bool)),                                  # nothing keyed: an empty box
+             green_scene(disc(h, w, 5, 150, 20)),                                  # a figure cut by the border
+             green_scene(np.maximum(disc(h, w, 40, 40, 9), disc(h, w, 80, 120, 9)))]   # equal parts: the ties path
+    key = run_node("key.chroma", {"images": ImageSet(views)})["masks"]
+    assert key.boxes is not None and len(key.boxes) == 5 and key.boxes[2] == (0, 0, 0, 0)
     for m, a, (x0, y0, x1, y1) in zip(key.masks, key.alpha8, key.boxes):
         inside = np.zeros((h, w), bool)
         inside[y0:y1, x0:x1] = True
-        assert a[inside].any() and not a[~inside].any() and not m[~inside].any()
+        assert not a[~inside].any() and not m[~inside].any()
     plain = MaskSet(key.masks, None, key.names, alpha8=key.alpha8)
     clean = run_node("key.cleanup", {"masks": key})["masks"]
     clean_plain = run_node("key.cleanup", {"masks": plain})["masks"]
@@ -522,8 +526,46 @@ def test_mask_boxes_from_the_key_and_the_cleanup_change_no_stored_byte(tmp_path)
         assert files == sorted(p.name for p in (tmp_path / name / "a").iterdir())
         for f in files:
             assert (tmp_path / name / "a" / f).read_bytes() == (tmp_path / name / "b" / f).read_bytes(), (name, f)
-    bad = MaskSet(key.masks, None, key.names, alpha8=key.alpha8, boxes=[[0, 0, w + 1, h], None])
+    assert clean.boxes[2] == (0, 0, 0, 0) and clean.boxes[4] is None     # the ties fall back to the whole image
+    bad = MaskSet(key.masks[:2], None, key.names[:2], alpha8=key.alpha8[:2], boxes=[[0, 0, w + 1, h], None])
     assert "box" in Masks.check(bad)
+    assert "box" in Masks.check(MaskSet(key.masks[:1], None, key.names[:1], alpha8=key.alpha8[:1], boxes=[[0, 0, 10.5, h]]))
+    with pytest.raises(AssertionError, match="not 0 outside its box"):      # the tests verify every promise made
+        MaskSet(key.masks[:1], None, key.names[:1], alpha8=key.alpha8[:1], boxes=[(0, 0, 5, 5)])
+
+
+def test_writers_find_the_same_boxes_with_hints():
+    """The cache's writers with a box a plane is 0 outside of (``_nonzero_box``, ``_is_mask_of_levels``) find what
+    they find without it: random uint8 and float planes (-0.0 included), hints grown 0-3 pixels, at the edges,
+    empty."""
+    from nodes.common.types import _is_mask_of_levels, _mask_of_levels, _nonzero_box
+
+    rng = np.random.default_rng(4)
+    for trial in range(400):
+        h, w = (int(v) for v in rng.integers(1, 40, 2))
+        a = np.zeros((h, w), np.float32 if trial % 3 == 0 else np.uint8)
+        if trial % 5:
+            y0, x0 = int(rng.integers(0, h)), int(rng.integers(0, w))
+            y1, x1 = int(rng.integers(y0, h)) + 1, int(rng.integers(x0, w)) + 1
+            a[y0:y1, x0:x1] = rng.integers(0, 256, (y1 - y0, x1 - x0))
+            if a.dtype == np.float32:
+                a[y0, x0] = -0.0 if trial % 2 else a[y0, x0]
+            ys, xs = np.nonzero(a.view(np.uint32) if a.dtype == np.float32 else a)
+        else:
+            ys = xs = np.zeros(0, int)
+        g = int(rng.integers(0, 4))
+        hint = ((max(int(xs.min()) - g, 0), max(int(ys.min()) - g, 0), min(int(xs.max()) + 1 + g, w),
+                 min(int(ys.max()) + 1 + g, h)) if len(xs) else (0, 0, 0, 0))
+        cut, box = _nonzero_box(a)
+        hcut, hbox = _nonzero_box(a, hint)
+        assert hbox == box and hcut.shape == cut.shape and np.array_equal(hcut.view(np.uint8), cut.view(np.uint8)), (trial, hint)
+        if a.dtype == np.uint8:
+            mask = _mask_of_levels(a)
+            assert _is_mask_of_levels(mask, cut, box) and _is_mask_of_levels(mask, cut, box, hint)
+            if len(xs):   # a mask that differs inside the hint is not the levels' with or without it
+                other = mask.copy()
+                other[int(ys[0]), int(xs[0])] ^= 255
+                assert not _is_mask_of_levels(other, cut, box) and not _is_mask_of_levels(other, cut, box, hint)
 
 
 def test_eight_bit_alpha_is_stored_as_levels_and_reads_back_as_the_same_floats(tmp_path):
@@ -855,6 +897,13 @@ def test_chroma_key_images_black_outside_the_alpha_window_and_stored_as_the_wind
     Images.save(s, tmp_path / "crops")
     assert s._images is None                                         # saving does not make them either
     assert Images.check(ImageSet.cropped([crops[0][1:], crops[1]], shapes, s.windows, s.names)).startswith("image 0")
+    # a camera without a window (its crop: the whole image) and an empty window: the same as the whole images
+    mixed = ImageSet.cropped([img, np.zeros((0, 0, 3), np.uint8)], [(h, w, 3)] * 2, [None, [0, 0, 0, 0]], ["a", "b"])
+    assert Images.check(mixed) is None and mixed.images[0] is img and not mixed.images[1].any()
+    (tmp_path / "mixed").mkdir()
+    Images.save(mixed, tmp_path / "mixed")
+    back = Images.load(tmp_path / "mixed")
+    assert np.array_equal(back.images[0], img) and not back.images[1].any() and back.windows == [None, [0, 0, 0, 0]]
     for k, (im, win, full, alpha) in enumerate(zip(s.images, s.windows, whole["images"].images, out["masks"].alpha8)):
         ys, xs = np.nonzero(alpha)
         assert win == [xs.min() - 8, ys.min() - 8, xs.max() + 1 + 8, ys.max() + 1 + 8], (k, win)
