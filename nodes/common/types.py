@@ -435,6 +435,19 @@ def _is_box(b, width: int, height: int) -> bool:
             and 0 <= b[0] <= b[2] <= width and 0 <= b[1] <= b[3] <= height)
 
 
+def _boxes_problem(boxes, planes, what: str, of: str) -> str | None:
+    """A type check's message for ``boxes`` (one per plane, or None) that are not boxes of whole numbers inside their
+    planes (``_is_box``), or None."""
+    if boxes is None:
+        return None
+    if len(boxes) != len(planes):
+        return f"{len(boxes)} {what}es for {len(planes)} {of}s" if what == "box" else f"{len(boxes)} {what}s for {len(planes)} {of}s"
+    for i, (b, a) in enumerate(zip(boxes, planes)):
+        if b is not None and not _is_box(b, a.shape[1], a.shape[0]):
+            return f"{of} {i}: {what} {b} is not a box (x0, y0, x1, y1) of whole numbers inside its {a.shape[1]}x{a.shape[0]}"
+    return None
+
+
 def _outside(planes, boxes) -> str | None:
     """Where a promised box is broken: the first plane with a bit set outside its box (-0.0 counts), or None."""
     for i, (a, b) in enumerate(zip(planes, boxes)):
@@ -525,13 +538,7 @@ class Images(DataType):
                 return f"image {i} must be an (H, W, 3) uint8 array"
         if len(v.images) != len(v.names):
             return f"{len(v.images)} images but {len(v.names)} names"
-        if v.windows is not None:
-            if len(v.windows) != len(v.images):
-                return f"{len(v.windows)} windows for {len(v.images)} images"
-            for i, (im, w) in enumerate(zip(v.images, v.windows)):
-                if w is not None and not _is_box(w, im.shape[1], im.shape[0]):
-                    return f"image {i}: window {w} is not a box (x0, y0, x1, y1) inside its {im.shape[1]}x{im.shape[0]}"
-        return None
+        return _boxes_problem(v.windows, v.images, "window", "image")
 
     @classmethod
     def save(cls, v: ImageSet, folder: Path):
@@ -604,13 +611,7 @@ class Masks(DataType):
             for i, (a, m) in enumerate(zip(v.alpha, v.masks)):
                 if np.shape(a) != m.shape:
                     return f"alpha {i} must be an array the shape of its mask {m.shape}, got {np.shape(a)}"
-        if v.boxes is not None:
-            if len(v.boxes) != len(v.masks):
-                return f"{len(v.boxes)} boxes for {len(v.masks)} masks"
-            for i, (b, m) in enumerate(zip(v.boxes, v.masks)):
-                if b is not None and not _is_box(b, m.shape[1], m.shape[0]):
-                    return f"mask {i}: box {b} is not a box (x0, y0, x1, y1) of whole numbers inside its {m.shape[1]}x{m.shape[0]}"
-        return None
+        return _boxes_problem(v.boxes, v.masks, "box", "mask")
 
     @classmethod
     def save(cls, v: MaskSet, folder: Path):
