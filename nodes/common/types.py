@@ -408,11 +408,19 @@ def _map_array(path: Path) -> np.ndarray:
     return np.frombuffer(mm, dtype, count=count, offset=offset).reshape(shape, order="F" if m.group(2) == "True" else "C")
 
 
-def _mask_of_levels(levels: np.ndarray) -> np.ndarray:
-    """The binary mask (0 / 255) of 8-bit alpha levels: alpha >= 128, as the keys make it (cv2.threshold: one pass)."""
+def _mask_of_levels(levels: np.ndarray, hint=None) -> np.ndarray:
+    """The binary mask (0 / 255) of 8-bit alpha levels: alpha >= 128, as the keys make it (cv2.threshold: one pass);
+    ``hint``: a box (x0, y0, x1, y1) the levels are 0 outside of, thresholded alone."""
     import cv2
 
-    return cv2.threshold(np.asarray(levels, np.uint8), 127, 255, cv2.THRESH_BINARY)[1]
+    levels = np.asarray(levels, np.uint8)
+    if hint is None:
+        return cv2.threshold(levels, 127, 255, cv2.THRESH_BINARY)[1]
+    out = np.zeros(levels.shape, np.uint8)
+    x0, y0, x1, y1 = (int(v) for v in hint)
+    if x1 > x0 and y1 > y0:
+        out[y0:y1, x0:x1] = cv2.threshold(np.ascontiguousarray(levels[y0:y1, x0:x1]), 127, 255, cv2.THRESH_BINARY)[1]
+    return out
 
 
 def _bounding_rect(flags: np.ndarray, hint=None) -> tuple[int, int, int, int]:
@@ -653,14 +661,27 @@ class Masks(DataType):
             a = _load_array(folder / name)
             return _paste(a, meta[kind][i], folder / name) if kind in meta else a
 
+        def boxes(*kinds):   # per camera the union of its stored planes' boxes (the set is 0 outside it), or None
+            stored = [meta[k] for k in kinds if k in meta]
+            if not stored or len(stored) < len(kinds):
+                return None
+            out = []
+            for i in range(len(names)):
+                bs = [(b[2], b[3], b[4], b[5]) for b in (k[i] for k in stored) if b[4] > b[2] and b[5] > b[3]]
+                out.append((min(b[0] for b in bs), min(b[1] for b in bs), max(b[2] for b in bs), max(b[3] for b in bs))
+                           if bs else (0, 0, 0, 0))
+            return out
+
         if meta.get("alpha8"):
             levels = [read(f"{i:04d}.alpha8.npy", "alpha8_boxes", i) for i in range(len(names))]
-            masks = [_mask_of_levels(a) if meta.get("masks_from_alpha8") else read(f"{i:04d}.npy", "mask_boxes", i)
-                     for i, a in enumerate(levels)]
-            return MaskSet(masks, None, names, alpha8=levels)
+            derived = meta.get("masks_from_alpha8")
+            box = boxes("alpha8_boxes") if derived else boxes("alpha8_boxes", "mask_boxes")
+            masks = [_mask_of_levels(a, None if box is None else box[i]) if derived
+                     else read(f"{i:04d}.npy", "mask_boxes", i) for i, a in enumerate(levels)]
+            return MaskSet(masks, None, names, alpha8=levels, boxes=box)
         masks = [read(f"{i:04d}.npy", "mask_boxes", i) for i in range(len(names))]
         alpha = [read(f"{i:04d}.alpha.npy", "alpha_boxes", i) for i in range(len(names))] if meta["alpha"] else None
-        return MaskSet(masks, alpha, names)
+        return MaskSet(masks, alpha, names, boxes=boxes("mask_boxes", "alpha_boxes") if meta["alpha"] else boxes("mask_boxes"))
 
     @classmethod
     def preview(cls, value, size, companions):

@@ -134,7 +134,7 @@ class Texture(Node):
                      balance=balance, level=level, directions=directions, layers=layers,
                      layer_margin=layer_margin)
         r = texture_mesh(mesh.vertices, mesh.faces, images.images, None if masks is None else masks.masks, cameras,
-                         s, atlas=atlas, mode=mode)
+                         s, atlas=atlas, mode=mode, mask_boxes=None if masks is None else masks.boxes)
         self.log.info("texture: %s; %s", json.dumps({k: round(v, 3) for k, v in r.timings.items()}), json.dumps(r.stats))
         if r.stats["faces_without_view"] > 0.25 * r.stats["faces"]:
             self.log.warning("%d of %d faces are seen by no camera; they are filled from their neighbours",

@@ -83,7 +83,8 @@ class Result:
         return out.reshape(self.layout.size, self.layout.size)
 
 
-def prepare(vertices, faces, images, masks, cameras, s: Settings, timings: dict, topo: Topology | None = None):
+def prepare(vertices, faces, images, masks, cameras, s: Settings, timings: dict, topo: Topology | None = None,
+            mask_boxes=None):
     if len(images) != len(cameras):
         raise NodeError(f"{len(images)} images for {len(cameras)} cameras")
     if masks is not None and len(masks) != len(cameras):
@@ -94,7 +95,7 @@ def prepare(vertices, faces, images, masks, cameras, s: Settings, timings: dict,
         if masks is not None and masks[i].shape[:2] != im.shape[:2]:
             raise NodeError(f"mask {i} is {masks[i].shape[1]}x{masks[i].shape[0]} but image {i} is {im.shape[1]}x{im.shape[0]}")
     t = time.perf_counter()
-    frame = V.FrameImages.build(images, masks, s.margin)
+    frame = V.FrameImages.build(images, masks, s.margin, boxes=mask_boxes)
     # the layers' frame: the same images, masks eroded by layer_margin (their visibility: FaceViews.seen)
     layer_frame = frame.with_margin(masks, s.layer_margin) if s.layers > 0 else None
     stats = V.face_view_stats(vertices, faces, cameras, frame, depth_tol=s.depth_tol, edge_tol=s.edge_tol,
@@ -107,7 +108,7 @@ def prepare(vertices, faces, images, masks, cameras, s: Settings, timings: dict,
 def choose(vertices, faces, cameras, frame, stats, s: Settings, topo: Topology, timings: dict):
     t = time.perf_counter()
     gains = V.camera_gains(stats.quality, stats.colour) if s.balance else np.ones((len(cameras), 3), np.float32)
-    sharp = V.view_sharpness(frame.images, frame.valid)
+    sharp = V.view_sharpness(frame.images, frame.valid, frame.boxes)
     q = stats.effective() * sharp[:, None].astype(np.float32)
     d_cost, spread, d_best = V.data_cost_cl(stats, sharp, gains, consistency=s.consistency)   # = V.data_cost(q, ...)
     labels = V.select_views_cl(d_cost, d_best, topo.nbr, len(cameras), smoothness=s.smoothness)   # = V.select_views
@@ -129,12 +130,12 @@ def choose(vertices, faces, cameras, frame, stats, s: Settings, topo: Topology, 
 
 
 def texture_mesh(vertices, faces, images, masks, cameras, s: Settings = Settings(), *, atlas: Atlas | None = None,
-                 mode: str = "atlas") -> Result:
+                 mode: str = "atlas", mask_boxes=None) -> Result:
     vertices = np.asarray(vertices, np.float64)
     faces = np.asarray(faces, np.int32)
     timings: dict = {}
     topo = Topology.of(faces, len(vertices))
-    frame, stats, layer_frame = prepare(vertices, faces, images, masks, cameras, s, timings, topo)
+    frame, stats, layer_frame = prepare(vertices, faces, images, masks, cameras, s, timings, topo, mask_boxes)
     labels, blend, quality, sharp = choose(vertices, faces, cameras, frame, stats, s, topo, timings)
 
     def fallback():

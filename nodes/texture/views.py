@@ -30,6 +30,7 @@ from kernels import source
 from nodegraph import clrt
 from nodes.common.cameras import Cameras
 from nodes.common.meshops import ring_average, unique_edges
+from nodes.common.types import _bounding_rect
 
 KERNELS = source("texture.cl")
 INVISIBLE = 1e6
@@ -48,13 +49,15 @@ class FrameImages:
     packed: np.ndarray                # all images, concatenated bytes
     packed_valid: np.ndarray          # all valid masks, concatenated bytes
     offsets: np.ndarray               # (V,) int64 byte offset of each image in ``packed``
+    boxes: list | None = None         # per view a box its mask (so its valid mask) is 0 outside of, or None (MaskSet.boxes)
 
     @classmethod
-    def build(cls, images, masks=None, margin: int = 2) -> "FrameImages":
+    def build(cls, images, masks=None, margin: int = 2, boxes=None) -> "FrameImages":
         """(Per view on a few threads, nodes.common.views: the masks' erosion and the copies into the packed
         arrays release the GIL.) Images that lie one after the other in one block (a key's despilled images,
         ``types.image_block``) are taken as they are, not copied; the valid masks are made in place, in a block
-        whose untouched pages (outside each mask's box) cost nothing."""
+        whose untouched pages (outside each mask's box) cost nothing. ``boxes``: per mask a box it is 0 outside of
+        (``MaskSet.boxes``): looked at alone."""
         from nodes.common.types import one_block
         from nodes.common.views import map_views
 
@@ -69,13 +72,14 @@ class FrameImages:
         def one(i, im):
             a, n = int(offsets[i]), int(sizes[i])
             v = packed_valid[a // 3:(a + n) // 3].reshape(im.shape[:2])
-            valid_mask(im.shape[:2], None if masks is None else masks[i], margin, out=v)
+            valid_mask(im.shape[:2], None if masks is None else masks[i], margin, out=v,
+                       hint=None if masks is None or boxes is None else boxes[i])
             if copy:
                 packed[a:a + n] = np.asarray(im).reshape(-1)
             return v
 
         valid = map_views(one, range(len(images)), images)
-        return cls(list(images), valid, packed, packed_valid, offsets)
+        return cls(list(images), valid, packed, packed_valid, offsets, None if masks is None else boxes)
 
     def with_margin(self, masks, margin: int) -> "FrameImages":
         """The same images with valid masks eroded by ``margin`` instead (the view-dependent layers' own
@@ -85,8 +89,10 @@ class FrameImages:
         for i, im in enumerate(self.images):
             a = int(self.offsets[i]) // 3
             v = packed_valid[a:a + im.shape[0] * im.shape[1]].reshape(im.shape[:2])
-            valid.append(valid_mask(im.shape[:2], None if masks is None else masks[i], margin, out=v))
-        out = FrameImages(self.images, valid, self.packed, packed_valid, self.offsets)
+            valid.append(valid_mask(im.shape[:2], None if masks is None else masks[i], margin, out=v,
+                                    hint=None if masks is None or self.boxes is None else self.boxes[i]))
+        out = FrameImages(self.images, valid, self.packed, packed_valid, self.offsets,
+                          None if masks is None else self.boxes)
         out._d_img = getattr(self, "_d_img", None)
         return out
 
@@ -102,11 +108,12 @@ class FrameImages:
         return self._d_valid
 
 
-def valid_mask(shape, mask, margin: int, out: np.ndarray | None = None) -> np.ndarray:
+def valid_mask(shape, mask, margin: int, out: np.ndarray | None = None, hint=None) -> np.ndarray:
     """uint8 1 where a pixel may be sampled: inside the mask eroded by ``margin`` pixels (all pixels without a
     mask). (Eroded on the mask's bounding box: outside it the mask is 0, as the erosion's border is, so the box
     gives the same pixels as the whole image, ``valid_mask_reference``.) ``out``: a zeroed uint8 array of
-    ``shape`` to write into (only the mask's box is written where ``margin`` > 0)."""
+    ``shape`` to write into (only the mask's box is written where ``margin`` > 0, or where a ``hint`` is given:
+    a box (x0, y0, x1, y1) the mask is 0 outside of, MaskSet.boxes: the mask is read there alone)."""
     import cv2
 
     if out is None:
@@ -114,14 +121,20 @@ def valid_mask(shape, mask, margin: int, out: np.ndarray | None = None) -> np.nd
     if mask is None:
         out[...] = 1
         return out
-    m = np.greater(np.asarray(mask), 127).view(np.uint8)       # the comparison's bytes are 0 / 1
+    mask = np.asarray(mask)
+    hx0, hy0, hx1, hy1 = (0, 0, mask.shape[1], mask.shape[0]) if hint is None else (int(v) for v in hint)
+    if hx1 <= hx0 or hy1 <= hy0:                               # an empty box: nothing may be sampled
+        if hint is None:
+            out[...] = 0
+        return out
+    m = np.greater(mask[hy0:hy1, hx0:hx1], 127).view(np.uint8)  # the comparison's bytes are 0 / 1
     if margin > 0:
         x, y, w, h = cv2.boundingRect(m)
         if w and h:
             kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin + 1, 2 * margin + 1))
-            out[y:y + h, x:x + w] = cv2.erode(m[y:y + h, x:x + w], kernel, borderValue=0)
+            out[hy0 + y:hy0 + y + h, hx0 + x:hx0 + x + w] = cv2.erode(m[y:y + h, x:x + w], kernel, borderValue=0)
         return out
-    out[...] = m.reshape(out.shape)
+    out[hy0:hy1, hx0:hx1] = m
     return out
 
 
@@ -291,14 +304,15 @@ def face_view_stats_reference(vertices, faces, cameras: Cameras, frame: FrameIma
 
 
 # ---------------------------------------------------------------- selection
-def view_sharpness(images, valid) -> np.ndarray:
+def view_sharpness(images, valid, boxes=None) -> np.ndarray:
     """(V,) relative sharpness of each view: median gradient energy inside the valid region, divided by the
     median over views (1 = typical; a blurred or defocused view scores lower). (Per view on a few threads, and
     on the valid region's bounding box when the image's size is a whole number of the 1/k reduction's blocks:
-    the same numbers as ``view_sharpness_reference``'s whole images.)"""
+    the same numbers as ``view_sharpness_reference``'s whole images; ``boxes``: per view a box the valid region
+    lies in, where that bounding box is looked for.)"""
     from nodes.common.views import map_views
 
-    return _relative(np.asarray(map_views(_sharpness_boxed, images, valid)))
+    return _relative(np.asarray(map_views(_sharpness_boxed, images, valid, boxes or [None] * len(images))))
 
 
 def view_sharpness_reference(images, valid) -> np.ndarray:
@@ -324,7 +338,7 @@ def _sharpness(im, m) -> float:
     return float(np.mean(vals)) if vals.size else 0.0
 
 
-def _sharpness_boxed(im, m) -> float:
+def _sharpness_boxed(im, m, hint=None) -> float:
     """``_sharpness`` on the valid mask's bounding box, grown by one pixel of the reduced image (the Laplacian's
     reach) and aligned to the reduction's k x k blocks (their means, and the mask's nearest samples, are then
     those of the whole image); the values inside the mask come in the same order, so their mean is the same."""
@@ -334,7 +348,7 @@ def _sharpness_boxed(im, m) -> float:
     k = max(1, w // 512)
     if h % k or w % k:                                    # the reduction is not by whole blocks: whole image
         return _sharpness(im, m)
-    x, y, bw, bh = cv2.boundingRect(m)
+    x, y, bw, bh = _bounding_rect(m, hint)
     if not (bw and bh):
         return 0.0
     sx0, sy0 = max(x // k - 1, 0), max(y // k - 1, 0)     # the box in the reduced image, grown by one

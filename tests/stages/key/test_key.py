@@ -496,7 +496,10 @@ def test_mask_boxes_from_the_key_and_the_cleanup_change_no_stored_byte(tmp_path)
     """key.chroma's masks carry their alpha window as ``MaskSet.boxes`` (0 outside it), key.cleanup works there and
     hands on its own working box; the cache's writer looks for each plane's non-zero box inside them: the files are
     byte for byte those of the same masks without boxes, the clean-up's masks and alpha those of a clean-up
-    without the key's boxes. A box that is not one is refused by the type's check."""
+    without the key's boxes. A box that is not one is refused by the type's check. Read back, a set carries its
+    stored planes' boxes."""
+    import cv2
+
     from nodes.common.types import Masks
 
     h, w = 120, 160
@@ -527,6 +530,17 @@ def test_mask_boxes_from_the_key_and_the_cleanup_change_no_stored_byte(tmp_path)
         for f in files:
             assert (tmp_path / name / "a" / f).read_bytes() == (tmp_path / name / "b" / f).read_bytes(), (name, f)
     assert clean.boxes[2] == (0, 0, 0, 0) and clean.boxes[4] is None     # the ties fall back to the whole image
+    # read back, a set's boxes are its stored planes' (the tests check every box promised), its masks the same
+    for name, sets in {"key": key, "clean": clean}.items():
+        back = Masks.load(tmp_path / name / "a")
+        assert back.boxes is not None and all(np.array_equal(a, b) for a, b in zip(back.masks, sets.masks))
+        assert all(np.array_equal(a, b) for a, b in zip(back.alpha8, sets.alpha8))
+        assert back.boxes[2] == (0, 0, 0, 0)
+    plain_back = MaskSet(key.masks, None, key.names)                     # masks without alpha: their own boxes
+    (tmp_path / "plain").mkdir()
+    Masks.save(plain_back, tmp_path / "plain")
+    assert Masks.load(tmp_path / "plain").boxes[0] == tuple(cv2.boundingRect(key.masks[0])[:2]) + tuple(
+        np.add(cv2.boundingRect(key.masks[0])[:2], cv2.boundingRect(key.masks[0])[2:]))
     bad = MaskSet(key.masks[:2], None, key.names[:2], alpha8=key.alpha8[:2], boxes=[[0, 0, w + 1, h], None])
     assert "box" in Masks.check(bad)
     assert "box" in Masks.check(MaskSet(key.masks[:1], None, key.names[:1], alpha8=key.alpha8[:1], boxes=[[0, 0, 10.5, h]]))

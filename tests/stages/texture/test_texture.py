@@ -932,12 +932,26 @@ def test_valid_masks_and_sharpness_on_the_mask_box_match_the_whole_image():
             images.append(rng.integers(0, 256, (h, w, 3), dtype=np.uint8))
         masks.append(np.zeros((h, w), np.uint8))                        # an empty mask
         images.append(images[0])
+        # boxes the masks are 0 outside of (MaskSet.boxes: their non-zero boxes grown 0-2 pixels; the empty one's empty)
+        hints = []
+        for m in masks:
+            ys, xs = np.nonzero(m)
+            g = int(rng.integers(0, 3))
+            hints.append((max(int(xs.min()) - g, 0), max(int(ys.min()) - g, 0), min(int(xs.max()) + 1 + g, w),
+                          min(int(ys.max()) + 1 + g, h)) if len(xs) else (0, 0, 0, 0))
         for margin in (0, 2):
             valid = [V.valid_mask((h, w), m, margin) for m in masks]
-            for got, m in zip(valid, masks):
+            for got, m, hint in zip(valid, masks, hints):
                 ref = V.valid_mask_reference((h, w), m, margin)
                 assert got.dtype == ref.dtype and np.array_equal(got, ref)
+                assert np.array_equal(V.valid_mask((h, w), m, margin, hint=hint), ref), (h, w, margin, hint)
             assert valid[3].sum() > 0 and valid[-1].sum() == 0
             sharp = V.view_sharpness(images, valid)
             np.testing.assert_array_equal(sharp, V.view_sharpness_reference(images, valid))
+            np.testing.assert_array_equal(V.view_sharpness(images, valid, hints), sharp)
             assert np.all(sharp[:-1] > 0.25)
+            frame = V.FrameImages.build(images, masks, margin)
+            boxed = V.FrameImages.build(images, masks, margin, boxes=hints)
+            assert boxed.boxes == hints and np.array_equal(boxed.packed_valid, frame.packed_valid)
+            again = frame.with_margin(masks, margin + 1), boxed.with_margin(masks, margin + 1)
+            assert np.array_equal(again[0].packed_valid, again[1].packed_valid) and again[1].boxes == hints
