@@ -423,7 +423,7 @@ def _mask_of_levels(levels: np.ndarray, hint=None) -> np.ndarray:
     return out
 
 
-def _bounding_rect(flags: np.ndarray, hint=None) -> tuple[int, int, int, int]:
+def bounding_rect(flags: np.ndarray, hint=None) -> tuple[int, int, int, int]:
     """cv2.boundingRect of an 8-bit image (x, y, w, h of its non-zero pixels; all 0 when none), looked for inside
     the box ``hint`` (x0, y0, x1, y1) alone when given: the promise that nothing outside it is non-zero."""
     import cv2
@@ -480,7 +480,7 @@ def _nonzero_box(a: np.ndarray, hint=None) -> tuple[np.ndarray, list]:
         flags = a
     else:                           # a float's -0.0 is inside the box too: every bit comes back
         flags = np.ascontiguousarray((a != 0) | np.signbit(a) if a.dtype.kind == "f" else a != 0).view(np.uint8)
-    x, y, w, h = _bounding_rect(flags, hint)   # an 8-bit image: the box of its non-zero pixels
+    x, y, w, h = bounding_rect(flags, hint)   # an 8-bit image: the box of its non-zero pixels
     return a[y:y + h, x:x + w], [int(a.shape[0]), int(a.shape[1]), x, y, x + w, y + h]
 
 
@@ -498,7 +498,7 @@ def _is_mask_of_levels(mask, cut: np.ndarray, box, hint=None) -> bool:
         full = np.zeros((h, w), np.uint8)
         full[y0:y1, x0:x1] = cut
         return bool(np.array_equal(m, _mask_of_levels(full)))
-    mx, my, mw, mh = _bounding_rect(m, hint)
+    mx, my, mw, mh = bounding_rect(m, hint)
     if cut.size == 0:                # no level above 0: the mask must be empty too
         return not (mw and mh)
     if mw and mh and not (x0 <= mx and y0 <= my and mx + mw <= x1 and my + mh <= y1):

@@ -474,16 +474,13 @@ def clean_mask_box(mask: np.ndarray, *, open_px=1, close_px=2, keep=1, fill_hole
     if box is None:   # no foreground: nothing to keep or fill
         return np.zeros((h, w), np.uint8), (0, 0, 0, 0)
     (y0, y1), (x0, x1) = box
+    whole = dict(open_px=open_px, close_px=close_px, keep=keep, fill_holes=fill_holes)
     if hint is not None and (y0 < hy0 or x0 < hx0 or y1 > hy1 or x1 > hx1):   # the margin reaches out of the hint
-        full = np.zeros((h, w), np.uint8)
-        full[hy0:hy1, hx0:hx1] = m
-        m, hx0, hy0 = full, 0, 0
+        return clean_mask_box(mask, **whole)
     part = _clean_binary(m[y0 - hy0:y1 - hy0, x0 - hx0:x1 - hx0], open_px, close_px, keep, fill_holes, ties=False)
-    if part is None:
-        if hint is not None and m.shape != (h, w):
-            full = np.zeros((h, w), np.uint8)
-            full[hy0:hy1, hx0:hx1] = m
-            m = full
+    if part is None:   # ties at the keep cut: the whole image (OpenCV's numbering decides, as on it)
+        if hint is not None:
+            return clean_mask_box(mask, **whole)
         return _clean_binary(m, open_px, close_px, keep, fill_holes) * np.uint8(255), None
     out = np.zeros((h, w), np.uint8)
     out[y0:y1, x0:x1] = part * np.uint8(255)
@@ -560,11 +557,11 @@ def cleaned_alpha(cleaned: np.ndarray, mask: np.ndarray, alpha: np.ndarray, hint
     (8-bit levels) gives levels (opaque = 255), a float alpha float32 (opaque = 1): levels / 255 are the float's."""
     import cv2
 
-    from nodes.common.types import _bounding_rect
+    from nodes.common.types import bounding_rect
 
     levels = alpha.dtype == np.uint8
     out = np.zeros(cleaned.shape, np.uint8 if levels else np.float32)
-    x, y, w, h = _bounding_rect(cleaned, hint)      # ``hint``: a box the cleaned mask lies in (its clean-up's)
+    x, y, w, h = bounding_rect(cleaned, hint)      # ``hint``: a box the cleaned mask lies in (its clean-up's)
     if w and h:
         box = np.s_[y:y + h, x:x + w]
         if levels:   # bytes: cleaned (0 / 255) AND (alpha OR NOT mask): alpha where kept, 255 where added, 0 elsewhere

@@ -30,7 +30,7 @@ from kernels import source
 from nodegraph import clrt
 from nodes.common.cameras import Cameras
 from nodes.common.meshops import ring_average, unique_edges
-from nodes.common.types import _bounding_rect
+from nodes.common.types import bounding_rect
 
 KERNELS = source("texture.cl")
 INVISIBLE = 1e6
@@ -348,7 +348,7 @@ def _sharpness_boxed(im, m, hint=None) -> float:
     k = max(1, w // 512)
     if h % k or w % k:                                    # the reduction is not by whole blocks: whole image
         return _sharpness(im, m)
-    x, y, bw, bh = _bounding_rect(m, hint)
+    x, y, bw, bh = bounding_rect(m, hint)
     if not (bw and bh):
         return 0.0
     sx0, sy0 = max(x // k - 1, 0), max(y // k - 1, 0)     # the box in the reduced image, grown by one
