@@ -140,9 +140,11 @@ class SilhouetteBits:
         return out if out is not None and out.sizes == sizes else cls(sizes)
 
     @classmethod
-    def from_masks(cls, masks: list[np.ndarray], out: "SilhouetteBits | None" = None) -> "SilhouetteBits":
-        """Host uint8 (H, W) masks (inside when > 127) to device bits and block tables (into ``out`` when it fits
-        these sizes). Returns when the device is done with the masks."""
+    def from_masks(cls, masks: list[np.ndarray], out: "SilhouetteBits | None" = None,
+                   opaque: bool = False) -> "SilhouetteBits":
+        """Host uint8 (H, W) masks (inside when > 127; with ``opaque`` when 255: an alpha's fully opaque pixels,
+        without a host pass over the masks) to device bits and block tables (into ``out`` when it fits these
+        sizes). Returns when the device is done with the masks."""
         run = SilhouetteCL.get()
         sil = cls.reuse(out, [(m.shape[1], m.shape[0]) for m in masks])
         host = []  # keep the zero-copy host buffers alive until the queue is done
@@ -151,8 +153,8 @@ class SilhouetteBits:
             host.append(src)
             rows = (m.shape[0] + 7) // 8 + 1  # work items: rows of the block table, in groups of 8 (PoCL's own
             # choice ran them on one thread)
-            run.launch("pack_block_rows", rows, 8, src, np.int32(m.shape[1]), np.int32(m.shape[0]), sil.bits,
-                       np.int32(sil.bit_off[v]), sil.sat, np.int32(sil.sat_off[v]))
+            run.launch("pack_block_rows", rows, 8, src, np.int32(m.shape[1]), np.int32(m.shape[0]), np.int32(opaque),
+                       sil.bits, np.int32(sil.bit_off[v]), sil.sat, np.int32(sil.sat_off[v]))
         sil.prefix_columns()
         run.finish()
         return sil
@@ -178,11 +180,12 @@ class SilhouetteBits:
                 for v, (w, h) in enumerate(self.sizes)]
 
 
-def block_table_reference(mask: np.ndarray) -> np.ndarray:
-    """Summed-area table (Hb+1, Wb+1) int32 of the 8x8 pixel block counts of (mask > 127)."""
+def block_table_reference(mask: np.ndarray, opaque: bool = False) -> np.ndarray:
+    """Summed-area table (Hb+1, Wb+1) int32 of the 8x8 pixel block counts of (mask > 127), or of (mask == 255)
+    with ``opaque``."""
     h, w = mask.shape
     m = np.zeros((-(-h // 8) * 8, -(-w // 8) * 8), np.int32)
-    m[:h, :w] = mask > 127
+    m[:h, :w] = mask == 255 if opaque else mask > 127
     counts = m.reshape(m.shape[0] // 8, 8, m.shape[1] // 8, 8).sum(axis=(1, 3))
     return np.pad(counts.cumsum(0).cumsum(1), ((1, 0), (1, 0))).astype(np.int32)
 

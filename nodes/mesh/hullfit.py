@@ -433,8 +433,7 @@ class FieldCL(Runner):
             self.pix = self.buffer("pix", max(int(off[-1]), 4))
             for v, m in enumerate(field.masks):
                 cl.enqueue_copy(self.queue, self.pix, m, dst_offset=int(off[v]), is_blocking=False)
-            opaque = [np.where(m == 255, np.uint8(255), np.uint8(0)) for m in field.masks]
-            self.sil = self._own = SilhouetteBits.from_masks(opaque, out=self._own)  # block tables of f == 1
+            self.sil = self._own = SilhouetteBits.from_masks(field.masks, out=self._own, opaque=True)  # of f == 1
         else:
             self.sil = self._own = SilhouetteBits.from_masks(field.masks, out=self._own)
             self.pix, self.pix_off = self.sil.bits, self.sil.bit_off_buf

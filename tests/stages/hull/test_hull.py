@@ -224,6 +224,25 @@ def test_silhouette_bits_from_masks_hold_the_masks_and_their_block_tables():
         assert table[-1, -1] == (m > 127).sum() > 0
 
 
+def test_silhouette_bits_of_opaque_pixels():
+    """SilhouetteBits.from_masks(opaque=True), refine's and relax's silhouettes of an alpha's fully opaque pixels:
+    inside exactly where the level is 255 (254 and 128 are not), in the 8-pixel groups and the row tails of odd
+    widths alike; the tables are block_table_reference's with opaque."""
+    from nodes.common.silhouettes import SilhouetteBits, block_table_reference
+
+    rng = np.random.default_rng(4)
+    levels = np.array([0, 1, 127, 128, 200, 254, 255, 255, 255], np.uint8)
+    masks = [levels[rng.integers(0, len(levels), (h, w))] for w, h in ((53, 37), (64, 48), (9, 17), (7, 5))]
+    masks[1][10, 8:16] = 255          # a whole group opaque, and one with a single 254 in it
+    masks[1][11, 8:16] = 255
+    masks[1][11, 13] = 254
+    sil = SilhouetteBits.from_masks(masks, opaque=True)
+    for m, bits, table in zip(masks, sil.masks(), sil.block_tables()):
+        assert np.array_equal(bits, np.where(m == 255, 255, 0))
+        assert np.array_equal(table, block_table_reference(m, opaque=True))
+        assert 0 < table[-1, -1] == (m == 255).sum() < (m > 127).sum()
+
+
 def test_bounds_golden(small_stage, golden):
     out = run_node("bounds", {"masks": small_stage["masks"], "cameras": small_stage["cameras"]}, {"resolution": 32})
     box = out["bounds"]
