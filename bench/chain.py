@@ -159,9 +159,9 @@ def check_stage(cache: Path, graph: Path, sets: list[str], frames: str) -> tuple
     items, _ = plan_graph(load_graph(graph, overrides=sets, frames=frames), c)
     keys = [it.key for it in items if it.node == "stage"]
     t = time.perf_counter()
-    bad = [k for k in keys if c.verify(k)]
+    bad = {k: problem for k in keys if (problem := c.verify(k))}
     if bad:
-        sys.exit(f"the rendered stage's entries {bad} do not check")
+        sys.exit("the rendered stage's entries do not check: " + "; ".join(f"{k}: {p}" for k, p in bad.items()))
     return len(keys), time.perf_counter() - t
 
 
@@ -185,6 +185,8 @@ def main():
                     "the rendered stage (it checks every entry's content hash, ~5 s per 100 HD frames of 24 views); "
                     "without it the stage is checked before the timed run, as a rerun on a capture finds it")
     a = ap.parse_args()
+    if a.first_read and not a.prerender:
+        ap.error("--first-read goes with --prerender (without it the timed run renders the stage itself)")
     print(describe())
 
     from nodegraph.cache import Cache
