@@ -265,3 +265,41 @@ def test_checked_files_are_not_read_again_until_they_change(tmp_path, monkeypatc
                                                                             st.st_ctime_ns]}))
     assert Cache(tmp_path / "cache").verify(s1["key"]) is None
     assert "does not match" in Cache(tmp_path / "cache").verify(s1["key"], full=True)
+
+
+def test_an_entrys_files_are_hashed_on_threads_through_a_map_with_the_same_digests(tmp_path):
+    """file_hash reads through a memory map (an empty file too) and gives the digests a plain read gives, in every
+    algorithm an entry may record; verify hashes an entry's files on a few threads and still names the damaged one
+    (and a missing one before any hash)."""
+    import hashlib
+
+    from nodegraph import cache as C
+
+    class Many:
+        name = "t.many"
+
+        @staticmethod
+        def save(value, folder):
+            for i, b in enumerate(value):
+                (folder / f"{i}.bin").write_bytes(b)
+
+        @staticmethod
+        def files(folder):
+            return sorted(folder.iterdir())
+
+    rng = np.random.default_rng(5)
+    blobs = [b""] + [rng.integers(0, 256, int(n), dtype=np.uint8).tobytes() for n in rng.integers(1, 300_000, 7)]
+    for name, make in C.HASHES.items():
+        for i, b in enumerate(blobs):
+            f = tmp_path / f"{name}_{i}.bin"
+            f.write_bytes(b)
+            with open(f, "rb") as fh:
+                assert C.file_hash(f, name) == hashlib.file_digest(fh, make).hexdigest()[:32], (name, i)
+    c = Cache(tmp_path / "cache")
+    c.write("k" * 32, {"p": (Many, blobs)}, {})
+    assert c.verify("k" * 32, full=True) is None
+    d = c.object_dir("k" * 32)
+    flip_bytes(d / "p" / "5.bin", 1)
+    assert c.verify("k" * 32, full=True) == "p/5.bin does not match the content hash recorded when it was written"
+    (d / "p" / "6.bin").unlink()
+    assert c.verify("k" * 32, full=True) == "p/6.bin is missing"
