@@ -13,8 +13,8 @@ import json
 import math
 import os
 import re
-import sys
 import threading
+import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar
@@ -86,7 +86,12 @@ class _PasteBlock:
     nothing holds any of its images any more, the next frame's windows are pasted into it and only what the last
     frame's windows wrote outside the new ones is zeroed again, instead of a new zeroed block per frame (24 HD
     views: ~150 MB whose pages are faulted in afresh, 24 ms a frame and on a VM that hands freed memory back to its
-    host 300 ms now and then; reused: ~7 ms)."""
+    host 300 ms now and then; reused: ~7 ms). A process keeps one such block (150 MB for 24 HD views) once it has
+    read windowed images, until its image sizes change.
+
+    Each frame's images are views of one array over the block (``frame``, made from a memoryview of it: NumPy ties
+    every view of it, and every view of those, to that array): the block is free when that array is gone, which a
+    weak reference tells without counting references."""
 
     lock = threading.Lock()
     last: "_PasteBlock | None" = None
@@ -97,14 +102,17 @@ class _PasteBlock:
         self.starts = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
         self.block = np.zeros(int(self.starts[-1]), np.uint8)
         self.windows = [(0, 0, 0, 0)] * len(shapes)    # what the last frame wrote, per image
+        self.frame: "weakref.ref | None" = None          # the last frame's array over the block
 
     def images(self) -> list[np.ndarray]:
-        """New (H, W, 3) views of the block: each reader's hold on one counts against ``free``."""
-        return [self.block[a:b].reshape(sh) for a, b, sh in zip(self.starts[:-1], self.starts[1:], self.shapes)]
+        """(H, W, 3) views of a new array over the block, whose life ``free`` watches."""
+        frame = np.frombuffer(memoryview(self.block), np.uint8)
+        self.frame = weakref.ref(frame)
+        return [frame[a:b].reshape(sh) for a, b, sh in zip(self.starts[:-1], self.starts[1:], self.shapes)]
 
     def free(self) -> bool:
-        """Whether nothing else holds the block (every image handed out, and any buffer over them, gone)."""
-        return sys.getrefcount(self.block) == 2
+        """Whether nothing holds the last frame's images (or any view of them: a texture's packed buffer)."""
+        return self.frame is None or self.frame() is None
 
 
 def _clear_outside(im: np.ndarray, old, new):
@@ -148,6 +156,8 @@ def _pasted(crops, shapes, windows) -> list[np.ndarray]:
             im[y0:y1, x0:x1] = a
             im.flags.writeable = False            # as the memory-mapped images are
             images.append(im)
+        if images and pb.frame is not None and pb.frame() is not None:
+            pb.frame().flags.writeable = False     # a reader's view of the whole block (one_block) is read-only too
     return images
 
 

@@ -267,10 +267,10 @@ def test_checked_files_are_not_read_again_until_they_change(tmp_path, monkeypatc
     assert "does not match" in Cache(tmp_path / "cache").verify(s1["key"], full=True)
 
 
-def test_an_entrys_files_are_hashed_on_threads_through_a_map_with_the_same_digests(tmp_path):
-    """file_hash reads through a memory map (an empty file too) and gives the digests a plain read gives, in every
-    algorithm an entry may record; verify hashes an entry's files on a few threads and still names the damaged one
-    (and a missing one before any hash)."""
+def test_an_entrys_files_are_hashed_on_threads_with_the_same_digests(tmp_path):
+    """file_hash gives the digests a plain read gives (an empty file too), in every algorithm an entry may record;
+    verify hashes an entry's files on a few threads and still names the damaged one (and a missing one before any
+    hash)."""
     import hashlib
 
     from nodegraph import cache as C
