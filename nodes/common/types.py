@@ -71,16 +71,6 @@ class _Lazy:
         self._materialise()
 
 
-def image_block(shapes) -> list[np.ndarray]:
-    """Zeroed uint8 arrays of ``shapes`` lying one after the other in one block of memory (its pages cost nothing
-    until written or read): a reader that wants them all in one buffer (the texture's kernels,
-    ``views.FrameImages``) takes the block as it is (``one_block``) instead of copying 24 HD images."""
-    sizes = [int(np.prod(s)) for s in shapes]
-    block = np.zeros(sum(sizes), np.uint8)
-    starts = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
-    return [block[a:a + n].reshape(shape) for a, n, shape in zip(starts, sizes, shapes)]
-
-
 class _PasteBlock:
     """The last block ``_pasted`` filled in this process, kept for the next frame of the same image sizes: when
     nothing holds any of its images any more, the next frame's windows are pasted into it and only what the last
@@ -163,7 +153,7 @@ def _pasted(crops, shapes, windows) -> list[np.ndarray]:
 
 def one_block(arrays) -> np.ndarray | None:
     """The bytes of uint8 ``arrays`` as one 1-D array, without a copy, where they lie one after the other in one
-    block of memory (``image_block``'s); None where they do not."""
+    block of memory (``_pasted``'s, ``_PasteBlock``); None where they do not."""
     def root(a):
         while isinstance(a.base, np.ndarray):
             a = a.base
@@ -194,7 +184,7 @@ class ImageSet(_Lazy):
     pixels only (24 HD views of the synthetic figure: ~30 % of the bytes to write, hash and read back).
     ``ImageSet.cropped(crops, shapes, windows, names)`` holds such images as their windows' pixels alone (``crops``:
     per camera the (y1 - y0, x1 - x0, 3) box, or the whole image where its window is None); the whole images are
-    made (one ``image_block``) only when a reader asks for ``images``: a key whose despilled images go to the cache
+    made (in one block, ``_PasteBlock``) only when a reader asks for ``images``: a key whose despilled images go to the cache
     alone (a texture after tracking reads them in another unit) writes no 149 MB block of 24 HD frames. A lazy
     set's ``produce()`` may return ``("crops", crops, shapes, windows)``."""
 

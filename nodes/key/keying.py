@@ -284,7 +284,7 @@ def chroma_key_windowed(rgb, key, *, margin=16, side=1.0, luma_floor=16.0, inner
     bytes are ``chroma_key_cl``'s; the despill runs and is read back on the window alone (24 HD views of the
     synthetic figure: a fifth of the pixels). With a garbage matte (``edges``) the alpha is keyed on the box of
     the matte alone (``chroma_key_box``: a third of the demo's HD pixels), the same bytes. ``out``: a zeroed
-    (H, W, 3) uint8 array to write the despilled image into (one of ``types.image_block``'s). ``crop``: the
+    (H, W, 3) uint8 array to write the despilled image into. ``crop``: the
     despilled window's pixels alone, (y1 - y0, x1 - x0, 3), instead of a whole image."""
     from pyopencl import cltypes
 

@@ -55,7 +55,7 @@ class FrameImages:
     def build(cls, images, masks=None, margin: int = 2, boxes=None) -> "FrameImages":
         """(Per view on a few threads, nodes.common.views: the masks' erosion and the copies into the packed
         arrays release the GIL.) Images that lie one after the other in one block (a key's despilled images,
-        ``types.image_block``) are taken as they are, not copied; the valid masks are made in place, in a block
+        ``types._PasteBlock``) are taken as they are, not copied; the valid masks are made in place, in a block
         whose untouched pages (outside each mask's box) cost nothing. ``boxes``: per mask a box it is 0 outside of
         (``MaskSet.boxes``): looked at alone."""
         from nodes.common.types import one_block
