@@ -22,7 +22,7 @@ from kernels import source
 from nodegraph import NodeError, clrt
 from nodes.common.cameras import Cameras
 from nodes.common.silhouettes import SilhouetteBits, check_sizes
-from nodes.common.types import MaskSet
+from nodes.common.types import MaskSet, _mask_of_levels
 
 KERNELS = source("key.cl")
 
@@ -694,12 +694,11 @@ def check_views(what: str, images, cameras: Cameras | None, kind: str = "image")
 
 
 def maskset(alphas: list[np.ndarray], names: list[str], boxes=None) -> MaskSet:
-    """The MaskSet of uint8 alphas: masks alpha >= 128 (cv2.threshold: one pass), the alpha kept as its levels
-    (``MaskSet.alpha8``: the float alpha is alpha / 255 when a reader asks); ``boxes``: per alpha a box it is 0
-    outside of (``MaskSet.boxes``), or None."""
-    import cv2
-
-    masks = [cv2.threshold(a, 127, 255, cv2.THRESH_BINARY)[1] for a in alphas]
+    """The MaskSet of uint8 alphas: masks alpha >= 128 (cv2.threshold: one pass; inside the alpha's box alone when
+    ``boxes`` gives one: the pages beyond it are never touched), the alpha kept as its levels (``MaskSet.alpha8``:
+    the float alpha is alpha / 255 when a reader asks); ``boxes``: per alpha a box it is 0 outside of
+    (``MaskSet.boxes``), or None."""
+    masks = [_mask_of_levels(a, None if boxes is None else boxes[i]) for i, a in enumerate(alphas)]
     return MaskSet(masks, None, list(names), alpha8=alphas, boxes=boxes)
 
 
