@@ -19,7 +19,9 @@ moved to the path's sharpest bend within +-0.15 of their fraction when it bends 
 (chords of a tenth of the path). A hip's place along its path is where the path has entered the thigh, below the
 joint (the path leaves the crotch's branch point sideways and down): the hip is taken up the thigh's centre line
 (knee -> that point, extended) to ``HIP_DROP`` of the leg below the branch point (synth walk at 128^3: hips median
-5.3-6.0 -> 1.7 cm from the true joints; the branch point's own height gives 2.4). Left and right: the feet point forwards
+5.3-6.0 -> 1.7 cm from the true joints; the branch point's own height gives 2.4), or higher, to the pelvis's widest
+slice across the left-right axis, where that lies above (``HIP_BAND``: on a visual hull, whose filled crotch makes the
+legs' paths meet low). Left and right: the feet point forwards
 (the part of each foot below the ankle lies in front of it), right = forward x up; a joint's side is the
 sign of its offset along right (measured at the upper arm and the thigh: hands and feet may cross the midline);
 when the right arm and the right leg come out on opposite sides, the pair less aligned with right is flipped. Names map to the ones other tools retarget from (``RETARGET``: Mixamo, the
@@ -53,6 +55,13 @@ BEND_DEG = 25.0
 FOOT_HEIGHT = 0.2        # extremities this share of the body's height above the floor are feet
 CROTCH_HEIGHT = 0.47
 HIP_DROP = 0.02          # the hips this share of the leg's path below where the legs' paths meet (on the thigh's line)
+# ... or higher, at the pelvis's widest slice (the greater trochanters) when it lies above that and within HIP_BAND of
+# the stature below / above it. On a visual hull the legs' paths meet low (the hull fills the crotch: the demo's rig
+# over 24 frames had its hips 3.5-4.5 cm low at 128^3); the widest slice is the silhouettes' own (synth walk, relax
+# meshes at 128^3: -0.7..+0.4 cm of the true hips' height). Only up: a person's widest slice lies at or below the
+# joints (soft tissue; thu_wd_human's 2-3.6 cm below where the legs' paths put the hips)
+HIP_BAND = (0.05, 0.09)
+HIP_BREADTH = 0.3        # a slice wider than this share of the stature holds more than the pelvis (a hand against it)
 MIN_LEG = 0.15           # a leg's path from the pelvis shorter than this share of the height: no fit
 HEAD_ARC = 0.12          # a head's thickness is measured this share of the height below its tip
 # the shoulder joints this share of the height out from the spine's axis, on the upper arm's centre line:
@@ -227,6 +236,44 @@ def _shoulder(arm: np.ndarray, frac: float, axis: np.ndarray, up: np.ndarray, ri
 def _solid(occ: np.ndarray, origin, spacing, point: np.ndarray) -> bool:
     ijk = np.floor((np.asarray(point) - origin) / spacing).astype(int)
     return bool(np.all(ijk >= 0) and np.all(ijk < occ.shape) and occ[tuple(ijk)])
+
+
+def _hip_level(occ: np.ndarray, origin, spacing, u: np.ndarray, right: np.ndarray, centre: np.ndarray,
+               guess: float, size: float) -> float | None:
+    """The height (along ``u``) of the widest slice of the pelvis between ``HIP_BAND`` of ``size`` below and above
+    ``guess``: per slice of the voxels across ``u`` (an axis of the grid) the 4-connected part nearest ``centre``,
+    its extent along ``right``; the mean height of the slices within half a voxel of the widest. None when ``u`` is
+    not an axis of the grid, or the widest lies at the band's edge (no peak inside it)."""
+    from scipy import ndimage
+
+    axis = int(np.argmax(np.abs(u)))
+    if abs(u[axis]) < 1 - 1e-6:
+        return None
+    sign = float(np.sign(u[axis]))
+    origin, spacing = np.asarray(origin, np.float64), np.broadcast_to(np.asarray(spacing, np.float64), (3,))
+    heights = sign * (origin[axis] + (np.arange(occ.shape[axis]) + 0.5) * spacing[axis])
+    pick = np.flatnonzero((heights >= guess - HIP_BAND[0] * size) & (heights <= guess + HIP_BAND[1] * size))
+    if len(pick) < 3:
+        return None
+    across = [a for a in range(3) if a != axis]
+    at = (np.asarray(centre, np.float64)[across] - origin[across]) / spacing[across] - 0.5
+    width = np.full(len(pick), np.nan)
+    for n, k in enumerate(pick):
+        labels, count = ndimage.label(np.take(occ, k, axis=axis))
+        if count == 0:
+            continue
+        ij = np.argwhere(labels)
+        part = ij[labels[tuple(ij.T)] == labels[tuple(ij[np.argmin(((ij - at) ** 2).sum(1))])]]
+        flat = np.zeros((len(part), 3))
+        flat[:, across] = origin[across] + (part + 0.5) * spacing[across]
+        w = float(np.ptp(flat @ right)) + float(spacing[across].mean())
+        width[n] = w if w <= HIP_BREADTH * size else np.nan
+    if np.all(np.isnan(width)):
+        return None
+    top = np.flatnonzero(width >= np.nanmax(width) - 0.5 * float(spacing[axis]))
+    if top[0] == 0 or top[-1] == len(pick) - 1:
+        return None
+    return float(heights[pick[top]].mean())
 
 
 def _length(points: np.ndarray) -> float:
@@ -663,12 +710,16 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
     if marked and marks.get("joints"):
         report["joints_from_landmarks"] = _place_at_marks(joints, names, fracs, limbs, side, marks["joints"], node,
                                                           size)
-    for s in SIDES:     # the hip on its thigh's centre line, raised to about where the legs' paths meet
-        j_h, j_k = names.index(f"hip_{s}"), names.index(f"knee_{s}")
+    level = float(pts[pelvis] @ u) - HIP_DROP * leg_length
+    widest = _hip_level(occ, origin, spacing, u, right, pts[pelvis], level, size)
+    raised = widest is not None and widest > level
+    report["hips_from"] = "the pelvis's widest slice" if raised else "where the legs' paths meet"
+    for s in SIDES:     # the hip on its thigh's centre line, raised to about where the legs' paths meet, or to the
+        j_h, j_k = names.index(f"hip_{s}"), names.index(f"knee_{s}")        # pelvis's widest slice when higher
         top, knee = joints[j_h].copy(), joints[j_k]
         d = top - knee
         du = float(d @ u)
-        z = float(pts[pelvis] @ u) - HIP_DROP * leg_length
+        z = widest if raised else level
         if du > 1e-6 and z > float(top @ u):
             joints[j_h] = top + d * ((z - float(top @ u)) / du)
             name = f"knee_{s}"
