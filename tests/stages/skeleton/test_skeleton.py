@@ -930,8 +930,9 @@ def test_humanoid_template_finds_the_figures_joints_left_and_right():
 def test_humanoid_joints_near_the_truth_at_128():
     """Towards the issue's bar (every joint within 2 voxels at 128^3; not met) on the synth walk, per frame (8 frames
     over the cycle, voxel 1.4 cm): the head, shoulders, elbows and wrists within 2.5 voxels of the truth's (measured 2.3 at most, an elbow; the template's
-    0.87 head, 0.26-of-the-path shoulders and 0.60 elbows were 2.6, 3.4 and 4.7 off), at most 12 % of the (frame,
-    joint) pairs beyond 2 voxels (measured 8 %: the pelvis and hips of the two stride frames; 33 % before)."""
+    0.87 head, 0.26-of-the-path shoulders and 0.60 elbows were 2.6, 3.4 and 4.7 off), at most 6 % of the (frame,
+    joint) pairs beyond 2 voxels (measured 4 %: the pelvis of the two stride frames, a knee, an elbow, a shoulder;
+    8 % before stop 60's hips, which were four of them; 33 % before stop 44)."""
     from nodes.synth import scenes
 
     upper, beyond, pairs = [], 0, 0
@@ -948,7 +949,7 @@ def test_humanoid_joints_near_the_truth_at_128():
                 beyond += e > 2
                 if ours.split("_")[0] in ("head", "shoulder", "elbow", "wrist"):
                     upper.append(e)
-    assert max(upper) < 2.5 and beyond <= 0.12 * pairs, (max(upper), beyond, pairs)
+    assert max(upper) < 2.5 and beyond <= 0.06 * pairs, (max(upper), beyond, pairs)
 
 
 def test_humanoid_named_by_landmarks(caplog):
