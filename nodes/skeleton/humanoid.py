@@ -766,6 +766,9 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
                 mid = 0.5 * (lo - np.linalg.norm(joints[j_h] - top) / arc + hi)
                 fracs[name] = float(np.clip(mid, lo + gap, hi - gap)) if lo + gap <= hi - gap else 0.5 * (lo + hi)
                 joints[j_k] = _at(leg, fracs[name])
+    j_p = names.index("pelvis")   # the pelvis on the midline between the hips (across; the legs' paths may meet off-centre)
+    mid = 0.5 * (joints[names.index("hip_l")] + joints[names.index("hip_r")])
+    joints[j_p] = joints[j_p] - float((joints[j_p] - mid) @ right) * right
     low = [k for k in (0, 1) if at_spine[k] < LOW_ARM]
     if len(low) == 1:   # a hand against the hip: that arm's path enters the body there, not at the shoulder
         bad = low[0]
