@@ -1259,6 +1259,32 @@ def test_humanoid_hips_on_a_visual_hull():
 
 
 
+
+@pytest.mark.slow
+def test_humanoid_character_on_its_reconstruction_within_two_voxels(tmp_path):
+    """The issue's bar on the product's path: the demo's character (graphs/bench/figure_character.yaml: 12 cameras
+    640x480, key -> hull 128^3 -> relax -> track -> skeletonize.humanoid -> skin in a T pose, as graphs/demo.yaml
+    makes it), frames 0-3: every named joint of every frame within 2 voxels of the figure's true one (measured 1.75
+    at most; 12 of 64 pairs beyond before stop 60's hips and pelvis, the hips up to 2.6 voxels low;
+    `bench/humanoid.py figure`: 24 frames 0 of 384, max 1.15)."""
+    from pathlib import Path
+
+    from nodegraph.cache import Cache
+    from nodegraph.executors import LocalExecutor
+    from nodegraph.graphfile import load_graph
+    from nodegraph.run import run_graph
+    from nodes.synth import scenes
+
+    graph = load_graph(Path(__file__).resolve().parents[3] / "graphs" / "bench" / "figure_character.yaml",
+                       frames="0:4").keep_all()
+    res = run_graph(graph, Cache(tmp_path / "cache"), tmp_path / "out", LocalExecutor(1), progress=False)
+    assert res.ok, res.failures
+    rec = next(r for r in res.records if r["node"] == "humanoid_skin")
+    sk = Skeleton.load(Path(rec["cache_dir"]) / "skeleton")
+    voxel = float(np.ptp(np.asarray(scenes.build("figure", 0).mesh.vertices), axis=0).max()) / 128
+    errors = np.array(_posed_joint_errors(sk, sk.frames)) / voxel
+    assert len(errors) == 4 * 16 and errors.max() < 2.0, (np.median(errors), errors.max())
+
 def test_humanoid_hips_not_raised_by_hands_against_them():
     """The `touch` scene's hands rest on the hips: where they join the pelvis below its widest slice (frames 16 and
     32: slices 0.44-0.52 m wide against the pelvis's 0.42) the hips stay where the legs' paths put them (raised there
