@@ -62,7 +62,7 @@ HIP_DROP = 0.02          # the hips this share of the leg's path below where the
 # joints (soft tissue; thu_wd_human's 2-3.6 cm below where the legs' paths put the hips)
 HIP_BAND = (0.05, 0.09)
 HIP_BREADTH = 0.3        # a slice wider than this share of the stature holds more than the pelvis (a hand against it)
-# a slice wider than the one below it by more than 2 voxels, and by less than that one's 1 / MERGE times: something
+# a slice wider than the one below it by more than 2.5 voxels, and by less than that one's 1 / MERGE times: something
 # joined the pelvis there (legs joining at the crotch double the breadth; a hand adds a tenth or a fifth of it)
 MERGE = 0.6
 MIN_LEG = 0.15           # a leg's path from the pelvis shorter than this share of the height: no fit
@@ -242,14 +242,13 @@ def _solid(occ: np.ndarray, origin, spacing, point: np.ndarray) -> bool:
 
 
 def _hip_level(occ: np.ndarray, origin, spacing, u: np.ndarray, right: np.ndarray, centre: np.ndarray,
-               guess: float, size: float, arms=()) -> float | None:
+               guess: float, size: float) -> float | None:
     """The height (along ``u``) of the widest slice of the pelvis between ``HIP_BAND`` of ``size`` below and above
-    ``guess``: per slice of the voxels across ``u`` (an axis of the grid), the arms' voxels removed (within their
-    centre lines' radius and a voxel: ``arms``, (points, radii) per arm: a hand against the hip), the 4-connected
-    part nearest ``centre``, its extent along ``right``; the mean height of the run of slices around the widest that
-    are within half a voxel of it. None when ``u`` is not an axis of the grid, or that run reaches the band's edge
-    or a slice wider than ``HIP_BREADTH``, or something joined the pelvis below its top (``MERGE``): no peak of
-    the pelvis's own inside the band."""
+    ``guess``: per slice of the voxels across ``u`` (an axis of the grid) the 4-connected part nearest ``centre``,
+    its extent along ``right``; the mean height of the run of slices around the widest that are within half a
+    voxel of it. None when ``u`` is not an axis of the grid, or that run reaches the band's edge, an empty slice or
+    one wider than ``HIP_BREADTH``, or something joined the pelvis below its top (``MERGE``): no peak of the
+    pelvis's own inside the band."""
     from scipy import ndimage
 
     axis = int(np.argmax(np.abs(u)))
@@ -260,24 +259,14 @@ def _hip_level(occ: np.ndarray, origin, spacing, u: np.ndarray, right: np.ndarra
     step = float(spacing.min())
     heights = sign * (origin[axis] + (np.arange(occ.shape[axis]) + 0.5) * spacing[axis])
     pick = np.flatnonzero((heights >= guess - HIP_BAND[0] * size) & (heights <= guess + HIP_BAND[1] * size))
+    pick = pick[np.argsort(heights[pick])]      # upwards
     if len(pick) < 3:
         return None
     across = [a for a in range(3) if a != axis]
     at = (np.asarray(centre, np.float64)[across] - origin[across]) / spacing[across] - 0.5
-    width = np.full(len(pick), np.nan)
+    width = np.full(len(pick), np.nan)          # NaN: an empty slice; inf: wider than a pelvis
     for n, k in enumerate(pick):
-        plane = np.take(occ, k, axis=axis).astype(bool)
-        ij = np.argwhere(plane)
-        if len(ij) == 0:
-            continue
-        flat = np.zeros((len(ij), 3))
-        flat[:, across] = origin[across] + (ij + 0.5) * spacing[across]
-        flat[:, axis] = origin[axis] + (k + 0.5) * spacing[axis]
-        for points, radii in arms:   # the arms' voxels: near their centre line's points at this height
-            near = np.abs((points - flat[0]) @ u) <= radii + step
-            for q, r in zip(points[near], radii[near]):
-                plane[tuple(ij[np.linalg.norm(flat - q, axis=1) <= r + step].T)] = False
-        labels, count = ndimage.label(plane)
+        labels, count = ndimage.label(np.take(occ, k, axis=axis))
         if count == 0:
             continue
         ij = np.argwhere(labels)
@@ -286,21 +275,22 @@ def _hip_level(occ: np.ndarray, origin, spacing, u: np.ndarray, right: np.ndarra
         flat[:, across] = origin[across] + (part + 0.5) * spacing[across]
         w = float(np.ptp(flat @ right)) + step
         width[n] = w if w <= HIP_BREADTH * size else np.inf
-    if not np.any(np.isfinite(width)):
+    finite = np.isfinite(width)
+    if not finite.any():
         return None
-    best = int(np.nanargmax(np.where(np.isfinite(width), width, -np.inf)))
+    best = int(np.argmax(np.where(finite, width, -np.inf)))
+    near = finite & (width >= width[best] - 0.5 * step)
     lo = hi = best
-    while lo > 0 and width[lo - 1] >= width[best] - 0.5 * step:
+    while lo > 0 and near[lo - 1]:
         lo -= 1
-    while hi < len(pick) - 1 and width[hi + 1] >= width[best] - 0.5 * step:
+    while hi < len(pick) - 1 and near[hi + 1]:
         hi += 1
-    if lo == 0 or hi == len(pick) - 1 or not (np.isfinite(width[lo - 1]) and np.isfinite(width[hi + 1])):
+    if lo == 0 or hi == len(pick) - 1 or not (finite[lo - 1] and finite[hi + 1]):
         return None
     below = width[:hi + 1]
     grew = below[1:] - below[:-1]
-    joined = np.isfinite(grew) & (grew > 2 * step) & (below[:-1] > MERGE * below[1:])
-    if joined.any():   # something beside the pelvis joined it up to the peak (hands against the hips)
-        return None
+    if np.any(np.isfinite(grew) & (grew > 2.5 * step) & (below[:-1] > MERGE * below[1:])):
+        return None   # something beside the pelvis joined it up to the peak (hands against the hips)
     return float(heights[pick[lo:hi + 1]].mean())
 
 
@@ -739,12 +729,7 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
         report["joints_from_landmarks"] = _place_at_marks(joints, names, fracs, limbs, side, marks["joints"], node,
                                                           size)
     level = float(pts[pelvis] @ u) - HIP_DROP * leg_length
-    arms = []
-    for k in (0, 1):   # each arm's centre line and its radius along it (the curve skeleton's nearest points)
-        line = limbs[("arm", k)]
-        near = np.argmin(((line[:, None] - pts[None]) ** 2).sum(2), axis=1)
-        arms.append((line, np.asarray(raw.radius, np.float64)[near]))
-    widest = _hip_level(occ, origin, spacing, u, right, pts[pelvis], level, size, arms)
+    widest = _hip_level(occ, origin, spacing, u, right, pts[pelvis], level, size)
     raised = widest is not None and widest > level
     report["hips_from"] = "the pelvis's widest slice" if raised else "where the legs' paths meet"
     for s in SIDES:     # the hip on its thigh's centre line, raised to about where the legs' paths meet, or to the
