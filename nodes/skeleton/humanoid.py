@@ -11,7 +11,7 @@ Fitting (``fit_humanoid``): TEASAR centre lines of the solid (curve.py, not simp
 20 % of the height above the floor are the feet (two; one when the legs touch and make one column), of the others
 the shortest branches are cut (stray spurs of the voxel skeleton) down to the head (the thickest right below its
 tip: a raised hand may be higher, an arm along the body shorter) and two hands; the pelvis where the two feet's paths to the head meet
-(legs together: where the foot's path reaches 47 % of the height, and the column is split in halves along the
+(moved across onto the hips' midpoint at the end; legs together: where the foot's path reaches 47 % of the height, and the column is split in halves along the
 body's left-right axis, one leg in each), each arm's branch where its path reaches the spine
 (the legs' joints are measured from the foot with the mean leg length: the legs' paths may meet off-centre);
 then every joint at its fraction of its path (the spine's measured from where the legs meet), elbows and knees
