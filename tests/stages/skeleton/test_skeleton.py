@@ -1270,12 +1270,14 @@ def test_hip_level_is_the_pelvis_own_widest_slice():
 @pytest.mark.slow
 def test_humanoid_hips_on_a_visual_hull():
     """On a visual hull the legs' paths meet low (the hull fills the crotch): the synth figure's hull (12 cameras,
-    640x480, 128^3, frames 0, 6, 12, 18) put the hips 1.8-4.3 voxels from the true ones; raised to the pelvis's
-    widest slice they are within 2 voxels (measured 0.6-1.8). The hips of the figure's own meshes stay where the
-    legs' paths put them where that is higher (test_humanoid_golden: frame 0 at 64^3)."""
+    640x480, 128^3, frames 0, 6, 12, 18) put the hips 1.8-4.3 voxels from the true ones (median 2.9); raised to the
+    pelvis's widest slice they are within 2 voxels (measured 0.6-1.8, median 1.1; asserted: the widest slice in 3 of
+    the 4 frames at least, none beyond 2.3 voxels, median under 1.6, since another CPU's OpenCL may move the hull a
+    voxel). The hips of the figure's own meshes stay where the legs' paths put them where that is higher
+    (test_humanoid_golden: frame 0 at 64^3)."""
     from nodes.synth import scenes
 
-    errors = []
+    errors, widest = [], 0
     for frame in (0, 6, 12, 18):
         stage = run_node("synth", {}, {"scene": "figure", "rig": "ring", "cameras": 12, "width": 640, "height": 480},
                          frame=frame)
@@ -1284,12 +1286,12 @@ def test_humanoid_hips_on_a_visual_hull():
         mesh = run_node("mc", {"volume": hull["volume"]}, {"largest": True})["mesh"]
         out = run_node("skeleton.humanoid", {"mesh": mesh}, {"hand": 0, "foot": 0.08, "resolution": 128})
         sk, truth = out["skeleton"], scenes.build("figure", frame)
-        assert out["report"]["hips_from"] == "the pelvis's widest slice"
+        widest += out["report"].get("hips_from") == "the pelvis's widest slice"
         voxel = float(np.ptp(np.asarray(truth.mesh.vertices), axis=0).max()) / 128
         for s in "lr":
             errors.append(float(np.linalg.norm(sk.joints[sk.names.index(f"hip_{s}")]
                                                - truth.skeleton.joints[truth.skeleton.names.index(f"{s}_hip")])) / voxel)
-    assert max(errors) < 2.0, np.round(errors, 2)
+    assert widest >= 3 and max(errors) < 2.3 and np.median(errors) < 1.6, (widest, np.round(errors, 2))
 
 
 @pytest.mark.slow
