@@ -33,7 +33,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from machine import describe, load_average  # noqa: E402
+from machine import describe  # noqa: E402
 from nodegraph.testing import run_node  # noqa: E402
 from nodes.synth import scenes  # noqa: E402
 
@@ -79,7 +79,7 @@ def main():
     print(f"ratio humanoid / skeletonize: {np.median(t_h) / np.median(t_s):.2f}")
     print("per joint, median / max cm: " + ", ".join(f"{k} {100 * np.median(v):.1f}/{100 * max(v):.1f}"
                                                      for k, v in per_joint.items()))
-    print(f"load average at the end: {load_average()}")
+    print("at the end: " + describe())
 
 
 def figure(a):
@@ -109,7 +109,8 @@ def figure(a):
           f"{int((e > 2).sum())} of {e.size}")
     print("per joint, median / max voxels (pairs beyond 2): " + ", ".join(
         f"{n} {np.median(v):.2f}/{max(v):.2f} ({sum(x > 2 for x in v)})" for n, v in per_joint.items()))
-    print(f"graph run {wall:.0f} s (cached items are not recomputed); load average at the end: {load_average()}")
+    print(f"graph run {wall:.0f} s (cached items are not recomputed); at the end:")
+    print(describe())
 
 
 SEGMENTS = 3          # the graph rigs segments 0, 1, 2 (fit_K, skin_K)
@@ -166,7 +167,8 @@ def child_rope(a):
                 lengths.setdefault(sk.names[j], []).append(float(np.linalg.norm(piv[j] - piv[p])))
     print("bone lengths per segment, cm (the bone ending at the joint): " + ", ".join(
         f"{n} {'/'.join(f'{100 * x:.0f}' for x in v)}" for n, v in lengths.items() if len(v) > 1))
-    print(f"graph run {wall:.0f} s (cached items are not recomputed); load average at the end: {load_average()}")
+    print(f"graph run {wall:.0f} s (cached items are not recomputed); at the end:")
+    print(describe())
     picture(rigs, a)
 
 
