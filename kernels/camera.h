@@ -45,7 +45,7 @@ inline float2 pixel_point(__global const float* cam, float2 d)
 }
 
 // Projects X; returns the pixel (u, v) and writes the depth (camera z, > 0 in front) to *depth.
-inline float2 project_point(__global const float* cam, float3 X, float* depth)
+__attribute__((always_inline)) inline float2 project_point(__global const float* cam, float3 X, float* depth)
 {
     float3 xc = camera_point(cam, X);
     *depth = xc.z * cam[24];

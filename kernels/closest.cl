@@ -25,7 +25,7 @@ inline double clamp01(double x)
     return x < 0.0 ? 0.0 : (x > 1.0 ? 1.0 : x);
 }
 
-inline double3 closest_on_triangle(double3 p, double3 a, double3 b, double3 c)
+__attribute__((always_inline)) inline double3 closest_on_triangle(double3 p, double3 a, double3 b, double3 c)
 {
     double3 ab = b - a, ac = c - a, ap = p - a;
     double d1 = dot3d(ab, ap), d2 = dot3d(ac, ap);

@@ -70,7 +70,7 @@ inline float2 widen(float2 a, float abs_pad, float rel_pad)
 // voxel centres are lo and hi, in one view. The centres' projections lie in the convex hull of the 8 corner
 // projections (pinhole part), distortion is bounded by interval arithmetic, and the pixel rectangle is
 // widened a little so float rounding can never make the test claim something false.
-inline int box_state(__global const float* c, __global const int* sat, float3 lo, float3 hi)
+__attribute__((always_inline)) inline int box_state(__global const float* c, __global const int* sat, float3 lo, float3 hi)
 {
     float2 xr = (float2)(INFINITY, -INFINITY), yr = xr;
     int front = 0, behind = 0;

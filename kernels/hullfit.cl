@@ -33,7 +33,7 @@
 #define CULL_ARGS __global const float* cull, __global const uint* act, int nwords, int use_cull
 
 // Three horizontally adjacent pixel values starting at (x, y), off-image pixels 0.
-inline float3 pixel_triple(__global const uchar* p, int soft, int W, int H, int x, int y)
+__attribute__((always_inline)) inline float3 pixel_triple(__global const uchar* p, int soft, int W, int H, int x, int y)
 {
     if (y < 0 || y >= H) return (float3)(0.0f);
     float3 r;
@@ -62,7 +62,7 @@ inline float3 pixel_triple(__global const uchar* p, int soft, int W, int H, int 
 }
 
 // f at pixel coordinates (u, v) of a view whose pixels start at p (u, v on the image).
-inline float field_value(__global const uchar* p, int soft, int W, int H, float u, float v)
+__attribute__((always_inline)) inline float field_value(__global const uchar* p, int soft, int W, int H, float u, float v)
 {
     float px = floor(u + 0.5f), py = floor(v + 0.5f);
     int x = (int)px - 1, y = (int)py - 1;
@@ -148,7 +148,7 @@ inline int inside_at(float3 X, float tau, FIELD_ARGS, int use, __global const ui
 
 // Exit of the segment A -> B at level tau: the parameter bracket (lo, hi) of the first exit; (1, 1) when the
 // segment does not leave the hull; (0, 0) when A is not inside.
-inline float2 exit_interval(float3 A, float3 B, float tau, int steps, FIELD_ARGS, int use, __global const uint* w)
+__attribute__((always_inline)) inline float2 exit_interval(float3 A, float3 B, float tau, int steps, FIELD_ARGS, int use, __global const uint* w)
 {
     float3 d = B - A;
     float lo = 1.0f, hi = 1.0f;
@@ -181,7 +181,7 @@ inline float2 exit_interval(float3 A, float3 B, float tau, int steps, FIELD_ARGS
 // point at the far level's best exit (hi2 >= hi1) inside at tau_hi is skipped for both levels (one lookup: along
 // the segment outwards the field falls, so both its own exits lie beyond); otherwise it is looked up at hi1 too. Writes (lo, hi) of the tau_hi exit to *r_hi and of the tau_lo exit to *r_lo, as
 // exit_interval would for each.
-inline void exit_two_levels(float3 A, float3 B, float tau_hi, float tau_lo, int steps, FIELD_ARGS, int use,
+__attribute__((always_inline)) inline void exit_two_levels(float3 A, float3 B, float tau_hi, float tau_lo, int steps, FIELD_ARGS, int use,
                             __global const uint* w, float2* r_hi, float2* r_lo)
 {
     float3 d = B - A;
@@ -224,7 +224,7 @@ inline void exit_two_levels(float3 A, float3 B, float tau_hi, float tau_lo, int 
 // its projection (bounded through the Jacobian of the projection, lens distortion included) and the 3x3 pixels
 // around it are on the image, and every 8x8 block those pixels touch is full in the view's block table `sat`
 // ((Hb+1) x (Wb+1) summed-area table of the blocks' counts of pixels whose value is 1).
-inline int ball_all_in(__global const float* c, __global const int* sat, float3 X, float R)
+__attribute__((always_inline)) inline int ball_all_in(__global const float* c, __global const int* sat, float3 X, float R)
 {
     float3 xc = camera_point(c, X);
     float3 r0 = (float3)(c[0], c[1], c[2]), r1 = (float3)(c[4], c[5], c[6]), r2 = (float3)(c[8], c[9], c[10]);

@@ -38,7 +38,7 @@ LOAD48(load_bytes48, uchar)
 LOAD48(load_floats48, float)
 
 // The first n (<= 48) of the 48 bytes a0 a1 a2 to dst.
-inline void store_bytes48(__global uchar *dst, int n, uchar16 a0, uchar16 a1, uchar16 a2)
+__attribute__((always_inline)) inline void store_bytes48(__global uchar *dst, int n, uchar16 a0, uchar16 a1, uchar16 a2)
 {
     if (n == 3 * PIX) {
         vstore16(a0, 0, dst);
@@ -111,7 +111,7 @@ inline int matte_inside(float4 p, float x, float y)
 
 // First x in [0, width] where the edge test reads `want` (width when nowhere), for a test that is monotone in
 // x: false..false true..true read as (test == want). Tried first at the analytic crossing, then bisection.
-inline int matte_flip(float4 p, float y, int width, int want)
+__attribute__((always_inline)) inline int matte_flip(float4 p, float y, int width, int want)
 {
     int lo = 0, hi = width;  // the answer lies in [lo, hi]
     float xs = floor(-(p.y * y + p.z) / p.x);
@@ -180,7 +180,7 @@ __kernel void matte_rows(__global const float4 *edges, int nedges, int width, in
 
 // Spill suppression of 16 pixels given as luma, chroma and chroma along the key (chroma_alpha16's): the key-
 // coloured chroma times `spill` removed, back to packed RGB; the first `nbytes` bytes written to dst.
-inline void despill_store48(float16 y, float16 cb, float16 cr, float16 along, float2 key, float spill,
+__attribute__((always_inline)) inline void despill_store48(float16 y, float16 cb, float16 cr, float16 along, float2 key, float spill,
                             __global uchar *dst, int nbytes)
 {
     float16 remove = spill * fmax(along, 0.0f);
@@ -260,7 +260,7 @@ __kernel void chroma_key(__global const uchar *rgb, int npix, float2 key, float 
 }
 
 // The RGB planes of pixels c0 .. c0 + n - 1 of row r of a box whose corner is pixel (x0, y0) of an image ``width`` wide.
-inline void box_planes16(__global const uchar *rgb, int width, int x0, int y0, int c0, int r, int n, float16 *rf,
+__attribute__((always_inline)) inline void box_planes16(__global const uchar *rgb, int width, int x0, int y0, int c0, int r, int n, float16 *rf,
                          float16 *gf, float16 *bf)
 {
     uchar16 a0, a1, a2;

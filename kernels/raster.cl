@@ -18,7 +18,7 @@
 #define EMPTY 0xFFFFFFFFFFFFFFFFUL
 
 // Camera layout and projection: kernels/camera.h (Cameras.pack()). (u, v, depth, 1 if imaged else 0)
-inline float4 project_one(__global const float *cam, float3 x, float near)
+__attribute__((always_inline)) inline float4 project_one(__global const float *cam, float3 x, float near)
 {
     float3 xc = camera_point(cam, x);
     float2 n = xc.xy / xc.z;
@@ -77,7 +77,7 @@ typedef struct {
 // Face f's screen setup: 0 when it is not drawn (a corner behind the near plane, no area, or, with ``cull``,
 // turned clockwise on the screen: x right, y down, so away from a camera with positive focal lengths and a proper
 // rotation).
-inline int face_screen(__global const int *faces, __global const float4 *proj, int f, int width, int height,
+__attribute__((always_inline)) inline int face_screen(__global const int *faces, __global const float4 *proj, int f, int width, int height,
                        int cull, FaceScreen *s)
 {
     float4 a = proj[faces[3 * f]], b = proj[faces[3 * f + 1]], c = proj[faces[3 * f + 2]];

@@ -32,7 +32,7 @@ inline int silhouette_bit(__global const uchar* bits, int W, int px, int py)
 }
 
 // The centre test: what view `c` (packed camera) with silhouette `bits` says about point X (nearest pixel).
-inline int centre_state(__global const float* c, __global const uchar* bits, float3 X)
+__attribute__((always_inline)) inline int centre_state(__global const float* c, __global const uchar* bits, float3 X)
 {
     float3 xc = camera_point(c, X);
     if (!(xc.z * c[24] > 0.0f)) return SIL_UNSEEN;

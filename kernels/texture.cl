@@ -36,7 +36,7 @@ inline float box_depth(__global const uint *zbuf, int4 box, int x, int y)
 }
 
 // Bilinear RGB sample (0..255 floats) at pixel coordinates p (clamped to the image).
-inline float3 sample_rgb(__global const uchar *img, int w, int h, float2 p)
+__attribute__((always_inline)) inline float3 sample_rgb(__global const uchar *img, int w, int h, float2 p)
 {
     float x = clamp(p.x, 0.0f, (float)(w - 1)), y = clamp(p.y, 0.0f, (float)(h - 1));
     int x0 = (int)floor(x), y0 = (int)floor(y);
