@@ -46,12 +46,14 @@ class Camera:
         d[: min(5, src.size)] = src[:5]
         self.dist = d
         self.width, self.height = int(self.width), int(self.height)
-        for label, arr in (("K", self.K), ("R|t", self.Rt), ("distortion", self.dist)):
-            if not np.all(np.isfinite(arr)):
-                raise DataError(f"camera '{self.name}': {label} contains NaN or infinity")
+        values = np.concatenate([self.K.ravel(), self.Rt.ravel(), d])   # one test for all 26 (a frame's 24 cameras
+        if not np.isfinite(values).all():                                 # are parsed by every reader of them)
+            for label, arr in (("K", self.K), ("R|t", self.Rt), ("distortion", self.dist)):
+                if not np.all(np.isfinite(arr)):
+                    raise DataError(f"camera '{self.name}': {label} contains NaN or infinity")
         if self.width <= 0 or self.height <= 0:
             raise DataError(f"camera '{self.name}': image size {self.width}x{self.height} is not positive")
-        big = max(np.abs(self.K).max(), np.abs(self.Rt).max(), np.abs(self.dist).max())
+        big = float(np.abs(values).max())
         if big > 1e30:  # the kernels read cameras as float32 (max 3.4e38): such values are an error upstream
             raise DataError(f"camera '{self.name}': calibration value {big:.3g} is out of float32 range")
         if self.metric and (self.K[0, 0] <= 0 or self.K[1, 1] <= 0):

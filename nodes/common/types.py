@@ -804,6 +804,42 @@ def nonfinite_vertices(mesh) -> str | None:
     return f"{len(rows)} of its {len(v)} vertices are not finite (NaN or infinite; the first: vertex {rows[0]})"
 
 
+_PLY_HEADER = ("ply\nformat binary_little_endian 1.0\nelement vertex {nv}\nproperty float x\nproperty float y\n"
+               "property float z\nelement face {nf}\nproperty list uchar int vertex_indices\nend_header\n")
+_PLY_FACE = np.dtype([("n", "u1"), ("v", "<i4", (3,))])                   # packed: 13 bytes a face
+_PLY_PLAIN = re.compile(_PLY_HEADER.replace("{nv}", "(\\d+)").replace("{nf}", "(\\d+)").encode())
+
+
+def _write_plain_ply(path: Path, vertices, faces):
+    """Binary PLY of float32 vertices and triangles (the file trimesh writes for a plain mesh, less its comment)."""
+    v = np.ascontiguousarray(vertices, "<f4").reshape(-1, 3)
+    f = np.empty(len(faces), _PLY_FACE)
+    f["n"] = 3
+    f["v"] = faces
+    with open(path, "wb") as out:
+        out.write(_PLY_HEADER.format(nv=len(v), nf=len(f)).encode())
+        out.write(v.tobytes())
+        out.write(f.tobytes())
+
+
+def _read_plain_ply(path: Path):
+    """(vertices float64 (V, 3), faces int64 (F, 3)) of a file ``_write_plain_ply`` wrote; None for any other
+    PLY (trimesh reads those), or when the sizes do not add up or a face is not a triangle."""
+    data = path.read_bytes()
+    m = _PLY_PLAIN.match(data)
+    if m is None:
+        return None
+    nv, nf = int(m.group(1)), int(m.group(2))
+    a = m.end()
+    if len(data) != a + 12 * nv + _PLY_FACE.itemsize * nf:
+        return None
+    f = np.frombuffer(data, _PLY_FACE, nf, a + 12 * nv)
+    if nf and not np.all(f["n"] == 3):
+        return None
+    v = np.frombuffer(data, "<f4", 3 * nv, a).reshape(nv, 3).astype(np.float64)
+    return v, f["v"].astype(np.int64)
+
+
 class Mesh(DataType):
     """A triangle mesh (trimesh.Trimesh), stored as binary PLY (vertex order preserved)."""
 
@@ -833,13 +869,20 @@ class Mesh(DataType):
 
     @classmethod
     def save(cls, v, folder: Path):
-        v.export(folder / cls.filename)
+        if getattr(v.visual, "kind", None) is None:     # a plain mesh: written directly (trimesh's writer: 4x the time)
+            _write_plain_ply(folder / cls.filename, v.vertices, v.faces)
+        else:                                           # vertex or face colours: trimesh writes them
+            v.export(folder / cls.filename)
 
     @classmethod
     def load(cls, folder: Path):
         import trimesh
 
-        mesh = trimesh.load(folder / cls.filename, process=False, force="mesh")
+        path = folder / cls.filename
+        plain = _read_plain_ply(path)
+        if plain is not None:
+            return trimesh.Trimesh(*plain, process=False)
+        mesh = trimesh.load(path, process=False, force="mesh")
         mesh.metadata.clear()  # what the loader notes (file name, units, glTF node) is not part of the value
         return mesh
 

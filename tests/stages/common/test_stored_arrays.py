@@ -126,3 +126,70 @@ def test_windowed_images_paste_into_the_last_block_once_nothing_holds_it():
             assert all(np.array_equal(a, b) for a, b in zip(held, held_copy)), t
         del got
     assert 100 < reused < 250, reused
+
+
+# ---------------------------------------------------------------- meshes (Mesh.save / Mesh.load: binary PLY)
+def _meshes():
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    rng = np.random.default_rng(3)
+    return {
+        "sphere": trimesh.Trimesh(sphere.vertices.astype(np.float32), sphere.faces, process=False),
+        "random_float64": trimesh.Trimesh(rng.normal(size=(40, 3)), rng.integers(0, 40, (60, 3)), process=False),
+        "empty": trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), process=False),
+        "points_only": trimesh.Trimesh(rng.normal(size=(5, 3)), np.zeros((0, 3), np.int64), process=False),
+        "vertex_colours": trimesh.Trimesh(sphere.vertices, sphere.faces, process=False,
+                                          vertex_colors=rng.integers(0, 255, (len(sphere.vertices), 4))),
+    }
+
+
+@pytest.mark.parametrize("name", sorted(_meshes()))
+def test_stored_meshes_read_back_as_trimesh_reads_them(tmp_path, name):
+    import trimesh
+
+    from nodes.common.types import Mesh
+
+    m = _meshes()[name]
+    Mesh.save(m, tmp_path)
+    got = Mesh.load(tmp_path)
+    ref = trimesh.load(tmp_path / "mesh.ply", process=False, force="mesh")   # any PLY reader reads our file
+    assert got.vertices.dtype == np.float64 and got.faces.dtype == ref.faces.dtype
+    if len(m.faces):       # (trimesh's reader drops the vertices of a mesh without faces; ours keeps them)
+        assert np.array_equal(got.vertices, ref.vertices) and np.array_equal(got.faces, ref.faces)
+    assert np.array_equal(got.vertices, np.asarray(m.vertices, np.float32).astype(np.float64))
+    assert np.array_equal(got.faces, m.faces)
+    assert got.visual.kind == ref.visual.kind == m.visual.kind        # colours: trimesh's writer and reader
+    if m.visual.kind == "vertex":
+        assert np.array_equal(got.visual.vertex_colors, m.visual.vertex_colors)
+
+
+def test_meshes_trimesh_wrote_still_load(tmp_path):
+    """Cache entries written before the direct writer (trimesh's PLY, with its comment line) read the same."""
+    from nodes.common.types import Mesh
+
+    m = _meshes()["sphere"]
+    m.export(tmp_path / "mesh.ply")
+    got = Mesh.load(tmp_path)
+    assert np.array_equal(got.vertices, m.vertices) and np.array_equal(got.faces, m.faces) and not got.metadata
+
+
+def test_the_direct_ply_reader_leaves_other_files_to_trimesh(tmp_path):
+    """Only the exact plain layout is read directly: a polygon, a short file or another header gives None."""
+    from nodes.common.types import _PLY_FACE, _read_plain_ply, _write_plain_ply
+
+    p = tmp_path / "mesh.ply"
+    _write_plain_ply(p, np.eye(3), [[0, 1, 2]])
+    v, f = _read_plain_ply(p)
+    assert np.array_equal(v, np.eye(3)) and np.array_equal(f, [[0, 1, 2]])
+    data = p.read_bytes()
+    p.write_bytes(data[:-1])                                               # cut short
+    assert _read_plain_ply(p) is None
+    p.write_bytes(data + b"\0")                                            # a byte too many
+    assert _read_plain_ply(p) is None
+    quad = bytearray(data)
+    quad[-_PLY_FACE.itemsize] = 4                                          # a face that says it has 4 corners
+    p.write_bytes(bytes(quad))
+    assert _read_plain_ply(p) is None
+    p.write_bytes(data.replace(b"property float z", b"property float w"))
+    assert _read_plain_ply(p) is None
