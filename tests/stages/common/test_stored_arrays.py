@@ -181,6 +181,7 @@ def test_the_direct_ply_reader_leaves_other_files_to_trimesh(tmp_path):
     p = tmp_path / "mesh.ply"
     _write_plain_ply(p, np.eye(3), [[0, 1, 2]])
     v, f = _read_plain_ply(p)
+    assert v.dtype == np.float64 and f.dtype == np.int64
     assert np.array_equal(v, np.eye(3)) and np.array_equal(f, [[0, 1, 2]])
     data = p.read_bytes()
     p.write_bytes(data[:-1])                                               # cut short
@@ -192,4 +193,6 @@ def test_the_direct_ply_reader_leaves_other_files_to_trimesh(tmp_path):
     p.write_bytes(bytes(quad))
     assert _read_plain_ply(p) is None
     p.write_bytes(data.replace(b"property float z", b"property float w"))
+    assert _read_plain_ply(p) is None
+    p.write_bytes(data.replace(b"binary_little_endian 1.0", b"binary_little_endian 1x0"))
     assert _read_plain_ply(p) is None
