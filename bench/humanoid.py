@@ -15,7 +15,8 @@ every named joint within 2 voxels), per joint.
 child_rope: graphs/skeleton/child_rope_humanoid.yaml through the engine (the tracked sequence from its cache:
 the first run tracks, ~30 min): every tracked segment rigged with the template (skeletonize.humanoid -> skin,
 joints kept) -> per segment the frame it was fitted on, bones kept, LBS rms and max per frame against the goals
-(rms <= 1 % of the subject's height, max <= 5 %), posed joints outside the tracked body, bone lengths per segment,
+(rms <= 1 % of the subject's height, max <= 5 %), posed joints outside the tracked body, the posed ankles' height
+above the sole where a foot stands on the floor (an ankle joint: ~4.5 % of the height up), bone lengths per segment,
 seconds per frame; the named joints
 over the silhouettes of 3 views at 4 frames (out/skeleton_humanoid_child_rope.jpg, and docs/ with --docs).
 """
@@ -160,6 +161,12 @@ def child_rope(a):
                   f"worst joints {', '.join(f'{n} {1000 * x:.0f}' for n, x in worst)} mm")
         print(f"  seconds: fit {fit_rec['seconds']:.1f}{' (a cache hit)' if fit_rec['cache_hit'] else ''} + skin "
               f"{err['seconds']:.1f} = {secs / len(rms):.2f} s per frame")
+        rise = planted_ankles(sk, seq)
+        if len(rise):
+            print(f"  posed ankles above the sole where the foot stands on the floor (the tracked surface's lowest point "
+                  f"within 10 cm across, under 3 cm up): median {100 * np.median(rise):.1f} cm, p10 "
+                  f"{100 * np.percentile(rise, 10):.1f}, p90 {100 * np.percentile(rise, 90):.1f} over {len(rise)} "
+                  f"(frame, ankle) pairs (an ankle joint stands ~4.5 % of the height up: {4.5 * height:.1f} cm)")
         rigs.append((sk, err))
         piv = np.einsum("jab,jb->ja", sk.rotations[0], sk.joints) + sk.translations[0]
         for j, p in enumerate(sk.parents):
@@ -170,6 +177,24 @@ def child_rope(a):
     print(f"graph run {wall:.0f} s (cached items are not recomputed); at the end:")
     print(describe())
     picture(rigs, a)
+
+
+def planted_ankles(sk, seq) -> np.ndarray:
+    """Heights (m) of the rig's posed ankles above the tracked surface's lowest point within 10 cm of them across
+    (the sole), over the (frame, ankle) pairs where that point lies under 3 cm above the floor (z = 0): a foot
+    standing on the floor, whose ankle joint is a few centimetres up whatever the clothes."""
+    J = {n: i for i, n in enumerate(sk.names)}
+    by_frame = {int(m.metadata.get("frame", k)): m for k, m in enumerate(seq)}
+    out = []
+    for i, f in enumerate(sk.frames):
+        piv = np.einsum("jab,jb->ja", sk.rotations[i], sk.joints) + sk.translations[i]
+        V = np.asarray(by_frame[int(f)].vertices)
+        for s in "lr":
+            a = piv[J[f"ankle_{s}"]]
+            near = np.linalg.norm(V[:, :2] - a[:2], axis=1) < 0.10
+            if near.any() and V[near, 2].min() < 0.03:
+                out.append(a[2] - V[near, 2].min())
+    return np.asarray(out)
 
 
 def picture(rigs, a):

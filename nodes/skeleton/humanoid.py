@@ -29,8 +29,9 @@ Unreal mannequin, SMPL). Fractions: the median place of each joint of the synth 
 cycle, checked against adult proportions; the wrists ``HAND`` of the height back from the arm's end (real people's
 hands; ``hand`` 0 for a body without them, such as the synth figure, whose arms end at the wrists: the wrist at the
 path's end, hand_end past it), the elbows ``FOREARM`` back from the wrists along the path, the ankles ``FOOT``
-back from the leg's end and the knees halfway between the (raised) hips and the ankles (``foot``: the synth figure's
-feet are short, 0.08); the shoulders where the arm's path reaches ``SHOULDER_OUT`` of the height across from the
+back from the leg's end (in a legs-together column at most ``ANKLE_RISE`` of the height above the floor it stands
+on) and the knees halfway between the (raised) hips and the ankles (``foot``: the synth figure's feet are short,
+0.08); the shoulders where the arm's path reaches ``SHOULDER_OUT`` of the height across from the
 spine's axis, lifted onto the upper arm's centre line there (the path's corner into the body runs under the joint):
 wrists, elbows, shoulders and the spine's joints are placed by proportion, not found. "The height" in these shares
 is the body's stature where a sequence gives it (``bind_humanoid``), else the solid's own height. Given body
@@ -106,6 +107,15 @@ HAND = 0.085
 # lies halfway between hip and ankle along the path (MediaPipe's: 0.46-0.53 of the way; the synth figure's 0.48-0.50),
 # or at the leg's sharpest bend near there
 FOOT = 0.12
+# ... but, in a legs-together column (one column split in halves: no foot stands out of it, its centre line comes
+# straight down onto the floor under the ankles), no higher than this share of the stature above the floor where the
+# column stands on it. FOOT alone put child_rope's fitted ankles 10-13 cm up (mid-shin; shins 8-20 cm for a 1.2 m
+# child), and its rig's posed ankles a median 10.5-18.3 cm above the sole of a foot on the floor. MediaPipe's ankles
+# stand 0.055-0.06 of the height above the floor on thu_wd_human and inria_dancer's planted foot, the synth figure's
+# true ankles 0.053. (On legs apart, whose paths run out along the feet, FOOT alone: the rule there moved the synth
+# figure's ankles and knees off the truth.) The knees of such a column stay halfway: its halves' bends are the
+# column's outline, not knees (child_rope: bends 15-20 cm above the floor made 8 cm shins)
+ANKLE_RISE = 0.055
 MIN_BONE = 0.05          # no limb bone shorter than this share of the height (the stature) from a bend or a landmark
 SIDES_ANKLE = 0.88       # left and right: the foot's cells below this share of the leg's path (the ankle's place before
                          # FOOT; the ankle's new place widened the foot's cells into the other leg of a legs-together
@@ -305,6 +315,24 @@ def _at(points: np.ndarray, frac: float) -> np.ndarray:
     if s[-1] == 0:
         return points[0].copy()
     return np.array([np.interp(frac * s[-1], s, points[:, a]) for a in range(3)])
+
+
+def _planted_ankle(leg: np.ndarray, u: np.ndarray, floor: float, size: float) -> float | None:
+    """The share of a leg's path (pelvis -> foot) at which it last rises ``ANKLE_RISE`` x ``size`` above the floor,
+    coming back from the foot: where the ankle is at the highest on a foot standing on the floor. None when the
+    path's end is not on the floor (within half that height: a raised foot) or never rises that high."""
+    h = leg @ u - floor
+    top = ANKLE_RISE * size
+    if len(leg) < 2 or h[-1] > 0.5 * top:
+        return None
+    above = np.flatnonzero(h >= top)
+    if not len(above):
+        return None
+    i = int(above[-1])                       # the last point at the height; the next is under it
+    t = (h[i] - top) / max(h[i] - h[i + 1], 1e-12)
+    seg = np.linalg.norm(np.diff(leg, axis=0), axis=1)
+    arc = np.concatenate([[0.0], np.cumsum(seg)])
+    return float((arc[i] + t * seg[i]) / max(arc[-1], 1e-12))
 
 
 def _bend(points: np.ndarray, frac: float, window: float = 0.15, chord: float = 0.1) -> tuple[float, float]:
@@ -686,6 +714,9 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
         bounds = (0.0, 1.0)                      # where a bend may move the joint
         if key in ("knee_{s}", "ankle_{s}"):   # the ankle FOOT back from the toe's end, the knee halfway up from it
             ankle = float(np.clip(1.0 - foot_share * size / arc, fracs[f"hip_{s}"] + 0.2, 0.97))
+            planted = _planted_ankle(poly, u, floor, size) if together else None
+            if planted is not None:
+                ankle = float(np.clip(max(ankle, planted), fracs[f"hip_{s}"] + 0.2, 0.97))
             frac = ankle if key == "ankle_{s}" else 0.5 * (fracs[f"hip_{s}"] + ankle)
             bounds = (fracs[f"hip_{s}"] + gap, ankle - gap)
         if key == "elbow_{s}":     # FOREARM back from the wrist along the path
@@ -709,7 +740,7 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
             fracs[name] = 1.0
             parents.append(names.index(par.format(s=s)))
             continue
-        if key in BENDS:
+        if key in BENDS and not (together and key == "knee_{s}"):
             f, ang = _bend(poly, frac)
             bends[name] = round(ang, 1)
             if ang > BEND_DEG and bounds[0] < f < bounds[1]:     # (a knee's bend is not the hip's corner)

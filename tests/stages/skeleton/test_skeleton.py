@@ -1732,3 +1732,26 @@ def test_bvh_angles_do_not_jump_a_turn_between_frames():
     back = formats.read_bvh(text)
     world = formats.world_transforms(TUBE_JOINTS, rot, tr)
     np.testing.assert_allclose(back["positions"], world[..., :3, 3], atol=1e-5)
+
+
+def test_planted_ankle_on_made_up_leg_paths():
+    """humanoid._planted_ankle (stature 1.2 m: ANKLE_RISE 6.6 cm): a leg column's path coming straight down onto the
+    floor gives the point 6.6 cm up (the share of the path's arc there); a path that runs out along a foot rises
+    past that height behind the toes, where that share lies; a foot off the floor, or a path that never rises that
+    high, gives none; up = -z reads the heights the other way."""
+    from nodes.skeleton import humanoid as H
+
+    u = np.array([0.0, 0.0, 1.0])
+    top = H.ANKLE_RISE * 1.2
+    column = np.stack([np.zeros(61), np.zeros(61), np.linspace(0.6, 0.0, 61)], axis=1)   # 1 cm steps down to z = 0
+    f = H._planted_ankle(column, u, 0.0, 1.2)
+    assert f == pytest.approx((0.6 - top) / 0.6, abs=1e-9)
+    assert H._at(column, f)[2] == pytest.approx(top, abs=1e-9)
+    foot = np.vstack([column[:-10], [[0.0, -0.02 * k, 0.1 - 0.01 * k] for k in range(1, 9)]])  # shin, then forward
+    g = H._planted_ankle(foot, u, 0.0, 1.2)
+    assert H._at(foot, g)[2] == pytest.approx(top, abs=1e-9) and H._at(foot, g)[1] < 0
+    raised = column + [0.0, 0.0, 0.5 * top + 0.001]                                   # its end off the floor
+    assert H._planted_ankle(raised, u, 0.0, 1.2) is None
+    assert H._planted_ankle(column[-5:], u, 0.0, 1.2) is None                        # never that high
+    flipped = column * [1.0, 1.0, -1.0]
+    assert H._planted_ankle(flipped, -u, 0.0, 1.2) == pytest.approx(f, abs=1e-12)
