@@ -164,7 +164,7 @@ def child_rope(a):
         rise = planted_ankles(sk, seq)
         if len(rise):
             print(f"  posed ankles above the sole where the foot stands on the floor (the tracked surface's lowest point "
-                  f"within 10 cm across, under 3 cm up): median {100 * np.median(rise):.1f} cm, p10 "
+                  f"within 10 cm across and nearer it than the other ankle, under 3 cm up): median {100 * np.median(rise):.1f} cm, p10 "
                   f"{100 * np.percentile(rise, 10):.1f}, p90 {100 * np.percentile(rise, 90):.1f} over {len(rise)} "
                   f"(frame, ankle) pairs (an ankle joint stands ~4.5 % of the height up: {4.5 * height:.1f} cm)")
         rigs.append((sk, err))
@@ -180,18 +180,19 @@ def child_rope(a):
 
 
 def planted_ankles(sk, seq) -> np.ndarray:
-    """Heights (m) of the rig's posed ankles above the tracked surface's lowest point within 10 cm of them across
-    (the sole), over the (frame, ankle) pairs where that point lies under 3 cm above the floor (z = 0): a foot
-    standing on the floor, whose ankle joint is a few centimetres up whatever the clothes."""
+    """Heights (m) of the rig's posed ankles above the tracked surface's lowest point within 10 cm of them across and
+    nearer them than the other ankle (the sole), over the (frame, ankle) pairs where that point lies under 3 cm above
+    the floor (z = 0): a foot standing on the floor, whose ankle joint is a few centimetres up whatever the clothes."""
     J = {n: i for i, n in enumerate(sk.names)}
     by_frame = {int(m.metadata.get("frame", k)): m for k, m in enumerate(seq)}
     out = []
     for i, f in enumerate(sk.frames):
         piv = np.einsum("jab,jb->ja", sk.rotations[i], sk.joints) + sk.translations[i]
         V = np.asarray(by_frame[int(f)].vertices)
-        for s in "lr":
-            a = piv[J[f"ankle_{s}"]]
-            near = np.linalg.norm(V[:, :2] - a[:2], axis=1) < 0.10
+        for s, o in (("l", "r"), ("r", "l")):
+            a, b = piv[J[f"ankle_{s}"]], piv[J[f"ankle_{o}"]]
+            across = np.linalg.norm(V[:, :2] - a[:2], axis=1)
+            near = (across < 0.10) & (across < np.linalg.norm(V[:, :2] - b[:2], axis=1))   # this foot, not the other
             if near.any() and V[near, 2].min() < 0.03:
                 out.append(a[2] - V[near, 2].min())
     return np.asarray(out)
