@@ -717,6 +717,8 @@ def fit_humanoid(occ: np.ndarray, origin, spacing, up=(0.0, 0.0, 1.0), node: str
             planted = _planted_ankle(poly, u, floor, size) if together else None
             if planted is not None:
                 ankle = float(np.clip(max(ankle, planted), fracs[f"hip_{s}"] + 0.2, 0.97))
+                if key == "ankle_{s}" and planted > 1.0 - foot_share * size / arc:
+                    report.setdefault("ankles_from_the_floor", []).append(name)   # ANKLE_RISE, not FOOT, placed it
             frac = ankle if key == "ankle_{s}" else 0.5 * (fracs[f"hip_{s}"] + ankle)
             bounds = (fracs[f"hip_{s}"] + gap, ankle - gap)
         if key == "elbow_{s}":     # FOREARM back from the wrist along the path
