@@ -274,11 +274,15 @@ class MaskSet(_Lazy):
         if alpha is not None and alpha8 is not None:
             raise ValueError("MaskSet: give alpha or alpha8, not both")
         self._masks, self._alpha = list(masks), (list(alpha) if alpha is not None else None)
-        self._alpha8 = list(alpha8) if alpha8 is not None else None
+        # alpha8 may come as a function making the levels when first read (Masks.load: a reader of the masks alone,
+        # the texture, then makes no whole-frame levels: 24 HD planes of fresh memory a frame)
+        self._alpha8_make = alpha8 if callable(alpha8) else None
+        self._alpha8 = list(alpha8) if alpha8 is not None and not callable(alpha8) else None
         self._boxes = None if boxes is None else [None if b is None else tuple(b) for b in boxes]
         if CHECK_PROMISES and self._boxes is not None and all(
                 b is None or _is_box(b, m.shape[1], m.shape[0]) for m, b in zip(self._masks, self._boxes)):
-            for planes in (self._masks, self._alpha8, self._alpha):
+            for planes in (self._masks, self._alpha8, self._alpha):     # (levels still to be made: pasted in
+                                                                          # their stored box, 0 outside it)
                 problem = None if planes is None else _outside(planes, self._boxes)
                 if problem:
                     raise AssertionError(f"MaskSet.boxes: {problem}")
@@ -307,10 +311,16 @@ class MaskSet(_Lazy):
         self._materialise()
         return self._masks
 
+    def _levels(self):
+        if self._alpha8_make is not None:
+            make, self._alpha8_make = self._alpha8_make, None
+            self._alpha8 = list(make())
+        return self._alpha8
+
     @property
     def alpha(self) -> list[np.ndarray] | None:
         self._materialise()
-        if self._alpha is None and self._alpha8 is not None:
+        if self._alpha is None and self._levels() is not None:
             self._alpha = [np.divide(a, np.float32(255), dtype=np.float32) for a in self._alpha8]
         return self._alpha
 
@@ -318,7 +328,7 @@ class MaskSet(_Lazy):
     def alpha8(self) -> list[np.ndarray] | None:
         """The soft alpha's 8-bit levels when the set was made from them, else None (read ``alpha``)."""
         self._materialise()
-        return self._alpha8
+        return self._levels()
 
     def __len__(self):
         return len(self.names)
@@ -728,9 +738,15 @@ class Masks(DataType):
             return out
 
         if meta.get("alpha8"):
-            levels = [read(f"{i:04d}.alpha8.npy", "alpha8_boxes", i) for i in range(len(names))]
             derived = meta.get("masks_from_alpha8")
             box = boxes("alpha8_boxes") if derived else boxes("alpha8_boxes", "mask_boxes")
+            if derived and "alpha8_boxes" in meta:   # each mask the threshold of its stored levels' box, pasted; the
+                crops = [_load_array(folder / f"{i:04d}.alpha8.npy") for i in range(len(names))]   # whole levels
+                masks = [_paste(_mask_of_levels(c) if c.size else c, meta["alpha8_boxes"][i],        # when read
+                                folder / f"{i:04d}.alpha8.npy") for i, c in enumerate(crops)]
+                return MaskSet(masks, None, names, boxes=box, alpha8=lambda: [
+                    _paste(c, meta["alpha8_boxes"][i], folder / f"{i:04d}.alpha8.npy") for i, c in enumerate(crops)])
+            levels = [read(f"{i:04d}.alpha8.npy", "alpha8_boxes", i) for i in range(len(names))]
             masks = [_mask_of_levels(a, None if box is None else box[i]) if derived
                      else read(f"{i:04d}.npy", "mask_boxes", i) for i, a in enumerate(levels)]
             return MaskSet(masks, None, names, alpha8=levels, boxes=box)

@@ -534,6 +534,8 @@ def test_mask_boxes_from_the_key_and_the_cleanup_change_no_stored_byte(tmp_path)
     for name, sets in {"key": key, "clean": clean}.items():
         back = Masks.load(tmp_path / name / "a")
         assert back.boxes is not None and all(np.array_equal(a, b) for a, b in zip(back.masks, sets.masks))
+        if name == "key":          # masks that are their levels' threshold: whole-frame levels made only when read
+            assert back._alpha8 is None and back._alpha8_make is not None
         assert all(np.array_equal(a, b) for a, b in zip(back.alpha8, sets.alpha8))
         assert back.boxes[2] == (0, 0, 0, 0)
     plain_back = MaskSet(key.masks, None, key.names)                     # masks without alpha: their own boxes
