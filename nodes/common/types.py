@@ -250,7 +250,8 @@ class MaskSet(_Lazy):
 
     ``alpha8``: the soft alpha as 8-bit levels (uint8 0..255) where the producer made it so (the keys): ``alpha``
     is then ``alpha8 / 255`` in float32, computed when first read, and the cache stores the levels (a quarter of
-    the bytes; the same float32 values come back).
+    the bytes; the same float32 values come back). It may be given as a function returning the list, called when
+    ``alpha8`` or ``alpha`` is first read (Masks.load: a reader of the masks alone makes no whole-frame levels).
     ``device``: the same silhouettes already on the OpenCL device (nodes.common.silhouettes.SilhouetteBits),
     when the producer made them there; a reader that can use them (the hull) then needs no host masks at all.
     ``MaskSet.lazy(produce, names, device=...)`` defers the host masks (``produce() -> (masks, alpha)`` or
@@ -258,7 +259,7 @@ class MaskSet(_Lazy):
     until a reader asks for ``device``."""
 
     def __init__(self, masks: list[np.ndarray], alpha: list[np.ndarray] | None = None, names: list[str] | None = None,
-                 device=None, alpha8: list[np.ndarray] | None = None, boxes: list | None = None):
+                 device=None, alpha8=None, boxes: list | None = None):
         super().__init__(None, names or [f"cam{i:03d}" for i in range(len(masks))])
         self._set(masks, alpha, alpha8, boxes)
         self._device, self._make_device = device, None
@@ -312,9 +313,10 @@ class MaskSet(_Lazy):
         return self._masks
 
     def _levels(self):
-        if self._alpha8_make is not None:
-            make, self._alpha8_make = self._alpha8_make, None
-            self._alpha8 = list(make())
+        make = self._alpha8_make
+        if make is not None:            # made first, then the maker dropped: a reader racing in meanwhile makes them
+            levels = list(make())       # too (the same arrays' values) instead of reading None
+            self._alpha8, self._alpha8_make = levels, None
         return self._alpha8
 
     @property
@@ -740,9 +742,16 @@ class Masks(DataType):
         if meta.get("alpha8"):
             derived = meta.get("masks_from_alpha8")
             box = boxes("alpha8_boxes") if derived else boxes("alpha8_boxes", "mask_boxes")
-            if derived and "alpha8_boxes" in meta:   # each mask the threshold of its stored levels' box, pasted; the
-                crops = [_load_array(folder / f"{i:04d}.alpha8.npy") for i in range(len(names))]   # whole levels
-                masks = [_paste(_mask_of_levels(c) if c.size else c, meta["alpha8_boxes"][i],        # when read
+            if derived and "alpha8_boxes" in meta:   # each mask the threshold of its stored levels' box, pasted (read-
+                crops = []                           # only, as stored planes are); the whole levels when read
+                for i in range(len(names)):          # (the crops mapped: read, they cost 3 ms more a frame)
+                    path = folder / f"{i:04d}.alpha8.npy"
+                    c = _load_array(path)
+                    _, _, x0, y0, x1, y1 = meta["alpha8_boxes"][i]
+                    if c.shape != (y1 - y0, x1 - x0):
+                        raise DataError(f"{path}: {c.shape} does not fill its box {meta['alpha8_boxes'][i][2:]}")
+                    crops.append(c)
+                masks = [_paste(_mask_of_levels(c) if c.size else c, meta["alpha8_boxes"][i],
                                 folder / f"{i:04d}.alpha8.npy") for i, c in enumerate(crops)]
                 return MaskSet(masks, None, names, boxes=box, alpha8=lambda: [
                     _paste(c, meta["alpha8_boxes"][i], folder / f"{i:04d}.alpha8.npy") for i, c in enumerate(crops)])

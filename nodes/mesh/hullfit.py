@@ -81,7 +81,7 @@ class SilhouetteField:
             return cls(cameras.pack(origin), origin, None, False, int(min_views), outside, device, list(device.sizes),
                        masks)
         binary = check_masks(masks, cameras, node)
-        eight = getattr(masks, "alpha8", None)
+        eight = getattr(masks, "alpha8", None) if use_alpha else None   # (levels read back are made when read)
         soft = bool(use_alpha and (eight is not None or masks.alpha is not None))
         levels = binary
         if soft and eight is not None:   # the key's 8-bit levels: what rint(alpha * 255) gives back, bit for bit
