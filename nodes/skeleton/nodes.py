@@ -13,6 +13,7 @@ from nodes.common.types import (FPS_PARAM, CameraSet, Mesh, MeshSequence, Skelet
                                sequence_segments)
 
 from .humanoid import FOOT, HAND, REST_POSES, TOOLS
+from .skinning import family_weights, is_helper
 
 # the template's hands and feet (skeleton.humanoid, skeletonize.humanoid)
 HAND_PARAM = Param(float, HAND, range=(0.0, 0.15), doc="the wrist this share of the body's height back from the hand's "
@@ -404,11 +405,16 @@ class Skin(Node):
                        "alone (on child_rope they twisted 8-20 % of the (frame, joint) pairs more than 90 degrees "
                        "against their parents, elbows and spine flipping half round from one frame to the next)"),
         "twist_range": Param(float, 45.0, range=(0.0, 180.0), doc="degrees of twist against the parent that cost nothing"),
+        "helpers": Param(int, 0, range=(0, 256), doc="helper bones added last: free rigid bones (as Dem Bones moves "
+                         "them), each under the rig's bone whose vertices' LBS error it takes (loose clothes, soft "
+                         "tissue), named helper_<host>_<k>; the rig's own bones keep their rest joints and lengths "
+                         "(their motion is refitted beside the helpers, with hold and twist as above): a retargeting "
+                         "tool reads those, and the BVH holds them alone; 0: none"),
         "segment": Param(int, -1, range=(-1, None), doc="which constant-connectivity segment; -1 = the longest"),
     }
 
     def run(self, skeleton, meshes=None, sequence=None, *, influences, iterations, tol, smooth, lengths, rest_fit, pivots,
-            rest_pose, rest_rounds, hold, twist, twist_range, segment):
+            rest_pose, rest_rounds, hold, twist, twist_range, helpers, segment):
         import trimesh
 
         from .motion import Rig, Trajectories
@@ -439,6 +445,13 @@ class Skin(Node):
             targets = np.einsum("fjab,jb->fja", rig.rotations, rig.joints) + rig.translations
             fit = self._reposed(traj.with_rest(fit.rest), faces, fit, names, rest_pose, lengths, influences, smooth,
                                 rest_rounds, 0.0 if pivots else hold, targets[:, fit.kept], twist, np.radians(twist_range))
+        rig_rmse = float(np.sqrt((fit.rmse ** 2).mean()))
+        if helpers:
+            poses = "free" if lengths != "fixed" else dict(
+                hold=0.0 if pivots else hold, twist=twist, twist_range=np.radians(twist_range),
+                targets=(np.einsum("fjab,jb->fja", rig.rotations, rig.joints) + rig.translations)[:, fit.kept])
+            fit, names = self._helpers(traj.with_rest(fit.rest), faces, fit, names, helpers, influences, smooth,
+                                       iterations, tol, rest_fit, poses)
         seconds = time.perf_counter() - t0
         diag = float(np.linalg.norm(np.ptp(frames[0], axis=0)))
         removed = [n for b, n in enumerate(skeleton.names) if b not in set(fit.kept)]
@@ -446,16 +459,37 @@ class Skin(Node):
             self.log.warning("skin: bone(s) %s skin no vertex (no vertex has them as its strongest influence): merged "
                              "into their parents", ", ".join(removed))
         sk = SkeletonData(fit.joints, fit.parents, names, fit.weights, fit.rotations, fit.translations, numbers)
-        table = error_table(fit, numbers, diag, seconds, lengths)
+        table = error_table(fit, numbers, diag, seconds, lengths, names)
         table["joints_outside"] = joints_outside(frames, faces, fit, names, numbers)
         table["twist"] = twist_table(fit, names, numbers, twist_range)
-        weightless = [names[b] for b in np.flatnonzero(np.bincount(np.argmax(fit.weights, axis=1),
-                                                                  minlength=len(names)) == 0)]
+        family = family_weights(fit.weights, fit.parents, names)      # a helper's weights count for its host too
+        weightless = [names[b] for b in np.flatnonzero(np.bincount(np.argmax(family, axis=1), minlength=len(names)) == 0)
+                      if not is_helper(names[b])]
         if weightless:
             self.log.warning("skin: bone(s) %s are the strongest influence of no vertex: kept (pivots: false, the "
                              "skeleton's joints are given), moving with their neighbours", ", ".join(weightless))
         table.update(removed=removed, weightless=weightless, pivot_moves_refused=fit.refused)
+        if helpers:
+            table["helpers"] = {"bones": sum(map(is_helper, names)), "asked": helpers, "rig_rmse": rig_rmse,
+                                "rmse": table["rmse"]}
         return {"skeleton": sk, "rest": trimesh.Trimesh(fit.rest, faces, process=False), "error": table}
+
+    def _helpers(self, traj, faces, fit, names, count, influences, smooth, iterations, tol, rest_fit, poses):
+        """``fit`` with ``count`` helper bones (skinning.fit_helpers), its errors measured again; and the names."""
+        import dataclasses
+
+        from .skinning import errors, fit_helpers
+
+        rest, w, rot, tr, joints, parents, names, history = fit_helpers(
+            traj, faces, fit.weights, fit.rotations, fit.translations, fit.joints, fit.parents, names, count,
+            influences=influences, smooth=smooth, iterations=iterations, tol=tol, rest_fit=rest_fit, rig_poses=poses,
+            log=self.log.info,
+            progress=self.progress)
+        rmse, mx = errors(traj.with_rest(rest), w, rot, tr)
+        self.log.info("skin: %d helper bones: LBS rms %.4g -> %.4g mm", len(parents) - len(fit.parents),
+                      1000 * np.sqrt((fit.rmse ** 2).mean()), 1000 * np.sqrt((rmse ** 2).mean()))
+        return dataclasses.replace(fit, rest=rest, weights=w, rotations=rot, translations=tr, joints=joints,
+                                   parents=parents, rmse=rmse, max_error=mx, history=fit.history + history), names
 
     def _reposed(self, traj, faces, fit, names, pose, lengths, influences, smooth, refits, hold, targets, twist,
                  twist_range):
@@ -487,8 +521,10 @@ def twist_table(fit, names, numbers, twist_range: float) -> dict:
     of (frame, joint) steps that change the twist by more than 45 degrees from one frame to the next."""
     from .skinning import bone_axes, twists
 
-    tw = np.degrees(twists(fit.rotations, fit.parents, bone_axes(fit.joints, fit.parents)))
-    kids = [k for k, p in enumerate(fit.parents) if p >= 0]
+    own = len(fit.parents) - sum(map(is_helper, names))     # the rig's own joints first; helpers (free bones) after
+    parents = list(fit.parents[:own])
+    tw = np.degrees(twists(fit.rotations[:, :own], parents, bone_axes(fit.joints[:own], parents)))
+    kids = [k for k, p in enumerate(parents) if p >= 0]
     if not kids or not len(tw):
         return {"pairs": 0}
     a = np.abs(tw[:, kids])
@@ -515,24 +551,35 @@ def bone_lengths(joints, parents, rotations, translations) -> np.ndarray:
 def joints_outside(frames, faces, fit, names, numbers) -> dict:
     """Posed joints outside the tracked body: per (frame, joint) how far the joint lies outside the frame's mesh
     (skinning.posed_clearance), against its limit (the thickness of the thicker bone meeting there, in the rest
-    shape: skinning.joint_clearance). Counts beyond the limit and beyond 2 cm, the worst, and per joint its worst."""
-    from .skinning import joint_clearance, posed_clearance
+    shape: skinning.joint_clearance). Counts beyond the limit and beyond 2 cm, the worst, and per joint its worst.
+    Helper bones are no joints of the body: a host's thickness counts its helpers' vertices (family_weights), and
+    their pivots (the centre of a patch of surface) are counted apart, beyond 2 cm (``helpers``)."""
+    from .skinning import family_weights, joint_clearance, posed_clearance
 
-    _, limit = joint_clearance(fit.rest, faces, fit.weights, fit.joints, fit.parents, lazy=True)
-    out = posed_clearance(frames, faces, fit.rotations, fit.translations, fit.joints, np.minimum(limit, 0.02))
+    own = len(fit.parents) - sum(map(is_helper, names))
+    rot, tr, joints, parents = fit.rotations[:, :own], fit.translations[:, :own], fit.joints[:own], fit.parents[:own]
+    _, limit = joint_clearance(fit.rest, faces, family_weights(fit.weights, fit.parents, names)[:, :own], joints,
+                               parents, lazy=True)
+    out = posed_clearance(frames, faces, rot, tr, joints, np.minimum(limit, 0.02))
     out = np.where(out > np.minimum(limit, 0.02), out, 0.0)      # nearer: inside or not, within both bounds
     f, j = np.unravel_index(int(np.argmax(out)), out.shape)
-    return {"beyond_limit": int((out > limit).sum()), "beyond_2cm": int((out > 0.02).sum()), "pairs": int(out.size),
-            "worst": float(out.max()), "worst_joint": names[j], "worst_frame": int(numbers[f]),
-            "worst_by_joint": {n: float(x) for n, x in zip(names, out.max(0))},
-            "limit": {n: float(x) for n, x in zip(names, limit)}}
+    table = {"beyond_limit": int((out > limit).sum()), "beyond_2cm": int((out > 0.02).sum()), "pairs": int(out.size),
+             "worst": float(out.max()), "worst_joint": names[j], "worst_frame": int(numbers[f]),
+             "worst_by_joint": {n: float(x) for n, x in zip(names, out.max(0))},
+             "limit": {n: float(x) for n, x in zip(names, limit)}}
+    if own < len(names):
+        near = np.full(len(names) - own, 0.02)
+        hp = posed_clearance(frames, faces, fit.rotations[:, own:], fit.translations[:, own:], fit.joints[own:], near)
+        table["helpers"] = {"pairs": int(hp.size), "beyond_2cm": int((hp > 0.02).sum()), "worst": float(hp.max())}
+    return table
 
 
-def error_table(fit, numbers, diag, seconds, lengths) -> dict:
-    """The skin node's error Table: totals, and per frame (frame, rmse, max) in metres and % of diagonal."""
+def error_table(fit, numbers, diag, seconds, lengths, names=()) -> dict:
+    """The skin node's error Table: totals, and per frame (frame, rmse, max) in metres and % of diagonal; the bone
+    lengths' spread over the rig's own bones (helper bones, named so in ``names``, are free)."""
     total = float(np.sqrt((fit.rmse ** 2).mean()))
     bl = bone_lengths(fit.joints, fit.parents, fit.rotations, fit.translations)
-    child = [j for j, p in enumerate(fit.parents) if p >= 0]
+    child = [j for j, p in enumerate(fit.parents) if p >= 0 and not (names and is_helper(names[j]))]
     spread = float(np.max((bl[:, child].max(0) - bl[:, child].min(0)) / np.maximum(bl[:, child].mean(0), 1e-12))) if child else 0.0
     nnz = (fit.weights > 0).sum(1)
     return {
@@ -576,7 +623,7 @@ class Export(Node):
     params = {
         "name": Param(str, "rig", doc="file name stem"),
         "formats": Param(str, "usd,gltf", doc="which files, comma-separated: usd, gltf, bvh (the motion alone, "
-                         "+Y up, metres: rotation-only rigs, i.e. skin's lengths: fixed)"),
+                         "+Y up, metres: rotation-only rigs, i.e. skin's lengths: fixed; without skin's helper bones)"),
         "fps": FPS_PARAM,
         "influences": Param(int, 4, range=(1, 8), doc="joint influences per vertex in USD (glTF: 4)"),
         "correctives": Param(int, 0, range=(0, 1024), doc="corrective blend shapes (glTF morph targets, UsdSkel "
@@ -649,9 +696,14 @@ class Export(Node):
                 max(1, min(influences, len(rig["parents"]))), f"{name}.usd"))
         if "gltf" in formats:
             files[f"{name}.glb"] = fmt.gltf_bytes(**rig, correctives=fitted(min(4, len(rig["parents"])), f"{name}.glb"))
-        if "bvh" in formats:
+        if "bvh" in formats:      # the rig's own joints (helper bones are free leaves that skin this mesh only)
+            keep = [j for j, n in enumerate(rig["names"]) if not is_helper(n)] if rig["names"] else list(range(len(rig["parents"])))
+            at = {j: i for i, j in enumerate(keep)}
+            bones = dict(rig, joints=rig["joints"][keep], parents=[at.get(rig["parents"][j], -1) for j in keep],
+                         names=[rig["names"][j] for j in keep] if rig["names"] else [],
+                         rotations=rig["rotations"][:, keep], translations=rig["translations"][:, keep])
             try:
-                files[f"{name}.bvh"] = fmt.bvh_text(**rig).encode()
+                files[f"{name}.bvh"] = fmt.bvh_text(**bones).encode()
             except ValueError as exc:
                 raise NodeError(f"skeleton.export: {exc}") from None
         if report:

@@ -33,6 +33,11 @@ the body), so a bone that is the strongest influence of no vertex is merged into
 thickness is refused (joint_clearance). The alternation stops when one iteration lowers the rms by less
 than ``tol`` of it, or by less than ``FLOOR`` (1e-5) of the bounding-box diagonal.
 
+Helper bones (fit_helpers): a fitted rig, e.g. a humanoid template, takes free rigid bones under its own for what
+rotation-only limbs cannot follow (loose clothes): the rig's bones keep their rest joints and lengths, and LBS with
+the two together reaches what a free-bone fit with as many bones reaches (child_rope: Dem Bones' error at 19 bones
+is 1.5-2x its goal).
+
     fit = fit_skin(traj, faces, rig, influences=4, iterations=10)   # SkinFit: weights, motions, errors
 """
 from __future__ import annotations
@@ -45,6 +50,7 @@ from nodes.common.meshops import edge_length_graph
 
 from .motion import Rig, Trajectories, label_adjacency
 
+BLOCK = 1 << 24                # (vertex, bone pair) products held at once by the weights and rest steps (128 MB)
 TWIST_SCALE = 0.05             # the pose step's twist term: a radian beyond TWIST_RANGE weighs ``twist`` times a bone's
                                # vertices each off by this share of the body's size
 TWIST_RANGE = np.radians(45)   # twist of a joint against its parent that costs nothing (beyond: the term)
@@ -273,8 +279,11 @@ def fit_weights(traj: Trajectories, rot, tr, cand_of_vertex: np.ndarray, w_prev:
     # H_ab = sum_t (y_a - q).(y_b - q) = vh G_ab vh - g_a - g_b + qq   with g_a = sum_t y_a . q
     # vh G_ab vh for every bone pair (a, b) at once (one product with the vertices' outer products), then
     # each vertex's candidate pairs picked out
-    every = (vh[:, :, None] * vh[:, None, :]).reshape(v, 16) @ gram.reshape(j * j, 16).T      # (V, J J)
-    h = np.take_along_axis(every, (cs[:, :, None] * j + cs[:, None, :]).reshape(v, -1), axis=1)
+    # (in blocks of vertices when V J^2 is large: a rig with helper bones)
+    outer, pick = (vh[:, :, None] * vh[:, None, :]).reshape(v, 16), (cs[:, :, None] * j + cs[:, None, :]).reshape(v, -1)
+    step = v if v * j * j <= BLOCK else max(1, BLOCK // (j * j))
+    h = np.concatenate([np.take_along_axis(outer[s:s + step] @ gram.reshape(j * j, 16).T, pick[s:s + step], axis=1)
+                        for s in range(0, v, step)])
     h = h.reshape(v, c.shape[1], c.shape[1])
     gq = np.einsum("vac,vc->va", cross[np.arange(v)[:, None], cs], vh)     # (V, C)
     h = h - gq[:, :, None] - gq[:, None, :] + qq[:, None, None]
@@ -690,12 +699,20 @@ def fit_rest(traj: Trajectories, weights, rot, tr, anchor: np.ndarray, reg: floa
     # sum_t A_t^T q_t = sum_j w_j C_j, C_vj = sum_t R_tj^T q_vt
     f, j = rot.shape[:2]
     v = len(weights)
-    ww = (weights[:, :, None] * weights[:, None, :]).reshape(v, j * j)
     g = np.einsum("fjab,fkac->jkbc", rot, rot).reshape(j * j, 9)
     h = np.einsum("fjab,fka->jkb", rot, tr).reshape(j * j, 3)
     c = (traj.by_vertex @ rot.transpose(0, 2, 1, 3).reshape(3 * f, 3 * j)).reshape(v, j, 3)
-    lhs = (ww @ g).reshape(v, 3, 3) + reg * f * np.eye(3)
-    rhs = np.einsum("vj,vjb->vb", weights, c) - ww @ h + reg * f * anchor
+    gh = np.c_[g, h]
+    if v * j * j <= BLOCK:
+        both = (weights[:, :, None] * weights[:, None, :]).reshape(v, j * j) @ gh
+    else:       # many bones (helpers): each vertex's few non-zero weights' pairs only
+        k = int((weights > 0).sum(1).max())
+        top = np.argpartition(-weights, k - 1, axis=1)[:, :k] if k < j else np.broadcast_to(np.arange(j), (v, j))
+        wk = np.take_along_axis(weights, top, axis=1)
+        pairs = (top[:, :, None] * j + top[:, None, :]).reshape(v, k * k)
+        both = np.einsum("vp,vpc->vc", (wk[:, :, None] * wk[:, None, :]).reshape(v, k * k), gh[pairs])
+    lhs = both[:, :9].reshape(v, 3, 3) + reg * f * np.eye(3)
+    rhs = np.einsum("vj,vjb->vb", weights, c) - both[:, 9:] + reg * f * anchor
     return np.linalg.solve(lhs, rhs[..., None])[..., 0]
 
 
@@ -743,12 +760,13 @@ def repose(traj: Trajectories, faces, parents, weights, rot, tr, joints, turns, 
 
 
 # ---------------------------------------------------------------- bone motions: free (SSDR)
-def fit_poses_free(traj, weights, rot, tr):
-    """SSDR's bone update: each bone a weighted Procrustes fit to what the other bones leave unexplained."""
+def fit_poses_free(traj, weights, rot, tr, only=None):
+    """SSDR's bone update: each bone (of ``only``, default all) a weighted Procrustes fit to what the other bones
+    leave unexplained."""
     rot, tr = rot.copy(), tr.copy()
     rest, q = traj.rest, traj.frames
     pred = lbs(rest, weights, rot, tr)                                   # (F, V, 3)
-    for j in range(weights.shape[1]):
+    for j in (range(weights.shape[1]) if only is None else only):
         idx = np.flatnonzero(weights[:, j] > 1e-8)
         if len(idx) < 3:
             continue
@@ -770,6 +788,150 @@ def fit_poses_free(traj, weights, rot, tr):
         new = np.einsum("fab,vb->fva", r, rest[idx]) + t[:, None]
         pred[:, idx] = others + wj[None, :, None] * new
     return rot, tr
+
+
+# ---------------------------------------------------------------- helper bones
+HELPER = "helper_"      # a helper bone's name starts so: a free rigid bone under a template bone (fit_helpers)
+HELPER_VERTICES = 40    # a host bone gets at most one helper per this many of its vertices
+
+
+def is_helper(name: str) -> bool:
+    return name.startswith(HELPER)
+
+
+def family_weights(weights, parents, names) -> np.ndarray:
+    """(V, J) the weights with each helper bone's added to its host's (a helper is a leaf that moves under it): what
+    a body bone skins with its helpers, for the tests that speak of the body's bones (thickness, weightless)."""
+    out = np.array(weights, np.float64)
+    for h in (j for j, n in enumerate(names) if is_helper(n)):
+        out[:, parents[h]] += out[:, h]
+    return out
+
+
+def _procrustes(src, dst):
+    """Rigid (R (F, 3, 3), t (F, 3)) taking points ``src`` (V, 3) closest to ``dst`` (F, V, 3) per frame."""
+    ps, pd = src.mean(0), dst.mean(1)
+    cov = np.einsum("va,fvb->fab", src - ps, dst - pd[:, None])
+    u, _, vt = np.linalg.svd(cov)
+    d = np.sign(np.linalg.det(u) * np.linalg.det(vt))
+    vt[:, 2] *= d[:, None]
+    r = np.einsum("fba,fcb->fac", vt, u)
+    return r, pd - np.einsum("fab,b->fa", r, ps)
+
+
+def _merge_candidates(a, b):
+    """Row-wise union of two (V, C) candidate lists (-1 padded)."""
+    both = np.concatenate([a, b], axis=1)
+    both = np.sort(np.where(both < 0, np.iinfo(np.int64).max, both), axis=1)
+    dup = np.zeros_like(both, bool)
+    dup[:, 1:] = both[:, 1:] == both[:, :-1]
+    both = np.where(dup | (both == np.iinfo(np.int64).max), -1, both)
+    order = np.argsort(both < 0, axis=1, kind="stable")
+    both = np.take_along_axis(both, order, axis=1)
+    return both[:, :int((both >= 0).sum(1).max())]
+
+
+def fit_helpers(traj: Trajectories, faces, weights, rot, tr, joints, parents, names, count: int, *, influences: int,
+                smooth: float, iterations: int = 10, tol: float = 1e-3, rest_fit: bool = True, rig_poses=None, seed: int = 0,
+                log=None, progress=None):
+    """``count`` helper bones added to a fitted rig, each a free rigid bone (SSDR's, as Dem Bones moves them) under a
+    template bone (its host), for what rotation-only limbs cannot follow (loose clothes, soft tissue). Helpers go one at a time to the host whose vertices' LBS error per
+    helper is the largest (at most one per HELPER_VERTICES of its vertices); a host's vertices are clustered by what
+    LBS leaves at them over the frames (k-means, one cluster more than its helpers: the best-fitted one stays the
+    host's), each cluster's rigid motion starts a helper; then weights (over the rig's and the helpers' bones,
+    <= ``influences``), the helpers' motions, the rig's own bones' motions (``rig_poses``: fit_poses_fixed's keywords
+    (hold, targets, twist, twist_range) for rotation-only joints, refitted against what the helpers leave: lengths
+    and pivots as they were; "free": every bone as SSDR moves it; None: the rig's motion kept) and (``rest_fit``) the
+    rest shape alternate until an iteration gains less than ``tol`` (an iteration that loses is undone). A helper
+    that skins nothing is dropped; a helper's pivot is the weighted centre of the rest vertices it skins (a free
+    bone's skinning does not depend on its pivot; there, its motion carries the pivot along with its patch of
+    surface: child_rope's helpers pivoted on their host bone put 168 of 9200 posed (frame, joint) pairs of segment 0
+    beyond their bones' thickness outside the body, up to 15 cm). Returns (rest, weights, rot, tr, joints, parents,
+    names, history)."""
+    from scipy.cluster.vq import kmeans2
+
+    from nodes.common.meshops import vertex_neighbours
+
+    f, j = rot.shape[:2]
+    rest = traj.rest
+    v = len(rest)
+    res = lbs(rest, weights, rot, tr) - traj.frames                              # (F, V, 3)
+    err = (res ** 2).sum(2).sum(0)                                                # (V,) squared error over frames
+    host = np.argmax(weights, axis=1)
+    own = np.bincount(host, minlength=j)
+    share = np.bincount(host, weights=err, minlength=j)
+    cap = own // HELPER_VERTICES
+    quota = np.zeros(j, int)
+    for _ in range(count):                           # one at a time to the host with the most error per helper
+        room = quota < cap
+        if not room.any():
+            break
+        quota[np.argmax(np.where(room, share / (quota + 1), -1.0))] += 1
+    labels = host.copy()
+    new_joints, new_parents, new_names = [np.asarray(joints, np.float64)], list(parents), list(names)
+    new_rot, new_tr = [rot], [tr]
+    rng = np.random.default_rng(seed)
+    for b in np.flatnonzero(quota):
+        idx = np.flatnonzero(host == b)
+        # clusters of what LBS leaves at each vertex over the frames (child_rope's segment 1, 48 helpers: 9.6 mm rms
+        # median per frame; of the trajectories themselves 9.5, of both with the positions weighted in 9.8)
+        _, lab = kmeans2(res[:, idx].transpose(1, 0, 2).reshape(len(idx), -1), int(quota[b]) + 1, minit="++", seed=rng)
+        worst = np.argsort(-np.bincount(lab, weights=err[idx], minlength=int(quota[b]) + 1))[:int(quota[b])]
+        for k in worst:                  # the clusters with the most error; the host keeps the best-fitted one
+            members = idx[lab == k]
+            if len(members) < 3:
+                continue
+            r, t = _procrustes(rest[members], traj.frames[:, members])
+            labels[members] = len(new_parents)
+            new_joints.append(rest[members].mean(0)[None])
+            new_parents.append(int(b))
+            new_names.append(f"{HELPER}{names[b]}_{len(new_names) - len(names) + 1}")
+            new_rot.append(r[:, None])
+            new_tr.append(t[:, None])
+    helpers = list(range(j, len(new_parents)))
+    if not helpers:
+        return rest, weights, rot, tr, joints, list(parents), list(names), []
+    joints = np.concatenate(new_joints)
+    rot, tr = np.concatenate(new_rot, axis=1), np.concatenate(new_tr, axis=1)
+    total = len(new_parents)
+    w = np.zeros((v, total))
+    w[:, :j] = weights
+    _, edges = edge_length_graph(rest, faces)
+    nbr = vertex_neighbours(faces, v)
+    diag = float(np.linalg.norm(np.ptp(rest, axis=0)))
+    cand = _merge_candidates(candidates(rest, host, edges, new_parents, total, 0.03 * diag),
+                             candidates(rest, labels, edges, new_parents, total, 0.03 * diag))
+    history, prev, best = [], np.inf, None
+    anchor = traj.rest
+    for it in range(iterations):
+        w = fit_weights(traj, rot, tr, cand, w, nbr, influences=influences, smooth=smooth)
+        rot, tr = fit_poses_free(traj, w, rot, tr, only=helpers)
+        if rig_poses == "free":          # free rigid bones: every bone's motion again
+            rot, tr = fit_poses_free(traj, w, rot, tr)
+        elif rig_poses is not None:      # the rig's own bones again, rotation-only, against what the helpers leave
+            others = traj.frames - lbs(traj.rest, w[:, j:], rot[:, j:], tr[:, j:])
+            rot[:, :j], tr[:, :j] = fit_poses_fixed(Trajectories(traj.rest, others), w[:, :j], rot[:, :j], tr[:, :j],
+                                                    joints[:j], new_parents[:j], influences, **rig_poses)
+        if rest_fit:
+            traj = traj.with_rest(fit_rest(traj, w, rot, tr, anchor))
+        rmse, _ = errors(traj, w, rot, tr)
+        now = float(np.sqrt((rmse ** 2).mean()))
+        if log:
+            log(f"skin: helper bones, iteration {it + 1}/{iterations}, rms {1000 * now:.4g} mm, {len(helpers)} helpers")
+        if progress:
+            progress(it + 1, iterations, f"helper iterations, rms {1000 * now:.3g} mm")
+        if now > prev and best is not None:
+            traj, w, rot, tr = best
+            break
+        history.append(now)
+        if tol > 0 and prev - now < max(tol * prev, FLOOR * diag):
+            break
+        prev, best = now, (traj, w, rot, tr)
+    keep = list(range(j)) + [h for h in helpers if w[:, h].max() > 0]      # a helper that skins nothing goes (a leaf)
+    for h in keep[j:]:      # its pivot: the weighted centre of what it skins, which its motion carries with the surface
+        joints[h] = w[:, h] @ traj.rest / w[:, h].sum()
+    return (traj.rest, w[:, keep], rot[:, keep], tr[:, keep], joints[keep], [new_parents[b] for b in keep],
+            [new_names[b] for b in keep], history)
 
 
 # ---------------------------------------------------------------- joints stay in the body
