@@ -35,6 +35,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 from machine import describe  # noqa: E402
+from nodes.skeleton.skinning import is_helper  # noqa: E402
 from nodegraph.testing import run_node  # noqa: E402
 from nodes.synth import scenes  # noqa: E402
 
@@ -159,6 +160,10 @@ def child_rope(a):
                   f"their bones' thickness; worst {1000 * out['worst']:.0f} mm ({out['worst_joint']}, frame "
                   f"{out['worst_frame']}); "
                   f"worst joints {', '.join(f'{n} {1000 * x:.0f}' for n, x in worst)} mm")
+            if out.get("helpers"):
+                hp = out["helpers"]
+                print(f"  helper bones' pivots (the centre of the surface each skins) outside the tracked body beyond "
+                      f"2 cm: {hp['beyond_2cm']} of {hp['pairs']} (frame, helper) pairs, worst {1000 * hp['worst']:.0f} mm")
         print(f"  seconds: fit {fit_rec['seconds']:.1f}{' (a cache hit)' if fit_rec['cache_hit'] else ''} + skin "
               f"{err['seconds']:.1f} = {secs / len(rms):.2f} s per frame")
         rise = planted_ankles(sk, seq)
@@ -167,10 +172,14 @@ def child_rope(a):
                   f"within 10 cm across and nearer it than the other ankle, under 3 cm up): median {100 * np.median(rise):.1f} cm, p10 "
                   f"{100 * np.percentile(rise, 10):.1f}, p90 {100 * np.percentile(rise, 90):.1f} over {len(rise)} "
                   f"(frame, ankle) pairs (an ankle joint stands ~4.5 % of the height up: {4.5 * height:.1f} cm)")
+        if err.get("helpers"):
+            h = err["helpers"]
+            print(f"  helper bones: {h['bones']} (free rigid bones under the template's; the template alone: LBS rms "
+                  f"{1000 * h['rig_rmse']:.1f} mm over the segment, with them {1000 * h['rmse']:.1f})")
         rigs.append((sk, err))
         piv = np.einsum("jab,jb->ja", sk.rotations[0], sk.joints) + sk.translations[0]
         for j, p in enumerate(sk.parents):
-            if p >= 0:
+            if p >= 0 and not is_helper(sk.names[j]):
                 lengths.setdefault(sk.names[j], []).append(float(np.linalg.norm(piv[j] - piv[p])))
     print("bone lengths per segment, cm (the bone ending at the joint): " + ", ".join(
         f"{n} {'/'.join(f'{100 * x:.0f}' for x in v)}" for n, v in lengths.items() if len(v) > 1))
@@ -215,13 +224,16 @@ def picture(rigs, a):
         sk, err = next((sk, e) for sk, e in rigs if f in sk.frames)
         i = list(sk.frames).index(f)
         piv = np.einsum("jab,jb->ja", sk.rotations[i], sk.joints) + sk.translations[i]
+        own = [j for j, n in enumerate(sk.names) if not is_helper(n)]      # the template's joints (helpers are leaves)
+        piv, parents, names = piv[own], [own.index(sk.parents[j]) if sk.parents[j] >= 0 else -1 for j in own], \
+            [sk.names[j] for j in own]
         views = [0, len(cams.cameras) // 3, 2 * len(cams.cameras) // 3]
         tiles = []
         for v in views:
             m = np.asarray(masks.masks[v])
             img = np.dstack([(m > 0) * 90 + 40] * 3).astype(np.uint8)
             uv, _ = cams.project(piv, v)
-            draw_sides(img, uv, sk.parents, sk.names, labelled=MARK)
+            draw_sides(img, uv, parents, names, labelled=MARK)
             ys, xs = np.nonzero(m)
             lo = np.maximum([xs.min() - 60, ys.min() - 40], 0)
             hi = np.minimum([xs.max() + 60, ys.max() + 40], [m.shape[1], m.shape[0]])

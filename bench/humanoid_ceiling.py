@@ -9,7 +9,8 @@ and per segment:
   - the same template parts (fit_K) skinned again four ways, same run: rotation-only joints with the joints kept
     (the graph's skin, captured rest), with the joints as unknowns shared over frames (``pivots``), free rigid bones
     (lengths: free, as Dem Bones moves them), and py-dem-bones with 19 bones from its own clustering (30 iterations,
-    4 influences): the ceiling of a 19-bone LBS on this motion;
+    4 influences): the ceiling of a 19-bone LBS on this motion; and py-dem-bones at the graph rig's bone count when
+    its skin adds helper bones (the template and its helpers against as many free bones);
   - correctives: the residual of the graph's rig in rest space (each vertex's offset undone by its blended
     rotation), its principal components: how many per-frame corrective shapes take the rms to 1 % of the height.
 """
@@ -31,6 +32,8 @@ from machine import describe, load_average  # noqa: E402
 
 
 def region_of(name: str) -> str:
+    if name.startswith("helper_"):            # a helper bone (helper_<host>_<k>) counts in its host's region
+        name = name.removeprefix("helper_").rsplit("_", 1)[0]
     for key in ("clavicle", "shoulder", "elbow", "wrist", "hip", "knee", "ankle"):
         if name.startswith(key):
             return {"clavicle": "clavicle", "shoulder": "upper arm", "elbow": "forearm", "wrist": "hand",
@@ -58,7 +61,8 @@ def main():
     ap.add_argument("--cache", type=Path, default=ROOT / ".volcap-cache")
     ap.add_argument("--segments", default="0,1,2")
     ap.add_argument("--skip-dembones", action="store_true")
-    ap.add_argument("--skip-refits", action="store_true", help="only the graph rig's residual split")
+    ap.add_argument("--skip-refits", action="store_true", help="not the template parts skinned again (the residual "
+                    "split and Dem Bones still run)")
     a = ap.parse_args()
     print(describe())
     from nodegraph import Table
@@ -91,6 +95,7 @@ def main():
         d = np.linalg.norm(res, axis=2)
         print(f"\nsegment {k}: frames {start}..{stop - 1} ({len(frames)}), {frames.shape[1]} vertices, {len(sk.names)} "
               f"bones; the graph's rig (T pose): rms {1000 * rms(d):.1f} mm (node's table: {1000 * err['rmse']:.1f})")
+        report_fit(f"the graph's rig ({len(sk.names)} bones)", pred, frames, err["seconds"], height)
         strongest = np.argmax(w, axis=1)
         region = np.array([region_of(sk.names[b]) for b in strongest])
         total = float((d ** 2).sum())
@@ -129,37 +134,38 @@ def main():
             line.append(f"{c}: {1000 * rms(dd):.1f} / {1000 * np.median(dd.max(1)):.0f}")
         print("  correctives (mean + c principal shapes of the rest-space residual, per-frame coefficients): "
               "c: rms / median max per frame mm: " + "; ".join(line))
-        if a.skip_refits:
-            continue
-        print("  the same motion, skinned again (captured rest, 4 influences):")
-        traj = Trajectories(frames[0], frames)
-        labels = np.argmax(np.asarray(fit.weights), axis=1)
-        rig = Rig(np.asarray(fit.joints, np.float64), list(fit.parents), list(fit.names), np.asarray(fit.rotations),
-                  np.asarray(fit.translations), labels, np.zeros(len(fit.parents)), np.zeros(len(fit.parents)))
-        one = np.zeros((len(labels), len(fit.parents)))
-        one[np.arange(len(labels)), labels] = 1
-        report_fit("template parts, rigid (fit's motion)", lbs(frames[0], one, rig.rotations, rig.translations), frames,
-                   0.0, height)
-        for label, kw in (("joints kept (the graph's skin)", dict(pivots=False, merge=False)),
-                          ("joints as unknowns (pivots)", dict(pivots=True, merge=False)),
-                          ("free rigid bones (Dem Bones' step)", dict(fixed_lengths=False, merge=False))):
-            t0 = time.perf_counter()
-            f = fit_skin(traj, faces, rig, **kw)
-            dd = report_fit(label, lbs(f.rest, f.weights, f.rotations, f.translations), frames,
-                            time.perf_counter() - t0, height, f"({len(f.history)} its)")
-            if kw.get("pivots"):
-                moved = np.linalg.norm(f.joints - rig.joints, axis=1)
-                print("    joints moved cm: " + ", ".join(f"{n} {100 * m:.1f}" for n, m in zip(fit.names, moved)))
+        if not a.skip_refits:
+            print("  the same motion, skinned again (captured rest, 4 influences):")
+            traj = Trajectories(frames[0], frames)
+            labels = np.argmax(np.asarray(fit.weights), axis=1)
+            rig = Rig(np.asarray(fit.joints, np.float64), list(fit.parents), list(fit.names), np.asarray(fit.rotations),
+                      np.asarray(fit.translations), labels, np.zeros(len(fit.parents)), np.zeros(len(fit.parents)))
+            one = np.zeros((len(labels), len(fit.parents)))
+            one[np.arange(len(labels)), labels] = 1
+            report_fit("template parts, rigid (fit's motion)", lbs(frames[0], one, rig.rotations, rig.translations), frames,
+                       0.0, height)
+            for label, kw in (("joints kept (the graph's skin)", dict(pivots=False, merge=False)),
+                              ("joints as unknowns (pivots)", dict(pivots=True, merge=False)),
+                              ("free rigid bones (Dem Bones' step)", dict(fixed_lengths=False, merge=False))):
+                t0 = time.perf_counter()
+                f = fit_skin(traj, faces, rig, **kw)
+                dd = report_fit(label, lbs(f.rest, f.weights, f.rotations, f.translations), frames,
+                                time.perf_counter() - t0, height, f"({len(f.history)} its)")
+                if kw.get("pivots"):
+                    moved = np.linalg.norm(f.joints - rig.joints, axis=1)
+                    print("    joints moved cm: " + ", ".join(f"{n} {100 * m:.1f}" for n, m in zip(fit.names, moved)))
         if not a.skip_dembones:
             import py_dem_bones as pdb
 
-            t0 = time.perf_counter()
-            r = pdb.solve_skinning(frames[0], frames, len(fit.parents), faces=faces, max_influences=4, iterations=30)
-            wd, m = r.weights.T, r.transforms
-            pred = (np.einsum("vb,fbij,vj->fvi", wd, m[:, :, :3, :3], frames[0], optimize=True)
-                    + np.einsum("vb,fbi->fvi", wd, m[:, :, :3, 3]))
-            report_fit(f"py-dem-bones, {len(fit.parents)} bones, 30 its", pred, frames, time.perf_counter() - t0, height,
-                       f"({wd.shape[1]} bones returned)")
+            # the template's bone count, and the graph's rig's (the template and its helper bones) where that differs
+            for bones in dict.fromkeys((len(fit.parents), len(sk.names))):
+                t0 = time.perf_counter()
+                r = pdb.solve_skinning(frames[0], frames, bones, faces=faces, max_influences=4, iterations=30)
+                wd, m = r.weights.T, r.transforms
+                pred = (np.einsum("vb,fbij,vj->fvi", wd, m[:, :, :3, :3], frames[0], optimize=True)
+                        + np.einsum("vb,fbi->fvi", wd, m[:, :, :3, 3]))
+                report_fit(f"py-dem-bones, {bones} bones, 30 its", pred, frames, time.perf_counter() - t0, height,
+                           f"({wd.shape[1]} bones returned)")
     print(f"load average at the end: {load_average()}")
 
 
