@@ -699,6 +699,10 @@ class Export(Node):
         if "bvh" in formats:      # the rig's own joints (helper bones are free leaves that skin this mesh only)
             keep = [j for j, n in enumerate(rig["names"]) if not is_helper(n)] if rig["names"] else list(range(len(rig["parents"])))
             at = {j: i for i, j in enumerate(keep)}
+            under = [rig["names"][j] for j in keep if rig["parents"][j] >= 0 and rig["parents"][j] not in at]
+            if under:
+                raise NodeError(f"skeleton.export: joint(s) {', '.join(under)} hang under a helper bone (helper_...): "
+                                "a helper is a leaf; rename the joints or their parents")
             bones = dict(rig, joints=rig["joints"][keep], parents=[at.get(rig["parents"][j], -1) for j in keep],
                          names=[rig["names"][j] for j in keep] if rig["names"] else [],
                          rotations=rig["rotations"][:, keep], translations=rig["translations"][:, keep])

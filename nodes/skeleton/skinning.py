@@ -42,6 +42,7 @@ is 1.5-2x its goal).
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -140,8 +141,18 @@ def solve_simplex_qp(h: np.ndarray, g: np.ndarray, allowed: np.ndarray, w0: np.n
 
 
 def _kkt_solve(hr, g, sup):
-    """Minimiser of w^T h w - 2 g^T w subject to sum w = 1 and w = 0 off ``sup`` (batched KKT systems)."""
+    """Minimiser of w^T h w - 2 g^T w subject to sum w = 1 and w = 0 off ``sup`` (batched KKT systems), each on its
+    support: the bones of a support taken first, the systems as wide as the widest support (a vertex has a few of
+    its 10-30 candidates on: a system of all of them costs (30 / 6)^3 times more)."""
     n, k = g.shape
+    m = int(sup.sum(1).max()) if n else 0
+    if 0 < m < k:
+        order = np.argsort(~sup, axis=1, kind="stable")[:, :m]           # each support's bones first
+        z = _kkt_solve(np.take_along_axis(np.take_along_axis(hr, order[:, :, None], axis=1), order[:, None, :], axis=2),
+                       np.take_along_axis(g, order, axis=1), np.take_along_axis(sup, order, axis=1))
+        out = np.zeros((n, k))
+        np.put_along_axis(out, order, z, axis=1)
+        return out
     kkt = np.zeros((n, k + 1, k + 1))
     kkt[:, :k, :k] = hr * (sup[:, :, None] & sup[:, None, :]) + (~sup)[:, :, None] * np.eye(k)
     kkt[:, :k, k] = sup
@@ -703,14 +714,18 @@ def fit_rest(traj: Trajectories, weights, rot, tr, anchor: np.ndarray, reg: floa
     h = np.einsum("fjab,fka->jkb", rot, tr).reshape(j * j, 3)
     c = (traj.by_vertex @ rot.transpose(0, 2, 1, 3).reshape(3 * f, 3 * j)).reshape(v, j, 3)
     gh = np.c_[g, h]
-    if v * j * j <= BLOCK:
-        both = (weights[:, :, None] * weights[:, None, :]).reshape(v, j * j) @ gh
-    else:       # many bones (helpers): each vertex's few non-zero weights' pairs only
-        k = int((weights > 0).sum(1).max())
-        top = np.argpartition(-weights, k - 1, axis=1)[:, :k] if k < j else np.broadcast_to(np.arange(j), (v, j))
+    k = int((weights > 0).sum(1).max()) if v else 0
+    if v * j * j <= BLOCK or 12 * k * k >= j * j:          # every bone pair, in blocks of vertices when large
+        step = v if v * j * j <= BLOCK else max(1, BLOCK // (j * j))
+        both = np.concatenate([(weights[s:s + step, :, None] * weights[s:s + step, None, :]).reshape(-1, j * j) @ gh
+                               for s in range(0, v, step)])
+    else:       # many bones (helpers): each vertex's few non-zero weights' pairs only, in blocks of vertices
+        top = np.argpartition(-weights, k - 1, axis=1)[:, :k]
         wk = np.take_along_axis(weights, top, axis=1)
         pairs = (top[:, :, None] * j + top[:, None, :]).reshape(v, k * k)
-        both = np.einsum("vp,vpc->vc", (wk[:, :, None] * wk[:, None, :]).reshape(v, k * k), gh[pairs])
+        ww = (wk[:, :, None] * wk[:, None, :]).reshape(v, k * k)
+        step = max(1, BLOCK // (12 * k * k))
+        both = np.concatenate([np.einsum("vp,vpc->vc", ww[s:s + step], gh[pairs[s:s + step]]) for s in range(0, v, step)])
     lhs = both[:, :9].reshape(v, 3, 3) + reg * f * np.eye(3)
     rhs = np.einsum("vj,vjb->vb", weights, c) - both[:, 9:] + reg * f * anchor
     return np.linalg.solve(lhs, rhs[..., None])[..., 0]
@@ -837,8 +852,8 @@ def fit_helpers(traj: Trajectories, faces, weights, rot, tr, joints, parents, na
     """``count`` helper bones added to a fitted rig, each a free rigid bone (SSDR's, as Dem Bones moves them) under a
     template bone (its host), for what rotation-only limbs cannot follow (loose clothes, soft tissue). Helpers go one at a time to the host whose vertices' LBS error per
     helper is the largest (at most one per HELPER_VERTICES of its vertices); a host's vertices are clustered by what
-    LBS leaves at them over the frames (k-means, one cluster more than its helpers: the best-fitted one stays the
-    host's), each cluster's rigid motion starts a helper; then weights (over the rig's and the helpers' bones,
+    LBS leaves at them over the frames (k-means, one cluster more than its helpers: the one with the least error in
+    all stays the host's; empty ones give no helper), each cluster's rigid motion starts a helper; then weights (over the rig's and the helpers' bones,
     <= ``influences``), the helpers' motions, the rig's own bones' motions (``rig_poses``: fit_poses_fixed's keywords
     (hold, targets, twist, twist_range) for rotation-only joints, refitted against what the helpers leave: lengths
     and pivots as they were; "free": every bone as SSDR moves it; None: the rig's motion kept) and (``rest_fit``) the
@@ -875,9 +890,17 @@ def fit_helpers(traj: Trajectories, faces, weights, rot, tr, joints, parents, na
         idx = np.flatnonzero(host == b)
         # clusters of what LBS leaves at each vertex over the frames (child_rope's segment 1, 48 helpers: 9.6 mm rms
         # median per frame; of the trajectories themselves 9.5, of both with the positions weighted in 9.8)
-        _, lab = kmeans2(res[:, idx].transpose(1, 0, 2).reshape(len(idx), -1), int(quota[b]) + 1, minit="++", seed=rng)
-        worst = np.argsort(-np.bincount(lab, weights=err[idx], minlength=int(quota[b]) + 1))[:int(quota[b])]
-        for k in worst:                  # the clusters with the most error; the host keeps the best-fitted one
+        with warnings.catch_warnings():                # an empty cluster: fewer helpers here
+            warnings.simplefilter("ignore")
+            _, lab = kmeans2(res[:, idx].transpose(1, 0, 2).reshape(len(idx), -1), int(quota[b]) + 1, minit="++",
+                             seed=rng)
+        size = np.bincount(lab, minlength=int(quota[b]) + 1)
+        total = np.bincount(lab, weights=err[idx], minlength=len(size))
+        found = np.flatnonzero(size > 0)
+        found = found[np.argsort(-total[found], kind="stable")]
+        # the cluster with the least error in all stays the host's (child_rope, 96 helpers: frames within both goals
+        # 186 of 200; the least error per vertex instead, which leaves the host a large well-fitted part: 174)
+        for k in found[:-1]:
             members = idx[lab == k]
             if len(members) < 3:
                 continue
@@ -901,7 +924,8 @@ def fit_helpers(traj: Trajectories, faces, weights, rot, tr, joints, parents, na
     diag = float(np.linalg.norm(np.ptp(rest, axis=0)))
     cand = _merge_candidates(candidates(rest, host, edges, new_parents, total, 0.03 * diag),
                              candidates(rest, labels, edges, new_parents, total, 0.03 * diag))
-    history, prev, best = [], np.inf, None
+    rmse, _ = errors(traj, w, rot, tr)                 # the rig alone (helpers at 0): an iteration must beat it
+    history, prev, best = [], float(np.sqrt((rmse ** 2).mean())), (traj, w, rot, tr)
     anchor = traj.rest
     for it in range(iterations):
         w = fit_weights(traj, rot, tr, cand, w, nbr, influences=influences, smooth=smooth)
@@ -920,7 +944,7 @@ def fit_helpers(traj: Trajectories, faces, weights, rot, tr, joints, parents, na
             log(f"skin: helper bones, iteration {it + 1}/{iterations}, rms {1000 * now:.4g} mm, {len(helpers)} helpers")
         if progress:
             progress(it + 1, iterations, f"helper iterations, rms {1000 * now:.3g} mm")
-        if now > prev and best is not None:
+        if now > prev:
             traj, w, rot, tr = best
             break
         history.append(now)

@@ -1853,6 +1853,7 @@ def test_skin_helper_bones_take_what_the_limbs_cannot_follow(tmp_path):
     assert back["names"] == sk.names[:3] and back["parents"] == list(sk.parents[:3])
     world = formats.world_transforms(np.asarray(sk.joints), np.asarray(sk.rotations), np.asarray(sk.translations))
     np.testing.assert_allclose(back["positions"], world[:, :3, :3, 3], atol=1e-5)
+    assert err["twist"]["pairs"] == 12 * 2            # the body's joints only (helpers have no twist range)
     # free bones (Dem Bones' way): the helpers beside them, every bone's motion refitted
     free = run_node("skin", {"sequence": ms, "skeleton": a["skeleton"]}, {"helpers": 2, "lengths": "free"})["error"]
     plain_free = run_node("skin", {"sequence": ms, "skeleton": a["skeleton"]}, {"lengths": "free"})["error"]
@@ -1881,3 +1882,27 @@ def test_rest_and_weight_steps_in_blocks_as_whole(monkeypatch):
     np.testing.assert_allclose(skinning.fit_rest(traj, w, rot, tr, rest), whole_rest, atol=1e-12)
     np.testing.assert_allclose(skinning.fit_weights(traj, rot, tr, cand, w, nbr, influences=4, smooth=0.0), whole_w,
                                atol=1e-9)
+
+
+def test_helper_bones_family_weights_and_a_bvh_without_them():
+    names, parents = ["root", "helper_root_1", "bone", "helper_bone_2"], [-1, 0, 0, 2]
+    w = np.array([[0.4, 0.5, 0.1, 0.0], [0.1, 0.0, 0.3, 0.6]])
+    fam = skinning.family_weights(w, parents, names)
+    np.testing.assert_allclose(fam, [[0.9, 0.5, 0.1, 0.0], [0.1, 0.0, 0.9, 0.6]])
+    # a helper in the middle of the list: the BVH keeps the body's joints, each under its own parent
+    f = 3
+    joints = np.array([[0.0, 0, 0], [0.1, 0, 0.2], [0, 0, 0.5], [0.1, 0, 0.7]])
+    rot = np.broadcast_to(np.eye(3), (f, 4, 3, 3)).copy()
+    tr = np.zeros((f, 4, 3))
+    tr[:, 1] = [[0, 0.05 * t, 0] for t in range(f)]        # the helper slides: free
+    verts, faces = np.array([[0.0, 0, 0], [0, 0.1, 0], [0, 0, 0.5], [0.1, 0, 0.5]]), np.array([[0, 1, 2], [1, 3, 2]])
+    names = ["root", "helper_root_1", "bone", "tip"]         # the tip's parent moves from 2 to 1 in the BVH
+    sk = SkeletonData(joints, parents, names, np.array([[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]),
+                      rot, tr, list(range(f)))
+    rest = trimesh.Trimesh(verts, faces, process=False)
+    text = run_node("skeleton.export", {"skeleton": sk, "rest": rest}, {"name": "h", "formats": "bvh"})["files"]["h.bvh"]
+    back = formats.read_bvh(text.decode())
+    assert back["names"] == ["root", "bone", "tip"] and back["parents"] == [-1, 0, 1]
+    bad = SkeletonData(joints, [-1, 0, 1, 2], names, sk.weights, rot, tr, list(range(f)))    # the bone under a helper
+    with pytest.raises(NodeError, match="hang under a helper"):
+        run_node("skeleton.export", {"skeleton": bad, "rest": rest}, {"name": "h", "formats": "bvh"})
