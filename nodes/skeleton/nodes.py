@@ -483,8 +483,7 @@ class Skin(Node):
         rest, w, rot, tr, joints, parents, names, history = fit_helpers(
             traj, faces, fit.weights, fit.rotations, fit.translations, fit.joints, fit.parents, names, count,
             influences=influences, smooth=smooth, iterations=iterations, tol=tol, rest_fit=rest_fit, rig_poses=poses,
-            log=self.log.info,
-            progress=self.progress)
+            log=self.log.info, progress=self.progress)
         rmse, mx = errors(traj.with_rest(rest), w, rot, tr)
         self.log.info("skin: %d helper bones: LBS rms %.4g -> %.4g mm", len(parents) - len(fit.parents),
                       1000 * np.sqrt((fit.rmse ** 2).mean()), 1000 * np.sqrt((rmse ** 2).mean()))
@@ -697,7 +696,8 @@ class Export(Node):
         if "gltf" in formats:
             files[f"{name}.glb"] = fmt.gltf_bytes(**rig, correctives=fitted(min(4, len(rig["parents"])), f"{name}.glb"))
         if "bvh" in formats:      # the rig's own joints (helper bones are free leaves that skin this mesh only)
-            keep = [j for j, n in enumerate(rig["names"]) if not is_helper(n)] if rig["names"] else list(range(len(rig["parents"])))
+            keep = ([j for j, n in enumerate(rig["names"]) if not is_helper(n)] if rig["names"]
+                    else list(range(len(rig["parents"]))))
             at = {j: i for i, j in enumerate(keep)}
             under = [rig["names"][j] for j in keep if rig["parents"][j] >= 0 and rig["parents"][j] not in at]
             if under:

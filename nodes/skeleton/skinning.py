@@ -725,7 +725,8 @@ def fit_rest(traj: Trajectories, weights, rot, tr, anchor: np.ndarray, reg: floa
         pairs = (top[:, :, None] * j + top[:, None, :]).reshape(v, k * k)
         ww = (wk[:, :, None] * wk[:, None, :]).reshape(v, k * k)
         step = max(1, BLOCK // (12 * k * k))
-        both = np.concatenate([np.einsum("vp,vpc->vc", ww[s:s + step], gh[pairs[s:s + step]]) for s in range(0, v, step)])
+        both = np.concatenate([np.einsum("vp,vpc->vc", ww[s:s + step], gh[pairs[s:s + step]])
+                               for s in range(0, v, step)])
     lhs = both[:, :9].reshape(v, 3, 3) + reg * f * np.eye(3)
     rhs = np.einsum("vj,vjb->vb", weights, c) - both[:, 9:] + reg * f * anchor
     return np.linalg.solve(lhs, rhs[..., None])[..., 0]
@@ -847,22 +848,24 @@ def _merge_candidates(a, b):
 
 
 def fit_helpers(traj: Trajectories, faces, weights, rot, tr, joints, parents, names, count: int, *, influences: int,
-                smooth: float, iterations: int = 10, tol: float = 1e-3, rest_fit: bool = True, rig_poses=None, seed: int = 0,
-                log=None, progress=None):
+                smooth: float, iterations: int = 10, tol: float = 1e-3, rest_fit: bool = True, rig_poses=None,
+                seed: int = 0, log=None, progress=None):
     """``count`` helper bones added to a fitted rig, each a free rigid bone (SSDR's, as Dem Bones moves them) under a
-    template bone (its host), for what rotation-only limbs cannot follow (loose clothes, soft tissue). Helpers go one at a time to the host whose vertices' LBS error per
-    helper is the largest (at most one per HELPER_VERTICES of its vertices); a host's vertices are clustered by what
-    LBS leaves at them over the frames (k-means, one cluster more than its helpers: the one with the least error in
-    all stays the host's; empty ones give no helper), each cluster's rigid motion starts a helper; then weights (over the rig's and the helpers' bones,
-    <= ``influences``), the helpers' motions, the rig's own bones' motions (``rig_poses``: fit_poses_fixed's keywords
-    (hold, targets, twist, twist_range) for rotation-only joints, refitted against what the helpers leave: lengths
-    and pivots as they were; "free": every bone as SSDR moves it; None: the rig's motion kept) and (``rest_fit``) the
-    rest shape alternate until an iteration gains less than ``tol`` (an iteration that loses is undone). A helper
-    that skins nothing is dropped; a helper's pivot is the weighted centre of the rest vertices it skins (a free
-    bone's skinning does not depend on its pivot; there, its motion carries the pivot along with its patch of
-    surface: child_rope's helpers pivoted on their host bone put 168 of 9200 posed (frame, joint) pairs of segment 0
-    beyond their bones' thickness outside the body, up to 15 cm). Returns (rest, weights, rot, tr, joints, parents,
-    names, history)."""
+    template bone (its host), for what rotation-only limbs cannot follow (loose clothes, soft tissue).
+
+    Helpers go one at a time to the host whose vertices' LBS error per helper is the largest (at most one per
+    HELPER_VERTICES of its vertices). A host's vertices are clustered by what LBS leaves at them over the frames
+    (k-means, one cluster more than its helpers: the one with the least error in all stays the host's; an empty one
+    gives no helper); each other cluster's rigid motion starts a helper. Then weights (over the rig's and the
+    helpers' bones, <= ``influences``), the helpers' motions, the rig's own bones' motions (``rig_poses``:
+    fit_poses_fixed's keywords (hold, targets, twist, twist_range) for rotation-only joints, refitted against what
+    the helpers leave, lengths and pivots as they were; "free": every bone as SSDR moves it; None: the rig's motion
+    kept) and (``rest_fit``) the rest shape alternate until an iteration gains less than ``tol``; an iteration that
+    loses (the first one against the rig alone) is undone. A helper that skins nothing is dropped; a helper's pivot
+    is the weighted centre of the rest vertices it skins (a free bone's skinning does not depend on its pivot; there
+    its motion carries the pivot along with its patch of surface: child_rope's helpers pivoted on their host bone put
+    168 of 9200 posed (frame, joint) pairs of segment 0 beyond their bones' thickness outside the body, up to 15 cm).
+    Returns (rest, weights, rot, tr, joints, parents, names, history)."""
     from scipy.cluster.vq import kmeans2
 
     from nodes.common.meshops import vertex_neighbours
@@ -899,7 +902,7 @@ def fit_helpers(traj: Trajectories, faces, weights, rot, tr, joints, parents, na
         found = np.flatnonzero(size > 0)
         found = found[np.argsort(-total[found], kind="stable")]
         # the cluster with the least error in all stays the host's (child_rope, 96 helpers: frames within both goals
-        # 186 of 200; the least error per vertex instead, which leaves the host a large well-fitted part: 174)
+        # 185 of 200; the least error per vertex instead, which leaves the host a large well-fitted part: 174)
         for k in found[:-1]:
             members = idx[lab == k]
             if len(members) < 3:
@@ -952,7 +955,7 @@ def fit_helpers(traj: Trajectories, faces, weights, rot, tr, joints, parents, na
             break
         prev, best = now, (traj, w, rot, tr)
     keep = list(range(j)) + [h for h in helpers if w[:, h].max() > 0]      # a helper that skins nothing goes (a leaf)
-    for h in keep[j:]:      # its pivot: the weighted centre of what it skins, which its motion carries with the surface
+    for h in keep[j:]:      # its pivot: the weighted centre of what it skins (its motion carries it with the surface)
         joints[h] = w[:, h] @ traj.rest / w[:, h].sum()
     return (traj.rest, w[:, keep], rot[:, keep], tr[:, keep], joints[keep], [new_parents[b] for b in keep],
             [new_names[b] for b in keep], history)
