@@ -60,8 +60,12 @@ REPS = 5
 
 
 def extraction(name, mesh, keys=None):
-    import kimimaro
-    import skeletor
+    try:
+        import kimimaro
+        import skeletor
+    except ImportError as exc:      # the peers are the bench extra's (pyproject.toml), not setup.sh's
+        raise SystemExit(f"bench/skeleton.py: the extraction's peers are missing ({exc.name}): "
+                         "pip install 'kimimaro>=4.0' 'skeletor>=1.3' (pyproject's bench extra), or --skin-only") from None
     import trimesh
     from scipy.spatial import cKDTree
 
