@@ -28,7 +28,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from machine import describe, load_average  # noqa: E402
+from machine import describe  # noqa: E402
 
 
 def region_of(name: str) -> str:
@@ -166,7 +166,7 @@ def main():
                         + np.einsum("vb,fbi->fvi", wd, m[:, :, :3, 3]))
                 report_fit(f"py-dem-bones, {bones} bones, 30 its", pred, frames, time.perf_counter() - t0, height,
                            f"({wd.shape[1]} bones returned)")
-    print(f"load average at the end: {load_average()}")
+    print("at the end: " + describe())
 
 
 if __name__ == "__main__":
