@@ -667,6 +667,46 @@ def test_real_thu_wd_human_leave_one_out(data_dir):
 
 
 @pytest.mark.slow
+@pytest.mark.realdata
+def test_real_templeSR_carved_geometry_is_what_a_camera_between_two_others_sees(data_dir):
+    """graphs/datasets/middlebury_templeSR_textured.yaml's geometry, held out: a sparse ring (16 views, the
+    nearest to any camera 23 degrees away), where the visual hull stands off the temple and every camera paints it
+    with its own parallax. The hull carved to its photo hull from the other 15 cameras (never the held-out one),
+    then photo, brings the layers' render at the held-out camera nearer its photo than on the hull, on the pixels
+    all three meshes cover."""
+    from nodes.common.meshops import vertex_normals
+    from nodes.common.types import MaskSet
+    from nodes.mesh.photo import photo_offsets
+
+    cap = run_node("capture", {}, {"path": str(data_dir / "middlebury_templeSR")})
+    masks = run_node("key.threshold", {"images": cap["images"]}, {"threshold": 0.19, "dilate": 10, "erode": 7})["masks"]
+    cams = cap["cameras"]
+    vol = run_node("hull", {"masks": masks, "cameras": cams}, {
+        "resolution": 128, "bbox": [-0.047606, -0.031878, -0.063887, 0.054817, 0.043303, 0.096277]})["volume"]
+    held = 9
+    keep = [i for i in range(len(cams)) if i != held]
+    sub = Cameras([cams[i] for i in keep])
+    imgs = [cap["images"].images[i] for i in keep]
+    msk = [masks.masks[i] for i in keep]
+    carved = run_node("carve.space_carving", {"volume": vol, "images": ImageSet(imgs), "masks": MaskSet(msk),
+                                              "cameras": sub})["volume"]
+    hull_mesh = run_node("mc", {"volume": vol}, {"largest": True})["mesh"]
+    carved_mesh = run_node("mc", {"volume": carved}, {"largest": True})["mesh"]
+    cv = np.asarray(carved_mesh.vertices, np.float64)
+    ph = photo_offsets(cv, carved_mesh.faces, imgs, msk, sub)
+    refined = cv + ph.offsets[:, None] * vertex_normals(cv, carved_mesh.faces)
+    photo, mask = cap["images"].images[held], masks.masks[held] > 127
+    renders = []
+    for v, f in ((hull_mesh.vertices, hull_mesh.faces), (cv, carved_mesh.faces), (refined, carved_mesh.faces)):
+        r = texture_mesh(v, f, imgs, msk, sub, Settings(size=1024, layers=6))
+        renders.append(render_layers(v, f, r.atlas.uv01(), r.texture, r.views, cams, held))
+    sel = mask & renders[0][1] & renders[1][1] & renders[2][1]
+    hull_db, carved_db, refined_db = (psnr(img, photo, sel) for img, _ in renders)
+    # measured 16.43 / 17.35 / 18.04 dB (Intel Xeon, PoCL 3.1)
+    assert carved_db > hull_db + 0.5 and refined_db > carved_db + 0.4, (hull_db, carved_db, refined_db)
+
+
+@pytest.mark.slow
 def test_atlas_charts_do_not_overlap_and_use_the_square():
     from nodes.synth import scenes
     from nodes.texture.atlas import atlas_stats
