@@ -305,23 +305,29 @@ def pack_charts(local_uv, chart, size: int, gutter: int = 2):
 
 
 def hidden_faces(face_uv, chart, chart_dir, vertices, faces, texel_face) -> np.ndarray:
-    """(F,) bool: faces whose centroid (texel coordinates) lies inside another face of the same chart that stands
-    further out along the chart's direction: the back side of a fold the orthographic projection laid under its
-    front. ``texel_face`` is the atlas's raster (bake.uv_raster: a face per texel centre), which names the
-    candidate at each centroid; the test itself is exact (barycentric, 1 % inside the other face)."""
+    """(F,) bool: of two faces of one chart where one's centroid or one of three points towards its corners
+    (texel coordinates) lies inside the other, the one further back along the chart's direction: the back side
+    of a fold the orthographic projection laid under its front. ``texel_face`` is the layout's raster
+    (bake.uv_raster: a face per texel centre), which names the candidate at each point; the test itself is exact
+    (barycentric, 1 % inside the other face)."""
     uv = np.asarray(face_uv, np.float64)
     size = texel_face.shape[0]
-    c = uv.mean(axis=1)                                            # (F, 2)
-    tx = np.clip(np.floor(c[:, 0]).astype(np.int64), 0, size - 1)
-    ty = np.clip(np.floor(c[:, 1]).astype(np.int64), 0, size - 1)
+    nf = len(uv)
+    # the centroid and three points towards the corners (barycentric 2/3, 1/6, 1/6): a fold's border faces lie
+    # partly under the front, often not at their centroid
+    w = np.array([[1 / 3, 1 / 3, 1 / 3], [2 / 3, 1 / 6, 1 / 6], [1 / 6, 2 / 3, 1 / 6], [1 / 6, 1 / 6, 2 / 3]])
+    pts = np.einsum("pc,fcd->pfd", w, uv).reshape(-1, 2)          # (4 F, 2)
+    own = np.tile(np.arange(nf), len(w))
+    tx = np.clip(np.floor(pts[:, 0]).astype(np.int64), 0, size - 1)
+    ty = np.clip(np.floor(pts[:, 1]).astype(np.int64), 0, size - 1)
     g = texel_face[ty, tx].astype(np.int64)
-    f = np.flatnonzero((g >= 0) & (g != np.arange(len(uv))))
-    g = g[f]
-    f, g = f[chart[f] == chart[g]], g[chart[f] == chart[g]]
+    k = np.flatnonzero((g >= 0) & (g != own))
+    f, g, p = own[k], g[k], pts[k]
+    same = chart[f] == chart[g]
+    f, g, p = f[same], g[same], p[same]
     a, b, d = uv[g, 0], uv[g, 1], uv[g, 2]
     area = (b[:, 0] - a[:, 0]) * (d[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (d[:, 0] - a[:, 0])
     ok = np.abs(area) > 1e-12
-    p = c[f]
     safe = np.where(ok, area, 1.0)
     w0 = ((d[:, 0] - b[:, 0]) * (p[:, 1] - b[:, 1]) - (d[:, 1] - b[:, 1]) * (p[:, 0] - b[:, 0])) / safe
     w1 = ((a[:, 0] - d[:, 0]) * (p[:, 1] - d[:, 1]) - (a[:, 1] - d[:, 1]) * (p[:, 0] - d[:, 0])) / safe
@@ -331,7 +337,7 @@ def hidden_faces(face_uv, chart, chart_dir, vertices, faces, texel_face) -> np.n
     fc = np.asarray(faces, np.int64)
     depth = np.einsum("fd,fd->f", v[fc].mean(axis=1), np.asarray(chart_dir)[chart])   # further out = larger
     back = np.where(depth[f] < depth[g], f, g)
-    hidden = np.zeros(len(uv), bool)
+    hidden = np.zeros(nf, bool)
     hidden[back] = True
     return hidden
 
