@@ -5,8 +5,8 @@ camera i, render it into camera i, compare with the real photo inside mask_i and
                                  [--rows baselines,layers,in-sample,...] [--photo-search 0.01]
 
 Meshes come from the dataset graphs (graphs/datasets/*.yaml; the synthetic scene: graphs/demo.yaml frame 0),
-run through the CLI into a cache. The *_carved sets take the sparse sets' textured graphs' hull and carve it to its
-photo hull for each held-out camera from the other cameras alone (carving reads colours: the held-out photo must
+run through the CLI into a cache. The *_carved sets take the sparse sets' hull (as their textured graphs make it)
+and carve it to its photo hull for each held-out camera from the other cameras alone (carving reads colours: the held-out photo must
 not shape the mesh it is scored on; the hull itself, like every set's, is made from all silhouettes). Methods, all on the same mesh and the same held-out cameras:
   vertex colours   per-vertex mean of the views that see the vertex (z-buffer) inside their mask
   cos^2 mean       the same weighted by cos^2 of the viewing angle (vertex normals), masks eroded by 2 px
@@ -60,14 +60,15 @@ DATASETS = {  # graph, mesh node, masks node (port 'masks'), images node (port '
     "oxford_dino": ("graphs/datasets/oxford_dino.yaml", "mesh", "masks", "capture", "capture"),
     "nerf_lego": ("graphs/datasets/nerf_lego.yaml", "mesh", "capture", "capture", "capture"),
     "middlebury_dinoSR": ("graphs/datasets/middlebury_dinoSR.yaml", "mesh", "key", "capture", "capture"),
-    # the sparse sets' textured graphs: the hull carved to its photo hull (carve.space_carving, then mc). Carving
-    # reads colours, so for each held-out camera the graph's hull is carved again from the other cameras alone
-    # (the graph's carve params: the defaults); the held-out photo never shapes the mesh it is scored on
-    "middlebury_templeSR_carved": ("graphs/datasets/middlebury_templeSR_textured.yaml", "mesh", "key", "capture",
-                                   "capture", "hull"),
-    "nerf_lego_carved": ("graphs/datasets/nerf_lego_textured.yaml", "mesh", "capture", "capture", "capture", "hull"),
-    "middlebury_dinoSR_carved": ("graphs/datasets/middlebury_dinoSR_textured.yaml", "mesh", "key", "capture",
-                                 "capture", "hull"),
+    # the geometry of the sparse sets' textured graphs (graphs/datasets/*_textured.yaml): the hull (the same key
+    # and hull as the plain graphs here) carved to its photo hull (carve.space_carving, then mc). Carving reads
+    # colours, so for each held-out camera the hull is carved again from the other cameras alone (the textured
+    # graphs' carve params: the defaults); the held-out photo never shapes the mesh it is scored on
+    "middlebury_templeSR_carved": ("graphs/datasets/middlebury_templeSR.yaml", "mesh", "key", "capture", "capture",
+                                   "hull"),
+    "nerf_lego_carved": ("graphs/datasets/nerf_lego.yaml", "mesh", "capture", "capture", "capture", "hull"),
+    "middlebury_dinoSR_carved": ("graphs/datasets/middlebury_dinoSR.yaml", "mesh", "key", "capture", "capture",
+                                 "hull"),
 }
 
 

@@ -11,12 +11,13 @@ principal axes. Packing: charts rasterised on a grid of cells (the ``gutter`` in
 Tetris-like onto a skyline, largest first, upright or turned, at the largest scale found to fit a ``size`` x
 ``size`` square. Orthographic projection is injective per chart only while no part of the chart hides another
 along its direction: a fold whose two sides both face the chart's direction (a carved belly behind a leg, a spiral
-ramp) lands on the same texels, and one side is painted with the other's colours. So the packed atlas is checked:
-a face whose centroid lies inside another face of its chart (``hidden_faces``, from one raster of the atlas) is the
-hidden one of the pair when it lies further back along the direction, and the hidden faces leave for charts of their
-own (``split_hidden``), up to ``rounds`` times, before the packing (the check lays the charts out apart on a
-canvas of the atlas's size, ``shelf_layout``). Tests count texels inside two faces: 0 on the cup, the figure and
-a spiral ramp; the carved middlebury_dinoSR's belly, 1 cm behind its leg, took the leg's colours over 203 faces.
+ramp) lands on the same texels, and one side is painted with the other's colours. So the charts are checked before
+the packing, laid out apart on a canvas of the atlas's size (``shelf_layout``) and rasterised once: of two faces of
+a chart where a test point of one (its centroid or a point towards a corner) lies inside the other
+(``hidden_faces``), the one further back along the direction is hidden, and the hidden faces leave for charts of
+their own (``split_hidden``, not merged back: more, smaller charts), up to ``rounds`` times. Tests count texels
+inside two faces: 0 on the cup, the figure and a spiral ramp; on middlebury_dinoSR's hull 18880 before the check,
+91 with it, and the carved dino's belly, 1 cm behind its leg, no longer takes the leg's colours.
 """
 from __future__ import annotations
 
@@ -125,7 +126,8 @@ def _basis(d):
 def chart_uv(vertices, faces, chart, chart_dir) -> np.ndarray:
     """(F, 3, 2) chart-local coordinates (world units): orthographic projection along the chart direction,
     turned to the chart's principal axes, minimum at 0. All charts at once (per-chart sums by bincount: a loop
-    over thousands of charts cost 0.4 s; ``chart_uv_reference`` is that loop, the same to rounding)."""
+    over thousands of charts cost 0.4 s; ``chart_uv_reference`` is that loop, the same to rounding, except on a
+    chart whose two principal spreads are equal, where either turn is a principal one)."""
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces, np.int64)
     chart = np.asarray(chart, np.int64)
@@ -357,7 +359,7 @@ def shelf_layout(local_uv, chart, size: int) -> tuple[np.ndarray, int]:
     """Charts side by side in rows on a square as large as the atlas, at the atlas's first-guess density (pack_charts'
     56 % of its square) or, where they do not fit so, at 0.8, 0.64 ... of it: no chart touches another, so a raster
     of it shows each chart's own overlaps. Quick and wasteful; for checking only. Returns (face_uv (F, 3, 2) texel
-    coordinates, canvas side)."""
+    coordinates, canvas side); (None, canvas side) where they do not fit even at 1/200 of that density."""
     canvas = size
     v = np.asarray(local_uv, np.float64)
     nC = int(chart.max()) + 1
@@ -365,7 +367,7 @@ def shelf_layout(local_uv, chart, size: int) -> tuple[np.ndarray, int]:
     scale = 0.75 * size / np.sqrt(max(tri.sum(), 1e-30))
     ext = np.zeros((nC, 2))
     np.maximum.at(ext, chart, v.max(axis=1))
-    while True:
+    for _ in range(24):                                             # 0.8^24: 1/200 of the first guess
         wh = np.ceil(ext * scale) + 2                               # a texel's gap on every side
         order = np.argsort(-wh[:, 1], kind="stable")
         off = np.zeros((nC, 2))
@@ -379,6 +381,7 @@ def shelf_layout(local_uv, chart, size: int) -> tuple[np.ndarray, int]:
         if y + row <= canvas and wh[:, 0].max() <= canvas:
             return v * scale + off[chart][:, None, :], canvas
         scale *= 0.8
+    return None, canvas                                             # too many charts for the square: no check
 
 
 def make_atlas(vertices, faces, nbr, size=2048, *, directions=6, min_faces=24, gutter=2, rounds=4) -> Atlas:
@@ -391,6 +394,8 @@ def make_atlas(vertices, faces, nbr, size=2048, *, directions=6, min_faces=24, g
     local = chart_uv(vertices, faces, chart, chart_dir)
     for _ in range(rounds if len(faces) else 0):
         uv, canvas = shelf_layout(local, chart, size)
+        if uv is None:
+            break
         hidden = hidden_faces(uv, chart, chart_dir, vertices, faces, uv_raster(uv, canvas))
         if not hidden.any():
             break
