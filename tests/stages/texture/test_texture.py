@@ -758,6 +758,28 @@ def test_atlas_splits_a_chart_whose_fold_lands_on_itself():
 
 
 @pytest.mark.slow
+@pytest.mark.realdata
+def test_real_dinoSR_hull_atlas_gives_every_face_its_own_texels(data_dir):
+    """middlebury_dinoSR's visual hull at 64^3 (its dataset graph's key and box): mc's surface folds under itself
+    along some chart directions; before the atlas split those charts, 60 faces of >= 2 texels owned no texel of a
+    1024^2 atlas (another face of their chart lay over them and painted them with its colours); now none."""
+    cap = run_node("capture", {}, {"path": str(data_dir / "middlebury_dinoSR")})
+    masks = run_node("key.threshold", {"images": cap["images"]}, {"threshold": 0.19, "dilate": 10, "erode": 7})["masks"]
+    vol = run_node("hull", {"masks": masks, "cameras": cap["cameras"]}, {
+        "resolution": 64, "bbox": [-0.036291, -0.041619, -0.031806, 0.036503, 0.031721, 0.055295]})["volume"]
+    m = run_node("mc", {"volume": vol}, {"largest": True})["mesh"]
+    faces = np.asarray(m.faces, np.int32)
+    size = 1024
+    atlas = make_atlas(m.vertices, faces, face_neighbours(faces), size)
+    tf = B.uv_raster(atlas.face_uv, size)
+    uv = atlas.face_uv.astype(np.float64)
+    area = 0.5 * np.abs((uv[:, 1, 0] - uv[:, 0, 0]) * (uv[:, 2, 1] - uv[:, 0, 1])
+                        - (uv[:, 1, 1] - uv[:, 0, 1]) * (uv[:, 2, 0] - uv[:, 0, 0]))
+    owned = np.bincount(tf[tf >= 0], minlength=len(faces))
+    assert len(faces) > 30000 and int(np.sum((area >= 2) & (owned == 0))) == 0
+
+
+@pytest.mark.slow
 def test_atlas_charts_do_not_overlap_and_use_the_square():
     from nodes.synth import scenes
     from nodes.texture.atlas import atlas_stats
