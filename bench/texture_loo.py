@@ -6,8 +6,9 @@ camera i, render it into camera i, compare with the real photo inside mask_i and
 
 Meshes come from the dataset graphs (graphs/datasets/*.yaml; the synthetic scene: graphs/demo.yaml frame 0),
 run through the CLI into a cache. The *_carved sets take the sparse sets' hull (as their textured graphs make it)
-and carve it to its photo hull for each held-out camera from the other cameras alone (carving reads colours: the held-out photo must
-not shape the mesh it is scored on; the hull itself, like every set's, is made from all silhouettes). Methods, all on the same mesh and the same held-out cameras:
+and carve it to its photo hull for each held-out camera from the other cameras alone (carving reads colours: the
+held-out photo must not shape the mesh it is scored on; the hull itself, like every set's, is made from all
+silhouettes). Methods, all on the same mesh and the same held-out cameras:
   vertex colours   per-vertex mean of the views that see the vertex (z-buffer) inside their mask
   cos^2 mean       the same weighted by cos^2 of the viewing angle (vertex normals), masks eroded by 2 px
   MeshLab          pymeshlab texture from registered rasters (masks given as alpha, alpha weight on), 2048^2

@@ -355,7 +355,7 @@ def split_hidden(faces, nbr, chart, chart_dir, hidden):
     return new.astype(np.int32), new_dir
 
 
-def shelf_layout(local_uv, chart, size: int) -> tuple[np.ndarray, int]:
+def shelf_layout(local_uv, chart, size: int) -> tuple[np.ndarray | None, int]:
     """Charts side by side in rows on a square as large as the atlas, at the atlas's first-guess density (pack_charts'
     56 % of its square) or, where they do not fit so, at 0.8, 0.64 ... of it: no chart touches another, so a raster
     of it shows each chart's own overlaps. Quick and wasteful; for checking only. Returns (face_uv (F, 3, 2) texel
@@ -363,7 +363,8 @@ def shelf_layout(local_uv, chart, size: int) -> tuple[np.ndarray, int]:
     canvas = size
     v = np.asarray(local_uv, np.float64)
     nC = int(chart.max()) + 1
-    tri = 0.5 * np.abs((v[:, 1, 0] - v[:, 0, 0]) * (v[:, 2, 1] - v[:, 0, 1]) - (v[:, 1, 1] - v[:, 0, 1]) * (v[:, 2, 0] - v[:, 0, 0]))
+    e1, e2 = v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]
+    tri = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
     scale = 0.75 * size / np.sqrt(max(tri.sum(), 1e-30))
     ext = np.zeros((nC, 2))
     np.maximum.at(ext, chart, v.max(axis=1))
