@@ -384,6 +384,7 @@ def main():
             line += (f"; in-sample + 6 / 16 layers {mdb(rows, 'in-sample + layers'):.2f} / "
                      f"{mdb(rows, 'in-sample + 16 layers'):.2f} vs oracle {mdb(rows, 'oracle'):.2f}")
         print(line)
+    print("\nat the end: " + describe())                    # the machine beside the gains too (the s/frame columns)
 
 
 if __name__ == "__main__":
